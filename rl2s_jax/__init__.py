@@ -1,0 +1,1 @@
+"""rl2s_jax: Robust Learning to Simulate in JAX."""

@@ -1,0 +1,17 @@
+#!/usr/bin/env bash
+# Rebuild zoos on the GPU machine (device tool), the tasks side by side on the one GPU:
+#   bash experiments/device_zoo.sh TASK [TASK ...]
+# Needs the wheels from ../shared/tools/device-wheels carried as .whl. Writes $OUT/zoo_<task>/.
+set -u
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
+  --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+export XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $#, 2))")
+nvidia-smi -L
+python3 -c "import jax; print('jax', jax.__version__, jax.devices())"
+for task in "$@"; do
+  timeout "${ZOO_TIMEOUT:-570}" python3 -m rl2s_jax.cli zoo --task "$task" \
+    --out "$OUT/zoo_$task" > "$OUT/zoo_$task.log" 2>&1 &
+done
+wait
+for task in "$@"; do grep -v -i "warn" "$OUT/zoo_$task.log"; done

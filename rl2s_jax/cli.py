@@ -1,0 +1,180 @@
+"""The `rl2s` command line: zoo | collect | inspect | pipeline."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+
+def _positive(name):
+    def parse(text):
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name}: expected a positive integer, got {text!r}")
+        if value < 1:
+            raise argparse.ArgumentTypeError(f"{name}: expected a positive integer, got {value}")
+        return value
+    return parse
+
+
+def _gamma(text):
+    value = float(text)
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"gamma: expected a value in (0, 1], got {value}")
+    return value
+
+
+def cmd_zoo(args) -> int:
+    import jax
+
+    from rl2s_jax.policies import save_zoo, zoo_dir
+    from rl2s_jax.zoo import build_zoo
+
+    zoo = build_zoo(args.task, seeds=args.seeds, key=jax.random.PRNGKey(args.seed),
+                    value_episodes=args.value_episodes)
+    out = args.out or zoo_dir(args.task)
+    save_zoo(zoo, out)
+    print(f"zoo: {zoo.size} policies, returns {zoo.returns.min():.1f} .. "
+          f"{zoo.returns.max():.1f}; train {len(zoo.train_ids)}, test {len(zoo.test_ids)}"
+          f" -> {out}")
+    return 0
+
+
+def collect_dataset(task_name: str, split: str, transitions_per_policy: int, *, seed: int = 0,
+                    envs_per_policy: int | None = None, gamma: float = 0.999,
+                    value_episodes: int = 16, episode_length: int | None = None,
+                    zoo_path: str | None = None, progress: bool = True):
+    """Collect a Dataset from a registered task's zoo split (what `rl2s collect` runs)."""
+    import jax
+
+    from rl2s_jax.collect import collect
+    from rl2s_jax.policies import index_params, load_zoo
+    from rl2s_jax.tasks import get_task
+
+    task = get_task(task_name)
+    zoo = load_zoo(zoo_path or task_name)
+    if zoo.task != task_name:
+        raise ValueError(f"zoo: built for task {zoo.task!r}, not {task_name!r}")
+    ids = zoo.split_ids(split)
+    return collect(task.make_env(), index_params(zoo.params, ids), key=jax.random.PRNGKey(seed),
+                   transitions_per_policy=transitions_per_policy,
+                   envs_per_policy=envs_per_policy,
+                   episode_length=episode_length or task.episode_length, task=task_name,
+                   policy_names=zoo.policy_names(ids), gamma=gamma,
+                   value_episodes=value_episodes, progress=progress,
+                   source={"zoo": zoo_path or f"experiments/zoo/{task_name}", "split": split,
+                           "zoo_ids": ids, "seed": seed})
+
+
+def cmd_collect(args) -> int:
+    from rl2s_jax.data import dataset_summary, save_dataset
+
+    t0 = time.time()
+    ds = collect_dataset(args.task, args.split, args.transitions_per_policy, seed=args.seed,
+                         envs_per_policy=args.envs_per_policy, gamma=args.gamma,
+                         value_episodes=args.value_episodes, episode_length=args.episode_length,
+                         zoo_path=args.zoo)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    save_dataset(args.out, ds)
+    print(dataset_summary(ds))
+    print(f"collected in {time.time() - t0:.0f}s -> {args.out}")
+    return 0
+
+
+def cmd_inspect(args) -> int:
+    from rl2s_jax.data import DatasetError, dataset_summary, load_dataset
+
+    try:
+        ds = load_dataset(args.data)
+    except DatasetError as err:
+        print(f"rl2s inspect: {err}", file=sys.stderr)
+        return 1
+    print(dataset_summary(ds))
+    return 0
+
+
+def cmd_pipeline(args) -> int:
+    """The whole pipeline for one task. For now: collect train and test data, summarise."""
+    import jax
+
+    from rl2s_jax.data import dataset_summary, save_dataset
+
+    backend = jax.default_backend()
+    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    sizes = {"cpu": dict(transitions_per_policy=2000, value_episodes=4),
+             "gpu": dict(transitions_per_policy=100_000, value_episodes=32)}[profile]
+    out = args.out or os.path.join("results", args.task)
+    os.makedirs(out, exist_ok=True)
+    print(f"[pipeline] task {args.task}, backend {backend}, profile {profile} -> {out}")
+    summary = {"task": args.task, "profile": profile, "backend": backend, "datasets": {}}
+    for split in ("train", "test"):
+        ds = collect_dataset(args.task, split, sizes["transitions_per_policy"], seed=args.seed,
+                             value_episodes=sizes["value_episodes"])
+        path = os.path.join(out, f"{split}.npz")
+        save_dataset(path, ds)
+        print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
+        summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,
+                                      "policies": ds.n_policies}
+    with open(os.path.join(out, "pipeline.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    print("\n[pipeline] stops after collection for now (training and evaluation: issues 3-4)")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from rl2s_jax.tasks import task_names
+
+    parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = sub.add_parser("zoo", help="train PPO over seeds and rebuild a task's policy zoo")
+    p.add_argument("--task", required=True, choices=task_names())
+    p.add_argument("--seeds", type=_positive("seeds"), default=4)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--value-episodes", type=_positive("value-episodes"), default=16)
+    p.add_argument("--out", help="directory (default: experiments/zoo/<task>)")
+    p.set_defaults(func=cmd_zoo)
+
+    p = sub.add_parser("collect", help="collect a Dataset from a zoo split")
+    p.add_argument("--task", required=True, choices=task_names())
+    p.add_argument("--split", choices=("train", "test", "all"), default="train")
+    p.add_argument("--transitions-per-policy", type=_positive("transitions-per-policy"),
+                   required=True)
+    p.add_argument("--envs-per-policy", type=_positive("envs-per-policy"))
+    p.add_argument("--episode-length", type=_positive("episode-length"))
+    p.add_argument("--gamma", type=_gamma, default=0.999)
+    p.add_argument("--value-episodes", type=int, default=16,
+                   help="fresh episodes per policy for its true value (0: skip)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--zoo", help="zoo directory (default: the shipped one)")
+    p.add_argument("--out", required=True)
+    p.set_defaults(func=cmd_collect)
+
+    p = sub.add_parser("inspect", help="validate a dataset file and print its summary")
+    p.add_argument("--data", required=True)
+    p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("pipeline", help="the whole pipeline for one task (make <task>)")
+    p.add_argument("--task", required=True, choices=task_names())
+    p.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out")
+    p.set_defaults(func=cmd_pipeline)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

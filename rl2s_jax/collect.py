@@ -1,0 +1,242 @@
+"""Roll a whole policy zoo at once in MJX and record a Dataset, plus each policy's true value.
+
+All P policies x E parallel envs step together as one flat batch of B = P * E envs. Every
+episode starts from a *fresh* random initial state: brax's AutoResetWrapper reuses one cached
+start state, so we keep our own pool instead. Each env holds one pending start state drawn
+from ``env.reset``; when its episode ends it swaps that start in, and every step refreshes up
+to M = ceil(refresh_fraction * B) used pending starts in one small batched reset. If more envs
+end in one step than have fresh pending starts, a full batched reset runs for that step only
+(``lax.cond``), so the guarantee holds whatever the episode lengths. A reset costs about one
+physics sub-step, so refreshing a fraction instead of all B every step keeps collection close
+to raw stepping speed (docs/BENCHMARKS.md).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs import wrappers as brax_wrappers
+from brax.envs.base import Env, Wrapper
+
+from rl2s_jax.policies import Params, num_policies, sample_action
+
+FORBIDDEN_WRAPPERS = ("AutoResetWrapper", "EpisodeWrapper", "VmapWrapper",
+                      "DomainRandomizationVmapWrapper")
+
+
+def check_env(env: Env) -> None:
+    """Refuse envs whose wrappers reset, time-limit or batch on their own."""
+    if not isinstance(env, Env):
+        raise TypeError(f"env: expected a brax.envs.base.Env, got {type(env).__name__}")
+    e = env
+    while isinstance(e, Wrapper):
+        if type(e).__name__ in FORBIDDEN_WRAPPERS or isinstance(
+                e, getattr(brax_wrappers.training, "AutoResetWrapper", ())):
+            raise ValueError(
+                f"env: {type(e).__name__} found in the wrapper chain; pass an env without "
+                "auto-reset, episode or vmap wrappers (collection does its own resets, time "
+                "limit and batching)")
+        e = e.env
+
+
+def tree_where(mask: jax.Array, a: Any, b: Any) -> Any:
+    """Per-env select between two batched pytrees. mask: [B]; leaves: [B, ...]."""
+    def sel(x, y):
+        return jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y)
+    return jax.tree_util.tree_map(sel, a, b)
+
+
+class RolloutCarry(NamedTuple):
+    env_state: Any          # brax State, batched [B]
+    pending: Any            # brax State, batched [B]: the next episode's start for each env
+    fresh: jax.Array        # [B] bool: pending start not used yet
+    t: jax.Array            # [B] int32: step within the current episode
+    key: jax.Array
+
+
+def make_rollout_step(env: Env, n_policies: int, envs_per_policy: int, episode_length: int,
+                      refresh_fraction: float = 0.125):
+    """Returns ``init(key) -> carry`` and ``step(params, carry) -> (carry, record)``.
+
+    params: stacked policy params [P, ...]. record: dict of [B, ...] arrays for one step
+    (obs, action, next_obs, reward, done, truncated, t), B = P * E, row b = p * E + e.
+    """
+    P, E, L = n_policies, envs_per_policy, episode_length
+    B = P * E
+    M = max(1, min(B, math.ceil(refresh_fraction * B)))
+    v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
+    act = jax.vmap(sample_action)
+
+    def init(key):
+        k_start, k_pending, key = jax.random.split(key, 3)
+        return RolloutCarry(env_state=v_reset(jax.random.split(k_start, B)),
+                            pending=v_reset(jax.random.split(k_pending, B)),
+                            fresh=jnp.ones((B,), bool), t=jnp.zeros((B,), jnp.int32), key=key)
+
+    def step(params, carry: RolloutCarry):
+        key, k_act, k_all, k_part = jax.random.split(carry.key, 4)
+        obs = carry.env_state.obs
+        action, _, _ = act(params, obs.reshape(P, E, -1), jax.random.split(k_act, P))
+        action = action.reshape(B, -1)
+        nxt = v_step(carry.env_state, action)
+        done = nxt.done > 0.5
+        truncated = (carry.t + 1 >= L) & ~done
+        end = done | truncated
+
+        # Every env that ends now must find a fresh start waiting.
+        short = jnp.any(end & ~carry.fresh)
+        pending = jax.lax.cond(
+            short, lambda p: tree_where(carry.fresh, p, v_reset(jax.random.split(k_all, B))),
+            lambda p: p, carry.pending)
+        fresh = carry.fresh | short
+        env_state = tree_where(end, pending, nxt)
+        fresh = fresh & ~end
+        # Refresh up to M used starts (index B = padding, dropped by the scatter).
+        idx = jnp.nonzero(~fresh, size=M, fill_value=B)[0]
+        new = v_reset(jax.random.split(k_part, M))
+        pending = jax.tree_util.tree_map(lambda p, n: p.at[idx].set(n, mode="drop"),
+                                         pending, new)
+        fresh = fresh.at[idx].set(True, mode="drop")
+
+        record = {"obs": obs, "action": action, "next_obs": nxt.obs,
+                  "reward": nxt.reward.astype(jnp.float32), "done": done,
+                  "truncated": truncated, "t": carry.t}
+        t = jnp.where(end, 0, carry.t + 1).astype(jnp.int32)
+        return RolloutCarry(env_state, pending, fresh, t, key), record
+
+    return init, step
+
+
+def run_chunked(step_fn, carry, total_steps: int, chunk_steps: int, desc: str,
+                progress: bool, keep_outputs: bool = False):
+    """Run ``carry, out = step_fn(carry)`` total_steps times as jitted scans of chunk_steps.
+
+    Python only moves between chunks (progress bar, copying outputs to the host).
+    Returns (carry, [host outputs of each chunk, each stacked [chunk, ...]]).
+    """
+    from tqdm.auto import tqdm
+
+    compiled, outputs, done = {}, [], 0
+    with tqdm(total=total_steps, desc=desc, unit="step", leave=False,
+              disable=not progress) as bar:
+        while done < total_steps:
+            n = min(chunk_steps, total_steps - done)
+            if n not in compiled:
+                compiled[n] = jax.jit(lambda c, n=n: jax.lax.scan(
+                    lambda c, _: step_fn(c), c, None, length=n))
+            carry, out = compiled[n](carry)
+            if keep_outputs:
+                outputs.append(jax.device_get(out))
+            done += n
+            bar.update(n)
+    return carry, outputs
+
+
+def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy: int,
+            envs_per_policy: int | None = None, episode_length: int = 1000,
+            refresh_fraction: float = 0.125, chunk_steps: int = 100, task: str | None = None,
+            policy_names: list[str] | None = None, gamma: float = 0.999,
+            value_episodes: int = 16, source: dict | None = None, progress: bool = True):
+    """Collect ``transitions_per_policy`` transitions from each policy of a stacked zoo.
+
+    env: any unwrapped brax Env (registered task or user env with changed dynamics).
+    params: stacked policy params [P, ...]. Returns a ``Dataset`` whose rows are ordered policy
+    by policy, env slot by env slot, time-ordered within a slot; per-policy true values come
+    from ``measure_values`` (skipped when value_episodes == 0).
+    """
+    from rl2s_jax.data import Dataset
+
+    check_env(env)
+    P = num_policies(params)
+    N = int(transitions_per_policy)
+    if N <= 0:
+        raise ValueError(f"transitions_per_policy: expected a positive integer, got {N}")
+    if episode_length <= 0:
+        raise ValueError(f"episode_length: expected a positive integer, got {episode_length}")
+    E = int(envs_per_policy or min(N, 64))
+    if not 0 < E <= N:
+        raise ValueError(f"envs_per_policy: expected 1..{N}, got {E}")
+    steps = math.ceil(N / E)
+    policy_names = policy_names or [f"policy-{i:03d}" for i in range(P)]
+    if len(policy_names) != P:
+        raise ValueError(f"policy_names: expected {P} names, got {len(policy_names)}")
+
+    key_collect, key_values = jax.random.split(key)
+    init, step = make_rollout_step(env, P, E, episode_length, refresh_fraction)
+
+    carry = jax.jit(init)(key_collect)
+    carry, records = run_chunked(lambda c: step(params, c), carry, steps, chunk_steps,
+                                 f"collect {task or 'env'} ({P} policies x {E} envs)",
+                                 progress, keep_outputs=True)
+
+    def per_policy(name):  # [S, B, ...] -> [P * N, ...]
+        x = np.concatenate([r[name] for r in records], axis=0)
+        x = np.swapaxes(x, 0, 1).reshape((P, E * steps) + x.shape[2:])[:, :N]
+        return x.reshape((P * N,) + x.shape[2:])
+
+    fields = {k: per_policy(k) for k in records[0]}
+    t = fields.pop("t").astype(np.int32)
+    episode_id = (np.cumsum(t == 0) - 1).astype(np.int32)
+    values = {}
+    if value_episodes > 0:
+        values = measure_values(env, params, key=key_values, n_episodes=value_episodes,
+                                episode_length=episode_length, gamma=gamma, progress=progress)
+    meta = {"task": task, "obs_size": int(fields["obs"].shape[-1]),
+            "action_size": int(fields["action"].shape[-1]), "n_policies": P,
+            "gamma": float(gamma) if values else None, "episode_length": int(episode_length),
+            "policy_names": list(policy_names),
+            "source": {"collector": "rl2s_jax.collect", "envs_per_policy": E,
+                       "steps_per_env": steps, "refresh_fraction": refresh_fraction,
+                       "value_episodes": value_episodes, "env": type(env).__name__,
+                       **(source or {})}}
+    return Dataset(obs=fields["obs"].astype(np.float32),
+                   action=fields["action"].astype(np.float32),
+                   next_obs=fields["next_obs"].astype(np.float32),
+                   reward=fields["reward"].astype(np.float32), done=fields["done"],
+                   truncated=fields["truncated"], policy_id=np.repeat(
+                       np.arange(P, dtype=np.int32), N), episode_id=episode_id, t=t,
+                   value=values.get("value"), value_se=values.get("value_se"),
+                   value_discounted=values.get("value_discounted"),
+                   value_discounted_se=values.get("value_discounted_se"), meta=meta)
+
+
+def measure_values(env: Env, params: Params, *, key: jax.Array, n_episodes: int,
+                   episode_length: int, gamma: float = 0.999, chunk_steps: int = 100,
+                   progress: bool = False) -> dict[str, np.ndarray]:
+    """True value of each policy of a stacked zoo: n_episodes fresh episodes each.
+
+    Returns {"value", "value_se", "value_discounted", "value_discounted_se"}, each [P]:
+    mean (discounted) episode return over the episodes and its standard error.
+    """
+    check_env(env)
+    P, E, L = num_policies(params), int(n_episodes), int(episode_length)
+    if E < 1:
+        raise ValueError(f"n_episodes: expected >= 1, got {E}")
+    B = P * E
+    act = jax.vmap(sample_action)
+    v_step = jax.vmap(env.step)
+
+    def step(carry, _):
+        state, alive, ret, dret, disc, key = carry
+        key, k_act = jax.random.split(key)
+        action, _, _ = act(params, state.obs.reshape(P, E, -1), jax.random.split(k_act, P))
+        nxt = v_step(state, action.reshape(B, -1))
+        r = jnp.where(alive, nxt.reward, 0.0)
+        alive_next = alive & (nxt.done < 0.5)
+        return (nxt, alive_next, ret + r, dret + disc * r, disc * gamma, key), None
+
+    k_reset, key = jax.random.split(key)
+    carry = (jax.jit(jax.vmap(env.reset))(jax.random.split(k_reset, B)),
+             jnp.ones((B,), bool), jnp.zeros((B,)), jnp.zeros((B,)), jnp.ones(()), key)
+    carry, _ = run_chunked(lambda c: step(c, None), carry, L, chunk_steps, "measure values",
+                           progress)
+    ret = np.asarray(carry[2], np.float64).reshape(P, E)
+    dret = np.asarray(carry[3], np.float64).reshape(P, E)
+    se = lambda x: (x.std(axis=1, ddof=1) / np.sqrt(E)) if E > 1 else np.zeros(P)
+    return {"value": ret.mean(1).astype(np.float32), "value_se": se(ret).astype(np.float32),
+            "value_discounted": dret.mean(1).astype(np.float32),
+            "value_discounted_se": se(dret).astype(np.float32)}

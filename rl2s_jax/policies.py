@@ -1,0 +1,211 @@
+"""The one policy architecture of the project, and the policy zoo.
+
+A policy is a tanh-squashed Gaussian MLP with a frozen observation normaliser. Its parameters
+are a plain pytree (dict of arrays), so a zoo of P policies is the same pytree with a leading
+axis [P, ...] and anything written for one policy runs over a zoo with ``jax.vmap``.
+
+Params layout (one policy)::
+
+    {"obs_mean": [obs], "obs_std": [obs],
+     "layers": [{"w": [in, out], "b": [out]}, ...]}   # last layer out = 2 * action_size
+
+The last layer's output is split into the pre-tanh mean ``loc`` and a raw scale; the scale is
+``softplus(raw) + MIN_SCALE`` (as brax's NormalTanhDistribution), so the policy is state
+dependent, differentiable, and fine to fine-tune with SAC.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Params = dict[str, Any]
+MIN_SCALE = 1e-3
+DEFAULT_HIDDEN = (64, 64)
+
+
+def init_mlp(key: jax.Array, sizes: Sequence[int], last_scale: float = 1.0) -> list[dict]:
+    """MLP layers for ``mlp``: lecun-normal weights (last layer scaled), zero biases."""
+    keys = jax.random.split(key, len(sizes) - 1)
+    init = jax.nn.initializers.lecun_normal()
+    layers = [{"w": init(k, (a, b), jnp.float32), "b": jnp.zeros((b,), jnp.float32)}
+              for k, a, b in zip(keys, sizes[:-1], sizes[1:], strict=True)]
+    layers[-1]["w"] = layers[-1]["w"] * last_scale
+    return layers
+
+
+def init_policy(key: jax.Array, obs_size: int, action_size: int,
+                hidden: Sequence[int] = DEFAULT_HIDDEN) -> Params:
+    """Fresh policy parameters with an identity normaliser.
+
+    A small last layer keeps the initial policy near zero mean with a moderate spread.
+    """
+    return {"obs_mean": jnp.zeros((obs_size,), jnp.float32),
+            "obs_std": jnp.ones((obs_size,), jnp.float32),
+            "layers": init_mlp(key, [obs_size, *hidden, 2 * action_size], last_scale=0.01)}
+
+
+def mlp(layers: list[dict[str, jax.Array]], x: jax.Array) -> jax.Array:
+    """A swish MLP; no activation after the last layer. x: [..., in] -> [..., out]."""
+    for layer in layers[:-1]:
+        x = jax.nn.swish(x @ layer["w"] + layer["b"])
+    return x @ layers[-1]["w"] + layers[-1]["b"]
+
+
+def normalize_obs(params: Params, obs: jax.Array) -> jax.Array:
+    """Observation normalised by the policy's frozen statistics, clipped to [-10, 10]."""
+    return jnp.clip((obs - params["obs_mean"]) / params["obs_std"], -10.0, 10.0)
+
+
+def policy_dist(params: Params, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Pre-tanh Gaussian of one policy. obs: [..., obs] -> (loc, scale), each [..., act]."""
+    out = mlp(params["layers"], normalize_obs(params, obs))
+    loc, raw_scale = jnp.split(out, 2, axis=-1)
+    return loc, jax.nn.softplus(raw_scale) + MIN_SCALE
+
+
+def gaussian_log_prob(loc: jax.Array, scale: jax.Array, raw: jax.Array) -> jax.Array:
+    """log N(raw; loc, scale) summed over the last axis. -> [...]"""
+    z = (raw - loc) / scale
+    return jnp.sum(-0.5 * z**2 - jnp.log(scale) - 0.5 * jnp.log(2 * jnp.pi), axis=-1)
+
+
+def tanh_log_det(raw: jax.Array) -> jax.Array:
+    """log |d tanh(raw) / d raw| summed over the last axis (numerically stable form)."""
+    return jnp.sum(2.0 * (jnp.log(2.0) - raw - jax.nn.softplus(-2.0 * raw)), axis=-1)
+
+
+def sample_action(params: Params, obs: jax.Array, key: jax.Array
+                  ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Stochastic action of one policy.
+
+    obs: [..., obs] -> (action [..., act] in (-1, 1), raw pre-tanh action [..., act],
+    log-prob of the squashed action [...]).
+    """
+    loc, scale = policy_dist(params, obs)
+    raw = loc + scale * jax.random.normal(key, loc.shape, loc.dtype)
+    logp = gaussian_log_prob(loc, scale, raw) - tanh_log_det(raw)
+    return jnp.tanh(raw), raw, logp
+
+
+def mode_action(params: Params, obs: jax.Array) -> jax.Array:
+    """Deterministic action tanh(loc). obs: [..., obs] -> [..., act]."""
+    return jnp.tanh(policy_dist(params, obs)[0])
+
+
+def stack_params(params_list: Sequence[Params]) -> Params:
+    """[policy_0, policy_1, ...] -> one pytree with a leading policy axis."""
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *params_list)
+
+
+def index_params(stacked: Params, ids) -> Params:
+    """Policies ``ids`` (int or int array) of a stacked pytree."""
+    ids = jnp.asarray(ids)
+    return jax.tree_util.tree_map(lambda x: x[ids], stacked)
+
+
+def num_policies(stacked: Params) -> int:
+    return int(jax.tree_util.tree_leaves(stacked)[0].shape[0])
+
+
+# ----------------------------------------------------------------------------------------------
+# The zoo on disk: experiments/zoo/<task>/zoo.npz (params, flattened by path) + zoo.json
+# (returns, origins, split). Both are small and diffable enough to commit.
+
+ZOO_ROOT = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
+                        "experiments", "zoo")
+
+
+@dataclasses.dataclass
+class Zoo:
+    """A stacked set of P policies with their measured real returns and a fixed split.
+
+    params: stacked policy params [P, ...]; returns / return_se: [P] mean undiscounted episode
+    return and its standard error (measured by ``collect.measure_values``); origins: P dicts
+    (seed, iteration, env_steps); train_ids / test_ids: disjoint index lists.
+    """
+
+    task: str
+    params: Params
+    returns: np.ndarray
+    return_se: np.ndarray
+    origins: list[dict]
+    train_ids: list[int]
+    test_ids: list[int]
+    info: dict = dataclasses.field(default_factory=dict)
+
+    @property
+    def size(self) -> int:
+        return num_policies(self.params)
+
+    def split_ids(self, split: str) -> list[int]:
+        if split == "train":
+            return list(self.train_ids)
+        if split == "test":
+            return list(self.test_ids)
+        if split == "all":
+            return list(range(self.size))
+        raise ValueError(f"split: expected one of 'train', 'test', 'all', got {split!r}")
+
+    def policy_names(self, ids: Sequence[int]) -> list[str]:
+        return [f"{self.task}-{i:03d}" for i in ids]
+
+
+def _flatten(params: Params) -> dict[str, np.ndarray]:
+    flat = {}
+    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
+        name = "/".join(str(getattr(p, "key", getattr(p, "idx", p))) for p in path)
+        flat[name] = np.asarray(leaf)
+    return flat
+
+
+def _unflatten(flat: dict[str, np.ndarray]) -> Params:
+    n_layers = 1 + max(int(k.split("/")[1]) for k in flat if k.startswith("layers/"))
+    return {"obs_mean": jnp.asarray(flat["obs_mean"]), "obs_std": jnp.asarray(flat["obs_std"]),
+            "layers": [{"w": jnp.asarray(flat[f"layers/{i}/w"]),
+                        "b": jnp.asarray(flat[f"layers/{i}/b"])} for i in range(n_layers)]}
+
+
+def zoo_dir(task: str, root: str | None = None) -> str:
+    return os.path.join(root or ZOO_ROOT, task)
+
+
+def save_zoo(zoo: Zoo, directory: str) -> None:
+    """Write ``zoo.npz`` (params) and ``zoo.json`` (everything else) into ``directory``."""
+    if set(zoo.train_ids) & set(zoo.test_ids):
+        raise ValueError("train_ids and test_ids must be disjoint")
+    os.makedirs(directory, exist_ok=True)
+    np.savez_compressed(os.path.join(directory, "zoo.npz"), **_flatten(zoo.params))
+    meta = {"task": zoo.task, "size": zoo.size,
+            "returns": [float(r) for r in zoo.returns],
+            "return_se": [float(r) for r in zoo.return_se],
+            "origins": zoo.origins, "train_ids": [int(i) for i in zoo.train_ids],
+            "test_ids": [int(i) for i in zoo.test_ids], "info": zoo.info}
+    with open(os.path.join(directory, "zoo.json"), "w") as f:
+        json.dump(meta, f, indent=1)
+
+
+def load_zoo(task_or_dir: str) -> Zoo:
+    """Load a zoo by task name (the shipped one under experiments/zoo/) or by directory."""
+    directory = task_or_dir if os.path.isdir(task_or_dir) else zoo_dir(task_or_dir)
+    npz, js = os.path.join(directory, "zoo.npz"), os.path.join(directory, "zoo.json")
+    if not (os.path.exists(npz) and os.path.exists(js)):
+        raise FileNotFoundError(
+            f"zoo: no zoo.npz/zoo.json under {directory!r}; build one with `rl2s zoo --task T`")
+    with open(js) as f:
+        meta = json.load(f)
+    with np.load(npz) as data:
+        params = _unflatten({k: data[k] for k in data.files})
+    zoo = Zoo(task=meta["task"], params=params, returns=np.asarray(meta["returns"], np.float32),
+              return_se=np.asarray(meta["return_se"], np.float32), origins=meta["origins"],
+              train_ids=meta["train_ids"], test_ids=meta["test_ids"], info=meta.get("info", {}))
+    if zoo.size != len(zoo.returns):
+        raise ValueError(f"zoo {directory}: {zoo.size} policies but {len(zoo.returns)} returns")
+    return zoo

@@ -257,6 +257,7 @@ _PM_DECAY = 0.95  # velocity decay per step
 _PM_GAIN = 2.0  # acceleration per unit action
 _PM_LIMIT = 2.0  # terminate when |p| > limit
 _PM_CTRL = 0.1  # control cost weight
+_PM_ALIVE = 1.0  # per-step bonus, so that ending an episode early never pays
 
 
 def pointmass_dynamics(obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -275,9 +276,12 @@ def pointmass_dynamics(obs: jax.Array, action: jax.Array) -> jax.Array:
 
 
 def pointmass_reward(obs: jax.Array, action: jax.Array, next_obs: jax.Array) -> jax.Array:
-    """-(p'^2) - 0.1 |action|^2 (raw, unclipped action, as brax's ctrl costs). -> [...]."""
+    """1 - p'^2 - 0.1 |action|^2 (raw, unclipped action, as brax's ctrl costs). -> [...].
+
+    The alive bonus makes surviving worth more than terminating, as in the MuJoCo tasks.
+    """
     del obs
-    return -jnp.square(next_obs[..., 0]) - _ctrl_cost(_PM_CTRL, action)
+    return _PM_ALIVE - jnp.square(next_obs[..., 0]) - _ctrl_cost(_PM_CTRL, action)
 
 
 def pointmass_done(next_obs: jax.Array) -> jax.Array:

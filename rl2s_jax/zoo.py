@@ -71,7 +71,8 @@ def choose_split(returns: np.ndarray, n_train: int, min_test: int = MIN_TEST
 
 def build_zoo(task_name: str, *, seeds: int = 4, key: jax.Array | None = None,
               cfg: PPOConfig | None = None, value_episodes: int = 16,
-              n_train: int | None = None, zoo_size: int = 60, log=print) -> Zoo:
+              n_train: int | None = None, zoo_size: int = 60, min_test: int = MIN_TEST,
+              log=print) -> Zoo:
     """Train ``seeds`` PPO runs (one vmapped program), measure every snapshot, keep
     ``zoo_size`` of them spread evenly over the returns, split into train and test."""
     task = get_task(task_name)
@@ -105,7 +106,8 @@ def build_zoo(task_name: str, *, seeds: int = 4, key: jax.Array | None = None,
     origins = [{"seed": j // n_snap, "snapshot": j % n_snap, "env_steps": int(env_steps[j]),
                 "training_return": None if np.isnan(train_ret[j]) else float(train_ret[j])}
                for j in keep]
-    train_ids, test_ids = choose_split(values["value"], n_train or SPLIT_SIZES.get(task_name, 17))
+    train_ids, test_ids = choose_split(values["value"], n_train or SPLIT_SIZES.get(task_name, 17),
+                                       min_test)
     info = {"ppo": dataclasses.asdict(cfg), "seeds": seeds, "value_episodes": value_episodes,
             "snapshots_measured": seeds * n_snap,
             "train_seconds": round(train_s, 1), "device": str(jax.devices()[0]),

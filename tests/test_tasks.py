@@ -54,9 +54,9 @@ def _valid_steps(done):
 
 
 @pytest.fixture(scope="module", params=MUJOCO)
-def mjx_case(request):
+def mjx_case(request, env_cache):
     task = tasks.get_task(request.param)
-    env = task.make_env()
+    env = env_cache(request.param)
     keys = jax.random.split(jax.random.PRNGKey(0), N_ENVS)
     actions = _actions(jax.random.PRNGKey(1), task.action_size)
     obs, next_obs, reward, done = _rollout(env, keys, actions)

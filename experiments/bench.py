@@ -16,7 +16,6 @@ import sys
 import time
 
 import jax
-import jax.numpy as jnp
 
 from rl2s_jax.collect import make_rollout_step
 from rl2s_jax.policies import init_policy, stack_params

@@ -14,7 +14,8 @@ def _positive(name):
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{name}: expected a positive integer, got {text!r}")
+            raise argparse.ArgumentTypeError(
+                f"{name}: expected a positive integer, got {text!r}") from None
         if value < 1:
             raise argparse.ArgumentTypeError(f"{name}: expected a positive integer, got {value}")
         return value
@@ -168,6 +169,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    import warnings
+
+    # brax warns on every env it builds that it is unmaintained; we use only its envs.
+    warnings.filterwarnings("ignore", category=UserWarning, module="brax")
+    warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)

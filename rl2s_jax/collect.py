@@ -157,7 +157,9 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
         raise ValueError(f"transitions_per_policy: expected a positive integer, got {N}")
     if episode_length <= 0:
         raise ValueError(f"episode_length: expected a positive integer, got {episode_length}")
-    E = int(envs_per_policy or min(N, 64))
+    # By default as few envs as let each run about one episode length (so the data covers
+    # whole episodes, not only their starts), at most 64 per policy.
+    E = int(envs_per_policy or max(1, min(64, N // episode_length)))
     if not 0 < E <= N:
         raise ValueError(f"envs_per_policy: expected 1..{N}, got {E}")
     steps = math.ceil(N / E)

@@ -5,7 +5,7 @@ import functools
 import pytest
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def cached_env(name: str):
     from rl2s_jax.tasks import get_task
 

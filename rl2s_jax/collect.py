@@ -19,13 +19,13 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-from brax.envs import wrappers as brax_wrappers
 from brax.envs.base import Env, Wrapper
+from brax.envs.wrappers import training as brax_training
 
 from rl2s_jax.policies import Params, num_policies, sample_action
 
-FORBIDDEN_WRAPPERS = ("AutoResetWrapper", "EpisodeWrapper", "VmapWrapper",
-                      "DomainRandomizationVmapWrapper")
+FORBIDDEN_WRAPPERS = (brax_training.AutoResetWrapper, brax_training.EpisodeWrapper,
+                      brax_training.VmapWrapper, brax_training.DomainRandomizationVmapWrapper)
 
 
 def check_env(env: Env) -> None:
@@ -34,8 +34,7 @@ def check_env(env: Env) -> None:
         raise TypeError(f"env: expected a brax.envs.base.Env, got {type(env).__name__}")
     e = env
     while isinstance(e, Wrapper):
-        if type(e).__name__ in FORBIDDEN_WRAPPERS or isinstance(
-                e, getattr(brax_wrappers.training, "AutoResetWrapper", ())):
+        if isinstance(e, FORBIDDEN_WRAPPERS):
             raise ValueError(
                 f"env: {type(e).__name__} found in the wrapper chain; pass an env without "
                 "auto-reset, episode or vmap wrappers (collection does its own resets, time "

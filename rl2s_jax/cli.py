@@ -1,4 +1,4 @@
-"""The `rl2s` command line: zoo | collect | inspect | pipeline."""
+"""The `rl2s` command line: zoo | collect | inspect | train | pipeline."""
 
 from __future__ import annotations
 
@@ -98,6 +98,37 @@ def cmd_inspect(args) -> int:
     return 0
 
 
+def _overrides(items: list[str] | None) -> dict:
+    """--set key=value pairs -> dict; values parsed as JSON where they parse (3, 1e-4, [64,64])."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"set: expected key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k.strip()] = v
+    return out
+
+
+def cmd_train(args) -> int:
+    from rl2s_jax.fit import TrainingDiverged, format_summary, run_training
+
+    if not os.path.exists(args.data):
+        raise FileNotFoundError(f"data: no such file {args.data}")
+    try:
+        summary = run_training(args.data, args.method, args.steps, args.out, zoo=args.zoo,
+                               profile=args.profile, seed=args.seed, eps=args.eps,
+                               save_every=args.save_every, chunk=args.chunk,
+                               overrides=_overrides(args.set), progress=not args.quiet)
+    except TrainingDiverged as err:
+        print(f"rl2s train: {err}", file=sys.stderr)
+        return 1
+    print(format_summary(summary))
+    return 0
+
+
 def cmd_pipeline(args) -> int:
     """The whole pipeline for one task. For now: collect train and test data, summarise."""
     import jax
@@ -158,6 +189,27 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("inspect", help="validate a dataset file and print its summary")
     p.add_argument("--data", required=True)
     p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("train", help="learn a simulator from a dataset (rl2s|gail|bc|rl2s-bc)")
+    p.add_argument("--data", required=True, help="training Dataset (.npz)")
+    p.add_argument("--method", choices=("rl2s", "gail", "bc", "rl2s-bc"), default="rl2s")
+    p.add_argument("--steps", type=_positive("steps"), required=True,
+                   help="total train_steps (a resumed run continues up to this)")
+    p.add_argument("--out", required=True, help="run directory: checkpoints/, metrics.jsonl, "
+                   "summary.json; resumes if it holds a checkpoint")
+    p.add_argument("--eps", type=float, help="CVaR fraction (default: 0.25 rl2s/rl2s-bc, 1 "
+                   "gail/bc)")
+    p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
+    p.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto",
+                   help="network and batch sizes: gpu = paper sizes, cpu = small")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--save-every", type=_positive("save-every"))
+    p.add_argument("--chunk", type=_positive("chunk"), default=10,
+                   help="train_steps per compiled scan between host logging")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a TrainConfig field, e.g. --set vd_horizon=200")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("pipeline", help="the whole pipeline for one task (make <task>)")
     p.add_argument("--task", required=True, choices=task_names())

@@ -193,8 +193,11 @@ def save_zoo(zoo: Zoo, directory: str) -> None:
 
 
 def load_zoo(task_or_dir: str) -> Zoo:
-    """Load a zoo by task name (the shipped one under experiments/zoo/) or by directory."""
-    directory = task_or_dir if os.path.isdir(task_or_dir) else zoo_dir(task_or_dir)
+    """Load a zoo by task name (the shipped one under experiments/zoo/) or by directory (a
+    relative one is also looked up from the repository root, as Dataset metas record it)."""
+    repo_root = os.path.dirname(os.path.dirname(ZOO_ROOT))
+    candidates = [task_or_dir, os.path.join(repo_root, task_or_dir), zoo_dir(task_or_dir)]
+    directory = next((c for c in candidates if os.path.isdir(c)), zoo_dir(task_or_dir))
     npz, js = os.path.join(directory, "zoo.npz"), os.path.join(directory, "zoo.json")
     if not (os.path.exists(npz) and os.path.exists(js)):
         raise FileNotFoundError(

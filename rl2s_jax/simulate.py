@@ -17,9 +17,39 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from rl2s_jax.models import Normalizer, generator_log_prob, generator_mean, generator_sample
 from rl2s_jax.policies import Params, sample_action
 
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+
+
+@struct.dataclass
+class Simulator:
+    """A learned simulator p_phi: generator params, its normaliser, the task it models.
+
+    ``dynamics`` is the ``Dynamics`` function the rollouts here take; ``task`` names the
+    registered task whose reward_fn / done_fn apply (None for data without a task).
+    """
+
+    gen: Params
+    norm: Normalizer
+    task: str | None = struct.field(pytree_node=False, default=None)
+    obs_clip: float = struct.field(pytree_node=False, default=10.0)
+
+    def sample(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
+        """s' ~ p_phi(.|s, a), clipped to +-obs_clip data stds. [..., o], [..., a] -> [..., o]"""
+        return generator_sample(self.gen, self.norm, obs, action, key, self.obs_clip)
+
+    def mean(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """The mean next state. -> [..., o]"""
+        return generator_mean(self.gen, self.norm, obs, action)
+
+    def log_prob(self, obs: jax.Array, action: jax.Array, next_obs: jax.Array) -> jax.Array:
+        """log density of the normalised delta. -> [...]"""
+        return generator_log_prob(self.gen, self.norm, obs, action, next_obs)
+
+    def dynamics(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
+        return self.sample(obs, action, key)
 
 
 @struct.dataclass

@@ -1,0 +1,260 @@
+"""The host-side training loop: jitted chunks of ``train_step`` with a progress bar, metrics
+logging, checkpoints and a stop on divergence. Python runs only between chunks."""
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+
+import jax
+import numpy as np
+
+from rl2s_jax.checkpoint import Checkpointer
+from rl2s_jax.train import TrainData, TrainState, train_steps
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss or a parameter became NaN/Inf. ``step`` is the first bad step, ``quantities``
+    what was non-finite there, ``last_good`` the last state known to be finite."""
+
+    def __init__(self, step: int, quantities: list[str], last_good: TrainState,
+                 saved_at: str | None):
+        self.step, self.quantities, self.last_good, self.saved_at = step, quantities, last_good, \
+            saved_at
+        where = (f"; the last good state (step {int(last_good.step)}) is kept in {saved_at}"
+                 if saved_at else f"; the last good state is step {int(last_good.step)}")
+        super().__init__(f"training diverged at step {step}: non-finite "
+                         f"{', '.join(quantities)}{where}")
+
+
+_train_chunk = jax.jit(train_steps, static_argnums=2)
+
+
+def _first_bad(metrics: dict[str, np.ndarray]) -> tuple[int, list[str]] | None:
+    ok = np.asarray(metrics["finite"], bool)
+    if ok.all():
+        return None
+    i = int(np.flatnonzero(~ok)[0])
+    names = [k.split("/", 1)[1] for k, v in metrics.items()
+             if k.startswith("finite/") and not bool(v[i])]
+    return i, names
+
+
+def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
+        checkpointer: Checkpointer | None = None, save_every: int | None = None,
+        meta: dict | None = None, metrics_path: str | os.PathLike | None = None,
+        progress: bool = True, on_chunk: Callable[[TrainState, dict], None] | None = None
+        ) -> tuple[TrainState, dict[str, np.ndarray]]:
+    """Train until ``state.step == n_steps`` (a resumed state continues where it stopped).
+
+    Chunks of ``chunk`` steps run as one compiled scan; checkpoints land at every multiple of
+    ``save_every`` and at the end. Metrics of every step are appended as JSON lines to
+    ``metrics_path``. Raises TrainingDiverged (after saving the last good state) on NaN/Inf.
+    -> (final state, metrics stacked over the steps run here).
+    """
+    if not isinstance(n_steps, int) or n_steps < 0:
+        raise ValueError(f"steps: expected an int >= 0, got {n_steps!r}")
+    if chunk < 1:
+        raise ValueError(f"chunk: expected an int >= 1, got {chunk!r}")
+    save_every = save_every or n_steps or 1
+    meta = meta or {}
+    start = int(state.step)
+    history: list[dict[str, np.ndarray]] = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=n_steps, initial=min(start, n_steps), unit="step",
+                   desc=f"train {state.config.method}", dynamic_ncols=True)
+    log = open(metrics_path, "a") if metrics_path else None
+    try:
+        while int(state.step) < n_steps:
+            step = int(state.step)
+            # End chunks on checkpoint boundaries so a resumed run replays the same chunks.
+            n = min(chunk, n_steps - step, save_every - step % save_every)
+            t0 = time.perf_counter()
+            new_state, metrics = _train_chunk(state, data, n)
+            metrics = jax.device_get(metrics)
+            seconds = time.perf_counter() - t0
+            bad = _first_bad(metrics)
+            if bad is not None:
+                saved = None
+                if checkpointer is not None:
+                    checkpointer.save(state, meta)
+                    saved = os.path.join(checkpointer.directory, str(step))
+                raise TrainingDiverged(step + bad[0] + 1, bad[1], state, saved)
+            state = new_state
+            history.append(metrics)
+            if log is not None:
+                for i in range(n):
+                    row = {"step": step + i + 1}
+                    row.update({k: _py(v[i]) for k, v in metrics.items()
+                                if not k.startswith("finite")})
+                    log.write(json.dumps(row) + "\n")
+                log.flush()
+            if checkpointer is not None and (int(state.step) % save_every == 0
+                                             or int(state.step) == n_steps):
+                checkpointer.save(state, meta)
+            if bar is not None:
+                bar.update(n)
+                bar.set_postfix(steps_s=f"{n / seconds:.2f}",
+                                avd=f"{float(metrics['avd_train'][-1]):.3g}",
+                                mvd=f"{float(metrics['mvd_train'][-1]):.3g}", refresh=False)
+            if on_chunk is not None:
+                on_chunk(state, metrics)
+    finally:
+        if bar is not None:
+            bar.close()
+        if log is not None:
+            log.close()
+    stacked = ({k: np.concatenate([h[k] for h in history]) for k in history[0]}
+               if history else {})
+    return state, stacked
+
+
+def _py(x):
+    x = np.asarray(x)
+    return x.item() if x.ndim == 0 else x.tolist()
+
+
+# ------------------------------------------------------------------ from files to a trained run
+
+
+def policies_for(ds, zoo: str | None = None):
+    """The stacked policies that collected ``ds``: from ``zoo`` (a directory or task name) or
+    from the zoo the Dataset's meta.source names, with the source's zoo_ids."""
+    from rl2s_jax.policies import index_params, load_zoo
+
+    source = ds.meta.get("source") or {}
+    ids = source.get("zoo_ids")
+    zoo = zoo or source.get("zoo")
+    if zoo is None or ids is None:
+        raise ValueError("zoo: the Dataset's meta.source names no zoo and zoo_ids, so the "
+                         "policies that collected it are unknown; pass --zoo DIR")
+    z = load_zoo(zoo)
+    if max(ids) >= z.size:
+        raise ValueError(f"zoo: meta.source.zoo_ids go up to {max(ids)} but {zoo} has "
+                         f"{z.size} policies")
+    names = ds.meta.get("policy_names")
+    if names and list(names) != z.policy_names(ids):
+        raise ValueError(f"zoo: policy names {z.policy_names(ids)[:3]}... of {zoo} do not "
+                         f"match the Dataset's {list(names)[:3]}...")
+    return index_params(z.params, np.asarray(ids))
+
+
+def make_config(ds, method: str, profile: str, eps: float | None = None,
+                overrides: dict | None = None):
+    """The TrainConfig for ``ds``: the paper-size defaults ('gpu') or the CPU-size ones."""
+    from rl2s_jax.train import TrainConfig
+
+    ep_len = ds.meta.get("episode_length") or 1000
+    base = dict(task=ds.meta["task"], method=method, eps=eps, gamma=float(ds.meta["gamma"]))
+    if profile == "cpu":
+        cfg = TrainConfig.small(vd_horizon=min(100, ep_len), **base)
+    elif profile == "gpu":
+        cfg = TrainConfig(vd_horizon=ep_len, **base)
+    else:
+        raise ValueError(f"profile: expected 'cpu' or 'gpu', got {profile!r}")
+    if overrides:
+        d = cfg.to_dict()
+        unknown = sorted(set(overrides) - set(d))
+        if unknown:
+            raise ValueError(f"set: unknown config field(s) {unknown}; known: {sorted(d)}")
+        d.update(overrides)
+        cfg = TrainConfig.from_dict(d)
+    return cfg.validate()
+
+
+def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str | None = None,
+                 profile: str = "auto", seed: int = 0, eps: float | None = None,
+                 save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
+                 progress: bool = True, log=print) -> dict:
+    """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
+    holds one), and return a summary dict (also written to out/summary.json)."""
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.train import init, make_train_data
+
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
+    ds = load_dataset(data_path)
+    if ds.meta.get("task") is None:
+        raise ValueError(f"data: {data_path} names no task (meta.task), so there is no "
+                         f"reward_fn/done_fn to simulate its policies with")
+    if profile == "auto":
+        profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
+    cfg = make_config(ds, method, profile, eps, overrides)
+    policies = policies_for(ds, zoo)
+    data = make_train_data(ds, policies, cfg)
+    os.makedirs(out, exist_ok=True)
+    ck = Checkpointer(os.path.join(out, "checkpoints"))
+    meta = {"data": {"path": os.path.abspath(data_path), "task": ds.meta["task"],
+                     "obs_size": ds.obs_size, "action_size": ds.action_size,
+                     "n_policies": ds.n_policies, "policy_names": ds.meta.get("policy_names"),
+                     "gamma": ds.meta.get("gamma"),
+                     "true_value": np.asarray(data.true_value).tolist()},
+            "seed": seed, "profile": profile}
+    metrics_path = os.path.join(out, "metrics.jsonl")
+    key = jax.random.PRNGKey(seed)
+    if ck.latest_step() is not None:
+        template = jax.eval_shape(lambda: init(key, cfg, data))
+        state = ck.restore(template)
+        _truncate_metrics(metrics_path, int(state.step))
+        log(f"[train] resuming {out} from step {int(state.step)}")
+    else:
+        if os.path.exists(metrics_path):
+            os.remove(metrics_path)
+        t0 = time.perf_counter()
+        state = jax.jit(init, static_argnums=1)(key, cfg, data)
+        log(f"[train] {method} (eps {cfg.initial_eps}, profile {profile}) on {data_path}: "
+            f"{ds.n_transitions} transitions, {ds.n_policies} policies; init "
+            f"{time.perf_counter() - t0:.1f}s")
+    t0 = time.perf_counter()
+    start = int(state.step)
+    try:
+        state, metrics = fit(state, data, steps, chunk=chunk, checkpointer=ck,
+                             save_every=save_every, meta=meta, metrics_path=metrics_path,
+                             progress=progress)
+    finally:
+        ck.close()
+    seconds = time.perf_counter() - t0
+    names = ds.meta.get("policy_names") or [str(i) for i in range(ds.n_policies)]
+    vd = np.asarray(state.vd)
+    summary = {
+        "method": method, "eps": float(state.eps), "profile": profile, "steps": int(state.step),
+        "steps_run": int(state.step) - start, "seconds": round(seconds, 2),
+        "backend": jax.default_backend(), "avd_train": float(np.mean(vd)),
+        "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(out, "checkpoints"),
+        "selected": [n for n, s in zip(names, np.asarray(state.selected), strict=True) if s],
+        "policies": {n: {"true_value": float(t), "sim_value": float(s), "vd": float(v)}
+                     for n, t, s, v in zip(names, np.asarray(data.true_value),
+                                           np.asarray(state.sim_value), vd, strict=True)},
+        "config": state.config.to_dict()}
+    with open(os.path.join(out, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    return summary
+
+
+def _truncate_metrics(path: str, step: int) -> None:
+    """Drop logged rows after ``step`` (they belong to a run that went past its checkpoint)."""
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        rows = [line for line in f if line.strip() and json.loads(line)["step"] <= step]
+    with open(path, "w") as f:
+        f.writelines(rows)
+
+
+def format_summary(s: dict) -> str:
+    """A one-screen table of a run_training summary."""
+    lines = [f"method {s['method']} (eps {s['eps']:g}), {s['steps']} steps "
+             f"({s['steps_run']} here in {s['seconds']:.1f}s on {s['backend']}), profile "
+             f"{s['profile']}",
+             f"train policies: AVD {s['avd_train']:.3g}  MVD {s['mvd_train']:.3g}  "
+             f"(VD at the last completed measurement)",
+             f"{'policy':<14}{'true value':>12}{'sim value':>12}{'VD':>10}  selected"]
+    for name, p in s["policies"].items():
+        mark = "*" if name in s["selected"] else ""
+        lines.append(f"{name:<14}{p['true_value']:>12.2f}{p['sim_value']:>12.2f}"
+                     f"{p['vd']:>10.2f}  {mark}")
+    lines.append(f"checkpoint: {s['checkpoint']}")
+    return "\n".join(lines)

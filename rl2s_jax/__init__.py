@@ -1,1 +1,19 @@
-"""rl2s_jax: Robust Learning to Simulate in JAX."""
+"""rl2s_jax: Robust Learning to Simulate in JAX.
+
+The public API: build ``TrainData`` from a Dataset and its policies, ``init`` a ``TrainState``,
+call the pure ``train_step(state, data) -> (state, metrics)`` (jit / scan / vmap it freely),
+checkpoint with ``Checkpointer`` and load a trained ``Simulator`` with ``load_simulator``.
+"""
+from rl2s_jax.checkpoint import Checkpointer, load_meta, load_simulator
+from rl2s_jax.data import Dataset, load_dataset, save_dataset
+from rl2s_jax.fit import TrainingDiverged, fit, run_training
+from rl2s_jax.simulate import Simulator, simulated_values
+from rl2s_jax.train import (TrainConfig, TrainData, TrainState, init, make_train_data,
+                            n_worst, select_worst, simulator, train_step, train_steps)
+
+__all__ = [
+    "Checkpointer", "Dataset", "Simulator", "TrainConfig", "TrainData", "TrainState",
+    "TrainingDiverged", "fit", "init", "load_dataset", "load_meta", "load_simulator",
+    "make_train_data", "n_worst", "run_training", "save_dataset", "select_worst",
+    "simulated_values", "simulator", "train_step", "train_steps",
+]

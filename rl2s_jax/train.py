@@ -39,7 +39,7 @@ from flax import struct
 from rl2s_jax import losses
 from rl2s_jax.models import (Normalizer, generator_sample, init_discriminator, init_generator)
 from rl2s_jax.policies import Params, index_params, num_policies, sample_action
-from rl2s_jax.simulate import (ValueRollout, advance_values, data_values, start_values,
+from rl2s_jax.simulate import (Simulator, ValueRollout, advance_values, data_values, start_values,
                                value_difference)
 from rl2s_jax.tasks import get_task
 
@@ -502,3 +502,9 @@ def train_step(state: TrainState, data: TrainData) -> tuple[TrainState, dict]:
 def train_steps(state: TrainState, data: TrainData, n_steps: int) -> tuple[TrainState, dict]:
     """``n_steps`` train_steps as one lax.scan. -> (state, metrics stacked [n_steps])."""
     return jax.lax.scan(lambda s, _: train_step(s, data), state, None, length=n_steps)
+
+
+def simulator(state: TrainState) -> Simulator:
+    """The learned simulator of a training state (generator + normaliser)."""
+    return Simulator(gen=state.gen, norm=state.norm, task=state.config.task,
+                     obs_clip=state.config.obs_clip)

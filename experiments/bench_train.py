@@ -1,0 +1,178 @@
+"""train_step throughput, measured side by side in one run (`make bench`).
+
+For a Hopper-shaped problem (obs 12, action 3, the zoo's 64x64 policies) at a given config
+(default: paper sizes on a GPU, the small CPU config elsewhere):
+  - updates/s (generator updates; each comes with ``disc_updates`` critic updates) and
+    simulated transitions/s (training rollouts + the spread-out VD rollouts);
+  - how the time of one step grows with the number of training policies P and with the
+    rollout length (vd_horizon, sim_steps);
+  - the step's matmul FLOPs (counted from the layer sizes) and the achieved fraction of this
+    device's measured dense matmul rate (a large float32 matmul at JAX's default precision).
+
+The data are random rows of the right shapes: the step's cost does not depend on their values
+(every array shape is fixed; terminations only mask).
+
+    python experiments/bench_train.py [--profile auto|cpu|gpu] [--policies 4 17 64 256]
+        [--horizons 250 1000 4000] [--sim-steps 16 64] [--json out.json]
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rl2s_jax.models import Normalizer
+from rl2s_jax.policies import init_policy, stack_params
+from rl2s_jax.train import TrainConfig, TrainData, init, train_steps
+
+OBS, ACT, POLICY_HIDDEN = 12, 3, (64, 64)
+
+
+def fake_data(n_policies: int, rows_per_policy: int = 2000, seed: int = 0) -> TrainData:
+    rng = np.random.default_rng(seed)
+    n = n_policies * rows_per_policy
+    obs = rng.normal(size=(n, OBS)).astype(np.float32)
+    obs[:, 1] = 1.25  # hopper's height: healthy, so simulated episodes are not cut at once
+    act = np.tanh(rng.normal(size=(n, ACT))).astype(np.float32)
+    nxt = (obs + 0.05 * rng.normal(size=(n, OBS))).astype(np.float32)
+    keys = jax.random.split(jax.random.PRNGKey(seed), n_policies)
+    pols = stack_params([init_policy(k, OBS, ACT, POLICY_HIDDEN) for k in keys])
+    return TrainData(obs=jnp.asarray(obs), action=jnp.asarray(act), next_obs=jnp.asarray(nxt),
+                     policy_start=jnp.arange(n_policies, dtype=jnp.int32) * rows_per_policy,
+                     policy_count=jnp.full((n_policies,), rows_per_policy, jnp.int32),
+                     start_pool=jnp.asarray(obs[:512]),
+                     true_value=jnp.zeros((n_policies,), jnp.float32), policies=pols,
+                     norm=Normalizer.from_data(obs, act, nxt))
+
+
+def mlp_flops(sizes) -> int:
+    """Forward matmul FLOPs of one row through layers ``sizes`` (2 * in * out per layer)."""
+    return sum(2 * a * b for a, b in zip(sizes[:-1], sizes[1:], strict=True))
+
+
+def step_flops(cfg: TrainConfig, P: int) -> dict:
+    """Matmul FLOPs of one train_step of an adversarial method; backward = 2x forward."""
+    gen = mlp_flops([OBS + ACT, *cfg.gen_hidden, 2 * OBS])
+    disc = mlp_flops([2 * OBS + ACT, *cfg.disc_hidden, 1])
+    pol = mlp_flops([OBS, *POLICY_HIDDEN, 2 * ACT])
+    n = cfg.batch_size
+    critic = gen * n + 3 * disc * 2 * n                      # fake s' + D fwd/bwd on real+fake
+    generator = 3 * gen * 2 * n + 3 * disc * 2 * n          # through G and D, real+sim (s, a)
+    updates = cfg.updates_per_step * (cfg.disc_updates * critic + generator)
+    sim_rows = cfg.sim_envs * cfg.sim_steps
+    vd_rows = P * cfg.vd_episodes * -(-cfg.vd_horizon // cfg.vd_every)
+    rollouts = (sim_rows + vd_rows) * (gen + pol)
+    return {"updates": updates, "rollouts": rollouts, "total": updates + rollouts,
+            "sim_rows": sim_rows, "vd_rows": vd_rows}
+
+
+def timed(fn, *args, repeats: int = 3) -> float:
+    jax.block_until_ready(fn(*args))
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def matmul_rate(n: int) -> float:
+    """Measured float32 matmul FLOP/s at JAX's default precision (n x n @ n x n)."""
+    a = jax.random.normal(jax.random.PRNGKey(0), (n, n), jnp.float32)
+    f = jax.jit(lambda a: a @ a)
+    return 2 * n**3 / timed(f, a, repeats=5)
+
+
+def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
+    """Time ``steps`` train_steps; ``runs`` > 1 vmaps that many seeds as one program and
+    reports their summed throughput."""
+    data = fake_data(P)
+    if runs == 1:
+        state = jax.jit(init, static_argnums=1)(jax.random.PRNGKey(0), cfg, data)
+        run = jax.jit(lambda s: train_steps(s, data, steps)[0])
+    else:
+        keys = jax.random.split(jax.random.PRNGKey(0), runs)
+        state = jax.jit(jax.vmap(lambda k: init(k, cfg, data)))(keys)
+        run = jax.jit(jax.vmap(lambda s: train_steps(s, data, steps)[0]))
+    t0 = time.perf_counter()
+    jax.block_until_ready(run(state))
+    compile_s = time.perf_counter() - t0
+    seconds = timed(run, state) / steps / runs  # per train_step of one run
+    fl = step_flops(cfg, P)
+    return {"policies": P, "vd_horizon": cfg.vd_horizon, "sim_steps": cfg.sim_steps,
+            "vmapped_runs": runs,
+            "step_ms": 1e3 * seconds, "steps_per_s": 1 / seconds,
+            "gen_updates_per_s": cfg.updates_per_step / seconds,
+            "disc_updates_per_s": cfg.updates_per_step * cfg.disc_updates / seconds,
+            "sim_transitions_per_s": (fl["sim_rows"] + fl["vd_rows"]) / seconds,
+            "gflop_per_step": fl["total"] / 1e9, "tflop_s": fl["total"] / seconds / 1e12,
+            "compile_s": compile_s}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
+    ap.add_argument("--policies", type=int, nargs="+")
+    ap.add_argument("--horizons", type=int, nargs="*", help="extra vd_horizon rows at P=17")
+    ap.add_argument("--sim-steps", type=int, nargs="*", help="extra sim_steps rows at P=17")
+    ap.add_argument("--vmap", type=int, nargs="*", help="extra rows: this many seeds vmapped "
+                    "as one program, at P=17")
+    ap.add_argument("--steps", type=int, help="train_steps per timed call")
+    ap.add_argument("--json")
+    args = ap.parse_args(argv)
+    backend = jax.default_backend()
+    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    if profile == "gpu":
+        cfg = TrainConfig(task="hopper", method="rl2s")
+        policies, horizons, sims = [4, 17, 64, 256], [250, 4000], [64]
+        steps, mm, vmaps = 10, 8192, [8]
+    else:
+        cfg = TrainConfig.small(task="hopper", method="rl2s")
+        policies, horizons, sims = [4, 17], [400], [16]
+        steps, mm, vmaps = 5, 1024, [2]
+    policies = args.policies or policies
+    horizons = horizons if args.horizons is None else args.horizons
+    sims = sims if args.sim_steps is None else args.sim_steps
+    vmaps = vmaps if args.vmap is None else args.vmap
+    steps = args.steps or steps
+    rate = matmul_rate(mm)
+    print(f"device {jax.devices()[0].device_kind} ({backend}), jax {jax.__version__}; profile "
+          f"{profile}: gen {cfg.gen_hidden}, disc {cfg.disc_hidden}, batch {cfg.batch_size}, "
+          f"{cfg.updates_per_step} gen x {cfg.disc_updates} critic updates/step, "
+          f"{cfg.sim_envs} sim envs x {cfg.sim_steps} steps, VD {cfg.vd_episodes} episodes x "
+          f"{cfg.vd_horizon} steps every {cfg.vd_every}", flush=True)
+    print(f"measured float32 matmul ({mm}^3, default precision): {rate / 1e12:.1f} TFLOP/s",
+          flush=True)
+    runs = [(cfg, P, 1) for P in policies]
+    runs += [(dataclasses.replace(cfg, vd_horizon=h), 17, 1) for h in horizons]
+    runs += [(dataclasses.replace(cfg, sim_steps=s), 17, 1) for s in sims]
+    runs += [(cfg, 17, v) for v in vmaps]
+    rows = []
+    hdr = (f"{'P':>4} {'vd_H':>5} {'sim':>4} {'runs':>4} {'ms/step':>9} {'gen upd/s':>10} "
+           f"{'sim trans/s':>12} {'GFLOP/step':>11} {'TFLOP/s':>8} {'of matmul':>9} {'compile':>8}")
+    print(hdr, flush=True)
+    for c, P, v in runs:
+        r = bench(c, P, steps, v)
+        r["fraction_of_matmul"] = r["tflop_s"] * 1e12 / rate
+        rows.append(r)
+        print(f"{P:>4} {c.vd_horizon:>5} {c.sim_steps:>4} {v:>4} {r['step_ms']:>9.2f} "
+              f"{r['gen_updates_per_s']:>10.0f} {r['sim_transitions_per_s']:>12.0f} "
+              f"{r['gflop_per_step']:>11.2f} {r['tflop_s']:>8.2f} "
+              f"{r['fraction_of_matmul']:>9.3f} {r['compile_s']:>7.1f}s", flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"device": jax.devices()[0].device_kind, "backend": backend,
+                       "jax": jax.__version__, "profile": profile,
+                       "matmul_tflop_s": rate / 1e12, "config": cfg.to_dict(), "rows": rows},
+                      f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

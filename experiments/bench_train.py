@@ -118,7 +118,7 @@ def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
-    ap.add_argument("--policies", type=int, nargs="+")
+    ap.add_argument("--policies", type=int, nargs="*")
     ap.add_argument("--horizons", type=int, nargs="*", help="extra vd_horizon rows at P=17")
     ap.add_argument("--sim-steps", type=int, nargs="*", help="extra sim_steps rows at P=17")
     ap.add_argument("--vmap", type=int, nargs="*", help="extra rows: this many seeds vmapped "
@@ -136,7 +136,7 @@ def main(argv=None) -> int:
         cfg = TrainConfig.small(task="hopper", method="rl2s")
         policies, horizons, sims = [4, 17], [400], [16]
         steps, mm, vmaps = 5, 1024, [2]
-    policies = args.policies or policies
+    policies = policies if args.policies is None else args.policies
     horizons = horizons if args.horizons is None else args.horizons
     sims = sims if args.sim_steps is None else args.sim_steps
     vmaps = vmaps if args.vmap is None else args.vmap

@@ -148,7 +148,8 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
     from rl2s_jax.train import TrainConfig
 
     ep_len = ds.meta.get("episode_length") or 1000
-    base = dict(task=ds.meta["task"], method=method, eps=eps, gamma=float(ds.meta["gamma"]))
+    base = dict(task=ds.meta["task"], method=method, eps=eps,
+                gamma=float(ds.meta.get("gamma") or 0.999))
     if profile == "cpu":
         cfg = TrainConfig.small(vd_horizon=min(100, ep_len), **base)
     elif profile == "gpu":

@@ -127,16 +127,13 @@ def test_bad_input_refused_before_work():
 
 
 @pytest.mark.slow
-def test_hopper_collection_with_shipped_zoo(env_cache):
+def test_hopper_collection_with_shipped_zoo(hopper_train_ds):
     task = get_task("hopper")
-    zoo = pol.load_zoo("hopper")
-    ids = [int(np.argmin(zoo.returns)), int(np.argmax(zoo.returns))]
-    ds = collect(env_cache("hopper"), pol.index_params(zoo.params, ids),
-                 key=jax.random.PRNGKey(0), transitions_per_policy=240, envs_per_policy=4,
-                 episode_length=40, task="hopper", value_episodes=2, progress=False)
+    ds = hopper_train_ds  # the zoo's 17 training policies, 40-step episodes
     check_episode_structure(ds, task.done_fn, 40)
     assert ds.done.sum() > 0 and ds.truncated.sum() > 0
     later = ds.t > 0  # brax's first step of an episode differs slightly (see tasks.py)
     np.testing.assert_allclose(ds.reward[later], task.reward_fn(
         ds.obs, ds.action, ds.next_obs)[later], atol=1e-4)
-    assert ds.has_values and ds.value.shape == (2,)
+    assert ds.has_values and ds.value.shape == (17,)
+    assert ds.meta["source"]["zoo_ids"] == list(pol.load_zoo("hopper").train_ids)

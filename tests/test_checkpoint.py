@@ -1,0 +1,182 @@
+"""Checkpoints, exact resume, the stop on divergence, loading in a fresh process, `rl2s train`."""
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rl2s_jax import policies as pol
+from rl2s_jax.checkpoint import Checkpointer, load_meta, load_simulator
+from rl2s_jax.cli import main
+from rl2s_jax.collect import collect
+from rl2s_jax.data import save_dataset
+from rl2s_jax.fit import TrainingDiverged, fit
+from rl2s_jax.tasks import get_task
+from rl2s_jax.train import TrainConfig, init, make_train_data, simulator
+
+CFG = TrainConfig.small(task="pointmass", method="rl2s", vd_horizon=50, vd_every=3)
+META = {"data": {"obs_size": 2, "action_size": 1}}
+
+
+@pytest.fixture(scope="module")
+def pm():
+    task = get_task("pointmass")
+    ps = []
+    for i, b in enumerate([-2.0, 0.0, 1.0, 2.0]):
+        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
+        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
+        ps.append(p)
+    params = pol.stack_params(ps)
+    ds = collect(task.make_env(), params, key=jax.random.PRNGKey(0), transitions_per_policy=500,
+                 envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
+                 value_episodes=8, progress=False)
+    return ds, params, make_train_data(ds, params, CFG)
+
+
+def _leaves_equal(a, b):
+    la, lb = jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b)
+    assert len(la) == len(lb)
+    for x, y in zip(la, lb, strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_resume_is_bit_identical(pm, tmp_path):
+    _, _, data = pm
+    state0 = init(jax.random.PRNGKey(3), CFG, data)
+    straight, _ = fit(state0, data, 8, chunk=4, progress=False)
+
+    ck = Checkpointer(tmp_path / "ck")
+    half, _ = fit(state0, data, 4, chunk=2, checkpointer=ck, save_every=4, meta=META,
+                  progress=False)
+    ck.close()
+    assert Checkpointer(tmp_path / "ck").steps() == [4]
+    ck = Checkpointer(tmp_path / "ck")
+    resumed = ck.restore(jax.eval_shape(lambda: init(jax.random.PRNGKey(0), CFG, data)))
+    assert int(resumed.step) == 4
+    _leaves_equal(resumed, half)
+    resumed, _ = fit(resumed, data, 8, chunk=2, checkpointer=ck, save_every=4, meta=META,
+                     progress=False)
+    ck.close()
+    _leaves_equal(resumed, straight)
+    assert int(straight.step) == 8 and np.isfinite(np.asarray(straight.vd)).all()
+
+
+def test_restore_refuses_another_config(pm, tmp_path):
+    _, _, data = pm
+    ck = Checkpointer(tmp_path / "ck")
+    ck.save(init(jax.random.PRNGKey(0), CFG, data), META)
+    other = TrainConfig.small(task="pointmass", method="rl2s", vd_horizon=50, batch_size=32)
+    with pytest.raises(ValueError, match="batch_size"):
+        ck.restore(jax.eval_shape(lambda: init(jax.random.PRNGKey(0), other, data)))
+    ck.close()
+
+
+def test_nan_stops_training_and_keeps_last_good(pm, tmp_path):
+    _, _, data = pm
+    ck = Checkpointer(tmp_path / "ck")
+    state, _ = fit(init(jax.random.PRNGKey(0), CFG, data), data, 4, chunk=2, checkpointer=ck,
+                   save_every=100, meta=META, progress=False)
+    assert ck.steps() == [4]
+    # A corrupt row in every policy's data poisons the next losses.
+    bad = data.replace(next_obs=data.next_obs.at[data.policy_start].set(jnp.nan))
+    with pytest.raises(TrainingDiverged) as err:
+        fit(state, bad, 20, chunk=4, checkpointer=ck, save_every=100, meta=META,
+            progress=False)
+    e = err.value
+    assert 5 <= e.step <= 8, "the first bad step is named (it lies in the first chunk after 4)"
+    assert any(q in ("disc_loss", "gen_loss", "d_real", "params") for q in e.quantities)
+    assert f"step {e.step}" in str(e) and "non-finite" in str(e)
+    assert int(e.last_good.step) == 4 and ck.steps() == [4]
+    kept = ck.restore(jax.eval_shape(lambda: init(jax.random.PRNGKey(0), CFG, data)))
+    ck.close()
+    _leaves_equal(kept, state)
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(kept.gen))
+
+
+def test_checkpoint_loads_in_fresh_process(pm, tmp_path):
+    _, _, data = pm
+    state, _ = fit(init(jax.random.PRNGKey(1), CFG, data), data, 2, chunk=2, progress=False)
+    ck = Checkpointer(tmp_path / "ck")
+    ck.save(state, META)
+    ck.close()
+    obs, act = np.array([[0.3, -0.2], [1.0, 0.5]], np.float32), np.array([[0.5], [-1.0]],
+                                                                          np.float32)
+    here = np.asarray(simulator(state).mean(jnp.asarray(obs), jnp.asarray(act)))
+    code = (
+        "import json, sys, numpy as np, jax.numpy as jnp\n"
+        "from rl2s_jax import load_simulator\n"
+        f"sim = load_simulator({str(tmp_path / 'ck')!r})\n"
+        f"obs, act = jnp.asarray({obs.tolist()}), jnp.asarray({act.tolist()})\n"
+        "print(json.dumps({'task': sim.task, 'mean': np.asarray(sim.mean(obs, act)).tolist(),"
+        " 'sample': np.asarray(sim.sample(obs, act, __import__('jax').random.PRNGKey(0)))"
+        ".shape}))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr[-2000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["task"] == "pointmass" and got["sample"] == [2, 2]
+    np.testing.assert_allclose(np.asarray(got["mean"]), here, rtol=1e-6, atol=1e-6)
+    assert load_meta(tmp_path / "ck")["config"]["method"] == "rl2s"
+
+
+def test_load_simulator_errors(tmp_path):
+    with pytest.raises(FileNotFoundError, match="ckpt"):
+        load_simulator(tmp_path / "nothing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(FileNotFoundError, match="no saved step"):
+        load_simulator(tmp_path / "empty")
+
+
+# ------------------------------------------------------------------ the CLI on Hopper data
+
+
+@pytest.fixture(scope="module")
+def hopper_train_npz(tmp_path_factory, hopper_train_ds):
+    path = tmp_path_factory.mktemp("hopper") / "train.npz"
+    save_dataset(path, hopper_train_ds)
+    return str(path)
+
+
+@pytest.mark.parametrize("method", ["rl2s", "gail", "bc", "rl2s-bc"])
+def test_cli_train_each_method_on_hopper(hopper_train_npz, tmp_path, method, capsys):
+    out = tmp_path / method
+    rc = main(["train", "--data", hopper_train_npz, "--method", method, "--steps", "2",
+               "--out", str(out), "--profile", "cpu", "--quiet", "--set", "vd_horizon=20",
+               "--set", "vd_every=2"])
+    assert rc == 0, capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["steps"] == 2 and summary["method"] == method
+    assert len(summary["policies"]) == 17
+    n_sel = 17 if method in ("gail", "bc") else 5  # max(2, ceil(0.25 * 17))
+    assert len(summary["selected"]) == n_sel
+    assert np.isfinite(summary["avd_train"]) and summary["mvd_train"] >= summary["avd_train"]
+    rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2]
+    assert "AVD" in capsys.readouterr().out
+    assert load_simulator(out / "checkpoints").task == "hopper"
+    if method == "bc":  # resume: the same directory continues to the new total
+        rc = main(["train", "--data", hopper_train_npz, "--method", method, "--steps", "3",
+                   "--out", str(out), "--profile", "cpu", "--quiet", "--set",
+                   "vd_horizon=20", "--set", "vd_every=2"])
+        assert rc == 0
+        rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+        assert [r["step"] for r in rows] == [1, 2, 3]
+        assert "resuming" in capsys.readouterr().out
+
+
+def test_cli_train_bad_input(hopper_train_npz, tmp_path, capsys):
+    rc = main(["train", "--data", str(tmp_path / "missing.npz"), "--steps", "1", "--out",
+               str(tmp_path / "o")])
+    assert rc == 2 and "data" in capsys.readouterr().err
+    rc = main(["train", "--data", hopper_train_npz, "--steps", "1", "--out",
+               str(tmp_path / "o"), "--set", "hidden=3"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "hidden" in err and "unknown config field" in err
+    rc = main(["train", "--data", hopper_train_npz, "--steps", "1", "--out",
+               str(tmp_path / "o"), "--eps", "1.5"])
+    assert rc == 2 and "eps" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "o" / "checkpoints" / "1")

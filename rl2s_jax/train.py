@@ -67,7 +67,7 @@ class TrainConfig:
     gen_lr: float = 1e-4
     disc_lr: float = 1e-4
     disc_beta1: float = 0.5
-    bc_lr: float = 1e-3
+    bc_lr: float = 1e-4             # 1e-3 and 3e-4 collapsed BC on Hopper (docs/BENCHMARKS.md)
     grad_clip: float = 0.5         # elementwise gradient clip, as the official code
     sim_envs: int = 32             # simulated envs stepping in p_phi (adversarial methods)
     sim_steps: int = 16            # their steps per train_step

@@ -93,7 +93,7 @@ class TrainConfig:
         base = dict(gen_hidden=(64, 64), disc_hidden=(64, 64), batch_size=64,
                     updates_per_step=5, disc_updates=2, sim_envs=16, sim_steps=4,
                     buffer_size=1024, vd_every=5, vd_episodes=4, vd_horizon=100,
-                    gen_lr=1e-3, disc_lr=1e-3)
+                    gen_lr=1e-3, disc_lr=1e-3, bc_lr=1e-3)
         base.update(overrides)
         return cls(**base)
 

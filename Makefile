@@ -23,6 +23,7 @@ hopper walker2d halfcheetah ant: setup
 
 bench: setup
 	$(PY) experiments/bench.py
+	$(PY) experiments/bench_train.py
 
 lint: setup
 	$(VENV)/bin/ruff check rl2s_jax tests experiments examples

@@ -46,15 +46,17 @@ def chunk(state):
     return jax.lax.scan(body, state, None, length=20)
 
 
-for i in range(3):
+for _ in range(3):
     state, metrics = chunk(state)
     last = {k: float(v[-1]) for k, v in metrics.items()}
     print(f"step {int(state.step):3d}  " + "  ".join(f"{k} {v:8.3f}" for k, v in last.items()))
 
 # 4. Two seeds as one program: vmap init and the scanned chunk over keys.
-seeds = jax.vmap(lambda k: rl2s.init(k, config, data))(jax.random.split(jax.random.PRNGKey(1), 2))
+keys = jax.random.split(jax.random.PRNGKey(1), 2)
+seeds = jax.vmap(lambda k: rl2s.init(k, config, data))(keys)
 seeds, metrics = jax.jit(jax.vmap(chunk))(seeds)
-print("two seeds, AVD on the training policies:", np.round(np.asarray(metrics["avd_train"][:, -1]), 3))
+avd = np.asarray(metrics["avd_train"][:, -1])
+print("two seeds, AVD on the training policies:", np.round(avd, 3))
 
 # 5. The learned simulator as a function: one step of every training policy's data.
 sim = rl2s.simulator(state)

@@ -8,8 +8,18 @@ from rl2s_jax.checkpoint import Checkpointer, load_meta, load_simulator
 from rl2s_jax.data import Dataset, load_dataset, save_dataset
 from rl2s_jax.fit import TrainingDiverged, fit, run_training
 from rl2s_jax.simulate import Simulator, simulated_values
-from rl2s_jax.train import (TrainConfig, TrainData, TrainState, init, make_train_data,
-                            n_worst, select_worst, simulator, train_step, train_steps)
+from rl2s_jax.train import (
+    TrainConfig,
+    TrainData,
+    TrainState,
+    init,
+    make_train_data,
+    n_worst,
+    select_worst,
+    simulator,
+    train_step,
+    train_steps,
+)
 
 __all__ = [
     "Checkpointer", "Dataset", "Simulator", "TrainConfig", "TrainData", "TrainState",

@@ -10,6 +10,7 @@ process and without the training data.
 from __future__ import annotations
 
 import os
+
 import jax
 import orbax.checkpoint as ocp
 

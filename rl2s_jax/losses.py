@@ -17,7 +17,7 @@ def discriminator_loss(disc, us, norm: Normalizer, real: tuple, fake: tuple):
     -> (loss, (new us, {"d_real", "d_fake"})).
     """
     n = real[0].shape[0]
-    both = [jnp.concatenate([r, f], 0) for r, f in zip(real, fake)]
+    both = [jnp.concatenate([r, f], 0) for r, f in zip(real, fake, strict=True)]
     d, new_us = discriminator(disc, us, norm, *both, update_us=True)
     d_real, d_fake = jnp.mean(d[:n]), jnp.mean(d[n:])
     return d_fake - d_real, (new_us, {"d_real": d_real, "d_fake": d_fake})

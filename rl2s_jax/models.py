@@ -13,7 +13,8 @@ caller (any leading axes work). Shapes use o = obs size, a = action size.
 """
 from __future__ import annotations
 
-from typing import Any, Sequence
+from collections.abc import Sequence
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -86,7 +87,10 @@ def _bounded_log_std(raw: jax.Array) -> jax.Array:
 
 def generator_dist(gen: list[dict], norm: Normalizer, obs: jax.Array, action: jax.Array
                    ) -> tuple[jax.Array, jax.Array]:
-    """Gaussian over the normalised delta. obs [..., o], action [..., a] -> (mean, log_std) [..., o]."""
+    """Gaussian over the normalised delta.
+
+    obs [..., o], action [..., a] -> (mean, log_std), each [..., o].
+    """
     x = jnp.concatenate([norm.norm_obs(obs), norm.norm_act(action)], -1)
     out = _relu_mlp(gen, x)
     mean, raw_log_std = jnp.split(out, 2, axis=-1)
@@ -110,7 +114,8 @@ def generator_sample(gen: list[dict], norm: Normalizer, obs: jax.Array, action: 
     return next_obs
 
 
-def generator_mean(gen: list[dict], norm: Normalizer, obs: jax.Array, action: jax.Array) -> jax.Array:
+def generator_mean(gen: list[dict], norm: Normalizer, obs: jax.Array, action: jax.Array
+                   ) -> jax.Array:
     """The generator's mean next state (no noise). -> [..., o]"""
     mean, _ = generator_dist(gen, norm, obs, action)
     return norm.next_from_delta(obs, mean)
@@ -138,7 +143,7 @@ def init_discriminator(key: jax.Array, obs_size: int, action_size: int,
     layers = init_mlp(k_w, [2 * obs_size + action_size, *hidden, 1])
     keys = jax.random.split(k_u, len(layers))
     us = [_l2_normalize(jax.random.normal(k, (layer["w"].shape[1],)))
-          for k, layer in zip(keys, layers)]
+          for k, layer in zip(keys, layers, strict=True)]
     return layers, us
 
 
@@ -170,7 +175,7 @@ def discriminator(disc: list[dict], us: list[jax.Array], norm: Normalizer, obs: 
     x = jnp.concatenate([norm.norm_obs(obs), norm.norm_act(action),
                          norm.norm_delta(obs, next_obs)], -1)
     new_us = []
-    for i, (layer, u) in enumerate(zip(disc, us)):
+    for i, (layer, u) in enumerate(zip(disc, us, strict=True)):
         w, u = spectral_normalize(layer["w"], u, update_us)
         new_us.append(u)
         x = x @ w + layer["b"]

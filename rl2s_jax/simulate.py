@@ -10,7 +10,7 @@ measurement over K calls instead of spiking every K-th call.
 """
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -137,7 +137,7 @@ def data_values(reward: np.ndarray, ended: np.ndarray, policy_id: np.ndarray,
     sums = np.zeros(n_policies)
     counts = np.zeros(n_policies, np.int64)
     bounds = np.flatnonzero(np.diff(episode_id) != 0) + 1
-    for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(episode_id)]):
+    for lo, hi in zip(np.r_[0, bounds], np.r_[bounds, len(episode_id)], strict=True):
         if t[lo] != 0:
             continue
         n = min(hi - lo, horizon)

@@ -37,10 +37,16 @@ import optax
 from flax import struct
 
 from rl2s_jax import losses
-from rl2s_jax.models import (Normalizer, generator_sample, init_discriminator, init_generator)
+from rl2s_jax.models import Normalizer, generator_sample, init_discriminator, init_generator
 from rl2s_jax.policies import Params, index_params, num_policies, sample_action
-from rl2s_jax.simulate import (Simulator, ValueRollout, advance_values, data_values, start_values,
-                               value_difference)
+from rl2s_jax.simulate import (
+    Simulator,
+    ValueRollout,
+    advance_values,
+    data_values,
+    start_values,
+    value_difference,
+)
 from rl2s_jax.tasks import get_task
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")

@@ -12,6 +12,7 @@ from __future__ import annotations
 import os
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
 from rl2s_jax.models import Normalizer, init_generator
@@ -103,8 +104,7 @@ def load_simulator(directory: str | os.PathLike, step: int | None = None) -> Sim
         o, a = int(meta["data"]["obs_size"]), int(meta["data"]["action_size"])
         template = jax.eval_shape(lambda: {
             "gen": init_generator(jax.random.PRNGKey(0), o, a, cfg.gen_hidden),
-            "norm": Normalizer(*([jax.numpy.zeros(o)] * 2 + [jax.numpy.zeros(a)] * 2
-                                 + [jax.numpy.zeros(o)] * 2))})
+            "norm": Normalizer.from_data(np.zeros((2, o)), np.zeros((2, a)), np.zeros((2, o)))})
         sim = ck._mgr.restore(step, args=ocp.args.Composite(
             simulator=ocp.args.StandardRestore(template))).simulator
     finally:

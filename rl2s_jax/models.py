@@ -29,7 +29,9 @@ LOG_STD_MAX = 1.0
 
 @struct.dataclass
 class Normalizer:
-    """Per-dimension mean/std of obs [o], action [a] and delta = next_obs - obs [o]."""
+    """Per-dimension mean/std of obs [o], action [a] and delta = next_obs - obs [o], and
+    obs_input_mask [o]: 1 for the obs dims the networks see, 0 for those left out (absolute
+    positions, which the dynamics do not depend on)."""
 
     obs_mean: jax.Array
     obs_std: jax.Array
@@ -37,10 +39,13 @@ class Normalizer:
     act_std: jax.Array
     delta_mean: jax.Array
     delta_std: jax.Array
+    obs_input_mask: jax.Array | None = None  # None: every dim
 
     @classmethod
-    def from_data(cls, obs, action, next_obs, min_std: float = 1e-6) -> Normalizer:
-        """Statistics of transitions obs [N, o], action [N, a], next_obs [N, o] (NumPy, float64)."""
+    def from_data(cls, obs, action, next_obs, min_std: float = 1e-6,
+                  ignore_dims: tuple[int, ...] = ()) -> Normalizer:
+        """Statistics of transitions obs [N, o], action [N, a], next_obs [N, o] (NumPy, float64);
+        ``ignore_dims``: obs dims to leave out of the networks' inputs."""
         obs, action, next_obs = (np.asarray(x, np.float64) for x in (obs, action, next_obs))
         delta = next_obs - obs
 
@@ -49,10 +54,20 @@ class Normalizer:
                     jnp.asarray(np.maximum(x.std(0), min_std), jnp.float32))
 
         (om, os_), (am, as_), (dm, ds) = stats(obs), stats(action), stats(delta)
-        return cls(om, os_, am, as_, dm, ds)
+        mask = np.ones(obs.shape[1], np.float32)
+        for d in ignore_dims:
+            if not 0 <= d < obs.shape[1]:
+                raise ValueError(f"ignore_dims: expected obs dims in [0, {obs.shape[1]}), got {d}")
+            mask[d] = 0.0
+        return cls(om, os_, am, as_, dm, ds, jnp.asarray(mask))
 
     def norm_obs(self, obs):
         return (obs - self.obs_mean) / self.obs_std
+
+    def input_obs(self, obs):
+        """The normalised obs as the networks see it (left-out dims zeroed)."""
+        x = self.norm_obs(obs)
+        return x if self.obs_input_mask is None else x * self.obs_input_mask
 
     def norm_act(self, action):
         return (action - self.act_mean) / self.act_std
@@ -91,7 +106,7 @@ def generator_dist(gen: list[dict], norm: Normalizer, obs: jax.Array, action: ja
 
     obs [..., o], action [..., a] -> (mean, log_std), each [..., o].
     """
-    x = jnp.concatenate([norm.norm_obs(obs), norm.norm_act(action)], -1)
+    x = jnp.concatenate([norm.input_obs(obs), norm.norm_act(action)], -1)
     out = _relu_mlp(gen, x)
     mean, raw_log_std = jnp.split(out, 2, axis=-1)
     return mean, _bounded_log_std(raw_log_std)
@@ -172,7 +187,7 @@ def discriminator(disc: list[dict], us: list[jax.Array], norm: Normalizer, obs: 
                   action: jax.Array, next_obs: jax.Array, update_us: bool = False
                   ) -> tuple[jax.Array, list[jax.Array]]:
     """D_psi(s, a, s'): obs [..., o], action [..., a], next_obs [..., o] -> ([...], new us)."""
-    x = jnp.concatenate([norm.norm_obs(obs), norm.norm_act(action),
+    x = jnp.concatenate([norm.input_obs(obs), norm.norm_act(action),
                          norm.norm_delta(obs, next_obs)], -1)
     new_us = []
     for i, (layer, u) in enumerate(zip(disc, us, strict=True)):

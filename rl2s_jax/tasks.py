@@ -75,6 +75,8 @@ class Task:
       reward_fn: ``reward_fn(obs [..., O], action [..., A], next_obs [..., O]) -> [...]``.
       done_fn: ``done_fn(next_obs [..., O]) -> bool [...]`` (termination, not time limit).
       dt: seconds per env step, as used by ``reward_fn``; equals ``make_env().dt``.
+      position_dims: observation dims holding absolute positions (x; x, y for Ant) that the
+        dynamics do not depend on; simulator models leave them out of their inputs.
     """
 
     name: str
@@ -85,6 +87,7 @@ class Task:
     reward_fn: RewardFn
     done_fn: DoneFn
     dt: float
+    position_dims: tuple[int, ...] = ()
 
 
 # --------------------------------------------------------------------------------------------
@@ -246,6 +249,7 @@ def _loco_task(name: str, reward_fn: RewardFn, done_fn: DoneFn) -> Task:
         reward_fn=reward_fn,
         done_fn=done_fn,
         dt=spec.dt,
+        position_dims=(0, 1) if name == "ant" else (0,),
     )
 
 

@@ -47,7 +47,7 @@ from rl2s_jax.simulate import (
     start_values,
     value_difference,
 )
-from rl2s_jax.tasks import get_task
+from rl2s_jax.tasks import TASKS, get_task
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 DEFAULT_EPS = {"rl2s": 0.25, "gail": 1.0, "bc": 1.0, "rl2s-bc": 0.25}
@@ -84,10 +84,18 @@ class TrainConfig:
     vd_horizon: int = 1000         # steps per simulated episode (the task's episode length)
     gamma: float = 0.999
     obs_clip: float = 10.0         # simulated states kept within +-obs_clip data stds
+    input_ignore_dims: tuple[int, ...] | None = None  # obs dims the networks do not see;
+    # None: the task's position_dims (absolute x, y), () for none
 
     @property
     def adversarial(self) -> bool:
         return self.method in ("rl2s", "gail")
+
+    @property
+    def ignore_dims(self) -> tuple[int, ...]:
+        if self.input_ignore_dims is not None:
+            return tuple(self.input_ignore_dims)
+        return get_task(self.task).position_dims if self.task in TASKS else ()
 
     @property
     def initial_eps(self) -> float:
@@ -216,7 +224,8 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
                      start_pool=jnp.asarray(start_pool, jnp.float32),
                      true_value=jnp.asarray(true_value, jnp.float32),
                      policies=jax.tree_util.tree_map(jnp.asarray, policies),
-                     norm=Normalizer.from_data(ds.obs, ds.action, ds.next_obs))
+                     norm=Normalizer.from_data(ds.obs, ds.action, ds.next_obs,
+                                               ignore_dims=config.ignore_dims))
 
 
 @struct.dataclass

@@ -95,7 +95,8 @@ def _relu_mlp(layers: list[dict], x: jax.Array) -> jax.Array:
 
 
 def _bounded_log_std(raw: jax.Array) -> jax.Array:
-    """Smoothly bound log-std to [LOG_STD_MIN, LOG_STD_MAX] (gradients never vanish outright)."""
+    """Smoothly bound log-std to about [LOG_STD_MIN, LOG_STD_MAX] (it can exceed the top by
+    log(1 + e^(MIN - MAX)), 0.0025 here; gradients never vanish outright)."""
     x = LOG_STD_MAX - jax.nn.softplus(LOG_STD_MAX - raw)
     return LOG_STD_MIN + jax.nn.softplus(x - LOG_STD_MIN)
 

@@ -264,9 +264,10 @@ class TrainState:
 
 
 def n_worst(eps: jax.Array | float, n_policies: int) -> jax.Array:
-    """max(2, ceil(eps * P)) capped at P; a 1e-6 slack keeps float error from rounding up
-    (0.15 * 20 is 3, not 4). -> [] int32"""
-    k = jnp.ceil(jnp.asarray(eps, jnp.float32) * n_policies - 1e-6).astype(jnp.int32)
+    """max(2, ceil(eps * P)) capped at P. A slack of a few float32 ulps keeps rounding error
+    from rounding up (0.15 * 20 is 3, not 4; 0.6 * 205 is 123). -> [] int32"""
+    x = jnp.asarray(eps, jnp.float32) * n_policies
+    k = jnp.ceil(x - 3e-7 * jnp.maximum(x, 1.0)).astype(jnp.int32)
     return jnp.minimum(jnp.maximum(k, 2), n_policies)
 
 

@@ -19,7 +19,7 @@ from rl2s_jax.models import Normalizer, init_generator
 from rl2s_jax.simulate import Simulator
 from rl2s_jax.train import TrainConfig, TrainState
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: Normalizer.obs_input_mask
 ITEMS = ("state", "simulator", "meta")
 
 

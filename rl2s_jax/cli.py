@@ -1,4 +1,4 @@
-"""The `rl2s` command line: zoo | collect | inspect | train | pipeline."""
+"""The `rl2s` command line: zoo | collect | inspect | train | evaluate | pipeline."""
 
 from __future__ import annotations
 
@@ -121,11 +121,28 @@ def cmd_train(args) -> int:
         summary = run_training(args.data, args.method, args.steps, args.out, zoo=args.zoo,
                                profile=args.profile, seed=args.seed, eps=args.eps,
                                save_every=args.save_every, chunk=args.chunk,
-                               overrides=_overrides(args.set), progress=not args.quiet)
+                               overrides=_overrides(args.set), progress=not args.quiet,
+                               eval_data=args.eval_data, eval_every=args.eval_every)
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1
     print(format_summary(summary))
+    return 0
+
+
+def cmd_evaluate(args) -> int:
+    from rl2s_jax.assess import evaluate_checkpoint, format_report
+
+    if not os.path.exists(args.data):
+        raise FileNotFoundError(f"data: no such file {args.data}")
+    report = evaluate_checkpoint(args.ckpt, args.data, zoo=args.zoo, seed=args.seed,
+                                 n_episodes=args.episodes, horizon=args.horizon, step=args.step)
+    print(format_report(report))
+    if args.json:
+        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
+        with open(args.json, "w") as f:
+            json.dump(report, f, indent=1)
+        print(f"-> {args.json}")
     return 0
 
 
@@ -208,8 +225,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train_steps per compiled scan between host logging")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a TrainConfig field, e.g. --set vd_horizon=200")
+    p.add_argument("--eval-data", help="Dataset of test policies: VD and ranking every "
+                   "--eval-every steps -> OUT/eval.jsonl")
+    p.add_argument("--eval-every", type=_positive("eval-every"),
+                   help="steps between test evaluations (default: --save-every or steps/10)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
+
+    p = sub.add_parser("evaluate", help="VD and ranking of a checkpoint's simulator on a "
+                       "dataset's policies (fresh process, no training data)")
+    p.add_argument("--ckpt", required=True, help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--data", required=True, help="Dataset of the policies to evaluate")
+    p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
+    p.add_argument("--episodes", type=_positive("episodes"), default=16,
+                   help="simulated episodes per policy")
+    p.add_argument("--horizon", type=_positive("horizon"),
+                   help="steps per simulated episode (default: the data's episode_length)")
+    p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--json", help="write the report here")
+    p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("pipeline", help="the whole pipeline for one task (make <task>)")
     p.add_argument("--task", required=True, choices=task_names())

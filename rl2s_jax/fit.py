@@ -44,13 +44,15 @@ def _first_bad(metrics: dict[str, np.ndarray]) -> tuple[int, list[str]] | None:
 def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
         checkpointer: Checkpointer | None = None, save_every: int | None = None,
         meta: dict | None = None, metrics_path: str | os.PathLike | None = None,
-        progress: bool = True, on_chunk: Callable[[TrainState, dict], None] | None = None
+        progress: bool = True, on_chunk: Callable[[TrainState, dict], None] | None = None,
+        eval_every: int | None = None, on_eval: Callable[[TrainState], None] | None = None
         ) -> tuple[TrainState, dict[str, np.ndarray]]:
     """Train until ``state.step == n_steps`` (a resumed state continues where it stopped).
 
     Chunks of ``chunk`` steps run as one compiled scan; checkpoints land at every multiple of
     ``save_every`` and at the end. Metrics of every step are appended as JSON lines to
-    ``metrics_path``. Raises TrainingDiverged (after saving the last good state) on NaN/Inf.
+    ``metrics_path``. ``on_eval(state)`` runs at every multiple of ``eval_every`` (chunks end
+    there too). Raises TrainingDiverged (after saving the last good state) on NaN/Inf.
     -> (final state, metrics stacked over the steps run here).
     """
     if not isinstance(n_steps, int) or n_steps < 0:
@@ -72,6 +74,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
             step = int(state.step)
             # End chunks on checkpoint boundaries so a resumed run replays the same chunks.
             n = min(chunk, n_steps - step, save_every - step % save_every)
+            if eval_every:
+                n = min(n, eval_every - step % eval_every)
             t0 = time.perf_counter()
             new_state, metrics = _train_chunk(state, data, n)
             metrics = jax.device_get(metrics)
@@ -102,6 +106,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
                                 mvd=f"{float(metrics['mvd_train'][-1]):.3g}", refresh=False)
             if on_chunk is not None:
                 on_chunk(state, metrics)
+            if on_eval is not None and eval_every and int(state.step) % eval_every == 0:
+                on_eval(state)
     finally:
         if bar is not None:
             bar.close()
@@ -169,9 +175,14 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
 def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str | None = None,
                  profile: str = "auto", seed: int = 0, eps: float | None = None,
                  save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
-                 progress: bool = True, log=print) -> dict:
+                 progress: bool = True, log=print, eval_data: str | None = None,
+                 eval_every: int | None = None, eval_episodes: int = 8) -> dict:
     """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
-    holds one), and return a summary dict (also written to out/summary.json)."""
+    holds one), and return a summary dict (also written to out/summary.json).
+
+    ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
+    with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve).
+    """
     from rl2s_jax.data import load_dataset
     from rl2s_jax.train import init, make_train_data
 
@@ -195,15 +206,22 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                      "true_value": np.asarray(data.true_value).tolist()},
             "seed": seed, "profile": profile}
     metrics_path = os.path.join(out, "metrics.jsonl")
+    eval_path = os.path.join(out, "eval.jsonl")
+    on_eval = None
+    if eval_data is not None:
+        on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo)
+        eval_every = eval_every or save_every or max(1, steps // 10)
     key = jax.random.PRNGKey(seed)
     if ck.latest_step() is not None:
         template = jax.eval_shape(lambda: init(key, cfg, data))
         state = ck.restore(template)
         _truncate_metrics(metrics_path, int(state.step))
+        _truncate_metrics(eval_path, int(state.step))
         log(f"[train] resuming {out} from step {int(state.step)}")
     else:
-        if os.path.exists(metrics_path):
-            os.remove(metrics_path)
+        for path in (metrics_path, eval_path):
+            if os.path.exists(path):
+                os.remove(path)
         t0 = time.perf_counter()
         state = jax.jit(init, static_argnums=1)(key, cfg, data)
         log(f"[train] {method} (eps {cfg.initial_eps}, profile {profile}) on {data_path}: "
@@ -214,7 +232,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     try:
         state, metrics = fit(state, data, steps, chunk=chunk, checkpointer=ck,
                              save_every=save_every, meta=meta, metrics_path=metrics_path,
-                             progress=progress)
+                             progress=progress, eval_every=eval_every, on_eval=on_eval)
     finally:
         ck.close()
     seconds = time.perf_counter() - t0
@@ -233,6 +251,30 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     with open(os.path.join(out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
     return summary
+
+
+def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
+                    zoo: str | None):
+    """on_eval callback: VD and ranking of the eval Dataset's policies, appended to ``path``."""
+    from rl2s_jax.assess import evaluate_simulator
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.train import simulator
+
+    ds = load_dataset(eval_data)
+    if ds.meta.get("task") != cfg.task:
+        raise ValueError(f"eval_data: {eval_data} is task {ds.meta.get('task')!r}, training is "
+                         f"{cfg.task!r}")
+    pols = policies_for(ds, None if zoo is None else zoo)
+    key = jax.random.PRNGKey(seed + 1)
+
+    def on_eval(state):
+        r = evaluate_simulator(simulator(state), ds, pols, key=key, n_episodes=n_episodes,
+                               horizon=cfg.vd_horizon, gamma=cfg.gamma)
+        row = {"step": int(state.step), **r["metrics"], "vd": r["vd"]}
+        with open(path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+    return on_eval
 
 
 def _truncate_metrics(path: str, step: int) -> None:

@@ -180,6 +180,31 @@ class TrainData:
         return int(self.policy_start.shape[0])
 
 
+def true_values(ds, horizon: int, gamma: float, strict: bool = True) -> np.ndarray:
+    """True discounted value [P] of each policy of ``ds`` over ``horizon`` steps.
+
+    The Dataset's measured ``value_discounted`` when the horizon covers the whole episode and
+    gamma matches; otherwise the logged episodes' discounted return over the first ``horizon``
+    steps (``simulate.data_values``). ``strict``: a policy without a usable episode is an error
+    (else NaN).
+    """
+    meta = ds.meta
+    full = meta.get("episode_length") is not None and horizon >= meta["episode_length"]
+    if ds.has_values and full and abs(float(meta.get("gamma") or 0) - gamma) < 1e-9:
+        return np.asarray(ds.value_discounted, np.float32)
+    ended = np.asarray(ds.done) | np.asarray(ds.truncated)
+    values, _ = data_values(np.asarray(ds.reward), ended, np.asarray(ds.policy_id),
+                            np.asarray(ds.episode_id), np.asarray(ds.t), ds.n_policies,
+                            horizon=horizon, gamma=gamma)
+    if strict and np.isnan(values).any():
+        bad = int(np.flatnonzero(np.isnan(values))[0])
+        raise ValueError(
+            f"vd_horizon: policy {bad} has no logged episode that starts at t = 0 and is "
+            f"seen for {horizon} steps (or to its end), so its true value over that horizon "
+            f"is unknown; lower vd_horizon or collect whole episodes")
+    return values.astype(np.float32)
+
+
 def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
     """TrainData from a Dataset and its P stacked policies (policy i of ``policies`` collected
     the rows with policy_id i).
@@ -203,20 +228,7 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
     start_pool = np.asarray(ds.obs)[t == 0]
     if start_pool.shape[0] == 0:
         raise ValueError("t: expected some episode start rows (t == 0) for the start-state pool")
-    meta = ds.meta
-    full = meta.get("episode_length") is not None and config.vd_horizon >= meta["episode_length"]
-    if ds.has_values and full and abs(float(meta.get("gamma") or 0) - config.gamma) < 1e-9:
-        true_value = np.asarray(ds.value_discounted, np.float32)
-    else:
-        ended = np.asarray(ds.done) | np.asarray(ds.truncated)
-        true_value, _ = data_values(np.asarray(ds.reward), ended, pid, np.asarray(ds.episode_id),
-                                    t, P, horizon=config.vd_horizon, gamma=config.gamma)
-        if config.vd_every and np.isnan(true_value).any():
-            bad = int(np.flatnonzero(np.isnan(true_value))[0])
-            raise ValueError(
-                f"vd_horizon: policy {bad} has no logged episode that starts at t = 0 and is "
-                f"seen for {config.vd_horizon} steps (or to its end), so its true value over "
-                f"that horizon is unknown; lower vd_horizon or collect whole episodes")
+    true_value = true_values(ds, config.vd_horizon, config.gamma, strict=bool(config.vd_every))
     f32 = lambda x: jnp.asarray(np.asarray(x)[order], jnp.float32)
     return TrainData(obs=f32(ds.obs), action=f32(ds.action), next_obs=f32(ds.next_obs),
                      policy_start=jnp.asarray(starts, jnp.int32),

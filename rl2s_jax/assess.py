@@ -1,0 +1,103 @@
+"""Evaluate a learned simulator on a set of policies (usually the held-out test policies):
+simulate each policy's value in p_phi, compare with its true value, rank.
+
+    report = evaluate_checkpoint("runs/rl2s/checkpoints", "results/hopper/test.npz")
+    report["metrics"]  # avd, mvd, kendall_tau, spearman, ndcg@k, regret@k
+"""
+from __future__ import annotations
+
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rl2s_jax.evaluate import ranking_metrics
+from rl2s_jax.policies import Params, num_policies
+from rl2s_jax.simulate import Simulator, simulated_values
+from rl2s_jax.tasks import get_task
+from rl2s_jax.train import true_values
+
+
+def start_pool(ds) -> jnp.ndarray:
+    """Real episode start states of a Dataset [S, o] (its rows with t == 0)."""
+    pool = np.asarray(ds.obs)[np.asarray(ds.t) == 0]
+    if pool.shape[0] == 0:
+        raise ValueError("t: expected some episode start rows (t == 0) for the start states")
+    return jnp.asarray(pool, jnp.float32)
+
+
+@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
+def _sim_values(sim: Simulator, policies, pool, key, *, n_episodes, horizon, gamma):
+    task = get_task(sim.task)
+    return simulated_values(policies, sim.dynamics, task.reward_fn, task.done_fn, pool, key,
+                            n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+
+
+def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
+                       n_episodes: int = 16, horizon: int | None = None,
+                       gamma: float | None = None, ks=(1, 3, 5, 10)) -> dict:
+    """Simulated vs true discounted value of every policy of ``ds`` (stacked ``policies``).
+
+    horizon: steps per simulated episode (default: the data's episode_length); gamma: default
+    the data's. -> {"true_value", "sim_value", "sim_length", "vd" (lists [P]), "metrics": {avd,
+    mvd, kendall_tau, spearman, ndcg@k, regret@k}, "horizon", "gamma", "n_episodes"}.
+    """
+    if sim.task is None:
+        raise ValueError("ckpt: the simulator names no task, so there is no reward_fn/done_fn")
+    if num_policies(policies) != ds.n_policies:
+        raise ValueError(f"policies: expected {ds.n_policies} (the data's), got "
+                         f"{num_policies(policies)}")
+    if not isinstance(n_episodes, int) or n_episodes < 1:
+        raise ValueError(f"episodes: expected an int >= 1, got {n_episodes!r}")
+    horizon = int(horizon or ds.meta.get("episode_length") or 1000)
+    gamma = float(gamma or ds.meta.get("gamma") or 0.999)
+    truth = true_values(ds, horizon, gamma)
+    sim_value, length = (np.asarray(x, np.float64) for x in _sim_values(
+        sim, policies, start_pool(ds), key, n_episodes=n_episodes, horizon=horizon,
+        gamma=gamma))
+    out = {"true_value": truth.tolist(), "sim_value": sim_value.tolist(),
+           "sim_length": length.tolist(), "vd": np.abs(truth - sim_value).tolist(),
+           "horizon": horizon, "gamma": gamma, "n_episodes": n_episodes,
+           "policy_names": list(ds.meta.get("policy_names") or range(ds.n_policies))}
+    if ds.n_policies >= 2:
+        out["metrics"] = ranking_metrics(truth, sim_value, ks=ks)
+    else:
+        vd = float(abs(truth[0] - sim_value[0]))
+        out["metrics"] = {"avd": vd, "mvd": vd}
+    return out
+
+
+def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None, seed: int = 0,
+                        n_episodes: int = 16, horizon: int | None = None, step: int | None = None
+                        ) -> dict:
+    """Load a checkpoint's simulator and a Dataset (policies from ``zoo`` or the data's
+    meta.source) and evaluate; no training data needed."""
+    from rl2s_jax.checkpoint import load_meta, load_simulator
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.fit import policies_for
+
+    ds = load_dataset(data_path)
+    sim = load_simulator(ckpt, step)
+    meta = load_meta(ckpt, step)
+    if ds.meta.get("task") != sim.task:
+        raise ValueError(f"data: {data_path} is task {ds.meta.get('task')!r} but the "
+                         f"checkpoint models {sim.task!r}")
+    report = evaluate_simulator(sim, ds, policies_for(ds, zoo), key=jax.random.PRNGKey(seed),
+                                n_episodes=n_episodes, horizon=horizon)
+    report.update(checkpoint=ckpt, step=meta["step"], method=meta["config"]["method"],
+                  data=data_path, seed=seed, backend=jax.default_backend())
+    return report
+
+
+def format_report(r: dict) -> str:
+    """A one-screen table of an evaluate report."""
+    m = r["metrics"]
+    head = [f"{r.get('method', '?')} checkpoint step {r.get('step', '?')} on {r.get('data', '')}"
+            f" ({len(r['vd'])} policies, {r['n_episodes']} episodes x {r['horizon']} steps)",
+            "  ".join(f"{k} {v:.3f}" for k, v in m.items())]
+    rows = [f"{'policy':<14}{'true value':>12}{'sim value':>12}{'VD':>10}{'sim len':>9}"]
+    for name, t, s, v, n in zip(r["policy_names"], r["true_value"], r["sim_value"], r["vd"],
+                                r["sim_length"], strict=True):
+        rows.append(f"{str(name):<14}{t:>12.2f}{s:>12.2f}{v:>10.2f}{n:>9.1f}")
+    return "\n".join(head + rows)

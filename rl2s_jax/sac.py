@@ -1,0 +1,288 @@
+"""Soft actor-critic in pure JAX, with the actor in our policy format (``policies.py``).
+
+The actor is a tanh-Gaussian policy pytree ``{"obs_mean", "obs_std", "layers"}``: training
+updates ``layers`` only, the observation normaliser stays frozen. So the actor can start from
+a zoo policy (fine-tuning) and the result is a policy that ``collect`` / ``measure_values`` take
+as it is. The twin critics are swish MLPs on (actor-normalised obs, action); their targets
+follow by Polyak averaging; the temperature alpha is learned towards the target entropy
+``-action_size``.
+
+``make_sac(env, cfg)`` returns ``SAC(init, train)``:
+
+* ``init(key, actor_params=None) -> SACState``: fresh critics, the given (or a fresh) actor,
+  ``n_envs`` envs reset, and a replay buffer prefilled with ``warmup_steps`` vectorised env steps
+  of the initial actor (no updates).
+* ``train(state, n_iterations) -> (state, metrics)``: ``n_iterations`` times (``lax.scan``):
+  one step of the ``n_envs`` envs with the current actor, then ``updates_per_step`` gradient
+  updates. For the first ``critic_warmup_updates`` updates only the critics learn (so a
+  fine-tuned actor is not pushed around by random critics). ``n_iterations`` is static.
+
+Everything is one pure program of the state: ``jax.jit(train, static_argnums=1)``, and
+``jax.vmap(init)(keys, stacked_policies)`` / ``jax.vmap(train, in_axes=(0, None))`` fine-tune
+several policies as one batch. The env must be an unwrapped brax Env (no time limit, no
+auto-reset): SAC resets ended episodes itself with a fresh ``env.reset`` (so a SimulatorEnv
+draws a new start state per episode), and bootstraps through time-limit truncations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from brax.envs.base import Env
+
+from rl2s_jax.collect import check_env, tree_where
+from rl2s_jax.policies import Params, init_mlp, init_policy, mlp, normalize_obs, sample_action
+
+
+@dataclasses.dataclass(frozen=True)
+class SACConfig:
+    """SAC hyper-parameters (per seed / per fine-tuned policy).
+
+    One iteration = one step of ``n_envs`` envs + ``updates_per_step`` gradient updates on
+    batches of ``batch_size``. ``warmup_steps`` vectorised env steps fill the buffer in ``init``;
+    ``buffer_size`` rows are kept (ring buffer). ``hidden``: critic hidden sizes;
+    ``actor_hidden``: hidden sizes of a fresh actor (ignored when fine-tuning).
+    """
+
+    learning_rate: float = 3e-4
+    batch_size: int = 256
+    gamma: float = 0.99
+    tau: float = 0.005
+    n_envs: int = 16
+    updates_per_step: int = 1
+    warmup_steps: int = 64
+    critic_warmup_updates: int = 0
+    buffer_size: int = 100_000
+    hidden: tuple[int, ...] = (256, 256)
+    actor_hidden: tuple[int, ...] = (64, 64)
+    episode_length: int = 1000
+    init_alpha: float = 1.0
+    reward_scaling: float = 1.0
+
+    def validate(self) -> None:
+        for name in ("batch_size", "n_envs", "updates_per_step", "buffer_size",
+                     "episode_length"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
+        for name in ("warmup_steps", "critic_warmup_updates"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if self.warmup_steps < 1:
+            raise ValueError("warmup_steps: expected >= 1 (the buffer must hold data before "
+                             f"the first update), got {self.warmup_steps}")
+        if self.warmup_steps * self.n_envs > self.buffer_size:
+            raise ValueError(f"buffer_size: must hold the warmup_steps * n_envs = "
+                             f"{self.warmup_steps * self.n_envs} warmup rows, got "
+                             f"{self.buffer_size}")
+        if self.n_envs > self.buffer_size:
+            raise ValueError(f"buffer_size: expected >= n_envs = {self.n_envs}, "
+                             f"got {self.buffer_size}")
+        if not 0.0 < self.tau <= 1.0:
+            raise ValueError(f"tau: expected in (0, 1], got {self.tau}")
+        if not 0.0 <= self.gamma <= 1.0:
+            raise ValueError(f"gamma: expected in [0, 1], got {self.gamma}")
+        if self.learning_rate <= 0 or self.init_alpha <= 0:
+            bad = "learning_rate" if self.learning_rate <= 0 else "init_alpha"
+            raise ValueError(f"{bad}: expected > 0, got {getattr(self, bad)}")
+
+
+class Buffer(NamedTuple):
+    """Ring buffer of transitions. obs/next_obs [N, o], action [N, a], reward, terminal [N];
+    ptr: next row to write; size: rows filled (<= N)."""
+
+    obs: jax.Array
+    action: jax.Array
+    reward: jax.Array
+    next_obs: jax.Array
+    terminal: jax.Array
+    ptr: jax.Array
+    size: jax.Array
+
+    @staticmethod
+    def create(capacity: int, obs_size: int, action_size: int) -> Buffer:
+        z = lambda *s: jnp.zeros(s, jnp.float32)
+        return Buffer(z(capacity, obs_size), z(capacity, action_size), z(capacity),
+                      z(capacity, obs_size), z(capacity), jnp.zeros((), jnp.int32),
+                      jnp.zeros((), jnp.int32))
+
+    def add(self, obs, action, reward, next_obs, terminal) -> Buffer:
+        """Append a batch of n rows (n <= capacity), overwriting the oldest."""
+        cap, n = self.obs.shape[0], obs.shape[0]
+        idx = (self.ptr + jnp.arange(n)) % cap
+        put = lambda buf, x: buf.at[idx].set(x.astype(buf.dtype))
+        return Buffer(put(self.obs, obs), put(self.action, action), put(self.reward, reward),
+                      put(self.next_obs, next_obs), put(self.terminal, terminal),
+                      (self.ptr + n) % cap, jnp.minimum(self.size + n, cap))
+
+    def sample(self, key: jax.Array, batch_size: int) -> tuple[jax.Array, ...]:
+        """batch_size rows drawn uniformly (with replacement) from the filled part."""
+        idx = jax.random.randint(key, (batch_size,), 0, jnp.maximum(self.size, 1))
+        return self.obs[idx], self.action[idx], self.reward[idx], self.next_obs[idx], \
+            self.terminal[idx]
+
+
+class SACState(NamedTuple):
+    actor: Params          # policies.py layout; only "layers" is trained
+    critic: Any            # twin Q layers, stacked [2, ...]
+    target_critic: Any
+    log_alpha: jax.Array   # []
+    actor_opt: Any
+    critic_opt: Any
+    alpha_opt: Any
+    buffer: Buffer
+    env_state: Any         # brax State batched [n_envs]
+    t: jax.Array           # [n_envs] steps into the current episodes
+    episode_return: jax.Array  # [n_envs] undiscounted return of the current episodes
+    updates: jax.Array     # [] gradient updates done
+    key: jax.Array
+
+
+class SAC(NamedTuple):
+    init: Callable[..., SACState]
+    train: Callable[[SACState, int], tuple[SACState, dict]]
+
+
+def q_values(critic, actor: Params, obs: jax.Array, action: jax.Array) -> jax.Array:
+    """Both critics. obs [..., o], action [..., a] -> [2, ...]."""
+    x = jnp.concatenate([normalize_obs(actor, obs), action], -1)
+    return jax.vmap(lambda layers: mlp(layers, x)[..., 0])(critic)
+
+
+def make_sac(env: Env, cfg: SACConfig) -> SAC:
+    """SAC for an unwrapped brax ``env`` (module docstring)."""
+    cfg.validate()
+    check_env(env)
+    obs_size, act_size = int(env.observation_size), int(env.action_size)
+    target_entropy = -float(act_size)
+    opt = optax.adam(cfg.learning_rate)
+    n = cfg.n_envs
+    v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
+
+    def env_step(actor, env_state, t, ep_ret, buffer, key):
+        """One step of the n envs: store the transitions, reset the ended episodes."""
+        k_act, k_reset = jax.random.split(key)
+        obs = env_state.obs
+        action, _, _ = sample_action(actor, obs, k_act)
+        nxt = v_step(env_state, action)
+        terminal = nxt.done > 0.5
+        end = terminal | (t + 1 >= cfg.episode_length)
+        buffer = buffer.add(obs, action, nxt.reward * cfg.reward_scaling, nxt.obs,
+                            terminal.astype(jnp.float32))
+        ep_ret = ep_ret + nxt.reward
+        stats = (jnp.sum(jnp.where(end, ep_ret, 0.0)), jnp.sum(end))
+        env_state = tree_where(end, v_reset(jax.random.split(k_reset, n)), nxt)
+        t = jnp.where(end, 0, t + 1)
+        ep_ret = jnp.where(end, 0.0, ep_ret)
+        return env_state, t, ep_ret, buffer, stats
+
+    def critic_loss(critic, actor, target_critic, alpha, batch, key):
+        obs, action, reward, next_obs, terminal = batch
+        next_action, _, next_logp = sample_action(actor, next_obs, key)
+        q_next = jnp.min(q_values(target_critic, actor, next_obs, next_action), axis=0)
+        target = reward + cfg.gamma * (1.0 - terminal) * (q_next - alpha * next_logp)
+        q = q_values(critic, actor, obs, action)
+        loss = 0.5 * jnp.mean(jnp.sum((q - jax.lax.stop_gradient(target)) ** 2, axis=0))
+        return loss, jnp.mean(q)
+
+    def actor_loss(layers, actor, critic, alpha, obs, key):
+        pol = {**actor, "layers": layers}
+        action, _, logp = sample_action(pol, obs, key)
+        q = jnp.min(q_values(critic, actor, obs, action), axis=0)
+        return jnp.mean(alpha * logp - q), logp
+
+    def update(state: SACState, key):
+        k_batch, k_critic, k_actor = jax.random.split(key, 3)
+        batch = state.buffer.sample(k_batch, cfg.batch_size)
+        alpha = jnp.exp(state.log_alpha)
+
+        (q_loss, q_mean), g = jax.value_and_grad(critic_loss, has_aux=True)(
+            state.critic, state.actor, state.target_critic, alpha, batch, k_critic)
+        upd, critic_opt = opt.update(g, state.critic_opt, state.critic)
+        critic = optax.apply_updates(state.critic, upd)
+        target = jax.tree_util.tree_map(lambda t, c: (1 - cfg.tau) * t + cfg.tau * c,
+                                        state.target_critic, critic)
+
+        (pi_loss, logp), g = jax.value_and_grad(actor_loss, has_aux=True)(
+            state.actor["layers"], state.actor, critic, alpha, batch[0], k_actor)
+        upd, actor_opt = opt.update(g, state.actor_opt, state.actor["layers"])
+        layers = optax.apply_updates(state.actor["layers"], upd)
+
+        entropy = -jnp.mean(logp)
+        a_loss, g = jax.value_and_grad(
+            lambda la: -la * jax.lax.stop_gradient(target_entropy - entropy))(state.log_alpha)
+        upd, alpha_opt = opt.update(g, state.alpha_opt, state.log_alpha)
+        log_alpha = optax.apply_updates(state.log_alpha, upd)
+
+        # Actor and alpha wait for the critics during critic_warmup_updates.
+        live = state.updates >= cfg.critic_warmup_updates
+        keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b),
+                                                       new, old)
+        state = state._replace(
+            actor={**state.actor, "layers": keep(layers, state.actor["layers"])},
+            actor_opt=keep(actor_opt, state.actor_opt), critic=critic, target_critic=target,
+            critic_opt=critic_opt, log_alpha=keep(log_alpha, state.log_alpha),
+            alpha_opt=keep(alpha_opt, state.alpha_opt), updates=state.updates + 1)
+        return state, {"q_loss": q_loss, "q_mean": q_mean, "actor_loss": pi_loss,
+                       "alpha_loss": a_loss, "alpha": alpha, "entropy": entropy}
+
+    def iteration(state: SACState, _):
+        key, k_env, k_upd = jax.random.split(state.key, 3)
+        env_state, t, ep_ret, buffer, (ret_sum, n_ended) = env_step(
+            state.actor, state.env_state, state.t, state.episode_return, state.buffer, k_env)
+        state = state._replace(env_state=env_state, t=t, episode_return=ep_ret, buffer=buffer,
+                               key=key)
+        state, m = jax.lax.scan(update, state, jax.random.split(k_upd, cfg.updates_per_step))
+        m = jax.tree_util.tree_map(lambda x: x[-1], m)
+        m["return_sum"], m["episodes"] = ret_sum, n_ended
+        return state, m
+
+    def init(key: jax.Array, actor_params: Params | None = None) -> SACState:
+        """Fresh critics and buffer; the actor is ``actor_params`` (one policy) or fresh."""
+        k_actor, k_critic, k_env, k_warm, key = jax.random.split(key, 5)
+        if actor_params is None:
+            actor = init_policy(k_actor, obs_size, act_size, cfg.actor_hidden)
+        else:
+            actor = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), actor_params)
+            mean = actor["obs_mean"]
+            if mean.shape != (obs_size,):
+                raise ValueError(f"actor_params: obs_mean of shape {mean.shape}, expected "
+                                 f"({obs_size},) (one policy, not a stack)")
+            out = actor["layers"][-1]["b"].shape
+            if out != (2 * act_size,):
+                raise ValueError(f"actor_params: last layer outputs {out}, expected "
+                                 f"({2 * act_size},) for action_size {act_size}")
+        sizes = [obs_size + act_size, *cfg.hidden, 1]
+        critic = jax.vmap(lambda k: init_mlp(k, sizes))(jax.random.split(k_critic, 2))
+        log_alpha = jnp.log(jnp.asarray(cfg.init_alpha, jnp.float32))
+        buffer = Buffer.create(cfg.buffer_size, obs_size, act_size)
+        env_state = v_reset(jax.random.split(k_env, n))
+        t, ep_ret = jnp.zeros((n,), jnp.int32), jnp.zeros((n,), jnp.float32)
+
+        def warm(carry, k):
+            return env_step(actor, *carry, k)[:4], None
+
+        (env_state, t, ep_ret, buffer), _ = jax.lax.scan(
+            warm, (env_state, t, ep_ret, buffer), jax.random.split(k_warm, cfg.warmup_steps))
+        return SACState(actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
+                        actor_opt=opt.init(actor["layers"]), critic_opt=opt.init(critic),
+                        alpha_opt=opt.init(log_alpha), buffer=buffer, env_state=env_state,
+                        t=t, episode_return=ep_ret, updates=jnp.zeros((), jnp.int32), key=key)
+
+    def train(state: SACState, n_iterations: int) -> tuple[SACState, dict]:
+        """n_iterations (static) iterations. metrics: dict of [n_iterations] arrays: losses,
+        alpha, entropy of the last update; return_sum / episodes of the episodes that ended."""
+        return jax.lax.scan(iteration, state, None, length=int(n_iterations))
+
+    return SAC(init, train)
+
+
+def episode_returns(metrics: dict) -> jax.Array:
+    """Mean return of the training episodes that ended in each window of iterations: metrics
+    [..., T] -> overall mean over the last axis (NaN when none ended)."""
+    ep = metrics["episodes"].sum(-1)
+    return jnp.where(ep > 0, metrics["return_sum"].sum(-1) / jnp.maximum(ep, 1), jnp.nan)

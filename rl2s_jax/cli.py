@@ -146,31 +146,80 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+PROFILES = {
+    "cpu": dict(transitions_per_policy=2000, value_episodes=4, steps=300, eval_every=50,
+                eval_episodes=8),
+    "gpu": dict(transitions_per_policy=100_000, value_episodes=32, steps=3000, eval_every=250,
+                eval_episodes=16),
+}
+
+
 def cmd_pipeline(args) -> int:
-    """The whole pipeline for one task. For now: collect train and test data, summarise."""
+    """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
     import jax
 
-    from rl2s_jax.data import dataset_summary, save_dataset
+    from rl2s_jax.assess import evaluate_checkpoint
+    from rl2s_jax.data import dataset_summary, load_dataset, save_dataset
+    from rl2s_jax.fit import run_training
+    from rl2s_jax.report import load_curve, write_report
 
+    t_start = time.perf_counter()
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
-    sizes = {"cpu": dict(transitions_per_policy=2000, value_episodes=4),
-             "gpu": dict(transitions_per_policy=100_000, value_episodes=32)}[profile]
+    sizes = dict(PROFILES[profile])
+    for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every"):
+        if getattr(args, k) is not None:
+            sizes[k] = getattr(args, k)
+    methods = args.methods.split(",")
+    bad = [m for m in methods if m not in ("rl2s", "gail", "bc", "rl2s-bc")]
+    if bad:
+        raise ValueError(f"methods: expected a comma list of rl2s, gail, bc, rl2s-bc; got {bad}")
     out = args.out or os.path.join("results", args.task)
     os.makedirs(out, exist_ok=True)
-    print(f"[pipeline] task {args.task}, backend {backend}, profile {profile} -> {out}")
-    summary = {"task": args.task, "profile": profile, "backend": backend, "datasets": {}}
+    print(f"[pipeline] task {args.task}, backend {backend}, profile {profile} -> {out}\n"
+          f"[pipeline] {sizes}")
+    data_key = {k: sizes[k] for k in ("transitions_per_policy", "value_episodes")}
+    data_key.update(seed=args.seed, task=args.task)
+    summary = {"task": args.task, "profile": profile, "backend": backend, "sizes": sizes,
+               "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
+               "datasets": {}}
+    state_path = os.path.join(out, "pipeline.json")
+    previous = json.load(open(state_path)) if os.path.exists(state_path) else {}
     for split in ("train", "test"):
-        ds = collect_dataset(args.task, split, sizes["transitions_per_policy"], seed=args.seed,
-                             value_episodes=sizes["value_episodes"])
         path = os.path.join(out, f"{split}.npz")
-        save_dataset(path, ds)
-        print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
+        if os.path.exists(path) and previous.get("data_key") == data_key:
+            ds = load_dataset(path)
+            print(f"[pipeline] {split} data: reusing {path}")
+        else:
+            ds = collect_dataset(args.task, split, sizes["transitions_per_policy"],
+                                 seed=args.seed, value_episodes=sizes["value_episodes"])
+            save_dataset(path, ds)
+            print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
         summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,
                                       "policies": ds.n_policies}
-    with open(os.path.join(out, "pipeline.json"), "w") as f:
+    summary["data_key"] = data_key
+    with open(state_path, "w") as f:
         json.dump(summary, f, indent=1)
-    print("\n[pipeline] stops after collection for now (training and evaluation: issues 3-4)")
+    evals, curves, runs = {}, {}, {}
+    for method in methods:
+        run_dir = os.path.join(out, method)
+        print(f"\n[pipeline] training {method} -> {run_dir}")
+        runs[method] = run_training(
+            summary["datasets"]["train"]["path"], method, sizes["steps"], run_dir,
+            profile=profile, seed=args.seed, save_every=sizes["eval_every"],
+            eval_data=summary["datasets"]["test"]["path"], eval_every=sizes["eval_every"],
+            eval_episodes=sizes["eval_episodes"], progress=not args.quiet)
+        evals[method] = evaluate_checkpoint(os.path.join(run_dir, "checkpoints"),
+                                            summary["datasets"]["test"]["path"],
+                                            seed=args.seed, n_episodes=sizes["eval_episodes"],
+                                            horizon=runs[method]["config"]["vd_horizon"])
+        curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
+    summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
+                                                   "mvd_train")} for m, r in runs.items()}
+    summary["seconds"] = round(time.perf_counter() - t_start, 1)
+    text = write_report(out, summary, evals, curves)
+    print(f"\n[pipeline] test policies ({profile} profile, {backend}), "
+          f"{summary['seconds']:.0f}s:\n{text}\n-> {out}/report.md, report.json, *.png")
     return 0
 
 
@@ -250,7 +299,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--task", required=True, choices=task_names())
     p.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out")
+    p.add_argument("--out", help="directory (default: results/<task>)")
+    p.add_argument("--methods", default="rl2s,gail,bc,rl2s-bc")
+    p.add_argument("--steps", type=_positive("steps"), help="train_steps per method")
+    p.add_argument("--eval-every", type=_positive("eval-every"))
+    p.add_argument("--transitions-per-policy", type=_positive("transitions-per-policy"))
+    p.add_argument("--value-episodes", type=_positive("value-episodes"))
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_pipeline)
     return parser
 

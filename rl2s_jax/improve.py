@@ -1,0 +1,121 @@
+"""Policy improvement inside a learned simulator (the paper's downstream test).
+
+Each policy is fine-tuned with SAC (``rl2s_jax.sac``) inside the simulator, its actor
+initialised from the policy (obs normaliser included), all P policies as one vmapped program.
+Its real return before (C0) and after (C1) then gives the improvement
+
+    I = (C1 - C0) / |C0|,   MPI = min_p I,   API = mean_p I.
+
+The paper writes I = (C1 - C0) / C0; for the positive returns of its MuJoCo tasks that is the
+same number. We divide by |C0| so that I > 0 always means the policy got better: with a
+negative C0, (C1 - C0) / C0 would be negative for an improvement. Either way I is undefined for
+C0 = 0 (refused) and large when |C0| is small, so compare I over tasks with clearly non-zero
+returns.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from brax.envs.base import Env
+
+from rl2s_jax.collect import measure_values
+from rl2s_jax.policies import Params, num_policies
+from rl2s_jax.sac import SACConfig, make_sac
+from rl2s_jax.sim_env import SimulatorEnv
+from rl2s_jax.simulate import Simulator
+from rl2s_jax.tasks import Task
+
+
+def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
+                     start_pool, policies: Params, key: jax.Array, sac_cfg: SACConfig, *,
+                     n_iterations: int, deterministic: bool = False,
+                     chunk_iterations: int | None = None) -> tuple[Params, dict]:
+    """Fine-tune each of the stacked ``policies`` [P, ...] with SAC inside the simulator.
+
+    sim: a ``SimulatorEnv`` (or any unwrapped brax Env; then task and start_pool are unused),
+      or a ``Simulator`` / ``dynamics(obs, action, key)`` from which a ``SimulatorEnv`` is built
+      with ``task``, ``start_pool`` [S, o] and ``deterministic``.
+    n_iterations: SAC iterations per policy (each: ``sac_cfg.n_envs`` env steps and
+      ``sac_cfg.updates_per_step`` updates), run as jitted chunks of ``chunk_iterations``
+      (default: all at once).
+
+    Returns (improved policies [P, ...] in the same layout, metrics: dict of [P, n_iterations]
+    arrays from ``sac.train``).
+    """
+    if n_iterations < 1:
+        raise ValueError(f"n_iterations: expected >= 1, got {n_iterations}")
+    chunk = int(chunk_iterations or n_iterations)
+    if chunk < 1:
+        raise ValueError(f"chunk_iterations: expected >= 1, got {chunk_iterations}")
+    env = sim if isinstance(sim, Env) else SimulatorEnv(sim, start_pool, task,
+                                                        deterministic=deterministic)
+    sac = make_sac(env, sac_cfg)
+    n_pol = num_policies(policies)
+    states = jax.jit(jax.vmap(sac.init))(jax.random.split(key, n_pol), policies)
+    compiled, metrics, done = {}, [], 0
+    while done < n_iterations:
+        n = min(chunk, n_iterations - done)
+        if n not in compiled:
+            compiled[n] = jax.jit(jax.vmap(lambda s, n=n: sac.train(s, n)))
+        states, m = compiled[n](states)
+        metrics.append(m)
+        done += n
+    metrics = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *metrics)
+    return states.actor, metrics
+
+
+def improvement_metrics(c0, c1) -> dict[str, np.ndarray | float]:
+    """Improvement of each policy from real returns before (c0 [P]) and after (c1 [P]).
+
+    -> {"I": (c1 - c0) / |c0| [P], "mpi": min I, "api": mean I} (see the module docstring for
+    |c0| rather than c0).
+    """
+    c0 = np.asarray(c0, np.float64)
+    c1 = np.asarray(c1, np.float64)
+    for name, c in (("c0", c0), ("c1", c1)):
+        if c.ndim != 1 or c.shape[0] < 1:
+            raise ValueError(f"{name}: expected shape [P >= 1], got {c.shape}")
+        if not np.all(np.isfinite(c)):
+            raise ValueError(f"{name}: expected finite returns, got {c}")
+    if c0.shape != c1.shape:
+        raise ValueError(f"c1: expected the shape of c0 {c0.shape}, got {c1.shape}")
+    if np.any(c0 == 0):
+        raise ValueError(f"c0: improvement is undefined for a zero return, got zeros at "
+                         f"{np.flatnonzero(c0 == 0).tolist()}")
+    imp = (c1 - c0) / np.abs(c0)
+    return {"I": imp, "mpi": float(imp.min()), "api": float(imp.mean())}
+
+
+def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.Array, *,
+                        n_episodes: int, episode_length: int, gamma: float = 0.99,
+                        discounted: bool = False) -> dict[str, np.ndarray | float]:
+    """Real returns of the stacked policies before and after [P, ...] (``measure_values`` in
+    ``real_env``, n_episodes each) and their improvement.
+
+    C is the mean undiscounted episode return (``discounted=True``: the discounted one).
+    -> {"c0", "c0_se", "c1", "c1_se": [P], "I": [P], "mpi", "api"}.
+    """
+    P = num_policies(before)
+    if num_policies(after) != P:
+        raise ValueError(f"after: expected {P} policies as before, got {num_policies(after)}")
+    kw = dict(n_episodes=n_episodes, episode_length=episode_length, gamma=gamma)
+    field = "value_discounted" if discounted else "value"
+    same = (jax.tree_util.tree_structure(before) == jax.tree_util.tree_structure(after)
+            and all(a.shape == b.shape for a, b in zip(jax.tree_util.tree_leaves(before),
+                                                       jax.tree_util.tree_leaves(after),
+                                                       strict=True)))
+    if same:  # one batch of 2P policies
+        both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), before, after)
+        v = measure_values(real_env, both, key=key, **kw)
+        c, se = v[field], v[field + "_se"]
+        c0, c1, se0, se1 = c[:P], c[P:], se[:P], se[P:]
+    else:
+        k0, k1 = jax.random.split(key)
+        v0 = measure_values(real_env, before, key=k0, **kw)
+        v1 = measure_values(real_env, after, key=k1, **kw)
+        c0, c1, se0, se1 = v0[field], v1[field], v0[field + "_se"], v1[field + "_se"]
+    return {"c0": c0, "c0_se": se0, "c1": c1, "c1_se": se1, **improvement_metrics(c0, c1)}

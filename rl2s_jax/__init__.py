@@ -7,6 +7,9 @@ checkpoint with ``Checkpointer`` and load a trained ``Simulator`` with ``load_si
 from rl2s_jax.checkpoint import Checkpointer, load_meta, load_simulator
 from rl2s_jax.data import Dataset, load_dataset, save_dataset
 from rl2s_jax.fit import TrainingDiverged, fit, run_training
+from rl2s_jax.improve import improve_policies, improvement_metrics, measure_improvement
+from rl2s_jax.sac import SACConfig, make_sac
+from rl2s_jax.sim_env import SimulatorEnv
 from rl2s_jax.simulate import Simulator, simulated_values
 from rl2s_jax.train import (
     TrainConfig,
@@ -22,8 +25,9 @@ from rl2s_jax.train import (
 )
 
 __all__ = [
-    "Checkpointer", "Dataset", "Simulator", "TrainConfig", "TrainData", "TrainState",
-    "TrainingDiverged", "fit", "init", "load_dataset", "load_meta", "load_simulator",
-    "make_train_data", "n_worst", "run_training", "save_dataset", "select_worst",
-    "simulated_values", "simulator", "train_step", "train_steps",
+    "Checkpointer", "Dataset", "SACConfig", "Simulator", "SimulatorEnv", "TrainConfig",
+    "TrainData", "TrainState", "TrainingDiverged", "fit", "improve_policies",
+    "improvement_metrics", "init", "load_dataset", "load_meta", "load_simulator", "make_sac",
+    "make_train_data", "measure_improvement", "n_worst", "run_training", "save_dataset",
+    "select_worst", "simulated_values", "simulator", "train_step", "train_steps",
 ]

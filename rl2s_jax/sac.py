@@ -69,9 +69,9 @@ class SACConfig:
                      "episode_length"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
-        for name in ("warmup_steps", "critic_warmup_updates"):
-            if getattr(self, name) < 0:
-                raise ValueError(f"{name}: expected >= 0, got {getattr(self, name)}")
+        if self.critic_warmup_updates < 0:
+            raise ValueError(f"critic_warmup_updates: expected >= 0, "
+                             f"got {self.critic_warmup_updates}")
         if self.warmup_steps < 1:
             raise ValueError("warmup_steps: expected >= 1 (the buffer must hold data before "
                              f"the first update), got {self.warmup_steps}")
@@ -282,7 +282,7 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
 
 
 def episode_returns(metrics: dict) -> jax.Array:
-    """Mean return of the training episodes that ended in each window of iterations: metrics
-    [..., T] -> overall mean over the last axis (NaN when none ended)."""
+    """Mean undiscounted return of the training episodes that ended during the iterations of
+    ``train``'s metrics ([..., T] -> [...]; NaN where none ended)."""
     ep = metrics["episodes"].sum(-1)
     return jnp.where(ep > 0, metrics["return_sum"].sum(-1) / jnp.maximum(ep, 1), jnp.nan)

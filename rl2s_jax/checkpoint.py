@@ -109,7 +109,8 @@ def load_simulator(directory: str | os.PathLike, step: int | None = None) -> Sim
             simulator=ocp.args.StandardRestore(template))).simulator
     finally:
         ck.close()
-    return Simulator(gen=sim["gen"], norm=sim["norm"], task=cfg.task, obs_clip=cfg.obs_clip)
+    return Simulator(gen=sim["gen"], norm=sim["norm"], task=cfg.task, obs_clip=cfg.obs_clip,
+                     noise_scale=cfg.sim_noise)
 
 
 def load_meta(directory: str | os.PathLike, step: int | None = None) -> dict:

@@ -148,10 +148,57 @@ def cmd_evaluate(args) -> int:
 
 PROFILES = {
     "cpu": dict(transitions_per_policy=2000, value_episodes=4, steps=300, eval_every=50,
-                eval_episodes=8),
+                eval_episodes=8, improve_iterations=300,
+                sac=dict(n_envs=4, hidden=(64, 64), batch_size=128, critic_warmup_updates=200,
+                         buffer_size=20_000)),
     "gpu": dict(transitions_per_policy=100_000, value_episodes=32, steps=3000, eval_every=250,
-                eval_episodes=16),
+                eval_episodes=16, improve_iterations=5000,
+                sac=dict(n_envs=16, critic_warmup_updates=2000)),
 }
+
+
+def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
+                          horizon: int, seed: int = 0, log=print) -> dict[str, dict]:
+    """Fine-tune every test policy with SAC inside each method's simulator, then measure its
+    real return (MJX) with the same protocol as the test data's true values:
+    C0 = the data's ``value``, C1 = mean return over ``value_episodes`` episodes.
+    -> {method: {"c0", "c1", "c1_se", "I" (lists [P]), "mpi", "api"}}."""
+    import jax
+
+    from rl2s_jax.assess import start_pool
+    from rl2s_jax.checkpoint import load_simulator
+    from rl2s_jax.collect import measure_values
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.fit import policies_for
+    from rl2s_jax.improve import improve_policies, improvement_metrics
+    from rl2s_jax.sac import SACConfig
+    from rl2s_jax.tasks import get_task
+
+    ds = load_dataset(test_path)
+    if not ds.has_values:
+        raise ValueError(f"data: {test_path} has no true values, so C0 is unknown")
+    task = get_task(task_name)
+    policies, pool = policies_for(ds), start_pool(ds)
+    episode_length = int(ds.meta.get("episode_length") or task.episode_length)
+    cfg = SACConfig(episode_length=horizon, **sizes["sac"])
+    env = task.make_env()
+    c0 = [float(v) for v in ds.value]
+    out = {}
+    for i, (method, ckpt) in enumerate(ckpts.items()):
+        t0 = time.perf_counter()
+        improved, _ = improve_policies(load_simulator(ckpt), task, pool, policies,
+                                       jax.random.PRNGKey(seed + 10 + i), cfg,
+                                       n_iterations=sizes["improve_iterations"],
+                                       chunk_iterations=min(1000, sizes["improve_iterations"]))
+        real = measure_values(env, improved, key=jax.random.PRNGKey(seed + 20 + i),
+                              n_episodes=sizes["value_episodes"], episode_length=episode_length,
+                              gamma=float(ds.meta.get("gamma") or 0.999))
+        m = improvement_metrics(c0, real["value"])
+        out[method] = {"c0": c0, "c1": real["value"].tolist(), "c1_se": real["value_se"].tolist(),
+                       "I": m["I"].tolist(), "mpi": m["mpi"], "api": m["api"]}
+        log(f"[pipeline] improve in {method}'s simulator: MPI {m['mpi']:.3f}  API "
+            f"{m['api']:.3f}  ({time.perf_counter() - t0:.0f}s)")
+    return out
 
 
 def cmd_pipeline(args) -> int:
@@ -167,7 +214,8 @@ def cmd_pipeline(args) -> int:
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
     sizes = dict(PROFILES[profile])
-    for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every"):
+    for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every",
+              "improve_iterations"):
         if getattr(args, k) is not None:
             sizes[k] = getattr(args, k)
     methods = args.methods.split(",")
@@ -180,6 +228,8 @@ def cmd_pipeline(args) -> int:
           f"[pipeline] {sizes}")
     data_key = {k: sizes[k] for k in ("transitions_per_policy", "value_episodes")}
     data_key.update(seed=args.seed, task=args.task)
+    if args.episode_length is not None:
+        data_key["episode_length"] = args.episode_length
     summary = {"task": args.task, "profile": profile, "backend": backend, "sizes": sizes,
                "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
                "datasets": {}}
@@ -192,7 +242,8 @@ def cmd_pipeline(args) -> int:
             print(f"[pipeline] {split} data: reusing {path}")
         else:
             ds = collect_dataset(args.task, split, sizes["transitions_per_policy"],
-                                 seed=args.seed, value_episodes=sizes["value_episodes"])
+                                 seed=args.seed, value_episodes=sizes["value_episodes"],
+                                 episode_length=args.episode_length, progress=not args.quiet)
             save_dataset(path, ds)
             print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
         summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,
@@ -216,6 +267,14 @@ def cmd_pipeline(args) -> int:
         curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
     summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
                                                    "mvd_train")} for m, r in runs.items()}
+    if sizes["improve_iterations"]:
+        improvement = improve_in_simulators(
+            args.task, summary["datasets"]["test"]["path"],
+            {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
+            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed)
+        for m, imp in improvement.items():
+            evals[m]["metrics"].update(mpi=imp["mpi"], api=imp["api"])
+            evals[m]["improvement"] = imp
     summary["seconds"] = round(time.perf_counter() - t_start, 1)
     text = write_report(out, summary, evals, curves)
     print(f"\n[pipeline] test policies ({profile} profile, {backend}), "
@@ -305,6 +364,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-every", type=_positive("eval-every"))
     p.add_argument("--transitions-per-policy", type=_positive("transitions-per-policy"))
     p.add_argument("--value-episodes", type=_positive("value-episodes"))
+    p.add_argument("--improve-iterations", type=int,
+                   help="SAC iterations per test policy in each simulator (0: skip)")
+    p.add_argument("--episode-length", type=_positive("episode-length"),
+                   help="shorter episodes than the task's (smoke runs)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_pipeline)
     return parser

@@ -114,14 +114,17 @@ def generator_dist(gen: list[dict], norm: Normalizer, obs: jax.Array, action: ja
 
 
 def generator_sample(gen: list[dict], norm: Normalizer, obs: jax.Array, action: jax.Array,
-                     key: jax.Array, obs_clip: float | None = None) -> jax.Array:
+                     key: jax.Array, obs_clip: float | None = None,
+                     noise_scale: float = 1.0) -> jax.Array:
     """A reparameterised next-state sample s' ~ p_phi(.|s, a). -> [..., o]
 
     ``obs_clip`` bounds the normalised next state to [-obs_clip, obs_clip] so long simulated
     rollouts stay finite; leave it None where gradients must flow (the generator loss).
+    ``noise_scale`` multiplies the std (0: the mean, for deterministic real systems).
     """
     mean, log_std = generator_dist(gen, norm, obs, action)
-    delta_n = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
+    noise = jax.random.normal(key, mean.shape, mean.dtype)
+    delta_n = mean + noise_scale * jnp.exp(log_std) * noise
     next_obs = norm.next_from_delta(obs, delta_n)
     if obs_clip is not None:
         lo = norm.obs_mean - obs_clip * norm.obs_std

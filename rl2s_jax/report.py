@@ -7,7 +7,7 @@ import os
 import numpy as np
 
 TABLE_KEYS = ("avd", "mvd", "kendall_tau", "spearman", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10",
-              "regret@1")
+              "regret@1", "mpi", "api")
 
 
 def load_curve(path: str) -> list[dict]:
@@ -91,6 +91,23 @@ def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) ->
         fig.savefig(os.path.join(out, "true_vs_sim.png"), dpi=110)
         plt.close(fig)
         files.append("true_vs_sim.png")
+
+        imps = {name: r["improvement"] for name, r in evals.items() if "improvement" in r}
+        if imps:
+            fig, ax = plt.subplots(figsize=(max(6, 0.22 * len(names) + 2), 3.6))
+            width = 0.8 / len(imps)
+            for j, (name, imp) in enumerate(imps.items()):
+                ax.bar(np.arange(len(names)) + j * width, np.asarray(imp["I"])[order], width,
+                       label=f"{name} (MPI {imp['mpi']:.2f}, API {imp['api']:.2f})")
+            ax.axhline(0, color="grey", lw=0.8)
+            ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=90,
+                          fontsize=6)
+            ax.set_ylabel("improvement I = (C1 - C0) / |C0|")
+            ax.legend(fontsize=7)
+            fig.tight_layout()
+            fig.savefig(os.path.join(out, "improvement.png"), dpi=110)
+            plt.close(fig)
+            files.append("improvement.png")
     return files
 
 

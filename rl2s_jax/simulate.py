@@ -35,10 +35,13 @@ class Simulator:
     norm: Normalizer
     task: str | None = struct.field(pytree_node=False, default=None)
     obs_clip: float = struct.field(pytree_node=False, default=10.0)
+    noise_scale: float = struct.field(pytree_node=False, default=1.0)
 
     def sample(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
-        """s' ~ p_phi(.|s, a), clipped to +-obs_clip data stds. [..., o], [..., a] -> [..., o]"""
-        return generator_sample(self.gen, self.norm, obs, action, key, self.obs_clip)
+        """s' ~ p_phi(.|s, a) with the std times noise_scale, clipped to +-obs_clip data stds.
+        [..., o], [..., a] -> [..., o]"""
+        return generator_sample(self.gen, self.norm, obs, action, key, self.obs_clip,
+                                self.noise_scale)
 
     def mean(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         """The mean next state. -> [..., o]"""

@@ -84,6 +84,7 @@ class TrainConfig:
     vd_horizon: int = 1000         # steps per simulated episode (the task's episode length)
     gamma: float = 0.999
     obs_clip: float = 10.0         # simulated states kept within +-obs_clip data stds
+    sim_noise: float = 1.0         # std scale of p_phi in simulated rollouts (0: its mean)
     input_ignore_dims: tuple[int, ...] | None = None  # obs dims the networks do not see;
     # None: the task's position_dims (absolute x, y), () for none
 
@@ -135,6 +136,9 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite float, got {v!r}")
+        if not (isinstance(self.sim_noise, (int, float)) and math.isfinite(self.sim_noise)
+                and self.sim_noise >= 0):
+            raise ValueError(f"sim_noise: expected a finite float >= 0, got {self.sim_noise!r}")
         if not 0.0 < self.gamma <= 1.0:
             raise ValueError(f"gamma: expected a float in (0, 1], got {self.gamma!r}")
         if self.adversarial and self.buffer_size < self.batch_size:
@@ -309,9 +313,10 @@ def _real_batch(key, data: TrainData, selected, n):
     return data.obs[rows], data.action[rows], data.next_obs[rows]
 
 
-def _sim_dynamics(gen, norm: Normalizer, obs_clip: float):
+def _sim_dynamics(gen, norm: Normalizer, cfg: TrainConfig):
     gen = jax.lax.stop_gradient(gen)
-    return lambda obs, action, key: generator_sample(gen, norm, obs, action, key, obs_clip)
+    return lambda obs, action, key: generator_sample(gen, norm, obs, action, key, cfg.obs_clip,
+                                                     cfg.sim_noise)
 
 
 # ------------------------------------------------------------------ init
@@ -371,7 +376,7 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
 def _full_values(gen, norm, cfg: TrainConfig, data: TrainData, task, key):
     k_start, k_run = jax.random.split(key)
     roll = start_values(data.start_pool, data.n_policies, cfg.vd_episodes, k_start)
-    roll = advance_values(roll, data.policies, _sim_dynamics(gen, norm, cfg.obs_clip),
+    roll = advance_values(roll, data.policies, _sim_dynamics(gen, norm, cfg),
                           task.reward_fn, task.done_fn, k_run, n_steps=cfg.vd_horizon,
                           horizon=cfg.vd_horizon, gamma=cfg.gamma)
     return roll.ret.mean(1), roll.length.mean(1).astype(jnp.float32)
@@ -391,7 +396,7 @@ def _advance_sim(state: TrainState, data: TrainData, key):
     """Step the simulated envs sim_steps times in p_phi; write their (s, a) to the buffer."""
     cfg = state.config
     task = get_task(cfg.task)
-    dynamics = _sim_dynamics(state.gen, state.norm, cfg.obs_clip)
+    dynamics = _sim_dynamics(state.gen, state.norm, cfg)
     E, B = cfg.sim_envs, cfg.buffer_size
     act = jax.vmap(sample_action)
 
@@ -483,7 +488,7 @@ def _advance_vd(state: TrainState, data: TrainData, key):
     H, K = cfg.vd_horizon, cfg.vd_every
     k_run, k_restart = jax.random.split(key)
     roll = advance_values(state.vd_roll, data.policies,
-                          _sim_dynamics(state.gen, state.norm, cfg.obs_clip), task.reward_fn,
+                          _sim_dynamics(state.gen, state.norm, cfg), task.reward_fn,
                           task.done_fn, k_run, n_steps=-(-H // K), horizon=H, gamma=cfg.gamma)
     done = roll.t >= H
     sim_value = roll.ret.mean(1)
@@ -535,4 +540,4 @@ def train_steps(state: TrainState, data: TrainData, n_steps: int) -> tuple[Train
 def simulator(state: TrainState) -> Simulator:
     """The learned simulator of a training state (generator + normaliser)."""
     return Simulator(gen=state.gen, norm=state.norm, task=state.config.task,
-                     obs_clip=state.config.obs_clip)
+                     obs_clip=state.config.obs_clip, noise_scale=state.config.sim_noise)

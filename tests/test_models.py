@@ -37,3 +37,20 @@ def test_config_takes_the_task_position_dims():
     assert TrainConfig(task="ant").ignore_dims == (0, 1)
     assert TrainConfig(task="pointmass").ignore_dims == ()
     assert TrainConfig(task="hopper", input_ignore_dims=()).ignore_dims == ()
+
+
+def test_noise_scale_zero_gives_the_mean_and_scales_the_spread():
+    rng = np.random.default_rng(1)
+    obs, act = rng.normal(size=(256, 3)), rng.normal(size=(256, 2))
+    norm = models.Normalizer.from_data(obs, act, obs + rng.normal(size=(256, 3)))
+    gen = models.init_generator(jax.random.PRNGKey(0), 3, 2, (8,))
+    o, a = jnp.asarray(obs, jnp.float32), jnp.asarray(act, jnp.float32)
+    key = jax.random.PRNGKey(2)
+    mean = models.generator_mean(gen, norm, o, a)
+    np.testing.assert_allclose(models.generator_sample(gen, norm, o, a, key, noise_scale=0.0),
+                               mean, atol=1e-6)
+    full = models.generator_sample(gen, norm, o, a, key) - mean
+    half = models.generator_sample(gen, norm, o, a, key, noise_scale=0.5) - mean
+    np.testing.assert_allclose(half, 0.5 * full, rtol=1e-4, atol=1e-5)
+    with pytest.raises(ValueError, match="sim_noise"):
+        TrainConfig(sim_noise=-1.0).validate()

@@ -1,0 +1,40 @@
+"""`make hopper`'s pipeline end to end, in a smoke variant (few transitions, 2 train_steps)."""
+import json
+import os
+
+import numpy as np
+
+from rl2s_jax.cli import main
+
+
+def test_hopper_pipeline_smoke(tmp_path, capsys):
+    out = tmp_path / "hopper"
+    args = ["pipeline", "--task", "hopper", "--profile", "cpu", "--out", str(out), "--steps",
+            "2", "--eval-every", "1", "--transitions-per-policy", "40", "--value-episodes", "1",
+            "--improve-iterations", "2",
+            "--episode-length", "20", "--quiet"]
+    assert main(args) == 0, capsys.readouterr().err
+    text = capsys.readouterr().out
+    for method in ("rl2s", "gail", "bc", "rl2s-bc"):
+        assert f"\n{method} " in text  # a row of the terminal table
+        assert (out / method / "checkpoints").is_dir()
+    report = json.loads((out / "report.json").read_text())
+    assert set(report["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
+    for m in report["methods"].values():
+        for k in ("avd", "mvd", "kendall_tau", "spearman", "ndcg@1", "ndcg@10", "regret@1",
+                  "mpi", "api"):
+            assert k in m
+        assert m["mvd"] >= m["avd"] >= 0 and m["mpi"] <= m["api"]
+    assert [r["step"] for r in report["curves"]["rl2s"]] == [1, 2]
+    assert len(report["evaluations"]["bc"]["vd"]) == 43  # the zoo's test split
+    imp = report["evaluations"]["rl2s"]["improvement"]
+    assert len(imp["I"]) == 43 and imp["mpi"] == min(imp["I"])
+    np.testing.assert_allclose(imp["I"], (np.asarray(imp["c1"]) - imp["c0"])
+                               / np.abs(imp["c0"]), rtol=1e-6)
+    for png in ("vd_curves.png", "vd_per_policy.png", "true_vs_sim.png", "improvement.png"):
+        assert os.path.getsize(out / png) > 1000
+    md = (out / "report.md").read_text()
+    assert "| rl2s |" in md and "kendall_tau" in md
+    # a rerun with the same sizes reuses the data and the finished runs
+    assert main(args) == 0
+    assert "reusing" in capsys.readouterr().out

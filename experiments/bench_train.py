@@ -26,6 +26,7 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
+from bench import timed  # experiments/bench.py: best of `repeats` after a compile call
 
 from rl2s_jax.models import Normalizer
 from rl2s_jax.policies import init_policy, stack_params
@@ -70,16 +71,6 @@ def step_flops(cfg: TrainConfig, P: int) -> dict:
     rollouts = (sim_rows + vd_rows) * (gen + pol)
     return {"updates": updates, "rollouts": rollouts, "total": updates + rollouts,
             "sim_rows": sim_rows, "vd_rows": vd_rows}
-
-
-def timed(fn, *args, repeats: int = 3) -> float:
-    jax.block_until_ready(fn(*args))
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        best = min(best, time.perf_counter() - t0)
-    return best
 
 
 def matmul_rate(n: int) -> float:

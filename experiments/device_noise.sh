@@ -5,12 +5,7 @@
 set -euo pipefail
 STEPS=${1:-1000}
 TPP=${2:-20000}
-OUT=${OUT:-/tmp/out}
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-  --target /tmp/site .whl/*.whl
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-RL2S="python3 -m rl2s_jax.cli"
-W=/tmp/work && mkdir -p $W $OUT
+source experiments/device_env.sh
 for S in train test; do
   [ -f $W/hopper_$S.npz ] || $RL2S collect --task hopper --split $S --transitions-per-policy \
     $TPP --value-episodes 16 --out $W/hopper_$S.npz 2>&1 | grep -v -i warn | tail -2

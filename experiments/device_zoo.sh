@@ -3,9 +3,7 @@
 #   bash experiments/device_zoo.sh TASK [TASK ...]
 # Needs the wheels from ../shared/tools/device-wheels carried as .whl. Writes $OUT/zoo_<task>/.
 set -u
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-  --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+source experiments/device_env.sh
 export XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $#, 2))")
 nvidia-smi -L
 python3 -c "import jax; print('jax', jax.__version__, jax.devices())"

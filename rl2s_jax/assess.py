@@ -9,22 +9,13 @@ from __future__ import annotations
 from functools import partial
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from rl2s_jax.evaluate import ranking_metrics
 from rl2s_jax.policies import Params, num_policies
-from rl2s_jax.simulate import Simulator, simulated_values
+from rl2s_jax.simulate import Simulator, simulated_values, start_pool
 from rl2s_jax.tasks import get_task
 from rl2s_jax.train import true_values
-
-
-def start_pool(ds) -> jnp.ndarray:
-    """Real episode start states of a Dataset [S, o] (its rows with t == 0)."""
-    pool = np.asarray(ds.obs)[np.asarray(ds.t) == 0]
-    if pool.shape[0] == 0:
-        raise ValueError("t: expected some episode start rows (t == 0) for the start states")
-    return jnp.asarray(pool, jnp.float32)
 
 
 @partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))

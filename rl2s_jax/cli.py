@@ -165,13 +165,13 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     -> {method: {"c0", "c1", "c1_se", "I" (lists [P]), "mpi", "api"}}."""
     import jax
 
-    from rl2s_jax.assess import start_pool
     from rl2s_jax.checkpoint import load_simulator
     from rl2s_jax.collect import measure_values
     from rl2s_jax.data import load_dataset
     from rl2s_jax.fit import policies_for
     from rl2s_jax.improve import improve_policies, improvement_metrics
     from rl2s_jax.sac import SACConfig
+    from rl2s_jax.simulate import start_pool
     from rl2s_jax.tasks import get_task
 
     ds = load_dataset(test_path)
@@ -244,7 +244,10 @@ def cmd_pipeline(args) -> int:
                "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
                "datasets": {}}
     state_path = os.path.join(out, "pipeline.json")
-    previous = json.load(open(state_path)) if os.path.exists(state_path) else {}
+    previous = {}
+    if os.path.exists(state_path):
+        with open(state_path) as f:
+            previous = json.load(f)
     for split in ("train", "test"):
         path = os.path.join(out, f"{split}.npz")
         if os.path.exists(path) and previous.get("data_key") == data_key:

@@ -264,7 +264,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
     if ds.meta.get("task") != cfg.task:
         raise ValueError(f"eval_data: {eval_data} is task {ds.meta.get('task')!r}, training is "
                          f"{cfg.task!r}")
-    pols = policies_for(ds, None if zoo is None else zoo)
+    pols = policies_for(ds, zoo)
     key = jax.random.PRNGKey(seed + 1)
 
     def on_eval(state):

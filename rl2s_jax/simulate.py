@@ -70,6 +70,14 @@ class ValueRollout:
     t: jax.Array
 
 
+def start_pool(ds) -> jax.Array:
+    """Real episode start states of a Dataset [S, o] (its rows with t == 0)."""
+    pool = np.asarray(ds.obs)[np.asarray(ds.t) == 0]
+    if pool.shape[0] == 0:
+        raise ValueError("t: expected some episode start rows (t == 0) for the start states")
+    return jnp.asarray(pool, jnp.float32)
+
+
 def start_values(start_pool: jax.Array, n_policies: int, n_episodes: int, key: jax.Array
                  ) -> ValueRollout:
     """Fresh episodes from start states drawn (with replacement) from start_pool [S, o]."""

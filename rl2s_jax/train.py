@@ -44,6 +44,8 @@ from rl2s_jax.simulate import (
     ValueRollout,
     advance_values,
     data_values,
+    simulated_values,
+    start_pool,
     start_values,
     value_difference,
 )
@@ -228,16 +230,12 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
                          f"{int(np.flatnonzero(counts == 0)[0])}")
     order = np.argsort(pid, kind="stable")
     starts = np.r_[0, np.cumsum(counts)[:-1]]
-    t = np.asarray(ds.t)
-    start_pool = np.asarray(ds.obs)[t == 0]
-    if start_pool.shape[0] == 0:
-        raise ValueError("t: expected some episode start rows (t == 0) for the start-state pool")
     true_value = true_values(ds, config.vd_horizon, config.gamma, strict=bool(config.vd_every))
     f32 = lambda x: jnp.asarray(np.asarray(x)[order], jnp.float32)
     return TrainData(obs=f32(ds.obs), action=f32(ds.action), next_obs=f32(ds.next_obs),
                      policy_start=jnp.asarray(starts, jnp.int32),
                      policy_count=jnp.asarray(counts, jnp.int32),
-                     start_pool=jnp.asarray(start_pool, jnp.float32),
+                     start_pool=start_pool(ds),
                      true_value=jnp.asarray(true_value, jnp.float32),
                      policies=jax.tree_util.tree_map(jnp.asarray, policies),
                      norm=Normalizer.from_data(ds.obs, ds.action, ds.next_obs,
@@ -313,10 +311,10 @@ def _real_batch(key, data: TrainData, selected, n):
     return data.obs[rows], data.action[rows], data.next_obs[rows]
 
 
-def _sim_dynamics(gen, norm: Normalizer, cfg: TrainConfig):
-    gen = jax.lax.stop_gradient(gen)
-    return lambda obs, action, key: generator_sample(gen, norm, obs, action, key, cfg.obs_clip,
-                                                     cfg.sim_noise)
+def _simulator(gen, norm: Normalizer, cfg: TrainConfig) -> Simulator:
+    """p_phi as rollouts use it (no gradient into the generator)."""
+    return Simulator(gen=jax.lax.stop_gradient(gen), norm=norm, task=cfg.task,
+                     obs_clip=cfg.obs_clip, noise_scale=cfg.sim_noise)
 
 
 # ------------------------------------------------------------------ init
@@ -349,7 +347,10 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
     selected = everyone
     if cfg.vd_every:
         task = get_task(cfg.task)
-        sim_value, sim_length = _full_values(gen, norm, cfg, data, task, k_vd)
+        sim_value, sim_length = simulated_values(
+            data.policies, _simulator(gen, norm, cfg).dynamics, task.reward_fn, task.done_fn,
+            data.start_pool, k_vd, n_episodes=cfg.vd_episodes, horizon=cfg.vd_horizon,
+            gamma=cfg.gamma)
         vd = value_difference(sim_value, data.true_value)
         selected = select_worst(vd, n_worst(eps, P))
         vd_roll = start_values(data.start_pool, P, cfg.vd_episodes, k_roll)
@@ -373,15 +374,6 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
                       vd_roll=vd_roll, config=cfg)
 
 
-def _full_values(gen, norm, cfg: TrainConfig, data: TrainData, task, key):
-    k_start, k_run = jax.random.split(key)
-    roll = start_values(data.start_pool, data.n_policies, cfg.vd_episodes, k_start)
-    roll = advance_values(roll, data.policies, _sim_dynamics(gen, norm, cfg),
-                          task.reward_fn, task.done_fn, k_run, n_steps=cfg.vd_horizon,
-                          horizon=cfg.vd_horizon, gamma=cfg.gamma)
-    return roll.ret.mean(1), roll.length.mean(1).astype(jnp.float32)
-
-
 # ------------------------------------------------------------------ the step
 
 
@@ -396,7 +388,7 @@ def _advance_sim(state: TrainState, data: TrainData, key):
     """Step the simulated envs sim_steps times in p_phi; write their (s, a) to the buffer."""
     cfg = state.config
     task = get_task(cfg.task)
-    dynamics = _sim_dynamics(state.gen, state.norm, cfg)
+    dynamics = _simulator(state.gen, state.norm, cfg).dynamics
     E, B = cfg.sim_envs, cfg.buffer_size
     act = jax.vmap(sample_action)
 
@@ -488,7 +480,7 @@ def _advance_vd(state: TrainState, data: TrainData, key):
     H, K = cfg.vd_horizon, cfg.vd_every
     k_run, k_restart = jax.random.split(key)
     roll = advance_values(state.vd_roll, data.policies,
-                          _sim_dynamics(state.gen, state.norm, cfg), task.reward_fn,
+                          _simulator(state.gen, state.norm, cfg).dynamics, task.reward_fn,
                           task.done_fn, k_run, n_steps=-(-H // K), horizon=H, gamma=cfg.gamma)
     done = roll.t >= H
     sim_value = roll.ret.mean(1)
@@ -539,5 +531,4 @@ def train_steps(state: TrainState, data: TrainData, n_steps: int) -> tuple[Train
 
 def simulator(state: TrainState) -> Simulator:
     """The learned simulator of a training state (generator + normaliser)."""
-    return Simulator(gen=state.gen, norm=state.norm, task=state.config.task,
-                     obs_clip=state.config.obs_clip, noise_scale=state.config.sim_noise)
+    return _simulator(state.gen, state.norm, state.config)

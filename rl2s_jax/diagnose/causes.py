@@ -1,0 +1,434 @@
+"""Name the cause of a simulator's held-out errors.
+
+Every cause is a *feature* that would explain the residuals if the cause were real: past
+actions for an actuation delay, past observations for an unobserved state, an estimate from the
+same episode's other half for a hidden per-episode parameter, the recording order and the step
+index for drift; and, for the residuals' *size* rather than their mean, functions of (s, a) for
+state-dependent noise and the data's local density for a coverage gap.
+
+Each test is a cross-fitted ridge regression (folds of whole episodes) scored in one currency:
+the held-out Gaussian NLL the feature saves, in nats per transition (summed over state dims).
+A cause's score is its *unique* gain: the NLL of the model with every feature minus the
+NLL with every feature but its own, so that causes that look alike (a delay also makes past
+observations informative; drift also makes episodes differ) are told apart by which feature
+still explains the residuals once the others are accounted for. Significance is a sign-flip
+randomisation test over episodes of the per-episode gains (one-sided, normal approximation to
+its null); how sure the winner is comes from resampling episodes.
+
+All NumPy; see docs/DIAGNOSIS.md for the method and its limits.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rl2s_jax.diagnose.episodes import Episodes, half_split
+
+MEAN_CAUSES = {  # cause -> the feature block that would explain the residuals' mean
+    "actuation_delay": "past_actions",
+    "unobserved_state": "past_obs",
+    "hidden_episode_parameter": "episode",
+    "time_drift": "time",
+}
+VARIANCE_CAUSES = {  # cause -> the feature block that would explain the residuals' size
+    "stochastic_noise": "magnitude",
+    "coverage_gap": "density",
+}
+CAUSES = (*MEAN_CAUSES, *VARIANCE_CAUSES)
+
+
+# ----------------------------------------------------------------------------- features
+
+
+def _standardize_cols(x: np.ndarray) -> np.ndarray:
+    sd = x.std(0)
+    return (x - x.mean(0)) / np.where(sd > 1e-12, sd, 1.0)
+
+
+def _inputs(eps: Episodes, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Standardised observation (position dims left out) and action of the rows."""
+    keep = [d for d in range(eps.obs_size) if d not in eps.position_dims]
+    mean_o, sd_o = eps.obs[:, keep].mean(0), eps.obs[:, keep].std(0) + 1e-8
+    mean_a, sd_a = eps.action.mean(0), eps.action.std(0) + 1e-8
+    return (eps.obs[rows][:, keep] - mean_o) / sd_o, (eps.action[rows] - mean_a) / sd_a
+
+
+def _random_features(x: np.ndarray, n: int, seed: int) -> np.ndarray:
+    """Random Fourier features [len(x), n] of standardised inputs x: lets the linear tests
+    absorb smooth nonlinear misfit of the current (s, a), so it is not mistaken for a cause."""
+    rng = np.random.default_rng(seed)
+    w = rng.normal(0.0, 1.0 / math.sqrt(x.shape[1]), (x.shape[1], n))
+    b = rng.uniform(0, 2 * np.pi, n)
+    return math.sqrt(2.0 / n) * np.cos(x @ w + b)
+
+
+def episode_estimate(eps: Episodes, rows: np.ndarray, target: np.ndarray, x: np.ndarray,
+                     ridge: float = 5.0) -> np.ndarray:
+    """Per-episode ridge fit of target [n, o] on x [n, f] (plus intercept), estimated on one
+    half of each episode and applied to the other half. -> prediction [n, o].
+
+    rows must be whole episodes in dataset order. A hidden per-episode parameter makes this
+    predictive; a row's own residual never enters its prediction.
+    """
+    x1 = np.concatenate([np.ones((x.shape[0], 1)), x], 1)
+    group = 2 * eps.episode[rows] + half_split(eps)[rows]
+    if np.any(np.diff(group) < 0):
+        raise ValueError("rows: expected whole episodes in dataset order")
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    gids = group[starts]
+    xtx = np.add.reduceat(x1[:, :, None] * x1[:, None, :], starts, axis=0)
+    xty = np.add.reduceat(x1[:, :, None] * target[:, None, :], starts, axis=0)
+    index = {g: i for i, g in enumerate(gids)}
+    other = np.array([index.get(g ^ 1, -1) for g in gids])
+    f = x1.shape[1]
+    eye = ridge * np.eye(f)
+    w = np.zeros((len(gids), f, target.shape[1]))
+    has = other >= 0
+    w[has] = np.linalg.solve(xtx[other[has]] + eye, xty[other[has]])
+    row_group = np.repeat(np.arange(len(gids)), np.diff(np.append(starts, len(rows))))
+    pred = np.einsum("nf,nfo->no", x1, w[row_group])
+    bound = 3.0 * target.std(0)  # a half with saturated actions can extrapolate wildly
+    return np.clip(pred, -bound, bound)
+
+
+def knn_distance(query: np.ndarray, ref: np.ndarray, k: int = 10, chunk: int = 2048
+                 ) -> np.ndarray:
+    """Mean Euclidean distance [len(query)] from each query row to its k nearest ref rows."""
+    ref_sq = (ref ** 2).sum(1)
+    out = np.empty(query.shape[0])
+    for i in range(0, query.shape[0], chunk):
+        q = query[i:i + chunk]
+        d2 = np.maximum((q ** 2).sum(1)[:, None] - 2 * q @ ref.T + ref_sq[None], 0.0)
+        part = np.partition(d2, min(k, ref.shape[0] - 1), axis=1)[:, :k]
+        out[i:i + chunk] = np.sqrt(part).mean(1)
+    return out
+
+
+def build_features(eps: Episodes, rows: np.ndarray, resid: np.ndarray, fit_rows: np.ndarray, *,
+                   lags: int = 5, n_random: int = 128, seed: int = 0,
+                   max_ref: int = 5000) -> dict[str, np.ndarray]:
+    """The feature blocks of the held-out rows, each [n, f].
+
+    current: (s, a) and random Fourier features of them (always in every model);
+    past_actions / past_obs: a_{t-1..t-lags} / s_{t-1..t-lags} and their validity;
+    episode: the other-half per-episode estimate of the residual (see episode_estimate);
+    time: recording order and step fraction, alone and times (s, a);
+    magnitude: |a|, a^2, |s|, s^2 (for the residuals' size); density: log distance to the
+    nearest fit rows in (s, a), and the row's policy's log share of the fit data.
+    """
+    s, a = _inputs(eps, rows)
+    sa = np.concatenate([s, a], 1)
+    current = np.concatenate([sa, _random_features(sa, n_random, seed)], 1)
+    s_all, a_all = _inputs(eps, np.arange(eps.n))
+    pa, va = eps.past(a_all, lags)
+    po, _ = eps.past(s_all, lags)
+    past_actions = np.concatenate([pa[rows].reshape(len(rows), -1), va[rows]], 1)
+    past_obs = np.concatenate([po[rows].reshape(len(rows), -1), va[rows]], 1)
+    episode = episode_estimate(eps, rows, resid, a)
+    order = eps.order[rows, None] - 0.5
+    step = eps.step_frac[rows, None] - 0.5
+    time = np.concatenate([order, order * sa, step, step * sa], 1)
+    magnitude = np.concatenate([np.abs(a), a ** 2, np.abs(s), s ** 2], 1)
+    rng = np.random.default_rng(seed)
+    ref_rows = fit_rows if len(fit_rows) <= max_ref else rng.choice(fit_rows, max_ref, False)
+    s_ref, a_ref = _inputs(eps, ref_rows)
+    dist = knn_distance(sa, np.concatenate([s_ref, a_ref], 1))
+    share = np.bincount(eps.policy[fit_rows], minlength=eps.n_policies) / len(fit_rows)
+    density = np.stack([np.log(dist + 1e-6), np.log(share[eps.policy[rows]] + 1e-6)], 1)
+    return {"current": current, "past_actions": past_actions, "past_obs": past_obs,
+            "episode": episode, "time": time, "magnitude": magnitude, "density": density,
+            "_time_split": np.array([1 + sa.shape[1]]),  # order columns first, then step
+            "_lag_width": np.array([a.shape[1], s.shape[1]])}
+
+
+# ----------------------------------------------------------------------- cross-fitting
+
+
+def episode_folds(eps: Episodes, rows: np.ndarray, n_folds: int, seed: int) -> np.ndarray:
+    """[n] fold index of each row; whole episodes per fold."""
+    episodes = np.unique(eps.episode[rows])
+    n_folds = min(n_folds, len(episodes))
+    if n_folds < 2:
+        raise ValueError("rows: expected held-out rows from at least 2 episodes")
+    assign = np.random.default_rng(seed).permutation(len(episodes)) % n_folds
+    lookup = np.zeros(eps.n_episodes, int)
+    lookup[episodes] = assign
+    return lookup[eps.episode[rows]]
+
+
+def crossfit_ridge(x: np.ndarray, y: np.ndarray, folds: np.ndarray,
+                   models: dict[str, np.ndarray], ridge: float = 1e-3) -> dict[str, np.ndarray]:
+    """Cross-fitted ridge predictions of y [n, o] from column subsets of x [n, f].
+
+    models: name -> column indices (an empty subset is the intercept-only model). Columns are
+    standardised on each fold's training rows; the penalty is ridge * n_train on the
+    standardised coefficients (the intercept is free). -> name -> held-out prediction [n, o].
+    """
+    out = {m: np.zeros_like(y) for m in models}
+    for k in np.unique(folds):
+        tr, te = folds != k, folds == k
+        mu, sd = x[tr].mean(0), x[tr].std(0)
+        sd = np.where(sd > 1e-12, sd, 1.0)
+        xs_tr, xs_te = (x[tr] - mu) / sd, (x[te] - mu) / sd
+        y_mu = y[tr].mean(0)
+        gram, cross = xs_tr.T @ xs_tr, xs_tr.T @ (y[tr] - y_mu)
+        n_tr = int(tr.sum())
+        for name, cols in models.items():
+            cols = np.asarray(cols, int)
+            out[name][te] = y_mu
+            if cols.size:
+                w = np.linalg.solve(gram[np.ix_(cols, cols)] + ridge * n_tr * np.eye(cols.size),
+                                    cross[cols])
+                out[name][te] += xs_te[:, cols] @ w
+    return out
+
+
+def gaussian_nll(err: np.ndarray, var: np.ndarray) -> np.ndarray:
+    """Per-row, per-dim Gaussian NLL [n, o] of errors with variances (both [n, o])."""
+    return 0.5 * (np.log(2 * np.pi * var) + err ** 2 / var)
+
+
+# ------------------------------------------------------------------------ significance
+
+
+def episode_sums(values: np.ndarray, episode: np.ndarray) -> np.ndarray:
+    """Sum of per-row values [n] per episode (in order of first appearance). -> [E']"""
+    _, inverse = np.unique(episode, return_inverse=True)
+    return np.bincount(inverse, weights=values)
+
+
+def sign_flip_p(per_episode: np.ndarray) -> float:
+    """One-sided p-value that the per-episode gains [E] are positive: the sign-flip
+    randomisation test on their ranks (Wilcoxon's signed-rank test), with the normal
+    approximation to its null. Ranks keep one wild episode from deciding the answer."""
+    x = per_episode[per_episode != 0]
+    if x.size == 0:
+        return 1.0
+    order = np.argsort(np.abs(x))
+    ranks = np.empty(x.size)
+    ranks[order] = np.arange(1, x.size + 1)
+    _, inv, counts = np.unique(np.abs(x), return_inverse=True, return_counts=True)
+    if (counts > 1).any():  # average ranks over ties
+        ranks = (np.bincount(inv, weights=ranks) / counts)[inv]
+    stat = float(ranks[x > 0].sum() - ranks.sum() / 2)
+    z = stat / math.sqrt(float((ranks ** 2).sum()) / 4)
+    return 0.5 * math.erfc(z / math.sqrt(2.0))
+
+
+# ----------------------------------------------------------------------------- causes
+
+
+def _cols(blocks: dict[str, np.ndarray], names) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    x = np.concatenate([blocks[n] for n in names], 1)
+    index, start = {}, 0
+    for n in names:
+        index[n] = np.arange(start, start + blocks[n].shape[1])
+        start += blocks[n].shape[1]
+    return x, index
+
+
+def _gain(nll_without: np.ndarray, nll_with: np.ndarray, episode: np.ndarray) -> dict:
+    """Gain of a feature: per-row NLL saved (summed over dims), its mean, its per-episode sums
+    and its sign-flip p-value."""
+    row = (nll_without - nll_with).sum(1) if nll_with.ndim == 2 else nll_without - nll_with
+    per_ep = episode_sums(row, episode)
+    return {"score": float(row.mean()), "p_value": sign_flip_p(per_ep), "per_episode": per_ep,
+            "per_dim": (nll_without - nll_with).mean(0) if nll_with.ndim == 2 else None}
+
+
+def test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndarray,
+                fit_rows: np.ndarray, *, lags: int = 5, n_folds: int = 5, seed: int = 0,
+                alpha: float = 0.01, min_score: float = 0.02, resolution: float = 0.01,
+                n_boot: int = 200, obs_names=None, action_names=None) -> dict:
+    """Test the held-out residuals against every cause.
+
+    eps: the episodes; rows [n]: held-out rows (whole episodes, dataset order); resid [n, o]:
+    normalised residuals (delta / delta_std minus the model's mean); std [n, o]: the model's
+    std in the same units; fit_rows: the rows the model was fit on (for the density feature).
+
+    resolution: errors below this fraction of the data's delta std count as exact (a variance
+    floor in every NLL), so that round-off on a dim the model gets right is never "explained".
+    A cause is *significant* when its p-value is below alpha / (number of causes) and its unique
+    score is at least ``min_score`` nats per transition. Returns {"causes": [...] ranked (most
+    significant first, then by score), "top_cause", "confidence", "scores": {...}}; each cause is
+    {"name", "score", "p_value", "significant", "marginal_score", "details"}.
+    """
+    rows = np.asarray(rows)
+    resid, std = np.asarray(resid, np.float64), np.asarray(std, np.float64)
+    if resid.shape != (len(rows), eps.obs_size) or std.shape != resid.shape:
+        raise ValueError(f"resid, std: expected shape [{len(rows)}, {eps.obs_size}], got "
+                         f"{resid.shape} and {std.shape}")
+    if not (np.isfinite(resid).all() and np.isfinite(std).all() and (std > 0).all()):
+        raise ValueError("resid, std: expected finite residuals and positive stds")
+    obs_names = obs_names or [f"obs{d}" for d in range(eps.obs_size)]
+    action_names = action_names or [f"act{i}" for i in range(eps.action_size)]
+    episode = eps.episode[rows]
+    folds = episode_folds(eps, rows, n_folds, seed)
+    blocks = build_features(eps, rows, resid, fit_rows, lags=lags, seed=seed)
+    mean_names = ["current", *MEAN_CAUSES.values()]
+    x, idx = _cols(blocks, mean_names)
+    everything = np.concatenate([idx[n] for n in mean_names])
+    models = {"full": everything, "current": idx["current"]}
+    for block in MEAN_CAUSES.values():
+        models[f"-{block}"] = np.setdiff1d(everything, idx[block])
+        models[f"+{block}"] = np.concatenate([idx["current"], idx[block]])
+    n_a, n_s = (int(v) for v in blocks["_lag_width"])
+    pa = idx["past_actions"]
+    for j in range(lags):  # drop one lag of actions / observations, then one actuator
+        models[f"-a_lag{j + 1}"] = np.setdiff1d(everything, pa[j * n_a:(j + 1) * n_a])
+        models[f"-s_lag{j + 1}"] = np.setdiff1d(
+            everything, idx["past_obs"][j * n_s:(j + 1) * n_s])
+    for i in range(n_a):
+        models[f"-actuator{i}"] = np.setdiff1d(everything, pa[np.arange(lags) * n_a + i])
+    split = int(blocks["_time_split"][0])
+    models["-order"] = np.setdiff1d(everything, idx["time"][:split])
+    models["-step"] = np.setdiff1d(everything, idx["time"][split:])
+    fits = crossfit_ridge(x, resid, folds, models)
+    floor = resolution ** 2
+    # Each model's error variance per dim is that of its own held-out errors, so a model that
+    # overfits its folds pays for it.
+    nll = {m: gaussian_nll(resid - pred, np.maximum(((resid - pred) ** 2).mean(0), floor))
+           for m, pred in fits.items()}
+
+    results = {}
+    for cause, block in MEAN_CAUSES.items():
+        g = _gain(nll[f"-{block}"], nll["full"], episode)
+        g["marginal"] = _gain(nll["current"], nll[f"+{block}"], episode)["score"]
+        results[cause] = g
+
+    # The residuals' size, after the full mean model, in units of the model's own std.
+    err = resid - fits["full"]
+    u2 = (err / std) ** 2
+    xv, vidx = _cols(blocks, ["magnitude", "density"])
+    vmodels = {"none": np.array([], int), "full": np.arange(xv.shape[1]),
+               "-magnitude": vidx["density"], "-density": vidx["magnitude"],
+               "+magnitude": vidx["magnitude"], "+density": vidx["density"]}
+    vfits = crossfit_ridge(xv, u2, folds, vmodels)
+    vnll = {m: gaussian_nll(err, np.maximum(std ** 2 * np.maximum(pred, 0.05 * u2.mean(0)),
+                                            floor)) for m, pred in vfits.items()}
+    for cause, block in VARIANCE_CAUSES.items():
+        g = _gain(vnll[f"-{block}"], vnll["full"], episode)
+        g["marginal"] = _gain(vnll["none"], vnll[f"+{block}"], episode)["score"]
+        results[cause] = g
+
+    n_tests = len(CAUSES)
+    for g in results.values():
+        g["significant"] = bool(g["p_value"] < alpha / n_tests and g["score"] >= min_score)
+
+    details = _details(results, nll, vnll, u2, episode, eps, rows, resid, blocks, lags=lags,
+                       alpha=alpha, obs_names=obs_names, action_names=action_names)
+    ranked = sorted(results, key=lambda c: (not results[c]["significant"], -results[c]["score"]))
+    top = ranked[0] if results[ranked[0]]["significant"] else "none"
+    confidence = _confidence(results, top, episode, min_score, n_boot, seed)
+    causes = [{"name": c, "score": results[c]["score"], "p_value": results[c]["p_value"],
+               "significant": results[c]["significant"],
+               "marginal_score": results[c]["marginal"], "details": details[c]} for c in ranked]
+    none_entry = {"name": "none", "score": 0.0,
+                  "p_value": float(min(1.0, min(results[c]["p_value"] for c in results)
+                                       * n_tests)),
+                  "significant": top == "none", "marginal_score": 0.0,
+                  "details": {"meaning": "no cause explains the held-out residuals beyond "
+                                         f"{min_score} nats/transition at level {alpha}"}}
+    causes.insert(0 if top == "none" else len(causes), none_entry)
+    return {"causes": causes, "top_cause": top, "confidence": confidence,
+            "settings": {"lags": lags, "folds": n_folds, "alpha": alpha,
+                         "min_score": min_score, "n_boot": n_boot, "rows": int(len(rows)),
+                         "episodes": int(len(np.unique(episode)))}}
+
+
+def _dims_of(per_dim: np.ndarray, frac: float = 0.1) -> list[int]:
+    """Dims that carry at least ``frac`` of the largest per-dim gain (and a positive one)."""
+    if per_dim is None or per_dim.max() <= 0:
+        return []
+    return [int(d) for d in np.flatnonzero(per_dim >= frac * per_dim.max())]
+
+
+def _details(results, nll, vnll, u2, episode, eps, rows, resid, blocks, *, lags, alpha,
+             obs_names, action_names) -> dict:
+    full = nll["full"]
+
+    def drop_gain(name):
+        return _gain(nll[name], full, episode)
+
+    n_a = eps.action_size
+    lag_gain = [drop_gain(f"-a_lag{j + 1}")["score"] for j in range(lags)]
+    act = [drop_gain(f"-actuator{i}") for i in range(n_a)]
+    best_act = max(g["score"] for g in act)
+    actuators = [i for i, g in enumerate(act)
+                 if g["score"] >= 0.2 * best_act and g["score"] > 0 and g["p_value"] < alpha]
+    obs_lag_gain = [drop_gain(f"-s_lag{j + 1}")["score"] for j in range(lags)]
+    order_gain, step_gain = drop_gain("-order")["score"], drop_gain("-step")["score"]
+    # Between-episode share of the residual variance, per dim (intra-class correlation).
+    _, inv = np.unique(episode, return_inverse=True)
+    counts = np.bincount(inv)
+    ep_mean = np.stack([np.bincount(inv, weights=resid[:, d]) for d in range(resid.shape[1])],
+                       1) / counts[:, None]
+    between = (counts[:, None] * (ep_mean - resid.mean(0)) ** 2).sum(0)
+    total = ((resid - resid.mean(0)) ** 2).sum(0) + 1e-12
+    noise_dim = results["stochastic_noise"]["per_dim"]
+    noise_p = []
+    for d in range(u2.shape[1]):
+        per_ep = episode_sums(vnll["-magnitude"][:, d] - vnll["full"][:, d], episode)
+        noise_p.append(sign_flip_p(per_ep))
+    noise_dims = [d for d in range(u2.shape[1])
+                  if noise_p[d] < alpha / u2.shape[1] and noise_dim[d] > 0.01]
+    dens = blocks["density"][:, 0]
+    sparse = dens >= np.quantile(dens, 0.8)
+    err = u2.sum(1)
+    per_policy = {int(p): float(err[eps.policy[rows] == p].mean())
+                  for p in np.unique(eps.policy[rows])}
+    worst_policies = sorted(per_policy, key=per_policy.get, reverse=True)[:3]
+
+    def names(ids, table):
+        return [table[i] for i in ids]
+
+    delay_lag = int(np.argmax(lag_gain)) + 1
+    return {
+        "actuation_delay": {
+            "lag": delay_lag, "actuators": actuators,
+            "actuator_names": names(actuators, action_names),
+            "gain_by_lag": lag_gain, "gain_by_actuator": [g["score"] for g in act],
+            "dims": _dims_of(results["actuation_delay"]["per_dim"])},
+        "unobserved_state": {
+            "lags": [j + 1 for j, g in enumerate(obs_lag_gain)
+                     if g >= 0.2 * max(max(obs_lag_gain), 1e-12) and g > 0],
+            "gain_by_lag": obs_lag_gain,
+            "dims": _dims_of(results["unobserved_state"]["per_dim"])},
+        "hidden_episode_parameter": {
+            "dims": _dims_of(results["hidden_episode_parameter"]["per_dim"]),
+            "between_episode_share": (between / total).tolist()},
+        "time_drift": {
+            "over": "episode_order" if order_gain >= step_gain else "step",
+            "gain_order": order_gain, "gain_step": step_gain,
+            "dims": _dims_of(results["time_drift"]["per_dim"])},
+        "stochastic_noise": {
+            "dims": noise_dims, "dim_names": names(noise_dims, obs_names),
+            "gain_by_dim": noise_dim.tolist(), "p_by_dim": noise_p,
+            "calibration_z2": u2.mean(0).tolist()},
+        "coverage_gap": {
+            "error_ratio_sparse_vs_rest": float(err[sparse].mean() / max(err[~sparse].mean(),
+                                                                          1e-12)),
+            "worst_policies": worst_policies,
+            "error_by_policy": per_policy},
+    }
+
+
+def _confidence(results: dict, top: str, episode: np.ndarray, min_score: float, n_boot: int,
+                seed: int) -> float:
+    """Share of episode resamples in which the reported cause still wins: the top cause has
+    the highest score (or, for "none", no cause reaches min_score)."""
+    names = list(results)
+    per_ep = np.stack([results[c]["per_episode"] for c in names])  # [C, E]
+    _, inv = np.unique(episode, return_inverse=True)
+    n_rows = np.bincount(inv).astype(float)
+    rng = np.random.default_rng(seed + 1)
+    wins = 0
+    for _ in range(n_boot):
+        pick = rng.integers(0, per_ep.shape[1], per_ep.shape[1])
+        scores = per_ep[:, pick].sum(1) / n_rows[pick].sum()
+        if top == "none":
+            wins += bool(scores.max() < min_score)
+        else:
+            wins += bool(names[int(np.argmax(scores))] == top and scores.max() >= min_score)
+    return wins / n_boot

@@ -295,6 +295,42 @@ def cmd_pipeline(args) -> int:
     return 0
 
 
+def cmd_diagnose(args) -> int:
+    """Diagnose a simulator of a Dataset: where it is wrong, why, and the extension's gain."""
+    import dataclasses
+
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.diagnose.model import ModelSpec
+    from rl2s_jax.diagnose.run import diagnose
+
+    if not 0.0 < args.heldout < 1.0:
+        raise ValueError(f"heldout: expected a fraction in (0, 1), got {args.heldout}")
+    if args.seeds < 1:
+        raise ValueError(f"seeds: expected an int >= 1, got {args.seeds}")
+    if args.ckpt is not None and not os.path.isdir(args.ckpt):
+        raise ValueError(f"ckpt: expected a checkpoint directory, got {args.ckpt!r}")
+    ds = load_dataset(args.data)
+    spec = ModelSpec()
+    if args.model_steps is not None:
+        spec = dataclasses.replace(spec, steps=args.model_steps)
+    report = diagnose(ds, args.out, ckpt=args.ckpt, seeds=tuple(range(args.seeds)),
+                      heldout_frac=args.heldout, split_seed=args.seed, lags=args.lags,
+                      k_max=args.k_max, base_spec=spec.validate(), zoo=args.zoo,
+                      value_episodes=args.value_episodes, alpha=args.alpha,
+                      progress=not args.quiet)
+    g = report["gain"]
+    print(f"\ntop cause: {report['top_cause']} (confidence {report['confidence']:.2f})")
+    for c in report["causes"][:4]:
+        print(f"  {c['name']:<26} score {c['score']:8.4f}  p {c['p_value']:.2g}")
+    if g["after"]:
+        for k in ("heldout_nll", "heldout_mse", f"kstep_rmse@{g['k_max']}"):
+            d = g["difference"][k]
+            print(f"  {k:<16} {g['before'][k]:9.4f} -> {g['after'][k]:9.4f}  "
+                  f"({d['mean']:+.4f} +- {d['std']:.4f} over {len(g['seeds'])} seeds)")
+    print(f"-> {args.out}/report.md, report.json")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     from rl2s_jax.tasks import task_names
 
@@ -383,6 +419,27 @@ def build_parser() -> argparse.ArgumentParser:
                    help="shorter episodes than the task's (smoke runs)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_pipeline)
+
+    p = sub.add_parser("diagnose", help="show where a simulator is wrong, name the cause, "
+                       "fit the extension and measure the gain")
+    p.add_argument("--data", required=True, help="Dataset (.npz), any task or none")
+    p.add_argument("--ckpt", help="a trained simulator's checkpoint directory to diagnose "
+                   "(default: fit the base model here)")
+    p.add_argument("--out", required=True, help="directory for report.md, report.json, PNGs")
+    p.add_argument("--seeds", type=int, default=3, help="model seeds for the gain (>= 1)")
+    p.add_argument("--heldout", type=float, default=0.3, help="fraction of episodes held out")
+    p.add_argument("--lags", type=_positive("lags"), default=5,
+                   help="past steps the delay / unobserved-state tests look at")
+    p.add_argument("--k-max", type=_positive("k-max"), default=20,
+                   help="open-loop steps for the k-step error")
+    p.add_argument("--model-steps", type=_positive("model-steps"),
+                   help="training steps of each model (default: ModelSpec's)")
+    p.add_argument("--value-episodes", type=_positive("value-episodes"), default=8)
+    p.add_argument("--alpha", type=float, default=0.01, help="significance level")
+    p.add_argument("--zoo", help="zoo of the data's policies, for the value views")
+    p.add_argument("--seed", type=int, default=0, help="split and test seed")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.set_defaults(func=cmd_diagnose)
     return parser
 
 

@@ -106,11 +106,14 @@ def knn_distance(query: np.ndarray, ref: np.ndarray, k: int = 10, chunk: int = 2
 
 
 def build_features(eps: Episodes, rows: np.ndarray, resid: np.ndarray, fit_rows: np.ndarray, *,
-                   lags: int = 5, n_random: int = 128, seed: int = 0,
-                   max_ref: int = 5000) -> dict[str, np.ndarray]:
+                   pred_mean: np.ndarray | None = None, lags: int = 5, n_random: int = 128,
+                   seed: int = 0, max_ref: int = 5000) -> dict[str, np.ndarray]:
     """The feature blocks of the held-out rows, each [n, f].
 
-    current: (s, a) and random Fourier features of them (always in every model);
+    current: (s, a), random Fourier features of them and the model's predicted mean
+    pred_mean [n, o] when given (always in every model: a model that shrinks its predictions
+    towards the mean leaves residuals proportional to the true change, which the previous
+    step's change, s_t - s_{t-1}, would otherwise "explain" as an unobserved state);
     past_actions / past_obs: a_{t-1..t-lags} / s_{t-1..t-lags} and their validity;
     episode: the other-half per-episode estimate of the residual (see episode_estimate);
     time: recording order and step fraction, alone and times (s, a);
@@ -119,7 +122,8 @@ def build_features(eps: Episodes, rows: np.ndarray, resid: np.ndarray, fit_rows:
     """
     s, a = _inputs(eps, rows)
     sa = np.concatenate([s, a], 1)
-    current = np.concatenate([sa, _random_features(sa, n_random, seed)], 1)
+    current = np.concatenate([sa, _random_features(sa, n_random, seed)]
+                             + ([] if pred_mean is None else [pred_mean]), 1)
     s_all, a_all = _inputs(eps, np.arange(eps.n))
     pa, va = eps.past(a_all, lags)
     po, _ = eps.past(s_all, lags)
@@ -237,15 +241,17 @@ def _gain(nll_without: np.ndarray, nll_with: np.ndarray, episode: np.ndarray) ->
             "per_dim": (nll_without - nll_with).mean(0) if nll_with.ndim == 2 else None}
 
 
-def test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndarray,
-                fit_rows: np.ndarray, *, lags: int = 5, n_folds: int = 5, seed: int = 0,
-                alpha: float = 0.01, min_score: float = 0.02, resolution: float = 0.01,
+def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndarray,
+                fit_rows: np.ndarray, *, pred_mean: np.ndarray | None = None, lags: int = 5,
+                n_folds: int = 5, seed: int = 0,
+                alpha: float = 0.01, min_score: float = 0.02, resolution: float = 0.03,
                 n_boot: int = 200, obs_names=None, action_names=None) -> dict:
     """Test the held-out residuals against every cause.
 
     eps: the episodes; rows [n]: held-out rows (whole episodes, dataset order); resid [n, o]:
     normalised residuals (delta / delta_std minus the model's mean); std [n, o]: the model's
-    std in the same units; fit_rows: the rows the model was fit on (for the density feature).
+    std in the same units; fit_rows: the rows the model was fit on (for the density feature);
+    pred_mean [n, o]: the model's predicted mean in the same units (recommended).
 
     resolution: errors below this fraction of the data's delta std count as exact (a variance
     floor in every NLL), so that round-off on a dim the model gets right is never "explained".
@@ -265,7 +271,8 @@ def test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndar
     action_names = action_names or [f"act{i}" for i in range(eps.action_size)]
     episode = eps.episode[rows]
     folds = episode_folds(eps, rows, n_folds, seed)
-    blocks = build_features(eps, rows, resid, fit_rows, lags=lags, seed=seed)
+    blocks = build_features(eps, rows, resid, fit_rows, pred_mean=pred_mean, lags=lags,
+                            seed=seed)
     mean_names = ["current", *MEAN_CAUSES.values()]
     x, idx = _cols(blocks, mean_names)
     everything = np.concatenate([idx[n] for n in mean_names])
@@ -304,9 +311,15 @@ def test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndar
     vmodels = {"none": np.array([], int), "full": np.arange(xv.shape[1]),
                "-magnitude": vidx["density"], "-density": vidx["magnitude"],
                "+magnitude": vidx["magnitude"], "+density": vidx["density"]}
-    vfits = crossfit_ridge(xv, u2, folds, vmodels)
-    vnll = {m: gaussian_nll(err, np.maximum(std ** 2 * np.maximum(pred, 0.05 * u2.mean(0)),
-                                            floor)) for m, pred in vfits.items()}
+    # Log-variance regression (robust to the heavy tails of squared errors); each model's
+    # predicted variance is rescaled per dim so that it is unbiased for u^2 on average.
+    log_u2 = np.log(u2 + 1e-3 * u2.mean(0) + 1e-30)
+    vfits = crossfit_ridge(xv, log_u2, folds, vmodels)
+    vnll = {}
+    for m, pred in vfits.items():
+        v = np.exp(pred - pred.max())
+        v *= u2.mean(0) / v.mean(0)
+        vnll[m] = gaussian_nll(err, np.maximum(std ** 2 * v, floor))
     for cause, block in VARIANCE_CAUSES.items():
         g = _gain(vnll[f"-{block}"], vnll["full"], episode)
         g["marginal"] = _gain(vnll["none"], vnll[f"+{block}"], episode)["score"]

@@ -1,0 +1,201 @@
+"""Diagnosis end to end: hide an effect in the data, require diagnose to name it with its
+details, and require the extension it picks to lower the held-out error on every seed.
+Plus the statistics underneath (cross-fitting, the sign-flip test, the episode estimate)
+against plain NumPy references."""
+from __future__ import annotations
+
+import itertools
+import json
+import os
+
+import numpy as np
+import pytest
+
+from rl2s_jax.diagnose.causes import (
+    crossfit_ridge,
+    diagnose_causes,
+    episode_estimate,
+    sign_flip_p,
+)
+from rl2s_jax.diagnose.episodes import from_dataset, half_split, split_episodes
+from rl2s_jax.diagnose.model import ModelSpec
+from rl2s_jax.diagnose.planted import make_planted
+from rl2s_jax.diagnose.run import diagnose, extension_for
+
+# Small enough for CI, large enough that every planted effect is found with a wide margin.
+N_EPISODES, MODEL_STEPS, SEEDS = 160, 1000, (0, 1, 2)
+
+
+@pytest.fixture(scope="module")
+def reports(tmp_path_factory):
+    cache = {}
+
+    def run(effect):
+        if effect not in cache:
+            out = str(tmp_path_factory.mktemp(effect))
+            ds = make_planted(effect, n_episodes=N_EPISODES, seed=1)
+            cache[effect] = (diagnose(ds, out, seeds=SEEDS, log=lambda s: None,
+                                      base_spec=ModelSpec(steps=MODEL_STEPS)), out, ds)
+        return cache[effect]
+    return run
+
+
+def _gain_on_every_seed(report, metric="heldout_nll"):
+    diff = report["gain"]["difference"][metric]["per_seed"]
+    return len(diff) == len(SEEDS) and all(d < 0 for d in diff)
+
+
+def test_clean_data_reports_none(reports):
+    report, out, _ = reports("clean")
+    assert report["top_cause"] == "none", [(c["name"], c["score"], c["p_value"])
+                                           for c in report["causes"]]
+    assert report["extension"]["changes"] == [] and report["gain"]["after"] is None
+    assert report["causes"][0]["name"] == "none"
+
+
+def test_finds_actuation_delay_with_lag_and_actuator(reports):
+    report, _, ds = reports("delay")
+    truth = ds.meta["source"]["planted"]
+    assert report["top_cause"] == "actuation_delay"
+    top = report["causes"][0]
+    assert top["details"]["lag"] == truth["lag"] == 2
+    assert top["details"]["actuators"] == truth["actuators"] == [0]
+    assert top["p_value"] < 1e-4
+    assert report["extension"]["extended"]["action_history"] >= 2
+    assert _gain_on_every_seed(report) and _gain_on_every_seed(report, "heldout_mse")
+
+
+def test_finds_hidden_episode_parameter(reports):
+    report, _, _ = reports("episode_param")
+    assert report["top_cause"] == "hidden_episode_parameter"
+    assert set(report["causes"][0]["details"]["dims"]) <= {0, 1}  # body 1 only
+    assert report["extension"]["extended"]["context_dim"] > 0
+    assert _gain_on_every_seed(report)
+
+
+def test_finds_noise_and_its_dims(reports):
+    report, _, ds = reports("noise")
+    truth = ds.meta["source"]["planted"]["dims"]
+    assert report["top_cause"] == "stochastic_noise"
+    dims = report["causes"][0]["details"]["dims"]
+    assert set(truth) <= set(dims) <= {2, 3}  # v2 and, through p' = p + dt v', p2
+    assert report["extension"]["extended"]["noise"] == "state"
+    assert _gain_on_every_seed(report)
+
+
+def test_finds_unobserved_state(reports):
+    report, _, _ = reports("unobserved")
+    assert report["top_cause"] == "unobserved_state"
+    assert report["extension"]["extended"]["obs_history"] >= 2
+    assert _gain_on_every_seed(report)
+
+
+def test_finds_drift_over_recording_order(reports):
+    report, _, _ = reports("drift")
+    assert report["top_cause"] == "time_drift"
+    assert report["causes"][0]["details"]["over"] == "episode_order"
+    assert "order" in report["extension"]["extended"]["time_inputs"]
+    assert _gain_on_every_seed(report)
+
+
+def test_report_files_and_schema(reports):
+    report, out, _ = reports("delay")
+    with open(os.path.join(out, "report.json")) as f:
+        saved = json.load(f)
+    for key in ("gaps", "causes", "top_cause", "extension", "gain"):
+        assert key in saved
+    for c in saved["causes"]:
+        assert {"name", "score", "p_value", "details"} <= set(c)
+    for side in ("before", "after"):
+        assert {"heldout_nll", "heldout_mse"} <= set(saved["gain"][side])
+    assert {"lag", "actuators"} <= set(saved["causes"][0]["details"])
+    md = open(os.path.join(out, "report.md")).read()
+    assert "actuation_delay" in md and "| heldout_nll |" in md
+    for png in saved["plots"]:
+        assert os.path.getsize(os.path.join(out, png)) > 1000
+
+
+# ------------------------------------------------------------------ the statistics underneath
+
+
+def test_sign_flip_p_matches_exact_enumeration():
+    rng = np.random.default_rng(0)
+    x = rng.normal(0.4, 1.0, 14)
+    ranks = np.argsort(np.argsort(np.abs(x))) + 1
+    observed = ranks[x > 0].sum()
+    exact = np.mean([ranks[np.array(s, bool)].sum() >= observed
+                     for s in itertools.product([0, 1], repeat=x.size)])
+    assert abs(sign_flip_p(x) - exact) < 0.03
+    assert sign_flip_p(np.full(30, 1.0)) < 1e-5 and sign_flip_p(np.full(30, -1.0)) > 0.99
+
+
+def test_crossfit_ridge_matches_numpy_solve():
+    rng = np.random.default_rng(1)
+    x, y = rng.normal(size=(200, 5)), rng.normal(size=(200, 2))
+    folds = np.arange(200) % 4
+    pred = crossfit_ridge(x, y, folds, {"m": np.array([0, 2, 3])}, ridge=0.01)["m"]
+    tr, te = folds != 1, folds == 1
+    xs = x[:, [0, 2, 3]]
+    mu, sd = xs[tr].mean(0), xs[tr].std(0)
+    z = (xs - mu) / sd
+    w = np.linalg.solve(z[tr].T @ z[tr] + 0.01 * tr.sum() * np.eye(3),
+                        z[tr].T @ (y[tr] - y[tr].mean(0)))
+    np.testing.assert_allclose(pred[te], y[tr].mean(0) + z[te] @ w, rtol=1e-10)
+
+
+def test_episode_estimate_never_sees_its_own_half():
+    ds = make_planted("episode_param", n_episodes=12, seed=3)
+    eps = from_dataset(ds)
+    rows = np.arange(eps.n)
+    rng = np.random.default_rng(0)
+    target, x = rng.normal(size=(eps.n, 4)), eps.action
+    before = episode_estimate(eps, rows, target, x)
+    changed = target.copy()
+    first = half_split(eps) == 0
+    changed[first] += 5.0  # only first-half rows change: their own estimates must not
+    after = episode_estimate(eps, rows, changed, x)
+    np.testing.assert_allclose(after[first], before[first])
+    assert not np.allclose(after[~first], before[~first])
+
+
+def test_test_causes_rejects_bad_shapes():
+    ds = make_planted("clean", n_episodes=8, seed=0)
+    eps = from_dataset(ds)
+    fit, held = split_episodes(eps, 0.5, 0)
+    rows = eps.rows(held)
+    with pytest.raises(ValueError, match="resid, std"):
+        diagnose_causes(eps, rows, np.zeros((len(rows), 3)), np.ones((len(rows), 3)),
+                    eps.rows(fit))
+    with pytest.raises(ValueError, match="finite"):
+        bad = np.zeros((len(rows), 4))
+        bad[0, 0] = np.nan
+        diagnose_causes(eps, rows, bad, np.ones_like(bad), eps.rows(fit))
+
+
+def test_extension_for_maps_every_cause():
+    def causes(name, details, score=1.0):
+        return {"top_cause": name, "causes": [{"name": name, "score": score, "significant": True,
+                                               "details": details}]}
+    base = ModelSpec()
+    assert extension_for(causes("actuation_delay", {"lag": 3}), base)[0].action_history == 3
+    assert extension_for(causes("unobserved_state", {"lags": [1, 4]}), base)[0].obs_history == 4
+    assert extension_for(causes("hidden_episode_parameter", {}), base)[0].context_dim == 2
+    assert extension_for(causes("stochastic_noise", {}), base)[0].noise == "state"
+    assert extension_for(causes("time_drift", {"over": "step"}), base)[0].time_inputs == ("step",)
+    assert extension_for(causes("coverage_gap", {}), base)[0].policy_cvar_eps == 0.25
+    assert extension_for({"top_cause": "none", "causes": []}, base) == (base, [])
+
+
+def test_cli_diagnose_bad_input_names_the_field(tmp_path, capsys):
+    from rl2s_jax.cli import main
+    from rl2s_jax.data import save_dataset
+
+    path = str(tmp_path / "d.npz")
+    save_dataset(path, make_planted("clean", n_episodes=8, seed=0))
+    assert main(["diagnose", "--data", path, "--out", str(tmp_path / "o"),
+                 "--heldout", "1.5"]) == 2
+    assert "heldout" in capsys.readouterr().err
+    assert main(["diagnose", "--data", path, "--out", str(tmp_path / "o"),
+                 "--ckpt", str(tmp_path / "missing")]) == 2
+    assert "ckpt" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "o")

@@ -4,7 +4,7 @@ VENV   := .venv
 PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 
-.PHONY: setup test hopper walker2d halfcheetah ant bench lint clean
+.PHONY: setup test test-all hopper walker2d halfcheetah ant paper bench lint clean
 
 setup: $(STAMP)
 
@@ -15,11 +15,22 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 test: setup
+	$(PY) -m pytest -q -m "not heavy" tests
+
+# Everything, including the heavy smoke runs (make paper's driver on tiny sizes, ~5 min more).
+test-all: setup
 	$(PY) -m pytest -q tests
 
 # The whole pipeline for one task with the shipped zoo; results land in results/<task>/.
 hopper walker2d halfcheetah ant: setup
 	$(VENV)/bin/rl2s pipeline --task $@
+
+# The paper's protocol on the four tasks (>= 3 seeds; sizes by JAX backend, see
+# experiments/paper.py) into results/paper/<task>.json, then the tables.
+paper: setup
+	for t in hopper walker2d halfcheetah ant; do \
+	  $(PY) experiments/paper.py --task $$t --out results/paper || exit 1; done
+	$(PY) experiments/paper_tables.py --results results/paper --out results/paper/tables.md
 
 bench: setup
 	$(PY) experiments/bench.py

@@ -1,0 +1,12 @@
+#!/usr/bin/env bash
+# The paper's protocol for one task on the GPU machine (run through the device tool with .whl
+# carried): experiments/paper.py at its gpu sizes; extra arguments go to paper.py. The data
+# (hundreds of MB) stays in $W; $OUT gets <task>.json and the log paper_<task>.log.
+#   bash experiments/device_paper.sh TASK [--steps N --seeds N ...]
+set -euo pipefail
+TASK=${1:?usage: bash experiments/device_paper.sh TASK [paper.py args]}
+shift
+source experiments/device_env.sh
+nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee $OUT/paper_$TASK.log
+{ time python3 experiments/paper.py --task $TASK --profile gpu --out $OUT --data-dir $W "$@" ; } \
+  2>&1 | grep -v -i -e warn -e "Failed to import" | tee -a $OUT/paper_$TASK.log

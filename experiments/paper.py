@@ -1,0 +1,533 @@
+"""The paper's protocol on one task: RL2S, GAIL, BC and RL2S-BC x seeds, judged on the held-out
+test policies by value difference (AVD/MVD), ranking (Kendall tau, nDCG@k, Spearman, regret@1)
+and policy improvement (MPI/API), written to OUT/<task>.json.
+
+    python experiments/paper.py --task hopper [--seeds 3] [--steps N] [--eval-every N]
+        [--transitions-per-policy N] [--value-episodes N] [--eval-episodes N]
+        [--improve-iterations N] [--improve-policies N] [--improve-seeds 1]
+        [--sac-envs N] [--sac-critic-warmup N] [--sac-updates-per-step N]
+        [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--set field=value ...]
+
+Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
+by a time limit still leaves what it finished, with "complete": false):
+
+1. data: train / test Datasets from the shipped zoo: ONE ``rl2s_jax.cli.collect_dataset``
+   run over all the zoo's policies (split "all": one MJX program), split into the zoo's train
+   and test policies with ``Dataset.select_policies``; reused from --data-dir when the sizes
+   match.
+2. training: the four methods x S seeds as TWO vmapped programs, as experiments/eps_sweep.py:
+   eps is a state leaf, so ``rl2s`` (eps 0.25) and ``gail`` (eps 1) are lanes of one
+   adversarial program (config method "rl2s"), ``rl2s-bc`` (eps 0.25) and ``bc`` (eps 1)
+   lanes of one likelihood program (config method "rl2s-bc"). A lane (method m, seed s) is the
+   program ``rl2s train --method m --seed s`` runs: gail differs from rl2s, and bc from rl2s-bc,
+   only in the initial eps (TrainConfig.initial_eps), and the key is PRNGKey(s) (checked: the
+   final states are bitwise equal unvmapped; a vmapped lane matches to ~3e-8).
+   Every --eval-every steps every lane's simulator is evaluated on the test policies as
+   ``assess.evaluate_simulator`` does (simulated discounted value over the config's vd_horizon
+   from the test data's start states, ``evaluate.ranking_metrics`` against the true values),
+   vmapped over the lanes, with key PRNGKey(1000 + seed). The last evaluation (at --steps) is
+   the final one.
+3. improvement: for the first --improve-seeds seeds, SAC fine-tunes --improve-policies test
+   policies (spread evenly over their true returns; 0: all) inside each method's
+   simulator (all methods x seeds x policies as one vmapped program), then the fine-tuned
+   policies' real return C1 is measured in MJX with the test data's protocol (--value-episodes
+   fresh episodes of the full episode length); C0 is the data's measured ``value``.
+   I = (C1 - C0) / |C0|, MPI = min I, API = mean I (``improve.improvement_metrics``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from functools import partial
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rl2s_jax.cli import _overrides, collect_dataset
+from rl2s_jax.collect import measure_values
+from rl2s_jax.data import load_dataset, save_dataset
+from rl2s_jax.evaluate import ranking_metrics
+from rl2s_jax.fit import make_config, policies_for
+from rl2s_jax.improve import improvement_metrics
+from rl2s_jax.policies import index_params
+from rl2s_jax.sac import SACConfig, episode_returns, make_sac
+from rl2s_jax.sim_env import SimulatorEnv
+from rl2s_jax.simulate import Simulator, simulated_values, start_pool
+from rl2s_jax.tasks import get_task, task_names
+from rl2s_jax.train import DEFAULT_EPS, init, make_train_data, simulator, train_steps, true_values
+
+METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
+# (family, config method, its lanes' methods): one vmapped program per family.
+FAMILIES = (("adversarial", "rl2s", ("rl2s", "gail")), ("mle", "rl2s-bc", ("rl2s-bc", "bc")))
+EVAL_METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearman",
+                "regret@1", "avd", "mvd")
+METRICS = EVAL_METRICS + ("mpi", "api")
+
+# Sizes per profile. gpu: one task in about 7-8 minutes of an H100 (hopper; ant is slower),
+# estimated from measured costs (docs/RESULTS.md, docs/BENCHMARKS.md): one collection of the 60
+# zoo policies (1000 steps of collection + 1000 of true values, MJX at ~13 ms a step, ~60-90 s
+# with compiles); the adversarial program, 6 lanes x 800 steps at ~25 ms per lane-step
+# (~120 s + ~25 s compile); the likelihood program ~4x cheaper (~50 s); 2 x 4 test evaluations
+# (~25 s); SAC 4 simulators x 10 policies x 2000 iterations as one program (not measured on a
+# GPU yet: its time is printed); the real measurement of the 40 fine-tuned policies (~35 s).
+# cpu: small, for a 2-core machine.
+PROFILES = {
+    "gpu": dict(seeds=3, transitions_per_policy=20_000, value_episodes=16, steps=800,
+                eval_every=200, eval_episodes=16, improve_policies=10, improve_seeds=1,
+                improve_iterations=2000, sac_envs=16, sac=dict()),
+    "cpu": dict(seeds=3, transitions_per_policy=2000, value_episodes=4, steps=300,
+                eval_every=100, eval_episodes=8, improve_policies=10, improve_seeds=1,
+                improve_iterations=300, sac_envs=4, sac=dict(hidden=(64, 64), batch_size=128)),
+}
+
+
+def log(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def _stack(trees):
+    return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *trees)
+
+
+def _take(tree, idx):
+    idx = jnp.asarray(idx)
+    return jax.tree_util.tree_map(lambda x: x[idx], tree)
+
+
+def _finite_mean(x) -> str:
+    x = np.asarray(x, np.float64)
+    x = x[np.isfinite(x)]
+    return f"{x.mean():.1f}" if x.size else "n/a (no episode ended)"
+
+
+def _none_if_nan(x):
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+# ------------------------------------------------------------------ data
+
+
+def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
+                    episode_length: int | None, progress: bool):
+    """The train and test Datasets of the zoo's split: reused from data_dir when collected with
+    the same sizes, else collected as ONE ``collect_dataset(task, "all", ...)`` run (one MJX
+    program for all the zoo's policies) and split with ``Dataset.select_policies``.
+    -> ({"train": Dataset, "test": Dataset}, reused)"""
+    from rl2s_jax.policies import load_zoo
+
+    paths = {split: os.path.join(data_dir, f"{task}_{split}.npz") for split in ("train", "test")}
+    key_path = os.path.join(data_dir, f"{task}_data.json")
+    data_key = {"task": task, "seed": seed, "episode_length": episode_length,
+                "transitions_per_policy": sizes["transitions_per_policy"],
+                "value_episodes": sizes["value_episodes"]}
+    if all(os.path.exists(p) for p in paths.values()) and os.path.exists(key_path):
+        with open(key_path) as f:
+            if json.load(f) == data_key:
+                return {split: load_dataset(p) for split, p in paths.items()}, True
+    everything = collect_dataset(task, "all", sizes["transitions_per_policy"], seed=seed,
+                                 value_episodes=sizes["value_episodes"],
+                                 episode_length=episode_length, progress=progress)
+    zoo = load_zoo(task)
+    all_ids = list(everything.meta["source"]["zoo_ids"])
+    os.makedirs(data_dir, exist_ok=True)
+    out = {}
+    for split, path in paths.items():
+        ids = zoo.split_ids(split)
+        part = everything.select_policies([all_ids.index(i) for i in ids])
+        # policies_for() finds a Dataset's policies through meta.source.zoo_ids.
+        part.meta["source"] = {**part.meta["source"], "split": split,
+                               "zoo_ids": [int(i) for i in ids]}
+        save_dataset(path, part)
+        out[split] = part
+    with open(key_path, "w") as f:
+        json.dump(data_key, f)
+    return out, False
+
+
+# ------------------------------------------------------------------ evaluation of lanes
+
+
+@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
+def _lane_values(sims: Simulator, policies, pool, keys, *, n_episodes, horizon, gamma):
+    """assess._sim_values vmapped over lanes: sims and keys carry a leading lane axis."""
+    task = get_task(sims.task)
+    return jax.vmap(lambda sim, key: simulated_values(
+        policies, sim.dynamics, task.reward_fn, task.done_fn, pool, key,
+        n_episodes=n_episodes, horizon=horizon, gamma=gamma))(sims, keys)
+
+
+def evaluate_lanes(states, seeds, test_ds, test_pols, truth, *, n_episodes, horizon, gamma):
+    """evaluate_simulator's metrics for every lane of a vmapped TrainState.
+    -> (list of metric dicts (None where the simulated values are not finite), values [L, P])"""
+    keys = jnp.stack([jax.random.PRNGKey(1000 + s) for s in seeds])
+    values, _ = _lane_values(simulator(states), test_pols, start_pool(test_ds), keys,
+                             n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    values = np.asarray(values, np.float64)
+    out = []
+    for v in values:
+        try:
+            out.append(ranking_metrics(truth, v, ks=(1, 3, 5, 10)))
+        except ValueError:  # non-finite simulated values: the lane diverged
+            out.append(None)
+    return out, values
+
+
+# ------------------------------------------------------------------ improvement
+
+
+def _sac_for(sim: Simulator, pool, task, cfg: SACConfig):
+    return make_sac(SimulatorEnv(sim, pool, task), cfg)
+
+
+def improve_in_lanes(sims: Simulator, task, pool, policies, keys, cfg: SACConfig, *,
+                     n_iterations: int, chunk: int, log=log):
+    """SAC fine-tuning of the stacked ``policies`` [P] inside each of the stacked simulators
+    ``sims`` [L] (improve.improve_policies for every simulator at once: one program, vmapped
+    over simulators and policies). keys [L, P]. -> (actors [L, P, ...], simulated training
+    return [L, P] of the episodes that ended in the last chunk (NaN if none))."""
+    pool = jnp.asarray(pool)
+
+    def init_one(sim, ks, pols):
+        return jax.vmap(_sac_for(sim, pool, task, cfg).init)(ks, pols)
+
+    states = jax.jit(jax.vmap(init_one, in_axes=(0, 0, None)))(sims, keys, policies)
+    compiled, done, sim_return = {}, 0, None
+    while done < n_iterations:
+        n = min(chunk, n_iterations - done)
+        if n not in compiled:
+            def train_one(sim, st, n=n):
+                return jax.vmap(lambda s: _sac_for(sim, pool, task, cfg).train(s, n))(st)
+            compiled[n] = jax.jit(jax.vmap(train_one))
+        t0 = time.perf_counter()
+        states, metrics = compiled[n](sims, states)
+        sim_return = np.asarray(episode_returns(metrics))
+        done += n
+        log(f"[paper]   SAC {done}/{n_iterations} iterations ({time.perf_counter() - t0:.1f}s"
+            f"); mean simulated training return {_finite_mean(sim_return)}")
+    return states.actor, sim_return
+
+
+def pick_policies(c0: np.ndarray, n: int | None) -> list[int]:
+    """n test policies spread evenly over their true returns (all when n is None or >= P)."""
+    order = np.argsort(c0, kind="stable")
+    P = len(order)
+    if n is None or n >= P:
+        return sorted(order.tolist())
+    pos = np.unique(np.round(np.linspace(0, P - 1, n)).astype(int))
+    return sorted(order[pos].tolist())
+
+
+# ------------------------------------------------------------------ results
+
+
+def summarise(result: dict) -> None:
+    """Fill result["methods"] (mean over seeds), ["std"] (sample std, None for one value) and
+    ["n"] (values averaged) from result["per_seed"]."""
+    for m, per in result["per_seed"].items():
+        mean, std, n = {}, {}, {}
+        for k in METRICS:
+            vals = [v for v in per.get(k, []) if v is not None]
+            n[k] = len(vals)
+            mean[k] = float(np.mean(vals)) if vals else None
+            std[k] = float(np.std(vals, ddof=1)) if len(vals) > 1 else None
+        result["methods"][m], result["std"][m], result["n"][m] = mean, std, n
+
+
+def write(path: str, result: dict) -> None:
+    summarise(result)
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(result, f, indent=1)
+    os.replace(tmp, path)
+
+
+def table(result: dict) -> str:
+    cols = ("kendall_tau", "ndcg@1", "ndcg@5", "spearman", "avd", "mvd", "mpi", "api")
+    lines = [f"{'method':<9}" + "".join(f"{c:>16}" for c in cols)]
+    for m in METHODS:
+        cells = []
+        for c in cols:
+            v, s = result["methods"][m].get(c), result["std"][m].get(c)
+            cells.append("n/a" if v is None else f"{v:.3g}" + ("" if s is None else
+                                                                f" ±{s:.2g}"))
+        lines.append(f"{m:<9}" + "".join(f"{c:>16}" for c in cells))
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ main
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    pos = lambda t: max(1, int(t))
+    ap.add_argument("--task", required=True, choices=task_names())
+    ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
+    ap.add_argument("--seeds", type=pos)
+    ap.add_argument("--steps", type=pos, help="train_steps per lane")
+    ap.add_argument("--eval-every", type=pos, help="steps between test evaluations "
+                    "(divides --steps)")
+    ap.add_argument("--eval-episodes", type=pos, help="simulated episodes per test policy")
+    ap.add_argument("--transitions-per-policy", type=pos)
+    ap.add_argument("--value-episodes", type=pos, help="real episodes per policy for true "
+                    "values (C0) and for C1")
+    ap.add_argument("--episode-length", type=pos, help="shorter episodes than the task's "
+                    "(smoke runs)")
+    ap.add_argument("--data-seed", type=int, default=0)
+    ap.add_argument("--improve-iterations", type=int, help="SAC iterations (0: skip)")
+    ap.add_argument("--improve-policies", type=int, help="test policies fine-tuned, spread "
+                    "evenly over their true returns (0 or more than there are: all)")
+    ap.add_argument("--improve-seeds", type=int, help="seeds whose simulators are used")
+    ap.add_argument("--sac-envs", type=pos, help="SAC envs per fine-tuned policy")
+    ap.add_argument("--sac-critic-warmup", type=int, help="updates training only the critics "
+                    "(default: a quarter of --improve-iterations)")
+    ap.add_argument("--sac-updates-per-step", type=pos, default=1)
+    ap.add_argument("--sac-chunk", type=pos, default=1000, help="SAC iterations per compiled "
+                    "call")
+    ap.add_argument("--set", action="append", metavar="KEY=VALUE",
+                    help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
+    ap.add_argument("--out", default="results/paper")
+    ap.add_argument("--data-dir", help="where train/test .npz live (default: --out)")
+    ap.add_argument("--check-eval", action="store_true", help="also run "
+                    "assess.evaluate_simulator on one lane and record the largest difference "
+                    "from the vmapped evaluation (tests)")
+    ap.add_argument("--progress", action="store_true", help="progress bars while collecting")
+    return ap
+
+
+def resolve_sizes(args, profile: str) -> dict:
+    sizes = {k: v for k, v in PROFILES[profile].items() if k != "sac"}
+    for k in list(sizes):
+        if getattr(args, k, None) is not None:
+            sizes[k] = getattr(args, k)
+    if sizes["steps"] % sizes["eval_every"]:
+        raise SystemExit(f"steps: expected a multiple of --eval-every ({sizes['eval_every']})")
+    sizes["improve_seeds"] = max(0, min(sizes["improve_seeds"], sizes["seeds"]))
+    if sizes["improve_policies"] is not None and sizes["improve_policies"] <= 0:
+        sizes["improve_policies"] = None
+    it = max(0, sizes["improve_iterations"])
+    sizes["improve_iterations"] = it
+    sizes["sac_critic_warmup"] = (args.sac_critic_warmup if args.sac_critic_warmup is not None
+                                  else it // 4)
+    sizes["sac_updates_per_step"] = args.sac_updates_per_step
+    sizes["sac_chunk"] = args.sac_chunk
+    sizes["episode_length"] = args.episode_length
+    return sizes
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = build_parser().parse_args(argv)
+    t_start = time.perf_counter()
+    backend = jax.default_backend()
+    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    sizes = resolve_sizes(args, profile)
+    S = sizes["seeds"]
+    out, data_dir = args.out, args.data_dir or args.out
+    os.makedirs(out, exist_ok=True)
+    path = os.path.join(out, f"{args.task}.json")
+    device = jax.devices()[0].device_kind
+    timings: dict[str, float] = {}
+
+    def phase(name, t0):
+        timings[name] = round(time.perf_counter() - t0, 1)
+        log(f"[paper] {name}: {timings[name]:.1f}s (elapsed "
+            f"{time.perf_counter() - t_start:.0f}s)")
+
+    log(f"[paper] task {args.task} on {device} ({backend}, jax {jax.__version__}), profile "
+        f"{profile}, {S} seeds -> {path}\n[paper] sizes {sizes}")
+    result = {"task": args.task, "methods": {}, "std": {}, "n": {}, "seeds": S,
+              "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
+              "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
+              "command": " ".join(["python", "experiments/paper.py", *argv]),
+              "timings": timings, "complete": False,
+              "per_seed": {m: {k: [] for k in METRICS} for m in METHODS},
+              "curves": [], "lanes": {}}
+
+    # ---- 1. data
+    t0 = time.perf_counter()
+    datasets, reused = load_or_collect(args.task, sizes, data_dir, args.data_seed,
+                                       args.episode_length, args.progress)
+    for split, ds in datasets.items():
+        log(f"[paper] {split} data: {ds.n_policies} policies x "
+            f"{ds.n_transitions // ds.n_policies} transitions"
+            f"{' (reused from ' + data_dir + ')' if reused else ''}")
+    phase("data", t0)
+    train_ds, test_ds = datasets["train"], datasets["test"]
+    result["sizes"].update(train_policies=train_ds.n_policies, test_policies=test_ds.n_policies)
+    train_pols, test_pols = policies_for(train_ds), policies_for(test_ds)
+    result["test_policy_names"] = list(test_ds.meta.get("policy_names") or [])
+    result["true_value_undiscounted"] = np.asarray(test_ds.value, np.float64).tolist()
+
+    # ---- 2. training, one vmapped program per family
+    overrides = _overrides(args.set)
+    robust_eps = overrides.pop("eps", None)
+    finals, configs = {}, {}
+    for family, cfg_method, methods in FAMILIES:
+        t0 = time.perf_counter()
+        cfg = make_config(train_ds, cfg_method, profile, overrides=overrides)
+        configs[family] = cfg
+        data = make_train_data(train_ds, train_pols, cfg)
+        truth = true_values(test_ds, cfg.vd_horizon, cfg.gamma)
+        lanes = [(m, s) for m in methods for s in range(S)]
+        eps = [float(robust_eps) if robust_eps is not None and DEFAULT_EPS[m] < 1
+               else DEFAULT_EPS[m] for m, _ in lanes]
+        keys = jnp.stack([jax.random.PRNGKey(s) for _, s in lanes])
+        states = jax.jit(jax.vmap(lambda k, e, d, cfg=cfg: init(k, cfg, d, eps=e),
+                                  in_axes=(0, 0, None)))(keys, jnp.asarray(eps, jnp.float32),
+                                                         data)
+        states = jax.block_until_ready(states)
+        log(f"[paper] {family}: {len(lanes)} lanes "
+            f"{', '.join(f'{m}/{s} (eps {e:g})' for (m, s), e in zip(lanes, eps, strict=True))}"
+            f", config method {cfg_method}; init {time.perf_counter() - t0:.1f}s")
+        n = sizes["eval_every"]
+
+        def chunk(st, d, n=n):
+            st, m = train_steps(st, d, n)
+            return st, {"finite": jnp.all(m["finite"]), "avd_train": m["avd_train"][-1],
+                        "mvd_train": m["mvd_train"][-1], "n_selected": m["n_selected"][-1]}
+
+        run = jax.jit(jax.vmap(chunk, in_axes=(0, None)))
+        evals = None
+        t_eval = 0.0
+        for _ in range(sizes["steps"] // n):
+            t1 = time.perf_counter()
+            states, m = jax.block_until_ready(run(states, data))
+            seconds = time.perf_counter() - t1
+            t1 = time.perf_counter()
+            evals, _values = evaluate_lanes(states, [s for _, s in lanes], test_ds, test_pols,
+                                            truth, n_episodes=sizes["eval_episodes"],
+                                            horizon=cfg.vd_horizon, gamma=cfg.gamma)
+            t_eval += time.perf_counter() - t1
+            step = int(states.step[0])
+            log(f"[paper] {family} step {step}: {n} steps of {len(lanes)} lanes in "
+                f"{seconds:.1f}s; test evaluation {time.perf_counter() - t1:.1f}s")
+            for i, (meth, s) in enumerate(lanes):
+                r = evals[i] or {}
+                row = {"step": step, "lane": f"{meth}/{s}", "method": meth, "seed": s,
+                       "avd": r.get("avd"), "mvd": r.get("mvd"), "tau": r.get("kendall_tau"),
+                       "ndcg@1": r.get("ndcg@1"),
+                       "avd_train": _none_if_nan(m["avd_train"][i]),
+                       "mvd_train": _none_if_nan(m["mvd_train"][i]),
+                       "finite": bool(m["finite"][i])}
+                result["curves"].append(row)
+                fmt = lambda x, f: "n/a" if x is None else format(x, f)
+                log(f"  {meth:<8} seed {s}  AVD {fmt(row['avd'], '8.1f')}  MVD "
+                    f"{fmt(row['mvd'], '8.1f')}  tau {fmt(row['tau'], '6.3f')}  nDCG@1 "
+                    f"{fmt(row['ndcg@1'], '.3f')}  train AVD {fmt(row['avd_train'], '.1f')}"
+                    f"  selected {int(m['n_selected'][i])}"
+                    f"{'' if row['finite'] else '  NON-FINITE'}")
+        for i, (meth, s) in enumerate(lanes):
+            r = evals[i]
+            for k in EVAL_METRICS:
+                result["per_seed"][meth][k].append(None if r is None else r[k])
+            result["lanes"][f"{meth}/{s}"] = {
+                "family": family, "eps": eps[i], "seed": s,
+                "sim_value": np.asarray(_values[i]).tolist(),
+                "finite": all(row["finite"] for row in result["curves"]
+                              if row["lane"] == f"{meth}/{s}")}
+        result["true_value"] = np.asarray(truth).tolist()
+        result.setdefault("train_config", {})[family] = cfg.to_dict()
+        timings[f"eval_{family}"] = round(t_eval, 1)
+        if args.check_eval:
+            from rl2s_jax.assess import evaluate_simulator
+            r = evaluate_simulator(simulator(_take(states, 0)), test_ds, test_pols,
+                                   key=jax.random.PRNGKey(1000 + lanes[0][1]),
+                                   n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
+                                   gamma=cfg.gamma)
+            diff = float(np.max(np.abs(np.asarray(r["sim_value"]) - _values[0])))
+            result.setdefault("eval_check", {})[family] = {
+                "lane": f"{lanes[0][0]}/{lanes[0][1]}", "max_abs_diff": diff,
+                "metrics": r["metrics"]}
+            log(f"[paper] check: evaluate_simulator on lane {lanes[0]} differs from the "
+                f"vmapped evaluation by at most {diff:.3g}")
+        finals[family] = (lanes, states)
+        phase(f"train_{family}", t0)
+        write(path, result)
+
+    # ---- 3. improvement
+    it = sizes["improve_iterations"]
+    if it and sizes["improve_seeds"]:
+        t0 = time.perf_counter()
+        task = get_task(args.task)
+        c0_all = np.asarray(test_ds.value, np.float64)
+        ids = [i for i in pick_policies(c0_all, sizes["improve_policies"]) if c0_all[i] != 0]
+        c0 = c0_all[ids]
+        pols = index_params(test_pols, np.asarray(ids))
+        lanes, sims = [], []
+        for family, _, _ in FAMILIES:
+            fam_lanes, states = finals[family]
+            idx = [i for i, (_, s) in enumerate(fam_lanes) if s < sizes["improve_seeds"]]
+            lanes += [fam_lanes[i] for i in idx]
+            sims.append(_take(simulator(states), idx))
+        statics = {(s.task, s.obs_clip, s.noise_scale) for s in sims}
+        if len(statics) != 1:
+            raise SystemExit(f"set: the families' simulators differ in {statics}; they must "
+                             f"share task, obs_clip and sim_noise to be fine-tuned together")
+        sims = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *sims)
+        horizon = configs["adversarial"].vd_horizon
+        n_envs = sizes["sac_envs"]
+        sac_cfg = SACConfig(episode_length=horizon, n_envs=n_envs,
+                            critic_warmup_updates=sizes["sac_critic_warmup"],
+                            updates_per_step=sizes["sac_updates_per_step"],
+                            buffer_size=min(100_000, n_envs * (64 + it)),
+                            **PROFILES[profile]["sac"])
+        if sac_cfg.critic_warmup_updates >= it * sac_cfg.updates_per_step:
+            log("[paper] note: the critic warm-up covers every SAC update, so the actors stay "
+                "as they were")
+        keys = jnp.stack([jax.random.split(jax.random.fold_in(jax.random.PRNGKey(10 + s),
+                                                              METHODS.index(m)), len(ids))
+                          for m, s in lanes])
+        log(f"[paper] improvement: SAC x {it} iterations ({n_envs} envs, "
+            f"{sac_cfg.updates_per_step} update(s) per iteration, critic warm-up "
+            f"{sac_cfg.critic_warmup_updates} updates, episodes of {horizon} steps) for "
+            f"{len(ids)} test policies in {len(lanes)} simulators "
+            f"({', '.join(f'{m}/{s}' for m, s in lanes)}) as one program")
+        actors, sim_return = improve_in_lanes(sims, task, start_pool(test_ds), pols, keys,
+                                              sac_cfg, n_iterations=it,
+                                              chunk=min(sizes["sac_chunk"], it))
+        phase("improve_sac", t0)
+        t0 = time.perf_counter()
+        L, P = len(lanes), len(ids)
+        flat = jax.tree_util.tree_map(lambda x: x.reshape((L * P,) + x.shape[2:]), actors)
+        ep_len = int(test_ds.meta.get("episode_length") or task.episode_length)
+        real = measure_values(task.make_env(), flat, key=jax.random.PRNGKey(20),
+                              n_episodes=sizes["value_episodes"], episode_length=ep_len,
+                              gamma=float(test_ds.meta.get("gamma") or 0.999))
+        c1 = np.asarray(real["value"], np.float64).reshape(L, P)
+        se = np.asarray(real["value_se"], np.float64).reshape(L, P)
+        phase("improve_measure", t0)
+        improvement = {}
+        for i, (m, s) in enumerate(lanes):
+            try:
+                imp = improvement_metrics(c0, c1[i])
+            except ValueError as err:  # a non-finite real return
+                log(f"  {m:<8} seed {s}  no MPI/API: {err}")
+                imp = {"I": np.full(len(ids), np.nan), "mpi": None, "api": None}
+            result["per_seed"][m]["mpi"].append(imp["mpi"])
+            result["per_seed"][m]["api"].append(imp["api"])
+            improvement[f"{m}/{s}"] = {
+                "method": m, "seed": s, "policy_ids": ids, "c0": c0.tolist(),
+                "c1": [_none_if_nan(x) for x in c1[i]], "c1_se": se[i].tolist(),
+                "I": [_none_if_nan(x) for x in imp["I"]],
+                "sim_return": [_none_if_nan(x) for x in sim_return[i]],
+                "mpi": imp["mpi"], "api": imp["api"]}
+            if imp["mpi"] is not None:
+                log(f"  {m:<8} seed {s}  MPI {imp['mpi']:8.3f}  API {imp['api']:8.3f}  "
+                    f"(C1 - C0 mean {np.mean(c1[i] - c0):.1f}, simulated training return "
+                    f"{_finite_mean(sim_return[i])})")
+        result["improvement"] = improvement
+    timings["total"] = round(time.perf_counter() - t_start, 1)
+    result["complete"] = True
+    write(path, result)
+    log(f"\n[paper] {args.task}: {S} seeds on {device}, {timings['total']:.0f}s in all; "
+        f"timings {timings}\n{table(result)}\n-> {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,175 @@
+"""`make paper`: experiments/paper_tables.py on synthetic results (fast, no JAX) and one CPU
+smoke run of experiments/paper.py on Hopper at absurdly small sizes."""
+import importlib.util
+import json
+import os
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearman", "regret@1",
+           "avd", "mvd", "mpi", "api")
+
+
+def _load(name):
+    spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "experiments",
+                                                                     f"{name}.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+# ------------------------------------------------------------------ paper_tables.py
+
+
+def _synthetic(task, tau, ndcg1, mvd, mpi, seeds=3):
+    """A result JSON as paper.py writes it: per-seed lists (mpi/api for one seed only)."""
+    per = {}
+    for m in ("rl2s", "gail", "bc", "rl2s-bc"):
+        per[m] = {k: [0.5 + 0.01 * i for i in range(seeds)] for k in METRICS}
+        per[m]["mvd"] = [mvd[m] + d for d in (-10.0, 0.0, 10.0)][:seeds]
+        per[m]["avd"] = [100.0, 110.0, 120.0][:seeds]
+        per[m]["mpi"], per[m]["api"] = [-0.5], [0.1]
+    per["rl2s"]["kendall_tau"] = [tau - 0.05, tau, tau + 0.05][:seeds]
+    per["rl2s"]["ndcg@1"] = [ndcg1] * seeds
+    per["rl2s"]["mpi"] = [mpi]
+    return {"task": task, "methods": {}, "seeds": seeds, "hardware": "NVIDIA H100 80GB HBM3",
+            "jax_version": "0.11.2", "command": f"python experiments/paper.py --task {task}",
+            "timings": {"total": 412.3}, "complete": True, "per_seed": per}
+
+
+def test_paper_tables(tmp_path):
+    pt = _load("paper_tables")
+    res = tmp_path / "results"
+    res.mkdir()
+    good = _synthetic("hopper", 0.85, 0.97, {"rl2s": 50, "gail": 80, "bc": 90, "rl2s-bc": 60},
+                      0.2)
+    bad = _synthetic("ant", 0.30, 0.90, {"rl2s": 85, "gail": 80, "bc": 90, "rl2s-bc": 60},
+                     -0.1)
+    (res / "hopper.json").write_text(json.dumps(good))
+    (res / "ant.json").write_text(json.dumps(bad))
+    (res / "hopper_cpu_profile.json").write_text("{}")  # not a task file: ignored
+    out = tmp_path / "RESULTS.md"
+    out.write_text("# Results\n\nearlier text\n")
+    assert pt.main(["--results", str(res), "--out", str(out)]) == 0
+    text = out.read_text()
+    assert text.startswith("# Results\n\nearlier text\n")
+    assert text.count(pt.BEGIN) == 1 and text.count(pt.END) == 1
+    # mean ± sample std (n seeds), paper number beside (n/a where none is known)
+    assert "| hopper | rl2s | 0.850 ± 0.050 (3 seeds) | 0.35† |" in text
+    assert "| ant | rl2s | 0.300 ± 0.050 (3 seeds) | 0.80† |" in text
+    assert "| hopper | gail | 0.510 ± 0.010 (3 seeds) | n/a |" in text
+    assert "| hopper | rl2s | 0.200 (1 seed) | n/a | 0.100 (1 seed) | n/a |" in text  # MPI/API
+    assert "| ant | rl2s | -0.100 (1 seed) | < 0† |" in text
+    assert "| hopper | rl2s | 110.0 ± 10.0 (3 seeds) | n/a | 50.0 ± 10.0 (3 seeds) | n/a |" in text
+    assert "walker2d" not in text.split("Table 1")[1]  # no result, no rows
+    assert "NVIDIA H100 80GB HBM3" in text and "python experiments/paper.py --task ant" in text
+    # quality bars per task
+    bar_lines = text.split("### Quality bars")[1].splitlines()
+    bars = {line.split("|")[1].strip(): line for line in bar_lines if line.startswith("| ")}
+    assert bars["hopper"].count("met (") == 4 and "MISSED" not in bars["hopper"]
+    assert bars["ant"].count("MISSED (") == 4
+    assert "MISSED (85.0 vs 80.0, 90.0)" in bars["ant"]
+    # a second run replaces the block, never duplicates it; text around it stays
+    with open(out, "a") as f:
+        f.write("\nafter the block\n")
+    good["per_seed"]["rl2s"]["kendall_tau"] = [0.9, 0.9, 0.9]
+    (res / "hopper.json").write_text(json.dumps(good))
+    assert pt.main(["--results", str(res), "--out", str(out)]) == 0
+    text2 = out.read_text()
+    assert text2.count(pt.BEGIN) == 1 and text2.count(pt.END) == 1
+    assert "| hopper | rl2s | 0.900 ± 0.000 (3 seeds) | 0.35† |" in text2
+    assert "0.850 ± 0.050" not in text2
+    assert text2.startswith("# Results\n\nearlier text\n") and "after the block" in text2
+    # a fresh file gets just the block
+    fresh = tmp_path / "new" / "tables.md"
+    assert pt.main(["--results", str(res), "--out", str(fresh)]) == 0
+    assert fresh.read_text().startswith(pt.BEGIN)
+
+
+def test_paper_tables_fallbacks():
+    pt = _load("paper_tables")
+    # no per_seed: methods / std / n are used; unknown numbers print n/a
+    r = {"methods": {"rl2s": {"kendall_tau": 0.4}}, "std": {"rl2s": {"kendall_tau": 0.1}},
+         "n": {"rl2s": {"kendall_tau": 2}}, "seeds": 3}
+    assert pt.stats(r, "rl2s", "kendall_tau") == (0.4, 0.1, 2)
+    assert pt.stats(r, "gail", "kendall_tau") == (None, None, 0)
+    assert pt.fmt_cell(None, None, 0) == "n/a"
+    b = pt.bars(r)
+    assert b["tau"] == (False, "0.400") and b["mvd"] == (None, "n/a") and b["mpi"][0] is None
+    assert "No results" in pt.render({}, "nowhere")
+
+
+# ------------------------------------------------------------------ paper.py smoke
+
+
+@pytest.mark.slow
+@pytest.mark.heavy
+def test_paper_smoke_hopper(tmp_path, capsys):
+    """The whole protocol at toy sizes: 2 seeds x 4 methods as two vmapped programs, curves,
+    final evaluation, SAC improvement of 2 test policies. ~5-10 min on 2 busy CPU cores
+    (mostly MJX and XLA compiles)."""
+    paper = _load("paper")
+    out = tmp_path / "paper"
+    args = ["--task", "hopper", "--profile", "cpu", "--seeds", "2", "--steps", "4",
+            "--eval-every", "2", "--eval-episodes", "2", "--transitions-per-policy", "200",
+            "--value-episodes", "2", "--episode-length", "50", "--improve-policies", "2",
+            "--improve-iterations", "2", "--out", str(out), "--check-eval"]
+    assert paper.main(args) == 0
+    printed = capsys.readouterr().out
+    for phase in ("data", "train_adversarial", "train_mle", "improve_sac", "improve_measure"):
+        assert f"[paper] {phase}: " in printed
+    r = json.loads((out / "hopper.json").read_text())
+    assert r["complete"] and r["seeds"] == 2 and r["hardware"] == "cpu"
+    assert r["command"].startswith("python experiments/paper.py --task hopper")
+    assert set(r["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
+    for m, vals in r["methods"].items():
+        assert set(vals) == set(METRICS), m
+        per = r["per_seed"][m]
+        for k in METRICS:
+            n = 1 if k in ("mpi", "api") else 2  # improvement on the first seed only
+            assert len(per[k]) == n and all(np.isfinite(per[k])), (m, k)
+            assert vals[k] == pytest.approx(np.mean(per[k]))
+            assert (r["std"][m][k] is None) == (n == 1)
+        # the seeds are different runs
+        assert per["avd"][0] != per["avd"][1], m
+        assert vals["mvd"] >= vals["avd"] >= 0 and vals["mpi"] <= vals["api"]
+    # gail/bc lanes ran with eps 1, rl2s/rl2s-bc with 0.25, in one program per family
+    assert {k: v["eps"] for k, v in r["lanes"].items()} == {
+        "rl2s/0": 0.25, "rl2s/1": 0.25, "gail/0": 1.0, "gail/1": 1.0,
+        "rl2s-bc/0": 0.25, "rl2s-bc/1": 0.25, "bc/0": 1.0, "bc/1": 1.0}
+    assert r["train_config"]["adversarial"]["method"] == "rl2s"
+    assert r["train_config"]["mle"]["method"] == "rl2s-bc"
+    # curves: every lane at every --eval-every steps; the final metrics are the last point
+    steps = {}
+    for row in r["curves"]:
+        steps.setdefault(row["lane"], []).append(row["step"])
+        assert {"step", "lane", "avd", "mvd", "tau"} <= set(row)
+    assert steps == {lane: [2, 4] for lane in r["lanes"]}
+    last = [row for row in r["curves"] if row["lane"] == "rl2s/1" and row["step"] == 4][0]
+    assert last["tau"] == r["per_seed"]["rl2s"]["kendall_tau"][1]
+    # the vmapped evaluation is assess.evaluate_simulator's
+    for check in r["eval_check"].values():
+        assert check["max_abs_diff"] < 1e-3
+    assert r["eval_check"]["adversarial"]["metrics"]["kendall_tau"] == pytest.approx(
+        r["per_seed"]["rl2s"]["kendall_tau"][0], abs=1e-6)
+    # improvement: 2 test policies, one per end of the true-return range
+    imp = r["improvement"]
+    assert set(imp) == {"rl2s/0", "gail/0", "bc/0", "rl2s-bc/0"}
+    for v in imp.values():
+        c0, c1 = np.asarray(v["c0"]), np.asarray(v["c1"])
+        assert len(v["policy_ids"]) == 2
+        np.testing.assert_allclose(v["I"], (c1 - c0) / np.abs(c0), rtol=1e-6)
+        assert v["mpi"] == pytest.approx(min(v["I"])) and v["api"] == pytest.approx(
+            np.mean(v["I"]))
+    assert r["sizes"]["test_policies"] == 43 and r["sizes"]["train_policies"] == 17
+    for key in ("data", "train_adversarial", "train_mle", "improve_sac", "total"):
+        assert r["timings"][key] >= 0
+    c0 = imp["rl2s/0"]["c0"]
+    assert c0 == [r["true_value_undiscounted"][i] for i in imp["rl2s/0"]["policy_ids"]]
+    assert min(c0) == pytest.approx(min(r["true_value_undiscounted"]))
+    assert max(c0) == pytest.approx(max(r["true_value_undiscounted"]))
+    # the data is reused when the sizes match (no collection)
+    ds, reused = paper.load_or_collect("hopper", r["sizes"], str(out), 0, 50, False)
+    assert reused and ds["test"].n_policies == 43 and ds["train"].n_policies == 17

@@ -341,3 +341,13 @@ def test_rollout_values_match_hand_computed_values(system, fitted):
         M.rollout_values(fm, 2, policies, starts, reward_fn=one, done_fn=never, **kw)
     with pytest.raises(ValueError, match="start_obs"):
         M.rollout_values(fm, 0, policies, starts[:, :3], reward_fn=one, done_fn=never, **kw)
+
+
+def test_fit_models_stops_on_nan_and_names_the_seed():
+    from rl2s_jax.diagnose.planted import make_planted
+
+    eps = from_dataset(make_planted("clean", n_episodes=8, seed=0))
+    with pytest.raises(M.ModelDiverged, match="turned NaN/Inf") as err:  # absurd lr
+        M.fit_models(eps, np.arange(eps.n_episodes), M.ModelSpec(steps=300, lr=1e30),
+                     seeds=(0, 1))
+    assert err.value.last_good_params is not None

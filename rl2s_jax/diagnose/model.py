@@ -142,6 +142,17 @@ class ModelSpec:
         return d
 
 
+class ModelDiverged(FloatingPointError):
+    """Training hit a NaN/Inf loss. ``last_good_params``: every seed's parameters at the end of
+    the last chunk whose losses were all finite."""
+
+    def __init__(self, seed: int, step: int, spec: ModelSpec, last_good_params):
+        super().__init__(f"fit_models: the loss of seed {seed} turned NaN/Inf by update {step} "
+                         f"({', '.join(spec.extensions)}); lower lr (now {spec.lr}) or check "
+                         f"the data for extreme values")
+        self.seed, self.step, self.last_good_params = seed, step, last_good_params
+
+
 @struct.dataclass
 class FittedModels:
     """S models of one spec fitted to the same rows with different seeds.
@@ -617,12 +628,19 @@ def fit_models(eps: Episodes, fit_episodes: np.ndarray, spec: ModelSpec,
         from tqdm.auto import tqdm
         bar = tqdm(total=spec.steps, unit="step", dynamic_ncols=True,
                    desc="fit " + ",".join(spec.extensions))
-    losses = []
+    losses, done = [], 0
     try:
         for n_blocks, length in plan:
+            last_good = states
             states, block_loss = _train_blocks_jit(states, data, spec=spec, n_blocks=n_blocks,
                                                    block_len=length, n_present=n_present)
-            losses.append(np.asarray(block_loss))
+            block_loss = np.asarray(block_loss)
+            if not np.isfinite(block_loss).all():
+                seed_i, block = (int(x[0]) for x in np.nonzero(~np.isfinite(block_loss)))
+                raise ModelDiverged(seeds[seed_i], done + (block + 1) * length, spec,
+                                    last_good.params)
+            done += n_blocks * length
+            losses.append(block_loss)
             if bar is not None:
                 bar.update(n_blocks * length)
                 bar.set_postfix(nll=f"{float(losses[-1][:, -1].mean()):.3f}", refresh=False)

@@ -113,14 +113,14 @@ def _f(x) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _clean(obj):
+def jsonable(obj):
     """Recursively turn NumPy scalars/arrays into Python ones and non-finite floats into None."""
     if isinstance(obj, dict):
-        return {str(k): _clean(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, list | tuple):
-        return [_clean(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _clean(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, bool | np.bool_):
         return bool(obj)
     if isinstance(obj, int | np.integer):
@@ -357,7 +357,7 @@ def error_breakdown(eps: Episodes, rows, resid, std, *, kstep=None, vd=None, n_b
                             "(no log 2pi term)"},
            "overall": overall, "by_dim": by_dim, "by_policy": by_policy, "by_step": by_step,
            "by_region": by_region, "kstep": kstep_out, "vd": vd_out}
-    out = _clean(out)
+    out = jsonable(out)
     out["summary"] = _findings(out)
     return out
 

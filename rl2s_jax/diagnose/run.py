@@ -17,6 +17,7 @@ import numpy as np
 from rl2s_jax.data import Dataset
 from rl2s_jax.diagnose.causes import diagnose_causes
 from rl2s_jax.diagnose.episodes import Episodes, from_dataset, split_episodes
+from rl2s_jax.diagnose.gaps import error_breakdown, gaps_markdown, jsonable, plot_gaps
 from rl2s_jax.diagnose.model import (
     FittedModels,
     ModelSpec,
@@ -231,7 +232,6 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
     before = _measure(base, eps, held_rows, held_eps, k_max, base_values, truth)
     phase("base residuals and metrics", t0)
 
-    from rl2s_jax.diagnose.gaps import error_breakdown, gaps_markdown, plot_gaps
 
     t0 = time.perf_counter()
     vd = None
@@ -281,27 +281,12 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
             figs += plot_gain(out_dir, gain)
         report["plots"] = [os.path.basename(f) for f in figs]
         with open(os.path.join(out_dir, "report.json"), "w") as f:
-            json.dump(_jsonable(report), f, indent=1)
+            json.dump(jsonable(report), f, indent=1)
         with open(os.path.join(out_dir, "report.md"), "w") as f:
             f.write(report_markdown(report, gaps_markdown(gaps, figs)))
         log(f"[diagnose] wrote {out_dir}/report.json, report.md and {len(figs)} plots "
             f"({report['seconds']:.0f}s in all)")
     return report
-
-
-def _jsonable(x):
-    if isinstance(x, dict):
-        return {str(k): _jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_jsonable(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _jsonable(x.tolist())
-    if isinstance(x, np.integer):
-        return int(x)
-    if isinstance(x, np.floating | float):
-        x = float(x)
-        return x if np.isfinite(x) else None
-    return x
 
 
 def plot_gain(out_dir: str, gain: dict) -> list[str]:

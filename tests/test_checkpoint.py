@@ -180,3 +180,23 @@ def test_cli_train_bad_input(hopper_train_npz, tmp_path, capsys):
                str(tmp_path / "o"), "--eps", "1.5"])
     assert rc == 2 and "eps" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "o" / "checkpoints" / "1")
+
+
+def test_diagnose_a_saved_simulator(pm, tmp_path):
+    """`diagnose(ckpt=...)` tests the causes on the checkpoint's residuals, not the base model's."""
+    from rl2s_jax.diagnose.model import ModelSpec
+    from rl2s_jax.diagnose.run import diagnose
+
+    ds, _, data = pm
+    ck = Checkpointer(tmp_path / "ck")
+    fit(init(jax.random.PRNGKey(0), CFG, data), data, 2, chunk=2, checkpointer=ck,
+        save_every=2, meta=META, progress=False)
+    ck.close()
+    kw = dict(seeds=(0,), base_spec=ModelSpec(steps=100), plots=False, log=lambda s: None)
+    from_ckpt = diagnose(ds, ckpt=str(tmp_path / "ck"), **kw)
+    own = diagnose(ds, **kw)
+    assert from_ckpt["residuals_from"].startswith("checkpoint")
+    assert "policies are not available" in from_ckpt["value_views"]  # no zoo in meta.source
+    # A 2-step simulator is far worse than the base model fitted for 100 updates.
+    assert from_ckpt["gaps"]["overall"]["rmse"] > own["gaps"]["overall"]["rmse"]
+    assert {c["name"] for c in from_ckpt["causes"]} >= {"actuation_delay", "none"}

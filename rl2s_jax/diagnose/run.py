@@ -345,8 +345,13 @@ def report_markdown(report: dict, gaps_md: str) -> str:
     if ext["changes"]:
         lines += [f"- {c['cause']}: {c['change']}" for c in ext["changes"]]
         lines += ["", f"Extended model: {', '.join(ext['extended']['extensions'])}.", ""]
-    else:
+    elif report["top_cause"] == "none":
         lines += ["None: no cause is significant, the base model is adequate.", ""]
+    else:
+        lines += [f"None: the base model already has the extension that "
+                  f"{report['top_cause']} calls for ({', '.join(ext['base']['extensions'])}); "
+                  "what remains is what it fails to learn from it (a larger model or more "
+                  "data, not another input).", ""]
     g = report["gain"]
     lines += ["## Gain (held-out, mean ± std over seeds " + ", ".join(map(str, g["seeds"]))
               + ")", ""]

@@ -46,12 +46,17 @@ def _standardize_cols(x: np.ndarray) -> np.ndarray:
     return (x - x.mean(0)) / np.where(sd > 1e-12, sd, 1.0)
 
 
-def _inputs(eps: Episodes, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Standardised observation (position dims left out) and action of the rows."""
-    keep = [d for d in range(eps.obs_size) if d not in eps.position_dims]
-    mean_o, sd_o = eps.obs[:, keep].mean(0), eps.obs[:, keep].std(0) + 1e-8
-    mean_a, sd_a = eps.action.mean(0), eps.action.std(0) + 1e-8
-    return (eps.obs[rows][:, keep] - mean_o) / sd_o, (eps.action[rows] - mean_a) / sd_a
+def _input_dims(eps: Episodes) -> list[int]:
+    """The obs dims the tests see: all but the absolute positions."""
+    return [d for d in range(eps.obs_size) if d not in eps.position_dims]
+
+
+def _inputs(eps: Episodes) -> tuple[np.ndarray, np.ndarray]:
+    """Standardised observation (position dims left out) [N, o'] and action [N, a] of every
+    row."""
+    obs = eps.obs[:, _input_dims(eps)]
+    return ((obs - obs.mean(0)) / (obs.std(0) + 1e-8),
+            (eps.action - eps.action.mean(0)) / (eps.action.std(0) + 1e-8))
 
 
 def _random_features(x: np.ndarray, n: int, seed: int) -> np.ndarray:
@@ -120,11 +125,11 @@ def build_features(eps: Episodes, rows: np.ndarray, resid: np.ndarray, fit_rows:
     magnitude: |a|, a^2, |s|, s^2 (for the residuals' size); density: log distance to the
     nearest fit rows in (s, a), and the row's policy's log share of the fit data.
     """
-    s, a = _inputs(eps, rows)
+    s_all, a_all = _inputs(eps)
+    s, a = s_all[rows], a_all[rows]
     sa = np.concatenate([s, a], 1)
     current = np.concatenate([sa, _random_features(sa, n_random, seed)]
                              + ([] if pred_mean is None else [pred_mean]), 1)
-    s_all, a_all = _inputs(eps, np.arange(eps.n))
     pa, va = eps.past(a_all, lags)
     po, _ = eps.past(s_all, lags)
     past_actions = np.concatenate([pa[rows].reshape(len(rows), -1), va[rows]], 1)
@@ -136,14 +141,11 @@ def build_features(eps: Episodes, rows: np.ndarray, resid: np.ndarray, fit_rows:
     magnitude = np.concatenate([np.abs(a), a ** 2, np.abs(s), s ** 2], 1)
     rng = np.random.default_rng(seed)
     ref_rows = fit_rows if len(fit_rows) <= max_ref else rng.choice(fit_rows, max_ref, False)
-    s_ref, a_ref = _inputs(eps, ref_rows)
-    dist = knn_distance(sa, np.concatenate([s_ref, a_ref], 1))
+    dist = knn_distance(sa, np.concatenate([s_all[ref_rows], a_all[ref_rows]], 1))
     share = np.bincount(eps.policy[fit_rows], minlength=eps.n_policies) / len(fit_rows)
     density = np.stack([np.log(dist + 1e-6), np.log(share[eps.policy[rows]] + 1e-6)], 1)
     return {"current": current, "past_actions": past_actions, "past_obs": past_obs,
-            "episode": episode, "time": time, "magnitude": magnitude, "density": density,
-            "_time_split": np.array([1 + sa.shape[1]]),  # order columns first, then step
-            "_lag_width": np.array([a.shape[1], s.shape[1]])}
+            "episode": episode, "time": time, "magnitude": magnitude, "density": density}
 
 
 # ----------------------------------------------------------------------- cross-fitting
@@ -235,10 +237,10 @@ def _cols(blocks: dict[str, np.ndarray], names) -> tuple[np.ndarray, dict[str, n
 def _gain(nll_without: np.ndarray, nll_with: np.ndarray, episode: np.ndarray) -> dict:
     """Gain of a feature: per-row NLL saved (summed over dims), its mean, its per-episode sums
     and its sign-flip p-value."""
-    row = (nll_without - nll_with).sum(1) if nll_with.ndim == 2 else nll_without - nll_with
+    row = (nll_without - nll_with).sum(1)
     per_ep = episode_sums(row, episode)
     return {"score": float(row.mean()), "p_value": sign_flip_p(per_ep), "per_episode": per_ep,
-            "per_dim": (nll_without - nll_with).mean(0) if nll_with.ndim == 2 else None}
+            "per_dim": (nll_without - nll_with).mean(0)}
 
 
 def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndarray,
@@ -280,7 +282,7 @@ def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.
     for block in MEAN_CAUSES.values():
         models[f"-{block}"] = np.setdiff1d(everything, idx[block])
         models[f"+{block}"] = np.concatenate([idx["current"], idx[block]])
-    n_a, n_s = (int(v) for v in blocks["_lag_width"])
+    n_a, n_s = eps.action_size, len(_input_dims(eps))
     pa = idx["past_actions"]
     for j in range(lags):  # drop one lag of actions / observations, then one actuator
         models[f"-a_lag{j + 1}"] = np.setdiff1d(everything, pa[j * n_a:(j + 1) * n_a])
@@ -288,7 +290,7 @@ def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.
             everything, idx["past_obs"][j * n_s:(j + 1) * n_s])
     for i in range(n_a):
         models[f"-actuator{i}"] = np.setdiff1d(everything, pa[np.arange(lags) * n_a + i])
-    split = int(blocks["_time_split"][0])
+    split = 1 + n_s + n_a  # the time block: order and order * (s, a) first, then step
     models["-order"] = np.setdiff1d(everything, idx["time"][:split])
     models["-step"] = np.setdiff1d(everything, idx["time"][split:])
     fits = crossfit_ridge(x, resid, folds, models)
@@ -352,7 +354,7 @@ def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.
 
 def _dims_of(per_dim: np.ndarray, frac: float = 0.1) -> list[int]:
     """Dims that carry at least ``frac`` of the largest per-dim gain (and a positive one)."""
-    if per_dim is None or per_dim.max() <= 0:
+    if per_dim.max() <= 0:
         return []
     return [int(d) for d in np.flatnonzero(per_dim >= frac * per_dim.max())]
 

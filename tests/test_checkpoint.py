@@ -199,4 +199,15 @@ def test_diagnose_a_saved_simulator(pm, tmp_path):
     assert "policies are not available" in from_ckpt["value_views"]  # no zoo in meta.source
     # A 2-step simulator is far worse than the base model fitted for 100 updates.
     assert from_ckpt["gaps"]["overall"]["rmse"] > own["gaps"]["overall"]["rmse"]
-    assert {c["name"] for c in from_ckpt["causes"]} >= {"actuation_delay", "none"}
+    # The per-dim error is exactly the checkpoint's on the held-out rows.
+    from rl2s_jax.diagnose.episodes import from_dataset, split_episodes
+
+    eps = from_dataset(ds)
+    fit_eps, held_eps = split_episodes(eps, 0.3, 0)
+    held = eps.rows(held_eps)
+    sim = load_simulator(str(tmp_path / "ck"))
+    pred = np.asarray(sim.mean(eps.obs[held].astype(np.float32),
+                               eps.action[held].astype(np.float32)), np.float64)
+    resid = (eps.next_obs[held] - pred) / eps.delta[eps.rows(fit_eps)].std(0)
+    np.testing.assert_allclose([d["rmse"] for d in from_ckpt["gaps"]["by_dim"]],
+                               np.sqrt((resid ** 2).mean(0)), rtol=1e-3)

@@ -6,6 +6,10 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--transitions-per-policy N] [--value-episodes N] [--eval-episodes N]
         [--improve-iterations N] [--improve-policies N] [--improve-seeds 1]
         [--sac-envs N] [--sac-critic-warmup N] [--sac-updates-per-step N]
+        [--sac-set field=value ...] [--control] [--control-seeds N]
+        [--improve-variants full,branched,full+penalty,branched+penalty,full+stop]
+        [--ablation-methods rl2s]
+        [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--set field=value ...]
 
 Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
@@ -33,10 +37,22 @@ by a time limit still leaves what it finished, with "complete": false):
    policies' real return C1 is measured in MJX with the test data's protocol (--value-episodes
    fresh episodes of the full episode length); C0 is the data's measured ``value``.
    I = (C1 - C0) / |C0|, MPI = min I, API = mean I (``improve.improvement_metrics``).
+   ``--improve-variants`` runs this once per variant of the simulated env (each a '+' list
+   of ``full`` (whole episodes from the data's start states), ``branched`` (MBPO:
+   ``--branch-length`` steps from every real state of the test data), ``penalty`` (MOPO:
+   r - ``--uncertainty-penalty`` * u) and ``stop`` (MOReL: end when u >
+   ``--uncertainty-threshold``), u being the simulator's ``uncertainty`` in units of its
+   mean on the test data): the first variant fills MPI/API (Table 2) from every lane, the
+   others run in the lanes of ``--ablation-methods`` only; every variant goes to
+   ``ablation``. ``--control`` runs the same fine-tuning (same policies, budget and SAC
+   settings) in the real env, ``--control-seeds`` times, with real returns before and after
+   (``improve.improve_in_real_env``): the ``control`` entry, the ceiling of improvement for
+   that budget.
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -52,10 +68,10 @@ from rl2s_jax.collect import measure_values
 from rl2s_jax.data import load_dataset, save_dataset
 from rl2s_jax.evaluate import ranking_metrics
 from rl2s_jax.fit import make_config, policies_for
-from rl2s_jax.improve import improvement_metrics
+from rl2s_jax.improve import improve_in_real_env, improvement_metrics
 from rl2s_jax.policies import index_params
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
-from rl2s_jax.sim_env import SimulatorEnv
+from rl2s_jax.sim_env import SimulatorEnv, branch_pool, real_rows, scaled_env_options
 from rl2s_jax.simulate import Simulator, simulated_values, start_pool
 from rl2s_jax.tasks import get_task, task_names
 from rl2s_jax.train import DEFAULT_EPS, init, make_train_data, simulator, train_steps, true_values
@@ -66,6 +82,7 @@ FAMILIES = (("adversarial", "rl2s", ("rl2s", "gail")), ("mle", "rl2s-bc", ("rl2s
 EVAL_METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearman",
                 "regret@1", "avd", "mvd")
 METRICS = EVAL_METRICS + ("mpi", "api")
+VARIANT_PARTS = ("full", "branched", "penalty", "stop")
 
 # Sizes per profile. gpu: one task in about 7-8 minutes of an H100 (hopper; ant is slower),
 # estimated from measured costs (docs/RESULTS.md, docs/BENCHMARKS.md): one collection of the 60
@@ -180,20 +197,50 @@ def evaluate_lanes(states, seeds, test_ds, test_pols, truth, *, n_episodes, hori
 # ------------------------------------------------------------------ improvement
 
 
-def _sac_for(sim: Simulator, pool, task, cfg: SACConfig):
-    return make_sac(SimulatorEnv(sim, pool, task), cfg)
+def _sac_for(sim: Simulator, pool, task, cfg: SACConfig, env_options=None):
+    """SAC in ``sim``'s SimulatorEnv; env_options(sim) -> SimulatorEnv keywords."""
+    opts = env_options(sim) if env_options is not None else {}
+    return make_sac(SimulatorEnv(sim, pool, task, **opts), cfg)
+
+
+def parse_variants(text: str) -> list[str]:
+    """--improve-variants: comma list of '+'-joined parts of VARIANT_PARTS, each with exactly
+    one of full / branched (e.g. 'full,branched+penalty')."""
+    out = []
+    for v in (x.strip() for x in text.split(",") if x.strip()):
+        parts = v.split("+")
+        bad = [p for p in parts if p not in VARIANT_PARTS]
+        if bad or len(set(parts)) != len(parts) or sum(p in ("full", "branched")
+                                                       for p in parts) != 1:
+            raise SystemExit(f"improve-variants: {v!r} must join with '+' one of full / "
+                             f"branched and optionally penalty, stop (known parts: "
+                             f"{', '.join(VARIANT_PARTS)})")
+        out.append(v)
+    if not out or len(set(out)) != len(out):
+        raise SystemExit(f"improve-variants: expected distinct variants, got {text!r}")
+    return out
+
+
+def variant_settings(variant: str, args) -> dict:
+    """The SimulatorEnv settings of one --improve-variants entry (JSON-able)."""
+    parts = variant.split("+")
+    return {"rollout_length": args.branch_length if "branched" in parts else None,
+            "uncertainty_penalty": args.uncertainty_penalty if "penalty" in parts else 0.0,
+            "uncertainty_threshold": args.uncertainty_threshold if "stop" in parts else None,
+            "halt_penalty": args.halt_penalty if "stop" in parts else 0.0}
 
 
 def improve_in_lanes(sims: Simulator, task, pool, policies, keys, cfg: SACConfig, *,
-                     n_iterations: int, chunk: int, log=log):
+                     n_iterations: int, chunk: int, log=log, env_options=None):
     """SAC fine-tuning of the stacked ``policies`` [P] inside each of the stacked simulators
     ``sims`` [L] (improve.improve_policies for every simulator at once: one program, vmapped
-    over simulators and policies). keys [L, P]. -> (actors [L, P, ...], simulated training
-    return [L, P] of the episodes that ended in the last chunk (NaN if none))."""
+    over simulators and policies). keys [L, P]. ``env_options(sim)``: SimulatorEnv keywords
+    for one (traced) simulator. -> (actors [L, P, ...], simulated training return [L, P] of
+    the episodes that ended in the last chunk (NaN if none))."""
     pool = jnp.asarray(pool)
 
     def init_one(sim, ks, pols):
-        return jax.vmap(_sac_for(sim, pool, task, cfg).init)(ks, pols)
+        return jax.vmap(_sac_for(sim, pool, task, cfg, env_options).init)(ks, pols)
 
     states = jax.jit(jax.vmap(init_one, in_axes=(0, 0, None)))(sims, keys, policies)
     compiled, done, sim_return = {}, 0, None
@@ -201,7 +248,8 @@ def improve_in_lanes(sims: Simulator, task, pool, policies, keys, cfg: SACConfig
         n = min(chunk, n_iterations - done)
         if n not in compiled:
             def train_one(sim, st, n=n):
-                return jax.vmap(lambda s: _sac_for(sim, pool, task, cfg).train(s, n))(st)
+                sac = _sac_for(sim, pool, task, cfg, env_options)
+                return jax.vmap(lambda s: sac.train(s, n))(st)
             compiled[n] = jax.jit(jax.vmap(train_one))
         t0 = time.perf_counter()
         states, metrics = compiled[n](sims, states)
@@ -223,6 +271,34 @@ def pick_policies(c0: np.ndarray, n: int | None) -> list[int]:
 
 
 # ------------------------------------------------------------------ results
+
+
+def _mean_or_none(vals):
+    vals = [v for v in vals if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def _fmt_ms(mean, std):
+    return "n/a" if mean is None else f"{mean:.3f}" + ("" if std is None else f" ±{std:.2g}")
+
+
+def control_entry(res: dict, ids: list[int], c0_data: np.ndarray, n_seeds: int,
+                  train_return: np.ndarray) -> dict:
+    """The JSON 'control' entry from measure_improvement over R seeds x P policies (seed-major
+    [R * P]): per seed MPI/API and per-policy C0/C1 with standard errors; their mean and
+    sample std over seeds."""
+    P = len(ids)
+    shape = lambda k: np.asarray(res[k], np.float64).reshape(n_seeds, P)
+    c0, c0_se, c1, c1_se = shape("c0"), shape("c0_se"), shape("c1"), shape("c1_se")
+    per = [improvement_metrics(c0[r], c1[r]) for r in range(n_seeds)]
+    mpi, api = [p["mpi"] for p in per], [p["api"] for p in per]
+    std = lambda x: float(np.std(x, ddof=1)) if len(x) > 1 else None
+    return {"policy_ids": ids, "seeds": n_seeds, "c0_data": np.asarray(c0_data).tolist(),
+            "c0": c0.tolist(), "c0_se": c0_se.tolist(), "c1": c1.tolist(),
+            "c1_se": c1_se.tolist(), "I": [p["I"].tolist() for p in per],
+            "train_return": [_none_if_nan(x) for x in np.asarray(train_return).reshape(-1)],
+            "mpi_per_seed": mpi, "api_per_seed": api, "mpi": float(np.mean(mpi)),
+            "api": float(np.mean(api)), "mpi_std": std(mpi), "api_std": std(api)}
 
 
 def summarise(result: dict) -> None:
@@ -288,6 +364,25 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--sac-updates-per-step", type=pos, default=1)
     ap.add_argument("--sac-chunk", type=pos, default=1000, help="SAC iterations per compiled "
                     "call")
+    ap.add_argument("--sac-set", action="append", metavar="KEY=VALUE",
+                    help="SACConfig override for every fine-tuning (methods and control)")
+    ap.add_argument("--control", action="store_true", help="also fine-tune the same test "
+                    "policies with the same SAC in the real env (the 'control' entry)")
+    ap.add_argument("--control-seeds", type=pos, default=1, help="SAC seeds of the control")
+    ap.add_argument("--improve-variants", default="full", help="comma list of simulated-env "
+                    "variants, each '+'-joined: full|branched [+penalty] [+stop]; the first "
+                    "gives MPI/API, all go to 'ablation'")
+    ap.add_argument("--ablation-methods", default="rl2s", help="comma list of methods whose "
+                    "lanes run the variants after the first (the first runs in all lanes)")
+    ap.add_argument("--branch-length", type=pos, default=100, help="steps of a branched "
+                    "rollout (variant 'branched')")
+    ap.add_argument("--uncertainty-penalty", type=float, default=1.0, help="lambda of the "
+                    "penalty r - lambda * u, u in units of its mean on the test data "
+                    "(variant 'penalty')")
+    ap.add_argument("--uncertainty-threshold", type=float, default=3.0, help="end a rollout "
+                    "when u exceeds this, same units (variant 'stop')")
+    ap.add_argument("--halt-penalty", type=float, default=0.0, help="reward subtracted when "
+                    "the stop rule ends a rollout (variant 'stop')")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
     ap.add_argument("--out", default="results/paper")
@@ -297,6 +392,24 @@ def build_parser() -> argparse.ArgumentParser:
                     "from the vmapped evaluation (tests)")
     ap.add_argument("--progress", action="store_true", help="progress bars while collecting")
     return ap
+
+
+def _sac_overrides(items) -> dict:
+    """--sac-set KEY=VALUE pairs, checked against SACConfig's fields before any work."""
+    fields = {f.name for f in dataclasses.fields(SACConfig)}
+    out = _overrides(items)
+    unknown = sorted(set(out) - fields)
+    if unknown:
+        raise SystemExit(f"sac-set: unknown SACConfig field(s) {unknown}; known: "
+                         f"{sorted(fields)}")
+    for k in ("hidden", "actor_hidden"):
+        if k in out:
+            out[k] = tuple(out[k])
+    try:
+        SACConfig.fine_tuning(**out).validate()
+    except (TypeError, ValueError) as err:
+        raise SystemExit(f"sac-set: {err}") from None
+    return out
 
 
 def resolve_sizes(args, profile: str) -> dict:
@@ -326,6 +439,12 @@ def main(argv=None) -> int:
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
     sizes = resolve_sizes(args, profile)
+    variants = parse_variants(args.improve_variants)
+    ablation_methods = [m.strip() for m in args.ablation_methods.split(",") if m.strip()]
+    if not ablation_methods or set(ablation_methods) - set(METHODS):
+        raise SystemExit(f"ablation-methods: expected a comma list of {', '.join(METHODS)}, "
+                         f"got {args.ablation_methods!r}")
+    sac_overrides = _sac_overrides(args.sac_set)
     S = sizes["seeds"]
     out, data_dir = args.out, args.data_dir or args.out
     os.makedirs(out, exist_ok=True)
@@ -451,13 +570,27 @@ def main(argv=None) -> int:
 
     # ---- 3. improvement
     it = sizes["improve_iterations"]
-    if it and sizes["improve_seeds"]:
-        t0 = time.perf_counter()
+    if it and (sizes["improve_seeds"] or args.control):
         task = get_task(args.task)
         c0_all = np.asarray(test_ds.value, np.float64)
         ids = [i for i in pick_policies(c0_all, sizes["improve_policies"]) if c0_all[i] != 0]
         c0 = c0_all[ids]
         pols = index_params(test_pols, np.asarray(ids))
+        horizon = configs["adversarial"].vd_horizon
+        n_envs = sizes["sac_envs"]
+        sac_cfg = SACConfig.fine_tuning(**{**dict(episode_length=horizon, n_envs=n_envs,
+                                      critic_warmup_updates=sizes["sac_critic_warmup"],
+                                      updates_per_step=sizes["sac_updates_per_step"],
+                                      buffer_size=min(100_000, n_envs * (64 + it))),
+                               **PROFILES[profile]["sac"], **sac_overrides})
+        result["sac_config"] = {k: (list(v) if isinstance(v, tuple) else v)
+                                for k, v in dataclasses.asdict(sac_cfg).items()}
+        if sac_cfg.critic_warmup_updates >= it * sac_cfg.updates_per_step:
+            log("[paper] note: the critic warm-up covers every SAC update, so the actors stay "
+                "as they were")
+        ep_len = int(test_ds.meta.get("episode_length") or task.episode_length)
+        gamma_data = float(test_ds.meta.get("gamma") or 0.999)
+    if it and sizes["improve_seeds"]:
         lanes, sims = [], []
         for family, _, _ in FAMILIES:
             fam_lanes, states = finals[family]
@@ -469,58 +602,95 @@ def main(argv=None) -> int:
             raise SystemExit(f"set: the families' simulators differ in {statics}; they must "
                              f"share task, obs_clip and sim_noise to be fine-tuned together")
         sims = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *sims)
-        horizon = configs["adversarial"].vd_horizon
-        n_envs = sizes["sac_envs"]
-        sac_cfg = SACConfig(episode_length=horizon, n_envs=n_envs,
-                            critic_warmup_updates=sizes["sac_critic_warmup"],
-                            updates_per_step=sizes["sac_updates_per_step"],
-                            buffer_size=min(100_000, n_envs * (64 + it)),
-                            **PROFILES[profile]["sac"])
-        if sac_cfg.critic_warmup_updates >= it * sac_cfg.updates_per_step:
-            log("[paper] note: the critic warm-up covers every SAC update, so the actors stay "
-                "as they were")
         keys = jnp.stack([jax.random.split(jax.random.fold_in(jax.random.PRNGKey(10 + s),
                                                               METHODS.index(m)), len(ids))
                           for m, s in lanes])
-        log(f"[paper] improvement: SAC x {it} iterations ({n_envs} envs, "
-            f"{sac_cfg.updates_per_step} update(s) per iteration, critic warm-up "
-            f"{sac_cfg.critic_warmup_updates} updates, episodes of {horizon} steps) for "
-            f"{len(ids)} test policies in {len(lanes)} simulators "
-            f"({', '.join(f'{m}/{s}' for m, s in lanes)}) as one program")
-        actors, sim_return = improve_in_lanes(sims, task, start_pool(test_ds), pols, keys,
-                                              sac_cfg, n_iterations=it,
-                                              chunk=min(sizes["sac_chunk"], it))
-        phase("improve_sac", t0)
+        u_rows = real_rows(test_ds)
+        result["ablation"] = {}
+        for vi, variant in enumerate(variants):
+            t0 = time.perf_counter()
+            # the first variant runs in every lane (Table 2), the others in the lanes of
+            # --ablation-methods only
+            v_idx = [i for i, (m, _) in enumerate(lanes) if vi == 0 or m in ablation_methods]
+            if not v_idx:
+                continue
+            v_lanes, v_sims, v_keys = [lanes[i] for i in v_idx], _take(sims, v_idx), keys[
+                jnp.asarray(v_idx)]
+            settings = variant_settings(variant, args)
+            pool = (branch_pool(test_ds, max_states=100_000) if settings["rollout_length"]
+                    else start_pool(test_ds))
+
+            def env_options(sim, settings=settings):
+                return scaled_env_options(sim, *u_rows, **settings)
+
+            log(f"[paper] improvement ({variant}: {settings}): SAC x {it} iterations "
+                f"({n_envs} envs, {sac_cfg.updates_per_step} update(s) per iteration, critic "
+                f"warm-up {sac_cfg.critic_warmup_updates} updates, episodes of {horizon} "
+                f"steps) for {len(ids)} test policies in {len(v_lanes)} simulators "
+                f"({', '.join(f'{m}/{s}' for m, s in v_lanes)}) as one program")
+            actors, sim_return = improve_in_lanes(v_sims, task, pool, pols, v_keys, sac_cfg,
+                                                  n_iterations=it,
+                                                  chunk=min(sizes["sac_chunk"], it),
+                                                  env_options=env_options)
+            name = "improve_sac" if vi == 0 else f"improve_sac[{variant}]"
+            phase(name, t0)
+            t0 = time.perf_counter()
+            L, P = len(v_lanes), len(ids)
+            flat = jax.tree_util.tree_map(lambda x, n=L * P: x.reshape((n,) + x.shape[2:]),
+                                          actors)
+            real = measure_values(task.make_env(), flat, key=jax.random.PRNGKey(20),
+                                  n_episodes=sizes["value_episodes"], episode_length=ep_len,
+                                  gamma=gamma_data)
+            c1 = np.asarray(real["value"], np.float64).reshape(L, P)
+            se = np.asarray(real["value_se"], np.float64).reshape(L, P)
+            phase("improve_measure" if vi == 0 else f"improve_measure[{variant}]", t0)
+            improvement, per_method = {}, {m: {"mpi": [], "api": []} for m in METHODS}
+            for i, (m, s) in enumerate(v_lanes):
+                try:
+                    imp = improvement_metrics(c0, c1[i])
+                except ValueError as err:  # a non-finite real return
+                    log(f"  {m:<8} seed {s}  no MPI/API: {err}")
+                    imp = {"I": np.full(len(ids), np.nan), "mpi": None, "api": None}
+                per_method[m]["mpi"].append(imp["mpi"])
+                per_method[m]["api"].append(imp["api"])
+                improvement[f"{m}/{s}"] = {
+                    "method": m, "seed": s, "policy_ids": ids, "c0": c0.tolist(),
+                    "c1": [_none_if_nan(x) for x in c1[i]], "c1_se": se[i].tolist(),
+                    "I": [_none_if_nan(x) for x in imp["I"]],
+                    "sim_return": [_none_if_nan(x) for x in sim_return[i]],
+                    "mpi": imp["mpi"], "api": imp["api"]}
+                if imp["mpi"] is not None:
+                    log(f"  {m:<8} seed {s}  MPI {imp['mpi']:8.3f}  API {imp['api']:8.3f}  "
+                        f"(C1 - C0 mean {np.mean(c1[i] - c0):.1f}, simulated training return "
+                        f"{_finite_mean(sim_return[i])})")
+            if vi == 0:
+                for m in METHODS:
+                    result["per_seed"][m]["mpi"] += per_method[m]["mpi"]
+                    result["per_seed"][m]["api"] += per_method[m]["api"]
+                result["improvement"] = improvement
+                result["improve_variant"] = variant
+            result["ablation"][variant] = {
+                "settings": settings, "lanes": improvement,
+                "methods": {m: {k: _mean_or_none(v[k]) for k in ("mpi", "api")}
+                            for m, v in per_method.items() if v["mpi"]}}
+            write(path, result)
+    if it and args.control:
         t0 = time.perf_counter()
-        L, P = len(lanes), len(ids)
-        flat = jax.tree_util.tree_map(lambda x: x.reshape((L * P,) + x.shape[2:]), actors)
-        ep_len = int(test_ds.meta.get("episode_length") or task.episode_length)
-        real = measure_values(task.make_env(), flat, key=jax.random.PRNGKey(20),
-                              n_episodes=sizes["value_episodes"], episode_length=ep_len,
-                              gamma=float(test_ds.meta.get("gamma") or 0.999))
-        c1 = np.asarray(real["value"], np.float64).reshape(L, P)
-        se = np.asarray(real["value_se"], np.float64).reshape(L, P)
-        phase("improve_measure", t0)
-        improvement = {}
-        for i, (m, s) in enumerate(lanes):
-            try:
-                imp = improvement_metrics(c0, c1[i])
-            except ValueError as err:  # a non-finite real return
-                log(f"  {m:<8} seed {s}  no MPI/API: {err}")
-                imp = {"I": np.full(len(ids), np.nan), "mpi": None, "api": None}
-            result["per_seed"][m]["mpi"].append(imp["mpi"])
-            result["per_seed"][m]["api"].append(imp["api"])
-            improvement[f"{m}/{s}"] = {
-                "method": m, "seed": s, "policy_ids": ids, "c0": c0.tolist(),
-                "c1": [_none_if_nan(x) for x in c1[i]], "c1_se": se[i].tolist(),
-                "I": [_none_if_nan(x) for x in imp["I"]],
-                "sim_return": [_none_if_nan(x) for x in sim_return[i]],
-                "mpi": imp["mpi"], "api": imp["api"]}
-            if imp["mpi"] is not None:
-                log(f"  {m:<8} seed {s}  MPI {imp['mpi']:8.3f}  API {imp['api']:8.3f}  "
-                    f"(C1 - C0 mean {np.mean(c1[i] - c0):.1f}, simulated training return "
-                    f"{_finite_mean(sim_return[i])})")
-        result["improvement"] = improvement
+        R = args.control_seeds
+        log(f"[paper] control: the same SAC x {it} iterations in the real env for {len(ids)} "
+            f"test policies x {R} seed(s)")
+        tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * R), pols)
+        _, ctrl_metrics, ctrl = improve_in_real_env(
+            task, tiled, jax.random.PRNGKey(30), sac_cfg, n_iterations=it,
+            n_episodes=sizes["value_episodes"], episode_length=ep_len, gamma=gamma_data,
+            chunk_iterations=min(sizes["sac_chunk"], it))
+        last = min(sizes["sac_chunk"], it)  # the training return of the last chunk
+        result["control"] = control_entry(ctrl, ids, c0, R, np.asarray(episode_returns(
+            jax.tree_util.tree_map(lambda x: x[:, -last:], ctrl_metrics))))
+        phase("control", t0)
+        cc = result["control"]
+        log(f"[paper] control (real env): MPI {_fmt_ms(cc['mpi'], cc['mpi_std'])}  API "
+            f"{_fmt_ms(cc['api'], cc['api_std'])} over {R} seed(s)")
     timings["total"] = round(time.perf_counter() - t_start, 1)
     result["complete"] = True
     write(path, result)

@@ -50,6 +50,7 @@ BARS = (
     ("ndcg1", "nDCG@1 >= 0.95"),
     ("mvd", "RL2S MVD < GAIL's and BC's"),
     ("mpi", "RL2S MPI > 0"),
+    ("control", "real-env control MPI > 0"),
 )
 
 
@@ -132,7 +133,42 @@ def bars(result: dict) -> dict[str, tuple[bool | None, str]]:
                       f"{mv['rl2s']:.1f} vs {mv['gail']:.1f}, {mv['bc']:.1f}")
     mpi = mean("rl2s", "mpi")
     out["mpi"] = (None if mpi is None else mpi > 0, "n/a" if mpi is None else f"{mpi:.3f}")
+    c = (result.get("control") or {}).get("mpi")
+    out["control"] = (None if c is None else c > 0, "n/a" if c is None else f"{c:.3f}")
     return out
+
+
+def control_rows(results: dict) -> list[str]:
+    """Table 2's real-env control: the same SAC fine-tuning in the real env (its ceiling)."""
+    rows = []
+    for task in TASKS:
+        c = (results.get(task) or {}).get("control")
+        if not c:
+            continue
+        n = c.get("seeds", 1)
+        cells = [fmt_cell(c.get("mpi"), c.get("mpi_std"), n), "n/a",
+                 fmt_cell(c.get("api"), c.get("api_std"), n), "n/a"]
+        rows.append(f"| {task} | control (real env) | " + " | ".join(cells) + " |")
+    return rows
+
+
+def ablation_rows(results: dict) -> list[str]:
+    """MPI / API per simulated-env variant (paper.py --improve-variants), when a task ran
+    more than one."""
+    rows = []
+    for task in TASKS:
+        ab = (results.get(task) or {}).get("ablation") or {}
+        if len(ab) < 2:
+            continue
+        for variant, v in ab.items():
+            for method in METHODS:
+                m = (v.get("methods") or {}).get(method) or {}
+                cell = lambda x: "n/a" if x is None else f"{x:.3f}"
+                rows.append(f"| {task} | {variant} | {method} | {cell(m.get('mpi'))} | "
+                            f"{cell(m.get('api'))} |")
+    if rows:
+        rows = ["| task | variant | method | MPI | API |", "|---|---|---|---:|---:|", *rows]
+    return rows
 
 
 def bar_table(results: dict) -> list[str]:
@@ -177,7 +213,11 @@ def render(results: dict, source: str) -> str:
     lines += ["", "### Table 1: ranking the test policies", ""]
     lines += metric_table(results, TABLE1)
     lines += ["", "### Table 2: policy improvement (SAC inside each simulator, real return)", ""]
-    lines += metric_table(results, TABLE2)
+    lines += metric_table(results, TABLE2) + control_rows(results)
+    ablation = ablation_rows(results)
+    if ablation:
+        lines += ["", "### Improvement by simulated-env variant (means over the improvement "
+                  "seeds)", "", *ablation]
     lines += ["", "### Value difference on the test policies", ""]
     lines += metric_table(results, TABLE3)
     lines += ["", PAPER_NOTE, "", "### Quality bars (RL2S, means over seeds)", ""]

@@ -1,4 +1,5 @@
-"""The `rl2s` command line: zoo | collect | inspect | train | evaluate | pipeline."""
+"""The `rl2s` command line: zoo | collect | inspect | train | evaluate | improve | pipeline |
+diagnose."""
 
 from __future__ import annotations
 
@@ -146,6 +147,32 @@ def cmd_evaluate(args) -> int:
     return 0
 
 
+def _policy_ids(text):
+    try:
+        return [int(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"policies: expected comma-separated indices such as 0,3,5, got {text!r}") from None
+
+
+def cmd_improve(args) -> int:
+    from rl2s_jax.improve_run import run_improve
+
+    s = run_improve(args.ckpt, args.data, args.out, policy_ids=args.policies,
+                    iterations=args.iterations, overrides=_overrides(args.set), seed=args.seed,
+                    n_episodes=args.episodes, zoo=args.zoo, step=args.step,
+                    measure=not args.no_measure, branch_length=args.branch_length,
+                    uncertainty_penalty=args.uncertainty_penalty,
+                    uncertainty_threshold=args.uncertainty_threshold,
+                    halt_penalty=args.halt_penalty, progress=not args.quiet)
+    from rl2s_jax.improve_run import summary_markdown
+
+    print(summary_markdown(s))
+    print(f"-> {args.out}: zoo.npz, zoo.json, summary.json, summary.md"
+          + (f", {len(s['plots'])} PNGs" if s["plots"] else ""))
+    return 0
+
+
 PROFILES = {
     "cpu": dict(transitions_per_policy=2000, value_episodes=4, steps=300, eval_every=50,
                 eval_episodes=8, improve_iterations=300,
@@ -180,7 +207,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     task = get_task(task_name)
     policies, pool = policies_for(ds), start_pool(ds)
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
-    cfg = SACConfig(episode_length=horizon, **sizes["sac"])
+    cfg = SACConfig.fine_tuning(episode_length=horizon, **sizes["sac"])
     env = task.make_env()
     c0 = [float(v) for v in ds.value]
     improved = []
@@ -402,6 +429,37 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="write the report here")
     p.set_defaults(func=cmd_evaluate)
+
+    p = sub.add_parser("improve", help="fine-tune a Dataset's policies with SAC inside a "
+                       "saved simulator; write them as a zoo, measure the real gain")
+    p.add_argument("--ckpt", required=True, help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--data", required=True, help="Dataset whose policies are fine-tuned (its "
+                   "zoo gives the policies, its states the simulated starts)")
+    p.add_argument("--policies", type=_policy_ids, help="indices into the data's policies, "
+                   "e.g. 0,3,5 (default: all)")
+    p.add_argument("--out", required=True, help="directory: zoo.npz/zoo.json, summary.json, "
+                   "summary.md, policy_*.png")
+    p.add_argument("--iterations", type=_positive("iterations"), default=1000,
+                   help="SAC iterations per policy")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a SACConfig field, e.g. --set kl_weight=0.03")
+    p.add_argument("--episodes", type=_positive("episodes"), default=16,
+                   help="real episodes per policy before and after")
+    p.add_argument("--branch-length", type=_positive("branch-length"),
+                   help="MBPO: rollouts of this many steps from every real state of the data "
+                   "(default: whole episodes from its start states)")
+    p.add_argument("--uncertainty-penalty", type=float, default=0.0,
+                   help="MOPO: reward r - LAMBDA * u(s, a), u in units of its mean on the data")
+    p.add_argument("--uncertainty-threshold", type=float,
+                   help="MOReL: end a rollout when u(s, a) exceeds this (same units)")
+    p.add_argument("--halt-penalty", type=float, default=0.0,
+                   help="reward subtracted when the threshold ends a rollout")
+    p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
+    p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-measure", action="store_true", help="skip the real returns")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=cmd_improve)
 
     p = sub.add_parser("pipeline", help="the whole pipeline for one task (make <task>)")
     p.add_argument("--task", required=True, choices=task_names())

@@ -24,24 +24,27 @@ from brax.envs.base import Env
 
 from rl2s_jax.collect import measure_values
 from rl2s_jax.policies import Params, num_policies
-from rl2s_jax.sac import SACConfig, make_sac
+from rl2s_jax.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sim_env import SimulatorEnv
 from rl2s_jax.simulate import Simulator
-from rl2s_jax.tasks import Task
+from rl2s_jax.tasks import Task, get_task
 
 
 def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
                      start_pool, policies: Params, key: jax.Array, sac_cfg: SACConfig, *,
                      n_iterations: int, deterministic: bool = False,
-                     chunk_iterations: int | None = None) -> tuple[Params, dict]:
+                     chunk_iterations: int | None = None, env_options: dict | None = None,
+                     progress: bool = False) -> tuple[Params, dict]:
     """Fine-tune each of the stacked ``policies`` [P, ...] with SAC inside the simulator.
 
-    sim: a ``SimulatorEnv`` (or any unwrapped brax Env; then task and start_pool are unused),
-      or a ``Simulator`` / ``dynamics(obs, action, key)`` from which a ``SimulatorEnv`` is built
-      with ``task``, ``start_pool`` [S, o] and ``deterministic``.
+    sim: a ``SimulatorEnv`` (or any unwrapped brax Env, e.g. the real ``task.make_env()``;
+      then task and start_pool are unused), or a ``Simulator`` / ``dynamics(obs, action,
+      key)`` from which a ``SimulatorEnv`` is built with ``task``, ``start_pool`` [S, o],
+      ``deterministic`` and ``env_options`` (SimulatorEnv keywords: rollout_length,
+      uncertainty_fn, uncertainty_penalty, uncertainty_threshold, halt_penalty).
     n_iterations: SAC iterations per policy (each: ``sac_cfg.n_envs`` env steps and
       ``sac_cfg.updates_per_step`` updates), run as jitted chunks of ``chunk_iterations``
-      (default: all at once).
+      (default: all at once); ``progress``: a progress bar over the chunks.
 
     Returns (improved policies [P, ...] in the same layout, metrics: dict of [P, n_iterations]
     arrays from ``sac.train``).
@@ -51,21 +54,79 @@ def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
     chunk = int(chunk_iterations or n_iterations)
     if chunk < 1:
         raise ValueError(f"chunk_iterations: expected >= 1, got {chunk_iterations}")
-    env = sim if isinstance(sim, Env) else SimulatorEnv(sim, start_pool, task,
-                                                        deterministic=deterministic)
+    if isinstance(sim, Env):
+        env = sim
+    else:
+        env = SimulatorEnv(sim, start_pool, task, deterministic=deterministic,
+                           **(env_options or {}))
     sac = make_sac(env, sac_cfg)
     n_pol = num_policies(policies)
     states = jax.jit(jax.vmap(sac.init))(jax.random.split(key, n_pol), policies)
     compiled, metrics, done = {}, [], 0
-    while done < n_iterations:
-        n = min(chunk, n_iterations - done)
-        if n not in compiled:
-            compiled[n] = jax.jit(jax.vmap(lambda s, n=n: sac.train(s, n)))
-        states, m = compiled[n](states)
-        metrics.append(m)
-        done += n
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+        bar = tqdm(total=n_iterations, unit="it", desc=f"SAC x {n_pol} policies",
+                   dynamic_ncols=True)
+    try:
+        while done < n_iterations:
+            n = min(chunk, n_iterations - done)
+            if n not in compiled:
+                compiled[n] = jax.jit(jax.vmap(lambda s, n=n: sac.train(s, n)))
+            states, m = compiled[n](states)
+            metrics.append(m)
+            done += n
+            if bar is not None:
+                ret = np.asarray(episode_returns(m))
+                ret = ret[np.isfinite(ret)]
+                bar.update(n)
+                bar.set_postfix(sim_return=f"{ret.mean():.3g}" if ret.size else "n/a",
+                                refresh=False)
+    finally:
+        if bar is not None:
+            bar.close()
     metrics = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *metrics)
     return states.actor, metrics
+
+
+def improve_in_real_env(task: Task | str, policies: Params, key: jax.Array,
+                        sac_cfg: SACConfig, *, n_iterations: int, n_episodes: int,
+                        episode_length: int | None = None, gamma: float = 0.999,
+                        chunk_iterations: int | None = None, env: Env | None = None,
+                        progress: bool = False) -> tuple[Params, dict, dict]:
+    """The real-env control: the same SAC fine-tuning (same start policies, budget and
+    settings) run in the real env instead of a learned simulator, then the real returns
+    before and after (``measure_improvement``, ``n_episodes`` fresh episodes each).
+
+    It is the ceiling of improvement for that budget: when it does not improve the policies,
+    no simulator can be blamed. task: a Task or its name (``env`` defaults to
+    ``task.make_env()``). -> (improved policies [P, ...], SAC metrics [P, n_iterations],
+    {"c0", "c0_se", "c1", "c1_se", "I": [P], "mpi", "api"}).
+    """
+    task = get_task(task) if isinstance(task, str) else task
+    env = task.make_env() if env is None else env
+    k_sac, k_measure = jax.random.split(key)
+    after, metrics = improve_policies(env, None, None, policies, k_sac, sac_cfg,
+                                      n_iterations=n_iterations,
+                                      chunk_iterations=chunk_iterations, progress=progress)
+    res = measure_improvement(env, policies, after, k_measure, n_episodes=n_episodes,
+                              episode_length=episode_length or task.episode_length,
+                              gamma=gamma)
+    return after, metrics, res
+
+
+def training_return_curve(metrics: dict, n_points: int = 20) -> tuple[np.ndarray, np.ndarray]:
+    """SAC's own (simulated) training return over the iterations, from ``train``'s metrics
+    ([P, T] return_sum / episodes): the mean return of the episodes that ended in each of
+    ``n_points`` equal windows. -> (iteration at each window's end [W], returns [P, W];
+    NaN where no episode ended)."""
+    ret, ep = np.asarray(metrics["return_sum"]), np.asarray(metrics["episodes"])
+    T = ret.shape[-1]
+    edges = np.unique(np.linspace(0, T, min(n_points, T) + 1).astype(int))
+    r = np.add.reduceat(ret, edges[:-1], axis=-1)
+    e = np.add.reduceat(ep, edges[:-1], axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return edges[1:], np.where(e > 0, r / np.maximum(e, 1), np.nan)
 
 
 def improvement_metrics(c0, c1) -> dict[str, np.ndarray | float]:

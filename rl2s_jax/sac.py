@@ -4,8 +4,24 @@ The actor is a tanh-Gaussian policy pytree ``{"obs_mean", "obs_std", "layers"}``
 updates ``layers`` only, the observation normaliser stays frozen. So the actor can start from
 a zoo policy (fine-tuning) and the result is a policy that ``collect`` / ``measure_values`` take
 as it is. The twin critics are swish MLPs on (actor-normalised obs, action); their targets
-follow by Polyak averaging; the temperature alpha is learned towards the target entropy
-``-action_size``.
+follow by Polyak averaging; the temperature alpha is learned towards a target entropy.
+
+Fine-tuning a given policy (``init(key, actor_params)``) needs other settings than training
+from scratch, so that SAC improves a good policy instead of first destroying it.
+``SACConfig.fine_tuning()`` gives them (the plain ``SACConfig()`` defaults are the
+from-scratch ones and keep SAC as it was):
+
+* the temperature starts small (``init_alpha``) and its target is the start policy's own
+  entropy, measured on the warm-up states (``target_entropy="start"``), so the entropy bonus
+  does not swamp the task's reward and drive a near-deterministic policy towards noise;
+* the critics first learn the start policy's value while the actor waits
+  (``critic_warmup_updates``; the env keeps stepping with the frozen start policy);
+* the actor loss holds a KL(pi || pi_start) penalty to the frozen start policy
+  (``kl_weight``, relative to the batch's mean |Q| as TD3+BC scales its BC term, so one
+  value works across reward scales); the KL of two tanh-Gaussians is that of their
+  pre-tanh Gaussians (tanh is a bijection), in closed form.
+
+From scratch (``init(key)``) "start" means ``-action_size`` and the KL is never applied.
 
 ``make_sac(env, cfg)`` returns ``SAC(init, train)``:
 
@@ -21,7 +37,8 @@ Everything is one pure program of the state: ``jax.jit(train, static_argnums=1)`
 ``jax.vmap(init)(keys, stacked_policies)`` / ``jax.vmap(train, in_axes=(0, None))`` fine-tune
 several policies as one batch. The env must be an unwrapped brax Env (no time limit, no
 auto-reset): SAC resets ended episodes itself with a fresh ``env.reset`` (so a SimulatorEnv
-draws a new start state per episode), and bootstraps through time-limit truncations.
+draws a new start state per episode), and bootstraps through time-limit truncations: its own
+``episode_length`` and an env's ``info["truncation"]`` (a SimulatorEnv's ``rollout_length``).
 """
 
 from __future__ import annotations
@@ -36,7 +53,15 @@ import optax
 from brax.envs.base import Env
 
 from rl2s_jax.collect import check_env, tree_where
-from rl2s_jax.policies import Params, init_mlp, init_policy, mlp, normalize_obs, sample_action
+from rl2s_jax.policies import (
+    Params,
+    init_mlp,
+    init_policy,
+    mlp,
+    normalize_obs,
+    policy_dist,
+    sample_action,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,6 +72,15 @@ class SACConfig:
     batches of ``batch_size``. ``warmup_steps`` vectorised env steps fill the buffer in ``init``;
     ``buffer_size`` rows are kept (ring buffer). ``hidden``: critic hidden sizes;
     ``actor_hidden``: hidden sizes of a fresh actor (ignored when fine-tuning).
+
+    Fine-tuning settings (module docstring; defaults keep plain SAC, ``fine_tuning()`` gives
+    the tested ones): ``actor_learning_rate``, ``critic_learning_rate``,
+    ``alpha_learning_rate``: None = ``learning_rate``; an alpha rate of 0 keeps alpha at
+    ``init_alpha``. ``target_entropy``: None or "action_size" (-action_size, the SAC paper's
+    rule), "start" (the start policy's measured entropy plus ``target_entropy_offset``;
+    -action_size from scratch) or a number. ``kl_weight``: weight of KL(pi || pi_start) in the
+    actor loss, times the batch's mean |Q| (0: off; never applied from scratch).
+    ``max_grad_norm``: clip each network's gradient norm (None: no clipping).
     """
 
     learning_rate: float = 3e-4
@@ -63,6 +97,21 @@ class SACConfig:
     episode_length: int = 1000
     init_alpha: float = 1.0
     reward_scaling: float = 1.0
+    # fine-tuning (issue 11); the defaults keep plain SAC, see fine_tuning()
+    actor_learning_rate: float | None = None
+    critic_learning_rate: float | None = None
+    alpha_learning_rate: float | None = None
+    target_entropy: float | str | None = None
+    target_entropy_offset: float = 0.0
+    kl_weight: float = 0.0
+    max_grad_norm: float | None = None
+
+    @classmethod
+    def fine_tuning(cls, **overrides) -> SACConfig:
+        """The tested settings for fine-tuning a given policy (module docstring): alpha from
+        FINE_TUNING["init_alpha"], target = the start policy's entropy, a KL anchor to it;
+        ``overrides`` replace any field (e.g. critic_warmup_updates, sizes)."""
+        return cls(**{**FINE_TUNING, **overrides})
 
     def validate(self) -> None:
         for name in ("batch_size", "n_envs", "updates_per_step", "buffer_size",
@@ -89,6 +138,35 @@ class SACConfig:
         if self.learning_rate <= 0 or self.init_alpha <= 0:
             bad = "learning_rate" if self.learning_rate <= 0 else "init_alpha"
             raise ValueError(f"{bad}: expected > 0, got {getattr(self, bad)}")
+        for name in ("actor_learning_rate", "critic_learning_rate"):
+            v = getattr(self, name)
+            if v is not None and v <= 0:
+                raise ValueError(f"{name}: expected > 0 or None, got {v}")
+        if self.alpha_learning_rate is not None and self.alpha_learning_rate < 0:
+            raise ValueError(f"alpha_learning_rate: expected >= 0 or None, got "
+                             f"{self.alpha_learning_rate}")
+        te = self.target_entropy
+        if isinstance(te, str) and te not in ("start", "action_size"):
+            raise ValueError(f"target_entropy: expected None, 'start', 'action_size' or a "
+                             f"number, got {te!r}")
+        if self.kl_weight < 0:
+            raise ValueError(f"kl_weight: expected >= 0, got {self.kl_weight}")
+        if self.max_grad_norm is not None and self.max_grad_norm <= 0:
+            raise ValueError(f"max_grad_norm: expected > 0 or None, got {self.max_grad_norm}")
+
+    def optimizer(self, which: str) -> optax.GradientTransformation:
+        """Adam for "actor", "critic" or "alpha" with its learning rate (and clipping)."""
+        lr = getattr(self, f"{which}_learning_rate")
+        lr = self.learning_rate if lr is None else lr
+        adam = optax.adam(lr)
+        if self.max_grad_norm is None or which == "alpha":
+            return adam
+        return optax.chain(optax.clip_by_global_norm(self.max_grad_norm), adam)
+
+
+# SACConfig.fine_tuning()'s settings (measured on pointmass: tests/test_improve.py; the
+# critic warm-up depends on the budget, `rl2s improve` uses a quarter of the updates).
+FINE_TUNING = dict(init_alpha=0.01, target_entropy="start", kl_weight=0.01)
 
 
 class Buffer(NamedTuple):
@@ -140,6 +218,9 @@ class SACState(NamedTuple):
     episode_return: jax.Array  # [n_envs] undiscounted return of the current episodes
     updates: jax.Array     # [] gradient updates done
     key: jax.Array
+    anchor: Params = None  # the start actor (frozen; the KL penalty's reference)
+    kl_coef: jax.Array = None  # [] kl_weight when fine-tuning, 0 from scratch
+    target_entropy: jax.Array = None  # []
 
 
 class SAC(NamedTuple):
@@ -153,13 +234,21 @@ def q_values(critic, actor: Params, obs: jax.Array, action: jax.Array) -> jax.Ar
     return jax.vmap(lambda layers: mlp(layers, x)[..., 0])(critic)
 
 
+def gaussian_kl(loc: jax.Array, scale: jax.Array, loc0: jax.Array, scale0: jax.Array
+                ) -> jax.Array:
+    """KL(N(loc, scale) || N(loc0, scale0)) of diagonal Gaussians, summed over the last axis.
+    It is also the KL of their tanh-squashed distributions (tanh is a bijection). -> [...]"""
+    return jnp.sum(jnp.log(scale0 / scale)
+                   + (scale**2 + (loc - loc0) ** 2) / (2.0 * scale0**2) - 0.5, axis=-1)
+
+
 def make_sac(env: Env, cfg: SACConfig) -> SAC:
     """SAC for an unwrapped brax ``env`` (module docstring)."""
     cfg.validate()
     check_env(env)
     obs_size, act_size = int(env.observation_size), int(env.action_size)
-    target_entropy = -float(act_size)
-    opt = optax.adam(cfg.learning_rate)
+    actor_opt_, critic_opt_, alpha_opt_ = (cfg.optimizer(w) for w in ("actor", "critic",
+                                                                       "alpha"))
     n = cfg.n_envs
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
 
@@ -171,6 +260,8 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         nxt = v_step(env_state, action)
         terminal = nxt.done > 0.5
         end = terminal | (t + 1 >= cfg.episode_length)
+        if "truncation" in nxt.info:  # the env's own rollout limit (SimulatorEnv)
+            end = end | (nxt.info["truncation"] > 0.5)
         buffer = buffer.add(obs, action, nxt.reward * cfg.reward_scaling, nxt.obs,
                             terminal.astype(jnp.float32))
         ep_ret = ep_ret + nxt.reward
@@ -189,11 +280,13 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         loss = 0.5 * jnp.mean(jnp.sum((q - jax.lax.stop_gradient(target)) ** 2, axis=0))
         return loss, jnp.mean(q)
 
-    def actor_loss(layers, actor, critic, alpha, obs, key):
+    def actor_loss(layers, actor, critic, alpha, anchor, kl_coef, obs, key):
         pol = {**actor, "layers": layers}
         action, _, logp = sample_action(pol, obs, key)
         q = jnp.min(q_values(critic, actor, obs, action), axis=0)
-        return jnp.mean(alpha * logp - q), logp
+        kl = jnp.mean(gaussian_kl(*policy_dist(pol, obs), *policy_dist(anchor, obs)))
+        scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(q)))
+        return jnp.mean(alpha * logp - q) + kl_coef * scale * kl, (logp, kl)
 
     def update(state: SACState, key):
         k_batch, k_critic, k_actor = jax.random.split(key, 3)
@@ -202,20 +295,22 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
 
         (q_loss, q_mean), g = jax.value_and_grad(critic_loss, has_aux=True)(
             state.critic, state.actor, state.target_critic, alpha, batch, k_critic)
-        upd, critic_opt = opt.update(g, state.critic_opt, state.critic)
+        upd, critic_opt = critic_opt_.update(g, state.critic_opt, state.critic)
         critic = optax.apply_updates(state.critic, upd)
         target = jax.tree_util.tree_map(lambda t, c: (1 - cfg.tau) * t + cfg.tau * c,
                                         state.target_critic, critic)
 
-        (pi_loss, logp), g = jax.value_and_grad(actor_loss, has_aux=True)(
-            state.actor["layers"], state.actor, critic, alpha, batch[0], k_actor)
-        upd, actor_opt = opt.update(g, state.actor_opt, state.actor["layers"])
+        (pi_loss, (logp, kl)), g = jax.value_and_grad(actor_loss, has_aux=True)(
+            state.actor["layers"], state.actor, critic, alpha, state.anchor, state.kl_coef,
+            batch[0], k_actor)
+        upd, actor_opt = actor_opt_.update(g, state.actor_opt, state.actor["layers"])
         layers = optax.apply_updates(state.actor["layers"], upd)
 
         entropy = -jnp.mean(logp)
         a_loss, g = jax.value_and_grad(
-            lambda la: -la * jax.lax.stop_gradient(target_entropy - entropy))(state.log_alpha)
-        upd, alpha_opt = opt.update(g, state.alpha_opt, state.log_alpha)
+            lambda la: -la * jax.lax.stop_gradient(state.target_entropy - entropy)
+        )(state.log_alpha)
+        upd, alpha_opt = alpha_opt_.update(g, state.alpha_opt, state.log_alpha)
         log_alpha = optax.apply_updates(state.log_alpha, upd)
 
         # Actor and alpha wait for the critics during critic_warmup_updates.
@@ -228,7 +323,7 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
             critic_opt=critic_opt, log_alpha=keep(log_alpha, state.log_alpha),
             alpha_opt=keep(alpha_opt, state.alpha_opt), updates=state.updates + 1)
         return state, {"q_loss": q_loss, "q_mean": q_mean, "actor_loss": pi_loss,
-                       "alpha_loss": a_loss, "alpha": alpha, "entropy": entropy}
+                       "alpha_loss": a_loss, "alpha": alpha, "entropy": entropy, "kl": kl}
 
     def iteration(state: SACState, _):
         key, k_env, k_upd = jax.random.split(state.key, 3)
@@ -244,6 +339,7 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
     def init(key: jax.Array, actor_params: Params | None = None) -> SACState:
         """Fresh critics and buffer; the actor is ``actor_params`` (one policy) or fresh."""
         k_actor, k_critic, k_env, k_warm, key = jax.random.split(key, 5)
+        k_ent = jax.random.fold_in(k_warm, 1)
         if actor_params is None:
             actor = init_policy(k_actor, obs_size, act_size, cfg.actor_hidden)
         else:
@@ -268,10 +364,23 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
 
         (env_state, t, ep_ret, buffer), _ = jax.lax.scan(
             warm, (env_state, t, ep_ret, buffer), jax.random.split(k_warm, cfg.warmup_steps))
+        fine_tuning = actor_params is not None
+        if cfg.target_entropy is None or isinstance(cfg.target_entropy, str):
+            if cfg.target_entropy == "start" and fine_tuning:
+                # the start policy's entropy, estimated on the warm-up states
+                _, _, logp = sample_action(actor, buffer.obs[:cfg.warmup_steps * n], k_ent)
+                target = -jnp.mean(logp) + cfg.target_entropy_offset
+            else:
+                target = jnp.asarray(-float(act_size))
+        else:
+            target = jnp.asarray(float(cfg.target_entropy))
         return SACState(actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
-                        actor_opt=opt.init(actor["layers"]), critic_opt=opt.init(critic),
-                        alpha_opt=opt.init(log_alpha), buffer=buffer, env_state=env_state,
-                        t=t, episode_return=ep_ret, updates=jnp.zeros((), jnp.int32), key=key)
+                        actor_opt=actor_opt_.init(actor["layers"]),
+                        critic_opt=critic_opt_.init(critic), alpha_opt=alpha_opt_.init(log_alpha),
+                        buffer=buffer, env_state=env_state, t=t, episode_return=ep_ret,
+                        updates=jnp.zeros((), jnp.int32), key=key, anchor=actor,
+                        kl_coef=jnp.asarray(cfg.kl_weight if fine_tuning else 0.0, jnp.float32),
+                        target_entropy=target.astype(jnp.float32))
 
     def train(state: SACState, n_iterations: int) -> tuple[SACState, dict]:
         """n_iterations (static) iterations. metrics: dict of [n_iterations] arrays: losses,

@@ -17,7 +17,13 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from rl2s_jax.models import Normalizer, generator_log_prob, generator_mean, generator_sample
+from rl2s_jax.models import (
+    Normalizer,
+    generator_dist,
+    generator_log_prob,
+    generator_mean,
+    generator_sample,
+)
 from rl2s_jax.policies import Params, sample_action
 
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
@@ -53,6 +59,14 @@ class Simulator:
 
     def dynamics(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
         return self.sample(obs, action, key)
+
+    def uncertainty(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """u(s, a) for a SimulatorEnv's penalty / stop rule: the Euclidean norm of the
+        predicted std of the normalised delta (MOPO's heuristic with a single model: it
+        measures the model's noise, not its ignorance; an ensemble's disagreement is the
+        better u). [..., o], [..., a] -> [...]"""
+        _, log_std = generator_dist(self.gen, self.norm, obs, action)
+        return jnp.sqrt(jnp.sum(jnp.exp(2.0 * log_std), axis=-1))
 
 
 @struct.dataclass

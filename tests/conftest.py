@@ -33,3 +33,69 @@ def hopper_train_ds(env_cache):
                    episode_length=40, task="hopper", value_episodes=2, progress=False,
                    policy_names=zoo.policy_names(ids),
                    source={"zoo": "experiments/zoo/hopper", "zoo_ids": ids})
+
+
+@pytest.fixture(scope="session")
+def pointmass_ppo():
+    """PPO snapshots on pointmass (one seed, ~40k env steps, ~10 s on the CPU) and their real
+    returns: {"params": stacked [5, ...] (0 = the random initial policy), "returns": [5]}.
+    Early snapshots are mediocre (they push the mass off an edge), the last near optimal."""
+    import jax
+    import numpy as np
+
+    from rl2s_jax.collect import measure_values
+    from rl2s_jax.ppo import PPOConfig, make_train
+
+    env = cached_env("pointmass")
+    cfg = PPOConfig(num_envs=64, unroll_length=16, num_minibatches=4,
+                    iterations_per_snapshot=10, n_snapshots=4, episode_length=50, gamma=0.95,
+                    learning_rate=1e-3)
+    _, snaps = jax.jit(make_train(env, cfg))(jax.random.PRNGKey(0))
+    params = snaps["params"]
+    returns = measure_values(env, params, key=jax.random.PRNGKey(1), n_episodes=64,
+                             episode_length=50)["value"]
+    return {"params": params, "returns": np.asarray(returns)}
+
+
+@pytest.fixture(scope="session")
+def pointmass_checkpoint(tmp_path_factory):
+    """A pointmass zoo (4 policies), a test Dataset of its policies (meta.source names the
+    zoo) and a checkpoint of a briefly trained BC simulator of it:
+    {"zoo": dir, "data": .npz path, "ckpt": checkpoint dir, "dataset": Dataset}."""
+    import jax
+    import numpy as np
+
+    from rl2s_jax import policies as pol
+    from rl2s_jax.checkpoint import Checkpointer
+    from rl2s_jax.collect import collect
+    from rl2s_jax.data import save_dataset
+    from rl2s_jax.fit import fit
+    from rl2s_jax.train import TrainConfig, init, make_train_data
+
+    root = tmp_path_factory.mktemp("pointmass_run")
+    ps = []
+    for i, b in enumerate([-2.0, 0.0, 1.0, 2.0]):
+        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
+        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
+        ps.append(p)
+    params = pol.stack_params(ps)
+    zoo_dir = str(root / "zoo")
+    pol.save_zoo(pol.Zoo(task="pointmass", params=params, returns=np.zeros(4),
+                         return_se=np.zeros(4), origins=[{}] * 4, train_ids=[],
+                         test_ids=[0, 1, 2, 3]), zoo_dir)
+    ids = [0, 1, 2, 3]
+    ds = collect(cached_env("pointmass"), params, key=jax.random.PRNGKey(0),
+                 transitions_per_policy=400, envs_per_policy=2, episode_length=50,
+                 task="pointmass", value_episodes=8, progress=False,
+                 policy_names=[f"pointmass-{i:03d}" for i in ids],
+                 source={"zoo": zoo_dir, "split": "test", "zoo_ids": ids})
+    data_path = str(root / "test.npz")
+    save_dataset(data_path, ds)
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=50, vd_every=5)
+    data = make_train_data(ds, params, cfg)
+    state, _ = fit(init(jax.random.PRNGKey(0), cfg, data), data, 20, chunk=20, progress=False)
+    ckpt = str(root / "run" / "checkpoints")
+    ck = Checkpointer(ckpt)
+    ck.save(state, {"data": {"obs_size": 2, "action_size": 1, "task": "pointmass"}})
+    ck.close()
+    return {"zoo": zoo_dir, "data": data_path, "ckpt": ckpt, "dataset": ds}

@@ -1,0 +1,111 @@
+"""`rl2s improve` end to end on pointmass: fine-tuned policies written as a zoo that
+load_zoo, collect and measure_values take; real returns, plots and summary; bad input refused
+before any work."""
+import json
+import os
+
+import jax
+import numpy as np
+import pytest
+
+from rl2s_jax import cli
+from rl2s_jax import policies as pol
+from rl2s_jax.collect import measure_values
+from rl2s_jax.data import load_dataset, save_dataset
+from rl2s_jax.fit import policies_for
+from rl2s_jax.tasks import PointMass
+
+SMALL = ["--set", "n_envs=4", "--set", "hidden=[32,32]", "--set", "batch_size=32",
+         "--set", "warmup_steps=8", "--set", "buffer_size=2000"]
+
+
+def test_improve_end_to_end(pointmass_checkpoint, tmp_path, capsys):
+    run = pointmass_checkpoint
+    out = tmp_path / "improved"
+    rc = cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--policies",
+                   "0,2", "--out", str(out), "--iterations", "40", "--episodes", "4",
+                   "--quiet", *SMALL, "--set", "kl_weight=0.02"])
+    assert rc == 0
+    printed = capsys.readouterr().out
+    assert "pointmass-000" in printed and "pointmass-002" in printed and "MPI" in printed
+    zoo = pol.load_zoo(str(out))
+    assert zoo.task == "pointmass" and zoo.size == 2 and zoo.test_ids == [0, 1]
+    before = pol.index_params(policies_for(load_dataset(run["data"])), np.array([0, 2]))
+    assert jax.tree_util.tree_structure(zoo.params) == jax.tree_util.tree_structure(before)
+    np.testing.assert_array_equal(zoo.params["obs_std"], before["obs_std"])
+    moved = [not np.allclose(a, b) for a, b in zip(jax.tree_util.tree_leaves(
+        zoo.params["layers"]), jax.tree_util.tree_leaves(before["layers"]), strict=True)]
+    assert any(moved)  # SAC changed the actors
+    assert [o["zoo_id"] for o in zoo.origins] == [0, 2]
+    assert zoo.info["sac"]["kl_weight"] == 0.02 and zoo.info["sac"]["n_envs"] == 4
+    assert zoo.info["sac"]["critic_warmup_updates"] == 10  # a quarter of 40 x 1 updates
+    s = json.loads((out / "summary.json").read_text())
+    assert [r["policy"] for r in s["policies"]] == ["pointmass-000", "pointmass-002"]
+    for r, c1 in zip(s["policies"], zoo.returns, strict=True):
+        assert r["c1"] == pytest.approx(float(c1), rel=1e-5)  # the zoo records C1
+        assert r["I"] == pytest.approx((r["c1"] - r["c0"]) / abs(r["c0"]), rel=1e-5)
+        assert r["c0_se"] >= 0 and r["c1_se"] >= 0
+        assert len(r["sim_return_curve"]) == len(s["curve_iterations"]) > 1
+    assert s["mpi"] == pytest.approx(min(r["I"] for r in s["policies"]))
+    assert s["api"] == pytest.approx(np.mean([r["I"] for r in s["policies"]]))
+    for name in ("policy_pointmass-000.png", "policy_pointmass-002.png"):
+        assert (out / name).stat().st_size > 1000
+    assert "| pointmass-000 |" in (out / "summary.md").read_text()
+    # the zoo is usable as any other: measure_values and `rl2s collect --zoo`
+    v = measure_values(PointMass(), zoo.params, key=jax.random.PRNGKey(0), n_episodes=2,
+                       episode_length=10)
+    assert v["value"].shape == (2,)
+    coll = tmp_path / "again.npz"
+    assert cli.main(["collect", "--task", "pointmass", "--split", "test", "--zoo", str(out),
+                     "--transitions-per-policy", "20", "--value-episodes", "2",
+                     "--out", str(coll)]) == 0
+    assert load_dataset(str(coll)).n_policies == 2
+
+
+def test_improve_branched_with_penalty_runs(pointmass_checkpoint, tmp_path):
+    run = pointmass_checkpoint
+    out = tmp_path / "branched"
+    assert cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--policies",
+                     "1", "--out", str(out), "--iterations", "12", "--no-measure", "--quiet",
+                     "--branch-length", "5", "--uncertainty-penalty", "0.5",
+                     "--uncertainty-threshold", "4", *SMALL]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["env_options"] == {"rollout_length": 5, "uncertainty_penalty": 0.5,
+                                "uncertainty_threshold": 4.0, "halt_penalty": 0.0}
+    assert s["mpi"] is None and not list(out.glob("*.png"))
+    zoo = pol.load_zoo(str(out))
+    assert zoo.size == 1 and np.isnan(zoo.returns[0])
+
+
+def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, capsys):
+    run = pointmass_checkpoint
+    out = tmp_path / "never"
+
+    def refused(*extra, data=run["data"], ckpt=run["ckpt"]):
+        rc = cli.main(["improve", "--ckpt", ckpt, "--data", data, "--out", str(out),
+                       "--iterations", "5", "--quiet", *extra])
+        return rc, capsys.readouterr().err
+
+    rc, err = refused(ckpt=str(tmp_path / "missing"))
+    assert rc == 2 and "ckpt" in err and "missing" in err
+    rc, err = refused(data=str(tmp_path / "missing.npz"))
+    assert rc == 2 and "data" in err
+    rc, err = refused("--policies", "0,4")
+    assert rc == 2 and "policies: index 4 out of range" in err and "0..3" in err
+    rc, err = refused("--policies", "1,1")
+    assert rc == 2 and "distinct" in err
+    rc, err = refused("--set", "nope=3")
+    assert rc == 2 and "nope" in err and "kl_weight" in err
+    rc, err = refused("--set", "kl_weight=-1")
+    assert rc == 2 and "kl_weight" in err
+    # data of another task
+    ds = load_dataset(run["data"])
+    other = ds.replace(meta={**ds.meta, "task": "twomass"})
+    path = tmp_path / "other.npz"
+    save_dataset(str(path), other)
+    rc, err = refused(data=str(path))
+    assert rc == 2 and "twomass" in err and "pointmass" in err
+    with pytest.raises(SystemExit):
+        cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--out", str(out),
+                  "--policies", "a,b"])
+    assert not os.path.exists(out)

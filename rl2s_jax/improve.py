@@ -180,3 +180,34 @@ def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.A
         v1 = measure_values(real_env, after, key=k1, **kw)
         c0, c1, se0, se1 = v0[field], v1[field], v0[field + "_se"], v1[field + "_se"]
     return {"c0": c0, "c0_se": se0, "c1": c1, "c1_se": se1, **improvement_metrics(c0, c1)}
+
+
+def improvement_intervals(c0, c0_se, c1, c1_se, *, level: float = 0.95, n_boot: int = 2000,
+                          seed: int = 0) -> dict[str, list[float]]:
+    """Bootstrap intervals of MPI and API from real returns with their standard errors
+    (all [R, P]: R seeds of the fine-tuning x P policies, or [P]).
+
+    Each replicate resamples the P policies with replacement (the same draw for every seed)
+    and redraws each measured return from N(C, SE^2) (the measurement's own noise), then takes
+    MPI = min I and API = mean I over the drawn policies, averaged over the seeds. The interval
+    is the replicates' central ``level`` quantile range.
+    -> {"mpi": [low, high], "api": [low, high]}."""
+    c0, s0, c1, s1 = (np.atleast_2d(np.asarray(x, np.float64)) for x in (c0, c0_se, c1, c1_se))
+    if not c0.shape == s0.shape == c1.shape == s1.shape:
+        raise ValueError(f"c0, c0_se, c1, c1_se: expected one shape, got {c0.shape}, "
+                         f"{s0.shape}, {c1.shape}, {s1.shape}")
+    improvement_metrics(c0.reshape(-1), c1.reshape(-1))  # the same checks
+    if not 0 < level < 1:
+        raise ValueError(f"level: expected in (0, 1), got {level}")
+    rng = np.random.default_rng(seed)
+    R, P = c0.shape
+    idx = rng.integers(0, P, (n_boot, P))
+    z0, z1 = rng.standard_normal((2, n_boot, R, P))
+    b0 = np.take_along_axis(c0[None] + s0[None] * z0, np.broadcast_to(idx[:, None], z0.shape),
+                            axis=-1)
+    b1 = np.take_along_axis(c1[None] + s1[None] * z1, np.broadcast_to(idx[:, None], z1.shape),
+                            axis=-1)
+    imp = (b1 - b0) / np.maximum(np.abs(b0), 1e-8)
+    mpi, api = imp.min(-1).mean(-1), imp.mean(-1).mean(-1)
+    q = [(1 - level) / 2, (1 + level) / 2]
+    return {"mpi": np.quantile(mpi, q).tolist(), "api": np.quantile(api, q).tolist()}

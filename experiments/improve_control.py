@@ -1,0 +1,155 @@
+"""The real-env control of policy improvement (issue 11): SAC fine-tuning of a zoo's test
+policies inside the real MJX env, with the same settings as experiments/paper.py's
+improvement phase, and their real returns before and after. No simulator is needed.
+
+    python experiments/improve_control.py --tasks hopper,walker2d,halfcheetah,ant --out DIR
+        [--policies 0] [--seeds 2] [--iterations 2000] [--episodes 16] [--sac-envs 16]
+        [--critic-warmup 500] [--updates-per-step 1] [--sac-set KEY=VALUE ...] [--plain]
+
+For each task: C0 and C1 of every chosen test policy (``--policies`` N spread over their
+returns, 0 = all) over ``--episodes`` fresh real episodes, for ``--seeds`` SAC seeds (one
+vmapped program over seeds x policies; ``improve.improve_in_real_env``); per seed
+MPI = min I and API = mean I, their mean over seeds and 95% bootstrap intervals
+(``improve.improvement_intervals``: policies resampled, returns redrawn from their standard
+errors). ``--plain`` also runs plain SAC (``SACConfig()``'s from-scratch defaults: alpha from
+1, target entropy -action_size, no KL anchor) with the same budget, for comparison.
+Writes OUT/control_<task>.json after each task and prints a table.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from rl2s_jax.cli import _overrides  # noqa: E402
+from rl2s_jax.improve import (  # noqa: E402
+    improve_in_real_env,
+    improvement_intervals,
+    improvement_metrics,
+)
+from rl2s_jax.policies import index_params, load_zoo  # noqa: E402
+from rl2s_jax.sac import SACConfig  # noqa: E402
+from rl2s_jax.tasks import get_task, task_names  # noqa: E402
+
+
+def log(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def pick(returns: np.ndarray, n: int) -> list[int]:
+    """n indices spread evenly over the sorted returns (all when n <= 0 or n >= len)."""
+    order = np.argsort(returns, kind="stable")
+    if n <= 0 or n >= len(order):
+        return sorted(order.tolist())
+    return sorted(order[np.unique(np.round(np.linspace(0, len(order) - 1, n)).astype(int))]
+                  .tolist())
+
+
+def sac_configs(args, episode_length: int) -> dict[str, SACConfig]:
+    fields = {f.name for f in dataclasses.fields(SACConfig)}
+    over = _overrides(args.sac_set)
+    unknown = sorted(set(over) - fields)
+    if unknown:
+        raise SystemExit(f"sac-set: unknown SACConfig field(s) {unknown}")
+    for k in ("hidden", "actor_hidden"):
+        if k in over:
+            over[k] = tuple(over[k])
+    sizes = dict(episode_length=episode_length, n_envs=args.sac_envs,
+                 critic_warmup_updates=args.critic_warmup,
+                 updates_per_step=args.updates_per_step,
+                 buffer_size=min(100_000, args.sac_envs * (64 + args.iterations)))
+    out = {"fine_tuning": SACConfig.fine_tuning(**{**sizes, **over})}
+    if args.plain:
+        out["plain"] = SACConfig(**{**sizes, "critic_warmup_updates": 0, **over})
+    for c in out.values():
+        c.validate()
+    return out
+
+
+def run_task(task_name: str, args) -> dict:
+    task = get_task(task_name)
+    zoo = load_zoo(task_name)
+    test_ids = zoo.split_ids("test")
+    chosen = [test_ids[i] for i in pick(np.asarray(zoo.returns)[test_ids], args.policies)]
+    pols = index_params(zoo.params, np.asarray(chosen))
+    R, P = args.seeds, len(chosen)
+    tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * R), pols)
+    result = {"task": task_name, "zoo_ids": chosen, "seeds": R, "iterations": args.iterations,
+              "n_episodes": args.episodes, "backend": jax.default_backend(),
+              "device": str(jax.devices()[0]), "configs": {}}
+    for name, cfg in sac_configs(args, task.episode_length).items():
+        t0 = time.perf_counter()
+        log(f"[control] {task_name} {name}: SAC x {args.iterations} iterations in the real env "
+            f"for {P} test policies x {R} seed(s)")
+        _, metrics, res = improve_in_real_env(
+            task, tiled, jax.random.PRNGKey(30), cfg, n_iterations=args.iterations,
+            n_episodes=args.episodes, chunk_iterations=min(1000, args.iterations))
+        c0, s0, c1, s1 = (np.asarray(res[k], np.float64).reshape(R, P)
+                          for k in ("c0", "c0_se", "c1", "c1_se"))
+        per = [improvement_metrics(c0[r], c1[r]) for r in range(R)]
+        ci = improvement_intervals(c0, s0, c1, s1)
+        entry = {"sac": {k: (list(v) if isinstance(v, tuple) else v)
+                         for k, v in dataclasses.asdict(cfg).items()},
+                 "c0": c0.tolist(), "c0_se": s0.tolist(), "c1": c1.tolist(),
+                 "c1_se": s1.tolist(), "I": [p["I"].tolist() for p in per],
+                 "mpi_per_seed": [p["mpi"] for p in per],
+                 "api_per_seed": [p["api"] for p in per],
+                 "mpi": float(np.mean([p["mpi"] for p in per])),
+                 "api": float(np.mean([p["api"] for p in per])),
+                 "mpi_ci95": ci["mpi"], "api_ci95": ci["api"],
+                 "final_alpha": np.asarray(metrics["alpha"][:, -1]).tolist(),
+                 "final_kl": np.asarray(metrics["kl"][:, -1]).tolist(),
+                 "seconds": round(time.perf_counter() - t0, 1)}
+        result["configs"][name] = entry
+        log(f"  {name:<12} MPI {entry['mpi']:+.3f} [{ci['mpi'][0]:+.3f}, {ci['mpi'][1]:+.3f}]  "
+            f"API {entry['api']:+.3f} [{ci['api'][0]:+.3f}, {ci['api'][1]:+.3f}]  "
+            f"mean C0 {c0.mean():.1f} -> C1 {c1.mean():.1f}  ({entry['seconds']:.0f}s)")
+    return result
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tasks", default="hopper,walker2d,halfcheetah,ant")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--policies", type=int, default=0, help="test policies (0: all)")
+    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--iterations", type=int, default=2000)
+    ap.add_argument("--episodes", type=int, default=16)
+    ap.add_argument("--sac-envs", type=int, default=16)
+    ap.add_argument("--critic-warmup", type=int, default=500)
+    ap.add_argument("--updates-per-step", type=int, default=1)
+    ap.add_argument("--sac-set", action="append", metavar="KEY=VALUE")
+    ap.add_argument("--plain", action="store_true", help="also run plain SAC")
+    args = ap.parse_args(argv)
+    tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
+    bad = [t for t in tasks if t not in task_names()]
+    if bad:
+        raise SystemExit(f"tasks: unknown {bad}; known: {task_names()}")
+    for name in ("seeds", "iterations", "episodes", "sac_envs"):
+        if getattr(args, name) < 1:
+            raise SystemExit(f"{name.replace('_', '-')}: expected >= 1")
+    if args.episodes < 2:
+        raise SystemExit("episodes: expected >= 2 (for standard errors)")
+    sac_configs(args, 1000)  # bad --sac-set fails before any work
+    os.makedirs(args.out, exist_ok=True)
+    for t in tasks:
+        t0 = time.perf_counter()
+        res = run_task(t, args)
+        res["seconds"] = round(time.perf_counter() - t0, 1)
+        with open(os.path.join(args.out, f"control_{t}.json"), "w") as f:
+            json.dump(res, f, indent=1)
+        log(f"[control] {t} done in {res['seconds']:.0f}s -> {args.out}/control_{t}.json")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -135,8 +135,24 @@ def cmd_evaluate(args) -> int:
 
     if not os.path.exists(args.data):
         raise FileNotFoundError(f"data: no such file {args.data}")
-    report = evaluate_checkpoint(args.ckpt, args.data, zoo=args.zoo, seed=args.seed,
-                                 n_episodes=args.episodes, horizon=args.horizon, step=args.step)
+    if (args.ckpt is None) == (not args.oracle):
+        raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
+    if args.oracle:
+        import jax
+
+        from rl2s_jax.assess import evaluate_oracle
+        from rl2s_jax.data import load_dataset
+        from rl2s_jax.fit import policies_for
+
+        ds = load_dataset(args.data)
+        report = evaluate_oracle(ds.meta.get("task"), ds, policies_for(ds, args.zoo),
+                                 key=jax.random.PRNGKey(args.seed), n_episodes=args.episodes,
+                                 horizon=args.horizon, n_boot=args.bootstrap)
+        report.update(method="oracle", data=args.data, seed=args.seed)
+    else:
+        report = evaluate_checkpoint(args.ckpt, args.data, zoo=args.zoo, seed=args.seed,
+                                     n_episodes=args.episodes, horizon=args.horizon,
+                                     step=args.step, n_boot=args.bootstrap)
     print(format_report(report))
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
@@ -391,8 +407,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="VD and ranking of a checkpoint's simulator on a "
                        "dataset's policies (fresh process, no training data)")
-    p.add_argument("--ckpt", required=True, help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--ckpt", help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--oracle", action="store_true", help="evaluate the task's real dynamics "
+                   "through the same path instead of a checkpoint (the ceiling)")
     p.add_argument("--data", required=True, help="Dataset of the policies to evaluate")
+    p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
+                   "95%% intervals over episodes (0: none)")
     p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
     p.add_argument("--episodes", type=_positive("episodes"), default=16,
                    help="simulated episodes per policy")

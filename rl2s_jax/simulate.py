@@ -117,17 +117,29 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
     return roll
 
 
-def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
-                     done_fn: Callable, start_pool: jax.Array, key: jax.Array, *,
-                     n_episodes: int, horizon: int, gamma: float) -> tuple[jax.Array, jax.Array]:
-    """Discounted value of each policy in ``dynamics``: mean over n_episodes episodes of at
-    most ``horizon`` steps. -> (values [P], mean episode lengths [P])."""
+def simulated_returns(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
+                      done_fn: Callable, start_pool: jax.Array, key: jax.Array, *,
+                      n_episodes: int, horizon: int, gamma: float
+                      ) -> tuple[jax.Array, jax.Array]:
+    """Each simulated episode's discounted return and length: n_episodes episodes of at most
+    ``horizon`` steps per policy. -> (returns [P, n], lengths [P, n] int32)."""
     k_start, k_run = jax.random.split(key)
     n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
     roll = start_values(start_pool, n_pol, n_episodes, k_start)
     roll = advance_values(roll, policy_params, dynamics, reward_fn, done_fn, k_run,
                           n_steps=horizon, horizon=horizon, gamma=gamma)
-    return roll.ret.mean(1), roll.length.mean(1).astype(jnp.float32)
+    return roll.ret, roll.length
+
+
+def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
+                     done_fn: Callable, start_pool: jax.Array, key: jax.Array, *,
+                     n_episodes: int, horizon: int, gamma: float) -> tuple[jax.Array, jax.Array]:
+    """Discounted value of each policy in ``dynamics``: mean over n_episodes episodes of at
+    most ``horizon`` steps (``simulated_returns`` averaged).
+    -> (values [P], mean episode lengths [P])."""
+    ret, length = simulated_returns(policy_params, dynamics, reward_fn, done_fn, start_pool,
+                                    key, n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    return ret.mean(1), length.mean(1).astype(jnp.float32)
 
 
 def value_difference(sim_values: jax.Array, true_values: jax.Array) -> jax.Array:

@@ -186,6 +186,21 @@ class TrainData:
         return int(self.policy_start.shape[0])
 
 
+def _measured_values_apply(ds, horizon: int, gamma: float) -> bool:
+    """Whether the Dataset's measured values are the true values for this horizon and gamma:
+    it has them, the horizon covers whole episodes and gamma matches."""
+    meta = ds.meta
+    full = meta.get("episode_length") is not None and horizon >= meta["episode_length"]
+    return bool(ds.has_values and full and abs(float(meta.get("gamma") or 0) - gamma) < 1e-9)
+
+
+def true_values_se(ds, horizon: int, gamma: float) -> np.ndarray | None:
+    """Standard errors [P] of ``true_values`` where the data measured them, else None."""
+    if _measured_values_apply(ds, horizon, gamma):
+        return np.asarray(ds.value_discounted_se, np.float64)
+    return None
+
+
 def true_values(ds, horizon: int, gamma: float, strict: bool = True) -> np.ndarray:
     """True discounted value [P] of each policy of ``ds`` over ``horizon`` steps.
 
@@ -194,9 +209,7 @@ def true_values(ds, horizon: int, gamma: float, strict: bool = True) -> np.ndarr
     steps (``simulate.data_values``). ``strict``: a policy without a usable episode is an error
     (else NaN).
     """
-    meta = ds.meta
-    full = meta.get("episode_length") is not None and horizon >= meta["episode_length"]
-    if ds.has_values and full and abs(float(meta.get("gamma") or 0) - gamma) < 1e-9:
+    if _measured_values_apply(ds, horizon, gamma):
         return np.asarray(ds.value_discounted, np.float32)
     ended = np.asarray(ds.done) | np.asarray(ds.truncated)
     values, _ = data_values(np.asarray(ds.reward), ended, np.asarray(ds.policy_id),

@@ -4,6 +4,8 @@ The public API: build ``TrainData`` from a Dataset and its policies, ``init`` a 
 call the pure ``train_step(state, data) -> (state, metrics)`` (jit / scan / vmap it freely),
 checkpoint with ``Checkpointer`` and load a trained ``Simulator`` with ``load_simulator``.
 """
+# First: imports mujoco.mjx without its lines about the optional Warp backend (rl2s_jax/_quiet.py).
+import rl2s_jax._quiet  # noqa: F401
 from rl2s_jax.checkpoint import Checkpointer, load_meta, load_simulator
 from rl2s_jax.data import Dataset, load_dataset, save_dataset
 from rl2s_jax.fit import TrainingDiverged, fit, run_training

@@ -122,7 +122,8 @@ def cmd_train(args) -> int:
                                profile=args.profile, seed=args.seed, eps=args.eps,
                                save_every=args.save_every, chunk=args.chunk,
                                overrides=_overrides(args.set), progress=not args.quiet,
-                               eval_data=args.eval_data, eval_every=args.eval_every)
+                               eval_data=args.eval_data, eval_every=args.eval_every,
+                               resume_step=args.resume_step)
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1
@@ -386,6 +387,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "--eval-every steps -> OUT/eval.jsonl")
     p.add_argument("--eval-every", type=_positive("eval-every"),
                    help="steps between test evaluations (default: --save-every or steps/10)")
+    p.add_argument("--resume-step", type=int, help="resume from this saved step (default: "
+                   "the newest intact one); later steps are moved to checkpoints/superseded/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
 
@@ -398,7 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simulated episodes per policy")
     p.add_argument("--horizon", type=_positive("horizon"),
                    help="steps per simulated episode (default: the data's episode_length)")
-    p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
+    p.add_argument("--step", type=int, help="checkpoint step (default: the newest intact one; "
+                   "broken newer steps are skipped with a warning)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="write the report here")
     p.set_defaults(func=cmd_evaluate)
@@ -449,12 +453,25 @@ def main(argv: list[str] | None = None) -> int:
     # brax warns on every env it builds that it is unmaintained; we use only its envs.
     warnings.filterwarnings("ignore", category=UserWarning, module="brax")
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
+    from rl2s_jax.checkpoint import CheckpointWarning
+
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except (ValueError, FileNotFoundError, FloatingPointError) as err:
-        print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    default_show = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, CheckpointWarning):  # ours: one plain line, no source line
+            print(f"rl2s {args.command}: warning: {message}", file=sys.stderr)
+        else:
+            default_show(message, category, filename, lineno, file, line)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        warnings.simplefilter("always", CheckpointWarning)
+        try:
+            return args.func(args)
+        except (ValueError, FileNotFoundError, FloatingPointError) as err:
+            print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

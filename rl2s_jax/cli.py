@@ -1,4 +1,5 @@
-"""The `rl2s` command line: zoo | collect | inspect | train | evaluate | pipeline."""
+"""The `rl2s` command line: zoo | collect | inspect | import | export | train | evaluate |
+pipeline | diagnose."""
 
 from __future__ import annotations
 
@@ -95,6 +96,31 @@ def cmd_inspect(args) -> int:
         print(f"rl2s inspect: {err}", file=sys.stderr)
         return 1
     print(dataset_summary(ds))
+    return 0
+
+
+def cmd_import(args) -> int:
+    """A local Minari dataset -> our Dataset file (validated)."""
+    from rl2s_jax.data import dataset_summary, save_dataset
+    from rl2s_jax.minari_io import from_minari
+
+    ds = from_minari(args.minari, task=args.task, gamma=args.gamma, policy_key=args.policy_key)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    save_dataset(args.out, ds)
+    print(dataset_summary(ds))
+    print(f"imported {args.minari} -> {args.out}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    """Our Dataset file -> a Minari dataset directory."""
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.minari_io import to_minari
+
+    ds = load_dataset(args.data)
+    mds = to_minari(ds, args.out, dataset_id=args.dataset_id)
+    print(f"exported {args.data} ({mds.total_episodes} episodes, {mds.total_steps} steps) -> "
+          f"Minari dataset {mds.id!r} in {args.out}")
     return 0
 
 
@@ -364,6 +390,27 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("inspect", help="validate a dataset file and print its summary")
     p.add_argument("--data", required=True)
     p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("import", help="convert a local Minari dataset into a Dataset file")
+    p.add_argument("--minari", required=True, metavar="PATH",
+                   help="Minari dataset directory (or its data/), or the id of a dataset in "
+                   "the local Minari root; nothing is downloaded")
+    p.add_argument("--out", required=True, help="Dataset file to write (.npz)")
+    p.add_argument("--task", help="registered task the data comes from (default: none, or "
+                   "the one an rl2s export recorded)")
+    p.add_argument("--gamma", type=_gamma, help="discount recorded in meta")
+    p.add_argument("--policy-key", help="episode-metadata key naming each episode's policy "
+                   "(default: policy_id, policy_name or policy; none: one policy)")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("export", help="write a Dataset file as a Minari dataset")
+    p.add_argument("--minari", action="store_true", required=True,
+                   help="the format to write (Minari, hdf5)")
+    p.add_argument("--data", required=True, help="Dataset file (.npz)")
+    p.add_argument("--out", required=True, help="new directory for the Minari dataset")
+    p.add_argument("--dataset-id", help="Minari id, (namespace/)name-vN (default: the "
+                   "directory name, -v0 added)")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("train", help="learn a simulator from a dataset (rl2s|gail|bc|rl2s-bc)")
     p.add_argument("--data", required=True, help="training Dataset (.npz)")

@@ -3,42 +3,11 @@ import json
 import subprocess
 import sys
 
-import jax
 import numpy as np
 import pytest
 
-from rl2s_jax import policies as pol
 from rl2s_jax.cli import main
-from rl2s_jax.collect import collect
-from rl2s_jax.data import save_dataset
 from rl2s_jax.evaluate import kendall_tau
-from rl2s_jax.tasks import get_task
-
-
-@pytest.fixture(scope="module")
-def pm_files(tmp_path_factory):
-    """A pointmass zoo of 6 policies on disk, train (0-2) and test (3-5) datasets naming it."""
-    root = tmp_path_factory.mktemp("pm")
-    task = get_task("pointmass")
-    ps = []
-    for i, b in enumerate([-2.0, 0.0, 2.0, -1.0, 0.5, 1.0]):
-        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
-        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
-        ps.append(p)
-    zoo = pol.Zoo(task="pointmass", params=pol.stack_params(ps), returns=np.zeros(6, np.float32),
-                  return_se=np.zeros(6, np.float32), origins=[{}] * 6, train_ids=[0, 1, 2],
-                  test_ids=[3, 4, 5], info={})
-    pol.save_zoo(zoo, str(root / "zoo"))
-    paths = {}
-    for split, ids in (("train", [0, 1, 2]), ("test", [3, 4, 5])):
-        ds = collect(task.make_env(), pol.index_params(zoo.params, ids),
-                     key=jax.random.PRNGKey(len(split)), transitions_per_policy=300,
-                     envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
-                     value_episodes=8, progress=False, policy_names=zoo.policy_names(ids),
-                     source={"zoo": str(root / "zoo"), "zoo_ids": ids})
-        paths[split] = str(root / f"{split}.npz")
-        save_dataset(paths[split], ds)
-    return paths
 
 
 def test_train_with_test_evaluation_then_evaluate_in_fresh_process(pm_files, tmp_path, capsys):

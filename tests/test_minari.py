@@ -5,16 +5,12 @@ No network: everything is built under tmp_path."""
 import warnings
 
 import gymnasium as gym
-import jax
 import numpy as np
 import pytest
 
-from rl2s_jax import policies as pol
 from rl2s_jax.cli import main
-from rl2s_jax.collect import collect
 from rl2s_jax.data import TRANSITION_FIELDS, VALUE_FIELDS, DatasetError, load_dataset
 from rl2s_jax.minari_io import from_minari, to_minari
-from rl2s_jax.tasks import get_task
 
 minari = pytest.importorskip("minari")
 
@@ -122,15 +118,9 @@ def test_minari_to_dataset_to_minari_keeps_everything(minari_root, tmp_path, mon
 
 
 @pytest.fixture(scope="module")
-def pm_dataset():
+def pm_dataset(pm_files):
     """Pointmass data of 3 policies with true values, whose source names a zoo."""
-    task = get_task("pointmass")
-    params = pol.stack_params([pol.init_policy(k, 2, 1, hidden=(8,))
-                               for k in jax.random.split(jax.random.PRNGKey(1), 3)])
-    return collect(task.make_env(), params, key=jax.random.PRNGKey(0), transitions_per_policy=90,
-                   envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
-                   value_episodes=2, progress=False, policy_names=["a", "b", "c"],
-                   source={"zoo": "somewhere", "zoo_ids": [4, 5, 6]})
+    return load_dataset(pm_files["test"])
 
 
 def test_dataset_to_minari_to_dataset_is_identical(pm_dataset, tmp_path):
@@ -144,8 +134,8 @@ def test_dataset_to_minari_to_dataset_is_identical(pm_dataset, tmp_path):
         np.testing.assert_array_equal(got, want, err_msg=k)
     for k in ("task", "gamma", "episode_length", "policy_names", "n_policies"):
         assert back.meta[k] == ds.meta[k], k
-    src = back.meta["source"]
-    assert src["zoo"] == "somewhere" and src["zoo_ids"] == [4, 5, 6]
+    src = back.meta["source"]  # keeps what `rl2s train` needs to find the policies
+    assert src["zoo"] == ds.meta["source"]["zoo"] and src["zoo_ids"] == [3, 4, 5]
     assert src["minari"]["dataset_id"] == "pm-v3"
 
 

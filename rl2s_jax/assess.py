@@ -113,13 +113,12 @@ def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None, se
                         n_boot: int = 0) -> dict:
     """Load a checkpoint's simulator and a Dataset (policies from ``zoo`` or the data's
     meta.source) and evaluate; no training data needed."""
-    from rl2s_jax.checkpoint import load_meta, load_simulator
+    from rl2s_jax.checkpoint import load_checkpoint
     from rl2s_jax.data import load_dataset
     from rl2s_jax.fit import policies_for
 
     ds = load_dataset(data_path)
-    sim = load_simulator(ckpt, step)
-    meta = load_meta(ckpt, step)
+    sim, meta = load_checkpoint(ckpt, step)  # the newest intact step unless step is given
     if ds.meta.get("task") != sim.task:
         raise ValueError(f"data: {data_path} is task {ds.meta.get('task')!r} but the "
                          f"checkpoint models {sim.task!r}")

@@ -1,4 +1,5 @@
-"""The `rl2s` command line: zoo | collect | inspect | train | evaluate | pipeline."""
+"""The `rl2s` command line: zoo | collect | inspect | import | export | train | evaluate |
+pipeline | diagnose."""
 
 from __future__ import annotations
 
@@ -98,6 +99,31 @@ def cmd_inspect(args) -> int:
     return 0
 
 
+def cmd_import(args) -> int:
+    """A local Minari dataset -> our Dataset file (validated)."""
+    from rl2s_jax.data import dataset_summary, save_dataset
+    from rl2s_jax.minari_io import from_minari
+
+    ds = from_minari(args.minari, task=args.task, gamma=args.gamma, policy_key=args.policy_key)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    save_dataset(args.out, ds)
+    print(dataset_summary(ds))
+    print(f"imported {args.minari} -> {args.out}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    """Our Dataset file -> a Minari dataset directory."""
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.minari_io import to_minari
+
+    ds = load_dataset(args.data)
+    mds = to_minari(ds, args.out, dataset_id=args.dataset_id)
+    print(f"exported {args.data} ({mds.total_episodes} episodes, {mds.total_steps} steps) -> "
+          f"Minari dataset {mds.id!r} in {args.out}")
+    return 0
+
+
 def _overrides(items: list[str] | None) -> dict:
     """--set key=value pairs -> dict; values parsed as JSON where they parse (3, 1e-4, [64,64])."""
     out = {}
@@ -122,7 +148,8 @@ def cmd_train(args) -> int:
                                profile=args.profile, seed=args.seed, eps=args.eps,
                                save_every=args.save_every, chunk=args.chunk,
                                overrides=_overrides(args.set), progress=not args.quiet,
-                               eval_data=args.eval_data, eval_every=args.eval_every)
+                               eval_data=args.eval_data, eval_every=args.eval_every,
+                               resume_step=args.resume_step)
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1
@@ -380,6 +407,27 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True)
     p.set_defaults(func=cmd_inspect)
 
+    p = sub.add_parser("import", help="convert a local Minari dataset into a Dataset file")
+    p.add_argument("--minari", required=True, metavar="PATH",
+                   help="Minari dataset directory (or its data/), or the id of a dataset in "
+                   "the local Minari root; nothing is downloaded")
+    p.add_argument("--out", required=True, help="Dataset file to write (.npz)")
+    p.add_argument("--task", help="registered task the data comes from (default: none, or "
+                   "the one an rl2s export recorded)")
+    p.add_argument("--gamma", type=_gamma, help="discount recorded in meta")
+    p.add_argument("--policy-key", help="episode-metadata key naming each episode's policy "
+                   "(default: policy_id, policy_name or policy; none: one policy)")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("export", help="write a Dataset file as a Minari dataset")
+    p.add_argument("--minari", action="store_true", required=True,
+                   help="the format to write (Minari, hdf5)")
+    p.add_argument("--data", required=True, help="Dataset file (.npz)")
+    p.add_argument("--out", required=True, help="new directory for the Minari dataset")
+    p.add_argument("--dataset-id", help="Minari id, (namespace/)name-vN (default: the "
+                   "directory name, -v0 added)")
+    p.set_defaults(func=cmd_export)
+
     p = sub.add_parser("train", help="learn a simulator from a dataset (rl2s|gail|bc|rl2s-bc)")
     p.add_argument("--data", required=True, help="training Dataset (.npz)")
     p.add_argument("--method", choices=("rl2s", "gail", "bc", "rl2s-bc"), default="rl2s")
@@ -402,6 +450,8 @@ def build_parser() -> argparse.ArgumentParser:
                    "--eval-every steps -> OUT/eval.jsonl")
     p.add_argument("--eval-every", type=_positive("eval-every"),
                    help="steps between test evaluations (default: --save-every or steps/10)")
+    p.add_argument("--resume-step", type=int, help="resume from this saved step (default: "
+                   "the newest intact one); later steps are moved to checkpoints/superseded/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
 
@@ -418,7 +468,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simulated episodes per policy")
     p.add_argument("--horizon", type=_positive("horizon"),
                    help="steps per simulated episode (default: the data's episode_length)")
-    p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
+    p.add_argument("--step", type=int, help="checkpoint step (default: the newest intact one; "
+                   "broken newer steps are skipped with a warning)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="write the report here")
     p.set_defaults(func=cmd_evaluate)
@@ -469,12 +520,25 @@ def main(argv: list[str] | None = None) -> int:
     # brax warns on every env it builds that it is unmaintained; we use only its envs.
     warnings.filterwarnings("ignore", category=UserWarning, module="brax")
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
+    from rl2s_jax.checkpoint import CheckpointWarning
+
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except (ValueError, FileNotFoundError, FloatingPointError) as err:
-        print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    default_show = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, CheckpointWarning):  # ours: one plain line, no source line
+            print(f"rl2s {args.command}: warning: {message}", file=sys.stderr)
+        else:
+            default_show(message, category, filename, lineno, file, line)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        warnings.simplefilter("always", CheckpointWarning)
+        try:
+            return args.func(args)
+        except (ValueError, FileNotFoundError, FloatingPointError) as err:
+            print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

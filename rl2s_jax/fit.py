@@ -176,9 +176,15 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                  profile: str = "auto", seed: int = 0, eps: float | None = None,
                  save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
                  progress: bool = True, log=print, eval_data: str | None = None,
-                 eval_every: int | None = None, eval_episodes: int = 8) -> dict:
+                 eval_every: int | None = None, eval_episodes: int = 8,
+                 resume_step: int | None = None) -> dict:
     """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
     holds one), and return a summary dict (also written to out/summary.json).
+
+    A resumed run starts from ``resume_step``, or by default from the newest intact
+    checkpoint (broken newer ones are skipped with a CheckpointWarning). Saved steps after the
+    one resumed from are moved to checkpoints/corrupt/ (broken) or checkpoints/superseded/
+    (intact), since the run saves those steps anew.
 
     ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
     with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve).
@@ -212,12 +218,24 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
         on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo)
         eval_every = eval_every or save_every or max(1, steps // 10)
     key = jax.random.PRNGKey(seed)
+    if resume_step is not None and ck.latest_step() is None:
+        ck.close()
+        raise FileNotFoundError(f"resume_step: {out}/checkpoints holds no saved step to resume "
+                                f"step {resume_step} from")
     if ck.latest_step() is not None:
         template = jax.eval_shape(lambda: init(key, cfg, data))
-        state = ck.restore(template)
+        try:
+            state = ck.restore(template, resume_step)
+        except BaseException:
+            ck.close()
+            raise
+        moved = ck.set_aside_after(int(state.step))
         _truncate_metrics(metrics_path, int(state.step))
         _truncate_metrics(eval_path, int(state.step))
         log(f"[train] resuming {out} from step {int(state.step)}")
+        for kind, steps_moved in moved.items():
+            if steps_moved:
+                log(f"[train] moved {kind} step(s) {steps_moved} to {ck.directory}/{kind}/")
     else:
         for path in (metrics_path, eval_path):
             if os.path.exists(path):

@@ -10,13 +10,15 @@ For the MJX tasks one oracle step is: q and qd from the observation, ``env.pipel
 qd)`` (``mjx.forward``), one ``env.pipeline_step``, the env's own ``_get_obs``. What the
 observation does not hold is lost, so the oracle is not bit-exact:
 
-* hopper / walker2d clip the observed joint velocities to [-10, 10]: a clipped velocity comes
-  back as +-10;
 * hopper / walker2d observe the torso height as brax's lagged ``x.pos`` (one physics substep
   behind q, see ``tasks``): q[1] is rebuilt as ``obs[1] - z0 + h * qd[1]`` with z0 the torso's
   height at q[1] = 0 (read off the model);
 * MJX warm-starts its constraint solver from the previous step's accelerations; the oracle
-  starts each step cold.
+  starts each step cold. With a converged solver this does not matter (the tasks' Ant runs 4
+  Newton iterations instead of brax's 1 for this reason; ``tasks``).
+
+(brax's own hopper / walker2d also clip the observed velocities to +-10, which no oracle can
+undo; the tasks' observations hold the full velocities, see ``tasks``.)
 
 ``pointmass`` is pure JAX, so its oracle is exact.
 """

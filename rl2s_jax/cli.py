@@ -395,7 +395,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="env steps per seed and learner (default: ZOO_SAC / ZOO_PPO); a larger "
                    "value extends a finished run")
     p.add_argument("--snapshots", type=_positive("snapshots"),
-                   help="snapshots per seed along training (fixed when a run starts; default 40)")
+                   help="snapshots per seed along training (fixed when a run starts; default: "
+                   "the task's plan, 40 for the MJX tasks)")
     p.add_argument("--set", action="append", metavar="LEARNER.FIELD=VALUE",
                    help="override a SACConfig/PPOConfig field, e.g. --set sac.batch_size=1024")
     p.add_argument("--work", help="run directory: checkpoints (resumed from), measured returns "

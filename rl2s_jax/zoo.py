@@ -384,7 +384,8 @@ def write_zoo_plots(directory: str) -> list[str]:
         if bar is not None:
             ax.axhline(bar, color="grey", ls="--", lw=1, label=f"bar {bar:g}")
         ax.set(title=f"{meta['task']}: {name} (squares: in the zoo; dotted: training return)",
-               xlabel="env steps per seed", ylabel="return (16 fresh episodes)")
+               xlabel="env steps per seed",
+               ylabel=f"return ({meta['info'].get('value_episodes', '?')} fresh episodes)")
         ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(os.path.join(directory, "curves.png"), dpi=110)

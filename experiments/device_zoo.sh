@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Build zoos on the GPU machine (device tool), the given tasks side by side on the one GPU, each
 # inside one call (issue 15):
-#   [ZOO_LIMIT=330] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="--seeds 3 ..."] [ZOO_EXPORT=1] \
+#   [ZOO_LIMIT=320] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="--seeds 3 ..."] [ZOO_EXPORT=1] \
 #     [ZOO_IMPORT=DIR] bash experiments/device_zoo.sh TASK [TASK ...]
 # Each task runs `rl2s zoo --task T --time-limit $ZOO_LIMIT --final`: it trains (resuming from
 # /tmp/work/zoo_<task> when this machine ran it before) until the time limit or its env-step
@@ -18,7 +18,7 @@ python3 -c "import jax; print('jax', jax.__version__, jax.devices())"
 for task in "$@"; do
   extra_var="ZOO_ARGS_$task"
   args=(zoo --task "$task" --work "$W/zoo_$task" --out "$W/out_$task"
-        --time-limit "${ZOO_LIMIT:-330}" --final ${!extra_var:-})
+        --time-limit "${ZOO_LIMIT:-320}" --final ${!extra_var:-})
   [ "${ZOO_EXPORT:-0}" = 1 ] && args+=(--export "$OUT/zoo_${task}_export.npz")
   imp="${ZOO_IMPORT:-}/zoo_${task}_export.npz"
   [ -n "${ZOO_IMPORT:-}" ] && { [ -f "$imp" ] || [ -f "$imp.part00" ]; } && args+=(--import "$imp")

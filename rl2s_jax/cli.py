@@ -31,18 +31,64 @@ def _gamma(text):
 
 
 def cmd_zoo(args) -> int:
-    import jax
+    """Train (or continue) a task's zoo learners, then measure, choose and split the zoo."""
+    started = time.time()
+    from rl2s_jax.policies import zoo_dir
+    from rl2s_jax.zoo import (
+        DEFAULT_ALGO,
+        build_zoo,
+        format_spread,
+        learner_plans,
+        write_zoo_outputs,
+        write_zoo_plots,
+    )
+    from rl2s_jax.zoo_store import load_runs, read_export, write_export
 
-    from rl2s_jax.policies import save_zoo, zoo_dir
-    from rl2s_jax.zoo import build_zoo
-
-    zoo = build_zoo(args.task, seeds=args.seeds, key=jax.random.PRNGKey(args.seed),
-                    value_episodes=args.value_episodes)
     out = args.out or zoo_dir(args.task)
-    save_zoo(zoo, out)
-    print(f"zoo: {zoo.size} policies, returns {zoo.returns.min():.1f} .. "
-          f"{zoo.returns.max():.1f}; train {len(zoo.train_ids)}, test {len(zoo.test_ids)}"
-          f" -> {out}")
+    if args.plots_only:
+        files = write_zoo_plots(out)
+        print(f"zoo plots: {', '.join(files)} -> {out}")
+        return 0
+    if args.time_limit is not None and args.time_limit <= 0:
+        raise ValueError(f"time-limit: expected seconds > 0, got {args.time_limit}")
+    overrides: dict = {}
+    for k, v in _overrides(args.set).items():
+        learner, _, field = k.partition(".")
+        if not field:
+            raise ValueError(f"set: expected sac.FIELD=VALUE or ppo.FIELD=VALUE, got {k!r}")
+        overrides.setdefault(learner, {})[field] = v
+    algo = args.algo or DEFAULT_ALGO.get(args.task, "sac")
+    plans = learner_plans(args.task, algo, args.env_steps, args.snapshots, overrides)
+    work = args.work or os.path.join("runs", "zoo", args.task)
+    imported = read_export(args.import_file) if args.import_file else None
+    deadline = started + args.time_limit if args.time_limit else None
+    zoo, extras = build_zoo(args.task, algo=algo, seeds=args.seeds, seed=args.seed, plans=plans,
+                            work_dir=work, deadline=deadline, imported=imported,
+                            value_episodes=args.value_episodes, zoo_size=args.zoo_size,
+                            checkpoint_every_s=args.checkpoint_every, final=args.final,
+                            progress=not args.quiet)
+    if args.export:
+        files = write_export(args.export, load_runs(work, plans),
+                             max_bytes=int(args.export_max_mib * 2**20))
+        print(f"[zoo] exported the run for resuming: {', '.join(files)}")
+    if zoo is None:
+        print(f"zoo: training stopped at the time limit ({time.time() - started:.0f}s); the "
+              f"same command continues from {work}")
+        return 0
+    files = write_zoo_outputs(zoo, extras["log"], out)
+    info = zoo.info
+    bar = info["expert_bar"]
+    print(f"zoo: {zoo.size} policies from {info['snapshots_measured']} snapshots, returns "
+          f"{zoo.returns.min():.1f} .. {zoo.returns.max():.1f}"
+          + (f" (expert bar {bar:g}: {'met' if info['expert_bar_met'] else 'MISSED'})"
+             if bar is not None else "")
+          + f"; train {len(zoo.train_ids)}, test {len(zoo.test_ids)}")
+    for name, lr in info["learners"].items():
+        print(f"  {name}: {lr['env_steps_per_seed']:,} of {lr['env_steps_target']:,} env steps "
+              f"per seed" + ("" if lr["complete"] else " (stopped at the time limit)"))
+    for split in ("train", "test"):
+        print("  spread " + format_spread(split, info["spread"][split]))
+    print(f"-> {out}: {', '.join(files)} ({time.time() - started:.0f}s)")
     return 0
 
 
@@ -380,12 +426,46 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("zoo", help="train PPO over seeds and rebuild a task's policy zoo")
+    p = sub.add_parser("zoo", help="train SAC/PPO over seeds (resumable) and build a task's "
+                       "policy zoo")
     p.add_argument("--task", required=True, choices=task_names())
+    p.add_argument("--algo", choices=("sac", "ppo", "both"),
+                   help="learner(s) (default: the task's, rl2s_jax/zoo.py DEFAULT_ALGO); both "
+                   "pools the snapshots of SAC and PPO")
     p.add_argument("--seeds", type=_positive("seeds"), default=4)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--env-steps", type=_positive("env-steps"),
+                   help="env steps per seed and learner (default: ZOO_SAC / ZOO_PPO); a larger "
+                   "value extends a finished run")
+    p.add_argument("--snapshots", type=_positive("snapshots"),
+                   help="snapshots per seed along training (fixed when a run starts; default: "
+                   "the task's plan, 40 for the MJX tasks)")
+    p.add_argument("--set", action="append", metavar="LEARNER.FIELD=VALUE",
+                   help="override a SACConfig/PPOConfig field, e.g. --set sac.batch_size=1024")
+    p.add_argument("--work", help="run directory: checkpoints (resumed from), measured returns "
+                   "(default: runs/zoo/<task>)")
+    p.add_argument("--time-limit", type=float, metavar="SECONDS",
+                   help="stop training, after a checkpoint, before this many seconds from the "
+                   "start; the same command continues (leave time for compile and measuring)")
+    p.add_argument("--final", action="store_true",
+                   help="when the time limit stops training, build the zoo from the snapshots "
+                   "trained so far (the last GPU call of a run)")
+    p.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS",
+                   help="seconds of training between checkpoints (and one at every stop)")
+    p.add_argument("--export", metavar="FILE", help="write the run (checkpoints) into one .npz "
+                   "(or FILE.partNN) to resume on another machine with --import")
+    p.add_argument("--export-max-mib", type=float, default=15.0,
+                   help="largest export file; a bigger full state is exported without replay "
+                   "buffers and env states, then split into parts if still too big")
+    p.add_argument("--import", dest="import_file", metavar="FILE",
+                   help="resume from an export for learners with no checkpoint in --work")
     p.add_argument("--value-episodes", type=_positive("value-episodes"), default=16)
+    p.add_argument("--zoo-size", type=_positive("zoo-size"), default=60)
     p.add_argument("--out", help="directory (default: experiments/zoo/<task>)")
+    p.add_argument("--plots-only", action="store_true",
+                   help="only redraw curves.png / returns_hist.png from --out's zoo.json and "
+                   "train_log.jsonl")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_zoo)
 
     p = sub.add_parser("collect", help="collect a Dataset from a zoo split")

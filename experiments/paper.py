@@ -6,7 +6,8 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--transitions-per-policy N] [--value-episodes N] [--eval-episodes N]
         [--improve-iterations N] [--improve-policies N] [--improve-seeds 1]
         [--sac-envs N] [--sac-critic-warmup N] [--sac-updates-per-step N]
-        [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--set field=value ...]
+        [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
+        [--set field=value ...]
 
 Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
 by a time limit still leaves what it finished, with "complete": false):
@@ -58,7 +59,15 @@ from rl2s_jax.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sim_env import SimulatorEnv
 from rl2s_jax.simulate import Simulator, simulated_values, start_pool
 from rl2s_jax.tasks import get_task, task_names
-from rl2s_jax.train import DEFAULT_EPS, init, make_train_data, simulator, train_steps, true_values
+from rl2s_jax.train import (
+    DEFAULT_EPS,
+    LEGACY_MODEL,
+    init,
+    make_train_data,
+    simulator,
+    train_steps,
+    true_values,
+)
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 # (family, config method, its lanes' methods): one vmapped program per family.
@@ -177,6 +186,33 @@ def evaluate_lanes(states, seeds, test_ds, test_pols, truth, *, n_episodes, hori
     return out, values
 
 
+# ------------------------------------------------------------------ training of lanes
+
+
+def _lane_chunk(st, d, n, phase):
+    st, m = train_steps(st, d, n, phase)
+    return st, {"finite": jnp.all(m["finite"]), "avd_train": m["avd_train"][-1],
+                "mvd_train": m["mvd_train"][-1], "n_selected": m["n_selected"][-1]}
+
+
+def train_lanes(states, data, n: int, cfg, compiled: dict):
+    """n train_steps of every lane (states vmapped over lanes) -> (states, metrics of the last
+    step; "finite" over all n). Pieces end at the pre-training boundary, so each compiled
+    program (cached in ``compiled`` by (steps, phase)) runs one phase: its static ``phase``."""
+    done, m = 0, None
+    while done < n:
+        step = int(states.step[0])
+        ph = cfg.phase(step)
+        k = min(n - done, cfg.pretrain_steps - step) if ph == "pretrain" else n - done
+        if (k, ph) not in compiled:
+            compiled[k, ph] = jax.jit(jax.vmap(partial(_lane_chunk, n=k, phase=ph),
+                                               in_axes=(0, None)))
+        states, mk = compiled[k, ph](states, data)
+        m = mk if m is None else {**mk, "finite": jnp.logical_and(m["finite"], mk["finite"])}
+        done += k
+    return states, m
+
+
 # ------------------------------------------------------------------ improvement
 
 
@@ -288,6 +324,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--sac-updates-per-step", type=pos, default=1)
     ap.add_argument("--sac-chunk", type=pos, default=1000, help="SAC iterations per compiled "
                     "call")
+    ap.add_argument("--model", choices=("ensemble", "legacy"), default="ensemble",
+                    help="the generator: the ensemble model family with MLE pre-training "
+                    "(TrainConfig's defaults) or the single generator trained from scratch "
+                    "that preceded it (train.LEGACY_MODEL); --set overrides either")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
     ap.add_argument("--out", default="results/paper")
@@ -340,7 +380,8 @@ def main(argv=None) -> int:
 
     log(f"[paper] task {args.task} on {device} ({backend}, jax {jax.__version__}), profile "
         f"{profile}, {S} seeds -> {path}\n[paper] sizes {sizes}")
-    result = {"task": args.task, "methods": {}, "std": {}, "n": {}, "seeds": S,
+    result = {"task": args.task, "model": args.model, "methods": {}, "std": {}, "n": {},
+              "seeds": S,
               "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
               "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
               "command": " ".join(["python", "experiments/paper.py", *argv]),
@@ -364,7 +405,7 @@ def main(argv=None) -> int:
     result["true_value_undiscounted"] = np.asarray(test_ds.value, np.float64).tolist()
 
     # ---- 2. training, one vmapped program per family
-    overrides = _overrides(args.set)
+    overrides = {**(LEGACY_MODEL if args.model == "legacy" else {}), **_overrides(args.set)}
     robust_eps = overrides.pop("eps", None)
     finals, configs = {}, {}
     for family, cfg_method, methods in FAMILIES:
@@ -386,17 +427,12 @@ def main(argv=None) -> int:
             f", config method {cfg_method}; init {time.perf_counter() - t0:.1f}s")
         n = sizes["eval_every"]
 
-        def chunk(st, d, n=n):
-            st, m = train_steps(st, d, n)
-            return st, {"finite": jnp.all(m["finite"]), "avd_train": m["avd_train"][-1],
-                        "mvd_train": m["mvd_train"][-1], "n_selected": m["n_selected"][-1]}
-
-        run = jax.jit(jax.vmap(chunk, in_axes=(0, None)))
+        compiled = {}
         evals = None
         t_eval = 0.0
         for _ in range(sizes["steps"] // n):
             t1 = time.perf_counter()
-            states, m = jax.block_until_ready(run(states, data))
+            states, m = jax.block_until_ready(train_lanes(states, data, n, cfg, compiled))
             seconds = time.perf_counter() - t1
             t1 = time.perf_counter()
             evals, _values = evaluate_lanes(states, [s for _, s in lanes], test_ds, test_pols,
@@ -464,10 +500,12 @@ def main(argv=None) -> int:
             idx = [i for i, (_, s) in enumerate(fam_lanes) if s < sizes["improve_seeds"]]
             lanes += [fam_lanes[i] for i in idx]
             sims.append(_take(simulator(states), idx))
-        statics = {(s.task, s.obs_clip, s.noise_scale) for s in sims}
+        statics = {(s.task, s.obs_clip, s.noise_scale, s.n_elites, s.member_mode, s.uncertainty)
+                   for s in sims}
         if len(statics) != 1:
             raise SystemExit(f"set: the families' simulators differ in {statics}; they must "
-                             f"share task, obs_clip and sim_noise to be fine-tuned together")
+                             f"share task, obs_clip, sim_noise and the ensemble's rollout settings "
+                             f"to be fine-tuned together")
         sims = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *sims)
         horizon = configs["adversarial"].vd_horizon
         n_envs = sizes["sac_envs"]

@@ -1,11 +1,14 @@
 """Checkpoints: orbax CheckpointManager holding, per saved step,
 
 - ``state``: the whole TrainState (exact resume: keys, optimisers, buffers, selection);
-- ``simulator``: just the generator and its normaliser (what evaluation needs);
+- ``simulator``: what evaluation needs: the generator ensemble (the moving average when the
+  config has ``ema_decay``), its members' ranks and the normaliser;
 - ``meta``: JSON with the TrainConfig and what the data looked like (task, sizes, policy names).
 
 ``load_simulator(dir)`` rebuilds a ``Simulator`` from ``simulator`` + ``meta`` alone, in a fresh
-process and without the training data.
+process and without the training data. Format 3 (the ensemble model family) is written; a
+format-2 checkpoint (one generator, before the family) still loads for evaluation as a
+one-member ensemble, but cannot be resumed.
 """
 from __future__ import annotations
 
@@ -15,11 +18,12 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from rl2s_jax import dynamics as dyn
 from rl2s_jax.models import Normalizer, init_generator
 from rl2s_jax.simulate import Simulator
-from rl2s_jax.train import TrainConfig, TrainState
+from rl2s_jax.train import LEGACY_MODEL, TrainConfig, TrainState, simulator
 
-FORMAT_VERSION = 2  # 2: Normalizer.obs_input_mask
+FORMAT_VERSION = 3  # 2: Normalizer.obs_input_mask; 3: the ensemble model family
 ITEMS = ("state", "simulator", "meta")
 
 
@@ -48,7 +52,8 @@ class Checkpointer:
             return step
         meta = {"format_version": FORMAT_VERSION, "step": step,
                 "config": state.config.to_dict(), **meta}
-        sim = {"gen": state.gen, "norm": state.norm}
+        sim_ = simulator(state)
+        sim = {"gen": sim_.gen, "norm": sim_.norm, "rank": sim_.rank}
         self._mgr.save(step, args=ocp.args.Composite(
             state=ocp.args.StandardSave(state), simulator=ocp.args.StandardSave(sim),
             meta=ocp.args.JsonSave(meta)), force=True)
@@ -62,7 +67,14 @@ class Checkpointer:
     def restore(self, template: TrainState, step: int | None = None) -> TrainState:
         """The saved TrainState at ``step`` (default: latest), shaped like ``template``."""
         step = self._resolve(step)
-        saved = TrainConfig.from_dict(self.meta(step)["config"])
+        meta = self.meta(step)
+        if meta.get("format_version") != FORMAT_VERSION:
+            raise ValueError(
+                f"checkpoint: {self.directory} holds format_version "
+                f"{meta.get('format_version')!r}, this code resumes {FORMAT_VERSION} (the "
+                f"ensemble model family); load_simulator still evaluates it, but training "
+                f"must start in a new --out directory")
+        saved = TrainConfig.from_dict(meta["config"])
         if saved != template.config:
             new = template.config.to_dict()
             diff = {k: (v, new[k]) for k, v in saved.to_dict().items() if new[k] != v}
@@ -97,20 +109,30 @@ def load_simulator(directory: str | os.PathLike, step: int | None = None) -> Sim
     try:
         step = ck._resolve(step)
         meta = ck.meta(step)
-        if meta.get("format_version") != FORMAT_VERSION:
-            raise ValueError(f"ckpt: format_version {FORMAT_VERSION} expected, got "
-                             f"{meta.get('format_version')!r} in {directory}")
-        cfg = TrainConfig.from_dict(meta["config"])
+        version = meta.get("format_version")
+        if version not in (2, FORMAT_VERSION):
+            raise ValueError(f"ckpt: format_version 2 or {FORMAT_VERSION} expected, got "
+                             f"{version!r} in {directory}")
         o, a = int(meta["data"]["obs_size"]), int(meta["data"]["action_size"])
-        template = jax.eval_shape(lambda: {
-            "gen": init_generator(jax.random.PRNGKey(0), o, a, cfg.gen_hidden),
-            "norm": Normalizer.from_data(np.zeros((2, o)), np.zeros((2, a)), np.zeros((2, o)))})
+        norm = Normalizer.from_data(np.zeros((2, o)), np.zeros((2, a)), np.zeros((2, o)))
+        if version == 2:  # one generator (a list of layers), trained before the family
+            cfg = TrainConfig.from_dict({**meta["config"], **LEGACY_MODEL})
+            template = jax.eval_shape(lambda: {
+                "gen": init_generator(jax.random.PRNGKey(0), o, a, cfg.gen_hidden),
+                "norm": norm})
+        else:
+            cfg = TrainConfig.from_dict(meta["config"])
+            template = jax.eval_shape(lambda: {
+                "gen": dyn.init_ensemble(jax.random.PRNGKey(0), cfg.dynamics_spec, o, a,
+                                         cfg.ensemble_size),
+                "norm": norm, "rank": jax.numpy.zeros((cfg.ensemble_size,), jax.numpy.int32)})
         sim = ck._mgr.restore(step, args=ocp.args.Composite(
             simulator=ocp.args.StandardRestore(template))).simulator
     finally:
         ck.close()
-    return Simulator(gen=sim["gen"], norm=sim["norm"], task=cfg.task, obs_clip=cfg.obs_clip,
-                     noise_scale=cfg.sim_noise)
+    return Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"), task=cfg.task,
+                     obs_clip=cfg.obs_clip, noise_scale=cfg.sim_noise, n_elites=cfg.n_elites,
+                     member_mode=cfg.member_mode, uncertainty=cfg.uncertainty)
 
 
 def load_meta(directory: str | os.PathLike, step: int | None = None) -> dict:

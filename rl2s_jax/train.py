@@ -287,11 +287,6 @@ def _sampler(gen, state: TrainState, noise_scale: float) -> Simulator:
                      uncertainty=cfg.uncertainty)
 
 
-def _eval_gen(state: TrainState):
-    """The weights evaluation uses: the moving average when ema_decay > 0."""
-    return state.ema_gen if state.config.ema_decay else state.gen
-
-
 def _gen_tx(cfg: TrainConfig, lr: float) -> optax.GradientTransformation:
     """One member's optimiser: L2 on its weight matrices (gen_weight_decay), elementwise clip,
     Adam. Both phases share its state layout."""
@@ -683,7 +678,13 @@ def train_steps(state: TrainState, data: TrainData, n_steps: int, phase: str | N
     return jax.lax.scan(lambda s, _: train_step(s, data, phase), state, None, length=n_steps)
 
 
-def simulator(state: TrainState) -> Simulator:
-    """The learned simulator of a training state: the members (their moving average when
-    ema_decay > 0), their ranks, the normaliser, the rollout settings."""
-    return _sampler(_eval_gen(state), state, state.config.sim_noise)
+def simulator(state: TrainState, average: bool | None = None) -> Simulator:
+    """The learned simulator of a training state: the members, their ranks (by the trained
+    weights' held-out NLL), the normaliser, the rollout settings. ``average``: the moving
+    average of the members' weights (None: when ema_decay > 0; True needs ema_decay > 0) or
+    the trained weights themselves (False)."""
+    if average is None:
+        average = bool(state.config.ema_decay)
+    if average and not state.config.ema_decay:
+        raise ValueError("average: the state keeps no moving average (ema_decay = 0)")
+    return _sampler(state.ema_gen if average else state.gen, state, state.config.sim_noise)

@@ -420,6 +420,9 @@ def test_early_stopping_and_moving_average_in_training(pm):
     for a, b in zip(jax.tree_util.tree_leaves(T.simulator(state).gen),
                     jax.tree_util.tree_leaves(state.ema_gen), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    for a, b in zip(jax.tree_util.tree_leaves(T.simulator(state, average=False).gen),
+                    jax.tree_util.tree_leaves(state.gen), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 def test_adversarial_phase_starts_from_the_best_pretrained_weights(pm):

@@ -103,7 +103,9 @@ def _select(points: list[dict]) -> dict | None:
     ok = [p for p in points if p["select"] is not None and p["test"] is not None]
     if not ok:
         return None
-    return max(ok, key=lambda p: (p["select"]["kendall_tau"], -p["select"]["avd"]))
+    finite = lambda x: x if np.isfinite(x) else -np.inf
+    return max(ok, key=lambda p: (finite(p["select"]["kendall_tau"]),
+                                  finite(-p["select"]["avd"])))
 
 
 def summarize_rows(results: list[dict]) -> dict:
@@ -140,9 +142,7 @@ def markdown(table: dict, task: str) -> str:
     lines = [head, "|" + "---|" * (2 * len(cols) + 2)]
     fmt = lambda c: "n/a" if c[0] is None else (f"{c[0]:.3g}" + ("" if c[1] is None
                                                                   else f" ± {c[1]:.2g}"))
-    for row in ROWS:
-        if row not in table:
-            continue
+    for row in [r for r in ROWS if r in table] + sorted(set(table) - set(ROWS)):
         e = table[row]
         cells = [fmt(e["final"][c]) for c in cols] + [fmt(e["selected"][c]) for c in cols]
         lines.append(f"| {row} | " + " | ".join(cells) + f" | {e['selected_steps']} |")
@@ -176,7 +176,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     test = (policies_for(test_ds), start_pool(test_ds),
             true_values(test_ds, cfg.vd_horizon, cfg.gamma))
     select = (data.policies, heldout_start_pool(train_ds), np.asarray(data.true_value))
-    rows = {False: variant} | ({True: "rl2s+ema"} if cfg.ema_decay else {})
+    rows = {False: variant} | ({True: f"{variant}+ema"} if cfg.ema_decay else {})
     seeds = list(range(sizes["seeds"]))
     path = os.path.join(args.out, f"ablation_{args.task}_{variant}.json")
     res = {"task": args.task, "variant": variant, "config": cfg.to_dict(), "sizes": sizes,

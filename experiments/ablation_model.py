@@ -168,7 +168,7 @@ def write_summary(out: str, task: str, paths: list[str]) -> str:
 
 def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds) -> dict:
     method, model = VARIANTS[variant]
-    overrides = {**model, **_overrides(args.set)}
+    overrides = {**_overrides(args.set), **model}  # a legacy variant stays the legacy model
     if variant == "rl2s":
         overrides.setdefault("ema_decay", args.ema_decay)
     cfg = make_config(train_ds, method, profile, overrides=overrides)

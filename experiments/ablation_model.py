@@ -208,9 +208,10 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
                 res["curves"][row][str(s)].append({"step": step, **r,
                                                    "finite": bool(m["finite"][s])})
                 t, sl = r["test"] or {}, r["select"] or {}
-                log(f"  {row:<9} seed {s} step {step:>5}  test tau {t.get('kendall_tau', 'n/a')}"
-                    f"  nDCG@1 {t.get('ndcg@1', 'n/a')}  AVD {t.get('avd', 'n/a')}  | select "
-                    f"tau {sl.get('kendall_tau', 'n/a')}  AVD {sl.get('avd', 'n/a')}")
+                f = lambda d, k: "n/a" if k not in d else f"{d[k]:.3f}"
+                log(f"  {row:<9} seed {s} step {step:>5}  test tau {f(t, 'kendall_tau')}"
+                    f"  nDCG@1 {f(t, 'ndcg@1')}  AVD {f(t, 'avd')}  MVD {f(t, 'mvd')}  | "
+                    f"select tau {f(sl, 'kendall_tau')}  AVD {f(sl, 'avd')}")
         if data.n_heldout:
             elite = np.asarray(states.rank) < cfg.n_elites
             nll = np.where(elite, np.asarray(states.heldout_nll), 0).sum(1) / cfg.n_elites

@@ -6,7 +6,8 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--transitions-per-policy N] [--value-episodes N] [--eval-episodes N]
         [--improve-iterations N] [--improve-policies N] [--improve-seeds 1]
         [--sac-envs N] [--sac-critic-warmup N] [--sac-updates-per-step N]
-        [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--set field=value ...]
+        [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
+        [--set field=value ...]
 
 Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
 by a time limit still leaves what it finished, with "complete": false):
@@ -66,6 +67,7 @@ from rl2s_jax.simulate import Simulator, simulated_returns, start_pool
 from rl2s_jax.tasks import get_task, task_names
 from rl2s_jax.train import (
     DEFAULT_EPS,
+    LEGACY_MODEL,
     init,
     make_train_data,
     simulator,
@@ -225,6 +227,33 @@ def oracle_rows(task: str, test_ds, test_pols, seeds, *, n_episodes, horizon, ga
     return out
 
 
+# ------------------------------------------------------------------ training of lanes
+
+
+def _lane_chunk(st, d, n, phase):
+    st, m = train_steps(st, d, n, phase)
+    return st, {"finite": jnp.all(m["finite"]), "avd_train": m["avd_train"][-1],
+                "mvd_train": m["mvd_train"][-1], "n_selected": m["n_selected"][-1]}
+
+
+def train_lanes(states, data, n: int, cfg, compiled: dict):
+    """n train_steps of every lane (states vmapped over lanes) -> (states, metrics of the last
+    step; "finite" over all n). Pieces end at the pre-training boundary, so each compiled
+    program (cached in ``compiled`` by (steps, phase)) runs one phase: its static ``phase``."""
+    done, m = 0, None
+    while done < n:
+        step = int(states.step[0])
+        ph = cfg.phase(step)
+        k = min(n - done, cfg.pretrain_steps - step) if ph == "pretrain" else n - done
+        if (k, ph) not in compiled:
+            compiled[k, ph] = jax.jit(jax.vmap(partial(_lane_chunk, n=k, phase=ph),
+                                               in_axes=(0, None)))
+        states, mk = compiled[k, ph](states, data)
+        m = mk if m is None else {**mk, "finite": jnp.logical_and(m["finite"], mk["finite"])}
+        done += k
+    return states, m
+
+
 # ------------------------------------------------------------------ improvement
 
 
@@ -349,6 +378,10 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--sac-updates-per-step", type=pos, default=1)
     ap.add_argument("--sac-chunk", type=pos, default=1000, help="SAC iterations per compiled "
                     "call")
+    ap.add_argument("--model", choices=("ensemble", "legacy"), default="ensemble",
+                    help="the generator: the ensemble model family with MLE pre-training "
+                    "(TrainConfig's defaults) or the single generator trained from scratch "
+                    "that preceded it (train.LEGACY_MODEL); --set overrides either")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
     ap.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
@@ -407,7 +440,8 @@ def main(argv=None) -> int:
 
     log(f"[paper] task {args.task} on {device} ({backend}, jax {jax.__version__}), profile "
         f"{profile}, {S} seeds -> {path}\n[paper] sizes {sizes}")
-    result = {"task": args.task, "methods": {}, "std": {}, "n": {}, "seeds": S,
+    result = {"task": args.task, "model": args.model, "methods": {}, "std": {}, "n": {},
+              "seeds": S,
               "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
               "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
               "command": " ".join(["python", "experiments/paper.py", *argv]),
@@ -449,7 +483,7 @@ def main(argv=None) -> int:
                         if k in ("kendall_tau", "ndcg@1", "spearman", "avd", "mvd")))
 
     # ---- 2. training, one vmapped program per family
-    overrides = _overrides(args.set)
+    overrides = {**(LEGACY_MODEL if args.model == "legacy" else {}), **_overrides(args.set)}
     robust_eps = overrides.pop("eps", None)
     finals, configs = {}, {}
     for family, cfg_method, methods in FAMILIES:
@@ -471,17 +505,12 @@ def main(argv=None) -> int:
             f", config method {cfg_method}; init {time.perf_counter() - t0:.1f}s")
         n = sizes["eval_every"]
 
-        def chunk(st, d, n=n):
-            st, m = train_steps(st, d, n)
-            return st, {"finite": jnp.all(m["finite"]), "avd_train": m["avd_train"][-1],
-                        "mvd_train": m["mvd_train"][-1], "n_selected": m["n_selected"][-1]}
-
-        run = jax.jit(jax.vmap(chunk, in_axes=(0, None)))
+        compiled = {}
         evals = None
         t_eval = 0.0
         for _ in range(sizes["steps"] // n):
             t1 = time.perf_counter()
-            states, m = jax.block_until_ready(run(states, data))
+            states, m = jax.block_until_ready(train_lanes(states, data, n, cfg, compiled))
             seconds = time.perf_counter() - t1
             t1 = time.perf_counter()
             evals, _values, _returns = evaluate_lanes(
@@ -557,10 +586,12 @@ def main(argv=None) -> int:
             idx = [i for i, (_, s) in enumerate(fam_lanes) if s < sizes["improve_seeds"]]
             lanes += [fam_lanes[i] for i in idx]
             sims.append(_take(simulator(states), idx))
-        statics = {(s.task, s.obs_clip, s.noise_scale) for s in sims}
+        statics = {(s.task, s.obs_clip, s.noise_scale, s.n_elites, s.member_mode, s.uncertainty)
+                   for s in sims}
         if len(statics) != 1:
             raise SystemExit(f"set: the families' simulators differ in {statics}; they must "
-                             f"share task, obs_clip and sim_noise to be fine-tuned together")
+                             f"share task, obs_clip, sim_noise and the ensemble's rollout settings "
+                             f"to be fine-tuned together")
         sims = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *sims)
         horizon = configs["adversarial"].vd_horizon
         n_envs = sizes["sac_envs"]

@@ -1,11 +1,14 @@
 """Checkpoints: orbax CheckpointManager holding, per saved step,
 
 - ``state``: the whole TrainState (exact resume: keys, optimisers, buffers, selection);
-- ``simulator``: just the generator and its normaliser (what evaluation needs);
+- ``simulator``: what evaluation needs: the generator ensemble (the moving average when the
+  config has ``ema_decay``), its members' ranks and the normaliser;
 - ``meta``: JSON with the TrainConfig and what the data looked like (task, sizes, policy names).
 
 ``load_simulator(dir)`` rebuilds a ``Simulator`` from ``simulator`` + ``meta`` alone, in a fresh
-process and without the training data.
+process and without the training data. Format 3 (the ensemble model family) is written; a
+format-2 checkpoint (one generator, before the family) still loads for evaluation as a
+one-member ensemble, but cannot be resumed.
 
 Broken steps (a truncated JSON file, a missing or truncated array file, a missing item): every
 load names the step and what is wrong with it. Without an explicit step, loads (evaluation and
@@ -28,11 +31,12 @@ import jax
 import numpy as np
 import orbax.checkpoint as ocp
 
+from rl2s_jax import dynamics as dyn
 from rl2s_jax.models import Normalizer, init_generator
 from rl2s_jax.simulate import Simulator
-from rl2s_jax.train import TrainConfig, TrainState
+from rl2s_jax.train import LEGACY_MODEL, TrainConfig, TrainState, simulator
 
-FORMAT_VERSION = 2  # 2: Normalizer.obs_input_mask
+FORMAT_VERSION = 3  # 2: Normalizer.obs_input_mask; 3: the ensemble model family
 ITEMS = ("state", "simulator", "meta")
 META_KEYS = ("format_version", "step", "config")
 
@@ -86,7 +90,8 @@ class Checkpointer:
             return step
         meta = {"format_version": FORMAT_VERSION, "step": step,
                 "config": state.config.to_dict(), **meta}
-        sim = {"gen": state.gen, "norm": state.norm}
+        sim_ = simulator(state)
+        sim = {"gen": sim_.gen, "norm": sim_.norm, "rank": sim_.rank}
         self._mgr.save(step, args=ocp.args.Composite(
             state=ocp.args.StandardSave(state), simulator=ocp.args.StandardSave(sim),
             meta=ocp.args.JsonSave(meta)), force=True)
@@ -103,6 +108,13 @@ class Checkpointer:
         """The saved TrainState at ``step`` (default: the newest intact step), shaped like
         ``template``. Raises CheckpointError if it was trained with another config."""
         def load(s: int) -> TrainState:
+            version = self._read_meta(s).get("format_version")
+            if version != FORMAT_VERSION:
+                raise CheckpointError(
+                    f"checkpoint: {self.directory} step {s} holds format_version {version!r}, "
+                    f"this code resumes {FORMAT_VERSION} (the ensemble model family); "
+                    f"load_simulator still evaluates it, but training must start in a new "
+                    f"--out directory")
             saved = self._config(s)
             if saved != template.config:
                 new = template.config.to_dict()
@@ -194,8 +206,8 @@ class Checkpointer:
         missing = [k for k in META_KEYS if k not in meta]
         if missing:
             raise _Broken(f"meta/metadata lacks {missing}")
-        if meta["format_version"] != FORMAT_VERSION:
-            raise CheckpointError(f"ckpt: format_version {FORMAT_VERSION} expected, got "
+        if meta["format_version"] not in (2, FORMAT_VERSION):  # 2 loads for evaluation only
+            raise CheckpointError(f"ckpt: format_version 2 or {FORMAT_VERSION} expected, got "
                                   f"{meta['format_version']!r} in {self.directory} step {step}")
         return meta
 
@@ -299,17 +311,33 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None
 
     def load(s: int) -> tuple[Simulator, dict]:
         meta = ck._read_meta(s)
-        cfg = ck._config(s)
+        version = meta.get("format_version")
+        if version not in (2, FORMAT_VERSION):
+            raise CheckpointError(f"ckpt: format_version 2 or {FORMAT_VERSION} expected, got "
+                                  f"{version!r} in {directory} step {s}")
+        if version == 2:  # one generator (a list of layers), trained before the family
+            cfg = TrainConfig.from_dict({**meta["config"], **LEGACY_MODEL})
+        else:
+            cfg = ck._config(s)
         try:
             o, a = int(meta["data"]["obs_size"]), int(meta["data"]["action_size"])
         except (KeyError, TypeError, ValueError):
             raise _Broken("meta/metadata lacks data.obs_size / data.action_size") from None
-        template = jax.eval_shape(lambda: {
-            "gen": init_generator(jax.random.PRNGKey(0), o, a, cfg.gen_hidden),
-            "norm": Normalizer.from_data(np.zeros((2, o)), np.zeros((2, a)), np.zeros((2, o)))})
+        norm = Normalizer.from_data(np.zeros((2, o)), np.zeros((2, a)), np.zeros((2, o)))
+        if version == 2:
+            template = jax.eval_shape(lambda: {
+                "gen": init_generator(jax.random.PRNGKey(0), o, a, cfg.gen_hidden),
+                "norm": norm})
+        else:
+            template = jax.eval_shape(lambda: {
+                "gen": dyn.init_ensemble(jax.random.PRNGKey(0), cfg.dynamics_spec, o, a,
+                                         cfg.ensemble_size),
+                "norm": norm, "rank": jax.numpy.zeros((cfg.ensemble_size,), jax.numpy.int32)})
         sim = ck._restore_item(s, "simulator", ocp.args.StandardRestore(template))
-        return Simulator(gen=sim["gen"], norm=sim["norm"], task=cfg.task, obs_clip=cfg.obs_clip,
-                         noise_scale=cfg.sim_noise), meta
+        return Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"), task=cfg.task,
+                         obs_clip=cfg.obs_clip, noise_scale=cfg.sim_noise,
+                         n_elites=cfg.n_elites, member_mode=cfg.member_mode,
+                         uncertainty=cfg.uncertainty), meta
 
     try:
         return ck.load_intact(step, ("meta", "simulator"), load)[1]

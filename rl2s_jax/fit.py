@@ -28,7 +28,7 @@ class TrainingDiverged(RuntimeError):
                          f"{', '.join(quantities)}{where}")
 
 
-_train_chunk = jax.jit(train_steps, static_argnums=2)
+_train_chunk = jax.jit(train_steps, static_argnames=("n_steps", "phase"))
 
 
 def _first_bad(metrics: dict[str, np.ndarray]) -> tuple[int, list[str]] | None:
@@ -50,7 +50,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     """Train until ``state.step == n_steps`` (a resumed state continues where it stopped).
 
     Chunks of ``chunk`` steps run as one compiled scan; checkpoints land at every multiple of
-    ``save_every`` and at the end. Metrics of every step are appended as JSON lines to
+    ``save_every`` and at the end; with pre-training a chunk never straddles
+    ``pretrain_steps`` (each runs one phase only). Metrics of every step are appended to
     ``metrics_path``. ``on_eval(state)`` runs at every multiple of ``eval_every`` (chunks end
     there too). Raises TrainingDiverged (after saving the last good state) on NaN/Inf.
     -> (final state, metrics stacked over the steps run here).
@@ -76,8 +77,11 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
             n = min(chunk, n_steps - step, save_every - step % save_every)
             if eval_every:
                 n = min(n, eval_every - step % eval_every)
+            phase = state.config.phase(step)
+            if phase == "pretrain":
+                n = min(n, state.config.pretrain_steps - step)
             t0 = time.perf_counter()
-            new_state, metrics = _train_chunk(state, data, n)
+            new_state, metrics = _train_chunk(state, data, n_steps=n, phase=phase)
             metrics = jax.device_get(metrics)
             seconds = time.perf_counter() - t0
             bad = _first_bad(metrics)
@@ -150,14 +154,18 @@ def policies_for(ds, zoo: str | None = None):
 
 def make_config(ds, method: str, profile: str, eps: float | None = None,
                 overrides: dict | None = None):
-    """The TrainConfig for ``ds``: the paper-size defaults ('gpu') or the CPU-size ones."""
+    """The TrainConfig for ``ds``: 'gpu' = the paper's sizes with the ensemble model family
+    (7 members of 4x512, 5 elites, 200 pre-training steps; TrainConfig's defaults), 'cpu' =
+    ``TrainConfig.small`` (3 members of 2x64) with 100 pre-training steps and 5 critic
+    warm-up steps. ``overrides``: field -> value (``--set``)."""
     from rl2s_jax.train import TrainConfig
 
     ep_len = ds.meta.get("episode_length") or 1000
     base = dict(task=ds.meta["task"], method=method, eps=eps,
                 gamma=float(ds.meta.get("gamma") or 0.999))
     if profile == "cpu":
-        cfg = TrainConfig.small(vd_horizon=min(100, ep_len), **base)
+        cfg = TrainConfig.small(vd_horizon=min(100, ep_len), pretrain_steps=100,
+                                disc_warmup_steps=5, **base)
     elif profile == "gpu":
         cfg = TrainConfig(vd_horizon=ep_len, **base)
     else:

@@ -2,7 +2,7 @@
 # Build zoos on the GPU machine (device tool), the given tasks side by side on the one GPU, each
 # inside one call (issue 15):
 #   [ZOO_LIMIT=320] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="--seeds 3 ..."] [ZOO_EXPORT=1] \
-#     [ZOO_IMPORT=DIR] bash experiments/device_zoo.sh TASK [TASK ...]
+#     [ZOO_IMPORT=DIR] [ZOO_MEM_FRACTION=0.45] bash experiments/device_zoo.sh TASK [TASK ...]
 # Each task runs `rl2s zoo --task T --time-limit $ZOO_LIMIT --final`: it trains (resuming from
 # /tmp/work/zoo_<task> when this machine ran it before) until the time limit or its env-step
 # budget, then measures every snapshot (16 episodes x 1000 steps), chooses the zoo and writes
@@ -12,7 +12,7 @@
 # ZOO_IMPORT=DIR. Needs the wheels from ../shared/tools/device-wheels carried as .whl.
 set -u
 source experiments/device_env.sh
-export XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $#, 2))")
+export XLA_PYTHON_CLIENT_MEM_FRACTION=${ZOO_MEM_FRACTION:-$(python3 -c "print(round(0.9 / $#, 2))")}
 nvidia-smi -L
 python3 -c "import jax; print('jax', jax.__version__, jax.devices())"
 for task in "$@"; do

@@ -10,7 +10,8 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--improve-variants full,branched,full+penalty,branched+penalty,full+stop]
         [--ablation-methods rl2s]
         [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
-        [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--set field=value ...]
+        [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
+        [--set field=value ...]
 
 Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
 by a time limit still leaves what it finished, with "complete": false):
@@ -19,6 +20,10 @@ by a time limit still leaves what it finished, with "complete": false):
    run over all the zoo's policies (split "all": one MJX program), split into the zoo's train
    and test policies with ``Dataset.select_policies``; reused from --data-dir when the sizes
    match.
+1b. oracle: the control, ``assess.evaluate_oracle`` (the real MJX dynamics stepped from each
+   observation through the lanes' evaluation path: same start states, horizon, gamma and
+   episodes, key PRNGKey(1000 + seed) per seed): the "oracle" row, the ceiling of any simulator
+   of this observation under this protocol (--no-oracle skips it).
 2. training: the four methods x S seeds as TWO vmapped programs, as experiments/eps_sweep.py:
    eps is a state leaf, so ``rl2s`` (eps 0.25) and ``gail`` (eps 1) are lanes of one
    adversarial program (config method "rl2s"), ``rl2s-bc`` (eps 0.25) and ``bc`` (eps 1)
@@ -30,7 +35,9 @@ by a time limit still leaves what it finished, with "complete": false):
    ``assess.evaluate_simulator`` does (simulated discounted value over the config's vd_horizon
    from the test data's start states, ``evaluate.ranking_metrics`` against the true values),
    vmapped over the lanes, with key PRNGKey(1000 + seed). The last evaluation (at --steps) is
-   the final one.
+   the final one; it gets 95% bootstrap intervals over its episodes (--bootstrap N
+   replicates; ``evaluate.bootstrap_intervals``), per lane in "lane_intervals" and averaged
+   over seeds in "intervals".
 3. improvement: for the first --improve-seeds seeds, SAC fine-tunes --improve-policies test
    policies (spread evenly over their true returns; 0: all) inside each method's
    simulator (all methods x seeds x policies as one vmapped program), then the fine-tuned
@@ -41,8 +48,9 @@ by a time limit still leaves what it finished, with "complete": false):
    of ``full`` (whole episodes from the data's start states), ``branched`` (MBPO:
    ``--branch-length`` steps from every real state of the test data), ``penalty`` (MOPO:
    r - ``--uncertainty-penalty`` * u) and ``stop`` (MOReL: end when u >
-   ``--uncertainty-threshold``), u being the simulator's ``uncertainty`` in units of its
-   mean on the test data): the first variant fills MPI/API (Table 2) from every lane, the
+   ``--uncertainty-threshold``), u being the ensemble's disagreement
+   (``sim_env.simulator_uncertainty``; needs >= 2 elites, so not --model legacy) in units of
+   its mean on the test data): the first variant fills MPI/API (Table 2) from every lane, the
    others run in the lanes of ``--ablation-methods`` only; every variant goes to
    ``ablation``. ``--control`` runs the same fine-tuning (same policies, budget and SAC
    settings) in the real env, ``--control-seeds`` times, with real returns before and after
@@ -66,15 +74,24 @@ import numpy as np
 from rl2s_jax.cli import _overrides, collect_dataset
 from rl2s_jax.collect import measure_values
 from rl2s_jax.data import load_dataset, save_dataset
-from rl2s_jax.evaluate import ranking_metrics
+from rl2s_jax.evaluate import bootstrap_intervals, ranking_metrics
 from rl2s_jax.fit import make_config, policies_for
 from rl2s_jax.improve import improve_in_real_env, improvement_metrics
 from rl2s_jax.policies import index_params
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sim_env import SimulatorEnv, branch_pool, real_rows, scaled_env_options
-from rl2s_jax.simulate import Simulator, simulated_values, start_pool
+from rl2s_jax.simulate import Simulator, simulated_returns, start_pool
 from rl2s_jax.tasks import get_task, task_names
-from rl2s_jax.train import DEFAULT_EPS, init, make_train_data, simulator, train_steps, true_values
+from rl2s_jax.train import (
+    DEFAULT_EPS,
+    LEGACY_MODEL,
+    init,
+    make_train_data,
+    simulator,
+    train_steps,
+    true_values,
+    true_values_se,
+)
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 # (family, config method, its lanes' methods): one vmapped program per family.
@@ -170,28 +187,89 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
 
 
 @partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
-def _lane_values(sims: Simulator, policies, pool, keys, *, n_episodes, horizon, gamma):
-    """assess._sim_values vmapped over lanes: sims and keys carry a leading lane axis."""
+def _lane_returns(sims: Simulator, policies, pool, keys, *, n_episodes, horizon, gamma):
+    """assess._sim_returns vmapped over lanes: sims and keys carry a leading lane axis.
+    -> (returns, lengths) [L, P, n]"""
     task = get_task(sims.task)
-    return jax.vmap(lambda sim, key: simulated_values(
+    return jax.vmap(lambda sim, key: simulated_returns(
         policies, sim.dynamics, task.reward_fn, task.done_fn, pool, key,
         n_episodes=n_episodes, horizon=horizon, gamma=gamma))(sims, keys)
 
 
 def evaluate_lanes(states, seeds, test_ds, test_pols, truth, *, n_episodes, horizon, gamma):
     """evaluate_simulator's metrics for every lane of a vmapped TrainState.
-    -> (list of metric dicts (None where the simulated values are not finite), values [L, P])"""
+    -> (list of metric dicts (None where the simulated values are not finite), values [L, P],
+    per-episode returns [L, P, n])"""
     keys = jnp.stack([jax.random.PRNGKey(1000 + s) for s in seeds])
-    values, _ = _lane_values(simulator(states), test_pols, start_pool(test_ds), keys,
-                             n_episodes=n_episodes, horizon=horizon, gamma=gamma)
-    values = np.asarray(values, np.float64)
+    returns, _ = _lane_returns(simulator(states), test_pols, start_pool(test_ds), keys,
+                               n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    returns = np.asarray(returns, np.float64)
+    values = returns.mean(-1)
     out = []
     for v in values:
         try:
             out.append(ranking_metrics(truth, v, ks=(1, 3, 5, 10)))
         except ValueError:  # non-finite simulated values: the lane diverged
             out.append(None)
-    return out, values
+    return out, values, returns
+
+
+def intervals_over_seeds(per_seed: list[dict | None]) -> dict:
+    """Each metric's mean over seeds of the per-seed bootstrap interval ends and std:
+    {metric: {"lo", "hi", "std"}} (an episode-noise interval; the spread over seeds is the
+    result's "std")."""
+    rows = [r for r in per_seed if r is not None]
+    if not rows:
+        return {}
+    return {k: {q: float(np.mean([r[k][q] for r in rows])) for q in ("lo", "hi", "std")}
+            for k in rows[0]}
+
+
+def oracle_rows(task: str, test_ds, test_pols, seeds, *, n_episodes, horizon, gamma,
+                n_boot: int) -> dict:
+    """The control: ``assess.evaluate_oracle`` (the real dynamics through the lanes' evaluation
+    path: same start states, horizon, gamma, episodes) once per seed with the lanes' key
+    PRNGKey(1000 + seed). -> {"per_seed": {metric: [S]}, "intervals": [S], "sim_value": [S][P]}"""
+    from rl2s_jax.assess import evaluate_oracle
+
+    env = get_task(task).make_env()
+    out = {"per_seed": {k: [] for k in EVAL_METRICS}, "intervals": [], "sim_value": []}
+    for s in seeds:
+        r = evaluate_oracle(task, test_ds, test_pols, key=jax.random.PRNGKey(1000 + s),
+                            n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                            n_boot=n_boot, env=env)
+        for k in EVAL_METRICS:
+            out["per_seed"][k].append(r["metrics"][k])
+        out["intervals"].append(r.get("intervals", {}).get("metrics"))
+        out["sim_value"].append(r["sim_value"])
+    return out
+
+
+# ------------------------------------------------------------------ training of lanes
+
+
+def _lane_chunk(st, d, n, phase):
+    st, m = train_steps(st, d, n, phase)
+    return st, {"finite": jnp.all(m["finite"]), "avd_train": m["avd_train"][-1],
+                "mvd_train": m["mvd_train"][-1], "n_selected": m["n_selected"][-1]}
+
+
+def train_lanes(states, data, n: int, cfg, compiled: dict):
+    """n train_steps of every lane (states vmapped over lanes) -> (states, metrics of the last
+    step; "finite" over all n). Pieces end at the pre-training boundary, so each compiled
+    program (cached in ``compiled`` by (steps, phase)) runs one phase: its static ``phase``."""
+    done, m = 0, None
+    while done < n:
+        step = int(states.step[0])
+        ph = cfg.phase(step)
+        k = min(n - done, cfg.pretrain_steps - step) if ph == "pretrain" else n - done
+        if (k, ph) not in compiled:
+            compiled[k, ph] = jax.jit(jax.vmap(partial(_lane_chunk, n=k, phase=ph),
+                                               in_axes=(0, None)))
+        states, mk = compiled[k, ph](states, data)
+        m = mk if m is None else {**mk, "finite": jnp.logical_and(m["finite"], mk["finite"])}
+        done += k
+    return states, m
 
 
 # ------------------------------------------------------------------ improvement
@@ -304,7 +382,7 @@ def control_entry(res: dict, ids: list[int], c0_data: np.ndarray, n_seeds: int,
 def summarise(result: dict) -> None:
     """Fill result["methods"] (mean over seeds), ["std"] (sample std, None for one value) and
     ["n"] (values averaged) from result["per_seed"]."""
-    for m, per in result["per_seed"].items():
+    for m, per in result["per_seed"].items():  # the methods and "oracle"
         mean, std, n = {}, {}, {}
         for k in METRICS:
             vals = [v for v in per.get(k, []) if v is not None]
@@ -322,10 +400,23 @@ def write(path: str, result: dict) -> None:
     os.replace(tmp, path)
 
 
+def zoo_sha256(task: str) -> str | None:
+    """sha256 of experiments/zoo/<task>/zoo.npz, the zoo the result was measured on."""
+    import hashlib
+
+    from rl2s_jax.policies import zoo_dir
+
+    path = os.path.join(zoo_dir(task), "zoo.npz")
+    if not os.path.exists(path):
+        return None
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
 def table(result: dict) -> str:
     cols = ("kendall_tau", "ndcg@1", "ndcg@5", "spearman", "avd", "mvd", "mpi", "api")
     lines = [f"{'method':<9}" + "".join(f"{c:>16}" for c in cols)]
-    for m in METHODS:
+    for m in METHODS + (("oracle",) if "oracle" in result["methods"] else ()):
         cells = []
         for c in cols:
             v, s = result["methods"][m].get(c), result["std"][m].get(c)
@@ -383,8 +474,16 @@ def build_parser() -> argparse.ArgumentParser:
                     "when u exceeds this, same units (variant 'stop')")
     ap.add_argument("--halt-penalty", type=float, default=0.0, help="reward subtracted when "
                     "the stop rule ends a rollout (variant 'stop')")
+    ap.add_argument("--model", choices=("ensemble", "legacy"), default="ensemble",
+                    help="the generator: the ensemble model family with MLE pre-training "
+                    "(TrainConfig's defaults) or the single generator trained from scratch "
+                    "that preceded it (train.LEGACY_MODEL); --set overrides either")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
+    ap.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
+                    "95%% intervals over evaluation episodes (0: none)")
+    ap.add_argument("--no-oracle", dest="oracle", action="store_false", help="skip the control "
+                    "(the real dynamics through the same evaluation path)")
     ap.add_argument("--out", default="results/paper")
     ap.add_argument("--data-dir", help="where train/test .npz live (default: --out)")
     ap.add_argument("--check-eval", action="store_true", help="also run "
@@ -402,7 +501,10 @@ def _sac_overrides(items) -> dict:
     if unknown:
         raise SystemExit(f"sac-set: unknown SACConfig field(s) {unknown}; known: "
                          f"{sorted(fields)}")
-    for k in ("hidden", "actor_hidden"):
+    if out.get("normalize_observations"):
+        raise SystemExit("sac-set: normalize_observations is for training from scratch; a "
+                         "fine-tuned policy keeps its own observation normaliser")
+    for k in ("hidden", "actor_hidden", "ignore_obs_dims"):
         if k in out:
             out[k] = tuple(out[k])
     try:
@@ -429,6 +531,8 @@ def resolve_sizes(args, profile: str) -> dict:
     sizes["sac_updates_per_step"] = args.sac_updates_per_step
     sizes["sac_chunk"] = args.sac_chunk
     sizes["episode_length"] = args.episode_length
+    sizes["bootstrap"] = max(0, args.bootstrap)
+    sizes["oracle"] = args.oracle
     return sizes
 
 
@@ -459,7 +563,8 @@ def main(argv=None) -> int:
 
     log(f"[paper] task {args.task} on {device} ({backend}, jax {jax.__version__}), profile "
         f"{profile}, {S} seeds -> {path}\n[paper] sizes {sizes}")
-    result = {"task": args.task, "methods": {}, "std": {}, "n": {}, "seeds": S,
+    result = {"task": args.task, "model": args.model, "methods": {}, "std": {}, "n": {},
+              "seeds": S,
               "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
               "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
               "command": " ".join(["python", "experiments/paper.py", *argv]),
@@ -481,15 +586,40 @@ def main(argv=None) -> int:
     train_pols, test_pols = policies_for(train_ds), policies_for(test_ds)
     result["test_policy_names"] = list(test_ds.meta.get("policy_names") or [])
     result["true_value_undiscounted"] = np.asarray(test_ds.value, np.float64).tolist()
+    result["zoo_sha256"] = zoo_sha256(args.task)
+
+    # ---- 1b. the control: the real dynamics through the same evaluation path
+    if sizes["oracle"]:
+        t0 = time.perf_counter()
+        cfg = make_config(train_ds, "rl2s", profile, overrides=_overrides(args.set))
+        orc = oracle_rows(args.task, test_ds, test_pols, range(S),
+                          n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
+                          gamma=cfg.gamma, n_boot=sizes["bootstrap"])
+        result["per_seed"]["oracle"] = {**orc["per_seed"], "mpi": [], "api": []}
+        result["lane_intervals"] = {"oracle": orc["intervals"]}
+        result["intervals"] = {"oracle": intervals_over_seeds(orc["intervals"])}
+        result["oracle_sim_value"] = orc["sim_value"]
+        phase("oracle", t0)
+        write(path, result)
+        log(f"[paper] oracle (real dynamics, horizon {cfg.vd_horizon}): "
+            + "  ".join(f"{k} {np.mean(v):.3f}" for k, v in orc["per_seed"].items()
+                        if k in ("kendall_tau", "ndcg@1", "spearman", "avd", "mvd")))
 
     # ---- 2. training, one vmapped program per family
-    overrides = _overrides(args.set)
+    overrides = {**(LEGACY_MODEL if args.model == "legacy" else {}), **_overrides(args.set)}
     robust_eps = overrides.pop("eps", None)
     finals, configs = {}, {}
     for family, cfg_method, methods in FAMILIES:
         t0 = time.perf_counter()
         cfg = make_config(train_ds, cfg_method, profile, overrides=overrides)
         configs[family] = cfg
+        uses_u = [v for v in variants if {"penalty", "stop"} & set(v.split("+"))]
+        if (uses_u and sizes["improve_iterations"] and sizes["improve_seeds"]
+                and min(cfg.ensemble_size, cfg.n_elites) < 2):
+            raise SystemExit(f"improve-variants: {', '.join(uses_u)} need u = the ensemble's "
+                             f"disagreement, i.e. >= 2 elites; the {family} model has "
+                             f"ensemble_size {cfg.ensemble_size}, n_elites {cfg.n_elites} "
+                             f"(--model legacy has one member)")
         data = make_train_data(train_ds, train_pols, cfg)
         truth = true_values(test_ds, cfg.vd_horizon, cfg.gamma)
         lanes = [(m, s) for m in methods for s in range(S)]
@@ -505,22 +635,17 @@ def main(argv=None) -> int:
             f", config method {cfg_method}; init {time.perf_counter() - t0:.1f}s")
         n = sizes["eval_every"]
 
-        def chunk(st, d, n=n):
-            st, m = train_steps(st, d, n)
-            return st, {"finite": jnp.all(m["finite"]), "avd_train": m["avd_train"][-1],
-                        "mvd_train": m["mvd_train"][-1], "n_selected": m["n_selected"][-1]}
-
-        run = jax.jit(jax.vmap(chunk, in_axes=(0, None)))
+        compiled = {}
         evals = None
         t_eval = 0.0
         for _ in range(sizes["steps"] // n):
             t1 = time.perf_counter()
-            states, m = jax.block_until_ready(run(states, data))
+            states, m = jax.block_until_ready(train_lanes(states, data, n, cfg, compiled))
             seconds = time.perf_counter() - t1
             t1 = time.perf_counter()
-            evals, _values = evaluate_lanes(states, [s for _, s in lanes], test_ds, test_pols,
-                                            truth, n_episodes=sizes["eval_episodes"],
-                                            horizon=cfg.vd_horizon, gamma=cfg.gamma)
+            evals, _values, _returns = evaluate_lanes(
+                states, [s for _, s in lanes], test_ds, test_pols, truth,
+                n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
             t_eval += time.perf_counter() - t1
             step = int(states.step[0])
             log(f"[paper] {family} step {step}: {n} steps of {len(lanes)} lanes in "
@@ -540,10 +665,18 @@ def main(argv=None) -> int:
                     f"{fmt(row['ndcg@1'], '.3f')}  train AVD {fmt(row['avd_train'], '.1f')}"
                     f"  selected {int(m['n_selected'][i])}"
                     f"{'' if row['finite'] else '  NON-FINITE'}")
+        truth_se = true_values_se(test_ds, cfg.vd_horizon, cfg.gamma)
         for i, (meth, s) in enumerate(lanes):
             r = evals[i]
             for k in EVAL_METRICS:
                 result["per_seed"][meth][k].append(None if r is None else r[k])
+            iv = None
+            if r is not None and sizes["bootstrap"] and np.all(np.isfinite(_returns[i])):
+                iv = bootstrap_intervals(truth, _returns[i], truth_se, n_boot=sizes["bootstrap"],
+                                         seed=s, ks=(1, 3, 5, 10))["metrics"]
+            result.setdefault("lane_intervals", {}).setdefault(meth, []).append(iv)
+            result.setdefault("intervals", {})[meth] = intervals_over_seeds(
+                result["lane_intervals"][meth])
             result["lanes"][f"{meth}/{s}"] = {
                 "family": family, "eps": eps[i], "seed": s,
                 "sim_value": np.asarray(_values[i]).tolist(),
@@ -597,10 +730,12 @@ def main(argv=None) -> int:
             idx = [i for i, (_, s) in enumerate(fam_lanes) if s < sizes["improve_seeds"]]
             lanes += [fam_lanes[i] for i in idx]
             sims.append(_take(simulator(states), idx))
-        statics = {(s.task, s.obs_clip, s.noise_scale) for s in sims}
+        statics = {(s.task, s.obs_clip, s.noise_scale, s.n_elites, s.member_mode, s.uncertainty)
+                   for s in sims}
         if len(statics) != 1:
             raise SystemExit(f"set: the families' simulators differ in {statics}; they must "
-                             f"share task, obs_clip and sim_noise to be fine-tuned together")
+                             f"share task, obs_clip, sim_noise and the ensemble's rollout settings "
+                             f"to be fine-tuned together")
         sims = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *sims)
         keys = jnp.stack([jax.random.split(jax.random.fold_in(jax.random.PRNGKey(10 + s),
                                                               METHODS.index(m)), len(ids))

@@ -4,9 +4,11 @@ markdown file (replaced on every run, appended when absent).
     python experiments/paper_tables.py [--results docs/results] [--out docs/RESULTS.md]
 
 Reads RESULTS/<task>.json for the tasks hopper, walker2d, halfcheetah, ant (those present) and
-writes: Table 1 (Kendall tau and nDCG@1/3/5/10 per task and method), Table 2 (MPI / API), an
-AVD / MVD table, each cell "mean ± std (n seeds)" beside the paper's published number, and the
-quality bars per task (met / MISSED). Needs no JAX.
+writes: Table 1 (Kendall tau and nDCG@1/3/5/10 per task and method, plus the oracle control),
+Table 2 (MPI / API, plus the real-env control row of paper.py --control and, when a task ran
+several --improve-variants, MPI / API per variant), an AVD / MVD table, each cell
+"mean ± std (n seeds) [95% interval]" beside the paper's published number, and the quality
+bars per task (met / MISSED). Needs no JAX.
 """
 from __future__ import annotations
 
@@ -20,22 +22,55 @@ TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 BEGIN, END = "<!-- paper-tables:begin -->", "<!-- paper-tables:end -->"
 
-# The paper's published numbers: PAPER[metric][method][task] -> number, or a string for a
-# bound. Only numbers we could source are here; the tables print "n/a" for everything else.
-# The paper's text was not reachable while this was written (searched: web pages, docs, the
-# official code apexrl/RL2S, whose README gives commands but no results). The values below are
-# as quoted in this project's issue, NOT checked against the paper; they carry the mark "†".
-PAPER = {
-    "kendall_tau": {"rl2s": {"hopper": 0.35, "walker2d": 0.23, "halfcheetah": 0.87,
-                             "ant": 0.80}},
-    "mpi": {"rl2s": {"ant": "< 0"}},
+# The paper's published numbers (../shared/PAPER.md, copied from its Tables 1 and 2): ranking
+# on its test set of 20 policies, improvement on its 8 (Ant 14). PAPER[metric][method][task].
+_T1 = {  # task: (tau, nDCG@1, @3, @5, @10) for RL2S, GAIL, RL2S-BC, BC
+    "hopper": (
+        (0.3474, 0.9464, 0.8326, 0.6843, 0.7326),
+        (-0.1895, 0.0177, 0.2448, 0.3971, 0.5111),
+        (-0.2842, 0.0177, 0.1507, 0.231, 0.3515),
+        (-0.0632, 0.5868, 0.3816, 0.4501, 0.513),
+    ),
+    "walker2d": (
+        (0.2316, 0.7954, 0.9069, 0.8988, 0.8859),
+        (-0.0737, 0.6591, 0.7311, 0.7474, 0.7622),
+        (-0.5474, 0.6184, 0.5614, 0.5971, 0.703),
+        (0.0632, 0.6672, 0.5497, 0.6357, 0.7348),
+    ),
+    "halfcheetah": (
+        (0.8737, 1.0, 0.9691, 0.9922, 0.9944),
+        (0.8211, 0.9878, 0.9385, 0.9667, 0.9882),
+        (0.4947, 0.6191, 0.7839, 0.8013, 0.869),
+        (0.6, 0.9878, 0.9652, 0.943, 0.919),
+    ),
+    "ant": (
+        (0.8, 1.0, 1.0, 0.9872, 0.9943),
+        (0.6211, 0.8601, 0.9186, 0.9609, 0.9358),
+        (0.2632, 0.665, 0.6888, 0.6988, 0.8093),
+        (0.4105, 1.0, 0.9106, 0.9587, 0.9174),
+    ),
 }
-PAPER_MARK = "†"
-PAPER_NOTE = (f"{PAPER_MARK} as quoted in the project's issue (RL2S Kendall tau per task; Ant's "
-              "MPI negative), not checked against the paper, whose tables could not be "
-              "reached from here; n/a: no published number found. The paper's zoos, data "
-              "sizes and training budgets differ from ours, so its numbers are a reference, "
-              "not a like-for-like comparison.")
+_T2 = {  # task: (MPI, API) for RL2S, GAIL, RL2S-BC, BC
+    "hopper": ((0.0293, 2.9400), (0.0039, 0.9758), (0.0124, 0.9587), (0.0090, 0.9235)),
+    "walker2d": ((0.0067, 0.2306), (0.0065, 0.1458), (0.0032, 0.2178), (-0.0045, 0.1915)),
+    "halfcheetah": ((0.0143, 0.0717), (0.0058, 0.0529), (0.0129, 0.0598), (0.0099, 0.0630)),
+    "ant": ((-0.021, 0.0379), (-0.027, 0.0325), (-0.0232, 0.0295), (-0.0352, 0.0308)),
+}
+_PAPER_METHODS = ("rl2s", "gail", "rl2s-bc", "bc")
+PAPER: dict[str, dict[str, dict[str, float]]] = {}
+for _table, _metrics in ((_T1, ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10")),
+                         (_T2, ("mpi", "api"))):
+    for _task, _rows in _table.items():
+        for _method, _row in zip(_PAPER_METHODS, _rows, strict=True):
+            for _metric, _v in zip(_metrics, _row, strict=True):
+                PAPER.setdefault(_metric, {}).setdefault(_method, {})[_task] = _v
+PAPER_NOTE = ("paper: the RL2S paper's Tables 1 and 2 (../shared/PAPER.md; its ranking test set "
+              "has 20 policies, its AVD/MVD appear only as curves: n/a). Its zoos, data sizes "
+              "and training budgets differ from ours, so its numbers are a reference, not a "
+              "like-for-like comparison. oracle: the real dynamics through the same evaluation "
+              "path (the ceiling of any simulator of this observation under this protocol). "
+              "[lo, hi]: 95% bootstrap interval over evaluation episodes (mean over seeds of "
+              "the per-seed ends).")
 
 TABLE1 = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10")
 TABLE2 = ("mpi", "api")
@@ -51,6 +86,7 @@ BARS = (
     ("mvd", "RL2S MVD < GAIL's and BC's"),
     ("mpi", "RL2S MPI > 0"),
     ("control", "real-env control MPI > 0"),
+    ("oracle", "oracle tau / nDCG@1 (the ceiling)"),
 )
 
 
@@ -85,33 +121,41 @@ def stats(result: dict, method: str, metric: str) -> tuple[float | None, float |
     return float(mean), None if std is None else float(std), int(n)
 
 
-def fmt_cell(mean, std, n, digits: int = 3) -> str:
+def fmt_cell(mean, std, n, digits: int = 3, interval: dict | None = None) -> str:
     if mean is None:
         return "n/a"
     seeds = f"({n} seed{'s' if n != 1 else ''})"
-    if std is None:
-        return f"{mean:.{digits}f} {seeds}"
-    return f"{mean:.{digits}f} ± {std:.{digits}f} {seeds}"
+    text = (f"{mean:.{digits}f} {seeds}" if std is None
+            else f"{mean:.{digits}f} ± {std:.{digits}f} {seeds}")
+    if interval:
+        text += f" [{interval['lo']:.{digits}f}, {interval['hi']:.{digits}f}]"
+    return text
+
+
+def interval_of(result: dict, method: str, metric: str) -> dict | None:
+    return ((result.get("intervals") or {}).get(method) or {}).get(metric)
 
 
 def paper_cell(metric: str, method: str, task: str) -> str:
     v = PAPER.get(metric, {}).get(method, {}).get(task)
-    if v is None:
-        return "n/a"
-    return f"{v}{PAPER_MARK}" if isinstance(v, str) else f"{v:.2f}{PAPER_MARK}"
+    return "n/a" if v is None else f"{v:.4f}"
 
 
-def metric_table(results: dict, metrics) -> list[str]:
+def metric_table(results: dict, metrics, with_oracle: bool = True) -> list[str]:
     head = "| task | method | " + " | ".join(f"{NAMES[m]} | paper" for m in metrics) + " |"
     rule = "|---|---|" + "---:|---:|" * len(metrics)
     rows = [head, rule]
     for task in TASKS:
         if task not in results:
             continue
-        for method in METHODS:
+        r = results[task]
+        rows_for = METHODS + (("oracle",) if with_oracle and "oracle" in (
+            r.get("per_seed") or {}) else ())
+        for method in rows_for:
             cells = []
             for m in metrics:
-                cells.append(fmt_cell(*stats(results[task], method, m), DIGITS.get(m, 3)))
+                cells.append(fmt_cell(*stats(r, method, m), DIGITS.get(m, 3),
+                                      interval_of(r, method, m)))
                 cells.append(paper_cell(m, method, task))
             rows.append(f"| {task} | {method} | " + " | ".join(cells) + " |")
     return rows
@@ -135,6 +179,9 @@ def bars(result: dict) -> dict[str, tuple[bool | None, str]]:
     out["mpi"] = (None if mpi is None else mpi > 0, "n/a" if mpi is None else f"{mpi:.3f}")
     c = (result.get("control") or {}).get("mpi")
     out["control"] = (None if c is None else c > 0, "n/a" if c is None else f"{c:.3f}")
+    ot, on = mean("oracle", "kendall_tau"), mean("oracle", "ndcg@1")
+    out["oracle"] = (None if ot is None else (ot >= 0.8 and on >= 0.95),
+                     "n/a" if ot is None else f"{ot:.3f} / {on:.3f}")
     return out
 
 
@@ -213,7 +260,7 @@ def render(results: dict, source: str) -> str:
     lines += ["", "### Table 1: ranking the test policies", ""]
     lines += metric_table(results, TABLE1)
     lines += ["", "### Table 2: policy improvement (SAC inside each simulator, real return)", ""]
-    lines += metric_table(results, TABLE2) + control_rows(results)
+    lines += metric_table(results, TABLE2, with_oracle=False) + control_rows(results)
     ablation = ablation_rows(results)
     if ablation:
         lines += ["", "### Improvement by simulated-env variant (means over the improvement "

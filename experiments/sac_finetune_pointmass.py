@@ -24,7 +24,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from rl2s_jax import policies as pol  # noqa: E402
 from rl2s_jax.collect import measure_values  # noqa: E402
 from rl2s_jax.improve import improve_policies, measure_improvement  # noqa: E402
-from rl2s_jax.ppo import PPOConfig, make_train  # noqa: E402
+from rl2s_jax.ppo import PPOConfig, make_ppo, train_snapshots  # noqa: E402
 from rl2s_jax.sac import SACConfig  # noqa: E402
 from rl2s_jax.sim_env import SimulatorEnv  # noqa: E402
 from rl2s_jax.tasks import PointMass, get_task, pointmass_dynamics  # noqa: E402
@@ -53,10 +53,10 @@ def run(env, params, cfg, label):
 
 def main():
     env = PointMass()
-    ppo = PPOConfig(num_envs=64, unroll_length=16, num_minibatches=4, iterations_per_snapshot=10,
-                    n_snapshots=4, episode_length=50, gamma=0.95, learning_rate=1e-3)
-    _, snaps = jax.jit(make_train(env, ppo))(jax.random.PRNGKey(0))
-    params = snaps["params"]
+    ppo = PPOConfig(num_envs=64, unroll_length=16, num_minibatches=4, episode_length=50,
+                    gamma=0.95, learning_rate=1e-3)
+    params = jax.jit(lambda k: train_snapshots(make_ppo(env, ppo), k, 4, 10))(
+        jax.random.PRNGKey(0))
     v = measure_values(env, params, key=jax.random.PRNGKey(1), n_episodes=64, episode_length=50)
     print("PPO snapshots' real returns", np.round(np.asarray(v["value"]), 1))
     print("-- part 1: in the real env")

@@ -2,9 +2,19 @@
 
 The public API: build ``TrainData`` from a Dataset and its policies, ``init`` a ``TrainState``,
 call the pure ``train_step(state, data) -> (state, metrics)`` (jit / scan / vmap it freely),
-checkpoint with ``Checkpointer`` and load a trained ``Simulator`` with ``load_simulator``.
+checkpoint with ``Checkpointer`` and load a trained ``Simulator`` with ``load_simulator``;
+``SimulatorGymEnv`` / ``SimulatorVectorEnv`` put it behind the Gymnasium API.
 """
-from rl2s_jax.checkpoint import Checkpointer, load_meta, load_simulator
+# First: imports mujoco.mjx without its lines about the optional Warp backend (rl2s_jax/_quiet.py).
+import rl2s_jax._quiet  # noqa: F401
+from rl2s_jax.checkpoint import (
+    Checkpointer,
+    CheckpointError,
+    CheckpointWarning,
+    load_checkpoint,
+    load_meta,
+    load_simulator,
+)
 from rl2s_jax.data import Dataset, load_dataset, save_dataset
 from rl2s_jax.fit import TrainingDiverged, fit, run_training
 from rl2s_jax.improve import improve_policies, improvement_metrics, measure_improvement
@@ -25,9 +35,19 @@ from rl2s_jax.train import (
 )
 
 __all__ = [
-    "Checkpointer", "Dataset", "SACConfig", "Simulator", "SimulatorEnv", "TrainConfig",
-    "TrainData", "TrainState", "TrainingDiverged", "fit", "improve_policies",
-    "improvement_metrics", "init", "load_dataset", "load_meta", "load_simulator", "make_sac",
+    "CheckpointError", "CheckpointWarning", "Checkpointer", "Dataset", "SACConfig", "Simulator",
+    "SimulatorEnv", "SimulatorGymEnv", "SimulatorVectorEnv", "TrainConfig", "TrainData",
+    "TrainState", "TrainingDiverged", "fit", "improve_policies", "improvement_metrics", "init",
+    "load_checkpoint", "load_dataset", "load_meta", "load_simulator", "make_sac",
     "make_train_data", "measure_improvement", "n_worst", "run_training", "save_dataset",
     "select_worst", "simulated_values", "simulator", "train_step", "train_steps",
 ]
+
+
+def __getattr__(name: str):
+    """The Gymnasium envs, imported on first use (gymnasium is not needed otherwise)."""
+    if name in ("SimulatorGymEnv", "SimulatorVectorEnv"):
+        from rl2s_jax import gym_env
+
+        return getattr(gym_env, name)
+    raise AttributeError(f"module 'rl2s_jax' has no attribute {name!r}")

@@ -11,71 +11,119 @@ from functools import partial
 import jax
 import numpy as np
 
-from rl2s_jax.evaluate import ranking_metrics
+from rl2s_jax.evaluate import bootstrap_intervals, ranking_metrics
+from rl2s_jax.oracle import oracle_dynamics
 from rl2s_jax.policies import Params, num_policies
-from rl2s_jax.simulate import Simulator, simulated_values, start_pool
+from rl2s_jax.simulate import Simulator, simulated_returns, start_pool
 from rl2s_jax.tasks import get_task
-from rl2s_jax.train import true_values
+from rl2s_jax.train import true_values, true_values_se
 
 
 @partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
-def _sim_values(sim: Simulator, policies, pool, key, *, n_episodes, horizon, gamma):
+def _sim_returns(sim: Simulator, policies, pool, key, *, n_episodes, horizon, gamma):
     task = get_task(sim.task)
-    return simulated_values(policies, sim.dynamics, task.reward_fn, task.done_fn, pool, key,
-                            n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    return simulated_returns(policies, sim.dynamics, task.reward_fn, task.done_fn, pool, key,
+                             n_episodes=n_episodes, horizon=horizon, gamma=gamma)
 
 
-def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
-                       n_episodes: int = 16, horizon: int | None = None,
-                       gamma: float | None = None, ks=(1, 3, 5, 10)) -> dict:
-    """Simulated vs true discounted value of every policy of ``ds`` (stacked ``policies``).
-
-    horizon: steps per simulated episode (default: the data's episode_length); gamma: default
-    the data's. -> {"true_value", "sim_value", "sim_length", "vd" (lists [P]), "metrics": {avd,
-    mvd, kendall_tau, spearman, ndcg@k, regret@k}, "horizon", "gamma", "n_episodes"}.
-    """
-    if sim.task is None:
-        raise ValueError("ckpt: the simulator names no task, so there is no reward_fn/done_fn")
+def _protocol(ds, policies, n_episodes, horizon, gamma) -> tuple[int, float]:
     if num_policies(policies) != ds.n_policies:
         raise ValueError(f"policies: expected {ds.n_policies} (the data's), got "
                          f"{num_policies(policies)}")
     if not isinstance(n_episodes, int) or n_episodes < 1:
         raise ValueError(f"episodes: expected an int >= 1, got {n_episodes!r}")
-    horizon = int(horizon or ds.meta.get("episode_length") or 1000)
-    gamma = float(gamma or ds.meta.get("gamma") or 0.999)
+    return (int(horizon or ds.meta.get("episode_length") or 1000),
+            float(gamma or ds.meta.get("gamma") or 0.999))
+
+
+def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 5, 10),
+                 n_boot: int = 0, boot_seed: int = 0) -> dict:
+    """The report of simulated episodes against the data's true values.
+
+    returns, lengths: [P, n] each simulated episode's discounted return and length. n_boot > 0
+    adds "intervals" (``evaluate.bootstrap_intervals`` over the episodes, with the true values'
+    standard errors when the data measured them).
+    """
     truth = true_values(ds, horizon, gamma)
-    sim_value, length = (np.asarray(x, np.float64) for x in _sim_values(
-        sim, policies, start_pool(ds), key, n_episodes=n_episodes, horizon=horizon,
-        gamma=gamma))
+    returns = np.asarray(returns, np.float64)
+    sim_value = returns.mean(1)
     out = {"true_value": truth.tolist(), "sim_value": sim_value.tolist(),
-           "sim_length": length.tolist(), "vd": np.abs(truth - sim_value).tolist(),
-           "horizon": horizon, "gamma": gamma, "n_episodes": n_episodes,
+           "sim_length": np.asarray(lengths, np.float64).mean(1).tolist(),
+           "vd": np.abs(truth - sim_value).tolist(), "horizon": horizon, "gamma": gamma,
+           "n_episodes": int(returns.shape[1]),
            "policy_names": list(ds.meta.get("policy_names") or range(ds.n_policies))}
     if ds.n_policies >= 2:
         out["metrics"] = ranking_metrics(truth, sim_value, ks=ks)
+        if n_boot and np.all(np.isfinite(returns)):
+            out["intervals"] = bootstrap_intervals(truth, returns,
+                                                   true_values_se(ds, horizon, gamma),
+                                                   n_boot=n_boot, seed=boot_seed, ks=ks)
     else:
         vd = float(abs(truth[0] - sim_value[0]))
         out["metrics"] = {"avd": vd, "mvd": vd}
     return out
 
 
+def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
+                       n_episodes: int = 16, horizon: int | None = None,
+                       gamma: float | None = None, ks=(1, 3, 5, 10), n_boot: int = 0) -> dict:
+    """Simulated vs true discounted value of every policy of ``ds`` (stacked ``policies``).
+
+    horizon: steps per simulated episode (default: the data's episode_length); gamma: default
+    the data's. -> {"true_value", "sim_value", "sim_length", "vd" (lists [P]), "metrics": {avd,
+    mvd, kendall_tau, spearman, ndcg@k, regret@k}, "horizon", "gamma", "n_episodes"} and, with
+    n_boot > 0, "intervals" (``value_report``).
+    """
+    if sim.task is None:
+        raise ValueError("ckpt: the simulator names no task, so there is no reward_fn/done_fn")
+    horizon, gamma = _protocol(ds, policies, n_episodes, horizon, gamma)
+    returns, lengths = _sim_returns(sim, policies, start_pool(ds), key, n_episodes=n_episodes,
+                                    horizon=horizon, gamma=gamma)
+    return value_report(ds, returns, lengths, horizon=horizon, gamma=gamma, ks=ks,
+                        n_boot=n_boot)
+
+
+def oracle_returns(task: str, env=None):
+    """A jitted ``f(policies, pool, key, *, n_episodes, horizon, gamma) -> (returns, lengths)
+    [P, n]``: ``simulate.simulated_returns`` with the task's real dynamics
+    (``oracle.oracle_dynamics``), i.e. the evaluation path of a learned simulator."""
+    t = get_task(task)
+    dyn = oracle_dynamics(t, env)
+    return jax.jit(partial(simulated_returns, dynamics=dyn, reward_fn=t.reward_fn,
+                           done_fn=t.done_fn),
+                   static_argnames=("n_episodes", "horizon", "gamma"))
+
+
+def evaluate_oracle(task: str, ds, policies: Params, *, key: jax.Array, n_episodes: int = 16,
+                    horizon: int | None = None, gamma: float | None = None, ks=(1, 3, 5, 10),
+                    n_boot: int = 0, env=None) -> dict:
+    """``evaluate_simulator`` with the real dynamics in place of a learned simulator: the
+    ceiling of any simulator of this observation under this protocol (same start states,
+    horizon, gamma, reward_fn / done_fn and number of episodes)."""
+    horizon, gamma = _protocol(ds, policies, n_episodes, horizon, gamma)
+    returns, lengths = oracle_returns(task, env)(policies, start_pool=start_pool(ds), key=key,
+                                                 n_episodes=n_episodes, horizon=horizon,
+                                                 gamma=gamma)
+    return value_report(ds, returns, lengths, horizon=horizon, gamma=gamma, ks=ks,
+                        n_boot=n_boot)
+
+
 def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None, seed: int = 0,
-                        n_episodes: int = 16, horizon: int | None = None, step: int | None = None
-                        ) -> dict:
+                        n_episodes: int = 16, horizon: int | None = None, step: int | None = None,
+                        n_boot: int = 0) -> dict:
     """Load a checkpoint's simulator and a Dataset (policies from ``zoo`` or the data's
     meta.source) and evaluate; no training data needed."""
-    from rl2s_jax.checkpoint import load_meta, load_simulator
+    from rl2s_jax.checkpoint import load_checkpoint
     from rl2s_jax.data import load_dataset
     from rl2s_jax.fit import policies_for
 
     ds = load_dataset(data_path)
-    sim = load_simulator(ckpt, step)
-    meta = load_meta(ckpt, step)
+    sim, meta = load_checkpoint(ckpt, step)  # the newest intact step unless step is given
     if ds.meta.get("task") != sim.task:
         raise ValueError(f"data: {data_path} is task {ds.meta.get('task')!r} but the "
                          f"checkpoint models {sim.task!r}")
     report = evaluate_simulator(sim, ds, policies_for(ds, zoo), key=jax.random.PRNGKey(seed),
-                                n_episodes=n_episodes, horizon=horizon)
+                                n_episodes=n_episodes, horizon=horizon, n_boot=n_boot)
     report.update(checkpoint=ckpt, step=meta["step"], method=meta["config"]["method"],
                   data=data_path, seed=seed, backend=jax.default_backend())
     return report
@@ -87,6 +135,15 @@ def format_report(r: dict) -> str:
     head = [f"{r.get('method', '?')} checkpoint step {r.get('step', '?')} on {r.get('data', '')}"
             f" ({len(r['vd'])} policies, {r['n_episodes']} episodes x {r['horizon']} steps)",
             "  ".join(f"{k} {v:.3f}" for k, v in m.items())]
+    if "intervals" in r:
+        iv = r["intervals"]
+        head.append(f"{iv['level']:.0%} bootstrap intervals over {iv['n_episodes']} episodes: "
+                    + "  ".join(f"{k} [{iv['metrics'][k]['lo']:.3f}, "
+                                f"{iv['metrics'][k]['hi']:.3f}]"
+                                for k in ("kendall_tau", "ndcg@1", "avd", "mvd")
+                                if k in iv["metrics"])
+                    + f"; evaluation noise alone moves tau by "
+                      f"{iv['sim_only']['kendall_tau']['std']:.3f} (std)")
     rows = [f"{'policy':<14}{'true value':>12}{'sim value':>12}{'VD':>10}{'sim len':>9}"]
     for name, t, s, v, n in zip(r["policy_names"], r["true_value"], r["sim_value"], r["vd"],
                                 r["sim_length"], strict=True):

@@ -1,5 +1,5 @@
-"""The `rl2s` command line: zoo | collect | inspect | train | evaluate | improve | pipeline |
-diagnose."""
+"""The `rl2s` command line: zoo | collect | inspect | import | export | train | evaluate |
+improve | pipeline | diagnose."""
 
 from __future__ import annotations
 
@@ -31,18 +31,64 @@ def _gamma(text):
 
 
 def cmd_zoo(args) -> int:
-    import jax
+    """Train (or continue) a task's zoo learners, then measure, choose and split the zoo."""
+    started = time.time()
+    from rl2s_jax.policies import zoo_dir
+    from rl2s_jax.zoo import (
+        DEFAULT_ALGO,
+        build_zoo,
+        format_spread,
+        learner_plans,
+        write_zoo_outputs,
+        write_zoo_plots,
+    )
+    from rl2s_jax.zoo_store import load_runs, read_export, write_export
 
-    from rl2s_jax.policies import save_zoo, zoo_dir
-    from rl2s_jax.zoo import build_zoo
-
-    zoo = build_zoo(args.task, seeds=args.seeds, key=jax.random.PRNGKey(args.seed),
-                    value_episodes=args.value_episodes)
     out = args.out or zoo_dir(args.task)
-    save_zoo(zoo, out)
-    print(f"zoo: {zoo.size} policies, returns {zoo.returns.min():.1f} .. "
-          f"{zoo.returns.max():.1f}; train {len(zoo.train_ids)}, test {len(zoo.test_ids)}"
-          f" -> {out}")
+    if args.plots_only:
+        files = write_zoo_plots(out)
+        print(f"zoo plots: {', '.join(files)} -> {out}")
+        return 0
+    if args.time_limit is not None and args.time_limit <= 0:
+        raise ValueError(f"time-limit: expected seconds > 0, got {args.time_limit}")
+    overrides: dict = {}
+    for k, v in _overrides(args.set).items():
+        learner, _, field = k.partition(".")
+        if not field:
+            raise ValueError(f"set: expected sac.FIELD=VALUE or ppo.FIELD=VALUE, got {k!r}")
+        overrides.setdefault(learner, {})[field] = v
+    algo = args.algo or DEFAULT_ALGO.get(args.task, "sac")
+    plans = learner_plans(args.task, algo, args.env_steps, args.snapshots, overrides)
+    work = args.work or os.path.join("runs", "zoo", args.task)
+    imported = read_export(args.import_file) if args.import_file else None
+    deadline = started + args.time_limit if args.time_limit else None
+    zoo, extras = build_zoo(args.task, algo=algo, seeds=args.seeds, seed=args.seed, plans=plans,
+                            work_dir=work, deadline=deadline, imported=imported,
+                            value_episodes=args.value_episodes, zoo_size=args.zoo_size,
+                            checkpoint_every_s=args.checkpoint_every, final=args.final,
+                            progress=not args.quiet)
+    if args.export:
+        files = write_export(args.export, load_runs(work, plans),
+                             max_bytes=int(args.export_max_mib * 2**20))
+        print(f"[zoo] exported the run for resuming: {', '.join(files)}")
+    if zoo is None:
+        print(f"zoo: training stopped at the time limit ({time.time() - started:.0f}s); the "
+              f"same command continues from {work}")
+        return 0
+    files = write_zoo_outputs(zoo, extras["log"], out)
+    info = zoo.info
+    bar = info["expert_bar"]
+    print(f"zoo: {zoo.size} policies from {info['snapshots_measured']} snapshots, returns "
+          f"{zoo.returns.min():.1f} .. {zoo.returns.max():.1f}"
+          + (f" (expert bar {bar:g}: {'met' if info['expert_bar_met'] else 'MISSED'})"
+             if bar is not None else "")
+          + f"; train {len(zoo.train_ids)}, test {len(zoo.test_ids)}")
+    for name, lr in info["learners"].items():
+        print(f"  {name}: {lr['env_steps_per_seed']:,} of {lr['env_steps_target']:,} env steps "
+              f"per seed" + ("" if lr["complete"] else " (stopped at the time limit)"))
+    for split in ("train", "test"):
+        print("  spread " + format_spread(split, info["spread"][split]))
+    print(f"-> {out}: {', '.join(files)} ({time.time() - started:.0f}s)")
     return 0
 
 
@@ -99,6 +145,31 @@ def cmd_inspect(args) -> int:
     return 0
 
 
+def cmd_import(args) -> int:
+    """A local Minari dataset -> our Dataset file (validated)."""
+    from rl2s_jax.data import dataset_summary, save_dataset
+    from rl2s_jax.minari_io import from_minari
+
+    ds = from_minari(args.minari, task=args.task, gamma=args.gamma, policy_key=args.policy_key)
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    save_dataset(args.out, ds)
+    print(dataset_summary(ds))
+    print(f"imported {args.minari} -> {args.out}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    """Our Dataset file -> a Minari dataset directory."""
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.minari_io import to_minari
+
+    ds = load_dataset(args.data)
+    mds = to_minari(ds, args.out, dataset_id=args.dataset_id)
+    print(f"exported {args.data} ({mds.total_episodes} episodes, {mds.total_steps} steps) -> "
+          f"Minari dataset {mds.id!r} in {args.out}")
+    return 0
+
+
 def _overrides(items: list[str] | None) -> dict:
     """--set key=value pairs -> dict; values parsed as JSON where they parse (3, 1e-4, [64,64])."""
     out = {}
@@ -123,7 +194,8 @@ def cmd_train(args) -> int:
                                profile=args.profile, seed=args.seed, eps=args.eps,
                                save_every=args.save_every, chunk=args.chunk,
                                overrides=_overrides(args.set), progress=not args.quiet,
-                               eval_data=args.eval_data, eval_every=args.eval_every)
+                               eval_data=args.eval_data, eval_every=args.eval_every,
+                               resume_step=args.resume_step)
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1
@@ -136,8 +208,24 @@ def cmd_evaluate(args) -> int:
 
     if not os.path.exists(args.data):
         raise FileNotFoundError(f"data: no such file {args.data}")
-    report = evaluate_checkpoint(args.ckpt, args.data, zoo=args.zoo, seed=args.seed,
-                                 n_episodes=args.episodes, horizon=args.horizon, step=args.step)
+    if (args.ckpt is None) == (not args.oracle):
+        raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
+    if args.oracle:
+        import jax
+
+        from rl2s_jax.assess import evaluate_oracle
+        from rl2s_jax.data import load_dataset
+        from rl2s_jax.fit import policies_for
+
+        ds = load_dataset(args.data)
+        report = evaluate_oracle(ds.meta.get("task"), ds, policies_for(ds, args.zoo),
+                                 key=jax.random.PRNGKey(args.seed), n_episodes=args.episodes,
+                                 horizon=args.horizon, n_boot=args.bootstrap)
+        report.update(method="oracle", data=args.data, seed=args.seed)
+    else:
+        report = evaluate_checkpoint(args.ckpt, args.data, zoo=args.zoo, seed=args.seed,
+                                     n_episodes=args.episodes, horizon=args.horizon,
+                                     step=args.step, n_boot=args.bootstrap)
     print(format_report(report))
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
@@ -364,12 +452,46 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    p = sub.add_parser("zoo", help="train PPO over seeds and rebuild a task's policy zoo")
+    p = sub.add_parser("zoo", help="train SAC/PPO over seeds (resumable) and build a task's "
+                       "policy zoo")
     p.add_argument("--task", required=True, choices=task_names())
+    p.add_argument("--algo", choices=("sac", "ppo", "both"),
+                   help="learner(s) (default: the task's, rl2s_jax/zoo.py DEFAULT_ALGO); both "
+                   "pools the snapshots of SAC and PPO")
     p.add_argument("--seeds", type=_positive("seeds"), default=4)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--env-steps", type=_positive("env-steps"),
+                   help="env steps per seed and learner (default: ZOO_SAC / ZOO_PPO); a larger "
+                   "value extends a finished run")
+    p.add_argument("--snapshots", type=_positive("snapshots"),
+                   help="snapshots per seed along training (fixed when a run starts; default: "
+                   "the task's plan, 40 for the MJX tasks)")
+    p.add_argument("--set", action="append", metavar="LEARNER.FIELD=VALUE",
+                   help="override a SACConfig/PPOConfig field, e.g. --set sac.batch_size=1024")
+    p.add_argument("--work", help="run directory: checkpoints (resumed from), measured returns "
+                   "(default: runs/zoo/<task>)")
+    p.add_argument("--time-limit", type=float, metavar="SECONDS",
+                   help="stop training, after a checkpoint, before this many seconds from the "
+                   "start; the same command continues (leave time for compile and measuring)")
+    p.add_argument("--final", action="store_true",
+                   help="when the time limit stops training, build the zoo from the snapshots "
+                   "trained so far (the last GPU call of a run)")
+    p.add_argument("--checkpoint-every", type=float, default=120.0, metavar="SECONDS",
+                   help="seconds of training between checkpoints (and one at every stop)")
+    p.add_argument("--export", metavar="FILE", help="write the run (checkpoints) into one .npz "
+                   "(or FILE.partNN) to resume on another machine with --import")
+    p.add_argument("--export-max-mib", type=float, default=15.0,
+                   help="largest export file; a bigger full state is exported without replay "
+                   "buffers and env states, then split into parts if still too big")
+    p.add_argument("--import", dest="import_file", metavar="FILE",
+                   help="resume from an export for learners with no checkpoint in --work")
     p.add_argument("--value-episodes", type=_positive("value-episodes"), default=16)
+    p.add_argument("--zoo-size", type=_positive("zoo-size"), default=60)
     p.add_argument("--out", help="directory (default: experiments/zoo/<task>)")
+    p.add_argument("--plots-only", action="store_true",
+                   help="only redraw curves.png / returns_hist.png from --out's zoo.json and "
+                   "train_log.jsonl")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_zoo)
 
     p = sub.add_parser("collect", help="collect a Dataset from a zoo split")
@@ -390,6 +512,27 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("inspect", help="validate a dataset file and print its summary")
     p.add_argument("--data", required=True)
     p.set_defaults(func=cmd_inspect)
+
+    p = sub.add_parser("import", help="convert a local Minari dataset into a Dataset file")
+    p.add_argument("--minari", required=True, metavar="PATH",
+                   help="Minari dataset directory (or its data/), or the id of a dataset in "
+                   "the local Minari root; nothing is downloaded")
+    p.add_argument("--out", required=True, help="Dataset file to write (.npz)")
+    p.add_argument("--task", help="registered task the data comes from (default: none, or "
+                   "the one an rl2s export recorded)")
+    p.add_argument("--gamma", type=_gamma, help="discount recorded in meta")
+    p.add_argument("--policy-key", help="episode-metadata key naming each episode's policy "
+                   "(default: policy_id, policy_name or policy; none: one policy)")
+    p.set_defaults(func=cmd_import)
+
+    p = sub.add_parser("export", help="write a Dataset file as a Minari dataset")
+    p.add_argument("--minari", action="store_true", required=True,
+                   help="the format to write (Minari, hdf5)")
+    p.add_argument("--data", required=True, help="Dataset file (.npz)")
+    p.add_argument("--out", required=True, help="new directory for the Minari dataset")
+    p.add_argument("--dataset-id", help="Minari id, (namespace/)name-vN (default: the "
+                   "directory name, -v0 added)")
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("train", help="learn a simulator from a dataset (rl2s|gail|bc|rl2s-bc)")
     p.add_argument("--data", required=True, help="training Dataset (.npz)")
@@ -413,19 +556,26 @@ def build_parser() -> argparse.ArgumentParser:
                    "--eval-every steps -> OUT/eval.jsonl")
     p.add_argument("--eval-every", type=_positive("eval-every"),
                    help="steps between test evaluations (default: --save-every or steps/10)")
+    p.add_argument("--resume-step", type=int, help="resume from this saved step (default: "
+                   "the newest intact one); later steps are moved to checkpoints/superseded/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="VD and ranking of a checkpoint's simulator on a "
                        "dataset's policies (fresh process, no training data)")
-    p.add_argument("--ckpt", required=True, help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--ckpt", help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--oracle", action="store_true", help="evaluate the task's real dynamics "
+                   "through the same path instead of a checkpoint (the ceiling)")
     p.add_argument("--data", required=True, help="Dataset of the policies to evaluate")
+    p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
+                   "95%% intervals over episodes (0: none)")
     p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
     p.add_argument("--episodes", type=_positive("episodes"), default=16,
                    help="simulated episodes per policy")
     p.add_argument("--horizon", type=_positive("horizon"),
                    help="steps per simulated episode (default: the data's episode_length)")
-    p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
+    p.add_argument("--step", type=int, help="checkpoint step (default: the newest intact one; "
+                   "broken newer steps are skipped with a warning)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="write the report here")
     p.set_defaults(func=cmd_evaluate)
@@ -449,7 +599,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MBPO: rollouts of this many steps from every real state of the data "
                    "(default: whole episodes from its start states)")
     p.add_argument("--uncertainty-penalty", type=float, default=0.0,
-                   help="MOPO: reward r - LAMBDA * u(s, a), u in units of its mean on the data")
+                   help="MOPO: reward r - LAMBDA * u(s, a), u = the ensemble's disagreement in "
+                   "units of its mean on the data (needs >= 2 elites)")
     p.add_argument("--uncertainty-threshold", type=float,
                    help="MOReL: end a rollout when u(s, a) exceeds this (same units)")
     p.add_argument("--halt-penalty", type=float, default=0.0,
@@ -507,12 +658,25 @@ def main(argv: list[str] | None = None) -> int:
     # brax warns on every env it builds that it is unmaintained; we use only its envs.
     warnings.filterwarnings("ignore", category=UserWarning, module="brax")
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
+    from rl2s_jax.checkpoint import CheckpointWarning
+
     args = build_parser().parse_args(argv)
-    try:
-        return args.func(args)
-    except (ValueError, FileNotFoundError, FloatingPointError) as err:
-        print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
-        return 2
+    default_show = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, CheckpointWarning):  # ours: one plain line, no source line
+            print(f"rl2s {args.command}: warning: {message}", file=sys.stderr)
+        else:
+            default_show(message, category, filename, lineno, file, line)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        warnings.simplefilter("always", CheckpointWarning)
+        try:
+            return args.func(args)
+        except (ValueError, FileNotFoundError, FloatingPointError) as err:
+            print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ __all__ = [
     "ranking_metrics",
     "regret_at_k",
     "spearman",
+    "bootstrap_intervals",
     "value_differences",
 ]
 
@@ -129,14 +130,15 @@ def spearman(true_values, sim_values) -> float:
     return float(np.clip(float(rt @ rs) / denom, -1.0, 1.0))
 
 
-def ndcg_at_k(true_values, sim_values, k: int) -> float:
-    """Normalised discounted cumulative gain at k, RL2S paper eq. 18, with linear gains.
+def ndcg_at_k(true_values, sim_values, k: int, gain: str = "linear") -> float:
+    """Normalised discounted cumulative gain at k, RL2S paper eq. 18.
 
-    true_values, sim_values: [P]; k: int >= 1, capped at P.
-    rel_i = (true_i - min(true)) / (max(true) - min(true)) in [0, 1] (the gain is rel itself,
-    not 2^rel - 1). DCG@k = sum_{r=1..k} rel_(r) / log2(r + 1), where (r) is the policy at
-    rank r when sorted by sim_values descending; IDCG@k is the same sum with policies sorted
-    by true_values descending. -> DCG@k / IDCG@k in [0, 1], 1 for a perfect top k.
+    true_values, sim_values: [P]; k: int >= 1, capped at P; gain: "linear" or "exp2".
+    B_i = (true_i - min(true)) / (max(true) - min(true)) in [0, 1]; the gain rel_i is B_i itself
+    ("linear") or the paper's 2^B_i - 1 ("exp2"; also in [0, 1]).
+    DCG@k = sum_{r=1..k} rel_(r) / log2(r + 1), where (r) is the policy at rank r when sorted
+    by sim_values descending; IDCG@k is the same sum with policies sorted by true_values
+    descending. -> DCG@k / IDCG@k in [0, 1], 1 for a perfect top k.
     Policies tied in sim_values are taken in random order and DCG@k is its expectation: each
     policy of a tie group spanning ranks a..b gets the mean rel of the group at each of those
     ranks (the tie-averaged DCG, as sklearn.metrics.ndcg_score by default).
@@ -145,9 +147,13 @@ def ndcg_at_k(true_values, sim_values, k: int) -> float:
     t, s = _pair(true_values, sim_values)
     k = min(_as_k(k), t.size)
     lo, hi = t.min(), t.max()
+    if gain not in ("linear", "exp2"):
+        raise ValueError(f"gain must be 'linear' or 'exp2', got {gain!r}")
     if hi == lo:
         return 1.0
     rel = (t - lo) / (hi - lo)
+    if gain == "exp2":
+        rel = np.exp2(rel) - 1.0
     discount = np.zeros(t.size)
     discount[:k] = 1.0 / np.log2(np.arange(2, k + 2))
 
@@ -189,12 +195,14 @@ def regret_at_k(true_values, sim_values, k: int) -> float:
     return float(np.clip((hi - expected_best) / (hi - lo), 0.0, 1.0))
 
 
-def ranking_metrics(true_values, sim_values, ks: Iterable[int] = (1, 3, 5, 10)) -> dict:
+def ranking_metrics(true_values, sim_values, ks: Iterable[int] = (1, 3, 5, 10),
+                    gain: str = "exp2") -> dict:
     """All the metrics at once.
 
     true_values, sim_values: [P], P >= 2; ks: ints >= 1 (each capped at P, the key keeps the
-    k asked for). -> {"kendall_tau", "spearman", "ndcg@k" and "regret@k" for each k in ks,
-    "avd", "mvd"}, all floats.
+    k asked for); gain: nDCG's gain, by default the paper's 2^B - 1 (``ndcg_at_k``).
+    -> {"kendall_tau", "spearman", "ndcg@k" and "regret@k" for each k in ks, "avd", "mvd"},
+    all floats.
     """
     t, s = _pair(true_values, sim_values, min_policies=2)
     if isinstance(ks, str | bytes) or not isinstance(ks, Iterable):
@@ -202,9 +210,65 @@ def ranking_metrics(true_values, sim_values, ks: Iterable[int] = (1, 3, 5, 10)) 
     ks = [_as_k(k, "ks entry") for k in ks]
     out = {"kendall_tau": kendall_tau(t, s), "spearman": spearman(t, s)}
     for k in ks:
-        out[f"ndcg@{k}"] = ndcg_at_k(t, s, k)
+        out[f"ndcg@{k}"] = ndcg_at_k(t, s, k, gain)
     for k in ks:
         out[f"regret@{k}"] = regret_at_k(t, s, k)
     vd = value_differences(t, s)
     out["avd"], out["mvd"] = vd["avd"], vd["mvd"]
     return out
+
+
+# ----------------------------------------------------------------------------- intervals
+
+
+def bootstrap_intervals(true_values, sim_returns, true_se=None, *, n_boot: int = 1000,
+                        seed: int = 0, ks: Iterable[int] = (1, 3, 5, 10), level: float = 0.95
+                        ) -> dict:
+    """Bootstrap intervals of every ``ranking_metrics`` metric over evaluation episodes.
+
+    true_values: [P] true values; sim_returns: [P, n] the simulated return of each of n
+    episodes per policy (the simulated value is their mean); true_se: [P] standard errors of
+    the true values, or None when they are known exactly.
+
+    Each of n_boot replicates resamples every policy's n simulated episodes with replacement;
+    when true_se is given, it also draws the true values from N(true, true_se^2) (a parametric
+    bootstrap: the per-episode true returns are not stored). Returns
+    {"level", "n_boot", "n_episodes", "metrics": {metric: {"lo", "hi", "std"}} over both
+    noises, "sim_only": {metric: {"lo", "hi", "std"}} over the simulated episodes alone}.
+    ``sim_only["kendall_tau"]["std"]`` is how much evaluation noise alone moves tau.
+    """
+    t = _as_values(true_values, "true_values")
+    r = np.array(sim_returns, dtype=np.float64)
+    if r.ndim != 2 or r.shape[0] != t.size or r.shape[1] < 1:
+        raise ValueError(f"sim_returns must be [P, n] with P = {t.size} (the true values') and "
+                         f"n >= 1 episodes, got shape {r.shape}")
+    if not np.all(np.isfinite(r)):
+        raise ValueError("sim_returns must be finite")
+    se = None
+    if true_se is not None:
+        se = _as_values(true_se, "true_se")
+        if se.shape != t.shape or (se < 0).any():
+            raise ValueError(f"true_se must be [P = {t.size}] and >= 0, got {se.tolist()}")
+    if not isinstance(n_boot, int) or n_boot < 2:
+        raise ValueError(f"n_boot must be an int >= 2, got {n_boot!r}")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    ks = tuple(ks)
+    rng = np.random.default_rng(seed)
+    P, n = r.shape
+    rows = np.arange(P)[:, None]
+    both, sim_only = [], []
+    for _ in range(n_boot):
+        sim = r[rows, rng.integers(0, n, size=(P, n))].mean(1)
+        sim_only.append(ranking_metrics(t, sim, ks))
+        truth = t if se is None else t + se * rng.standard_normal(P)
+        both.append(sim_only[-1] if se is None else ranking_metrics(truth, sim, ks))
+    q = (1.0 - level) / 2.0
+
+    def summary(reps):
+        return {k: {"lo": float(np.quantile(v, q)), "hi": float(np.quantile(v, 1.0 - q)),
+                    "std": float(np.std(v, ddof=1))}
+                for k, v in ((k, np.array([m[k] for m in reps])) for k in reps[0])}
+
+    return {"level": level, "n_boot": n_boot, "n_episodes": n, "metrics": summary(both),
+            "sim_only": summary(sim_only)}

@@ -28,7 +28,7 @@ class TrainingDiverged(RuntimeError):
                          f"{', '.join(quantities)}{where}")
 
 
-_train_chunk = jax.jit(train_steps, static_argnums=2)
+_train_chunk = jax.jit(train_steps, static_argnames=("n_steps", "phase"))
 
 
 def _first_bad(metrics: dict[str, np.ndarray]) -> tuple[int, list[str]] | None:
@@ -50,7 +50,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     """Train until ``state.step == n_steps`` (a resumed state continues where it stopped).
 
     Chunks of ``chunk`` steps run as one compiled scan; checkpoints land at every multiple of
-    ``save_every`` and at the end. Metrics of every step are appended as JSON lines to
+    ``save_every`` and at the end; with pre-training a chunk never straddles
+    ``pretrain_steps`` (each runs one phase only). Metrics of every step are appended to
     ``metrics_path``. ``on_eval(state)`` runs at every multiple of ``eval_every`` (chunks end
     there too). Raises TrainingDiverged (after saving the last good state) on NaN/Inf.
     -> (final state, metrics stacked over the steps run here).
@@ -76,8 +77,11 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
             n = min(chunk, n_steps - step, save_every - step % save_every)
             if eval_every:
                 n = min(n, eval_every - step % eval_every)
+            phase = state.config.phase(step)
+            if phase == "pretrain":
+                n = min(n, state.config.pretrain_steps - step)
             t0 = time.perf_counter()
-            new_state, metrics = _train_chunk(state, data, n)
+            new_state, metrics = _train_chunk(state, data, n_steps=n, phase=phase)
             metrics = jax.device_get(metrics)
             seconds = time.perf_counter() - t0
             bad = _first_bad(metrics)
@@ -150,14 +154,18 @@ def policies_for(ds, zoo: str | None = None):
 
 def make_config(ds, method: str, profile: str, eps: float | None = None,
                 overrides: dict | None = None):
-    """The TrainConfig for ``ds``: the paper-size defaults ('gpu') or the CPU-size ones."""
+    """The TrainConfig for ``ds``: 'gpu' = the paper's sizes with the ensemble model family
+    (7 members of 4x512, 5 elites, 200 pre-training steps; TrainConfig's defaults), 'cpu' =
+    ``TrainConfig.small`` (3 members of 2x64) with 100 pre-training steps and 5 critic
+    warm-up steps. ``overrides``: field -> value (``--set``)."""
     from rl2s_jax.train import TrainConfig
 
     ep_len = ds.meta.get("episode_length") or 1000
     base = dict(task=ds.meta["task"], method=method, eps=eps,
                 gamma=float(ds.meta.get("gamma") or 0.999))
     if profile == "cpu":
-        cfg = TrainConfig.small(vd_horizon=min(100, ep_len), **base)
+        cfg = TrainConfig.small(vd_horizon=min(100, ep_len), pretrain_steps=100,
+                                disc_warmup_steps=5, **base)
     elif profile == "gpu":
         cfg = TrainConfig(vd_horizon=ep_len, **base)
     else:
@@ -176,9 +184,15 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                  profile: str = "auto", seed: int = 0, eps: float | None = None,
                  save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
                  progress: bool = True, log=print, eval_data: str | None = None,
-                 eval_every: int | None = None, eval_episodes: int = 8) -> dict:
+                 eval_every: int | None = None, eval_episodes: int = 8,
+                 resume_step: int | None = None) -> dict:
     """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
     holds one), and return a summary dict (also written to out/summary.json).
+
+    A resumed run starts from ``resume_step``, or by default from the newest intact
+    checkpoint (broken newer ones are skipped with a CheckpointWarning). Saved steps after the
+    one resumed from are moved to checkpoints/corrupt/ (broken) or checkpoints/superseded/
+    (intact), since the run saves those steps anew.
 
     ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
     with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve).
@@ -212,12 +226,24 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
         on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo)
         eval_every = eval_every or save_every or max(1, steps // 10)
     key = jax.random.PRNGKey(seed)
+    if resume_step is not None and ck.latest_step() is None:
+        ck.close()
+        raise FileNotFoundError(f"resume_step: {out}/checkpoints holds no saved step to resume "
+                                f"step {resume_step} from")
     if ck.latest_step() is not None:
         template = jax.eval_shape(lambda: init(key, cfg, data))
-        state = ck.restore(template)
+        try:
+            state = ck.restore(template, resume_step)
+        except BaseException:
+            ck.close()
+            raise
+        moved = ck.set_aside_after(int(state.step))
         _truncate_metrics(metrics_path, int(state.step))
         _truncate_metrics(eval_path, int(state.step))
         log(f"[train] resuming {out} from step {int(state.step)}")
+        for kind, steps_moved in moved.items():
+            if steps_moved:
+                log(f"[train] moved {kind} step(s) {steps_moved} to {ck.directory}/{kind}/")
     else:
         for path in (metrics_path, eval_path):
             if os.path.exists(path):

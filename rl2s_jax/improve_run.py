@@ -31,7 +31,10 @@ def sac_config(overrides: dict | None, episode_length: int, iterations: int) -> 
     unknown = sorted(set(overrides) - fields)
     if unknown:
         raise ValueError(f"set: unknown SACConfig field(s) {unknown}; known: {sorted(fields)}")
-    for k in ("hidden", "actor_hidden"):
+    if overrides.get("normalize_observations"):
+        raise ValueError("set: normalize_observations is for training from scratch; a fine-tuned "
+                         "policy keeps its own observation normaliser")
+    for k in ("hidden", "actor_hidden", "ignore_obs_dims"):
         if k in overrides:
             overrides[k] = tuple(overrides[k])
     ups = int(overrides.get("updates_per_step", SACConfig.updates_per_step))

@@ -20,7 +20,7 @@ import dataclasses
 import json
 import os
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -98,6 +98,50 @@ def sample_action(params: Params, obs: jax.Array, key: jax.Array
 def mode_action(params: Params, obs: jax.Array) -> jax.Array:
     """Deterministic action tanh(loc). obs: [..., obs] -> [..., act]."""
     return jnp.tanh(policy_dist(params, obs)[0])
+
+
+# Observation dims a policy should not see (absolute positions) get this std and mean 0, so
+# their normalised value is ~0 for any reachable position: the policy ignores them.
+IGNORED_OBS_STD = 1e6
+
+
+def mask_obs_stats(mean: jax.Array, std: jax.Array, ignore_dims: Sequence[int] = ()
+                   ) -> tuple[jax.Array, jax.Array]:
+    """(mean, std) [obs] with the ``ignore_dims`` set to (0, IGNORED_OBS_STD)."""
+    if len(ignore_dims):
+        idx = jnp.asarray(tuple(ignore_dims), jnp.int32)
+        mean, std = mean.at[idx].set(0.0), std.at[idx].set(IGNORED_OBS_STD)
+    return mean, std
+
+
+class RunningNorm(NamedTuple):
+    """Running observation mean and variance (parallel-algorithm update), the source of a
+    trained policy's ``obs_mean`` / ``obs_std``."""
+
+    mean: jax.Array
+    var: jax.Array
+    count: jax.Array
+
+    @staticmethod
+    def create(size: int) -> RunningNorm:
+        return RunningNorm(jnp.zeros(size), jnp.ones(size), jnp.array(1e-4))
+
+    def update(self, x: jax.Array) -> RunningNorm:
+        """Fold in a batch x [..., obs]."""
+        x = x.reshape(-1, x.shape[-1])
+        b_mean, b_var, b_n = x.mean(0), x.var(0), x.shape[0]
+        delta, total = b_mean - self.mean, self.count + b_n
+        mean = self.mean + delta * b_n / total
+        m2 = self.var * self.count + b_var * b_n + delta**2 * self.count * b_n / total
+        return RunningNorm(mean, m2 / total, total)
+
+    def std(self) -> jax.Array:
+        return jnp.sqrt(self.var + 1e-6)
+
+    def stats(self, ignore_dims: Sequence[int] = ()) -> tuple[jax.Array, jax.Array]:
+        """(obs_mean, obs_std) [obs] float32 for a policy, ``ignore_dims`` masked out."""
+        return mask_obs_stats(self.mean.astype(jnp.float32), self.std().astype(jnp.float32),
+                              ignore_dims)
 
 
 def stack_params(params_list: Sequence[Params]) -> Params:

@@ -33,6 +33,13 @@ From scratch (``init(key)``) "start" means ``-action_size`` and the KL is never 
   updates. For the first ``critic_warmup_updates`` updates only the critics learn (so a
   fine-tuned actor is not pushed around by random critics). ``n_iterations`` is static.
 
+From scratch (``init(key)`` with no actor), ``normalize_observations=True`` keeps a running
+observation normaliser (``SACState.obs_norm``) updated with every env step's observations and
+written into the actor's ``obs_mean`` / ``obs_std`` (``ignore_obs_dims`` masked out), so the
+critics, which normalise with the actor's statistics, see the same input and the actor is a
+zoo policy as it is. ``refill(state)`` gives fresh envs and an empty buffer re-filled with
+``warmup_steps`` steps of the current actor (resuming from a state saved without its buffer).
+
 Everything is one pure program of the state: ``jax.jit(train, static_argnums=1)``, and
 ``jax.vmap(init)(keys, stacked_policies)`` / ``jax.vmap(train, in_axes=(0, None))`` fine-tune
 several policies as one batch. The env must be an unwrapped brax Env (no time limit, no
@@ -55,8 +62,10 @@ from brax.envs.base import Env
 from rl2s_jax.collect import check_env, tree_where
 from rl2s_jax.policies import (
     Params,
+    RunningNorm,
     init_mlp,
     init_policy,
+    mask_obs_stats,
     mlp,
     normalize_obs,
     policy_dist,
@@ -81,6 +90,11 @@ class SACConfig:
     -action_size from scratch) or a number. ``kl_weight``: weight of KL(pi || pi_start) in the
     actor loss, times the batch's mean |Q| (0: off; never applied from scratch).
     ``max_grad_norm``: clip each network's gradient norm (None: no clipping).
+
+    From-scratch options (defaults keep fine-tuning as it was): ``normalize_observations``:
+    running observation normaliser written into a fresh actor's obs_mean/obs_std;
+    ``ignore_obs_dims``: obs dims a fresh actor and the critics do not see (absolute positions);
+    ``learn_alpha``: False keeps alpha at ``init_alpha``.
     """
 
     learning_rate: float = 3e-4
@@ -105,6 +119,10 @@ class SACConfig:
     target_entropy_offset: float = 0.0
     kl_weight: float = 0.0
     max_grad_norm: float | None = None
+    # from-scratch training (issue 15)
+    normalize_observations: bool = False
+    ignore_obs_dims: tuple[int, ...] = ()
+    learn_alpha: bool = True
 
     @classmethod
     def fine_tuning(cls, **overrides) -> SACConfig:
@@ -218,14 +236,17 @@ class SACState(NamedTuple):
     episode_return: jax.Array  # [n_envs] undiscounted return of the current episodes
     updates: jax.Array     # [] gradient updates done
     key: jax.Array
+    # fine-tuning only (None from scratch, so a from-scratch state is the zoo trainer's):
     anchor: Params = None  # the start actor (frozen; the KL penalty's reference)
-    kl_coef: jax.Array = None  # [] kl_weight when fine-tuning, 0 from scratch
-    target_entropy: jax.Array = None  # []
+    kl_coef: jax.Array = None  # [] kl_weight
+    target_entropy: jax.Array = None  # [] alpha's target (from scratch: static_target)
+    obs_norm: Any = None   # RunningNorm when cfg.normalize_observations, else None
 
 
 class SAC(NamedTuple):
     init: Callable[..., SACState]
     train: Callable[[SACState, int], tuple[SACState, dict]]
+    refill: Callable[[SACState], SACState] | None = None
 
 
 def q_values(critic, actor: Params, obs: jax.Array, action: jax.Array) -> jax.Array:
@@ -249,6 +270,12 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
     obs_size, act_size = int(env.observation_size), int(env.action_size)
     actor_opt_, critic_opt_, alpha_opt_ = (cfg.optimizer(w) for w in ("actor", "critic",
                                                                        "alpha"))
+    bad = [d for d in cfg.ignore_obs_dims if not 0 <= d < obs_size]
+    if bad:
+        raise ValueError(f"ignore_obs_dims: expected dims in [0, {obs_size}), got {bad}")
+    # alpha's target from scratch (and for fine-tuning unless "start"): a number or -action_size
+    te = cfg.target_entropy
+    static_target = -float(act_size) if te is None or isinstance(te, str) else float(te)
     n = cfg.n_envs
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
 
@@ -265,11 +292,20 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         buffer = buffer.add(obs, action, nxt.reward * cfg.reward_scaling, nxt.obs,
                             terminal.astype(jnp.float32))
         ep_ret = ep_ret + nxt.reward
-        stats = (jnp.sum(jnp.where(end, ep_ret, 0.0)), jnp.sum(end))
+        stats = (jnp.sum(jnp.where(end, ep_ret, 0.0)), jnp.sum(end), jnp.mean(nxt.reward))
         env_state = tree_where(end, v_reset(jax.random.split(k_reset, n)), nxt)
         t = jnp.where(end, 0, t + 1)
         ep_ret = jnp.where(end, 0.0, ep_ret)
         return env_state, t, ep_ret, buffer, stats
+
+    def observe(actor, norm, obs):
+        """Fold obs [n, o] into the running normaliser and write its statistics into the
+        actor (no-op without normalize_observations)."""
+        if norm is None:
+            return actor, norm
+        norm = norm.update(obs)
+        mean, std = norm.stats(cfg.ignore_obs_dims)
+        return {**actor, "obs_mean": mean, "obs_std": std}, norm
 
     def critic_loss(critic, actor, target_critic, alpha, batch, key):
         obs, action, reward, next_obs, terminal = batch
@@ -284,9 +320,12 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         pol = {**actor, "layers": layers}
         action, _, logp = sample_action(pol, obs, key)
         q = jnp.min(q_values(critic, actor, obs, action), axis=0)
+        loss = jnp.mean(alpha * logp - q)
+        if anchor is None or cfg.kl_weight == 0:  # static: from scratch or no anchor
+            return loss, (logp, jnp.zeros((), jnp.float32))
         kl = jnp.mean(gaussian_kl(*policy_dist(pol, obs), *policy_dist(anchor, obs)))
         scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(q)))
-        return jnp.mean(alpha * logp - q) + kl_coef * scale * kl, (logp, kl)
+        return loss + kl_coef * scale * kl, (logp, kl)
 
     def update(state: SACState, key):
         k_batch, k_critic, k_actor = jax.random.split(key, 3)
@@ -307,8 +346,10 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         layers = optax.apply_updates(state.actor["layers"], upd)
 
         entropy = -jnp.mean(logp)
+        target_entropy = (static_target if state.target_entropy is None
+                          else state.target_entropy)
         a_loss, g = jax.value_and_grad(
-            lambda la: -la * jax.lax.stop_gradient(state.target_entropy - entropy)
+            lambda la: -la * jax.lax.stop_gradient(target_entropy - entropy)
         )(state.log_alpha)
         upd, alpha_opt = alpha_opt_.update(g, state.alpha_opt, state.log_alpha)
         log_alpha = optax.apply_updates(state.log_alpha, upd)
@@ -317,6 +358,8 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         live = state.updates >= cfg.critic_warmup_updates
         keep = lambda new, old: jax.tree_util.tree_map(lambda a, b: jnp.where(live, a, b),
                                                        new, old)
+        if not cfg.learn_alpha:
+            log_alpha, alpha_opt = state.log_alpha, state.alpha_opt
         state = state._replace(
             actor={**state.actor, "layers": keep(layers, state.actor["layers"])},
             actor_opt=keep(actor_opt, state.actor_opt), critic=critic, target_critic=target,
@@ -327,21 +370,45 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
 
     def iteration(state: SACState, _):
         key, k_env, k_upd = jax.random.split(state.key, 3)
-        env_state, t, ep_ret, buffer, (ret_sum, n_ended) = env_step(
-            state.actor, state.env_state, state.t, state.episode_return, state.buffer, k_env)
+        actor, obs_norm = observe(state.actor, state.obs_norm, state.env_state.obs)
+        env_state, t, ep_ret, buffer, (ret_sum, n_ended, reward_mean) = env_step(
+            actor, state.env_state, state.t, state.episode_return, state.buffer, k_env)
         state = state._replace(env_state=env_state, t=t, episode_return=ep_ret, buffer=buffer,
-                               key=key)
+                               key=key, actor=actor, obs_norm=obs_norm)
         state, m = jax.lax.scan(update, state, jax.random.split(k_upd, cfg.updates_per_step))
         m = jax.tree_util.tree_map(lambda x: x[-1], m)
-        m["return_sum"], m["episodes"] = ret_sum, n_ended
+        m["return_sum"], m["episodes"], m["reward_mean"] = ret_sum, n_ended, reward_mean
         return state, m
+
+    def warmup(actor, obs_norm, k_env, k_warm):
+        """Fresh envs and a buffer filled by warmup_steps steps of ``actor`` (no updates)."""
+        buffer = Buffer.create(cfg.buffer_size, obs_size, act_size)
+        env_state = v_reset(jax.random.split(k_env, n))
+        t, ep_ret = jnp.zeros((n,), jnp.int32), jnp.zeros((n,), jnp.float32)
+
+        def warm(carry, k):
+            actor, obs_norm, *env = carry
+            actor, obs_norm = observe(actor, obs_norm, env[0].obs)
+            return (actor, obs_norm, *env_step(actor, *env, k)[:4]), None
+
+        carry, _ = jax.lax.scan(warm, (actor, obs_norm, env_state, t, ep_ret, buffer),
+                                jax.random.split(k_warm, cfg.warmup_steps))
+        return carry
 
     def init(key: jax.Array, actor_params: Params | None = None) -> SACState:
         """Fresh critics and buffer; the actor is ``actor_params`` (one policy) or fresh."""
         k_actor, k_critic, k_env, k_warm, key = jax.random.split(key, 5)
         k_ent = jax.random.fold_in(k_warm, 1)
+        obs_norm = None
         if actor_params is None:
             actor = init_policy(k_actor, obs_size, act_size, cfg.actor_hidden)
+            mean, std = mask_obs_stats(actor["obs_mean"], actor["obs_std"], cfg.ignore_obs_dims)
+            actor = {**actor, "obs_mean": mean, "obs_std": std}
+            if cfg.normalize_observations:
+                obs_norm = RunningNorm.create(obs_size)
+        elif cfg.normalize_observations:
+            raise ValueError("normalize_observations: only for a fresh actor (init without "
+                             "actor_params); a given actor keeps its own frozen normaliser")
         else:
             actor = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), actor_params)
             mean = actor["obs_mean"]
@@ -355,39 +422,38 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         sizes = [obs_size + act_size, *cfg.hidden, 1]
         critic = jax.vmap(lambda k: init_mlp(k, sizes))(jax.random.split(k_critic, 2))
         log_alpha = jnp.log(jnp.asarray(cfg.init_alpha, jnp.float32))
-        buffer = Buffer.create(cfg.buffer_size, obs_size, act_size)
-        env_state = v_reset(jax.random.split(k_env, n))
-        t, ep_ret = jnp.zeros((n,), jnp.int32), jnp.zeros((n,), jnp.float32)
-
-        def warm(carry, k):
-            return env_step(actor, *carry, k)[:4], None
-
-        (env_state, t, ep_ret, buffer), _ = jax.lax.scan(
-            warm, (env_state, t, ep_ret, buffer), jax.random.split(k_warm, cfg.warmup_steps))
+        actor, obs_norm, env_state, t, ep_ret, buffer = warmup(actor, obs_norm, k_env, k_warm)
         fine_tuning = actor_params is not None
-        if cfg.target_entropy is None or isinstance(cfg.target_entropy, str):
-            if cfg.target_entropy == "start" and fine_tuning:
+        anchor = kl_coef = target = None
+        if fine_tuning:
+            anchor, kl_coef = actor, jnp.asarray(cfg.kl_weight, jnp.float32)
+            if cfg.target_entropy == "start":
                 # the start policy's entropy, estimated on the warm-up states
                 _, _, logp = sample_action(actor, buffer.obs[:cfg.warmup_steps * n], k_ent)
-                target = -jnp.mean(logp) + cfg.target_entropy_offset
+                target = (-jnp.mean(logp) + cfg.target_entropy_offset).astype(jnp.float32)
             else:
-                target = jnp.asarray(-float(act_size))
-        else:
-            target = jnp.asarray(float(cfg.target_entropy))
+                target = jnp.asarray(static_target, jnp.float32)
         return SACState(actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
                         actor_opt=actor_opt_.init(actor["layers"]),
                         critic_opt=critic_opt_.init(critic), alpha_opt=alpha_opt_.init(log_alpha),
                         buffer=buffer, env_state=env_state, t=t, episode_return=ep_ret,
-                        updates=jnp.zeros((), jnp.int32), key=key, anchor=actor,
-                        kl_coef=jnp.asarray(cfg.kl_weight if fine_tuning else 0.0, jnp.float32),
-                        target_entropy=target.astype(jnp.float32))
+                        updates=jnp.zeros((), jnp.int32), key=key, anchor=anchor,
+                        kl_coef=kl_coef, target_entropy=target, obs_norm=obs_norm)
 
     def train(state: SACState, n_iterations: int) -> tuple[SACState, dict]:
         """n_iterations (static) iterations. metrics: dict of [n_iterations] arrays: losses,
         alpha, entropy of the last update; return_sum / episodes of the episodes that ended."""
         return jax.lax.scan(iteration, state, None, length=int(n_iterations))
 
-    return SAC(init, train)
+    def refill(state: SACState) -> SACState:
+        """Fresh envs, an empty buffer re-filled by warmup_steps steps of the current actor."""
+        key, k_env, k_warm = jax.random.split(state.key, 3)
+        actor, obs_norm, env_state, t, ep_ret, buffer = warmup(state.actor, state.obs_norm,
+                                                               k_env, k_warm)
+        return state._replace(actor=actor, obs_norm=obs_norm, env_state=env_state, t=t,
+                              episode_return=ep_ret, buffer=buffer, key=key)
+
+    return SAC(init, train, refill)
 
 
 def episode_returns(metrics: dict) -> jax.Array:

@@ -25,8 +25,10 @@ default):
 * **stop rule** (MOReL): the rollout terminates (``done`` = 1, and ``halt_penalty`` is
   subtracted from that step's reward) when u exceeds ``uncertainty_threshold``.
 
-Without an explicit ``uncertainty_fn`` the simulator's own ``uncertainty`` method is used
-(``Simulator.uncertainty``). Every step records u and whether the stop rule fired in
+Without an explicit ``uncertainty_fn`` a Simulator's ensemble disagreement is used
+(``Simulator.disagreement``, the measure its ``uncertainty`` field names: the elites' spread,
+which grows where the members extrapolate; ``simulator_uncertainty``); it needs at least two
+elites. Every step records u and whether the stop rule fired in
 ``state.metrics["uncertainty"]`` / ``["halted"]``.
 """
 
@@ -61,6 +63,23 @@ def branch_pool(ds, max_states: int | None = None, seed: int = 0) -> jax.Array:
     return jnp.asarray(obs)
 
 
+def simulator_uncertainty(sim) -> Uncertainty:
+    """A Simulator's per-step u(obs [..., o], action [..., a]) -> [...]: its ensemble's
+    disagreement (``Simulator.disagreement``). Raises for a simulator of one elite, whose
+    disagreement is 0 everywhere, and for anything that is not a Simulator."""
+    if not isinstance(sim, Simulator):
+        raise ValueError("uncertainty_fn: the uncertainty penalty / stop rule needs "
+                         "u(obs, action); pass uncertainty_fn= (only a Simulator has its own "
+                         f"u, got {type(sim).__name__})")
+    members = sim.n_members
+    elites = members if sim.rank is None or sim.n_elites is None else min(sim.n_elites, members)
+    if elites < 2:
+        raise ValueError(f"uncertainty_penalty / uncertainty_threshold: u is the ensemble's "
+                         f"disagreement, which needs >= 2 elites; this simulator has {members} "
+                         f"member(s), {elites} elite(s) (train an ensemble model)")
+    return sim.disagreement
+
+
 def uncertainty_scale(uncertainty_fn: Uncertainty, obs, action) -> jax.Array:
     """Mean uncertainty over real (obs [N, o], action [N, a]) pairs: divide u by it so that
     a penalty lambda or a threshold reads in units of the data's typical u. -> []"""
@@ -80,17 +99,14 @@ def scaled_env_options(sim, obs_rows, action_rows, *, rollout_length: int | None
                        uncertainty_threshold: float | None = None,
                        halt_penalty: float = 0.0) -> dict:
     """SimulatorEnv keywords (rollout_length, penalty, stop rule) with u = the simulator's
-    ``uncertainty`` divided by its mean over the real rows (``real_rows``), so that the
-    penalty lambda and the threshold read in units of the data's typical u. ``sim`` may be a
-    traced Simulator (inside a vmap over simulators)."""
+    ensemble disagreement (``simulator_uncertainty``) divided by its mean over the real rows
+    (``real_rows``), so that the penalty lambda and the threshold read in units of the data's
+    typical u. ``sim`` may be a traced Simulator (inside a vmap over simulators)."""
     opts: dict = {}
     if rollout_length is not None:
         opts["rollout_length"] = int(rollout_length)
     if uncertainty_penalty > 0 or uncertainty_threshold is not None:
-        fn = getattr(sim, "uncertainty", None)
-        if fn is None:
-            raise ValueError("uncertainty_penalty / uncertainty_threshold: the simulator has "
-                             "no uncertainty method")
+        fn = simulator_uncertainty(sim)
         scale = uncertainty_scale(fn, obs_rows, action_rows)
         opts.update(uncertainty_fn=lambda o, a: fn(o, a) / scale,
                     uncertainty_penalty=float(uncertainty_penalty),
@@ -112,7 +128,7 @@ class SimulatorEnv(Env):
       rollout_length: cut rollouts after this many steps (``info["truncation"]``; None: no
         limit, as brax envs).
       uncertainty_fn: u(obs, action) >= 0 for the penalty and the stop rule (default: the
-        simulator's ``uncertainty`` method, when either is on).
+        Simulator's ensemble disagreement, when either is on; ``simulator_uncertainty``).
       uncertainty_penalty: lambda >= 0 of the reward r - lambda * u.
       uncertainty_threshold: terminate when u > this (None: never); may be a traced scalar.
       halt_penalty: subtracted from the reward of a step the stop rule ends (>= 0).
@@ -171,11 +187,7 @@ class SimulatorEnv(Env):
         self.halt_penalty = float(halt_penalty)
         needs_u = uncertainty_penalty > 0 or uncertainty_threshold is not None
         if uncertainty_fn is None and needs_u:
-            uncertainty_fn = getattr(sim, "uncertainty", None)
-            if uncertainty_fn is None:
-                raise ValueError("uncertainty_fn: the uncertainty penalty / stop rule needs "
-                                 "u(obs, action); pass uncertainty_fn= (this simulator has no "
-                                 "uncertainty method)")
+            uncertainty_fn = simulator_uncertainty(sim)
         if uncertainty_fn is not None and not callable(uncertainty_fn):
             raise TypeError(f"uncertainty_fn: expected a function (obs, action) -> u, got "
                             f"{type(uncertainty_fn).__name__}")

@@ -17,13 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from rl2s_jax.models import (
-    Normalizer,
-    generator_dist,
-    generator_log_prob,
-    generator_mean,
-    generator_sample,
-)
+from rl2s_jax import dynamics as dyn
+from rl2s_jax.models import Normalizer, sample_next
 from rl2s_jax.policies import Params, sample_action
 
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
@@ -31,42 +26,126 @@ Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 
 @struct.dataclass
 class Simulator:
-    """A learned simulator p_phi: generator params, its normaliser, the task it models.
+    """A learned simulator p_phi: an ensemble of Markov family members, its normaliser, the
+    task it models (docs/SIMULATOR.md).
+
+    gen: member parameters stacked [E, ...] (``dynamics.init_ensemble``); a bare list of MLP
+      layers (one generator, ``models.init_generator``) is taken as E = 1.
+    rank: [E] int32 members by held-out NLL (0 = best), or None (all equal, member 0 first);
+      the ``n_elites`` best are the elites (None: every member).
+    member_mode: how a step picks its Gaussian: "random" (an elite drawn per sample), "mean"
+      (the elites' average), "fixed" (the best member). ``uncertainty``: the disagreement
+      measure ("std" or "max_pairwise", ``dynamics.disagreement``).
 
     ``dynamics`` is the ``Dynamics`` function the rollouts here take; ``task`` names the
     registered task whose reward_fn / done_fn apply (None for data without a task).
+    ``uncertainty_fn(obs, action)`` and ``step(obs, action, key) -> (next_obs, u)`` give the
+    ensemble's disagreement at every step (0 for one member).
     """
 
     gen: Params
     norm: Normalizer
+    rank: jax.Array | None = None
     task: str | None = struct.field(pytree_node=False, default=None)
     obs_clip: float = struct.field(pytree_node=False, default=10.0)
     noise_scale: float = struct.field(pytree_node=False, default=1.0)
+    n_elites: int | None = struct.field(pytree_node=False, default=None)
+    member_mode: str = struct.field(pytree_node=False, default="random")
+    uncertainty: str = struct.field(pytree_node=False, default="std")
+
+    def __post_init__(self):
+        if isinstance(self.gen, list | tuple):  # one generator: an ensemble of one
+            layers = [{k: jnp.asarray(v)[None] for k, v in layer.items()} for layer in self.gen]
+            object.__setattr__(self, "gen", {"layers": layers})
+
+    @property
+    def n_members(self) -> int:
+        return dyn.n_members(self.gen)
+
+    def member_dists(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Every member's Gaussian over the normalised delta: (mean, log_std) [E, ..., o]."""
+        return dyn.ensemble_dist(self.gen, dyn.markov_inputs(self.norm, obs, action))
+
+    def _moments(self, means, log_stds, key):
+        return dyn.ensemble_moments(means, log_stds, key, rank=self.rank,
+                                    n_elites=self.n_elites, mode=self.member_mode)
 
     def sample(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
-        """s' ~ p_phi(.|s, a) with the std times noise_scale, clipped to +-obs_clip data stds.
-        [..., o], [..., a] -> [..., o]"""
-        return generator_sample(self.gen, self.norm, obs, action, key, self.obs_clip,
-                                self.noise_scale)
+        """s' ~ p_phi(.|s, a) (member by member_mode) with the std times noise_scale, clipped
+        to +-obs_clip data stds. [..., o], [..., a] -> [..., o]"""
+        return self.step(obs, action, key)[0]
+
+    def step(self, obs: jax.Array, action: jax.Array, key: jax.Array
+             ) -> tuple[jax.Array, jax.Array]:
+        """One simulated step and the ensemble's disagreement at (obs, action), from one pass
+        over the members. -> (next_obs [..., o], u [...])"""
+        means, log_stds = self.member_dists(obs, action)
+        mean, log_std, k_noise = self._moments(means, log_stds, key)
+        nxt = sample_next(self.norm, obs, mean, log_std, k_noise, self.obs_clip,
+                          self.noise_scale)
+        return nxt, self._disagreement(means)
+
+    def transition(self, obs: jax.Array, action: jax.Array, key: jax.Array
+                   ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Everything a consumer of one step needs, from one pass over the members (e.g. an
+        uncertainty-penalised reward r - lambda * u for policy improvement):
+        -> (mean next state [..., o] as ``mean``, a sample [..., o] as ``sample`` with this
+        key, the elites' disagreement u [...] as ``disagreement``; 0 for one member)."""
+        means, log_stds = self.member_dists(obs, action)
+        mode = "fixed" if self.member_mode == "fixed" else "mean"
+        avg, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
+                                         n_elites=self.n_elites, mode=mode)
+        mean, log_std, k_noise = self._moments(means, log_stds, key)
+        nxt = sample_next(self.norm, obs, mean, log_std, k_noise, self.obs_clip,
+                          self.noise_scale)
+        return self.norm.next_from_delta(obs, avg), nxt, self._disagreement(means)
 
     def mean(self, obs: jax.Array, action: jax.Array) -> jax.Array:
-        """The mean next state. -> [..., o]"""
-        return generator_mean(self.gen, self.norm, obs, action)
+        """The mean next state: of the best member ("fixed") or the elites' average. -> [..., o]"""
+        means, log_stds = self.member_dists(obs, action)
+        mode = "fixed" if self.member_mode == "fixed" else "mean"
+        mean, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
+                                          n_elites=self.n_elites, mode=mode)
+        return self.norm.next_from_delta(obs, mean)
 
     def log_prob(self, obs: jax.Array, action: jax.Array, next_obs: jax.Array) -> jax.Array:
-        """log density of the normalised delta. -> [...]"""
-        return generator_log_prob(self.gen, self.norm, obs, action, next_obs)
+        """log density of the normalised delta under what ``sample`` draws from (for
+        "random": the uniform mixture of the elites). -> [...]"""
+        means, log_stds = self.member_dists(obs, action)
+        return dyn.mixture_log_prob(means, log_stds, self.norm.norm_delta(obs, next_obs),
+                                    rank=self.rank, n_elites=self.n_elites,
+                                    mode=self.member_mode)
+
+    def predictive(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Mean and std [..., o] of the normalised delta that ``sample`` draws (noise_scale 1):
+        for "random", the elite mixture's (std includes the spread of the elites' means)."""
+        means, log_stds = self.member_dists(obs, action)
+        mode = "mean" if self.member_mode == "random" else self.member_mode
+        mean, log_std, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
+                                                n_elites=self.n_elites, mode=mode)
+        var = jnp.exp(2.0 * log_std)
+        if self.member_mode == "random" and means.shape[0] > 1:
+            elite = dyn.elite_mask(self.rank, self.n_elites, means.shape[0])
+            w = (elite / elite.sum()).reshape((-1,) + (1,) * (means.ndim - 1))
+            var = var + jnp.sum(w * (means - mean) ** 2, 0)
+        return mean, jnp.sqrt(var)
+
+    def _disagreement(self, means):
+        return dyn.disagreement(means, rank=self.rank, n_elites=self.n_elites,
+                                kind=self.uncertainty)
+
+    def disagreement(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """The elites' disagreement at (obs, action) in normalised delta units (0 for one
+        member). [..., o], [..., a] -> [...]"""
+        return self._disagreement(self.member_dists(obs, action)[0])
+
+    def uncertainty_fn(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """``uncertainty_fn(obs, action) -> [...]``: the disagreement, for a penalised reward
+        r - lambda * u (policy improvement) or to flag untrusted regions (diagnosis)."""
+        return self.disagreement(obs, action)
 
     def dynamics(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
         return self.sample(obs, action, key)
-
-    def uncertainty(self, obs: jax.Array, action: jax.Array) -> jax.Array:
-        """u(s, a) for a SimulatorEnv's penalty / stop rule: the Euclidean norm of the
-        predicted std of the normalised delta (MOPO's heuristic with a single model: it
-        measures the model's noise, not its ignorance; an ensemble's disagreement is the
-        better u). [..., o], [..., a] -> [...]"""
-        _, log_std = generator_dist(self.gen, self.norm, obs, action)
-        return jnp.sqrt(jnp.sum(jnp.exp(2.0 * log_std), axis=-1))
 
 
 @struct.dataclass
@@ -131,17 +210,29 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
     return roll
 
 
-def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
-                     done_fn: Callable, start_pool: jax.Array, key: jax.Array, *,
-                     n_episodes: int, horizon: int, gamma: float) -> tuple[jax.Array, jax.Array]:
-    """Discounted value of each policy in ``dynamics``: mean over n_episodes episodes of at
-    most ``horizon`` steps. -> (values [P], mean episode lengths [P])."""
+def simulated_returns(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
+                      done_fn: Callable, start_pool: jax.Array, key: jax.Array, *,
+                      n_episodes: int, horizon: int, gamma: float
+                      ) -> tuple[jax.Array, jax.Array]:
+    """Each simulated episode's discounted return and length: n_episodes episodes of at most
+    ``horizon`` steps per policy. -> (returns [P, n], lengths [P, n] int32)."""
     k_start, k_run = jax.random.split(key)
     n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
     roll = start_values(start_pool, n_pol, n_episodes, k_start)
     roll = advance_values(roll, policy_params, dynamics, reward_fn, done_fn, k_run,
                           n_steps=horizon, horizon=horizon, gamma=gamma)
-    return roll.ret.mean(1), roll.length.mean(1).astype(jnp.float32)
+    return roll.ret, roll.length
+
+
+def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
+                     done_fn: Callable, start_pool: jax.Array, key: jax.Array, *,
+                     n_episodes: int, horizon: int, gamma: float) -> tuple[jax.Array, jax.Array]:
+    """Discounted value of each policy in ``dynamics``: mean over n_episodes episodes of at
+    most ``horizon`` steps (``simulated_returns`` averaged).
+    -> (values [P], mean episode lengths [P])."""
+    ret, length = simulated_returns(policy_params, dynamics, reward_fn, done_fn, start_pool,
+                                    key, n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    return ret.mean(1), length.mean(1).astype(jnp.float32)
 
 
 def value_difference(sim_values: jax.Array, true_values: jax.Array) -> jax.Array:

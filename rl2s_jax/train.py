@@ -1,21 +1,36 @@
 """Learning the simulator: RL2S, GAIL, BC and RL2S-BC behind one pure ``train_step``.
 
 ``train_step(state, data) -> (state, metrics)`` is a pure function of a ``TrainState`` pytree
-(parameters, optimiser states, simulated envs and their buffer, the CVaR selection, per-policy
-VD, step counter, key) and the device-resident ``TrainData``. The config is a static field of
-the state, so ``jax.jit(train_step)``, ``lax.scan`` over it and ``jax.vmap`` over states built
-with different seeds or eps (``eps`` is a state leaf) all work as is.
+(the generator ensemble, optimiser states, simulated envs and their buffer, the CVaR selection,
+per-policy VD, the members' held-out scores, step counter, key) and the device-resident
+``TrainData``. The config is a static field of the state, so ``jax.jit(train_step)``,
+``lax.scan`` over it and ``jax.vmap`` over states built with different seeds or eps (``eps``
+is a state leaf) all work as is.
 
-One step of an adversarial method (rl2s, gail):
+The generator is an ensemble of E members of the dynamics-model family (``rl2s_jax.dynamics``),
+trained as one vmapped program; each member draws its own batches.
+
+One step of an MLE method (bc, rl2s-bc), and of the pre-training phase of an adversarial one
+(its first ``pretrain_steps`` steps, on every policy):
+  1. ``updates_per_step`` likelihood updates of every member on rows of the selected policies;
+  2. every member's NLL on the held-out episodes (whole episodes of every training policy that
+     training never sees): early stopping (a member that has not gained ``min_delta`` for
+     ``patience`` steps goes back to its best weights and stops) and the elites (the
+     ``n_elites`` lowest).
+One step of the adversarial phase (rl2s, gail), the official code's "train call" (the first one
+starts from the pre-trained members: their best weights, fresh Adam moments):
   1. the simulated envs advance ``sim_steps`` steps: each runs a selected training policy inside
      p_phi from a real state of that policy (reset when done_fn fires or after ``sim_horizon``
      steps); their (s, a) go into a ring buffer;
   2. ``updates_per_step`` times: ``disc_updates`` Wasserstein critic updates (real (s, a, s') of
-     the selected policies vs (s, a) from the buffer with s' from p_phi), then one generator
-     update maximising D on real and simulated (s, a), reparameterised through D;
-  3. the value measurement advances (see below).
-An MLE method (bc, rl2s-bc) replaces 1-2 by ``updates_per_step`` likelihood steps on the
-selected policies' data.
+     the selected policies vs (s, a) from the buffer with s' from p_phi), then one update of
+     every member maximising D on real and simulated (s, a), reparameterised through D (the
+     first ``disc_warmup_steps`` steps train the critic only);
+  3. the members' held-out NLL and the elites, as above (no early stopping).
+Both then advance the value measurement (below). Rollouts step with a random elite per sample
+(``member_mode``). With ``ema_decay``, ``simulator(state)`` (evaluation, checkpoints) is an
+exponential moving average of the members' weights; the CVaR value measurement keeps using the
+trained weights, so the average changes what is evaluated, never how training runs.
 
 CVaR on the device: the value of every training policy in p_phi (``vd_episodes`` episodes of
 ``vd_horizon`` steps) is measured as a rollout spread over ``vd_every`` calls (ceil(H / K)
@@ -23,11 +38,14 @@ steps each), so each step costs the same, also under vmap, where a ``lax.cond`` 
 would run both branches. When it completes, VD = |V_true - V_sim| is stored and the worst
 max(2, ceil(eps P)) policies become the selection until the next completion. ``init`` measures
 the first selection with a full rollout. eps = 1 selects everyone (GAIL, BC).
+
+The phase of an adversarial method with pre-training is chosen per step on the device
+(``lax.cond``), or statically with ``train_step(state, data, phase="pretrain" | "main")``:
+callers that know the step on the host (``fit``, experiments/paper.py) pass it, so a vmapped
+program runs only the phase's branch.
 """
 from __future__ import annotations
 
-import dataclasses
-import math
 from typing import Any
 
 import jax
@@ -36,8 +54,10 @@ import numpy as np
 import optax
 from flax import struct
 
+from rl2s_jax import dynamics as dyn
 from rl2s_jax import losses
-from rl2s_jax.models import Normalizer, generator_sample, init_discriminator, init_generator
+from rl2s_jax.config import DEFAULT_EPS, LEGACY_MODEL, METHODS, TrainConfig
+from rl2s_jax.models import Normalizer, init_discriminator
 from rl2s_jax.policies import Params, index_params, num_policies, sample_action
 from rl2s_jax.simulate import (
     Simulator,
@@ -49,126 +69,25 @@ from rl2s_jax.simulate import (
     start_values,
     value_difference,
 )
-from rl2s_jax.tasks import TASKS, get_task
+from rl2s_jax.tasks import get_task
 
-METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
-DEFAULT_EPS = {"rl2s": 0.25, "gail": 1.0, "bc": 1.0, "rl2s-bc": 0.25}
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """Static settings of a training run (hashable: it is part of the jit cache key).
-
-    Defaults are the official RL2S code's (exp_specs/l2s_hopper.yaml); ``small()`` is a
-    CPU-sized variant. ``eps=None`` takes the method's default (0.25 for rl2s and rl2s-bc,
-    1 for gail and bc); it is only the initial value of the vmappable ``TrainState.eps``.
-    """
-
-    task: str = "hopper"
-    method: str = "rl2s"
-    eps: float | None = None
-    gen_hidden: tuple[int, ...] = (512, 512, 512, 512)
-    disc_hidden: tuple[int, ...] = (512, 512, 512, 512)
-    batch_size: int = 256
-    updates_per_step: int = 50     # generator updates per train_step (a "train call")
-    disc_updates: int = 5          # critic updates before each generator update
-    gen_lr: float = 1e-4
-    disc_lr: float = 1e-4
-    disc_beta1: float = 0.5
-    bc_lr: float = 1e-4             # 1e-3 and 3e-4 collapsed BC on Hopper (docs/BENCHMARKS.md)
-    grad_clip: float = 0.5         # elementwise gradient clip, as the official code
-    sim_envs: int = 32             # simulated envs stepping in p_phi (adversarial methods)
-    sim_steps: int = 16            # their steps per train_step
-    sim_horizon: int = 50          # a simulated env restarts from a real state after this
-    buffer_size: int = 8192        # ring buffer of simulated (s, a)
-    vd_every: int = 20             # K: calls per VD measurement / CVaR refresh
-    vd_episodes: int = 8           # simulated episodes per training policy per measurement
-    vd_horizon: int = 1000         # steps per simulated episode (the task's episode length)
-    gamma: float = 0.999
-    obs_clip: float = 10.0         # simulated states kept within +-obs_clip data stds
-    sim_noise: float = 1.0         # std scale of p_phi in simulated rollouts (0: its mean)
-    input_ignore_dims: tuple[int, ...] | None = None  # obs dims the networks do not see;
-    # None: the task's position_dims (absolute x, y), () for none
-
-    @property
-    def adversarial(self) -> bool:
-        return self.method in ("rl2s", "gail")
-
-    @property
-    def ignore_dims(self) -> tuple[int, ...]:
-        if self.input_ignore_dims is not None:
-            return tuple(self.input_ignore_dims)
-        return get_task(self.task).position_dims if self.task in TASKS else ()
-
-    @property
-    def initial_eps(self) -> float:
-        return DEFAULT_EPS[self.method] if self.eps is None else float(self.eps)
-
-    @classmethod
-    def small(cls, **overrides) -> TrainConfig:
-        """A CPU-sized config: 2x64 networks, short value rollouts, few updates per step."""
-        base = dict(gen_hidden=(64, 64), disc_hidden=(64, 64), batch_size=64,
-                    updates_per_step=5, disc_updates=2, sim_envs=16, sim_steps=4,
-                    buffer_size=1024, vd_every=5, vd_episodes=4, vd_horizon=100,
-                    gen_lr=1e-3, disc_lr=1e-3, bc_lr=1e-3)
-        base.update(overrides)
-        return cls(**base)
-
-    def validate(self) -> TrainConfig:
-        """Raise ValueError naming the first bad field; returns self."""
-        if self.method not in METHODS:
-            raise ValueError(f"method: expected one of {', '.join(METHODS)}, got {self.method!r}")
-        if not 0.0 < self.initial_eps <= 1.0:
-            raise ValueError(f"eps: expected a float in (0, 1], got {self.eps!r}")
-        for name in ("batch_size", "updates_per_step", "disc_updates", "sim_envs", "sim_steps",
-                     "sim_horizon", "buffer_size", "vd_episodes", "vd_horizon"):
-            v = getattr(self, name)
-            if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-                raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
-        if not isinstance(self.vd_every, int) or self.vd_every < 0:
-            raise ValueError(f"vd_every: expected an int >= 0 (0 = no VD), got {self.vd_every!r}")
-        if self.vd_every == 0 and self.initial_eps < 1.0:
-            raise ValueError(f"vd_every: 0 turns off VD, which method {self.method!r} with eps "
-                             f"{self.initial_eps} needs to choose its worst policies")
-        for name in ("gen_hidden", "disc_hidden"):
-            v = getattr(self, name)
-            if not (isinstance(v, tuple) and v and all(isinstance(h, int) and h > 0 for h in v)):
-                raise ValueError(f"{name}: expected a non-empty tuple of positive ints, got {v!r}")
-        for name in ("gen_lr", "disc_lr", "bc_lr", "grad_clip", "obs_clip"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name}: expected a positive finite float, got {v!r}")
-        if not (isinstance(self.sim_noise, (int, float)) and math.isfinite(self.sim_noise)
-                and self.sim_noise >= 0):
-            raise ValueError(f"sim_noise: expected a finite float >= 0, got {self.sim_noise!r}")
-        if not 0.0 < self.gamma <= 1.0:
-            raise ValueError(f"gamma: expected a float in (0, 1], got {self.gamma!r}")
-        if self.adversarial and self.buffer_size < self.batch_size:
-            raise ValueError(f"buffer_size: expected >= batch_size ({self.batch_size}), "
-                             f"got {self.buffer_size}")
-        return self
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> TrainConfig:
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(d) - names)
-        if unknown:
-            raise ValueError(f"config: unknown field(s) {unknown}")
-        d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
-        return cls(**d)
+__all__ = ["DEFAULT_EPS", "LEGACY_MODEL", "METHODS", "TrainConfig", "TrainData", "TrainState",
+           "heldout_mask", "init", "make_train_data", "member_mle_updates", "n_worst",
+           "select_worst", "simulator", "track_best", "train_step", "train_steps",
+           "true_values"]
+ADVERSARIAL_METRICS = ("gen_loss", "disc_loss", "d_real", "d_fake", "sim_reset_rate")
 
 
 @struct.dataclass
 class TrainData:
-    """The training data on the device, rows grouped by policy.
+    """The training data on the device, training rows grouped by policy.
 
     obs [N, o], action [N, a], next_obs [N, o]; policy_start, policy_count [P] (policy p owns
     rows policy_start[p] : policy_start[p] + policy_count[p]); start_pool [S, o] real episode
     start states; true_value [P] discounted value over vd_horizon steps (NaN = unknown);
-    policies: the P training policies, stacked; norm: the data's Normalizer.
+    policies: the P training policies, stacked; norm: the training rows' Normalizer;
+    val_obs, val_action, val_next_obs [V, ...]: rows of the held-out episodes the members are
+    scored on (V = 0 without held-out episodes); those episodes are not among the N rows.
     """
 
     obs: jax.Array
@@ -180,10 +99,32 @@ class TrainData:
     true_value: jax.Array
     policies: Params
     norm: Normalizer
+    val_obs: jax.Array
+    val_action: jax.Array
+    val_next_obs: jax.Array
 
     @property
     def n_policies(self) -> int:
         return int(self.policy_start.shape[0])
+
+    @property
+    def n_heldout(self) -> int:
+        return int(self.val_obs.shape[0])
+
+
+def _measured_values_apply(ds, horizon: int, gamma: float) -> bool:
+    """Whether the Dataset's measured values are the true values for this horizon and gamma:
+    it has them, the horizon covers whole episodes and gamma matches."""
+    meta = ds.meta
+    full = meta.get("episode_length") is not None and horizon >= meta["episode_length"]
+    return bool(ds.has_values and full and abs(float(meta.get("gamma") or 0) - gamma) < 1e-9)
+
+
+def true_values_se(ds, horizon: int, gamma: float) -> np.ndarray | None:
+    """Standard errors [P] of ``true_values`` where the data measured them, else None."""
+    if _measured_values_apply(ds, horizon, gamma):
+        return np.asarray(ds.value_discounted_se, np.float64)
+    return None
 
 
 def true_values(ds, horizon: int, gamma: float, strict: bool = True) -> np.ndarray:
@@ -194,9 +135,7 @@ def true_values(ds, horizon: int, gamma: float, strict: bool = True) -> np.ndarr
     steps (``simulate.data_values``). ``strict``: a policy without a usable episode is an error
     (else NaN).
     """
-    meta = ds.meta
-    full = meta.get("episode_length") is not None and horizon >= meta["episode_length"]
-    if ds.has_values and full and abs(float(meta.get("gamma") or 0) - gamma) < 1e-9:
+    if _measured_values_apply(ds, horizon, gamma):
         return np.asarray(ds.value_discounted, np.float32)
     ended = np.asarray(ds.done) | np.asarray(ds.truncated)
     values, _ = data_values(np.asarray(ds.reward), ended, np.asarray(ds.policy_id),
@@ -211,13 +150,34 @@ def true_values(ds, horizon: int, gamma: float, strict: bool = True) -> np.ndarr
     return values.astype(np.float32)
 
 
+def heldout_mask(ds, holdout_frac: float, seed: int = 0) -> np.ndarray:
+    """[N] bool: the rows of whole held-out episodes, ``holdout_frac`` of each policy's
+    episodes (at least one of every policy with two or more; ``diagnose.episodes
+    .split_episodes``). All False for holdout_frac = 0."""
+    if not holdout_frac:
+        return np.zeros(ds.n_transitions, bool)
+    from rl2s_jax.diagnose.episodes import from_dataset, split_episodes
+
+    eps = from_dataset(ds, position_dims=())
+    try:
+        _, held = split_episodes(eps, holdout_frac, seed)
+    except ValueError:
+        raise ValueError("holdout_frac: no training policy has 2 or more episodes, so none can "
+                         "be held out to score the members; collect longer or set "
+                         "holdout_frac=0 (with n_elites = ensemble_size and "
+                         "early_stop_patience = 0)") from None
+    return np.isin(eps.episode, held)
+
+
 def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
     """TrainData from a Dataset and its P stacked policies (policy i of ``policies`` collected
     the rows with policy_id i).
 
-    The true values: the Dataset's measured discounted values when vd_horizon covers the whole
-    episode and gamma matches; otherwise the logged episodes' discounted return over the first
-    vd_horizon steps.
+    ``holdout_frac`` of every policy's episodes are held out whole (``heldout_mask``); up to
+    ``holdout_rows`` of their rows, evenly spread, score the members. The true values: the
+    Dataset's measured discounted values when vd_horizon covers the whole episode and gamma
+    matches; otherwise the logged episodes' discounted return over the first vd_horizon steps
+    (all episodes, held-out ones included).
     """
     P = ds.n_policies
     if num_policies(policies) != P:
@@ -228,18 +188,28 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
     if (counts == 0).any():
         raise ValueError(f"policy_id: expected rows for every policy, none for policy "
                          f"{int(np.flatnonzero(counts == 0)[0])}")
-    order = np.argsort(pid, kind="stable")
+    held = heldout_mask(ds, config.holdout_frac)
+    keep = np.flatnonzero(~held)
+    counts = np.bincount(pid[keep], minlength=P)
+    order = keep[np.argsort(pid[keep], kind="stable")]
     starts = np.r_[0, np.cumsum(counts)[:-1]]
+    val = np.flatnonzero(held)
+    if val.size > config.holdout_rows:
+        val = val[np.round(np.linspace(0, val.size - 1, config.holdout_rows)).astype(int)]
     true_value = true_values(ds, config.vd_horizon, config.gamma, strict=bool(config.vd_every))
-    f32 = lambda x: jnp.asarray(np.asarray(x)[order], jnp.float32)
-    return TrainData(obs=f32(ds.obs), action=f32(ds.action), next_obs=f32(ds.next_obs),
+    f32 = lambda x, rows: jnp.asarray(np.asarray(x)[rows], jnp.float32)
+    obs, action, next_obs = (np.asarray(x)[keep] for x in (ds.obs, ds.action, ds.next_obs))
+    return TrainData(obs=f32(ds.obs, order), action=f32(ds.action, order),
+                     next_obs=f32(ds.next_obs, order),
                      policy_start=jnp.asarray(starts, jnp.int32),
                      policy_count=jnp.asarray(counts, jnp.int32),
                      start_pool=start_pool(ds),
                      true_value=jnp.asarray(true_value, jnp.float32),
                      policies=jax.tree_util.tree_map(jnp.asarray, policies),
-                     norm=Normalizer.from_data(ds.obs, ds.action, ds.next_obs,
-                                               ignore_dims=config.ignore_dims))
+                     norm=Normalizer.from_data(obs, action, next_obs,
+                                               ignore_dims=config.ignore_dims),
+                     val_obs=f32(ds.obs, val), val_action=f32(ds.action, val),
+                     val_next_obs=f32(ds.next_obs, val))
 
 
 @struct.dataclass
@@ -257,8 +227,8 @@ class TrainState:
     key: jax.Array
     eps: jax.Array                # [] float32 CVaR fraction (vmappable)
     norm: Normalizer
-    gen: Params
-    gen_opt: Any
+    gen: Params                   # the members, stacked [E, ...] (dynamics.init_ensemble)
+    gen_opt: Any                  # their optimiser states, stacked [E, ...]
     disc: Params | None           # None for bc / rl2s-bc
     disc_us: Any
     disc_opt: Any
@@ -271,6 +241,13 @@ class TrainState:
     sim_length: jax.Array         # [P] mean simulated episode length of that measurement
     selected: jax.Array           # [P] bool: the policies the generator trains on
     vd_roll: ValueRollout | None  # the measurement in progress
+    heldout_nll: jax.Array        # [E] members' held-out NLL (a stopped member: its best)
+    rank: jax.Array               # [E] int32 members by heldout_nll (0 = lowest)
+    best_nll: jax.Array           # [E] lowest held-out NLL of the MLE steps (inf: none yet)
+    since_best: jax.Array         # [E] int32 MLE steps since best_nll last fell
+    stopped: jax.Array            # [E] bool: early-stopped (frozen at its best weights)
+    best_gen: Params | None       # [E, ...] weights at best_nll (None: early stopping off)
+    ema_gen: Params | None        # [E, ...] moving average of gen (None: ema_decay = 0)
     config: TrainConfig = struct.field(pytree_node=False)
 
 
@@ -311,20 +288,49 @@ def _real_batch(key, data: TrainData, selected, n):
     return data.obs[rows], data.action[rows], data.next_obs[rows]
 
 
-def _simulator(gen, norm: Normalizer, cfg: TrainConfig) -> Simulator:
-    """p_phi as rollouts use it (no gradient into the generator)."""
-    return Simulator(gen=jax.lax.stop_gradient(gen), norm=norm, task=cfg.task,
-                     obs_clip=cfg.obs_clip, noise_scale=cfg.sim_noise)
+# ------------------------------------------------------------------ models and optimisers
+
+
+def _sampler(gen, state: TrainState, noise_scale: float) -> Simulator:
+    """The members as rollouts use them (no gradient into the generator)."""
+    cfg = state.config
+    return Simulator(gen=jax.lax.stop_gradient(gen), norm=state.norm, rank=state.rank,
+                     task=cfg.task, obs_clip=cfg.obs_clip, noise_scale=noise_scale,
+                     n_elites=cfg.n_elites, member_mode=cfg.member_mode,
+                     uncertainty=cfg.uncertainty)
+
+
+def _gen_tx(cfg: TrainConfig, lr: float) -> optax.GradientTransformation:
+    """One member's optimiser: L2 on its weight matrices (gen_weight_decay), elementwise clip,
+    Adam. Both phases share its state layout."""
+    decay = ([optax.add_decayed_weights(cfg.gen_weight_decay, mask=dyn.weight_mask)]
+             if cfg.gen_weight_decay else [])
+    return optax.chain(*decay, optax.clip(cfg.grad_clip), optax.adam(lr))
+
+
+def _disc_tx(cfg: TrainConfig) -> optax.GradientTransformation:
+    return optax.chain(optax.clip(cfg.grad_clip), optax.adam(cfg.disc_lr, b1=cfg.disc_beta1))
+
+
+def _tree_where(cond, new, old):
+    """Per-member choice: cond [E] (or []) selects new over old leaf by leaf."""
+    def pick(n, o):
+        c = jnp.reshape(cond, jnp.shape(cond) + (1,) * (jnp.ndim(n) - jnp.ndim(cond)))
+        return jnp.where(c, n, o)
+    return jax.tree_util.tree_map(pick, new, old)
+
+
+def _heldout_nll(gen, norm: Normalizer, data: TrainData) -> jax.Array:
+    """Every member's mean NLL [E] on the held-out rows (NaN without any)."""
+    if data.n_heldout == 0:
+        return jnp.full((dyn.n_members(gen),), jnp.nan, jnp.float32)
+    x = dyn.markov_inputs(norm, data.val_obs, data.val_action)
+    y = norm.norm_delta(data.val_obs, data.val_next_obs)
+    return dyn.map_members(lambda p: jnp.mean(dyn.gaussian_nll(*dyn.member_dist(p, x), y)),
+                           gen)
 
 
 # ------------------------------------------------------------------ init
-
-
-def _optimizers(cfg: TrainConfig):
-    gen = optax.chain(optax.clip(cfg.grad_clip),
-                      optax.adam(cfg.gen_lr if cfg.adversarial else cfg.bc_lr))
-    disc = optax.chain(optax.clip(cfg.grad_clip), optax.adam(cfg.disc_lr, b1=cfg.disc_beta1))
-    return gen, disc
 
 
 def init(key: jax.Array, config: TrainConfig, data: TrainData,
@@ -336,28 +342,39 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
     cfg = config.validate()
     norm = data.norm
     P = data.n_policies
+    E = cfg.ensemble_size
     obs_size, act_size = data.obs.shape[1], data.action.shape[1]
     k_gen, k_disc, k_sim, k_buf, k_vd, k_roll, key = jax.random.split(key, 7)
-    gen = init_generator(k_gen, obs_size, act_size, cfg.gen_hidden)
-    gen_tx, disc_tx = _optimizers(cfg)
+    gen = dyn.init_ensemble(k_gen, cfg.dynamics_spec, obs_size, act_size, E)
+    heldout = _heldout_nll(gen, norm, data)
+    rank = dyn.rank_members(heldout)
     eps = jnp.asarray(cfg.initial_eps if eps is None else eps, jnp.float32)
     everyone = jnp.ones((P,), bool)
     nan = jnp.full((P,), jnp.nan, jnp.float32)
     vd, sim_value, sim_length, vd_roll = nan, nan, nan, None
     selected = everyone
+    state = TrainState(
+        step=jnp.zeros((), jnp.int32), key=key, eps=eps, norm=norm, gen=gen,
+        gen_opt=dyn.map_members(_gen_tx(cfg, cfg.bc_lr).init, gen), disc=None, disc_us=None,
+        disc_opt=None, sim=None, buffer_obs=None, buffer_act=None, buffer_pos=None, vd=vd,
+        sim_value=sim_value, sim_length=sim_length, selected=selected, vd_roll=vd_roll,
+        heldout_nll=heldout, rank=rank, best_nll=jnp.full((E,), jnp.inf, jnp.float32),
+        since_best=jnp.zeros((E,), jnp.int32), stopped=jnp.zeros((E,), bool),
+        best_gen=gen if cfg.early_stopping else None,
+        ema_gen=gen if cfg.ema_decay else None, config=cfg)
     if cfg.vd_every:
         task = get_task(cfg.task)
         sim_value, sim_length = simulated_values(
-            data.policies, _simulator(gen, norm, cfg).dynamics, task.reward_fn, task.done_fn,
-            data.start_pool, k_vd, n_episodes=cfg.vd_episodes, horizon=cfg.vd_horizon,
-            gamma=cfg.gamma)
+            data.policies, _sampler(gen, state, cfg.sim_noise).dynamics, task.reward_fn,
+            task.done_fn, data.start_pool, k_vd, n_episodes=cfg.vd_episodes,
+            horizon=cfg.vd_horizon, gamma=cfg.gamma)
         vd = value_difference(sim_value, data.true_value)
         selected = select_worst(vd, n_worst(eps, P))
         vd_roll = start_values(data.start_pool, P, cfg.vd_episodes, k_roll)
-    disc = disc_us = disc_opt = sim = buf_obs = buf_act = buf_pos = None
+    state = state.replace(vd=vd, sim_value=sim_value, sim_length=sim_length, selected=selected,
+                          vd_roll=vd_roll)
     if cfg.adversarial:
         disc, disc_us = init_discriminator(k_disc, obs_size, act_size, cfg.disc_hidden)
-        disc_opt = disc_tx.init(disc)
         sim = _reset_sim(SimEnvs(obs=jnp.zeros((cfg.sim_envs, obs_size)),
                                  policy=jnp.zeros((cfg.sim_envs,), jnp.int32),
                                  t=jnp.zeros((cfg.sim_envs,), jnp.int32)),
@@ -365,16 +382,100 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
         # The buffer starts with real (s, a) of the selected policies; simulated ones replace
         # them within buffer_size / (sim_envs * sim_steps) steps.
         rows, _ = _sample_rows(k_buf, data, selected, cfg.buffer_size)
-        buf_obs, buf_act = data.obs[rows], data.action[rows]
-        buf_pos = jnp.zeros((), jnp.int32)
-    return TrainState(step=jnp.zeros((), jnp.int32), key=key, eps=eps, norm=norm, gen=gen,
-                      gen_opt=gen_tx.init(gen), disc=disc, disc_us=disc_us, disc_opt=disc_opt,
-                      sim=sim, buffer_obs=buf_obs, buffer_act=buf_act, buffer_pos=buf_pos,
-                      vd=vd, sim_value=sim_value, sim_length=sim_length, selected=selected,
-                      vd_roll=vd_roll, config=cfg)
+        state = state.replace(disc=disc, disc_us=disc_us, disc_opt=_disc_tx(cfg).init(disc),
+                              sim=sim, buffer_obs=data.obs[rows], buffer_act=data.action[rows],
+                              buffer_pos=jnp.zeros((), jnp.int32))
+    return state
 
 
-# ------------------------------------------------------------------ the step
+# ------------------------------------------------------------------ likelihood steps
+
+
+def member_mle_updates(gen, opt, key: jax.Array, data: TrainData, selected: jax.Array,
+                       norm: Normalizer, config: TrainConfig):
+    """``updates_per_step`` likelihood updates of ONE member (params and optimiser state
+    without the member axis) on batches of the selected policies' rows drawn with ``key``.
+    -> (params, optimiser state, mean batch loss). The ensemble step is this, vmapped over
+    the members with their keys ``dynamics.member_keys``."""
+    cfg = config
+    tx = _gen_tx(cfg, cfg.bc_lr)
+    learned = cfg.gen_log_std_bounds == "learned"
+
+    def loss_fn(g, batch):
+        loss = losses.generator_nll_loss(g, norm, *batch)[0]
+        return loss + cfg.log_std_bound_weight * dyn.bound_penalty(g) if learned else loss
+
+    def update(carry, key):
+        gen, opt = carry
+        batch = _real_batch(key, data, selected, cfg.batch_size)
+        loss, grads = jax.value_and_grad(loss_fn)(gen, batch)
+        updates, opt = tx.update(grads, opt, gen)
+        return (optax.apply_updates(gen, updates), opt), loss
+
+    (gen, opt), batch_loss = jax.lax.scan(update, (gen, opt),
+                                          jax.random.split(key, cfg.updates_per_step))
+    return gen, opt, batch_loss.mean()
+
+
+def track_best(nll: jax.Array, best: jax.Array, since: jax.Array, stopped: jax.Array, *,
+               min_delta: float, patience: int):
+    """One MLE step of the early-stopping bookkeeping, per member [E].
+
+    improved = not stopped and nll < best - min_delta (NaN never improves); best and since
+    (steps without improvement) follow; stop_now = not stopped and since >= patience (never
+    for patience 0). -> (improved, best, since, stop_now)."""
+    active = ~stopped
+    improved = active & (nll < best - min_delta)
+    best = jnp.where(improved, nll, best)
+    since = jnp.where(improved, 0, since + active.astype(jnp.int32))
+    stop_now = active & (since >= patience) if patience else jnp.zeros_like(stopped)
+    return improved, best, since, stop_now
+
+
+def _score_members(state: TrainState, data: TrainData, mle: bool) -> TrainState:
+    """The members' held-out NLL and ranks; in an MLE step also the early-stopping bookkeeping
+    (best NLL and weights, steps since; a stopping member gets its best weights back and
+    stays frozen)."""
+    if data.n_heldout == 0:
+        return state
+    cfg = state.config
+    nll = _heldout_nll(state.gen, state.norm, data)
+    gen, best_gen, stopped = state.gen, state.best_gen, state.stopped
+    best, since = state.best_nll, state.since_best
+    if mle:
+        improved, best, since, stop_now = track_best(
+            nll, best, since, stopped, min_delta=cfg.early_stop_min_delta,
+            patience=cfg.early_stop_patience)
+        if cfg.early_stopping:
+            best_gen = _tree_where(improved, gen, best_gen)
+            gen = _tree_where(stop_now, best_gen, gen)
+            stopped = stopped | stop_now
+            nll = jnp.where(stopped, best, nll)
+    return state.replace(gen=gen, best_gen=best_gen, stopped=stopped, best_nll=best,
+                         since_best=since, heldout_nll=nll, rank=dyn.rank_members(nll))
+
+
+def _update_ema(state: TrainState) -> TrainState:
+    d = state.config.ema_decay
+    if not d:
+        return state
+    return state.replace(ema_gen=jax.tree_util.tree_map(lambda e, g: d * e + (1.0 - d) * g,
+                                                        state.ema_gen, state.gen))
+
+
+def _mle_step(state: TrainState, data: TrainData, key, selected):
+    cfg = state.config
+    keys = dyn.member_keys(key, cfg.ensemble_size)
+    gen, opt, nll = dyn.map_members(
+        lambda g, o, k: member_mle_updates(g, o, k, data, selected, state.norm, cfg),
+        state.gen, state.gen_opt, keys)
+    if cfg.early_stopping:  # stopped members keep their (best) weights
+        gen, opt = _tree_where(state.stopped, (state.gen, state.gen_opt), (gen, opt))
+    state = _score_members(state.replace(gen=gen, gen_opt=opt), data, mle=True)
+    return _update_ema(state), {"nll": jnp.mean(nll)}
+
+
+# ------------------------------------------------------------------ adversarial steps
 
 
 def _reset_sim(sim: SimEnvs, reset: jax.Array, data: TrainData, selected, key) -> SimEnvs:
@@ -388,7 +489,7 @@ def _advance_sim(state: TrainState, data: TrainData, key):
     """Step the simulated envs sim_steps times in p_phi; write their (s, a) to the buffer."""
     cfg = state.config
     task = get_task(cfg.task)
-    dynamics = _simulator(state.gen, state.norm, cfg).dynamics
+    sim_step = _sampler(state.gen, state, cfg.sim_noise).step
     E, B = cfg.sim_envs, cfg.buffer_size
     act = jax.vmap(sample_action)
 
@@ -397,25 +498,29 @@ def _advance_sim(state: TrainState, data: TrainData, key):
         k_act, k_dyn, k_reset = jax.random.split(key, 3)
         action, _, _ = act(index_params(data.policies, sim.policy), sim.obs,
                            jax.random.split(k_act, E))
-        next_obs = dynamics(sim.obs, action, k_dyn)
+        next_obs, u = sim_step(sim.obs, action, k_dyn)
         rows = (pos + jnp.arange(E)) % B
         buf_obs, buf_act = buf_obs.at[rows].set(sim.obs), buf_act.at[rows].set(action)
         t = sim.t + 1
         reset = (task.done_fn(next_obs) > 0.5) | (t >= cfg.sim_horizon)
         sim = _reset_sim(SimEnvs(next_obs, sim.policy, t), reset, data, state.selected, k_reset)
-        return (sim, buf_obs, buf_act, (pos + E) % B), reset.mean()
+        return (sim, buf_obs, buf_act, (pos + E) % B), (reset.mean(), u.mean())
 
     carry = (state.sim, state.buffer_obs, state.buffer_act, state.buffer_pos)
-    carry, reset_rate = jax.lax.scan(step, carry, jax.random.split(key, cfg.sim_steps))
+    carry, (reset_rate, u) = jax.lax.scan(step, carry, jax.random.split(key, cfg.sim_steps))
     sim, buf_obs, buf_act, pos = carry
-    return state.replace(sim=sim, buffer_obs=buf_obs, buffer_act=buf_act, buffer_pos=pos), {
-        "sim_reset_rate": reset_rate.mean()}
+    metrics = {"sim_reset_rate": reset_rate.mean()}
+    if cfg.ensemble_size > 1:
+        metrics["sim_disagreement"] = u.mean()
+    return state.replace(sim=sim, buffer_obs=buf_obs, buffer_act=buf_act, buffer_pos=pos), metrics
 
 
 def _adversarial_updates(state: TrainState, data: TrainData, key):
     cfg = state.config
-    gen_tx, disc_tx = _optimizers(cfg)
+    gen_tx, disc_tx = _gen_tx(cfg, cfg.gen_lr), _disc_tx(cfg)
     n = cfg.batch_size
+    train_gen = (state.step >= cfg.pretrain_steps + cfg.disc_warmup_steps
+                 if cfg.disc_warmup_steps else None)
 
     def fake_sa(key):
         rows = jax.random.randint(key, (n,), 0, cfg.buffer_size)
@@ -426,8 +531,7 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         k_real, k_fake, k_gen = jax.random.split(key, 3)
         real = _real_batch(k_real, data, state.selected, n)
         f_obs, f_act = fake_sa(k_fake)
-        f_next = generator_sample(jax.lax.stop_gradient(gen), state.norm, f_obs, f_act, k_gen,
-                                  cfg.obs_clip)
+        f_next = _sampler(gen, state, 1.0).sample(f_obs, f_act, k_gen)
         (loss, (us, aux)), grads = jax.value_and_grad(losses.discriminator_loss, has_aux=True)(
             disc, us, state.norm, real, (f_obs, f_act, f_next))
         updates, opt = disc_tx.update(grads, opt, disc)
@@ -441,13 +545,21 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         r_obs, r_act, _ = _real_batch(k_real, data, state.selected, n)
         f_obs, f_act = fake_sa(k_fake)
         obs, act = jnp.concatenate([r_obs, f_obs]), jnp.concatenate([r_act, f_act])
-        loss, grads = jax.value_and_grad(
-            lambda g: losses.generator_adversarial_loss(g, disc, us, state.norm, obs, act,
-                                                        k_gen)[0])(gen)
-        updates, gen_opt = gen_tx.update(grads, gen_opt, gen)
-        gen = optax.apply_updates(gen, updates)
+        keys = dyn.member_keys(k_gen, cfg.ensemble_size)
+
+        def total(g_all):  # each member's loss on the same (s, a), its own noise: sum
+            per = dyn.map_members(lambda g, k: losses.generator_adversarial_loss(
+                g, disc, us, state.norm, obs, act, k)[0], g_all, keys)
+            return per.sum(), per
+
+        (_, per), grads = jax.value_and_grad(total, has_aux=True)(gen)
+        updates, new_opt = dyn.map_members(lambda g, gr, o: gen_tx.update(gr, o, g),
+                                           gen, grads, gen_opt)
+        new_gen = optax.apply_updates(gen, updates)
+        if train_gen is not None:  # critic warm-up: the members wait
+            new_gen, new_opt = _tree_where(train_gen, (new_gen, new_opt), (gen, gen_opt))
         metrics = jax.tree_util.tree_map(lambda x: x[-1], d_metrics)
-        return (gen, gen_opt, disc, us, disc_opt), {"gen_loss": loss, **metrics}
+        return (new_gen, new_opt, disc, us, disc_opt), {"gen_loss": per.mean(), **metrics}
 
     carry = (state.gen, state.gen_opt, state.disc, state.disc_us, state.disc_opt)
     carry, metrics = jax.lax.scan(loop, carry, jax.random.split(key, cfg.updates_per_step))
@@ -456,21 +568,31 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
     return state, jax.tree_util.tree_map(jnp.mean, metrics)
 
 
-def _mle_updates(state: TrainState, data: TrainData, key):
+def _start_adversarial(state: TrainState) -> TrainState:
+    """At the first adversarial step after pre-training: the members' best weights (early
+    stopping), fresh optimiser moments (the likelihood ones do not fit the new loss), the
+    moving average restarted there."""
     cfg = state.config
-    gen_tx, _ = _optimizers(cfg)
+    first = state.step == cfg.pretrain_steps
+    gen = _tree_where(first, state.best_gen, state.gen) if cfg.early_stopping else state.gen
+    fresh = dyn.map_members(_gen_tx(cfg, cfg.gen_lr).init, gen)
+    state = state.replace(gen=gen, gen_opt=_tree_where(first, fresh, state.gen_opt))
+    if cfg.ema_decay:
+        state = state.replace(ema_gen=_tree_where(first, gen, state.ema_gen))
+    return state
 
-    def update(carry, key):
-        gen, opt = carry
-        batch = _real_batch(key, data, state.selected, cfg.batch_size)
-        loss, grads = jax.value_and_grad(
-            lambda g: losses.generator_nll_loss(g, state.norm, *batch)[0])(gen)
-        updates, opt = gen_tx.update(grads, opt, gen)
-        return (optax.apply_updates(gen, updates), opt), {"nll": loss}
 
-    (gen, opt), metrics = jax.lax.scan(update, (state.gen, state.gen_opt),
-                                       jax.random.split(key, cfg.updates_per_step))
-    return state.replace(gen=gen, gen_opt=opt), jax.tree_util.tree_map(jnp.mean, metrics)
+def _adversarial_step(state: TrainState, data: TrainData, k_sim, k_upd):
+    if state.config.pretrain_steps:
+        state = _start_adversarial(state)
+    state, metrics = _advance_sim(state, data, k_sim)
+    state, m = _adversarial_updates(state, data, k_upd)
+    metrics.update(m)
+    state = _score_members(state, data, mle=False)
+    return _update_ema(state), metrics
+
+
+# ------------------------------------------------------------------ value measurement
 
 
 def _advance_vd(state: TrainState, data: TrainData, key):
@@ -480,8 +602,9 @@ def _advance_vd(state: TrainState, data: TrainData, key):
     H, K = cfg.vd_horizon, cfg.vd_every
     k_run, k_restart = jax.random.split(key)
     roll = advance_values(state.vd_roll, data.policies,
-                          _simulator(state.gen, state.norm, cfg).dynamics, task.reward_fn,
-                          task.done_fn, k_run, n_steps=-(-H // K), horizon=H, gamma=cfg.gamma)
+                          _sampler(state.gen, state, cfg.sim_noise).dynamics,
+                          task.reward_fn, task.done_fn, k_run, n_steps=-(-H // K), horizon=H,
+                          gamma=cfg.gamma)
     done = roll.t >= H
     sim_value = roll.ret.mean(1)
     vd = value_difference(sim_value, data.true_value)
@@ -494,29 +617,66 @@ def _advance_vd(state: TrainState, data: TrainData, key):
         vd_roll=jax.tree_util.tree_map(pick, fresh, roll)), done
 
 
-def train_step(state: TrainState, data: TrainData) -> tuple[TrainState, dict]:
+# ------------------------------------------------------------------ the step
+
+
+def _phase_step(state: TrainState, data: TrainData, k_sim, k_upd, phase: str):
+    """One phase's updates. -> (state, metrics, finite flags); an adversarial method with
+    pre-training reports the metrics of both phases (NaN for the other one)."""
+    cfg = state.config
+    if phase == "pretrain":
+        state, metrics = _mle_step(state, data, k_upd, jnp.ones_like(state.selected))
+    elif cfg.adversarial:
+        state, metrics = _adversarial_step(state, data, k_sim, k_upd)
+    else:
+        state, metrics = _mle_step(state, data, k_upd, state.selected)
+    finite = {f"finite/{k}": jnp.isfinite(v) for k, v in metrics.items()}
+    if cfg.pretrains:
+        names = ("nll", *ADVERSARIAL_METRICS) + (("sim_disagreement",)
+                                                 if cfg.ensemble_size > 1 else ())
+        nan = jnp.full((), jnp.nan, jnp.float32)
+        finite = {f"finite/{k}": finite.get(f"finite/{k}", jnp.bool_(True)) for k in names}
+        metrics = {k: metrics.get(k, nan) for k in names}
+        metrics["phase"] = jnp.int32(phase != "pretrain")
+    return state, metrics, finite
+
+
+def train_step(state: TrainState, data: TrainData, phase: str | None = None
+               ) -> tuple[TrainState, dict]:
     """One training call. -> (new state, metrics: dict of scalars).
 
-    Metrics: the losses of the method, ``avd_train`` / ``mvd_train`` (mean / max VD of the
-    training policies at the last completed measurement), ``n_selected``, ``vd_refreshed``
-    and ``finite`` (every loss and parameter finite after this step).
+    ``phase`` (static): "pretrain" or "main" for an adversarial method with pre-training when
+    the caller knows on which side of ``pretrain_steps`` the step lies (else chosen on the
+    device); ignored otherwise. Metrics: the losses of the method (``nll`` in likelihood
+    steps; ``gen_loss``, ``disc_loss``, ``d_real``, ``d_fake``, ``sim_reset_rate`` and, for
+    E > 1, ``sim_disagreement`` in adversarial ones; ``phase`` 0 / 1 with pre-training),
+    ``heldout_nll`` (mean over the elites; with held-out episodes), ``n_stopped`` (early
+    stopping), ``avd_train`` / ``mvd_train`` (mean / max VD of the training policies at the
+    last completed measurement), ``n_selected``, ``vd_refreshed`` and ``finite`` (every loss
+    and parameter finite after this step).
     """
     cfg = state.config
+    if phase not in (None, "pretrain", "main"):
+        raise ValueError(f"phase: expected None, 'pretrain' or 'main', got {phase!r}")
     key, k_sim, k_upd, k_vd = jax.random.split(state.key, 4)
-    metrics = {}
-    if cfg.adversarial:
-        state, m = _advance_sim(state, data, k_sim)
-        metrics.update(m)
-        state, m = _adversarial_updates(state, data, k_upd)
+    if not cfg.pretrains:
+        state, metrics, finite = _phase_step(state, data, k_sim, k_upd, "main")
+    elif phase is not None:
+        state, metrics, finite = _phase_step(state, data, k_sim, k_upd, phase)
     else:
-        state, m = _mle_updates(state, data, k_upd)
-    metrics.update(m)
+        state, metrics, finite = jax.lax.cond(
+            state.step < cfg.pretrain_steps,
+            lambda s: _phase_step(s, data, k_sim, k_upd, "pretrain"),
+            lambda s: _phase_step(s, data, k_sim, k_upd, "main"), state)
     refreshed = jnp.bool_(False)
     if cfg.vd_every:
         state, refreshed = _advance_vd(state, data, k_vd)
-    params = (state.gen, state.disc)
-    finite = {f"finite/{k}": jnp.isfinite(v) for k, v in metrics.items()}
-    finite["finite/params"] = losses.tree_all_finite(params)
+    finite["finite/params"] = losses.tree_all_finite((state.gen, state.disc))
+    if data.n_heldout:
+        elite = state.rank < cfg.n_elites
+        metrics["heldout_nll"] = jnp.sum(jnp.where(elite, state.heldout_nll, 0.0)) / cfg.n_elites
+    if cfg.early_stopping:
+        metrics["n_stopped"] = jnp.sum(state.stopped).astype(jnp.int32)
     metrics.update(
         avd_train=jnp.mean(state.vd), mvd_train=jnp.max(state.vd),
         n_selected=jnp.sum(state.selected).astype(jnp.int32), vd_refreshed=refreshed,
@@ -524,11 +684,20 @@ def train_step(state: TrainState, data: TrainData) -> tuple[TrainState, dict]:
     return state.replace(step=state.step + 1, key=key), metrics
 
 
-def train_steps(state: TrainState, data: TrainData, n_steps: int) -> tuple[TrainState, dict]:
-    """``n_steps`` train_steps as one lax.scan. -> (state, metrics stacked [n_steps])."""
-    return jax.lax.scan(lambda s, _: train_step(s, data), state, None, length=n_steps)
+def train_steps(state: TrainState, data: TrainData, n_steps: int, phase: str | None = None
+                ) -> tuple[TrainState, dict]:
+    """``n_steps`` train_steps as one lax.scan (``phase``: as train_step, for all of them).
+    -> (state, metrics stacked [n_steps])."""
+    return jax.lax.scan(lambda s, _: train_step(s, data, phase), state, None, length=n_steps)
 
 
-def simulator(state: TrainState) -> Simulator:
-    """The learned simulator of a training state (generator + normaliser)."""
-    return _simulator(state.gen, state.norm, state.config)
+def simulator(state: TrainState, average: bool | None = None) -> Simulator:
+    """The learned simulator of a training state: the members, their ranks (by the trained
+    weights' held-out NLL), the normaliser, the rollout settings. ``average``: the moving
+    average of the members' weights (None: when ema_decay > 0; True needs ema_decay > 0) or
+    the trained weights themselves (False)."""
+    if average is None:
+        average = bool(state.config.ema_decay)
+    if average and not state.config.ema_decay:
+        raise ValueError("average: the state keeps no moving average (ema_decay = 0)")
+    return _sampler(state.ema_gen if average else state.gen, state, state.config.sim_noise)

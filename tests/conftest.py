@@ -44,14 +44,13 @@ def pointmass_ppo():
     import numpy as np
 
     from rl2s_jax.collect import measure_values
-    from rl2s_jax.ppo import PPOConfig, make_train
+    from rl2s_jax.ppo import PPOConfig, make_ppo, train_snapshots
 
     env = cached_env("pointmass")
-    cfg = PPOConfig(num_envs=64, unroll_length=16, num_minibatches=4,
-                    iterations_per_snapshot=10, n_snapshots=4, episode_length=50, gamma=0.95,
-                    learning_rate=1e-3)
-    _, snaps = jax.jit(make_train(env, cfg))(jax.random.PRNGKey(0))
-    params = snaps["params"]
+    cfg = PPOConfig(num_envs=64, unroll_length=16, num_minibatches=4, episode_length=50,
+                    gamma=0.95, learning_rate=1e-3)
+    params = jax.jit(lambda k: train_snapshots(make_ppo(env, cfg), k, 4, 10))(
+        jax.random.PRNGKey(0))
     returns = measure_values(env, params, key=jax.random.PRNGKey(1), n_episodes=64,
                              episode_length=50)["value"]
     return {"params": params, "returns": np.asarray(returns)}
@@ -99,3 +98,59 @@ def pointmass_checkpoint(tmp_path_factory):
     ck.save(state, {"data": {"obs_size": 2, "action_size": 1, "task": "pointmass"}})
     ck.close()
     return {"zoo": zoo_dir, "data": data_path, "ckpt": ckpt, "dataset": ds}
+
+
+@pytest.fixture(scope="session")
+def pm_files(tmp_path_factory):
+    """A pointmass zoo of 6 policies on disk, train (0-2) and test (3-5) datasets naming it."""
+    import jax
+    import numpy as np
+
+    from rl2s_jax import policies as pol
+    from rl2s_jax.collect import collect
+    from rl2s_jax.data import save_dataset
+    from rl2s_jax.tasks import get_task
+
+    root = tmp_path_factory.mktemp("pm")
+    task = get_task("pointmass")
+    ps = []
+    for i, b in enumerate([-2.0, 0.0, 2.0, -1.0, 0.5, 1.0]):
+        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
+        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
+        ps.append(p)
+    zoo = pol.Zoo(task="pointmass", params=pol.stack_params(ps), returns=np.zeros(6, np.float32),
+                  return_se=np.zeros(6, np.float32), origins=[{}] * 6, train_ids=[0, 1, 2],
+                  test_ids=[3, 4, 5], info={})
+    pol.save_zoo(zoo, str(root / "zoo"))
+    paths = {}
+    for split, ids in (("train", [0, 1, 2]), ("test", [3, 4, 5])):
+        ds = collect(task.make_env(), pol.index_params(zoo.params, ids),
+                     key=jax.random.PRNGKey(len(split)), transitions_per_policy=300,
+                     envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
+                     value_episodes=8, progress=False, policy_names=zoo.policy_names(ids),
+                     source={"zoo": str(root / "zoo"), "zoo_ids": ids})
+        paths[split] = str(root / f"{split}.npz")
+        save_dataset(paths[split], ds)
+    return paths
+
+
+@pytest.fixture(scope="session")
+def pm_checkpoint(pm_files, tmp_path_factory):
+    """A pointmass simulator checkpoint (an initialised BC model of pm_files' train data, step
+    0: no training needed where any simulator will do)."""
+    import jax
+
+    from rl2s_jax.checkpoint import Checkpointer
+    from rl2s_jax.data import load_dataset
+    from rl2s_jax.fit import policies_for
+    from rl2s_jax.train import TrainConfig, init, make_train_data
+
+    ds = load_dataset(pm_files["train"])
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=50)
+    data = make_train_data(ds, policies_for(ds), cfg)
+    path = tmp_path_factory.mktemp("pm_ckpt") / "checkpoints"
+    ck = Checkpointer(path)
+    ck.save(init(jax.random.PRNGKey(0), cfg, data),
+            {"data": {"obs_size": ds.obs_size, "action_size": ds.action_size}})
+    ck.close()
+    return str(path)

@@ -3,42 +3,11 @@ import json
 import subprocess
 import sys
 
-import jax
 import numpy as np
 import pytest
 
-from rl2s_jax import policies as pol
 from rl2s_jax.cli import main
-from rl2s_jax.collect import collect
-from rl2s_jax.data import save_dataset
 from rl2s_jax.evaluate import kendall_tau
-from rl2s_jax.tasks import get_task
-
-
-@pytest.fixture(scope="module")
-def pm_files(tmp_path_factory):
-    """A pointmass zoo of 6 policies on disk, train (0-2) and test (3-5) datasets naming it."""
-    root = tmp_path_factory.mktemp("pm")
-    task = get_task("pointmass")
-    ps = []
-    for i, b in enumerate([-2.0, 0.0, 2.0, -1.0, 0.5, 1.0]):
-        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
-        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
-        ps.append(p)
-    zoo = pol.Zoo(task="pointmass", params=pol.stack_params(ps), returns=np.zeros(6, np.float32),
-                  return_se=np.zeros(6, np.float32), origins=[{}] * 6, train_ids=[0, 1, 2],
-                  test_ids=[3, 4, 5], info={})
-    pol.save_zoo(zoo, str(root / "zoo"))
-    paths = {}
-    for split, ids in (("train", [0, 1, 2]), ("test", [3, 4, 5])):
-        ds = collect(task.make_env(), pol.index_params(zoo.params, ids),
-                     key=jax.random.PRNGKey(len(split)), transitions_per_policy=300,
-                     envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
-                     value_episodes=8, progress=False, policy_names=zoo.policy_names(ids),
-                     source={"zoo": str(root / "zoo"), "zoo_ids": ids})
-        paths[split] = str(root / f"{split}.npz")
-        save_dataset(paths[split], ds)
-    return paths
 
 
 def test_train_with_test_evaluation_then_evaluate_in_fresh_process(pm_files, tmp_path, capsys):
@@ -60,6 +29,8 @@ def test_train_with_test_evaluation_then_evaluate_in_fresh_process(pm_files, tmp
                           timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert "kendall_tau" in proc.stdout
+    # Quiet start: MJX's lines about its absent optional Warp backend do not reach the terminal.
+    assert "Failed to import" not in proc.stdout + proc.stderr
     r = json.loads(report.read_text())
     assert r["step"] == 6 and r["method"] == "bc" and r["horizon"] == 50
     true, sim = np.asarray(r["true_value"]), np.asarray(r["sim_value"])
@@ -76,3 +47,41 @@ def test_evaluate_bad_input(pm_files, tmp_path, capsys):
     assert rc == 2 and "ckpt" in capsys.readouterr().err
     rc = main(["evaluate", "--ckpt", str(tmp_path), "--data", str(tmp_path / "missing.npz")])
     assert rc == 2 and "data" in capsys.readouterr().err
+
+
+def test_broken_latest_checkpoint_evaluate_and_resume_fall_back(pm_files, tmp_path, capsys):
+    """The issue's case: a corrupt newest checkpoint. `rl2s evaluate` and the resume of
+    `rl2s train` both warn naming the step and the damage, then use the newest intact step;
+    `--step` of the broken one is an error saying what is wrong."""
+    out = tmp_path / "run"
+    train = ["train", "--data", pm_files["train"], "--method", "bc", "--steps", "4",
+             "--save-every", "2", "--out", str(out), "--profile", "cpu", "--quiet", "--set",
+             "vd_horizon=20", "--set", "vd_every=2"]
+    assert main(train) == 0, capsys.readouterr().err
+    capsys.readouterr()
+    with open(out / "checkpoints" / "4" / "meta" / "metadata", "r+b") as f:
+        f.truncate(20)
+    evaluate = ["evaluate", "--ckpt", str(out / "checkpoints"), "--data", pm_files["test"],
+                "--episodes", "2", "--horizon", "20"]
+    report = tmp_path / "eval.json"
+    assert main(evaluate + ["--json", str(report)]) == 0
+    err = capsys.readouterr().err
+    assert ("rl2s evaluate: warning: checkpoint" in err and "broken step 4 skipped (step 4: "
+            "meta/metadata is not valid JSON" in err and "using step 2" in err), err
+    assert json.loads(report.read_text())["step"] == 2
+
+    assert main(evaluate + ["--step", "4"]) == 2
+    err = capsys.readouterr().err
+    assert "rl2s evaluate: error:" in err and "step 4 is broken: meta/metadata is not valid" in err
+
+    assert main(train) == 0
+    captured = capsys.readouterr()
+    assert "rl2s train: warning:" in captured.err and "broken step 4" in captured.err
+    assert "resuming" in captured.out and "from step 2" in captured.out
+    assert "moved corrupt step(s) [4]" in captured.out
+    assert (out / "checkpoints" / "corrupt" / "4").is_dir()
+    rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
+    assert [r["step"] for r in rows] == [1, 2, 3, 4]
+    assert main(evaluate + ["--json", str(report)]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert json.loads(report.read_text())["step"] == 4

@@ -1,8 +1,11 @@
 """Checkpoints, exact resume, the stop on divergence, loading in a fresh process, `rl2s train`."""
 import json
 import os
+import re
+import shutil
 import subprocess
 import sys
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -10,7 +13,14 @@ import numpy as np
 import pytest
 
 from rl2s_jax import policies as pol
-from rl2s_jax.checkpoint import Checkpointer, load_meta, load_simulator
+from rl2s_jax.checkpoint import (
+    Checkpointer,
+    CheckpointError,
+    CheckpointWarning,
+    load_checkpoint,
+    load_meta,
+    load_simulator,
+)
 from rl2s_jax.cli import main
 from rl2s_jax.collect import collect
 from rl2s_jax.data import save_dataset
@@ -63,6 +73,35 @@ def test_resume_is_bit_identical(pm, tmp_path):
     ck.close()
     _leaves_equal(resumed, straight)
     assert int(straight.step) == 8 and np.isfinite(np.asarray(straight.vd)).all()
+
+
+def test_pretrained_then_adversarial_run_resumes_exactly(pm, tmp_path):
+    """rl2s with 3 MLE pre-training steps, a critic warm-up step, early stopping and the EMA:
+    resumed from a checkpoint inside pre-training (step 2) and from one after the switch
+    (step 4), it ends bit-identical to the run that never stopped. (chunk=1: two compiled
+    programs, one per phase.)"""
+    _, _, data = pm
+    cfg = TrainConfig.small(task="pointmass", method="rl2s", vd_horizon=50, vd_every=3,
+                            pretrain_steps=3, disc_warmup_steps=1, ema_decay=0.9)
+    template = jax.eval_shape(lambda: init(jax.random.PRNGKey(0), cfg, data))
+    state0 = init(jax.random.PRNGKey(4), cfg, data)
+    straight, m = fit(state0, data, 6, chunk=1, progress=False)
+    np.testing.assert_array_equal(np.asarray(m["phase"]), [0, 0, 0, 1, 1, 1])
+
+    ck = Checkpointer(tmp_path / "ck")
+    fit(state0, data, 2, chunk=1, checkpointer=ck, save_every=2, meta=META, progress=False)
+    resumed = ck.restore(template)
+    assert int(resumed.step) == 2
+    resumed, _ = fit(resumed, data, 6, chunk=1, checkpointer=ck, save_every=4, meta=META,
+                     progress=False)
+    _leaves_equal(resumed, straight)
+    assert ck.steps() == [2, 4, 6]
+    after_switch = ck.restore(template, step=4)
+    again, _ = fit(after_switch, data, 6, chunk=1, progress=False)
+    ck.close()
+    _leaves_equal(again, straight)
+    # the saved simulator is the moving average of the members
+    _leaves_equal(load_simulator(tmp_path / "ck").gen, straight.ema_gen)
 
 
 def test_restore_refuses_another_config(pm, tmp_path):
@@ -211,3 +250,126 @@ def test_diagnose_a_saved_simulator(pm, tmp_path):
     resid = (eps.next_obs[held] - pred) / eps.delta[eps.rows(fit_eps)].std(0)
     np.testing.assert_allclose([d["rmse"] for d in from_ckpt["gaps"]["by_dim"]],
                                np.sqrt((resid ** 2).mean(0)), rtol=1e-3)
+
+
+# ------------------------------------------------------------------ broken checkpoints
+
+
+@pytest.fixture(scope="module")
+def saved_steps(pm, tmp_path_factory):
+    """A checkpoint directory with steps 2 and 4, and the TrainStates saved there."""
+    _, _, data = pm
+    root = tmp_path_factory.mktemp("steps") / "ck"
+    ck = Checkpointer(root)
+    s2, _ = fit(init(jax.random.PRNGKey(5), CFG, data), data, 2, chunk=2, checkpointer=ck,
+                save_every=2, meta=META, progress=False)
+    s4, _ = fit(s2, data, 4, chunk=2, checkpointer=ck, save_every=2, meta=META,
+                progress=False)
+    ck.close()
+    return root, {2: s2, 4: s4}
+
+
+def _truncate(path, size=10):
+    with open(path, "r+b") as f:
+        f.truncate(size)
+
+
+def _array_files(step_dir, item):
+    """The data files of one item's arrays (orbax OCDBT layout), largest first."""
+    files = [os.path.join(d, f) for d, _, fs in os.walk(step_dir / item) for f in fs
+             if os.path.basename(d) == "d"]
+    assert files, f"no array data files under {step_dir / item}"
+    return sorted(files, key=os.path.getsize, reverse=True)
+
+
+CORRUPTIONS = {
+    # name: (damage(step_dir), what the message must say)
+    "meta JSON truncated": (lambda d: _truncate(d / "meta" / "metadata"),
+                            "meta/metadata is not valid JSON"),
+    "simulator array file deleted": (lambda d: os.remove(_array_files(d, "simulator")[0]),
+                                     "simulator cannot be read"),
+    "simulator array file truncated": (lambda d: _truncate(_array_files(d, "simulator")[0], 7),
+                                       "simulator cannot be read"),
+    "simulator _METADATA truncated": (lambda d: _truncate(d / "simulator" / "_METADATA"),
+                                      "simulator/_METADATA is not valid JSON"),
+    "simulator item deleted": (lambda d: shutil.rmtree(d / "simulator"), "simulator/ is missing"),
+}
+
+
+@pytest.mark.parametrize("damage", list(CORRUPTIONS))
+def test_broken_latest_step_falls_back_to_the_newest_intact(saved_steps, tmp_path, damage):
+    src, states = saved_steps
+    ck_dir = tmp_path / "ck"
+    shutil.copytree(src, ck_dir)
+    hurt, what = CORRUPTIONS[damage]
+    hurt(ck_dir / "4")
+    with pytest.warns(CheckpointWarning) as caught:
+        sim, meta = load_checkpoint(ck_dir)
+    msg = str(caught[0].message)
+    assert "broken step 4" in msg and what in msg and "using step 2" in msg, msg
+    assert meta["step"] == 2
+    obs, act = jnp.array([[0.3, -0.2], [1.0, 0.5]]), jnp.array([[0.5], [-1.0]])
+    np.testing.assert_array_equal(np.asarray(sim.mean(obs, act)),
+                                  np.asarray(simulator(states[2]).mean(obs, act)))
+    with pytest.warns(CheckpointWarning, match="broken step 4"):
+        assert load_meta(ck_dir)["step"] == 2
+    # An explicitly requested broken step is an error naming the step and the damage.
+    with pytest.raises(CheckpointError, match=f"step 4 is broken: {re.escape(what)}"):
+        load_simulator(ck_dir, step=4)
+    assert load_checkpoint(ck_dir, step=2)[1]["step"] == 2
+
+
+def test_no_intact_step_is_a_clear_error(saved_steps, tmp_path):
+    src, _ = saved_steps
+    shutil.copytree(src, tmp_path / "ck")
+    _truncate(tmp_path / "ck" / "4" / "meta" / "metadata")
+    os.remove(_array_files(tmp_path / "ck" / "2", "simulator")[0])
+    with pytest.raises(CheckpointError) as err:
+        load_simulator(tmp_path / "ck")
+    msg = str(err.value)
+    assert "no intact step" in msg
+    assert "step 4: meta/metadata is not valid JSON" in msg
+    assert "step 2: simulator cannot be read" in msg
+
+
+def test_resume_skips_a_broken_state_and_replays_it(pm, saved_steps, tmp_path):
+    """A broken state item stops neither evaluation (it needs only the simulator) nor the resume:
+    training restarts from step 2, sets step 4 aside and saves it again, bit-identical."""
+    _, _, data = pm
+    src, states = saved_steps
+    ck_dir = tmp_path / "ck"
+    shutil.copytree(src, ck_dir)
+    os.remove(_array_files(ck_dir / "4", "state")[0])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CheckpointWarning)
+        assert load_meta(ck_dir)["step"] == 4  # the simulator of step 4 is intact
+    template = jax.eval_shape(lambda: init(jax.random.PRNGKey(0), CFG, data))
+    ck = Checkpointer(ck_dir)
+    with pytest.warns(CheckpointWarning, match=r"broken step 4 skipped \(step 4: state cannot "
+                      r"be read.*using step 2"):
+        resumed = ck.restore(template)
+    _leaves_equal(resumed, states[2])
+    assert ck.set_aside_after(2) == {"corrupt": [4], "superseded": []}
+    assert ck.steps() == [2] and (ck_dir / "corrupt" / "4" / "meta").is_dir()
+    again, _ = fit(resumed, data, 4, chunk=2, checkpointer=ck, save_every=2, meta=META,
+                   progress=False)
+    assert ck.steps() == [2, 4]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", CheckpointWarning)
+        _leaves_equal(ck.restore(template), states[4])
+    ck.close()
+    _leaves_equal(again, states[4])
+
+
+def test_restore_a_chosen_step_sets_newer_ones_aside(pm, saved_steps, tmp_path):
+    _, _, data = pm
+    src, states = saved_steps
+    shutil.copytree(src, tmp_path / "ck")
+    ck = Checkpointer(tmp_path / "ck")
+    template = jax.eval_shape(lambda: init(jax.random.PRNGKey(0), CFG, data))
+    _leaves_equal(ck.restore(template, step=2), states[2])
+    assert ck.set_aside_after(2) == {"corrupt": [], "superseded": [4]}
+    assert ck.steps() == [2] and (tmp_path / "ck" / "superseded" / "4").is_dir()
+    with pytest.raises(FileNotFoundError, match="step 4 not in"):
+        ck.restore(template, step=4)
+    ck.close()

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from rl2s_jax.evaluate import (
+    bootstrap_intervals,
     kendall_tau,
     ndcg_at_k,
     ranking_metrics,
@@ -253,8 +254,9 @@ def test_ranking_metrics_bundle():
     assert all(isinstance(v, float) for v in out.values())
     assert out["kendall_tau"] == pytest.approx(1 / 3)
     assert out["spearman"] == pytest.approx(0.4)
-    assert out["ndcg@1"] == pytest.approx(2 / 3)
-    assert out["ndcg@10"] == pytest.approx(ndcg_at_k(TRUE4, SIM4, 4))
+    # The bundle uses the paper's gain 2^B - 1: at @1 the simulator's top policy has B = 2/3.
+    assert out["ndcg@1"] == pytest.approx(2 ** (2 / 3) - 1)
+    assert out["ndcg@10"] == pytest.approx(ndcg_at_k(TRUE4, SIM4, 4, gain="exp2"))
     assert out["regret@1"] == pytest.approx(1 / 3)
     assert out["regret@3"] == pytest.approx(0.0)
     assert out["avd"] == pytest.approx(1.0) and out["mvd"] == pytest.approx(2.0)
@@ -317,3 +319,66 @@ def test_numpy_integer_k_is_accepted():
 def test_bad_ks(ks):
     with pytest.raises(ValueError, match="ks"):
         ranking_metrics(TRUE4, SIM4, ks=ks)
+
+
+# ----------------------------------------------------------------------------- paper gain
+
+
+def test_ndcg_exp2_gain_matches_numpy_reference():
+    rng = np.random.default_rng(3)
+    true, sim = rng.normal(size=9), rng.normal(size=9)
+    b = (true - true.min()) / (true.max() - true.min())
+    rel = 2.0 ** b - 1.0
+    for k in (1, 3, 9):
+        disc = 1.0 / np.log2(np.arange(2, k + 2))
+        want = rel[np.argsort(-sim)][:k] @ disc / (np.sort(rel)[::-1][:k] @ disc)
+        assert ndcg_at_k(true, sim, k, gain="exp2") == pytest.approx(want)
+    assert ndcg_at_k(true, sim, 3, gain="exp2") != pytest.approx(ndcg_at_k(true, sim, 3))
+    with pytest.raises(ValueError, match="gain"):
+        ndcg_at_k(true, sim, 3, gain="log")
+
+
+# ----------------------------------------------------------------------------- intervals
+
+
+def test_bootstrap_without_noise_is_the_point_estimate():
+    # Every episode of a policy returns the same value and the truth is exact: each replicate
+    # is the point estimate, so every interval collapses onto it.
+    true = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
+    sim = np.array([1.5, 1.0, 3.5, 3.0, 6.0])
+    out = bootstrap_intervals(true, np.repeat(sim[:, None], 6, 1), n_boot=50)
+    point = ranking_metrics(true, sim)
+    for k, v in point.items():
+        assert out["metrics"][k]["lo"] == pytest.approx(v)
+        assert out["metrics"][k]["hi"] == pytest.approx(v)
+        assert out["sim_only"][k]["std"] == pytest.approx(0.0, abs=1e-12)
+    assert out["n_episodes"] == 6 and out["n_boot"] == 50
+
+
+def test_bootstrap_eval_noise_shrinks_with_episodes_and_truth_noise_adds():
+    rng = np.random.default_rng(0)
+    true = np.linspace(0.0, 10.0, 12)
+    stds = {}
+    for n in (4, 64):
+        returns = true[:, None] + rng.normal(0.0, 3.0, size=(12, n))
+        out = bootstrap_intervals(true, returns, n_boot=300, seed=1)
+        stds[n] = out["sim_only"]["kendall_tau"]["std"]
+        tau = out["metrics"]["kendall_tau"]
+        assert tau["lo"] <= ranking_metrics(true, returns.mean(1))["kendall_tau"] <= tau["hi"]
+    assert stds[64] < 0.7 * stds[4]  # 16x the episodes: the ranking noise falls
+    noisy = bootstrap_intervals(true, returns, true_se=np.full(12, 2.0), n_boot=300, seed=1)
+    assert noisy["metrics"]["kendall_tau"]["std"] > noisy["sim_only"]["kendall_tau"]["std"]
+
+
+@pytest.mark.parametrize("kwargs, field", [
+    (dict(sim_returns=np.ones((3, 4))), "sim_returns"),
+    (dict(sim_returns=np.ones(5)), "sim_returns"),
+    (dict(true_se=-np.ones(5)), "true_se"),
+    (dict(n_boot=1), "n_boot"),
+    (dict(level=1.0), "level"),
+])
+def test_bootstrap_bad_input(kwargs, field):
+    args = dict(true_values=np.arange(5.0), sim_returns=np.ones((5, 4)))
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=field):
+        bootstrap_intervals(**args)

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from brax.envs import training as brax_training
 
+from rl2s_jax import dynamics as dyn
 from rl2s_jax import policies as pol
 from rl2s_jax.improve import (
     improve_policies,
@@ -15,9 +16,14 @@ from rl2s_jax.improve import (
     improvement_metrics,
     measure_improvement,
 )
-from rl2s_jax.models import Normalizer, generator_dist, init_generator
+from rl2s_jax.models import Normalizer, init_generator
 from rl2s_jax.sac import FINE_TUNING, Buffer, SACConfig, gaussian_kl, make_sac, q_values
-from rl2s_jax.sim_env import SimulatorEnv, branch_pool, scaled_env_options
+from rl2s_jax.sim_env import (
+    SimulatorEnv,
+    branch_pool,
+    scaled_env_options,
+    simulator_uncertainty,
+)
 from rl2s_jax.simulate import Simulator
 from rl2s_jax.tasks import PointMass, get_task, pointmass_dynamics
 
@@ -274,8 +280,9 @@ def test_sac_fine_tuning_state_targets_start_entropy_and_anchors():
     assert float(st.target_entropy) < -0.5  # far below the from-scratch -action_size = -1
     assert float(st.kl_coef) == pytest.approx(0.02)
     _leaves_equal(st.anchor, st.actor)
+    # from scratch: no fine-tuning fields (the state is the zoo trainer's, its target static)
     scratch = jax.jit(sac.init)(jax.random.PRNGKey(0))
-    assert float(scratch.target_entropy) == -1.0 and float(scratch.kl_coef) == 0.0
+    assert scratch.target_entropy is None and scratch.kl_coef is None and scratch.anchor is None
     fixed = make_sac(env, dataclasses.replace(cfg, target_entropy=-0.3)).init(
         jax.random.PRNGKey(0), start)
     assert float(fixed.target_entropy) == pytest.approx(-0.3)
@@ -456,21 +463,40 @@ def test_uncertainty_penalty_and_stop_rule_in_the_env():
         SimulatorEnv(dyn, pool, TASK, uncertainty_fn=_planted_error, uncertainty_penalty=-1)
 
 
+def _ensemble_simulator():
+    """_learned_simulator's data with a 3-member ensemble (members 1, 0 the two elites)."""
+    one = _learned_simulator()
+    gen = dyn.init_ensemble(jax.random.PRNGKey(1), dyn.DynamicsSpec(hidden=(16, 16)), 2, 1, 3)
+    return Simulator(gen=gen, norm=one.norm, rank=jnp.asarray([1, 0, 2], jnp.int32),
+                     n_elites=2, task="pointmass")
+
+
 def test_simulator_uncertainty_and_scaled_options():
-    sim = _learned_simulator()
+    """u is the ensemble's disagreement: the elites' std over members (rms over dims), here
+    against NumPy on the members' means; a simulator of one elite has no u."""
+    sim = _ensemble_simulator()
     obs = jnp.asarray(_pool(32))
     act = jnp.linspace(-1, 1, 32)[:, None]
-    _, log_std = generator_dist(sim.gen, sim.norm, obs, act)
-    ref = np.sqrt(np.sum(np.exp(2 * np.asarray(log_std, np.float64)), -1))
-    np.testing.assert_allclose(sim.uncertainty(obs, act), ref, rtol=1e-5)
+    means = np.asarray(sim.member_dists(obs, act)[0], np.float64)[[0, 1]]   # the elites
+    ref = np.sqrt(means.var(0).mean(-1))
+    assert ref.min() > 0
+    np.testing.assert_allclose(simulator_uncertainty(sim)(obs, act), ref, rtol=1e-4)
     opts = scaled_env_options(sim, obs, act, rollout_length=7, uncertainty_penalty=0.5,
                               uncertainty_threshold=2.0)
     assert opts["rollout_length"] == 7 and opts["uncertainty_penalty"] == 0.5
-    np.testing.assert_allclose(opts["uncertainty_fn"](obs, act), ref / ref.mean(), rtol=1e-5)
+    np.testing.assert_allclose(opts["uncertainty_fn"](obs, act), ref / ref.mean(), rtol=1e-4)
     env = SimulatorEnv(sim, _pool(), uncertainty_penalty=1.0)  # the simulator's own u
-    s1 = env.step(env.reset(jax.random.PRNGKey(0)), jnp.array([0.2]))
+    s0 = env.reset(jax.random.PRNGKey(0))
+    s1 = env.step(s0, jnp.array([0.2]))
+    assert float(s1.metrics["uncertainty"]) == pytest.approx(
+        float(sim.disagreement(s0.obs, jnp.array([0.2]))), rel=1e-5)
     assert float(s1.metrics["uncertainty"]) > 0
     assert scaled_env_options(sim, obs, act) == {}
+    for one in (_learned_simulator(), sim.replace(n_elites=1)):
+        with pytest.raises(ValueError, match="elites"):
+            scaled_env_options(one, obs, act, uncertainty_penalty=0.5)
+        with pytest.raises(ValueError, match="elites"):
+            SimulatorEnv(one, _pool(), uncertainty_threshold=1.0)
 
 
 def test_improvement_intervals():

@@ -47,6 +47,10 @@ def test_paper_tables(tmp_path):
                       0.2)
     bad = _synthetic("ant", 0.30, 0.90, {"rl2s": 85, "gail": 80, "bc": 90, "rl2s-bc": 60},
                      -0.1)
+    # the control row, with a 95% interval
+    good["per_seed"]["oracle"] = {"kendall_tau": [0.95, 0.97, 0.99], "ndcg@1": [1.0] * 3,
+                                  "avd": [5.0, 6.0, 7.0], "mpi": [], "api": []}
+    good["intervals"] = {"oracle": {"kendall_tau": {"lo": 0.9, "hi": 1.0, "std": 0.02}}}
     (res / "hopper.json").write_text(json.dumps(good))
     (res / "ant.json").write_text(json.dumps(bad))
     (res / "hopper_cpu_profile.json").write_text("{}")  # not a task file: ignored
@@ -57,19 +61,28 @@ def test_paper_tables(tmp_path):
     assert text.startswith("# Results\n\nearlier text\n")
     assert text.count(pt.BEGIN) == 1 and text.count(pt.END) == 1
     # mean ± sample std (n seeds), paper number beside (n/a where none is known)
-    assert "| hopper | rl2s | 0.850 ± 0.050 (3 seeds) | 0.35† |" in text
-    assert "| ant | rl2s | 0.300 ± 0.050 (3 seeds) | 0.80† |" in text
-    assert "| hopper | gail | 0.510 ± 0.010 (3 seeds) | n/a |" in text
-    assert "| hopper | rl2s | 0.200 (1 seed) | n/a | 0.100 (1 seed) | n/a |" in text  # MPI/API
-    assert "| ant | rl2s | -0.100 (1 seed) | < 0† |" in text
+    # mean ± sample std (n seeds), the paper's number (../shared/PAPER.md) beside
+    assert "| hopper | rl2s | 0.850 ± 0.050 (3 seeds) | 0.3474 |" in text
+    assert "| ant | rl2s | 0.300 ± 0.050 (3 seeds) | 0.8000 |" in text
+    assert "| hopper | gail | 0.510 ± 0.010 (3 seeds) | -0.1895 |" in text
+    assert "| hopper | bc | 0.510 ± 0.010 (3 seeds) | -0.0632 |" in text
+    assert ("| hopper | rl2s | 0.200 (1 seed) | 0.0293 | 0.100 (1 seed) | 2.9400 |"
+            in text)  # MPI/API
+    assert "| ant | rl2s | -0.100 (1 seed) | -0.0210 |" in text
     assert "| hopper | rl2s | 110.0 ± 10.0 (3 seeds) | n/a | 50.0 ± 10.0 (3 seeds) | n/a |" in text
+    # the oracle row in Table 1 and the VD table, with its interval; none in Table 2
+    assert "| hopper | oracle | 0.970 ± 0.020 (3 seeds) [0.900, 1.000] | n/a |" in text
+    assert "| hopper | oracle | 6.0 ± 1.0 (3 seeds) | n/a |" in text
+    assert "| oracle |" not in text.split("### Table 2")[1].split("### Value")[0]
+    assert "| ant | oracle |" not in text
     assert "walker2d" not in text.split("Table 1")[1]  # no result, no rows
     assert "NVIDIA H100 80GB HBM3" in text and "python experiments/paper.py --task ant" in text
     # quality bars per task
     bar_lines = text.split("### Quality bars")[1].splitlines()
     bars = {line.split("|")[1].strip(): line for line in bar_lines if line.startswith("| ")}
-    assert bars["hopper"].count("met (") == 4 and "MISSED" not in bars["hopper"]
-    assert bars["ant"].count("MISSED (") == 4
+    assert bars["hopper"].count("met (") == 5 and "MISSED" not in bars["hopper"]
+    assert "met (0.970 / 1.000)" in bars["hopper"]  # the oracle's tau / nDCG@1
+    assert bars["ant"].count("MISSED (") == 4 and "n/a (n/a)" in bars["ant"]
     assert "MISSED (85.0 vs 80.0, 90.0)" in bars["ant"]
     # a second run replaces the block, never duplicates it; text around it stays
     with open(out, "a") as f:
@@ -79,13 +92,38 @@ def test_paper_tables(tmp_path):
     assert pt.main(["--results", str(res), "--out", str(out)]) == 0
     text2 = out.read_text()
     assert text2.count(pt.BEGIN) == 1 and text2.count(pt.END) == 1
-    assert "| hopper | rl2s | 0.900 ± 0.000 (3 seeds) | 0.35† |" in text2
+    assert "| hopper | rl2s | 0.900 ± 0.000 (3 seeds) | 0.3474 |" in text2
     assert "0.850 ± 0.050" not in text2
     assert text2.startswith("# Results\n\nearlier text\n") and "after the block" in text2
     # a fresh file gets just the block
     fresh = tmp_path / "new" / "tables.md"
     assert pt.main(["--results", str(res), "--out", str(fresh)]) == 0
     assert fresh.read_text().startswith(pt.BEGIN)
+
+
+def test_paper_tables_control_and_ablation(tmp_path):
+    """Table 2's real-env control row and its bar, and MPI / API per --improve-variants
+    variant, beside the oracle row of Table 1."""
+    pt = _load("paper_tables")
+    r = _synthetic("hopper", 0.85, 0.97, {"rl2s": 50, "gail": 80, "bc": 90, "rl2s-bc": 60}, 0.2)
+    r["per_seed"]["oracle"] = {"kendall_tau": [0.95, 0.97, 0.99], "ndcg@1": [1.0] * 3,
+                               "mpi": [], "api": []}
+    r["control"] = {"seeds": 2, "mpi": 0.05, "mpi_std": 0.01, "api": 0.3, "api_std": 0.1}
+    r["ablation"] = {"full": {"methods": {"rl2s": {"mpi": 0.2, "api": 0.1}}},
+                     "branched+penalty": {"methods": {"rl2s": {"mpi": 0.25, "api": None}}}}
+    text = pt.render({"hopper": r}, "res")
+    table2 = text.split("### Table 2")[1].split("### Value")[0]
+    assert ("| hopper | control (real env) | 0.050 ± 0.010 (2 seeds) | n/a | "
+            "0.300 ± 0.100 (2 seeds) | n/a |") in table2
+    assert "| hopper | oracle |" in text.split("### Table 1")[1].split("### Table 2")[0]
+    ablation = text.split("### Improvement by simulated-env variant")[1].split("### Value")[0]
+    assert "| hopper | full | rl2s | 0.200 | 0.100 |" in ablation
+    assert "| hopper | branched+penalty | rl2s | 0.250 | n/a |" in ablation
+    assert "| hopper | full | gail | n/a | n/a |" in ablation
+    b = pt.bars(r)
+    assert b["control"] == (True, "0.050") and b["oracle"] == (True, "0.970 / 1.000")
+    del r["ablation"]["full"]  # one variant: no ablation table
+    assert "### Improvement by simulated-env variant" not in pt.render({"hopper": r}, "res")
 
 
 def test_paper_tables_fallbacks():
@@ -118,13 +156,21 @@ def test_paper_smoke_hopper(tmp_path, capsys):
             "--improve-iterations", "2", "--out", str(out), "--check-eval"]
     assert paper.main(args) == 0
     printed = capsys.readouterr().out
-    for phase in ("data", "train_adversarial", "train_mle", "improve_sac", "improve_measure"):
+    for phase in ("data", "oracle", "train_adversarial", "train_mle", "improve_sac",
+                  "improve_measure"):
         assert f"[paper] {phase}: " in printed
     r = json.loads((out / "hopper.json").read_text())
     assert r["complete"] and r["seeds"] == 2 and r["hardware"] == "cpu"
     assert r["command"].startswith("python experiments/paper.py --task hopper")
-    assert set(r["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
-    for m, vals in r["methods"].items():
+    assert set(r["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc", "oracle"}
+    assert len(r["zoo_sha256"]) == 64
+    # the control: per seed, same protocol, with intervals that contain its own estimate
+    orc = r["per_seed"]["oracle"]
+    assert len(orc["kendall_tau"]) == 2 and orc["mpi"] == []
+    for m in ("oracle", "rl2s"):
+        iv = r["intervals"][m]["avd"]
+        assert iv["lo"] - 1e-6 <= r["methods"][m]["avd"] <= iv["hi"] + 1e-6, (m, iv)
+    for m, vals in ((m, r["methods"][m]) for m in ("rl2s", "gail", "bc", "rl2s-bc")):
         assert set(vals) == set(METRICS), m
         per = r["per_seed"][m]
         for k in METRICS:

@@ -7,9 +7,16 @@ import pytest
 
 from rl2s_jax import policies as pol
 from rl2s_jax.collect import measure_values
-from rl2s_jax.ppo import PPOConfig, compute_gae
+from rl2s_jax.ppo import compute_gae
 from rl2s_jax.tasks import get_task
-from rl2s_jax.zoo import SPLIT_SIZES, build_zoo, choose_split, spread_subset
+from rl2s_jax.zoo import (
+    MIN_TEST,
+    SPLIT_SIZES,
+    build_zoo,
+    choose_split,
+    learner_plans,
+    spread_subset,
+)
 
 
 def test_gae_matches_python_loop():
@@ -42,12 +49,10 @@ def test_spread_subset_and_split():
 
 
 def test_ppo_learns_pointmass_and_zoo_spreads():
-    cfg = PPOConfig(num_envs=64, unroll_length=16, num_minibatches=4,
-                    iterations_per_snapshot=10, n_snapshots=8, episode_length=50, gamma=0.95,
-                    learning_rate=1e-3)
-    zoo = build_zoo("pointmass", seeds=2, cfg=cfg, value_episodes=4, n_train=4, zoo_size=12,
-                    min_test=8,
-                    log=lambda *_: None)
+    plans = learner_plans("pointmass", "ppo", env_steps=81_920, snapshots=8)
+    zoo, _ = build_zoo("pointmass", algo="ppo", seeds=2, plans=plans, value_episodes=4,
+                       n_train=4, zoo_size=12, min_test=8, progress=False,
+                       log=lambda *_: None)
     assert zoo.size == 12 and len(zoo.train_ids) == 4
     env = get_task("pointmass").make_env()
     first = [i for i, o in enumerate(zoo.origins) if o["snapshot"] == 0]
@@ -64,7 +69,8 @@ def test_shipped_zoo(task):
     zoo = pol.load_zoo(task)
     t = get_task(task)
     assert zoo.task == task and zoo.size >= 40
-    assert len(zoo.train_ids) == SPLIT_SIZES.get(task, 17) and len(zoo.test_ids) >= 20
+    assert len(zoo.train_ids) == SPLIT_SIZES.get(task, 17)
+    assert len(zoo.test_ids) >= MIN_TEST.get(task, 8)
     assert not set(zoo.train_ids) & set(zoo.test_ids)
     assert zoo.params["obs_mean"].shape == (zoo.size, t.obs_size)
     assert zoo.params["layers"][-1]["b"].shape == (zoo.size, 2 * t.action_size)

@@ -269,7 +269,7 @@ def test_vmap_over_seeds_and_eps_equals_separate_runs(pm):
                                               - np.asarray(batched.sim_value[i])), rtol=1e-6)
         np.testing.assert_array_equal(np.asarray(batched.selected[i]), _select_ref(vd, k))
     # the members are different runs
-    w = np.asarray(batched.gen[0]["w"])
+    w = np.asarray(batched.gen["layers"][0]["w"])
     assert not np.allclose(w[0], w[1])
 
 
@@ -320,12 +320,14 @@ def test_bc_recovers_pointmass_dynamics(pm, pm_heldout):
     np.testing.assert_allclose(true_next, pm_heldout.next_obs, atol=1e-6)
     delta_std = (pm_heldout.next_obs - pm_heldout.obs).std(0)
 
-    def rel_rmse(state):
-        pred = np.asarray(models.generator_mean(state.gen, state.norm, obs, act))
-        return np.sqrt(np.mean((pred - true_next) ** 2, 0)) / delta_std
+    def rel_rmse(state):  # of every member's mean
+        means = np.asarray(T.simulator(state).member_dists(obs, act)[0])
+        pred = np.asarray(obs)[None] + np.asarray(state.norm.delta_mean) + np.asarray(
+            state.norm.delta_std) * means
+        return np.sqrt(np.mean((pred - true_next) ** 2, 1)) / delta_std
 
-    def std_n(state):  # predicted std of the normalised delta (1 = the data's spread)
-        return np.exp(np.asarray(models.generator_dist(state.gen, state.norm, obs, act)[1]))
+    def std_n(state):  # members' predicted std of the normalised delta (1 = the data's spread)
+        return np.exp(np.asarray(T.simulator(state).member_dists(obs, act)[1]))
 
     state = _init(jax.random.PRNGKey(0), cfg, data)
     before, std_before = rel_rmse(state), std_n(state).mean()
@@ -444,10 +446,37 @@ def test_make_train_data_true_values(pm):
                                         ds.episode_id, ds.t, P, horizon=20, gamma=0.99)
     assert np.all(counts > 0)
     np.testing.assert_allclose(np.asarray(part.true_value), want, rtol=1e-6)
-    # rows grouped by policy
+    # training rows grouped by policy, the held-out episodes left out
+    held = T.heldout_mask(ds, 0.1)
+    assert 0 < held.sum() < len(held)
     for p in range(P):
         lo, n = int(part.policy_start[p]), int(part.policy_count[p])
-        np.testing.assert_array_equal(np.asarray(part.obs[lo:lo + n]), ds.obs[ds.policy_id == p])
+        np.testing.assert_array_equal(np.asarray(part.obs[lo:lo + n]),
+                                      ds.obs[(ds.policy_id == p) & ~held])
+
+
+def test_heldout_split_is_whole_episodes_of_every_policy(pm):
+    """The held-out rows are whole episodes (10 % of each policy's, at least one), never seen
+    in training; the scored rows are an evenly spread subset of them, capped at holdout_rows."""
+    ds, policies = pm
+    held = T.heldout_mask(ds, 0.1)
+    ep = np.asarray(ds.episode_id)
+    for e in np.unique(ep):
+        assert len(set(held[ep == e])) == 1, f"episode {e} split by row"
+    for p in range(P):
+        mine = np.unique(ep[ds.policy_id == p])
+        n_held = len(np.unique(ep[(ds.policy_id == p) & held]))
+        assert n_held == max(1, round(0.1 * len(mine))), (p, n_held, len(mine))
+    cfg = T.TrainConfig.small(task="pointmass", method="bc", vd_horizon=50, holdout_rows=64)
+    data = T.make_train_data(ds, policies, cfg)
+    assert data.n_heldout == 64 and data.obs.shape[0] == (~held).sum()
+    rows = np.flatnonzero(held)
+    want = rows[np.round(np.linspace(0, rows.size - 1, 64)).astype(int)]
+    np.testing.assert_array_equal(np.asarray(data.val_obs), ds.obs[want])
+    np.testing.assert_array_equal(np.asarray(data.val_next_obs), ds.next_obs[want])
+    # the normaliser is the training rows' own
+    np.testing.assert_allclose(np.asarray(data.norm.obs_mean), ds.obs[~held].mean(0), rtol=1e-5)
+    assert not T.heldout_mask(ds, 0.0).any()
 
 
 # ---------------------------------------------------------------------- 6. spectral norm
@@ -638,6 +667,20 @@ def test_discriminator_loss_sign_convention():
     (dict(grad_clip=float("nan")), "grad_clip"),
     (dict(gamma=1.5), "gamma"),
     (dict(method="gail", buffer_size=8, batch_size=64), "buffer_size"),
+    (dict(ensemble_size=0), "ensemble_size"),
+    (dict(ensemble_size=3, n_elites=4), "n_elites"),
+    (dict(holdout_frac=0.0, n_elites=2), "n_elites"),
+    (dict(holdout_frac=0.0, n_elites=3, early_stop_patience=5), "early_stop_patience"),
+    (dict(holdout_frac=1.0), "holdout_frac"),
+    (dict(holdout_rows=0), "holdout_rows"),
+    (dict(member_mode="best"), "member_mode"),
+    (dict(uncertainty="var"), "uncertainty"),
+    (dict(gen_noise="none"), "gen_noise"),
+    (dict(gen_log_std_bounds="soft"), "gen_log_std_bounds"),
+    (dict(gen_weight_decay=-1.0), "gen_weight_decay"),
+    (dict(ema_decay=1.0), "ema_decay"),
+    (dict(pretrain_steps=-1), "pretrain_steps"),
+    (dict(disc_warmup_steps=1.5), "disc_warmup_steps"),
 ])
 def test_bad_config_names_the_field(overrides, field):
     cfg = T.TrainConfig.small(task="pointmass", **overrides)
@@ -685,7 +728,7 @@ def test_gail_learns_the_pointmass_one_step_model(pm):
     dstd = np.asarray(data.norm.delta_std)
 
     def one_step_mse(state):  # in units of the data's delta std
-        pred = np.asarray(models.generator_mean(state.gen, state.norm, obs, act))
+        pred = np.asarray(T.simulator(state).mean(obs, act))
         return float(np.mean(((pred - nxt) / dstd) ** 2))
 
     state = _init(jax.random.PRNGKey(0), cfg, data)

@@ -1,10 +1,12 @@
-"""The model family diagnosis fits: a base Gaussian simulator and its extensions.
+"""Fitting the dynamics-model family (``rl2s_jax.dynamics``) for diagnosis: the base model and
+its extensions, S seeds as one vmapped program (an ensemble of S members).
 
-A model is p(delta_n | inputs) = N(mean, diag(std^2)) over the normalised state change
-delta_n = (s' - s - delta_mean) / delta_std, fit by maximum likelihood (Adam on the Gaussian
-NLL), as the core generator (``rl2s_jax.models``) but with more inputs. The base model sees the
-normalised s (position dims zeroed) and a, and has one learned log-std per dim. Each
-``ModelSpec`` field switches on one extension:
+A model is a member of the family that training uses: p(delta_n | inputs) = N(mean,
+diag(std^2)) over the normalised state change delta_n = (s' - s - delta_mean) / delta_std, fit
+by maximum likelihood (Adam on the Gaussian NLL). ``ModelSpec.dynamics`` is its
+``DynamicsSpec``. The base model sees the normalised s (position dims zeroed) and a, and has
+one learned log-std per dim (``noise="global"``); ``log_std_bounds`` and ``weight_decay`` are
+the family's options. Each other ``ModelSpec`` field switches on one extension:
 
 - ``action_history`` / ``obs_history``: the k previous actions / observations of the episode
   (normalised; zero, with a validity mask, before the episode start);
@@ -42,13 +44,15 @@ import numpy as np
 import optax
 from flax import struct
 
+from rl2s_jax import dynamics as dyn
 from rl2s_jax.diagnose.episodes import Episodes, half_split
-from rl2s_jax.models import Normalizer, _bounded_log_std, _relu_mlp
+from rl2s_jax.dynamics import NOISE_KINDS, TIME_INPUTS, DynamicsSpec, Normalizer
 from rl2s_jax.policies import num_policies, sample_action
 from rl2s_jax.train import n_worst, select_worst
 
-TIME_INPUTS = ("order", "step")
-NOISE_KINDS = ("global", "state")
+__all__ = ["NOISE_KINDS", "TIME_INPUTS", "FittedModels", "ModelDiverged", "ModelSpec",
+           "delta_scale", "fit_models", "heldout_metrics", "history", "kstep_errors",
+           "normalized_delta", "predict", "rollout_values"]
 OBS_CLIP = 10.0      # rollout states are kept within +-OBS_CLIP data stds of the obs mean
 PROBE_ROWS = 128     # rows per policy for the CVaR policy NLL
 CONTEXT_GROUP = 8    # batch rows that share one context draw (one half of one episode)
@@ -66,7 +70,8 @@ class ModelSpec:
     time_inputs: subset of ("order", "step"). policy_cvar_eps: None, or the CVaR fraction of
     policies whose rows fill half of each batch, re-chosen every cvar_every updates.
     hidden, steps, batch_size, lr: the generator MLP and its Adam training (lr decays to lr/10
-    along a cosine).
+    along a cosine). log_std_bounds ("fixed" | "learned", with log_std_bound_weight) and
+    weight_decay (L2 on the weight matrices): as the family's (``TrainConfig.gen_*``).
     """
 
     action_history: int = 0
@@ -82,38 +87,39 @@ class ModelSpec:
     context_rows: int = 16
     context_hidden: tuple[int, ...] = (64, 64)
     cvar_every: int = 100
+    log_std_bounds: str = "fixed"
+    log_std_bound_weight: float = 0.01
+    weight_decay: float = 0.0
+
+    @property
+    def dynamics(self) -> DynamicsSpec:
+        """The model as a member of the dynamics-model family."""
+        return DynamicsSpec(hidden=self.hidden, noise=self.noise,
+                            log_std_bounds=self.log_std_bounds,
+                            action_history=self.action_history, obs_history=self.obs_history,
+                            time_inputs=self.time_inputs, context_dim=self.context_dim,
+                            context_hidden=self.context_hidden)
 
     def validate(self) -> ModelSpec:
         """Raise ValueError naming the first bad field; returns self."""
         def is_int(v):
             return isinstance(v, int | np.integer) and not isinstance(v, bool)
 
-        for name in ("action_history", "obs_history", "context_dim"):
-            v = getattr(self, name)
-            if not is_int(v) or v < 0:
-                raise ValueError(f"{name}: expected an int >= 0, got {v!r}")
         for name in ("steps", "batch_size", "context_rows", "cvar_every"):
             v = getattr(self, name)
             if not is_int(v) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
-        if self.noise not in NOISE_KINDS:
-            raise ValueError(f"noise: expected one of {', '.join(map(repr, NOISE_KINDS))}, "
-                             f"got {self.noise!r}")
-        t = self.time_inputs
-        if (not isinstance(t, tuple) or any(x not in TIME_INPUTS for x in t)
-                or len(set(t)) != len(t)):
-            raise ValueError(f"time_inputs: expected a tuple of distinct names from "
-                             f"{TIME_INPUTS}, got {t!r}")
         e = self.policy_cvar_eps
         if e is not None and not (isinstance(e, int | float) and not isinstance(e, bool)
                                   and 0.0 < e <= 1.0):
             raise ValueError(f"policy_cvar_eps: expected None or a float in (0, 1], got {e!r}")
-        for name in ("hidden", "context_hidden"):
-            v = getattr(self, name)
-            if not (isinstance(v, tuple) and v and all(is_int(h) and h > 0 for h in v)):
-                raise ValueError(f"{name}: expected a non-empty tuple of positive ints, got {v!r}")
+        self.dynamics.validate()
         if not (isinstance(self.lr, int | float) and math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr: expected a positive finite float, got {self.lr!r}")
+        for name in ("weight_decay", "log_std_bound_weight"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"{name}: expected a finite float >= 0, got {v!r}")
         return self
 
     @property
@@ -157,8 +163,9 @@ class ModelDiverged(FloatingPointError):
 class FittedModels:
     """S models of one spec fitted to the same rows with different seeds.
 
-    params: pytree stacked over seeds [S, ...] ({"gen": layers, "log_std" [S, o] when noise is
-    global, "enc": layers when context_dim > 0}); norm: the Normalizer of the fit rows;
+    params: family members stacked over seeds [S, ...] ({"layers", "log_std" [S, o] when noise
+    is global, "enc" when context_dim > 0, "max_log_std" / "min_log_std" when the bounds are
+    learned}); norm: the Normalizer of the fit rows;
     ctx_mean [S, C] / ctx_cov [S, C, C]: Gaussian of the fit episodes' contexts, one per half
     of each episode (C = 0: empty);
     train_loss [S]: mean batch NLL over the last cvar_every updates; loss_history [S, B]: the
@@ -256,30 +263,19 @@ def _check_context_episodes(eps: Episodes, episodes: np.ndarray, what: str) -> N
 
 
 # ---------------------------------------------------------------- networks (device)
+# The family's functions (rl2s_jax.dynamics), under the names this module has always used.
 
-
-def _obs_inputs(norm: Normalizer, obs, past_obs, past_obs_valid):
-    """obs [..., o], past_obs [..., K, o], valid [..., K] -> [..., o + K o + K]."""
-    v = past_obs_valid.astype(jnp.float32)
-    past = norm.input_obs(past_obs) * v[..., None]
-    return jnp.concatenate([norm.input_obs(obs), past.reshape(*past.shape[:-2], -1), v], -1)
-
-
-def _other_inputs(norm: Normalizer, action, past_act, past_act_valid, times):
-    """action [..., a], past_act [..., K, a], valid [..., K], times [..., T] in [0, 1]
-    -> [..., a + K a + K + T]."""
-    v = past_act_valid.astype(jnp.float32)
-    past = norm.norm_act(past_act) * v[..., None]
-    return jnp.concatenate([norm.norm_act(action), past.reshape(*past.shape[:-2], -1), v,
-                            2.0 * times - 1.0], -1)
+_obs_inputs = dyn.obs_inputs
+_other_inputs = dyn.other_inputs
+_encoder_inputs = dyn.encoder_inputs
+_pool = dyn.pool_context
+_nll = dyn.gaussian_nll
 
 
 def _inputs(norm: Normalizer, spec: ModelSpec, r: dict) -> jax.Array:
     """The generator inputs (without the context) of raw rows r (``_gather_rows``)."""
-    return jnp.concatenate([
-        _obs_inputs(norm, r["obs"], r["past_obs"], r["past_obs_valid"]),
-        _other_inputs(norm, r["action"], r["past_act"], r["past_act_valid"],
-                      r["times"])], -1)
+    del spec  # the rows carry the history and time arrays the spec asked for
+    return dyn.model_inputs(norm, r)
 
 
 @functools.partial(jax.jit, static_argnames="spec")
@@ -293,64 +289,17 @@ def _prepare_rows(norm: Normalizer, spec: ModelSpec, raw: dict, next_obs):
 
 
 def _input_size(spec: ModelSpec, o: int, a: int) -> int:
-    return (o + spec.obs_history * (o + 1) + a + spec.action_history * (a + 1)
-            + len(spec.time_inputs) + spec.context_dim)
-
-
-def _encoder_inputs(norm: Normalizer, obs, action, next_obs):
-    """[..., o], [..., a], [..., o] -> [..., 2 o + a]."""
-    return jnp.concatenate([norm.input_obs(obs), norm.norm_act(action),
-                            norm.norm_delta(obs, next_obs)], -1)
-
-
-def _pool(params, enc_in, mask=None):
-    """Context: mean of the encoder's embeddings. enc_in [..., M, 2o + a], mask [..., M]
-    -> [..., C]."""
-    emb = _relu_mlp(params["enc"], enc_in)
-    if mask is None:
-        return emb.mean(-2)
-    w = mask.astype(jnp.float32)[..., None]
-    return (emb * w).sum(-2) / jnp.maximum(w.sum(-2), 1.0)
+    return spec.dynamics.input_size(o, a)
 
 
 def _dist(params, spec: ModelSpec, x, ctx=None):
     """Gaussian over the normalised delta. x [..., d], ctx [..., C] -> (mean, log_std) [..., o]."""
-    if spec.context_dim:
-        x = jnp.concatenate([x, ctx], -1)
-    out = _relu_mlp(params["gen"], x)
-    if spec.noise == "state":
-        mean, raw = jnp.split(out, 2, axis=-1)
-        return mean, _bounded_log_std(raw)
-    return out, jnp.broadcast_to(_bounded_log_std(params["log_std"]), out.shape)
-
-
-def _nll(mean, log_std, y):
-    """Gaussian NLL summed over the last axis. -> [...]"""
-    z = (y - mean) * jnp.exp(-log_std)
-    return jnp.sum(0.5 * z**2 + log_std + 0.5 * jnp.log(2 * jnp.pi), -1)
-
-
-def _mlp_init(rng: np.random.Generator, sizes: Sequence[int], last_scale: float = 1.0
-              ) -> list[dict]:
-    """Layers as ``policies.init_mlp`` makes them (LeCun-normal weights, zero biases, last
-    layer scaled), drawn by NumPy: compiling JAX's PRNG for every spec cost seconds per fit on
-    the CPU."""
-    layers = [{"w": (rng.standard_normal((a, b)) / math.sqrt(a)).astype(np.float32),
-               "b": np.zeros((b,), np.float32)} for a, b in zip(sizes[:-1], sizes[1:], strict=True)]
-    layers[-1]["w"] = layers[-1]["w"] * np.float32(last_scale)
-    return layers
+    return dyn.member_dist(params, x, ctx if spec.context_dim else None)
 
 
 def _init_params(seed: int, spec: ModelSpec, o: int, a: int) -> dict:
     """One seed's parameters (NumPy)."""
-    rng = np.random.default_rng([seed, 0x5EED])
-    out = o * (2 if spec.noise == "state" else 1)
-    params = {"gen": _mlp_init(rng, [_input_size(spec, o, a), *spec.hidden, out], 0.01)}
-    if spec.noise == "global":
-        params["log_std"] = np.zeros((o,), np.float32)
-    if spec.context_dim:
-        params["enc"] = _mlp_init(rng, [2 * o + a, *spec.context_hidden, spec.context_dim])
-    return params
+    return dyn.init_member_numpy(seed, spec.dynamics, o, a)
 
 
 # ------------------------------------------------------------------------ training
@@ -394,7 +343,9 @@ class _TrainState:
 
 def _optimizer(spec: ModelSpec) -> optax.GradientTransformation:
     schedule = optax.cosine_decay_schedule(spec.lr, spec.steps, alpha=0.1)
-    return optax.chain(optax.clip_by_global_norm(10.0), optax.adam(schedule))
+    decay = ([optax.add_decayed_weights(spec.weight_decay, mask=dyn.weight_mask)]
+             if spec.weight_decay else [])
+    return optax.chain(*decay, optax.clip_by_global_norm(10.0), optax.adam(schedule))
 
 
 def _draw(u, lo, count):
@@ -492,8 +443,13 @@ def _train_blocks(states: _TrainState, data: _TrainData, *, spec: ModelSpec, n_b
     def update(state: _TrainState, u):
         u = _split_uniforms(u, layout)
         rows = _batch_rows(u, spec, data, state.selected)
-        loss, grads = jax.value_and_grad(
-            lambda p: _rows_nll(p, spec, data, rows, u["ctx"]).mean())(state.params)
+        def loss_fn(p):
+            loss = _rows_nll(p, spec, data, rows, u["ctx"]).mean()
+            if spec.log_std_bounds == "learned":
+                loss = loss + spec.log_std_bound_weight * dyn.bound_penalty(p)
+            return loss
+
+        loss, grads = jax.value_and_grad(loss_fn)(state.params)
         updates, opt_state = tx.update(grads, state.opt_state, state.params)
         params = optax.apply_updates(state.params, updates)
         return state.replace(params=params, opt_state=opt_state), loss

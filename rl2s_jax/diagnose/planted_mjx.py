@@ -189,13 +189,15 @@ def velocity_obs_dims(env: Env) -> tuple[int, ...]:
     """Obs index of each joint velocity (qvel entry) of ``env``'s innermost env.
 
     brax's hopper, walker2d, halfcheetah and ant observations are q (less the excluded
-    current positions) then qvel (hopper and walker2d clip it to +-10); the PointMass state
+    current positions) then qvel (brax's hopper and walker2d clip it to +-10; the tasks'
+    subclasses do not); the PointMass state
     is (p, v), obs = state. Other envs: ValueError.
     """
     base = env.unwrapped
     if isinstance(base, PointMass):
         return (1,)
-    excluded = _EXCLUDED_POSITIONS.get(type(base).__name__)
+    excluded = next((_EXCLUDED_POSITIONS[c.__name__] for c in type(base).__mro__
+                     if c.__name__ in _EXCLUDED_POSITIONS), None)
     if isinstance(base, PipelineEnv) and excluded is not None:
         n_q_obs = int(base.sys.q_size())
         if base._exclude_current_positions_from_observation:

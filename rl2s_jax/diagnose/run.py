@@ -71,23 +71,24 @@ def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]
 
 
 def _checkpoint_residuals(ckpt: str, base: FittedModels, eps: Episodes, rows: np.ndarray):
-    """Residuals of a saved simulator, in the base model's normalised delta units."""
+    """Residuals of a saved simulator, in the base model's normalised delta units: its
+    predictive mean and std (for an ensemble stepping a random elite: the elites' mixture, so
+    the std includes their disagreement; ``Simulator.predictive``)."""
     import jax
 
     from rl2s_jax.checkpoint import load_simulator
-    from rl2s_jax.models import generator_dist
 
     sim = load_simulator(ckpt)
     if np.asarray(sim.norm.obs_mean).shape[0] != eps.obs_size:
         raise ValueError(f"ckpt: the simulator's obs size {np.asarray(sim.norm.obs_mean).shape[0]}"
                          f" differs from the data's {eps.obs_size}")
-    mean, log_std = jax.jit(generator_dist)(sim.gen, sim.norm, eps.obs[rows].astype(np.float32),
-                                            eps.action[rows].astype(np.float32))
+    mean, std_n = jax.jit(lambda s, o, a: s.predictive(o, a))(
+        sim, eps.obs[rows].astype(np.float32), eps.action[rows].astype(np.float32))
     d_std = np.asarray(base.norm.delta_std, np.float64)
     s_std, s_mean = (np.asarray(x, np.float64) for x in (sim.norm.delta_std, sim.norm.delta_mean))
     pred = s_mean + s_std * np.asarray(mean, np.float64)
     resid = (eps.delta[rows] - pred) / d_std
-    std = s_std * np.exp(np.asarray(log_std, np.float64)) / d_std
+    std = s_std * np.asarray(std_n, np.float64) / d_std
     return resid, std, (pred - np.asarray(base.norm.delta_mean, np.float64)) / d_std
 
 

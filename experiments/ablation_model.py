@@ -1,0 +1,305 @@
+"""Ablation of the dynamics model on one task (issue 10, items 2-4): the single generator trained
+from scratch that preceded the model family ("legacy", RL2S) vs the ensemble trained by maximum
+likelihood ("bc") vs RL2S started from the MLE-pretrained ensemble ("rl2s") vs the same run
+evaluated with the moving average of its weights ("rl2s+ema"). Judged on the held-out TEST
+policies by Kendall tau, nDCG@1, AVD and MVD, at the last step ("final") and at the
+evaluation point chosen WITHOUT the test policies ("selected": highest Kendall tau of the
+TRAINING policies' simulated values, started from the start states of their held-out
+episodes, against their true values; ties to the lower training AVD).
+
+    python experiments/ablation_model.py --task hopper --out DIR [--data-dir DIR]
+        [--variants legacy,bc,rl2s] [--seeds 3] [--steps 600] [--eval-every 100]
+        [--eval-episodes 16] [--ema-decay 0.99] [--profile auto|cpu|gpu] [--set key=value ...]
+    python experiments/ablation_model.py --summarize DIR [DIR ...]
+
+Every variant is one vmapped program over the seeds (``paper.train_lanes``: the MLE
+pre-training and the adversarial phase are separate compiled pieces) and writes
+OUT/ablation_<task>_<variant>.json after every evaluation (a run cut off by a time limit keeps
+what it finished); the last one also writes OUT/ablation_<task>.json and .md, the table of
+every variant's JSON found in OUT. ``--summarize`` rebuilds that table from the JSONs of
+several directories (variants run in separate device calls). Data: the zoo's train / test split
+as experiments/paper.py collects it (``paper.load_or_collect``, reused from --data-dir).
+"""
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from paper import PROFILES, _lane_values, load_or_collect, log, train_lanes  # noqa: E402
+
+from rl2s_jax.cli import _overrides  # noqa: E402
+from rl2s_jax.evaluate import ranking_metrics  # noqa: E402
+from rl2s_jax.fit import make_config, policies_for  # noqa: E402
+from rl2s_jax.simulate import start_pool  # noqa: E402
+from rl2s_jax.tasks import task_names  # noqa: E402
+from rl2s_jax.train import (  # noqa: E402
+    LEGACY_MODEL,
+    TrainConfig,
+    heldout_mask,
+    init,
+    make_train_data,
+    simulator,
+    true_values,
+)
+
+# variant -> (config method, config overrides); "rl2s" keeps the EMA and is evaluated twice.
+VARIANTS = {
+    "legacy": ("rl2s", dict(LEGACY_MODEL)),
+    "legacy-bc": ("bc", dict(LEGACY_MODEL)),
+    "bc": ("bc", {}),
+    "rl2s": ("rl2s", {}),
+}
+ROWS = ("legacy", "legacy-bc", "bc", "rl2s", "rl2s+ema")
+METRICS = ("kendall_tau", "ndcg@1", "avd", "mvd", "spearman")
+SIZES = {"gpu": dict(seeds=3, steps=600, eval_every=100, eval_episodes=16),
+         "cpu": dict(seeds=2, steps=40, eval_every=20, eval_episodes=4)}
+
+
+def heldout_start_pool(train_ds) -> jax.Array:
+    """Start states [S, o] of the training policies' held-out episodes (the split
+    ``make_train_data`` makes with the default holdout_frac, whatever the variant's), the
+    whole data's start pool if none of them starts at t = 0."""
+    held = heldout_mask(train_ds, TrainConfig().holdout_frac)
+    starts = held & (np.asarray(train_ds.t) == 0)
+    if not starts.any():
+        return start_pool(train_ds)
+    return jnp.asarray(np.asarray(train_ds.obs)[starts], jnp.float32)
+
+
+def _metrics(truth, values) -> dict | None:
+    try:
+        r = ranking_metrics(np.asarray(truth, np.float64), np.asarray(values, np.float64),
+                            ks=(1,))
+    except ValueError:  # non-finite simulated values: the lane diverged
+        return None
+    return {k: float(r[k]) for k in METRICS}
+
+
+def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes) -> list[dict]:
+    """Test and selection metrics of every lane, with the moving average (weights=True) or the
+    trained weights. test / select: (policies, start pool, true values)."""
+    sims = simulator(states, average=weights)
+    out = [{} for _ in seeds]
+    for name, (pols, pool, truth), base in (("test", test, 1000), ("select", select, 2000)):
+        keys = jnp.stack([jax.random.PRNGKey(base + s) for s in seeds])
+        values, _ = _lane_values(sims, pols, pool, keys, n_episodes=n_episodes,
+                                 horizon=cfg.vd_horizon, gamma=cfg.gamma)
+        for i, v in enumerate(np.asarray(values)):
+            out[i][name] = _metrics(truth, v)
+    return out
+
+
+def _select(points: list[dict]) -> dict | None:
+    """The evaluation point with the highest selection tau (ties: lower selection AVD)."""
+    ok = [p for p in points if p["select"] is not None and p["test"] is not None]
+    if not ok:
+        return None
+    finite = lambda x: x if np.isfinite(x) else -np.inf
+    return max(ok, key=lambda p: (finite(p["select"]["kendall_tau"]),
+                                  finite(-p["select"]["avd"])))
+
+
+def summarize_rows(results: list[dict]) -> dict:
+    """{row: {"final" | "selected": {metric: (mean, std, n)}, "selected_steps": [...]}} over
+    the seeds of every variant result."""
+    table = {}
+    for res in results:
+        for row, lanes in res["curves"].items():
+            finals, chosen, steps = [], [], []
+            for points in lanes.values():
+                if points and points[-1]["test"] is not None:
+                    finals.append(points[-1]["test"])
+                sel = _select(points)
+                if sel is not None:
+                    chosen.append(sel["test"])
+                    steps.append(sel["step"])
+            entry = {}
+            for what, rs in (("final", finals), ("selected", chosen)):
+                entry[what] = {}
+                for k in METRICS:
+                    v = np.asarray([r[k] for r in rs], np.float64)
+                    entry[what][k] = (float(v.mean()) if v.size else None,
+                                      float(v.std(ddof=1)) if v.size > 1 else None, int(v.size))
+            entry["selected_steps"] = steps
+            entry["seeds"] = len(lanes)
+            table[row] = entry
+    return table
+
+
+def markdown(table: dict, task: str) -> str:
+    cols = ("kendall_tau", "ndcg@1", "avd", "mvd")
+    head = (f"| {task} | " + " | ".join(f"{c} final" for c in cols) + " | "
+            + " | ".join(f"{c} selected" for c in cols) + " | selected steps |")
+    lines = [head, "|" + "---|" * (2 * len(cols) + 2)]
+    fmt = lambda c: "n/a" if c[0] is None else (f"{c[0]:.3g}" + ("" if c[1] is None
+                                                                  else f" ± {c[1]:.2g}"))
+    for row in [r for r in ROWS if r in table] + sorted(set(table) - set(ROWS)):
+        e = table[row]
+        cells = [fmt(e["final"][c]) for c in cols] + [fmt(e["selected"][c]) for c in cols]
+        lines.append(f"| {row} | " + " | ".join(cells) + f" | {e['selected_steps']} |")
+    return "\n".join(lines)
+
+
+def write_summary(out: str, task: str, paths: list[str]) -> str:
+    results = []
+    for p in paths:
+        with open(p) as f:
+            results.append(json.load(f))
+    table = summarize_rows(results)
+    md = markdown(table, task)
+    with open(os.path.join(out, f"ablation_{task}.json"), "w") as f:
+        json.dump({"task": task, "rows": table, "sources": paths,
+                   "runs": [{k: r[k] for k in ("variant", "hardware", "jax_version", "command",
+                                               "timings", "complete")} for r in results]},
+                  f, indent=1)
+    with open(os.path.join(out, f"ablation_{task}.md"), "w") as f:
+        f.write(md + "\n")
+    return md
+
+
+def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds) -> dict:
+    method, model = VARIANTS[variant]
+    overrides = {**_overrides(args.set), **model}  # a legacy variant stays the legacy model
+    if variant == "rl2s":
+        overrides.setdefault("ema_decay", args.ema_decay)
+    cfg = make_config(train_ds, method, profile, overrides=overrides)
+    data = make_train_data(train_ds, policies_for(train_ds), cfg)
+    test = (policies_for(test_ds), start_pool(test_ds),
+            true_values(test_ds, cfg.vd_horizon, cfg.gamma))
+    select = (data.policies, heldout_start_pool(train_ds), np.asarray(data.true_value))
+    rows = {False: variant} | ({True: f"{variant}+ema"} if cfg.ema_decay else {})
+    seeds = list(range(sizes["seeds"]))
+    path = os.path.join(args.out, f"ablation_{args.task}_{variant}.json")
+    res = {"task": args.task, "variant": variant, "config": cfg.to_dict(), "sizes": sizes,
+           "hardware": jax.devices()[0].device_kind, "jax_version": jax.__version__,
+           "command": " ".join(["python", "experiments/ablation_model.py", *args.argv]),
+           "timings": {}, "complete": False,
+           "curves": {row: {str(s): [] for s in seeds} for row in rows.values()},
+           "heldout_nll": {str(s): [] for s in seeds}}
+    t0 = time.perf_counter()
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+    states = jax.block_until_ready(jax.jit(jax.vmap(lambda k, d: init(k, cfg, d),
+                                                    in_axes=(0, None)))(keys, data))
+    res["timings"]["init"] = round(time.perf_counter() - t0, 1)
+    log(f"[ablation] {variant}: method {method}, {len(seeds)} seeds, E={cfg.ensemble_size}, "
+        f"pretrain {cfg.pretrain_steps if cfg.adversarial else '-'}, ema {cfg.ema_decay}; "
+        f"init {res['timings']['init']}s")
+    compiled, t_train, t_eval = {}, 0.0, 0.0
+    n = sizes["eval_every"]
+    for _ in range(sizes["steps"] // n):
+        t1 = time.perf_counter()
+        states, m = jax.block_until_ready(train_lanes(states, data, n, cfg, compiled))
+        t_train += time.perf_counter() - t1
+        t1 = time.perf_counter()
+        step = int(states.step[0])
+        for weights, row in rows.items():
+            for s, r in zip(seeds, evaluate(states, seeds, weights, test=test, select=select,
+                                            cfg=cfg, n_episodes=sizes["eval_episodes"]),
+                            strict=True):
+                res["curves"][row][str(s)].append({"step": step, **r,
+                                                   "finite": bool(m["finite"][s])})
+                t, sl = r["test"] or {}, r["select"] or {}
+                f = lambda d, k: "n/a" if k not in d else f"{d[k]:.3f}"
+                log(f"  {row:<9} seed {s} step {step:>5}  test tau {f(t, 'kendall_tau')}"
+                    f"  nDCG@1 {f(t, 'ndcg@1')}  AVD {f(t, 'avd')}  MVD {f(t, 'mvd')}  | "
+                    f"select tau {f(sl, 'kendall_tau')}  AVD {f(sl, 'avd')}")
+        if data.n_heldout:
+            elite = np.asarray(states.rank) < cfg.n_elites
+            nll = np.where(elite, np.asarray(states.heldout_nll), 0).sum(1) / cfg.n_elites
+            for s in seeds:
+                res["heldout_nll"][str(s)].append([step, float(nll[s])])
+        t_eval += time.perf_counter() - t1
+        res["timings"].update(train=round(t_train, 1), eval=round(t_eval, 1))
+        log(f"[ablation] {variant} step {step}: train {t_train:.1f}s, eval {t_eval:.1f}s")
+        _write(path, res)
+    res["complete"] = True
+    _write(path, res)
+    return res
+
+
+def _write(path: str, res: dict) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(res, f, indent=1)
+    os.replace(tmp, path)
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    pos = lambda t: max(1, int(t))
+    ap.add_argument("--task", choices=task_names())
+    ap.add_argument("--variants", default="legacy,bc,rl2s",
+                    help=f"comma-separated, from {', '.join(VARIANTS)}")
+    ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
+    ap.add_argument("--seeds", type=pos)
+    ap.add_argument("--steps", type=pos)
+    ap.add_argument("--eval-every", type=pos)
+    ap.add_argument("--eval-episodes", type=pos)
+    ap.add_argument("--transitions-per-policy", type=pos)
+    ap.add_argument("--value-episodes", type=pos)
+    ap.add_argument("--episode-length", type=pos)
+    ap.add_argument("--ema-decay", type=float, default=0.99)
+    ap.add_argument("--set", action="append", metavar="KEY=VALUE")
+    ap.add_argument("--out", default="results/ablation")
+    ap.add_argument("--data-dir")
+    ap.add_argument("--summarize", nargs="+", metavar="DIR",
+                    help="only rebuild the table of the ablation JSONs in these directories "
+                    "(written into --out)")
+    args = ap.parse_args(argv)
+    args.argv = argv
+    os.makedirs(args.out, exist_ok=True)
+    if args.summarize:
+        paths = sorted(p for d in args.summarize
+                       for p in glob.glob(os.path.join(d, "ablation_*_*.json")))
+        if not paths:
+            raise SystemExit(f"summarize: no ablation_<task>_<variant>.json in {args.summarize}")
+        tasks = {json.load(open(p))["task"] for p in paths}
+        for task in sorted(tasks):
+            mine = [p for p in paths if json.load(open(p))["task"] == task]
+            print(write_summary(args.out, task, mine))
+        return 0
+    if not args.task:
+        raise SystemExit("task: required (or --summarize)")
+    variants = [v for v in args.variants.split(",") if v]
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad or not variants:
+        raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)}, got {bad}")
+    backend = jax.default_backend()
+    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    sizes = dict(SIZES[profile])
+    for k in sizes:
+        if getattr(args, k, None) is not None:
+            sizes[k] = getattr(args, k)
+    if sizes["steps"] % sizes["eval_every"]:
+        raise SystemExit(f"steps: expected a multiple of --eval-every ({sizes['eval_every']})")
+    data_sizes = {k: PROFILES[profile][k] for k in ("transitions_per_policy", "value_episodes")}
+    for k in data_sizes:
+        if getattr(args, k, None) is not None:
+            data_sizes[k] = getattr(args, k)
+    t0 = time.perf_counter()
+    datasets, reused = load_or_collect(args.task, data_sizes, args.data_dir or args.out, 0,
+                                       args.episode_length, False)
+    log(f"[ablation] {args.task} on {jax.devices()[0].device_kind} ({backend}, jax "
+        f"{jax.__version__}), profile {profile}, sizes {sizes}, data {data_sizes} "
+        f"({'reused' if reused else 'collected'} in {time.perf_counter() - t0:.1f}s)")
+    for v in variants:
+        t1 = time.perf_counter()
+        run_variant(v, args, profile, sizes, datasets["train"], datasets["test"])
+        log(f"[ablation] {v}: {time.perf_counter() - t1:.1f}s")
+    mine = sorted(glob.glob(os.path.join(args.out, f"ablation_{args.task}_*.json")))
+    print(write_summary(args.out, args.task, mine))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

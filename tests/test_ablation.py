@@ -1,0 +1,55 @@
+"""experiments/ablation_model.py: the evaluation point is chosen on the training policies only
+(highest selection tau, ties to the lower selection AVD, non-finite last), and the table
+reports the TEST metrics at that point and at the last one, averaged over seeds."""
+import importlib.util
+import json
+import os
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def ab():
+    spec = importlib.util.spec_from_file_location(
+        "ablation_model", os.path.join(ROOT, "experiments", "ablation_model.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def _m(tau, avd, ndcg=1.0):
+    return {"kendall_tau": tau, "ndcg@1": ndcg, "avd": avd, "mvd": 2 * avd, "spearman": tau}
+
+
+def test_selection_uses_training_policies_only(ab, tmp_path):
+    seed0 = [  # test tau would favour step 100; the training policies pick step 200
+        {"step": 100, "test": _m(0.9, 10.0), "select": _m(0.2, 5.0)},
+        {"step": 200, "test": _m(0.4, 30.0), "select": _m(0.6, 9.0)},
+        {"step": 300, "test": _m(0.5, 20.0), "select": _m(0.6, 8.0)},   # tie: lower AVD wins
+        {"step": 400, "test": _m(0.1, 50.0), "select": _m(float("nan"), 1.0)},
+    ]
+    seed1 = [
+        {"step": 100, "test": _m(0.3, 40.0), "select": _m(0.7, 3.0)},
+        {"step": 200, "test": None, "select": _m(0.9, 1.0)},            # diverged: skipped
+        {"step": 300, "test": _m(0.2, 60.0, ndcg=0.5), "select": _m(0.1, 2.0)},
+    ]
+    assert ab._select(seed0)["step"] == 300 and ab._select(seed1)["step"] == 100
+    res = {"task": "hopper", "variant": "rl2s", "hardware": "cpu", "jax_version": "x",
+           "command": "c", "timings": {}, "complete": True,
+           "curves": {"rl2s": {"0": seed0, "1": seed1}}}
+    table = ab.summarize_rows([res])["rl2s"]
+    assert table["selected_steps"] == [300, 100]
+    mean, std, n = table["selected"]["kendall_tau"]
+    assert n == 2 and mean == pytest.approx(0.4) and std == pytest.approx(np.std([0.5, 0.3],
+                                                                                ddof=1))
+    assert table["final"]["avd"][:1] == (pytest.approx(55.0),)       # steps 400 and 300
+    assert table["final"]["ndcg@1"][0] == pytest.approx(0.75)
+    path = tmp_path / "ablation_hopper_rl2s.json"
+    path.write_text(json.dumps(res))
+    md = ab.write_summary(str(tmp_path), "hopper", [str(path)])
+    assert md.splitlines()[2].startswith("| rl2s | 0.15")
+    assert json.loads((tmp_path / "ablation_hopper.json").read_text())["rows"]["rl2s"][
+        "selected_steps"] == [300, 100]

@@ -68,9 +68,11 @@ def test_ppo_learns_pointmass_and_zoo_spreads():
 def test_shipped_zoo(task):
     zoo = pol.load_zoo(task)
     t = get_task(task)
-    assert zoo.task == task and zoo.size >= 40
-    assert len(zoo.train_ids) == SPLIT_SIZES.get(task, 17)
-    assert len(zoo.test_ids) >= MIN_TEST.get(task, 8)
+    n_train, min_test = SPLIT_SIZES.get(task, 17), MIN_TEST.get(task, 8)
+    assert zoo.task == task and zoo.size >= n_train + min_test
+    assert len(zoo.train_ids) == n_train
+    assert len(zoo.test_ids) >= min_test
+    assert (zoo.train_ids, zoo.test_ids) == tuple(choose_split(zoo.returns, n_train, min_test))
     assert not set(zoo.train_ids) & set(zoo.test_ids)
     assert zoo.params["obs_mean"].shape == (zoo.size, t.obs_size)
     assert zoo.params["layers"][-1]["b"].shape == (zoo.size, 2 * t.action_size)

@@ -1,0 +1,81 @@
+"""Assemble docs/results/<task>.json from the GPU runs of one zoo: the protocol
+(experiments/paper.py), the oracle control (experiments/oracle_check.py) and the improvement
+control (experiments/improve_control.py), each optional.
+
+    python experiments/merge_results.py --task hopper [--paper P.json] [--oracle O.json]
+        [--control C.json] [--out docs/results]
+
+The oracle's row with the most episodes at the longest horizon becomes the "oracle" method
+(per_seed lists of one value, its bootstrap intervals) unless the paper run has its own; the
+control's MPI/API and their 95% intervals become "control". zoo_sha256 is the shipped zoo's,
+checked against the paper run's when both exist.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def zoo_sha256(task: str) -> str:
+    with open(os.path.join(ROOT, "experiments", "zoo", task, "zoo.npz"), "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--task", required=True)
+    ap.add_argument("--paper")
+    ap.add_argument("--oracle")
+    ap.add_argument("--control")
+    ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
+    args = ap.parse_args(argv)
+    sha = zoo_sha256(args.task)
+    if args.paper:
+        with open(args.paper) as f:
+            result = json.load(f)
+        if result.get("zoo_sha256") not in (None, sha):
+            raise SystemExit(f"paper: measured on zoo {result['zoo_sha256']}, the shipped zoo "
+                             f"is {sha}")
+    else:
+        result = {"task": args.task, "methods": {}, "std": {}, "n": {}, "per_seed": {},
+                  "note": "the protocol was not re-run on this zoo"}
+    result["zoo_sha256"] = sha
+    if args.oracle and "oracle" not in result.get("per_seed", {}):
+        with open(args.oracle) as f:
+            orc = json.load(f)
+        row = max(orc["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
+        result["per_seed"]["oracle"] = {k: [v] for k, v in row["metrics"].items()}
+        result.setdefault("intervals", {})["oracle"] = (row.get("intervals") or {}).get(
+            "metrics", {})
+        if not args.paper:
+            result.update(command=orc["command"], hardware=orc["hardware"], seeds=1,
+                          jax_version=orc["jax_version"])
+        result["oracle"] = {"source": orc["command"], "hardware": orc["hardware"],
+                            "horizon": row["horizon"], "n_episodes": row["n_episodes"],
+                            "policies": orc["policies"], "metrics": row["metrics"],
+                            "eval_noise_tau_std": ((row.get("intervals") or {}).get(
+                                "sim_only", {}).get("kendall_tau", {}).get("std"))}
+    if args.control:
+        with open(args.control) as f:
+            ctl = json.load(f)
+        name, c = next(iter(ctl["configs"].items()))
+        result["control"] = {"config": name, "seeds": ctl["seeds"],
+                             "iterations": ctl["iterations"], "policies": len(ctl["zoo_ids"]),
+                             "mpi": c["mpi"], "api": c["api"], "mpi_ci95": c["mpi_ci95"],
+                             "api_ci95": c["api_ci95"], "c0": c["c0"], "c1": c["c1"],
+                             "I": c["I"], "device": ctl["device"]}
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, f"{args.task}.json")
+    with open(path, "w") as f:
+        json.dump(result, f, indent=1)
+    print(f"-> {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

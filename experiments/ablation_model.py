@@ -34,7 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from paper import PROFILES, _lane_values, load_or_collect, log, train_lanes  # noqa: E402
+from paper import PROFILES, _lane_returns, load_or_collect, log, train_lanes  # noqa: E402
 
 from rl2s_jax.cli import _overrides  # noqa: E402
 from rl2s_jax.evaluate import ranking_metrics  # noqa: E402
@@ -91,9 +91,9 @@ def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes) -> 
     out = [{} for _ in seeds]
     for name, (pols, pool, truth), base in (("test", test, 1000), ("select", select, 2000)):
         keys = jnp.stack([jax.random.PRNGKey(base + s) for s in seeds])
-        values, _ = _lane_values(sims, pols, pool, keys, n_episodes=n_episodes,
-                                 horizon=cfg.vd_horizon, gamma=cfg.gamma)
-        for i, v in enumerate(np.asarray(values)):
+        returns, _ = _lane_returns(sims, pols, pool, keys, n_episodes=n_episodes,
+                                   horizon=cfg.vd_horizon, gamma=cfg.gamma)
+        for i, v in enumerate(np.asarray(returns).mean(-1)):
             out[i][name] = _metrics(truth, v)
     return out
 

@@ -3,21 +3,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_train import _policies as _pm_policies  # biased pointmass policies
 
 from rl2s_jax import policies as pol
 from rl2s_jax.assess import evaluate_oracle
 from rl2s_jax.collect import collect
 from rl2s_jax.oracle import oracle_dynamics
 from rl2s_jax.tasks import get_task, pointmass_dynamics
-
-
-def _pm_policies(biases):
-    ps = []
-    for i, b in enumerate(biases):
-        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
-        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
-        ps.append(p)
-    return pol.stack_params(ps)
 
 
 def test_pointmass_oracle_is_the_true_dynamics():

@@ -10,11 +10,14 @@ episodes, against their true values; ties to the lower training AVD).
     python experiments/ablation_model.py --task hopper --out DIR [--data-dir DIR]
         [--variants legacy,bc,rl2s] [--seeds 3] [--steps 600] [--eval-every 100]
         [--eval-episodes 16] [--ema-decay 0.99] [--profile auto|cpu|gpu] [--set key=value ...]
+        [--rollouts random:1,mean:0,...]
     python experiments/ablation_model.py --summarize DIR [DIR ...]
 
 Every variant is one vmapped program over the seeds (``paper.train_lanes``: the MLE
 pre-training and the adversarial phase are separate compiled pieces) and writes
-OUT/ablation_<task>_<variant>.json after every evaluation (a run cut off by a time limit keeps
+OUT/ablation_<task>_<variant>.json after every evaluation; ``--rollouts MODE:NOISE,...`` also
+evaluates each variant's simulator with other rollout settings (member mode random / mean /
+fixed, noise scale; rows "<variant>@<mode>:<noise>"), which costs no training (a run cut off by a time limit keeps
 what it finished); the last one also writes OUT/ablation_<task>.json and .md, the table of
 every variant's JSON found in OUT. ``--summarize`` rebuilds that table from the JSONs of
 several directories (variants run in separate device calls). Data: the zoo's train / test split
@@ -37,6 +40,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paper import PROFILES, _lane_returns, load_or_collect, log, train_lanes  # noqa: E402
 
 from rl2s_jax.cli import _overrides  # noqa: E402
+from rl2s_jax.dynamics import MEMBER_MODES  # noqa: E402
 from rl2s_jax.evaluate import ranking_metrics  # noqa: E402
 from rl2s_jax.fit import make_config, policies_for  # noqa: E402
 from rl2s_jax.simulate import start_pool  # noqa: E402
@@ -84,10 +88,30 @@ def _metrics(truth, values) -> dict | None:
     return {k: float(r[k]) for k in METRICS}
 
 
-def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes) -> list[dict]:
+def parse_rollouts(text: str | None) -> list[tuple[str, float]]:
+    """--rollouts 'random:1,mean:0' -> [("random", 1.0), ("mean", 0.0)]."""
+    out = []
+    for item in (x.strip() for x in (text or "").split(",") if x.strip()):
+        mode, _, noise = item.partition(":")
+        try:
+            scale = float(noise)
+        except ValueError:
+            scale = -1.0
+        if mode not in MEMBER_MODES or not (np.isfinite(scale) and scale >= 0):
+            raise SystemExit(f"rollouts: expected MODE:NOISE items with MODE in "
+                             f"{', '.join(MEMBER_MODES)} and NOISE >= 0, got {item!r}")
+        out.append((mode, scale))
+    return out
+
+
+def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
+             rollout: tuple[str, float] | None = None) -> list[dict]:
     """Test and selection metrics of every lane, with the moving average (weights=True) or the
-    trained weights. test / select: (policies, start pool, true values)."""
+    trained weights, rolled out with the config's settings or ``rollout`` (member mode, noise
+    scale). test / select: (policies, start pool, true values)."""
     sims = simulator(states, average=weights)
+    if rollout is not None:
+        sims = sims.replace(member_mode=rollout[0], noise_scale=rollout[1])
     out = [{} for _ in seeds]
     for name, (pols, pool, truth), base in (("test", test, 1000), ("select", select, 2000)):
         keys = jnp.stack([jax.random.PRNGKey(base + s) for s in seeds])
@@ -176,7 +200,9 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     test = (policies_for(test_ds), start_pool(test_ds),
             true_values(test_ds, cfg.vd_horizon, cfg.gamma))
     select = (data.policies, heldout_start_pool(train_ds), np.asarray(data.true_value))
-    rows = {False: variant} | ({True: f"{variant}+ema"} if cfg.ema_decay else {})
+    rows = {(False, None): variant} | ({(True, None): f"{variant}+ema"} if cfg.ema_decay
+                                       else {})
+    rows |= {(False, r): f"{variant}@{r[0]}:{r[1]:g}" for r in parse_rollouts(args.rollouts)}
     seeds = list(range(sizes["seeds"]))
     path = os.path.join(args.out, f"ablation_{args.task}_{variant}.json")
     res = {"task": args.task, "variant": variant, "config": cfg.to_dict(), "sizes": sizes,
@@ -201,9 +227,10 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
         t_train += time.perf_counter() - t1
         t1 = time.perf_counter()
         step = int(states.step[0])
-        for weights, row in rows.items():
+        for (weights, rollout), row in rows.items():
             for s, r in zip(seeds, evaluate(states, seeds, weights, test=test, select=select,
-                                            cfg=cfg, n_episodes=sizes["eval_episodes"]),
+                                            cfg=cfg, n_episodes=sizes["eval_episodes"],
+                                            rollout=rollout),
                             strict=True):
                 res["curves"][row][str(s)].append({"step": step, **r,
                                                    "finite": bool(m["finite"][s])})
@@ -250,6 +277,9 @@ def main(argv=None) -> int:
     ap.add_argument("--episode-length", type=pos)
     ap.add_argument("--ema-decay", type=float, default=0.99)
     ap.add_argument("--set", action="append", metavar="KEY=VALUE")
+    ap.add_argument("--rollouts", metavar="MODE:NOISE,...",
+                    help="also evaluate every variant with these rollout settings (member mode "
+                    "random|mean|fixed : noise scale), e.g. random:1,mean:0")
     ap.add_argument("--out", default="results/ablation")
     ap.add_argument("--data-dir")
     ap.add_argument("--summarize", nargs="+", metavar="DIR",
@@ -270,6 +300,7 @@ def main(argv=None) -> int:
         return 0
     if not args.task:
         raise SystemExit("task: required (or --summarize)")
+    parse_rollouts(args.rollouts)  # bad input stops here, before any work
     variants = [v for v in args.variants.split(",") if v]
     bad = [v for v in variants if v not in VARIANTS]
     if bad or not variants:

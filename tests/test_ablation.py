@@ -53,3 +53,12 @@ def test_selection_uses_training_policies_only(ab, tmp_path):
     assert md.splitlines()[2].startswith("| rl2s | 0.15")
     assert json.loads((tmp_path / "ablation_hopper.json").read_text())["rows"]["rl2s"][
         "selected_steps"] == [300, 100]
+
+
+def test_rollout_settings_parse_and_reject_bad_input(ab):
+    assert ab.parse_rollouts("random:1, mean:0,fixed:0.5") == [
+        ("random", 1.0), ("mean", 0.0), ("fixed", 0.5)]
+    assert ab.parse_rollouts(None) == [] and ab.parse_rollouts("") == []
+    for bad in ("average:0", "mean", "mean:-1", "mean:x", "random:nan"):
+        with pytest.raises(SystemExit, match="rollouts"):
+            ab.parse_rollouts(bad)

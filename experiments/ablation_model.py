@@ -190,10 +190,25 @@ def write_summary(out: str, task: str, paths: list[str]) -> str:
     return md
 
 
+def parse_variant(spec: str) -> tuple[str, dict]:
+    """'bc' or 'bc:multistep_steps=5+multistep_weight=0.5' -> (base variant, its own config
+    overrides); the row is named by the whole spec."""
+    base, _, extra = spec.partition(":")
+    if base not in VARIANTS:
+        raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)} (optionally "
+                         f"':key=value+key=value'), got {spec!r}")
+    try:
+        own = _overrides([kv for kv in extra.split("+") if kv]) if extra else {}
+    except (ValueError, SystemExit) as e:
+        raise SystemExit(f"variants: {spec!r}: {e}") from None
+    return base, own
+
+
 def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds) -> dict:
-    method, model = VARIANTS[variant]
-    overrides = {**_overrides(args.set), **model}  # a legacy variant stays the legacy model
-    if variant == "rl2s":
+    base, own = parse_variant(variant)
+    method, model = VARIANTS[base]
+    overrides = {**_overrides(args.set), **model, **own}  # a legacy variant stays legacy
+    if base == "rl2s":
         overrides.setdefault("ema_decay", args.ema_decay)
     cfg = make_config(train_ds, method, profile, overrides=overrides)
     data = make_train_data(train_ds, policies_for(train_ds), cfg)
@@ -266,7 +281,8 @@ def main(argv=None) -> int:
     pos = lambda t: max(1, int(t))
     ap.add_argument("--task", choices=task_names())
     ap.add_argument("--variants", default="legacy,bc,rl2s",
-                    help=f"comma-separated, from {', '.join(VARIANTS)}")
+                    help=f"comma-separated, from {', '.join(VARIANTS)}, each optionally with "
+                    "its own settings: bc:multistep_steps=5+multistep_weight=0.5")
     ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
     ap.add_argument("--seeds", type=pos)
     ap.add_argument("--steps", type=pos)
@@ -302,9 +318,15 @@ def main(argv=None) -> int:
         raise SystemExit("task: required (or --summarize)")
     parse_rollouts(args.rollouts)  # bad input stops here, before any work
     variants = [v for v in args.variants.split(",") if v]
-    bad = [v for v in variants if v not in VARIANTS]
-    if bad or not variants:
-        raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)}, got {bad}")
+    if not variants:
+        raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)}")
+    for v in variants:  # bad input stops here, before any work
+        base, own = parse_variant(v)
+        try:
+            TrainConfig.from_dict({"task": args.task, "method": VARIANTS[base][0],
+                                   **VARIANTS[base][1], **own}).validate()
+        except (ValueError, TypeError) as e:
+            raise SystemExit(f"variants: {v!r}: {e}") from None
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
     sizes = dict(SIZES[profile])

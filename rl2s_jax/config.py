@@ -77,6 +77,8 @@ class TrainConfig:
     pretrain_steps: int = 200      # rl2s / gail: MLE steps (all policies) before WGAIL
     disc_warmup_steps: int = 10    # rl2s / gail: critic-only steps after pre-training
     ema_decay: float = 0.0         # EMA of the generator for evaluation (0: off)
+    multistep_steps: int = 1       # k: MLE loss adds the mean's k-step error (1: one-step only)
+    multistep_weight: float = 1.0  # weight of that k-step error (squared, in data stds)
 
     @property
     def adversarial(self) -> bool:
@@ -136,7 +138,7 @@ class TrainConfig:
             raise ValueError(f"eps: expected a float in (0, 1], got {self.eps!r}")
         for name in ("batch_size", "updates_per_step", "disc_updates", "sim_envs", "sim_steps",
                      "sim_horizon", "buffer_size", "vd_episodes", "vd_horizon",
-                     "ensemble_size", "n_elites", "holdout_rows"):
+                     "ensemble_size", "n_elites", "holdout_rows", "multistep_steps"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
@@ -156,7 +158,7 @@ class TrainConfig:
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite float, got {v!r}")
         for name in ("sim_noise", "log_std_bound_weight", "gen_weight_decay",
-                     "early_stop_min_delta"):
+                     "early_stop_min_delta", "multistep_weight"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a finite float >= 0, got {v!r}")

@@ -88,6 +88,8 @@ class TrainData:
     policies: the P training policies, stacked; norm: the training rows' Normalizer;
     val_obs, val_action, val_next_obs [V, ...]: rows of the held-out episodes the members are
     scored on (V = 0 without held-out episodes); those episodes are not among the N rows.
+    steps_left [N] int32: how many rows of the same episode follow row i, in order (row i + j
+    continues row i for j <= steps_left[i]); the multi-step loss needs it (None: unknown).
     """
 
     obs: jax.Array
@@ -102,6 +104,7 @@ class TrainData:
     val_obs: jax.Array
     val_action: jax.Array
     val_next_obs: jax.Array
+    steps_left: jax.Array | None = None
 
     @property
     def n_policies(self) -> int:
@@ -199,6 +202,8 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
     true_value = true_values(ds, config.vd_horizon, config.gamma, strict=bool(config.vd_every))
     f32 = lambda x, rows: jnp.asarray(np.asarray(x)[rows], jnp.float32)
     obs, action, next_obs = (np.asarray(x)[keep] for x in (ds.obs, ds.action, ds.next_obs))
+    steps_left = episode_steps_left(np.asarray(ds.policy_id)[order],
+                                    np.asarray(ds.episode_id)[order], np.asarray(ds.t)[order])
     return TrainData(obs=f32(ds.obs, order), action=f32(ds.action, order),
                      next_obs=f32(ds.next_obs, order),
                      policy_start=jnp.asarray(starts, jnp.int32),
@@ -209,7 +214,23 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
                      norm=Normalizer.from_data(obs, action, next_obs,
                                                ignore_dims=config.ignore_dims),
                      val_obs=f32(ds.obs, val), val_action=f32(ds.action, val),
-                     val_next_obs=f32(ds.next_obs, val))
+                     val_next_obs=f32(ds.next_obs, val),
+                     steps_left=jnp.asarray(steps_left, jnp.int32))
+
+
+def episode_steps_left(policy_id: np.ndarray, episode_id: np.ndarray, t: np.ndarray
+                       ) -> np.ndarray:
+    """[N] int: for each row, how many following rows continue its episode without a gap (same
+    policy and episode, t one higher each row). Rows are in storage order."""
+    n = len(t)
+    cont = np.zeros(n, bool)  # cont[i]: row i + 1 continues row i
+    if n > 1:
+        cont[:-1] = ((policy_id[1:] == policy_id[:-1]) & (episode_id[1:] == episode_id[:-1])
+                     & (t[1:] == t[:-1] + 1))
+    run = np.cumsum(np.r_[0, ~cont[:-1]]) if n else np.zeros(0, int)  # run id of each row
+    last = np.zeros(run.max() + 1 if n else 0, int)
+    np.maximum.at(last, run, np.arange(n))
+    return last[run] - np.arange(n)
 
 
 @struct.dataclass
@@ -286,6 +307,41 @@ def _sample_rows(key: jax.Array, data: TrainData, selected: jax.Array, n: int) -
 def _real_batch(key, data: TrainData, selected, n):
     rows, _ = _sample_rows(key, data, selected, n)
     return data.obs[rows], data.action[rows], data.next_obs[rows]
+
+
+def _real_windows(key, data: TrainData, selected, n: int, k: int):
+    """n windows of k consecutive rows of one episode, starting at rows drawn as _real_batch's.
+    -> (obs [n, o] the first state, action [n, k, a], next_obs [n, k, o], valid [n, k]: step
+    j exists (the episode goes on that long; invalid steps repeat the last valid row))."""
+    if data.steps_left is None:
+        raise ValueError("multistep_steps: the multi-step loss needs TrainData.steps_left "
+                         "(make_train_data sets it); set multistep_steps=1")
+    rows, _ = _sample_rows(key, data, selected, n)
+    j = jnp.arange(k)[None, :]
+    left = data.steps_left[rows][:, None]
+    idx = rows[:, None] + jnp.minimum(j, left)
+    return data.obs[rows], data.action[idx], data.next_obs[idx], j <= left
+
+
+def multistep_error(gen, norm: Normalizer, obs, action, next_obs, valid, obs_clip: float):
+    """The member's mean prediction rolled k steps from the real obs [B, o] under the logged
+    actions [B, k, a], against the logged next states [B, k, o]: the squared error in data
+    stds, averaged over the seen obs dims (those of ``norm.obs_input_mask``) and over the valid
+    steps j >= 1 [B, k] (step 0 is the one-step likelihood's). Gradients flow through the whole
+    chain. -> []"""
+    mask = (jnp.ones_like(norm.obs_std) if norm.obs_input_mask is None
+            else norm.obs_input_mask)
+
+    def step(s, xs):
+        a, target = xs
+        mean, _ = dyn.member_dist(gen, dyn.markov_inputs(norm, s, a))
+        nxt = norm.clip_obs(norm.next_from_delta(s, mean), obs_clip)
+        err = jnp.sum(mask * ((nxt - target) / norm.obs_std) ** 2, -1) / jnp.sum(mask)
+        return nxt, err
+
+    _, err = jax.lax.scan(step, obs, (jnp.swapaxes(action, 0, 1), jnp.swapaxes(next_obs, 0, 1)))
+    w = jnp.swapaxes(valid, 0, 1)[1:].astype(jnp.float32)  # [k - 1, B]
+    return jnp.sum(w * err[1:]) / jnp.maximum(jnp.sum(w), 1.0)
 
 
 # ------------------------------------------------------------------ models and optimisers
@@ -401,13 +457,22 @@ def member_mle_updates(gen, opt, key: jax.Array, data: TrainData, selected: jax.
     tx = _gen_tx(cfg, cfg.bc_lr)
     learned = cfg.gen_log_std_bounds == "learned"
 
+    k = cfg.multistep_steps
+
     def loss_fn(g, batch):
-        loss = losses.generator_nll_loss(g, norm, *batch)[0]
+        if k > 1:
+            obs, action, next_obs, valid = batch
+            loss = losses.generator_nll_loss(g, norm, obs, action[:, 0], next_obs[:, 0])[0]
+            loss = loss + cfg.multistep_weight * multistep_error(
+                g, norm, obs, action, next_obs, valid, cfg.obs_clip)
+        else:
+            loss = losses.generator_nll_loss(g, norm, *batch)[0]
         return loss + cfg.log_std_bound_weight * dyn.bound_penalty(g) if learned else loss
 
     def update(carry, key):
         gen, opt = carry
-        batch = _real_batch(key, data, selected, cfg.batch_size)
+        batch = (_real_windows(key, data, selected, cfg.batch_size, k) if k > 1
+                 else _real_batch(key, data, selected, cfg.batch_size))
         loss, grads = jax.value_and_grad(loss_fn)(gen, batch)
         updates, opt = tx.update(grads, opt, gen)
         return (optax.apply_updates(gen, updates), opt), loss

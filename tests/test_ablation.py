@@ -62,3 +62,15 @@ def test_rollout_settings_parse_and_reject_bad_input(ab):
     for bad in ("average:0", "mean", "mean:-1", "mean:x", "random:nan"):
         with pytest.raises(SystemExit, match="rollouts"):
             ab.parse_rollouts(bad)
+
+
+def test_variant_specs_carry_their_own_settings(ab):
+    assert ab.parse_variant("bc") == ("bc", {})
+    assert ab.parse_variant("bc:multistep_steps=5+multistep_weight=0.5") == (
+        "bc", {"multistep_steps": 5, "multistep_weight": 0.5})
+    with pytest.raises(SystemExit, match="variants"):
+        ab.parse_variant("mle:multistep_steps=5")
+    with pytest.raises(SystemExit, match="multistep_steps"):   # checked before any work
+        ab.main(["--task", "hopper", "--variants", "bc:multistep_steps=0", "--out", "/tmp/x"])
+    with pytest.raises(SystemExit, match="no_such_key"):
+        ab.main(["--task", "hopper", "--variants", "bc:no_such_key=1", "--out", "/tmp/x"])

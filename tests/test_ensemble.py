@@ -470,3 +470,87 @@ def test_adversarial_phase_starts_from_the_best_pretrained_weights(pm):
     for a, b in zip(jax.tree_util.tree_leaves(cond), jax.tree_util.tree_leaves(adv2),
                     strict=True):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=1e-5)
+
+
+# --------------------------------------------------------------- the multi-step loss
+
+
+def test_episode_steps_left_matches_a_loop():
+    rng = np.random.default_rng(3)
+    n = 400
+    pid = np.sort(rng.integers(0, 3, n))
+    ep = np.cumsum(rng.random(n) < 0.08)              # episodes of random lengths
+    t = np.arange(n) - np.maximum.accumulate(np.r_[0, np.flatnonzero(np.diff(ep)) + 1][
+        np.searchsorted(np.r_[0, np.flatnonzero(np.diff(ep)) + 1], np.arange(n), "right") - 1])
+    t[rng.random(n) < 0.03] += 5                     # gaps: held-out rows removed mid-episode
+    ref = np.zeros(n, int)
+    for i in range(n - 2, -1, -1):
+        if pid[i + 1] == pid[i] and ep[i + 1] == ep[i] and t[i + 1] == t[i] + 1:
+            ref[i] = ref[i + 1] + 1
+    np.testing.assert_array_equal(T.episode_steps_left(pid, ep, t), ref)
+    assert T.episode_steps_left(pid[:0], ep[:0], t[:0]).shape == (0,)
+
+
+def test_train_data_steps_left_follow_the_episodes(pm):
+    ds, policies = pm
+    data = T.make_train_data(ds, policies, T.TrainConfig.small(task="pointmass", method="bc"))
+    left = np.asarray(data.steps_left)
+    obs, nxt = np.asarray(data.obs), np.asarray(data.next_obs)
+    go_on = np.flatnonzero(left[:-1] >= 1)
+    assert go_on.size > 0.8 * len(left)
+    np.testing.assert_array_equal(nxt[go_on], obs[go_on + 1])   # row i + 1 continues row i
+    np.testing.assert_array_equal(left[go_on + 1], left[go_on] - 1)
+    ends = np.flatnonzero(left == 0)
+    assert (len(ends) - 1) == np.sum(np.any(nxt[ends[:-1]] != obs[ends[:-1] + 1], -1))
+
+
+def test_multistep_error_matches_numpy(pm):
+    ds, policies = pm
+    cfg = T.TrainConfig.small(task="pointmass", method="bc", multistep_steps=4)
+    data = T.make_train_data(ds, policies, cfg)
+    norm = data.norm
+    member = dyn.init_member(jax.random.PRNGKey(7), cfg.dynamics_spec, 2, 1)
+    obs, act, nxt, valid = T._real_windows(jax.random.PRNGKey(2), data,
+                                           jnp.ones(data.n_policies, bool), 64, 4)
+    assert (~np.asarray(valid)).any() and np.asarray(valid)[:, 0].all()
+    got = T.multistep_error(member, norm, obs, act, nxt, valid, cfg.obs_clip)
+    n = {k: np.asarray(getattr(norm, k), np.float64) for k in (
+        "obs_mean", "obs_std", "act_mean", "act_std", "delta_mean", "delta_std")}
+    mask = np.asarray(norm.obs_input_mask, np.float64)
+    s = np.asarray(obs, np.float64)
+    errs = []
+    for j in range(4):
+        x = np.concatenate([(s - n["obs_mean"]) / n["obs_std"] * mask,
+                            (np.asarray(act[:, j]) - n["act_mean"]) / n["act_std"]], -1)
+        mean, _ = _np_member(member, x)
+        s = np.clip(s + n["delta_mean"] + n["delta_std"] * mean,
+                    n["obs_mean"] - cfg.obs_clip * n["obs_std"],
+                    n["obs_mean"] + cfg.obs_clip * n["obs_std"])
+        errs.append((mask * ((s - np.asarray(nxt[:, j])) / n["obs_std"]) ** 2).sum(-1) / mask.sum())
+    w = np.asarray(valid, np.float64)[:, 1:]
+    ref = (w * np.stack(errs, 1)[:, 1:]).sum() / w.sum()
+    np.testing.assert_allclose(float(got), ref, rtol=1e-4)
+
+
+def test_multistep_training_lowers_the_k_step_error(pm):
+    ds, policies = pm
+    cfg = T.TrainConfig.small(task="pointmass", method="bc", vd_every=0, vd_horizon=50,
+                              multistep_steps=5, multistep_weight=1.0)
+    data = T.make_train_data(ds, policies, cfg)
+    state = T.init(jax.random.PRNGKey(0), cfg, data)
+    windows = T._real_windows(jax.random.PRNGKey(5), data, jnp.ones(data.n_policies, bool),
+                              256, 5)
+
+    def k_step_error(st):
+        best = int(np.argmin(np.asarray(st.rank)))
+        member = jax.tree_util.tree_map(lambda x: x[best], st.gen)
+        return float(T.multistep_error(member, st.norm, *windows, cfg.obs_clip))
+
+    before = k_step_error(state)
+    state, m = T.train_steps(state, data, 15)
+    after = k_step_error(state)
+    assert bool(np.all(m["finite"])) and after < 0.5 * before, (before, after)
+    with pytest.raises(ValueError, match="multistep_steps"):
+        T.TrainConfig.small(task="pointmass", multistep_steps=0).validate()
+    with pytest.raises(ValueError, match="multistep_weight"):
+        T.TrainConfig.small(task="pointmass", multistep_weight=-1.0).validate()

@@ -15,10 +15,12 @@ episodes, against their true values; ties to the lower training AVD).
 
 Every variant is one vmapped program over the seeds (``paper.train_lanes``: the MLE
 pre-training and the adversarial phase are separate compiled pieces) and writes
-OUT/ablation_<task>_<variant>.json after every evaluation; ``--rollouts MODE:NOISE,...`` also
-evaluates each variant's simulator with other rollout settings (member mode random / mean /
-fixed, noise scale; rows "<variant>@<mode>:<noise>"), which costs no training (a run cut off by a time limit keeps
-what it finished); the last one also writes OUT/ablation_<task>.json and .md, the table of
+OUT/ablation_<task>_<variant>.json after every evaluation (a run cut off by a time limit keeps
+what it finished); ``--rollouts MODE:NOISE,...`` also evaluates each variant's simulator with
+other rollout settings (member mode random / mean / fixed, noise scale; rows
+"<variant>@<mode>:<noise>"), which costs no training. A variant may carry its own settings,
+"bc:multistep_steps=5+multistep_weight=0.5" (its row is that whole name). The last variant
+also writes OUT/ablation_<task>.json and .md, the table of
 every variant's JSON found in OUT. ``--summarize`` rebuilds that table from the JSONs of
 several directories (variants run in separate device calls). Data: the zoo's train / test split
 as experiments/paper.py collects it (``paper.load_or_collect``, reused from --data-dir).

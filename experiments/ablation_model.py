@@ -31,6 +31,7 @@ import argparse
 import glob
 import json
 import os
+import re
 import sys
 import time
 
@@ -221,7 +222,8 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
                                        else {})
     rows |= {(False, r): f"{variant}@{r[0]}:{r[1]:g}" for r in parse_rollouts(args.rollouts)}
     seeds = list(range(sizes["seeds"]))
-    path = os.path.join(args.out, f"ablation_{args.task}_{variant}.json")
+    safe = re.sub(r"[^A-Za-z0-9_.-]", "_", variant)  # a file name any tool copies back
+    path = os.path.join(args.out, f"ablation_{args.task}_{safe}.json")
     res = {"task": args.task, "variant": variant, "config": cfg.to_dict(), "sizes": sizes,
            "hardware": jax.devices()[0].device_kind, "jax_version": jax.__version__,
            "command": " ".join(["python", "experiments/ablation_model.py", *args.argv]),

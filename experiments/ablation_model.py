@@ -118,10 +118,28 @@ def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
     out = [{} for _ in seeds]
     for name, (pols, pool, truth), base in (("test", test, 1000), ("select", select, 2000)):
         keys = jnp.stack([jax.random.PRNGKey(base + s) for s in seeds])
-        returns, _ = _lane_returns(sims, pols, pool, keys, n_episodes=n_episodes,
-                                   horizon=cfg.vd_horizon, gamma=cfg.gamma)
-        for i, v in enumerate(np.asarray(returns).mean(-1)):
+        returns, lengths = _lane_returns(sims, pols, pool, keys, n_episodes=n_episodes,
+                                         horizon=cfg.vd_horizon, gamma=cfg.gamma)
+        lengths = np.asarray(lengths, np.float64).mean(-1)
+        for i, v in enumerate(np.asarray(returns, np.float64).mean(-1)):
             out[i][name] = _metrics(truth, v)
+            if name == "test":  # per policy: what the simulator got wrong, and how long it ran
+                out[i]["test_values"] = [round(float(x), 2) for x in v]
+                out[i]["test_lengths"] = [round(float(x), 1) for x in lengths[i]]
+    return out
+
+
+def episode_lengths(ds) -> np.ndarray:
+    """[P] mean length of each policy's logged episodes (a terminated or truncated one counts
+    its steps; the last, cut-off episode of a policy is left out when others exist)."""
+    pid, ep = np.asarray(ds.policy_id), np.asarray(ds.episode_id)
+    ended = np.asarray(ds.done) | np.asarray(ds.truncated)
+    out = np.zeros(ds.n_policies)
+    for p in range(ds.n_policies):
+        mine = pid == p
+        ids, counts = np.unique(ep[mine], return_counts=True)
+        whole = np.isin(ids, ep[mine & ended])
+        out[p] = counts[whole].mean() if whole.any() else counts.mean()
     return out
 
 
@@ -229,7 +247,9 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
            "command": " ".join(["python", "experiments/ablation_model.py", *args.argv]),
            "timings": {}, "complete": False,
            "curves": {row: {str(s): [] for s in seeds} for row in rows.values()},
-           "heldout_nll": {str(s): [] for s in seeds}}
+           "heldout_nll": {str(s): [] for s in seeds},
+           "test_true_values": [float(x) for x in test[2]],
+           "test_true_lengths": [round(float(x), 1) for x in episode_lengths(test_ds)]}
     t0 = time.perf_counter()
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
     states = jax.block_until_ready(jax.jit(jax.vmap(lambda k, d: init(k, cfg, d),

@@ -74,3 +74,16 @@ def test_variant_specs_carry_their_own_settings(ab):
         ab.main(["--task", "hopper", "--variants", "bc:multistep_steps=0", "--out", "/tmp/x"])
     with pytest.raises(SystemExit, match="no_such_key"):
         ab.main(["--task", "hopper", "--variants", "bc:no_such_key=1", "--out", "/tmp/x"])
+
+
+def test_episode_lengths_count_whole_episodes(ab):
+    from types import SimpleNamespace
+    # policy 0: episodes of 3 (done) and 5 (truncated), then 2 cut-off rows; policy 1: one
+    # cut-off episode of 4 rows (no whole one: its rows count)
+    ep = np.array([0] * 3 + [1] * 5 + [2] * 2 + [3] * 4)
+    pid = np.array([0] * 10 + [1] * 4)
+    done = np.zeros(14, bool)
+    trunc = np.zeros(14, bool)
+    done[2], trunc[7] = True, True
+    ds = SimpleNamespace(policy_id=pid, episode_id=ep, done=done, truncated=trunc, n_policies=2)
+    np.testing.assert_allclose(ab.episode_lengths(ds), [4.0, 4.0])

@@ -47,7 +47,7 @@ from rl2s_jax.dynamics import MEMBER_MODES  # noqa: E402
 from rl2s_jax.evaluate import ranking_metrics  # noqa: E402
 from rl2s_jax.fit import make_config, policies_for  # noqa: E402
 from rl2s_jax.simulate import start_pool  # noqa: E402
-from rl2s_jax.tasks import task_names  # noqa: E402
+from rl2s_jax.tasks import get_task, task_names  # noqa: E402
 from rl2s_jax.train import (  # noqa: E402
     LEGACY_MODEL,
     TrainConfig,
@@ -127,6 +127,58 @@ def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
                 out[i]["test_values"] = [round(float(x), 2) for x in v]
                 out[i]["test_lengths"] = [round(float(x), 1) for x in lengths[i]]
     return out
+
+
+# What ends an episode, per task: (name, test on the terminal observation [..., o]); the
+# conditions of tasks.<task>_done, split up (docs/EVALUATION.md).
+TERMINATION_RULES = {
+    "hopper": (("z <= 0.7", lambda o: o[..., 1] <= 0.7),
+               ("|angle| >= 0.2", lambda o: jnp.abs(o[..., 2]) >= 0.2),
+               ("|q[2:], qd| >= 100", lambda o: jnp.any(jnp.abs(o[..., 2:]) >= 100.0, -1))),
+    "walker2d": (("z <= 0.8", lambda o: o[..., 1] <= 0.8),
+                 ("z >= 2", lambda o: o[..., 1] >= 2.0),
+                 ("|angle| >= 1", lambda o: jnp.abs(o[..., 2]) >= 1.0)),
+}
+
+
+def terminal_states(sims, policies, pool, keys, *, task, n_episodes, horizon):
+    """Each lane's simulated episodes (as ``_lane_returns`` runs them) and the state each one
+    terminated in. -> (terminal obs [L, P, n, o] (the last state where none), ended [L, P, n])"""
+    from rl2s_jax.policies import sample_action
+    from rl2s_jax.simulate import start_values
+
+    def one(sim, key):
+        n_pol = jax.tree_util.tree_leaves(policies)[0].shape[0]
+        k_start, k_run = jax.random.split(key)
+        roll = start_values(pool, n_pol, n_episodes, k_start)
+
+        def step(carry, key):
+            obs, alive, last = carry
+            k_act, k_dyn = jax.random.split(key)
+            action, _, _ = jax.vmap(sample_action)(policies, obs, jax.random.split(k_act, n_pol))
+            nxt = sim.dynamics(obs, action, k_dyn)
+            done = alive & (task.done_fn(nxt) > 0.5)
+            return (jnp.where(alive[..., None], nxt, obs), alive & ~done,
+                    jnp.where(alive[..., None], nxt, last)), None
+
+        (_, alive, last), _ = jax.lax.scan(step, (roll.obs, roll.alive, roll.obs),
+                                           jax.random.split(k_run, horizon))
+        return last, ~alive
+
+    return jax.jit(jax.vmap(one))(sims, keys)
+
+
+def termination_causes(task_name: str, terminal, ended) -> dict | None:
+    """{rule: share of the ended episodes whose terminal state breaks it (rules can overlap)},
+    plus "ended": share of episodes that ended; None for a task without rules."""
+    rules = TERMINATION_RULES.get(task_name)
+    if rules is None:
+        return None
+    ended = np.asarray(ended, bool)
+    n = max(int(ended.sum()), 1)
+    out = {name: float(np.asarray(rule(jnp.asarray(terminal)))[ended].sum() / n)
+           for name, rule in rules}
+    return {"ended": float(ended.mean()), **out}
 
 
 def episode_lengths(ds) -> np.ndarray:
@@ -287,6 +339,19 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
         res["timings"].update(train=round(t_train, 1), eval=round(t_eval, 1))
         log(f"[ablation] {variant} step {step}: train {t_train:.1f}s, eval {t_eval:.1f}s")
         _write(path, res)
+    if args.task in TERMINATION_RULES:  # why the simulated episodes end, vs the logged ones
+        task = get_task(args.task)
+        keys = jnp.stack([jax.random.PRNGKey(3000 + s) for s in seeds])
+        terminal, ended = terminal_states(simulator(states, average=False), test[0], test[1],
+                                          keys, task=task, n_episodes=sizes["eval_episodes"],
+                                          horizon=cfg.vd_horizon)
+        done_rows = np.asarray(test_ds.done, bool)
+        res["termination"] = {
+            "simulated": {str(s): termination_causes(args.task, terminal[i], ended[i])
+                          for i, s in enumerate(seeds)},
+            "logged": termination_causes(args.task, np.asarray(test_ds.next_obs)[done_rows],
+                                         np.ones(int(done_rows.sum()), bool))}
+        log(f"[ablation] {variant}: termination causes {res['termination']}")
     res["complete"] = True
     _write(path, res)
     return res

@@ -87,3 +87,21 @@ def test_episode_lengths_count_whole_episodes(ab):
     done[2], trunc[7] = True, True
     ds = SimpleNamespace(policy_id=pid, episode_id=ep, done=done, truncated=trunc, n_policies=2)
     np.testing.assert_allclose(ab.episode_lengths(ds), [4.0, 4.0])
+
+
+def test_termination_causes_split_the_done_rule(ab):
+    from rl2s_jax.tasks import get_task
+    o = np.zeros((5, 12), np.float32)
+    o[:, 1] = 1.2
+    o[0, 1] = 0.5            # fell
+    o[1, 2] = 0.3            # tilted
+    o[2, 1], o[2, 2] = 0.6, -0.25   # both
+    o[3, 7] = 150.0          # a velocity blew up
+    ended = np.array([True, True, True, True, False])   # the last one ran to the horizon
+    causes = ab.termination_causes("hopper", o, ended)
+    assert causes == {"ended": 0.8, "z <= 0.7": 0.5, "|angle| >= 0.2": 0.5,
+                      "|q[2:], qd| >= 100": 0.25}
+    # every ended state breaks some rule, exactly as the task's done_fn says
+    done = np.asarray(get_task("hopper").done_fn(o))
+    assert done[:4].all() and not done[4]
+    assert ab.termination_causes("halfcheetah", o, ended) is None

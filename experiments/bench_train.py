@@ -49,7 +49,9 @@ def fake_data(n_policies: int, rows_per_policy: int = 2000, seed: int = 0) -> Tr
                      policy_count=jnp.full((n_policies,), rows_per_policy, jnp.int32),
                      start_pool=jnp.asarray(obs[:512]),
                      true_value=jnp.zeros((n_policies,), jnp.float32), policies=pols,
-                     norm=Normalizer.from_data(obs, act, nxt))
+                     norm=Normalizer.from_data(obs, act, nxt),
+                     val_obs=jnp.zeros((0, OBS)), val_action=jnp.zeros((0, ACT)),
+                     val_next_obs=jnp.zeros((0, OBS)))
 
 
 def mlp_flops(sizes) -> int:

@@ -105,3 +105,43 @@ def test_termination_causes_split_the_done_rule(ab):
     done = np.asarray(get_task("hopper").done_fn(o))
     assert done[:4].all() and not done[4]
     assert ab.termination_causes("halfcheetah", o, ended) is None
+
+
+def test_terminal_states_are_where_the_value_rollouts_stop(ab):
+    """terminal_states runs the episodes of simulate.simulated_returns (same keys, same
+    draws): an episode ended there iff its rollout stopped before the horizon, and its
+    terminal state is one the task's done_fn ends on."""
+    import jax
+    import jax.numpy as jnp
+
+    from rl2s_jax import policies as pol
+    from rl2s_jax import train as T
+    from rl2s_jax.collect import collect
+    from rl2s_jax.simulate import simulated_returns, start_pool
+    from rl2s_jax.tasks import get_task
+
+    task = get_task("pointmass")
+    ps = []
+    for i, b in enumerate([-2.0, 0.0, 2.0]):
+        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
+        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
+        ps.append(p)
+    policies = pol.stack_params(ps)
+    ds = collect(task.make_env(), policies, key=jax.random.PRNGKey(0), transitions_per_policy=200,
+                 envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
+                 value_episodes=2, progress=False)
+    cfg = T.TrainConfig.small(task="pointmass", method="bc", vd_every=0, vd_horizon=40)
+    data = T.make_train_data(ds, policies, cfg)
+    sim = T.simulator(T.train_steps(T.init(jax.random.PRNGKey(1), cfg, data), data, 5)[0])
+    pool, key, horizon = start_pool(ds), jax.random.PRNGKey(9), 40
+    lanes = jax.tree_util.tree_map(lambda x: x[None], sim)
+    terminal, ended = ab.terminal_states(lanes, policies, pool, key[None], task=task,
+                                         n_episodes=6, horizon=horizon)
+    terminal, ended = np.asarray(terminal[0]), np.asarray(ended[0])
+    _, length = simulated_returns(policies, sim.dynamics, task.reward_fn, task.done_fn, pool,
+                                  key, n_episodes=6, horizon=horizon, gamma=0.99)
+    length = np.asarray(length)
+    assert ended.any() and (~ended).any()
+    assert np.all(ended[length < horizon]) and np.all(length[~ended] == horizon)
+    done = np.asarray(task.done_fn(jnp.asarray(terminal)))
+    np.testing.assert_array_equal(done[ended], True)

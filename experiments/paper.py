@@ -85,6 +85,8 @@ from rl2s_jax.tasks import get_task, task_names
 from rl2s_jax.train import (
     DEFAULT_EPS,
     LEGACY_MODEL,
+    TrainConfig,
+    heldout_mask,
     init,
     make_train_data,
     simulator,
@@ -212,6 +214,47 @@ def evaluate_lanes(states, seeds, test_ds, test_pols, truth, *, n_episodes, hori
         except ValueError:  # non-finite simulated values: the lane diverged
             out.append(None)
     return out, values, returns
+
+
+def heldout_start_pool(train_ds) -> jax.Array:
+    """Start states [S, o] of the training policies' held-out episodes (the split
+    ``make_train_data`` makes with the default holdout_frac, whatever the variant's), the
+    whole data's start pool if none of them starts at t = 0."""
+    held = heldout_mask(train_ds, TrainConfig().holdout_frac)
+    starts = held & (np.asarray(train_ds.t) == 0)
+    if not starts.any():
+        return start_pool(train_ds)
+    return jnp.asarray(np.asarray(train_ds.obs)[starts], jnp.float32)
+
+
+def select_point(points: list[dict]) -> dict | None:
+    """Model selection without the test policies: of a lane's evaluation points
+    ({"step", "select": metrics of the TRAINING policies started from their held-out episodes,
+    "test": the test metrics}), the one with the highest selection tau (ties: the lower
+    selection AVD; non-finite last). None when no point has both."""
+    ok = [p for p in points if p["select"] is not None and p["test"] is not None]
+    if not ok:
+        return None
+    finite = lambda x: x if np.isfinite(x) else -np.inf
+    return max(ok, key=lambda p: (finite(p["select"]["kendall_tau"]),
+                                  finite(-p["select"]["avd"])))
+
+
+def selection_metrics(states, seeds, policies, pool, truth, *, n_episodes, horizon, gamma
+                      ) -> list[dict | None]:
+    """Every lane's ranking metrics on the TRAINING policies (stacked ``policies``), started
+    from ``pool`` (their held-out episodes' start states), against their true values ``truth``
+    [P]; None where the values are not finite. Keys PRNGKey(2000 + seed)."""
+    keys = jnp.stack([jax.random.PRNGKey(2000 + s) for s in seeds])
+    returns, _ = _lane_returns(simulator(states), policies, pool, keys, n_episodes=n_episodes,
+                               horizon=horizon, gamma=gamma)
+    out = []
+    for v in np.asarray(returns, np.float64).mean(-1):
+        try:
+            out.append(ranking_metrics(truth, v, ks=(1, 3, 5, 10)))
+        except ValueError:  # non-finite simulated or true values
+            out.append(None)
+    return out
 
 
 def intervals_over_seeds(per_seed: list[dict | None]) -> dict:
@@ -390,6 +433,11 @@ def summarise(result: dict) -> None:
             mean[k] = float(np.mean(vals)) if vals else None
             std[k] = float(np.std(vals, ddof=1)) if len(vals) > 1 else None
         result["methods"][m], result["std"][m], result["n"][m] = mean, std, n
+    for m, per in result.get("selected", {}).items():  # the test metrics at the chosen steps
+        result.setdefault("methods_selected", {})[m] = {
+            k: (float(np.mean([v for v in vals if v is not None]))
+                if any(v is not None for v in vals) else None)
+            for k, vals in per.items() if k != "step"}
 
 
 def write(path: str, result: dict) -> None:
@@ -622,7 +670,9 @@ def main(argv=None) -> int:
                              f"(--model legacy has one member)")
         data = make_train_data(train_ds, train_pols, cfg)
         truth = true_values(test_ds, cfg.vd_horizon, cfg.gamma)
+        select_pool, select_truth = heldout_start_pool(train_ds), np.asarray(data.true_value)
         lanes = [(m, s) for m in methods for s in range(S)]
+        points = [[] for _ in lanes]  # per lane: {"step", "select", "test"} (model selection)
         eps = [float(robust_eps) if robust_eps is not None and DEFAULT_EPS[m] < 1
                else DEFAULT_EPS[m] for m, _ in lanes]
         keys = jnp.stack([jax.random.PRNGKey(s) for _, s in lanes])
@@ -646,8 +696,14 @@ def main(argv=None) -> int:
             evals, _values, _returns = evaluate_lanes(
                 states, [s for _, s in lanes], test_ds, test_pols, truth,
                 n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
+            selects = selection_metrics(states, [s for _, s in lanes], data.policies,
+                                        select_pool, select_truth,
+                                        n_episodes=sizes["eval_episodes"],
+                                        horizon=cfg.vd_horizon, gamma=cfg.gamma)
             t_eval += time.perf_counter() - t1
             step = int(states.step[0])
+            for i in range(len(lanes)):
+                points[i].append({"step": step, "select": selects[i], "test": evals[i]})
             log(f"[paper] {family} step {step}: {n} steps of {len(lanes)} lanes in "
                 f"{seconds:.1f}s; test evaluation {time.perf_counter() - t1:.1f}s")
             for i, (meth, s) in enumerate(lanes):
@@ -655,6 +711,8 @@ def main(argv=None) -> int:
                 row = {"step": step, "lane": f"{meth}/{s}", "method": meth, "seed": s,
                        "avd": r.get("avd"), "mvd": r.get("mvd"), "tau": r.get("kendall_tau"),
                        "ndcg@1": r.get("ndcg@1"),
+                       "select_tau": (selects[i] or {}).get("kendall_tau"),
+                       "select_avd": (selects[i] or {}).get("avd"),
                        "avd_train": _none_if_nan(m["avd_train"][i]),
                        "mvd_train": _none_if_nan(m["mvd_train"][i]),
                        "finite": bool(m["finite"][i])}
@@ -667,6 +725,12 @@ def main(argv=None) -> int:
                     f"{'' if row['finite'] else '  NON-FINITE'}")
         truth_se = true_values_se(test_ds, cfg.vd_horizon, cfg.gamma)
         for i, (meth, s) in enumerate(lanes):
+            chosen = select_point(points[i])
+            sel = result.setdefault("selected", {}).setdefault(
+                meth, {"step": [], **{k: [] for k in EVAL_METRICS}})
+            sel["step"].append(None if chosen is None else chosen["step"])
+            for k in EVAL_METRICS:
+                sel[k].append(None if chosen is None else chosen["test"][k])
             r = evals[i]
             for k in EVAL_METRICS:
                 result["per_seed"][meth][k].append(None if r is None else r[k])

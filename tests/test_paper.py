@@ -195,6 +195,20 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     assert steps == {lane: [2, 4] for lane in r["lanes"]}
     last = [row for row in r["curves"] if row["lane"] == "rl2s/1" and row["step"] == 4][0]
     assert last["tau"] == r["per_seed"]["rl2s"]["kendall_tau"][1]
+    # model selection: per lane the step with the best TRAINING-policy tau (held-out episode
+    # starts; ties to the lower training AVD), reported with the test metrics of that step
+    for lane in r["lanes"]:
+        meth, seed = lane.split("/")
+        rows = [row for row in r["curves"] if row["lane"] == lane]
+        ok = [row for row in rows if row["select_tau"] is not None and row["tau"] is not None]
+        chosen = r["selected"][meth]["step"][int(seed)]
+        if not ok:
+            assert chosen is None
+            continue
+        best = max(ok, key=lambda row: (row["select_tau"], -row["select_avd"]))
+        assert chosen == best["step"], lane
+        assert r["selected"][meth]["kendall_tau"][int(seed)] == best["tau"], lane
+    assert set(r["methods_selected"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
     # the vmapped evaluation is assess.evaluate_simulator's
     for check in r["eval_check"].values():
         assert check["max_abs_diff"] < 1e-3
@@ -209,7 +223,10 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         np.testing.assert_allclose(v["I"], (c1 - c0) / np.abs(c0), rtol=1e-6)
         assert v["mpi"] == pytest.approx(min(v["I"])) and v["api"] == pytest.approx(
             np.mean(v["I"]))
-    assert r["sizes"]["test_policies"] == 43 and r["sizes"]["train_policies"] == 17
+    from rl2s_jax.policies import load_zoo
+    zoo = load_zoo("hopper")  # the split's sizes come from the shipped zoo
+    n_train, n_test = len(zoo.train_ids), len(zoo.test_ids)
+    assert r["sizes"]["test_policies"] == n_test and r["sizes"]["train_policies"] == n_train
     for key in ("data", "train_adversarial", "train_mle", "improve_sac", "total"):
         assert r["timings"][key] >= 0
     c0 = imp["rl2s/0"]["c0"]
@@ -218,4 +235,4 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     assert max(c0) == pytest.approx(max(r["true_value_undiscounted"]))
     # the data is reused when the sizes match (no collection)
     ds, reused = paper.load_or_collect("hopper", r["sizes"], str(out), 0, 50, False)
-    assert reused and ds["test"].n_policies == 43 and ds["train"].n_policies == 17
+    assert reused and ds["test"].n_policies == n_test and ds["train"].n_policies == n_train

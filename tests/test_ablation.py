@@ -113,20 +113,15 @@ def test_terminal_states_are_where_the_value_rollouts_stop(ab):
     terminal state is one the task's done_fn ends on."""
     import jax
     import jax.numpy as jnp
+    from test_train import _policies as _pm_policies  # biased pointmass policies
 
-    from rl2s_jax import policies as pol
     from rl2s_jax import train as T
     from rl2s_jax.collect import collect
     from rl2s_jax.simulate import simulated_returns, start_pool
     from rl2s_jax.tasks import get_task
 
     task = get_task("pointmass")
-    ps = []
-    for i, b in enumerate([-2.0, 0.0, 2.0]):
-        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
-        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
-        ps.append(p)
-    policies = pol.stack_params(ps)
+    policies = _pm_policies([-2.0, 0.0, 2.0])
     ds = collect(task.make_env(), policies, key=jax.random.PRNGKey(0), transitions_per_policy=200,
                  envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
                  value_episodes=2, progress=False)

@@ -11,8 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from test_train import _policies as _pm_policies  # biased pointmass policies
 
-from rl2s_jax import policies as pol
 from rl2s_jax.checkpoint import (
     Checkpointer,
     CheckpointError,
@@ -35,12 +35,7 @@ META = {"data": {"obs_size": 2, "action_size": 1}}
 @pytest.fixture(scope="module")
 def pm():
     task = get_task("pointmass")
-    ps = []
-    for i, b in enumerate([-2.0, 0.0, 1.0, 2.0]):
-        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
-        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
-        ps.append(p)
-    params = pol.stack_params(ps)
+    params = _pm_policies([-2.0, 0.0, 1.0, 2.0])
     ds = collect(task.make_env(), params, key=jax.random.PRNGKey(0), transitions_per_policy=500,
                  envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
                  value_episodes=8, progress=False)

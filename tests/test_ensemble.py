@@ -10,10 +10,10 @@ import numpy as np
 import optax
 import pytest
 from scipy import stats
+from test_train import _policies as _pm_policies  # biased pointmass policies
 
 from rl2s_jax import dynamics as dyn
 from rl2s_jax import models
-from rl2s_jax import policies as pol
 from rl2s_jax import train as T
 from rl2s_jax.collect import collect
 from rl2s_jax.simulate import Simulator
@@ -26,12 +26,7 @@ BIASES = [-2.0, 0.0, 1.0, 2.0]
 @pytest.fixture(scope="module")
 def pm():
     """A point-mass Dataset of 4 biased policies (600 transitions each: 12 episodes)."""
-    ps = []
-    for i, b in enumerate(BIASES):
-        p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
-        p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
-        ps.append(p)
-    policies = pol.stack_params(ps)
+    policies = _pm_policies(BIASES)
     ds = collect(TASK.make_env(), policies, key=jax.random.PRNGKey(0), transitions_per_policy=600,
                  envs_per_policy=2, episode_length=TASK.episode_length, task="pointmass",
                  value_episodes=4, progress=False)

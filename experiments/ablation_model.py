@@ -54,7 +54,7 @@ from rl2s_jax.cli import _overrides  # noqa: E402
 from rl2s_jax.dynamics import MEMBER_MODES  # noqa: E402
 from rl2s_jax.evaluate import ranking_metrics  # noqa: E402
 from rl2s_jax.fit import make_config, policies_for  # noqa: E402
-from rl2s_jax.simulate import start_pool  # noqa: E402
+from rl2s_jax.simulate import advance_values, start_pool, start_values  # noqa: E402
 from rl2s_jax.tasks import get_task, task_names  # noqa: E402
 from rl2s_jax.train import (  # noqa: E402
     LEGACY_MODEL,
@@ -138,28 +138,18 @@ TERMINATION_RULES = {
 
 
 def terminal_states(sims, policies, pool, keys, *, task, n_episodes, horizon):
-    """Each lane's simulated episodes (as ``_lane_returns`` runs them) and the state each one
-    terminated in. -> (terminal obs [L, P, n, o] (the last state where none), ended [L, P, n])"""
-    from rl2s_jax.policies import sample_action
-    from rl2s_jax.simulate import start_values
+    """Each lane's simulated episodes, run as ``_lane_returns`` runs them
+    (``simulate.start_values`` + ``advance_values``, whose frozen state of an ended episode is
+    the one it terminated in). -> (terminal obs [L, P, n, o] (the last state where none),
+    ended [L, P, n])"""
+    n_pol = jax.tree_util.tree_leaves(policies)[0].shape[0]
 
     def one(sim, key):
-        n_pol = jax.tree_util.tree_leaves(policies)[0].shape[0]
         k_start, k_run = jax.random.split(key)
-        roll = start_values(pool, n_pol, n_episodes, k_start)
-
-        def step(carry, key):
-            obs, alive, last = carry
-            k_act, k_dyn = jax.random.split(key)
-            action, _, _ = jax.vmap(sample_action)(policies, obs, jax.random.split(k_act, n_pol))
-            nxt = sim.dynamics(obs, action, k_dyn)
-            done = alive & (task.done_fn(nxt) > 0.5)
-            return (jnp.where(alive[..., None], nxt, obs), alive & ~done,
-                    jnp.where(alive[..., None], nxt, last)), None
-
-        (_, alive, last), _ = jax.lax.scan(step, (roll.obs, roll.alive, roll.obs),
-                                           jax.random.split(k_run, horizon))
-        return last, ~alive
+        roll = advance_values(start_values(pool, n_pol, n_episodes, k_start), policies,
+                              sim.dynamics, task.reward_fn, task.done_fn, k_run,
+                              n_steps=horizon, horizon=horizon, gamma=1.0)
+        return roll.obs, ~roll.alive
 
     return jax.jit(jax.vmap(one))(sims, keys)
 

@@ -198,12 +198,16 @@ def _lane_returns(sims: Simulator, policies, pool, keys, *, n_episodes, horizon,
         n_episodes=n_episodes, horizon=horizon, gamma=gamma))(sims, keys)
 
 
-def evaluate_lanes(states, seeds, test_ds, test_pols, truth, *, n_episodes, horizon, gamma):
-    """evaluate_simulator's metrics for every lane of a vmapped TrainState.
+def evaluate_lanes(states, seeds, policies, pool, truth, *, key_base: int, n_episodes, horizon,
+                   gamma):
+    """evaluate_simulator's metrics for every lane of a vmapped TrainState: the stacked
+    ``policies`` started from ``pool`` against their true values ``truth`` [P], keys
+    PRNGKey(key_base + seed) (1000: the test policies, 2000: the training policies' held-out
+    episodes, for model selection).
     -> (list of metric dicts (None where the simulated values are not finite), values [L, P],
     per-episode returns [L, P, n])"""
-    keys = jnp.stack([jax.random.PRNGKey(1000 + s) for s in seeds])
-    returns, _ = _lane_returns(simulator(states), test_pols, start_pool(test_ds), keys,
+    keys = jnp.stack([jax.random.PRNGKey(key_base + s) for s in seeds])
+    returns, _ = _lane_returns(simulator(states), policies, pool, keys,
                                n_episodes=n_episodes, horizon=horizon, gamma=gamma)
     returns = np.asarray(returns, np.float64)
     values = returns.mean(-1)
@@ -238,23 +242,6 @@ def select_point(points: list[dict]) -> dict | None:
     finite = lambda x: x if np.isfinite(x) else -np.inf
     return max(ok, key=lambda p: (finite(p["select"]["kendall_tau"]),
                                   finite(-p["select"]["avd"])))
-
-
-def selection_metrics(states, seeds, policies, pool, truth, *, n_episodes, horizon, gamma
-                      ) -> list[dict | None]:
-    """Every lane's ranking metrics on the TRAINING policies (stacked ``policies``), started
-    from ``pool`` (their held-out episodes' start states), against their true values ``truth``
-    [P]; None where the values are not finite. Keys PRNGKey(2000 + seed)."""
-    keys = jnp.stack([jax.random.PRNGKey(2000 + s) for s in seeds])
-    returns, _ = _lane_returns(simulator(states), policies, pool, keys, n_episodes=n_episodes,
-                               horizon=horizon, gamma=gamma)
-    out = []
-    for v in np.asarray(returns, np.float64).mean(-1):
-        try:
-            out.append(ranking_metrics(truth, v, ks=(1, 3, 5, 10)))
-        except ValueError:  # non-finite simulated or true values
-            out.append(None)
-    return out
 
 
 def intervals_over_seeds(per_seed: list[dict | None]) -> dict:
@@ -670,6 +657,7 @@ def main(argv=None) -> int:
                              f"(--model legacy has one member)")
         data = make_train_data(train_ds, train_pols, cfg)
         truth = true_values(test_ds, cfg.vd_horizon, cfg.gamma)
+        test_pool = start_pool(test_ds)
         select_pool, select_truth = heldout_start_pool(train_ds), np.asarray(data.true_value)
         lanes = [(m, s) for m in methods for s in range(S)]
         points = [[] for _ in lanes]  # per lane: {"step", "select", "test"} (model selection)
@@ -693,13 +681,13 @@ def main(argv=None) -> int:
             states, m = jax.block_until_ready(train_lanes(states, data, n, cfg, compiled))
             seconds = time.perf_counter() - t1
             t1 = time.perf_counter()
-            evals, _values, _returns = evaluate_lanes(
-                states, [s for _, s in lanes], test_ds, test_pols, truth,
-                n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
-            selects = selection_metrics(states, [s for _, s in lanes], data.policies,
-                                        select_pool, select_truth,
-                                        n_episodes=sizes["eval_episodes"],
-                                        horizon=cfg.vd_horizon, gamma=cfg.gamma)
+            roll = dict(n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
+                        gamma=cfg.gamma)
+            seeds = [s for _, s in lanes]
+            evals, _values, _returns = evaluate_lanes(states, seeds, test_pols, test_pool, truth,
+                                                      key_base=1000, **roll)
+            selects = evaluate_lanes(states, seeds, data.policies, select_pool, select_truth,
+                                     key_base=2000, **roll)[0]
             t_eval += time.perf_counter() - t1
             step = int(states.step[0])
             for i in range(len(lanes)):

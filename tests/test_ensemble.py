@@ -4,6 +4,8 @@ ensemble = its members trained separately, elites and early stopping against Num
 references, the moving average, pre-training then adversarial steps.
 
 Every check is against plain NumPy / SciPy or a hand-run of the same single-member code."""
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -545,6 +547,20 @@ def test_multistep_training_lowers_the_k_step_error(pm):
     state, m = T.train_steps(state, data, 15)
     after = k_step_error(state)
     assert bool(np.all(m["finite"])) and after < 0.5 * before, (before, after)
+    # the update's loss is the one-step NLL of the window's first step plus weight x the k-step
+    # error (and the log-std bound penalty), on the windows its key draws
+    member = jax.tree_util.tree_map(lambda x: x[0], state.gen)
+    one = dataclasses.replace(cfg, updates_per_step=1, multistep_weight=2.5)
+    everyone = jnp.ones(data.n_policies, bool)
+    key = jax.random.PRNGKey(11)
+    _, _, got = T.member_mle_updates(member, T._gen_tx(one, one.bc_lr).init(member), key, data,
+                                     everyone, state.norm, one)
+    obs, act, nxt, valid = T._real_windows(jax.random.split(key, 1)[0], data, everyone,
+                                           one.batch_size, 5)
+    want = (-jnp.mean(models.generator_log_prob(member, state.norm, obs, act[:, 0], nxt[:, 0]))
+            + 2.5 * T.multistep_error(member, state.norm, obs, act, nxt, valid, one.obs_clip)
+            + one.log_std_bound_weight * dyn.bound_penalty(member))
+    np.testing.assert_allclose(float(got), float(want), rtol=1e-5)
     with pytest.raises(ValueError, match="multistep_steps"):
         T.TrainConfig.small(task="pointmass", multistep_steps=0).validate()
     with pytest.raises(ValueError, match="multistep_weight"):

@@ -607,14 +607,20 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         k_disc, k_real, k_fake, k_gen = jax.random.split(key, 4)
         (_, disc, us, disc_opt), d_metrics = jax.lax.scan(
             disc_update, (gen, disc, us, disc_opt), jax.random.split(k_disc, cfg.disc_updates))
-        r_obs, r_act, _ = _real_batch(k_real, data, state.selected, n)
+        r_obs, r_act, r_next = _real_batch(k_real, data, state.selected, n)
         f_obs, f_act = fake_sa(k_fake)
         obs, act = jnp.concatenate([r_obs, f_obs]), jnp.concatenate([r_act, f_act])
         keys = dyn.member_keys(k_gen, cfg.ensemble_size)
 
+        def member_loss(g, k):
+            loss = losses.generator_adversarial_loss(g, disc, us, state.norm, obs, act, k)[0]
+            if cfg.adv_nll_weight:  # the likelihood anchor (static: off costs nothing)
+                loss = loss + cfg.adv_nll_weight * losses.generator_nll_loss(
+                    g, state.norm, r_obs, r_act, r_next)[0]
+            return loss
+
         def total(g_all):  # each member's loss on the same (s, a), its own noise: sum
-            per = dyn.map_members(lambda g, k: losses.generator_adversarial_loss(
-                g, disc, us, state.norm, obs, act, k)[0], g_all, keys)
+            per = dyn.map_members(member_loss, g_all, keys)
             return per.sum(), per
 
         (_, per), grads = jax.value_and_grad(total, has_aux=True)(gen)

@@ -79,6 +79,8 @@ class TrainConfig:
     ema_decay: float = 0.0         # EMA of the generator for evaluation (0: off)
     multistep_steps: int = 1       # k: MLE loss adds the mean's k-step error (1: one-step only)
     multistep_weight: float = 1.0  # weight of that k-step error (squared, in data stds)
+    nll_beta: float = 0.0          # beta-NLL exponent of the likelihood loss (0: plain NLL;
+    # 1: the mean learns as under squared error, losses.generator_beta_nll_loss)
     adv_nll_weight: float = 0.0    # rl2s / gail: weight of the NLL of the real batch kept in
     # the adversarial generator loss (0: pure WGAIL, the paper's); anchors the MLE start
 
@@ -160,7 +162,8 @@ class TrainConfig:
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ValueError(f"{name}: expected a positive finite float, got {v!r}")
         for name in ("sim_noise", "log_std_bound_weight", "gen_weight_decay",
-                     "early_stop_min_delta", "multistep_weight", "adv_nll_weight"):
+                     "early_stop_min_delta", "multistep_weight", "adv_nll_weight",
+                     "nll_beta"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a finite float >= 0, got {v!r}")

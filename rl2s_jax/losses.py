@@ -7,7 +7,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rl2s_jax.models import Normalizer, discriminator, generator_log_prob, generator_sample
+from rl2s_jax.models import (
+    Normalizer,
+    discriminator,
+    generator_dist,
+    generator_log_prob,
+    generator_sample,
+)
 
 
 def discriminator_loss(disc, us, norm: Normalizer, real: tuple, fake: tuple):
@@ -34,6 +40,21 @@ def generator_adversarial_loss(gen, disc, us, norm: Normalizer, obs, action, key
 def generator_nll_loss(gen, norm: Normalizer, obs, action, next_obs):
     """Maximum likelihood (BC): -E[log p_phi(s'|s, a)] of the normalised delta. -> (loss, {})."""
     return -jnp.mean(generator_log_prob(gen, norm, obs, action, next_obs)), {}
+
+
+def generator_beta_nll_loss(gen, norm: Normalizer, obs, action, next_obs, beta: float):
+    """beta-NLL (Seitzer et al. 2022): each dimension's Gaussian NLL weighted by
+    stop_gradient(std^(2 beta)), averaged over rows, summed over dims. beta = 0 is
+    ``generator_nll_loss``; beta = 1 gives the mean the gradient of the squared error, so
+    rows the model finds hard (contacts) still pull its mean instead of only widening its
+    std. -> (loss, {})"""
+    if not beta:
+        return generator_nll_loss(gen, norm, obs, action, next_obs)
+    mean, log_std = generator_dist(gen, norm, obs, action)
+    z = (norm.norm_delta(obs, next_obs) - mean) * jnp.exp(-log_std)
+    per_dim = 0.5 * z**2 + log_std + 0.5 * jnp.log(2 * jnp.pi)
+    weight = jax.lax.stop_gradient(jnp.exp(2.0 * beta * log_std))
+    return jnp.mean(jnp.sum(weight * per_dim, -1)), {}
 
 
 def tree_all_finite(tree) -> jax.Array:

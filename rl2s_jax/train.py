@@ -462,11 +462,12 @@ def member_mle_updates(gen, opt, key: jax.Array, data: TrainData, selected: jax.
     def loss_fn(g, batch):
         if k > 1:
             obs, action, next_obs, valid = batch
-            loss = losses.generator_nll_loss(g, norm, obs, action[:, 0], next_obs[:, 0])[0]
+            loss = losses.generator_beta_nll_loss(g, norm, obs, action[:, 0], next_obs[:, 0],
+                                                  cfg.nll_beta)[0]
             loss = loss + cfg.multistep_weight * multistep_error(
                 g, norm, obs, action, next_obs, valid, cfg.obs_clip)
         else:
-            loss = losses.generator_nll_loss(g, norm, *batch)[0]
+            loss = losses.generator_beta_nll_loss(g, norm, *batch, cfg.nll_beta)[0]
         return loss + cfg.log_std_bound_weight * dyn.bound_penalty(g) if learned else loss
 
     def update(carry, key):

@@ -604,3 +604,41 @@ def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm):
     assert after[10.0] - nll0 < 0.5 * (after[0.0] - nll0), (nll0, after)
     with pytest.raises(ValueError, match="adv_nll_weight"):
         T.TrainConfig.small(task="pointmass", adv_nll_weight=-1.0).validate()
+
+
+# --------------------------------------------------------------- beta-NLL
+
+
+@pytest.mark.parametrize("beta", [0.0, 0.5, 1.0])
+def test_beta_nll_matches_numpy_and_beta_one_gives_the_mean_the_squared_error(beta):
+    """generator_beta_nll_loss: SciPy's per-dim NLL weighted by std^(2 beta) (beta 0: the plain
+    NLL); with beta = 1 the mean's gradient is that of half the squared error."""
+    from rl2s_jax import losses
+    o, a, n = 3, 2, 64
+    rng = np.random.default_rng(1)
+    norm = _norm(rng, o, a)
+    spec = dyn.DynamicsSpec(hidden=(16,), noise="global", log_std_bounds="learned")
+    p = dyn.init_member(jax.random.PRNGKey(3), spec, o, a)
+    p["log_std"] = jnp.asarray([0.8, -1.5, 0.1])
+    obs = jnp.asarray(rng.normal(size=(n, o)), jnp.float32)
+    act = jnp.asarray(rng.normal(size=(n, a)), jnp.float32)
+    nxt = obs + jnp.asarray(rng.normal(size=(n, o)) * 0.1, jnp.float32)
+    got = float(losses.generator_beta_nll_loss(p, norm, obs, act, nxt, beta)[0])
+    mean, log_std = (np.asarray(v, np.float64) for v in models.generator_dist(p, norm, obs, act))
+    y = np.asarray(norm.norm_delta(obs, nxt), np.float64)
+    per_dim = -stats.norm.logpdf(y, mean, np.exp(log_std))
+    want = np.mean(np.sum(np.exp(2 * beta * log_std) * per_dim, -1))
+    np.testing.assert_allclose(got, want, rtol=1e-4)
+    if beta == 0.0:
+        np.testing.assert_allclose(got, float(losses.generator_nll_loss(p, norm, obs, act,
+                                                                         nxt)[0]), rtol=1e-6)
+    if beta == 1.0:  # "global" noise: the layers reach the loss through the mean only
+        g = jax.grad(lambda q: losses.generator_beta_nll_loss(q, norm, obs, act, nxt, 1.0)[0])(p)
+        y_j = norm.norm_delta(obs, nxt)
+        g_mse = jax.grad(lambda q: 0.5 * jnp.mean(jnp.sum(
+            (y_j - models.generator_dist(q, norm, obs, act)[0]) ** 2, -1)))(p)
+        for a_, b_ in zip(jax.tree_util.tree_leaves(g["layers"]),
+                          jax.tree_util.tree_leaves(g_mse["layers"]), strict=True):
+            np.testing.assert_allclose(np.asarray(a_), np.asarray(b_), rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match="nll_beta"):
+        T.TrainConfig.small(task="pointmass", nll_beta=-0.5).validate()

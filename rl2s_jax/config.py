@@ -24,7 +24,8 @@ METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 DEFAULT_EPS = {"rl2s": 0.25, "gail": 1.0, "bc": 1.0, "rl2s-bc": 0.25}
 LEGACY_MODEL = dict(ensemble_size=1, n_elites=1, gen_log_std_bounds="fixed",
                     gen_weight_decay=0.0, holdout_frac=0.0, early_stop_patience=0,
-                    pretrain_steps=0, disc_warmup_steps=0, ema_decay=0.0)
+                    pretrain_steps=0, disc_warmup_steps=0, ema_decay=0.0, bc_lr=1e-4,
+                    nll_beta=0.0, sim_noise=1.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,7 +48,7 @@ class TrainConfig:
     gen_lr: float = 1e-4
     disc_lr: float = 1e-4
     disc_beta1: float = 0.5
-    bc_lr: float = 1e-4             # 1e-3 and 3e-4 collapsed BC on Hopper (docs/BENCHMARKS.md)
+    bc_lr: float = 1e-3             # with nll_beta 1; 1e-4 left the ensemble underfit (RESULTS)
     grad_clip: float = 0.5         # elementwise gradient clip, as the official code
     sim_envs: int = 32             # simulated envs stepping in p_phi (adversarial methods)
     sim_steps: int = 16            # their steps per train_step
@@ -58,7 +59,8 @@ class TrainConfig:
     vd_horizon: int = 1000         # steps per simulated episode (the task's episode length)
     gamma: float = 0.999
     obs_clip: float = 10.0         # simulated states kept within +-obs_clip data stds
-    sim_noise: float = 1.0         # std scale of p_phi in simulated rollouts (0: its mean)
+    sim_noise: float = 0.0         # std scale of p_phi in simulated rollouts (0: its mean;
+    # the systems are deterministic and sampling their learned std topples walkers: RESULTS)
     input_ignore_dims: tuple[int, ...] | None = None  # obs dims the networks do not see;
     # None: the task's position_dims (absolute x, y), () for none
     # -- the dynamics-model family (rl2s_jax.dynamics; docs/SIMULATOR.md)
@@ -79,7 +81,7 @@ class TrainConfig:
     ema_decay: float = 0.0         # EMA of the generator for evaluation (0: off)
     multistep_steps: int = 1       # k: MLE loss adds the mean's k-step error (1: one-step only)
     multistep_weight: float = 1.0  # weight of that k-step error (squared, in data stds)
-    nll_beta: float = 0.0          # beta-NLL exponent of the likelihood loss (0: plain NLL;
+    nll_beta: float = 1.0          # beta-NLL exponent of the likelihood loss (0: plain NLL;
     # 1: the mean learns as under squared error, losses.generator_beta_nll_loss)
     adv_nll_weight: float = 0.0    # rl2s / gail: weight of the NLL of the real batch kept in
     # the adversarial generator loss (0: pure WGAIL, the paper's); anchors the MLE start

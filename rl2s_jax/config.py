@@ -25,7 +25,7 @@ DEFAULT_EPS = {"rl2s": 0.25, "gail": 1.0, "bc": 1.0, "rl2s-bc": 0.25}
 LEGACY_MODEL = dict(ensemble_size=1, n_elites=1, gen_log_std_bounds="fixed",
                     gen_weight_decay=0.0, holdout_frac=0.0, early_stop_patience=0,
                     pretrain_steps=0, disc_warmup_steps=0, ema_decay=0.0, bc_lr=1e-4,
-                    nll_beta=0.0, sim_noise=1.0)
+                    nll_beta=0.0, sim_noise=1.0, adv_nll_weight=0.0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,8 +83,9 @@ class TrainConfig:
     multistep_weight: float = 1.0  # weight of that k-step error (squared, in data stds)
     nll_beta: float = 1.0          # beta-NLL exponent of the likelihood loss (0: plain NLL;
     # 1: the mean learns as under squared error, losses.generator_beta_nll_loss)
-    adv_nll_weight: float = 0.0    # rl2s / gail: weight of the NLL of the real batch kept in
-    # the adversarial generator loss (0: pure WGAIL, the paper's); anchors the MLE start
+    adv_nll_weight: float = 10.0   # rl2s / gail: weight of the NLL of the real batch kept in
+    # the adversarial generator loss; anchors the MLE start (0: pure WGAIL, the paper's,
+    # which undid the start on every task: RESULTS)
 
     @property
     def adversarial(self) -> bool:

@@ -218,6 +218,28 @@ def ablation_rows(results: dict) -> list[str]:
     return rows
 
 
+def selected_rows(results: dict) -> list[str]:
+    """The test metrics at the evaluation point chosen on the TRAINING policies' held-out
+    episodes (paper.py's ``selected``: per method, per-seed lists and the chosen steps); no
+    rows for results without it."""
+    cols = ("kendall_tau", "ndcg@1", "avd", "mvd")
+    rows = []
+    for task in TASKS:
+        sel = (results.get(task) or {}).get("selected") or {}
+        for method in METHODS:
+            if method not in sel:
+                continue
+            cells = [fmt_cell(*stats({"per_seed": sel}, method, m), DIGITS.get(m, 3))
+                     for m in cols]
+            steps = ", ".join(str(s) for s in sel[method].get("step", []))
+            rows.append(f"| {task} | {method} | " + " | ".join(cells) + f" | {steps} |")
+    if not rows:
+        return []
+    head = ("| task | method | " + " | ".join(NAMES.get(m, m) for m in cols)
+            + " | chosen steps (per seed) |")
+    return [head, "|---|---|" + "---:|" * len(cols) + "---|", *rows]
+
+
 def bar_table(results: dict) -> list[str]:
     rows = ["| task | " + " | ".join(name for _, name in BARS) + " |",
             "|---|" + "---|" * len(BARS)]
@@ -267,6 +289,13 @@ def render(results: dict, source: str) -> str:
                   "seeds)", "", *ablation]
     lines += ["", "### Value difference on the test policies", ""]
     lines += metric_table(results, TABLE3)
+    chosen = selected_rows(results)
+    if chosen:
+        lines += ["", "### Model selection without the test policies", "",
+                  "Each lane's evaluation point chosen by the highest Kendall tau of its "
+                  "TRAINING policies, started from their held-out episodes' start states, "
+                  "against their true values (ties: the lower training AVD); the test "
+                  "policies' metrics there:", "", *chosen]
     lines += ["", PAPER_NOTE, "", "### Quality bars (RL2S, means over seeds)", ""]
     lines += bar_table(results)
     lines.append(END)

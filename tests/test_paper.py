@@ -126,6 +126,22 @@ def test_paper_tables_control_and_ablation(tmp_path):
     assert "### Improvement by simulated-env variant" not in pt.render({"hopper": r}, "res")
 
 
+def test_paper_tables_model_selection_rows():
+    """paper.py's ``selected`` (per method: per-seed test metrics at the point chosen on the
+    training policies, and the chosen steps) becomes its own table; none without it."""
+    pt = _load("paper_tables")
+    r = _synthetic("walker2d", 0.1, 0.5, {"rl2s": 50, "gail": 80, "bc": 90, "rl2s-bc": 60}, 0.0)
+    assert "### Model selection" not in pt.render({"walker2d": r}, "res")
+    r["selected"] = {"rl2s": {"step": [200, 200, 400], "kendall_tau": [0.8, 0.9, 0.7],
+                              "ndcg@1": [1.0, 0.9, 0.8], "avd": [200.0, 210.0, 220.0],
+                              "mvd": [600.0, 650.0, 700.0]}}
+    text = pt.render({"walker2d": r}, "res")
+    table = text.split("### Model selection without the test policies")[1]
+    assert ("| walker2d | rl2s | 0.800 ± 0.100 (3 seeds) | 0.900 ± 0.100 (3 seeds) | "
+            "210.0 ± 10.0 (3 seeds) | 650.0 ± 50.0 (3 seeds) | 200, 200, 400 |") in table
+    assert "| walker2d | gail |" not in table
+
+
 def test_paper_tables_fallbacks():
     pt = _load("paper_tables")
     # no per_seed: methods / std / n are used; unknown numbers print n/a

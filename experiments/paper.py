@@ -79,6 +79,7 @@ from rl2s_jax.fit import make_config, policies_for
 from rl2s_jax.improve import improve_in_real_env, improvement_metrics
 from rl2s_jax.policies import index_params
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
+from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, replicate, shard_lanes
 from rl2s_jax.sim_env import SimulatorEnv, branch_pool, real_rows, scaled_env_options
 from rl2s_jax.simulate import Simulator, simulated_returns, start_pool
 from rl2s_jax.tasks import get_task, task_names
@@ -428,7 +429,10 @@ def summarise(result: dict) -> None:
 
 
 def write(path: str, result: dict) -> None:
+    """Summarise ``result`` and write it atomically (on the writing process only)."""
     summarise(result)
+    if not is_writer():
+        return
     tmp = path + ".tmp"
     with open(tmp, "w") as f:
         json.dump(result, f, indent=1)
@@ -575,6 +579,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
     t_start = time.perf_counter()
+    initialize_distributed()  # multi-host, when the coordinator variables are set
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
     sizes = resolve_sizes(args, profile)
@@ -667,8 +672,10 @@ def main(argv=None) -> int:
         states = jax.jit(jax.vmap(lambda k, e, d, cfg=cfg: init(k, cfg, d, eps=e),
                                   in_axes=(0, 0, None)))(keys, jnp.asarray(eps, jnp.float32),
                                                          data)
-        states = jax.block_until_ready(states)
-        log(f"[paper] {family}: {len(lanes)} lanes "
+        mesh = lane_mesh(len(lanes))  # lanes over the local devices (one: unchanged)
+        states = jax.block_until_ready(shard_lanes(states, mesh))
+        data = replicate(data, mesh)
+        log(f"[paper] {family}: {len(lanes)} lanes over {mesh.size} device(s) "
             f"{', '.join(f'{m}/{s} (eps {e:g})' for (m, s), e in zip(lanes, eps, strict=True))}"
             f", config method {cfg_method}; init {time.perf_counter() - t0:.1f}s")
         n = sizes["eval_every"]

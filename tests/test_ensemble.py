@@ -547,10 +547,10 @@ def test_multistep_training_lowers_the_k_step_error(pm):
     state, m = T.train_steps(state, data, 15)
     after = k_step_error(state)
     assert bool(np.all(m["finite"])) and after < 0.5 * before, (before, after)
-    # the update's loss is the one-step NLL of the window's first step plus weight x the k-step
-    # error (and the log-std bound penalty), on the windows its key draws
+    # the update's loss is the one-step NLL (beta 0: plain) of the window's first step plus
+    # weight x the k-step error (and the log-std bound penalty), on the windows its key draws
     member = jax.tree_util.tree_map(lambda x: x[0], state.gen)
-    one = dataclasses.replace(cfg, updates_per_step=1, multistep_weight=2.5)
+    one = dataclasses.replace(cfg, updates_per_step=1, multistep_weight=2.5, nll_beta=0.0)
     everyone = jnp.ones(data.n_policies, bool)
     key = jax.random.PRNGKey(11)
     _, _, got = T.member_mle_updates(member, T._gen_tx(one, one.bc_lr).init(member), key, data,

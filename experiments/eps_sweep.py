@@ -21,6 +21,7 @@ from rl2s_jax.assess import evaluate_simulator
 from rl2s_jax.cli import _overrides
 from rl2s_jax.data import load_dataset
 from rl2s_jax.fit import make_config, policies_for
+from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, shard_lanes
 from rl2s_jax.train import init, make_train_data, simulator, train_steps
 
 
@@ -40,6 +41,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     if args.steps % args.eval_every:
         raise SystemExit("steps: expected a multiple of --eval-every")
+    initialize_distributed()  # multi-host, when the coordinator variables are set
     profile = args.profile if args.profile != "auto" else (
         "gpu" if jax.default_backend() == "gpu" else "cpu")
     train_ds, test_ds = load_dataset(args.train), load_dataset(args.test)
@@ -51,8 +53,11 @@ def main(argv=None) -> int:
     keys = jnp.stack([jax.random.PRNGKey(s) for _, s in lanes])
     t0 = time.perf_counter()
     states = jax.jit(jax.vmap(lambda k, e: init(k, cfg, data, eps=e)))(keys, eps)
+    mesh = lane_mesh(len(lanes))  # lanes over the local devices (one: unchanged)
+    states = shard_lanes(states, mesh)
     run = jax.jit(jax.vmap(lambda s: train_steps(s, data, args.eval_every)[0]))
-    print(f"{len(lanes)} lanes ({args.method}, profile {profile}, {jax.devices()[0].device_kind})"
+    print(f"{len(lanes)} lanes over {mesh.size} device(s) ({args.method}, profile {profile}, "
+          f"{jax.devices()[0].device_kind})"
           f"; init {time.perf_counter() - t0:.1f}s", flush=True)
     rows = []
     for _ in range(args.steps // args.eval_every):
@@ -74,7 +79,7 @@ def main(argv=None) -> int:
             print(f"  eps {row['eps']:<5} seed {row['seed']}  AVD {row['avd']:8.1f}  MVD "
                   f"{row['mvd']:8.1f}  tau {row['kendall_tau']:6.3f}  nDCG@1 "
                   f"{row['ndcg@1']:.3f}  selected {row['n_selected']}", flush=True)
-    if args.json:
+    if args.json and is_writer():
         with open(args.json, "w") as f:
             json.dump({"method": args.method, "profile": profile, "config": cfg.to_dict(),
                        "device": jax.devices()[0].device_kind, "rows": rows}, f, indent=1)

@@ -14,8 +14,12 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e '.[dev]'
 	touch $(STAMP)
 
+# Two pytest processes: XLA's CPU compiler crashed (SIGSEGV / SIGABRT while compiling) late in
+# one process that had compiled the whole suite, on two fresh-clone runs; each half passes.
+LATE_TESTS = tests/test_train.py tests/test_zoo.py
 test: setup
-	$(PY) -m pytest -q -m "not heavy" tests
+	$(PY) -m pytest -q -m "not heavy" tests $(addprefix --ignore=,$(LATE_TESTS)) && \
+	$(PY) -m pytest -q -m "not heavy" $(LATE_TESTS)
 
 # Everything, including the heavy smoke runs (make paper's driver on tiny sizes, ~5 min more).
 test-all: setup

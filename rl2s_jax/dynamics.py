@@ -344,10 +344,15 @@ def member_dist(params: dict, x: jax.Array, ctx: jax.Array | None = None
     return mean, bounded_log_std(raw, params)
 
 
+def gaussian_nll_per_dim(mean, log_std, y):
+    """Gaussian NLL of y, per element. -> [..., o]"""
+    z = (y - mean) * jnp.exp(-log_std)
+    return 0.5 * z**2 + log_std + 0.5 * jnp.log(2 * jnp.pi)
+
+
 def gaussian_nll(mean, log_std, y):
     """Gaussian NLL of y, summed over the last axis. -> [...]"""
-    z = (y - mean) * jnp.exp(-log_std)
-    return jnp.sum(0.5 * z**2 + log_std + 0.5 * jnp.log(2 * jnp.pi), -1)
+    return jnp.sum(gaussian_nll_per_dim(mean, log_std, y), -1)
 
 
 def bound_penalty(params: dict) -> jax.Array:

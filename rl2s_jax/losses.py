@@ -7,6 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from rl2s_jax.dynamics import gaussian_nll_per_dim
 from rl2s_jax.models import (
     Normalizer,
     discriminator,
@@ -51,8 +52,7 @@ def generator_beta_nll_loss(gen, norm: Normalizer, obs, action, next_obs, beta: 
     if not beta:
         return generator_nll_loss(gen, norm, obs, action, next_obs)
     mean, log_std = generator_dist(gen, norm, obs, action)
-    z = (norm.norm_delta(obs, next_obs) - mean) * jnp.exp(-log_std)
-    per_dim = 0.5 * z**2 + log_std + 0.5 * jnp.log(2 * jnp.pi)
+    per_dim = gaussian_nll_per_dim(mean, log_std, norm.norm_delta(obs, next_obs))
     weight = jax.lax.stop_gradient(jnp.exp(2.0 * beta * log_std))
     return jnp.mean(jnp.sum(weight * per_dim, -1)), {}
 

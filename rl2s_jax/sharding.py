@@ -67,9 +67,13 @@ def shard_lanes(tree, mesh: Mesh):
     if n % mesh.size:
         raise ValueError(f"tree: {n} lanes do not split evenly over {mesh.size} devices "
                          f"(lane_mesh({n}) chooses a count that does)")
+    if mesh.size == 1:  # nothing to split: leave the arrays where they are (no copy)
+        return tree
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(LANES)))
 
 
 def replicate(tree, mesh: Mesh):
-    """Every leaf copied to every device of ``mesh``."""
+    """Every leaf copied to every device of ``mesh`` (as it is, for one device)."""
+    if mesh.size == 1:
+        return tree
     return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))

@@ -2,8 +2,12 @@
 (experiments/paper.py), the oracle control (experiments/oracle_check.py) and the improvement
 control (experiments/improve_control.py), each optional.
 
-    python experiments/merge_results.py --task hopper [--paper P.json] [--oracle O.json]
-        [--control C.json] [--out docs/results]
+    python experiments/merge_results.py --task hopper [--paper P.json [--paper Q.json]]
+        [--oracle O.json] [--control C.json] [--out docs/results]
+
+Two --paper files are runs of one protocol that trained different families (paper.py
+--families adversarial / mle, e.g. over two device calls): they are joined by
+paper.merge_runs, which refuses runs of different sizes, seeds, zoo or data.
 
 The oracle's row with the most episodes at the longest horizon becomes the "oracle" method
 (per_seed lists of one value, its bootstrap intervals) unless the paper run has its own; the
@@ -29,15 +33,27 @@ def zoo_sha256(task: str) -> str:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
-    ap.add_argument("--paper")
+    ap.add_argument("--paper", action="append", help="paper.py's <task>.json (repeat for "
+                    "runs of different --families)")
     ap.add_argument("--oracle")
     ap.add_argument("--control")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
     args = ap.parse_args(argv)
     sha = zoo_sha256(args.task)
     if args.paper:
-        with open(args.paper) as f:
-            result = json.load(f)
+        parts = []
+        for p in args.paper:
+            with open(p) as f:
+                parts.append(json.load(f))
+        if len(parts) == 1:
+            result = parts[0]
+        else:
+            sys.path.insert(0, os.path.join(ROOT, "experiments"))
+            from paper import merge_runs
+            try:
+                result = merge_runs(parts)
+            except ValueError as err:
+                raise SystemExit(f"paper: {err}") from None
         if result.get("zoo_sha256") not in (None, sha):
             raise SystemExit(f"paper: measured on zoo {result['zoo_sha256']}, the shipped zoo "
                              f"is {sha}")

@@ -11,7 +11,7 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--ablation-methods rl2s]
         [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
-        [--set field=value ...]
+        [--set field=value ...] [--families adversarial,mle]
 
 Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
 by a time limit still leaves what it finished, with "complete": false):
@@ -31,6 +31,8 @@ by a time limit still leaves what it finished, with "complete": false):
    program ``rl2s train --method m --seed s`` runs: gail differs from rl2s, and bc from rl2s-bc,
    only in the initial eps (TrainConfig.initial_eps), and the key is PRNGKey(s) (checked: the
    final states are bitwise equal unvmapped; a vmapped lane matches to ~3e-8).
+   ``--families adversarial`` (or ``mle``) runs one of the two, so a task's protocol can be
+   split over two device calls; experiments/merge_results.py joins the two JSON files.
    Every --eval-every steps every lane's simulator is evaluated on the test policies as
    ``assess.evaluate_simulator`` does (simulated discounted value over the config's vd_horizon
    from the test data's start states, ``evaluate.ranking_metrics`` against the true values),
@@ -428,6 +430,49 @@ def summarise(result: dict) -> None:
             for k, vals in per.items() if k != "step"}
 
 
+# entries keyed by method, lane or family: a part adds its own keys (the first part's oracle
+# stays when both ran one)
+MERGED_BY_METHOD = ("per_seed", "selected", "lane_intervals", "intervals", "lanes",
+                    "train_config", "improvement")
+SAME_IN_PARTS = ("task", "model", "seeds", "profile", "zoo_sha256", "true_value")
+
+
+def merge_runs(parts: list[dict]) -> dict:
+    """One result from runs of the same protocol that trained different families
+    (``--families``): the per-method entries joined, curves concatenated, timings summed,
+    complete when every part is. Raises ValueError naming the field where the runs differ
+    (task, seeds, sizes of the data, zoo, ...) or when two of them ran the same method."""
+    if not parts:
+        raise ValueError("parts: expected at least one result")
+    merged = json.loads(json.dumps(parts[0]))
+    for part in parts[1:]:
+        for k in SAME_IN_PARTS:
+            if part.get(k) != merged.get(k):
+                raise ValueError(f"{k}: the runs differ ({merged.get(k)!r} vs {part.get(k)!r})")
+        for k in ("train_policies", "test_policies", "transitions_per_policy", "steps",
+                  "eval_every", "eval_episodes", "episode_length"):
+            if part["sizes"].get(k) != merged["sizes"].get(k):
+                raise ValueError(f"sizes.{k}: the runs differ ({merged['sizes'].get(k)!r} vs "
+                                 f"{part['sizes'].get(k)!r})")
+        twice = (set(part["per_seed"]) & set(merged["per_seed"])) - {"oracle"}
+        if twice:
+            raise ValueError(f"per_seed: method(s) {sorted(twice)} in more than one run")
+        for k in MERGED_BY_METHOD:
+            into = merged.setdefault(k, {})
+            into.update({m: v for m, v in part.get(k, {}).items() if m not in into})
+        merged["curves"] = merged.get("curves", []) + part.get("curves", [])
+        merged["families"] = merged.get("families", []) + part.get("families", [])
+        t = merged["timings"]
+        for k, v in part.get("timings", {}).items():
+            t[k] = round(t.get(k, 0.0) + v, 1)
+        merged["complete"] = bool(merged.get("complete")) and bool(part.get("complete"))
+        merged["command"] = f"{merged['command']} && {part['command']}"
+    merged["methods"], merged["std"], merged["n"] = {}, {}, {}
+    merged.pop("methods_selected", None)
+    summarise(merged)
+    return merged
+
+
 def write(path: str, result: dict) -> None:
     """Summarise ``result`` and write it atomically (on the writing process only)."""
     summarise(result)
@@ -455,7 +500,7 @@ def zoo_sha256(task: str) -> str | None:
 def table(result: dict) -> str:
     cols = ("kendall_tau", "ndcg@1", "ndcg@5", "spearman", "avd", "mvd", "mpi", "api")
     lines = [f"{'method':<9}" + "".join(f"{c:>16}" for c in cols)]
-    for m in METHODS + (("oracle",) if "oracle" in result["methods"] else ()):
+    for m in [m for m in METHODS + ("oracle",) if m in result["methods"]]:
         cells = []
         for c in cols:
             v, s = result["methods"][m].get(c), result["std"][m].get(c)
@@ -519,6 +564,9 @@ def build_parser() -> argparse.ArgumentParser:
                     "that preceded it (train.LEGACY_MODEL); --set overrides either")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
+    ap.add_argument("--families", default="adversarial,mle", help="comma list of the training "
+                    "programs to run: adversarial (rl2s, gail) and / or mle (rl2s-bc, bc); one "
+                    "of them splits the protocol over two calls (merge_results.py joins them)")
     ap.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
                     "95%% intervals over evaluation episodes (0: none)")
     ap.add_argument("--no-oracle", dest="oracle", action="store_false", help="skip the control "
@@ -551,6 +599,15 @@ def _sac_overrides(items) -> dict:
     except (TypeError, ValueError) as err:
         raise SystemExit(f"sac-set: {err}") from None
     return out
+
+
+def parse_families(text: str) -> tuple:
+    """--families: a comma list of FAMILIES' names -> their FAMILIES rows, in FAMILIES' order."""
+    names = {f for f in (x.strip() for x in text.split(",")) if f}
+    known = [f for f, _, _ in FAMILIES]
+    if not names or names - set(known):
+        raise SystemExit(f"families: expected a comma list of {', '.join(known)}, got {text!r}")
+    return tuple(row for row in FAMILIES if row[0] in names)
 
 
 def resolve_sizes(args, profile: str) -> dict:
@@ -589,6 +646,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"ablation-methods: expected a comma list of {', '.join(METHODS)}, "
                          f"got {args.ablation_methods!r}")
     sac_overrides = _sac_overrides(args.sac_set)
+    families = parse_families(args.families)
     S = sizes["seeds"]
     out, data_dir = args.out, args.data_dir or args.out
     os.makedirs(out, exist_ok=True)
@@ -608,8 +666,10 @@ def main(argv=None) -> int:
               "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
               "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
               "command": " ".join(["python", "experiments/paper.py", *argv]),
+              "families": [f for f, _, _ in families],
               "timings": timings, "complete": False,
-              "per_seed": {m: {k: [] for k in METRICS} for m in METHODS},
+              "per_seed": {m: {k: [] for k in METRICS}
+                           for _, _, methods in families for m in methods},
               "curves": [], "lanes": {}}
 
     # ---- 1. data
@@ -649,7 +709,7 @@ def main(argv=None) -> int:
     overrides = {**(LEGACY_MODEL if args.model == "legacy" else {}), **_overrides(args.set)}
     robust_eps = overrides.pop("eps", None)
     finals, configs = {}, {}
-    for family, cfg_method, methods in FAMILIES:
+    for family, cfg_method, methods in families:
         t0 = time.perf_counter()
         cfg = make_config(train_ds, cfg_method, profile, overrides=overrides)
         configs[family] = cfg
@@ -768,7 +828,7 @@ def main(argv=None) -> int:
         ids = [i for i in pick_policies(c0_all, sizes["improve_policies"]) if c0_all[i] != 0]
         c0 = c0_all[ids]
         pols = index_params(test_pols, np.asarray(ids))
-        horizon = configs["adversarial"].vd_horizon
+        horizon = next(iter(configs.values())).vd_horizon
         n_envs = sizes["sac_envs"]
         sac_cfg = SACConfig.fine_tuning(**{**dict(episode_length=horizon, n_envs=n_envs,
                                       critic_warmup_updates=sizes["sac_critic_warmup"],
@@ -784,7 +844,7 @@ def main(argv=None) -> int:
         gamma_data = float(test_ds.meta.get("gamma") or 0.999)
     if it and sizes["improve_seeds"]:
         lanes, sims = [], []
-        for family, _, _ in FAMILIES:
+        for family, _, _ in families:
             fam_lanes, states = finals[family]
             idx = [i for i, (_, s) in enumerate(fam_lanes) if s < sizes["improve_seeds"]]
             lanes += [fam_lanes[i] for i in idx]
@@ -838,7 +898,8 @@ def main(argv=None) -> int:
             c1 = np.asarray(real["value"], np.float64).reshape(L, P)
             se = np.asarray(real["value_se"], np.float64).reshape(L, P)
             phase("improve_measure" if vi == 0 else f"improve_measure[{variant}]", t0)
-            improvement, per_method = {}, {m: {"mpi": [], "api": []} for m in METHODS}
+            improvement, per_method = {}, {m: {"mpi": [], "api": []} for m in result["per_seed"]
+                                           if m in METHODS}
             for i, (m, s) in enumerate(v_lanes):
                 try:
                     imp = improvement_metrics(c0, c1[i])
@@ -858,7 +919,7 @@ def main(argv=None) -> int:
                         f"(C1 - C0 mean {np.mean(c1[i] - c0):.1f}, simulated training return "
                         f"{_finite_mean(sim_return[i])})")
             if vi == 0:
-                for m in METHODS:
+                for m in per_method:
                     result["per_seed"][m]["mpi"] += per_method[m]["mpi"]
                     result["per_seed"][m]["api"] += per_method[m]["api"]
                 result["improvement"] = improvement

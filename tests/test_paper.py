@@ -155,6 +155,59 @@ def test_paper_tables_fallbacks():
     assert "No results" in pt.render({}, "nowhere")
 
 
+def _family_run(methods, families, offset, complete=True):
+    """A result as ``paper.py --families F`` writes it: only its methods' entries."""
+    per = {m: {k: [offset + 0.1 * s for s in range(3)] for k in METRICS} for m in methods}
+    return {"task": "hopper", "model": "ensemble", "seeds": 3, "profile": "gpu",
+            "zoo_sha256": "ab" * 32, "true_value": [1.0, 2.0], "families": families,
+            "sizes": {"steps": 300, "eval_every": 100, "test_policies": 2},
+            "command": f"python experiments/paper.py --families {families[0]}",
+            "timings": {"data": 10.0, f"train_{families[0]}": 5.0, "total": 20.0},
+            "complete": complete, "per_seed": per, "methods": {}, "std": {}, "n": {},
+            "selected": {m: {"step": [100, 200, 300], "kendall_tau": [offset] * 3}
+                         for m in methods},
+            "lanes": {f"{m}/{s}": {"seed": s} for m in methods for s in range(3)},
+            "curves": [{"lane": f"{m}/0", "step": 100} for m in methods]}
+
+
+def test_merge_runs_joins_the_two_families():
+    """Runs of one protocol that trained different families (two device calls) make one
+    result: every method's entries, curves and timings; runs that differ are refused."""
+    paper = _load("paper")
+    adv = _family_run(("rl2s", "gail"), ["adversarial"], 0.5)
+    mle = _family_run(("rl2s-bc", "bc"), ["mle"], 0.2, complete=False)
+    merged = paper.merge_runs([adv, mle])
+    assert set(merged["methods"]) == {"rl2s", "gail", "rl2s-bc", "bc"}
+    assert merged["methods"]["bc"]["kendall_tau"] == pytest.approx(0.3)
+    assert merged["methods"]["rl2s"]["kendall_tau"] == pytest.approx(0.6)
+    assert merged["std"]["gail"]["avd"] == pytest.approx(0.1)
+    assert set(merged["methods_selected"]) == {"rl2s", "gail", "rl2s-bc", "bc"}
+    assert merged["methods_selected"]["bc"]["kendall_tau"] == pytest.approx(0.2)
+    assert len(merged["lanes"]) == 12 and len(merged["curves"]) == 4
+    assert merged["families"] == ["adversarial", "mle"]
+    assert merged["timings"] == {"data": 20.0, "train_adversarial": 5.0, "train_mle": 5.0,
+                                 "total": 40.0}
+    assert merged["complete"] is False  # one part was cut off
+    assert "--families adversarial && " in merged["command"]
+    assert "methods" not in adv["per_seed"] and adv["methods"] == {}  # inputs untouched
+    for field, change in (("seeds", 2), ("zoo_sha256", "cd" * 32), ("true_value", [1.0])):
+        with pytest.raises(ValueError, match=field):
+            paper.merge_runs([adv, {**mle, field: change}])
+    with pytest.raises(ValueError, match="sizes.steps"):
+        paper.merge_runs([adv, {**mle, "sizes": {**mle["sizes"], "steps": 400}}])
+    with pytest.raises(ValueError, match="rl2s"):
+        paper.merge_runs([adv, adv])
+
+
+def test_paper_families_flag():
+    paper = _load("paper")
+    assert [f for f, _, _ in paper.parse_families("mle")] == ["mle"]
+    assert [f for f, _, _ in paper.parse_families(" mle,adversarial ")] == ["adversarial", "mle"]
+    for bad in ("", "rl2s", "adversarial,gan"):
+        with pytest.raises(SystemExit, match="families"):
+            paper.parse_families(bad)
+
+
 # ------------------------------------------------------------------ paper.py smoke
 
 

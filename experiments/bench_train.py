@@ -2,8 +2,9 @@
 
 For a Hopper-shaped problem (obs 12, action 3, the zoo's 64x64 policies) at a given config
 (default: paper sizes on a GPU, the small CPU config elsewhere):
-  - updates/s (generator updates; each comes with ``disc_updates`` critic updates) and
-    simulated transitions/s (training rollouts + the spread-out VD rollouts);
+  - updates/s (generator updates of the whole ensemble; in an adversarial step each comes with
+    ``disc_updates`` critic updates) and simulated transitions/s (training rollouts + the
+    spread-out VD rollouts);
   - how the time of one step grows with the number of training policies P and with the
     rollout length (vd_horizon, sim_steps);
   - the step's matmul FLOPs (counted from the layer sizes) and the achieved fraction of this
@@ -12,8 +13,13 @@ For a Hopper-shaped problem (obs 12, action 3, the zoo's 64x64 policies) at a gi
 The data are random rows of the right shapes: the step's cost does not depend on their values
 (every array shape is fixed; terminations only mask).
 
-    python experiments/bench_train.py [--profile auto|cpu|gpu] [--policies 4 17 64 256]
-        [--horizons 250 1000 4000] [--sim-steps 16 64] [--json out.json]
+    python experiments/bench_train.py [--profile auto|cpu|gpu] [--method rl2s|bc]
+        [--policies 4 17 64 256] [--horizons 250 1000 4000] [--sim-steps 16 64] [--json out.json]
+
+``--method rl2s`` times the adversarial (WGAIL + CVaR) step: pre-training and the critic
+warm-up are switched off, else the timed steps would be the MLE pre-training ones.
+``--method bc`` times the ensemble's likelihood step (what BC, RL2S-BC and the pre-training
+run).
 """
 from __future__ import annotations
 
@@ -35,7 +41,10 @@ from rl2s_jax.train import TrainConfig, TrainData, init, train_steps
 OBS, ACT, POLICY_HIDDEN = 12, 3, (64, 64)
 
 
-def fake_data(n_policies: int, rows_per_policy: int = 2000, seed: int = 0) -> TrainData:
+def fake_data(n_policies: int, rows_per_policy: int = 2000, seed: int = 0,
+              heldout_rows: int = 0) -> TrainData:
+    """Random rows of Hopper's shapes; ``heldout_rows`` of them also serve as the held-out rows
+    the members are scored on (what the step computes depends on their number only)."""
     rng = np.random.default_rng(seed)
     n = n_policies * rows_per_policy
     obs = rng.normal(size=(n, OBS)).astype(np.float32)
@@ -50,8 +59,9 @@ def fake_data(n_policies: int, rows_per_policy: int = 2000, seed: int = 0) -> Tr
                      start_pool=jnp.asarray(obs[:512]),
                      true_value=jnp.zeros((n_policies,), jnp.float32), policies=pols,
                      norm=Normalizer.from_data(obs, act, nxt),
-                     val_obs=jnp.zeros((0, OBS)), val_action=jnp.zeros((0, ACT)),
-                     val_next_obs=jnp.zeros((0, OBS)))
+                     val_obs=jnp.asarray(obs[:heldout_rows]),
+                     val_action=jnp.asarray(act[:heldout_rows]),
+                     val_next_obs=jnp.asarray(nxt[:heldout_rows]))
 
 
 def mlp_flops(sizes) -> int:
@@ -59,20 +69,32 @@ def mlp_flops(sizes) -> int:
     return sum(2 * a * b for a, b in zip(sizes[:-1], sizes[1:], strict=True))
 
 
-def step_flops(cfg: TrainConfig, P: int) -> dict:
-    """Matmul FLOPs of one train_step of an adversarial method; backward = 2x forward."""
+def step_flops(cfg: TrainConfig, P: int, heldout_rows: int = 0) -> dict:
+    """Matmul FLOPs of one train_step (backward = 2x forward) of cfg.method with its ensemble
+    of E members: an adversarial step (critic updates, each drawing fake next states from all
+    members; every member's WGAIL loss, plus its NLL on the real batch when adv_nll_weight > 0)
+    or a likelihood step (every member's loss on its own batch); then the held-out scoring of
+    the members and the rollouts (every member is evaluated at each simulated step)."""
+    E = cfg.ensemble_size
     gen = mlp_flops([OBS + ACT, *cfg.gen_hidden, 2 * OBS])
     disc = mlp_flops([2 * OBS + ACT, *cfg.disc_hidden, 1])
     pol = mlp_flops([OBS, *POLICY_HIDDEN, 2 * ACT])
     n = cfg.batch_size
-    critic = gen * n + 3 * disc * 2 * n                      # fake s' + D fwd/bwd on real+fake
-    generator = 3 * gen * 2 * n + 3 * disc * 2 * n          # through G and D, real+sim (s, a)
-    updates = cfg.updates_per_step * (cfg.disc_updates * critic + generator)
-    sim_rows = cfg.sim_envs * cfg.sim_steps
-    vd_rows = P * cfg.vd_episodes * -(-cfg.vd_horizon // cfg.vd_every)
-    rollouts = (sim_rows + vd_rows) * (gen + pol)
-    return {"updates": updates, "rollouts": rollouts, "total": updates + rollouts,
-            "sim_rows": sim_rows, "vd_rows": vd_rows}
+    if cfg.adversarial:
+        critic = E * gen * n + 3 * disc * 2 * n            # fake s' + D fwd/bwd on real+fake
+        member = 3 * gen * 2 * n + 3 * disc * 2 * n        # through G and D, real+sim (s, a)
+        if cfg.adv_nll_weight:
+            member += 3 * gen * n                          # the NLL anchor on the real batch
+        updates = cfg.updates_per_step * (cfg.disc_updates * critic + E * member)
+        sim_rows = cfg.sim_envs * cfg.sim_steps
+    else:
+        updates = cfg.updates_per_step * E * 3 * gen * n
+        sim_rows = 0
+    scoring = E * gen * heldout_rows
+    vd_rows = P * cfg.vd_episodes * -(-cfg.vd_horizon // cfg.vd_every) if cfg.vd_every else 0
+    rollouts = (sim_rows + vd_rows) * (E * gen + pol)
+    return {"updates": updates, "scoring": scoring, "rollouts": rollouts,
+            "total": updates + scoring + rollouts, "sim_rows": sim_rows, "vd_rows": vd_rows}
 
 
 def matmul_rate(n: int) -> float:
@@ -85,7 +107,8 @@ def matmul_rate(n: int) -> float:
 def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
     """Time ``steps`` train_steps; ``runs`` > 1 vmaps that many seeds as one program and
     reports their summed throughput."""
-    data = fake_data(P)
+    heldout = cfg.holdout_rows if cfg.holdout_frac else 0
+    data = fake_data(P, heldout_rows=heldout)
     if runs == 1:
         state = jax.jit(init, static_argnums=1)(jax.random.PRNGKey(0), cfg, data)
         run = jax.jit(lambda s: train_steps(s, data, steps)[0])
@@ -97,12 +120,14 @@ def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
     jax.block_until_ready(run(state))
     compile_s = time.perf_counter() - t0
     seconds = timed(run, state) / steps / runs  # per train_step of one run
-    fl = step_flops(cfg, P)
-    return {"policies": P, "vd_horizon": cfg.vd_horizon, "sim_steps": cfg.sim_steps,
+    fl = step_flops(cfg, P, heldout)
+    return {"method": cfg.method, "ensemble_size": cfg.ensemble_size, "policies": P, "vd_horizon": cfg.vd_horizon, "sim_steps": cfg.sim_steps,
             "vmapped_runs": runs,
             "step_ms": 1e3 * seconds, "steps_per_s": 1 / seconds,
             "gen_updates_per_s": cfg.updates_per_step / seconds,
-            "disc_updates_per_s": cfg.updates_per_step * cfg.disc_updates / seconds,
+            "member_updates_per_s": cfg.updates_per_step * cfg.ensemble_size / seconds,
+            "disc_updates_per_s": (cfg.updates_per_step * cfg.disc_updates / seconds
+                                   if cfg.adversarial else 0.0),
             "sim_transitions_per_s": (fl["sim_rows"] + fl["vd_rows"]) / seconds,
             "gflop_per_step": fl["total"] / 1e9, "tflop_s": fl["total"] / seconds / 1e12,
             "compile_s": compile_s}
@@ -111,6 +136,8 @@ def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
+    ap.add_argument("--method", choices=("rl2s", "bc"), default="rl2s",
+                    help="rl2s: the adversarial step; bc: the ensemble's likelihood step")
     ap.add_argument("--policies", type=int, nargs="*")
     ap.add_argument("--horizons", type=int, nargs="*", help="extra vd_horizon rows at P=17")
     ap.add_argument("--sim-steps", type=int, nargs="*", help="extra sim_steps rows at P=17")
@@ -121,12 +148,14 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    # the adversarial step itself, not the MLE pre-training that precedes it in a run
+    phase = dict(pretrain_steps=0, disc_warmup_steps=0) if args.method == "rl2s" else {}
     if profile == "gpu":
-        cfg = TrainConfig(task="hopper", method="rl2s")
+        cfg = TrainConfig(task="hopper", method=args.method, **phase)
         policies, horizons, sims = [4, 17, 64, 256], [250, 4000], [64]
         steps, mm, vmaps = 10, 8192, [8]
     else:
-        cfg = TrainConfig.small(task="hopper", method="rl2s")
+        cfg = TrainConfig.small(task="hopper", method=args.method, **phase)
         policies, horizons, sims = [4, 17], [400], [16]
         steps, mm, vmaps = 5, 1024, [2]
     policies = policies if args.policies is None else args.policies
@@ -136,7 +165,7 @@ def main(argv=None) -> int:
     steps = args.steps or steps
     rate = matmul_rate(mm)
     print(f"device {jax.devices()[0].device_kind} ({backend}), jax {jax.__version__}; profile "
-          f"{profile}: gen {cfg.gen_hidden}, disc {cfg.disc_hidden}, batch {cfg.batch_size}, "
+          f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen {cfg.gen_hidden}, disc {cfg.disc_hidden}, batch {cfg.batch_size}, "
           f"{cfg.updates_per_step} gen x {cfg.disc_updates} critic updates/step, "
           f"{cfg.sim_envs} sim envs x {cfg.sim_steps} steps, VD {cfg.vd_episodes} episodes x "
           f"{cfg.vd_horizon} steps every {cfg.vd_every}", flush=True)

@@ -9,6 +9,10 @@ end in one step than have fresh pending starts, a full batched reset runs for th
 (``lax.cond``), so the guarantee holds whatever the episode lengths. A reset costs about one
 physics sub-step, so refreshing a fraction instead of all B every step keeps collection close
 to raw stepping speed (docs/BENCHMARKS.md).
+
+With several local devices the policy axis is split over them (``shard=True``, the default):
+the policies and their envs' states live on the device of their policy, the same program runs
+on every device, and the data is the same as on one device (tests/test_sharding.py).
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from brax.envs.base import Env, Wrapper
 from brax.envs.wrappers import training as brax_training
 
 from rl2s_jax.policies import Params, num_policies, sample_action
+from rl2s_jax.sharding import lane_mesh, replicate, shard_lanes
 
 FORBIDDEN_WRAPPERS = (brax_training.AutoResetWrapper, brax_training.EpisodeWrapper,
                       brax_training.VmapWrapper, brax_training.DomainRandomizationVmapWrapper)
@@ -110,6 +115,23 @@ def make_rollout_step(env: Env, n_policies: int, envs_per_policy: int, episode_l
     return init, step
 
 
+def _policy_mesh(n_policies: int, shard: bool):
+    """The mesh collection splits the policy axis over: the most local devices that divide
+    n_policies (one device when ``shard`` is False)."""
+    return lane_mesh(n_policies, None if shard else jax.devices()[:1])
+
+
+def _shard_batch(tree, mesh, batch: int):
+    """Leaves whose leading axis is the env batch [B] split over ``mesh`` (B = P * E in policy
+    order, so each device gets the envs of its own policies); the others (keys, scalars)
+    replicated."""
+    if mesh.size == 1:
+        return tree
+    is_batch = lambda x: np.ndim(x) > 0 and np.shape(x)[0] == batch
+    return jax.tree_util.tree_map(
+        lambda x: shard_lanes(x, mesh) if is_batch(x) else replicate(x, mesh), tree)
+
+
 def run_chunked(step_fn, carry, total_steps: int, chunk_steps: int, desc: str,
                 progress: bool, keep_outputs: bool = False):
     """Run ``carry, out = step_fn(carry)`` total_steps times as jitted scans of chunk_steps.
@@ -139,13 +161,15 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
             envs_per_policy: int | None = None, episode_length: int = 1000,
             refresh_fraction: float = 0.125, chunk_steps: int = 100, task: str | None = None,
             policy_names: list[str] | None = None, gamma: float = 0.999,
-            value_episodes: int = 16, source: dict | None = None, progress: bool = True):
+            value_episodes: int = 16, source: dict | None = None, progress: bool = True,
+            shard: bool = True):
     """Collect ``transitions_per_policy`` transitions from each policy of a stacked zoo.
 
     env: any unwrapped brax Env (registered task or user env with changed dynamics).
     params: stacked policy params [P, ...]. Returns a ``Dataset`` whose rows are ordered policy
     by policy, env slot by env slot, time-ordered within a slot; per-policy true values come
-    from ``measure_values`` (skipped when value_episodes == 0).
+    from ``measure_values`` (skipped when value_episodes == 0). ``shard``: split the policies
+    over the local devices (module docstring).
     """
     from rl2s_jax.data import Dataset
 
@@ -169,7 +193,9 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
     key_collect, key_values = jax.random.split(key)
     init, step = make_rollout_step(env, P, E, episode_length, refresh_fraction)
 
-    carry = jax.jit(init)(key_collect)
+    mesh = _policy_mesh(P, shard)
+    params = shard_lanes(params, mesh)
+    carry = _shard_batch(jax.jit(init)(key_collect), mesh, P * E)
     carry, records = run_chunked(lambda c: step(params, c), carry, steps, chunk_steps,
                                  f"collect {task or 'env'} ({P} policies x {E} envs)",
                                  progress, keep_outputs=True)
@@ -185,7 +211,8 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
     values = {}
     if value_episodes > 0:
         values = measure_values(env, params, key=key_values, n_episodes=value_episodes,
-                                episode_length=episode_length, gamma=gamma, progress=progress)
+                                episode_length=episode_length, gamma=gamma, progress=progress,
+                                shard=shard)
     meta = {"task": task, "obs_size": int(fields["obs"].shape[-1]),
             "action_size": int(fields["action"].shape[-1]), "n_policies": P,
             "gamma": float(gamma) if values else None, "episode_length": int(episode_length),
@@ -207,7 +234,7 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
 
 def measure_values(env: Env, params: Params, *, key: jax.Array, n_episodes: int,
                    episode_length: int, gamma: float = 0.999, chunk_steps: int = 100,
-                   progress: bool = False) -> dict[str, np.ndarray]:
+                   progress: bool = False, shard: bool = True) -> dict[str, np.ndarray]:
     """True value of each policy of a stacked zoo: n_episodes fresh episodes each.
 
     Returns {"value", "value_se", "value_discounted", "value_discounted_se"}, each [P]:
@@ -230,9 +257,12 @@ def measure_values(env: Env, params: Params, *, key: jax.Array, n_episodes: int,
         alive_next = alive & (nxt.done < 0.5)
         return (nxt, alive_next, ret + r, dret + disc * r, disc * gamma, key), None
 
+    mesh = _policy_mesh(P, shard)
+    params = shard_lanes(params, mesh)
     k_reset, key = jax.random.split(key)
     carry = (jax.jit(jax.vmap(env.reset))(jax.random.split(k_reset, B)),
              jnp.ones((B,), bool), jnp.zeros((B,)), jnp.zeros((B,)), jnp.ones(()), key)
+    carry = _shard_batch(carry, mesh, B)
     carry, _ = run_chunked(lambda c: step(c, None), carry, L, chunk_steps, "measure values",
                            progress)
     ret = np.asarray(carry[2], np.float64).reshape(P, E)

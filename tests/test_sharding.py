@@ -33,6 +33,23 @@ SHARDED_VS_PLAIN = textwrap.dedent("""
     ds = collect(task.make_env(), policies, key=jax.random.PRNGKey(0), transitions_per_policy=400,
                  envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
                  value_episodes=2, progress=False)
+    # collection: the policy axis split over the 4 devices gives the one-device data
+    from rl2s_jax.collect import _policy_mesh, _shard_batch
+    assert _policy_mesh(4, True).size == 4 and _policy_mesh(6, True).size == 3
+    assert _policy_mesh(4, False).size == 1
+    split = _shard_batch({{"x": jnp.zeros((8, 3)), "key": jax.random.PRNGKey(0)}},
+                         _policy_mesh(4, True), 8)
+    assert [s.data.shape[0] for s in split["x"].addressable_shards] == [2, 2, 2, 2]
+    assert split["key"].sharding.is_fully_replicated
+    one = collect(task.make_env(), policies, key=jax.random.PRNGKey(0),
+                  transitions_per_policy=400, envs_per_policy=2,
+                  episode_length=task.episode_length, task="pointmass", value_episodes=2,
+                  progress=False, shard=False)
+    for name in ("policy_id", "episode_id", "t", "done", "truncated"):
+        np.testing.assert_array_equal(getattr(ds, name), getattr(one, name), err_msg=name)
+    for name in ("obs", "action", "next_obs", "reward", "value", "value_discounted"):
+        np.testing.assert_allclose(getattr(ds, name), getattr(one, name), rtol=1e-5,
+                                   atol=1e-5, err_msg=name)
     cfg = T.TrainConfig.small(task="pointmass", method="rl2s", vd_horizon=20, vd_every=2,
                               pretrain_steps=2, disc_warmup_steps=1)
     data = T.make_train_data(ds, policies, cfg)
@@ -64,8 +81,9 @@ SHARDED_VS_PLAIN = textwrap.dedent("""
 
 
 def test_sharded_lanes_equal_the_single_device_run():
-    """Four forced host devices: pre-training + WGAIL lanes split one per device train and
-    evaluate to the same numbers as the unsharded program."""
+    """Four forced host devices: collection with its policies split one per device gives the
+    one-device data; pre-training + WGAIL lanes split one per device train and evaluate to
+    the same numbers as the unsharded program."""
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4",
            "JAX_PLATFORMS": "cpu"}
     out = subprocess.run([sys.executable, "-c", SHARDED_VS_PLAIN.format(root=ROOT)], env=env,

@@ -252,7 +252,8 @@ def cmd_improve(args) -> int:
                     measure=not args.no_measure, branch_length=args.branch_length,
                     uncertainty_penalty=args.uncertainty_penalty,
                     uncertainty_threshold=args.uncertainty_threshold,
-                    halt_penalty=args.halt_penalty, progress=not args.quiet)
+                    halt_penalty=args.halt_penalty, guard_margin=args.guard_margin,
+                    guard_episodes=args.guard_episodes, progress=not args.quiet)
     from rl2s_jax.improve_run import summary_markdown
 
     print(summary_markdown(s))
@@ -605,6 +606,12 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MOReL: end a rollout when u(s, a) exceeds this (same units)")
     p.add_argument("--halt-penalty", type=float, default=0.0,
                    help="reward subtracted when the threshold ends a rollout")
+    p.add_argument("--guard-margin", type=float, metavar="M",
+                   help="deploy a fine-tuned policy only where every elite member predicts a "
+                   "gain above M x |start value| (simulated; e.g. 0.02); elsewhere keep the "
+                   "start policy (default: deploy every fine-tuned policy)")
+    p.add_argument("--guard-episodes", type=_positive("guard-episodes"), default=16,
+                   help="simulated episodes per policy and member for the guard")
     p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
     p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
     p.add_argument("--seed", type=int, default=0)

@@ -11,6 +11,12 @@ same number. We divide by |C0| so that I > 0 always means the policy got better:
 negative C0, (C1 - C0) / C0 would be negative for an improvement. Either way I is undefined for
 C0 = 0 (refused) and large when |C0| is small, so compare I over tasks with clearly non-zero
 returns.
+
+The deployment guard (``member_values``, ``deployment_guard``, ``guarded``) keeps a fine-tuned
+policy only where the simulator itself predicts a gain: every elite member, alone, must value
+the fine-tuned policy above the start by more than ``margin * |start value|`` over the same
+simulated episodes (common start states and keys). Elsewhere the start policy is kept, so its
+improvement is exactly 0. Only the simulator is used for the decision, never the real system.
 """
 
 from __future__ import annotations
@@ -26,7 +32,7 @@ from rl2s_jax.collect import measure_values
 from rl2s_jax.policies import Params, num_policies
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sim_env import SimulatorEnv
-from rl2s_jax.simulate import Simulator
+from rl2s_jax.simulate import Simulator, simulated_returns
 from rl2s_jax.tasks import Task, get_task
 
 
@@ -87,6 +93,57 @@ def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
             bar.close()
     metrics = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *metrics)
     return states.actor, metrics
+
+
+def member_values(sim: Simulator, task: Task | str, policies: Params, start_pool,
+                  key: jax.Array, *, n_episodes: int, horizon: int, gamma: float
+                  ) -> np.ndarray:
+    """Each elite member's simulated discounted value of each policy, the member alone (its
+    mean step when the simulator's noise_scale is 0): [M elites, P]. Every member and policy
+    runs from the same start states with the same keys, so differences between two policies
+    are paired comparisons."""
+    task = get_task(task) if isinstance(task, str) else task
+    E = sim.n_members
+    rank = np.arange(E) if sim.rank is None else np.asarray(sim.rank)
+    n_el = E if sim.n_elites is None else min(int(sim.n_elites), E)
+    elites = jnp.asarray(np.argsort(rank, kind="stable")[:n_el], jnp.int32)
+    fixed = sim.replace(member_mode="fixed")
+
+    @jax.jit
+    def run(sim, elites, policies, pool, key):
+        def one(m):  # member m ranked first: "fixed" rolls it alone
+            alone = sim.replace(rank=((jnp.arange(E) - m) % E).astype(jnp.int32))
+            ret, _ = simulated_returns(policies, alone.dynamics, task.reward_fn, task.done_fn,
+                                       pool, key, n_episodes=n_episodes, horizon=horizon,
+                                       gamma=gamma)
+            return ret.mean(1)
+        return jax.vmap(one)(elites)
+
+    return np.asarray(run(fixed, elites, policies, jnp.asarray(start_pool), key), np.float64)
+
+
+def deployment_guard(start_values, tuned_values, margin: float = 0.0) -> np.ndarray:
+    """[P] bool: deploy the fine-tuned policy p only if every member predicts a gain,
+    tuned_values[m, p] - start_values[m, p] > margin * |start_values[m, p]| for all m.
+    start_values, tuned_values: [M, P] (``member_values``)."""
+    v0, v1 = np.asarray(start_values, np.float64), np.asarray(tuned_values, np.float64)
+    if v0.ndim != 2 or v0.shape != v1.shape:
+        raise ValueError(f"tuned_values: expected the shape of start_values [M, P] "
+                         f"{v0.shape}, got {v1.shape}")
+    if not (np.isfinite(margin) and margin >= 0):
+        raise ValueError(f"margin: expected a finite float >= 0, got {margin!r}")
+    if not (np.all(np.isfinite(v0)) and np.all(np.isfinite(v1))):
+        raise ValueError("start_values, tuned_values: expected finite simulated values")
+    return np.all(v1 - v0 > margin * np.abs(v0), axis=0)
+
+
+def guarded(start: Params, tuned: Params, accept) -> Params:
+    """The deployed policies [P, ...]: ``tuned`` where ``accept`` [P], else ``start``."""
+    accept = jnp.asarray(accept, bool)
+
+    def pick(a, b):
+        return jnp.where(accept.reshape(accept.shape + (1,) * (a.ndim - 1)), b, a)
+    return jax.tree_util.tree_map(pick, start, tuned)
 
 
 def improve_in_real_env(task: Task | str, policies: Params, key: jax.Array,

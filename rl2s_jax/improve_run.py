@@ -8,6 +8,12 @@ checkpoint's simulator as one vmapped program (``improve.improve_policies``), wr
 and ``measure_values`` take them), and, unless ``measure=False``, measures their real return
 before and after (``improve.measure_improvement``) with one PNG per policy and a summary
 (``summary.json``, ``summary.md``).
+
+``guard_margin`` (default off) turns on the deployment guard (``improve.deployment_guard``):
+a fine-tuned policy is kept only where every elite member of the simulator predicts a gain
+larger than that fraction of the start's simulated value; elsewhere the start policy is
+written to the zoo. The real returns then also give the deployed policies' MPI / API
+(``summary["guard"]``): a kept start policy has improvement 0 by definition.
 """
 from __future__ import annotations
 
@@ -84,13 +90,21 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                 measure: bool = True, chunk: int | None = None,
                 branch_length: int | None = None, uncertainty_penalty: float = 0.0,
                 uncertainty_threshold: float | None = None, halt_penalty: float = 0.0,
+                guard_margin: float | None = None, guard_episodes: int = 16,
                 progress: bool = True, log=print) -> dict:
     """Fine-tune policies ``policy_ids`` (indices into the Dataset's policies; default all)
     inside the simulator of checkpoint ``ckpt`` and write the zoo, plots and summary into
     ``out`` (module docstring). -> the summary dict (also out/summary.json)."""
     from rl2s_jax.checkpoint import load_simulator
     from rl2s_jax.fit import policies_for
-    from rl2s_jax.improve import improve_policies, measure_improvement, training_return_curve
+    from rl2s_jax.improve import (
+        deployment_guard,
+        guarded,
+        improve_policies,
+        measure_improvement,
+        member_values,
+        training_return_curve,
+    )
     from rl2s_jax.policies import Zoo, index_params, save_zoo
     from rl2s_jax.sim_env import branch_pool, real_rows, scaled_env_options
     from rl2s_jax.simulate import start_pool
@@ -100,6 +114,10 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         raise ValueError(f"iterations: expected an int >= 1, got {iterations!r}")
     if n_episodes < 2 and measure:
         raise ValueError(f"episodes: expected >= 2 (for standard errors), got {n_episodes}")
+    if guard_margin is not None and not (np.isfinite(guard_margin) and guard_margin >= 0):
+        raise ValueError(f"guard-margin: expected a finite float >= 0, got {guard_margin!r}")
+    if not isinstance(guard_episodes, int) or guard_episodes < 1:
+        raise ValueError(f"guard-episodes: expected an int >= 1, got {guard_episodes!r}")
     meta, ds, ids = check_inputs(ckpt, data_path, policy_ids)
     task = get_task(ds.meta["task"])
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
@@ -127,13 +145,32 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                                       env_options=env_options, progress=progress)
     sac_seconds = time.perf_counter() - t0
     curve_x, curve = training_return_curve(metrics)
+    gamma = float(ds.meta.get("gamma") or 0.999)
+
+    guard = None
+    if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
+        both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]), policies,
+                                      after)
+        values = member_values(sim, task, both, start_pool(ds),
+                               jax.random.fold_in(k_measure, 1), n_episodes=guard_episodes,
+                               horizon=episode_length, gamma=gamma)
+        P = len(ids)
+        v0, v1 = values[:, :P], values[:, P:]
+        accept = deployment_guard(v0, v1, guard_margin)
+        after_raw, after = after, guarded(policies, after, accept)
+        guard = {"margin": guard_margin, "episodes": guard_episodes,
+                 "accepted": accept.tolist(), "sim_value_start": v0.tolist(),
+                 "sim_value_tuned": v1.tolist()}
+        log(f"[improve] guard (margin {guard_margin}): {int(accept.sum())} of {P} fine-tuned "
+            f"policies kept, every elite member predicting a gain")
 
     measured = None
     if measure:
         t0 = time.perf_counter()
-        measured = measure_improvement(task.make_env(), policies, after, k_measure,
+        measured = measure_improvement(task.make_env(), policies,
+                                       after if guard is None else after_raw, k_measure,
                                        n_episodes=n_episodes, episode_length=episode_length,
-                                       gamma=float(ds.meta.get("gamma") or 0.999))
+                                       gamma=gamma)
         log(f"[improve] real returns measured in {time.perf_counter() - t0:.0f}s")
 
     source = ds.meta.get("source") or {}
@@ -142,11 +179,22 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                 "zoo": zoo or source.get("zoo"),
                 "zoo_id": None if zoo_ids is None else int(zoo_ids[i]),
                 "finetuned_in": os.path.abspath(ckpt), "sac_iterations": iterations,
-                "return_before": None if measured is None else float(measured["c0"][j])}
+                "return_before": None if measured is None else float(measured["c0"][j]),
+                **({} if guard is None else {"deployed": "fine-tuned" if guard["accepted"][j]
+                                             else "start (the guard kept it)"})}
                for j, (n, i) in enumerate(zip(names, ids, strict=True))]
     P = len(ids)
     returns = np.full(P, np.nan) if measured is None else np.asarray(measured["c1"])
     return_se = np.full(P, np.nan) if measured is None else np.asarray(measured["c1_se"])
+    if guard is not None and measured is not None:  # the zoo holds the deployed policies
+        keep = np.asarray(guard["accepted"])
+        returns = np.where(keep, returns, np.asarray(measured["c0"]))
+        return_se = np.where(keep, return_se, np.asarray(measured["c0_se"]))
+        i_deployed = np.where(keep, np.asarray(measured["I"]), 0.0)
+        guard.update(I=i_deployed.tolist(), mpi=float(i_deployed.min()),
+                     api=float(i_deployed.mean()))
+        log(f"[improve] deployed: MPI {guard['mpi']:.3f}  API {guard['api']:.3f} (fine-tuned "
+            f"everywhere: MPI {measured['mpi']:.3f}  API {measured['api']:.3f})")
     save_zoo(Zoo(task=task.name, params=jax.device_get(after), returns=returns,
                  return_se=return_se, origins=origins, train_ids=[], test_ids=list(range(P)),
                  info={"made_by": "rl2s improve", "checkpoint": os.path.abspath(ckpt),
@@ -161,6 +209,8 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                "sim_return_curve": [_nan_none(x) for x in curve[j]]}
         if measured is not None:
             row.update({k: float(measured[k][j]) for k in ("c0", "c0_se", "c1", "c1_se", "I")})
+        if guard is not None:
+            row["deployed_fine_tuned"] = bool(guard["accepted"][j])
         rows.append(row)
     summary = {"task": task.name, "checkpoint": os.path.abspath(ckpt),
                "data": os.path.abspath(data_path), "iterations": iterations,
@@ -170,7 +220,8 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                "n_episodes": n_episodes if measured is not None else None,
                "curve_iterations": curve_x.tolist(), "policies": rows,
                "mpi": None if measured is None else measured["mpi"],
-               "api": None if measured is None else measured["api"], "zoo": out}
+               "api": None if measured is None else measured["api"], "zoo": out,
+               "guard": guard}
     with open(os.path.join(out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=1)
     with open(os.path.join(out, "summary.md"), "w") as f:
@@ -187,6 +238,13 @@ def summary_markdown(s: dict) -> str:
     if measured:
         lines += [f"MPI {s['mpi']:.3f}, API {s['api']:.3f} (real returns over "
                   f"{s['n_episodes']} episodes each)", ""]
+    g = s.get("guard")
+    if g:
+        kept = sum(g["accepted"])
+        lines += [f"Deployment guard (margin {g['margin']}): {kept} of {len(g['accepted'])} "
+                  "fine-tuned policies deployed, the others kept as they were"
+                  + (f"; deployed MPI {g['mpi']:.3f}, API {g['api']:.3f}" if "mpi" in g
+                     else ""), ""]
     head = "| policy | real C0 | real C1 | I | simulated return (start -> end) |"
     lines += [head, "|---|---:|---:|---:|---|"]
     for r in s["policies"]:

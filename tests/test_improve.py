@@ -11,10 +11,13 @@ from brax.envs import training as brax_training
 from rl2s_jax import dynamics as dyn
 from rl2s_jax import policies as pol
 from rl2s_jax.improve import (
+    deployment_guard,
+    guarded,
     improve_policies,
     improvement_intervals,
     improvement_metrics,
     measure_improvement,
+    member_values,
 )
 from rl2s_jax.models import Normalizer, init_generator
 from rl2s_jax.sac import FINE_TUNING, Buffer, SACConfig, gaussian_kl, make_sac, q_values
@@ -24,7 +27,7 @@ from rl2s_jax.sim_env import (
     scaled_env_options,
     simulator_uncertainty,
 )
-from rl2s_jax.simulate import Simulator
+from rl2s_jax.simulate import Simulator, simulated_returns
 from rl2s_jax.tasks import PointMass, get_task, pointmass_dynamics
 
 TASK = get_task("pointmass")
@@ -520,3 +523,49 @@ def test_improvement_intervals():
         improvement_intervals(c0, c0[:1], c1, c1)
     with pytest.raises(ValueError, match="level"):
         improvement_intervals(c0, c0, c1, c1, level=1.0)
+
+
+def test_member_values_are_each_elite_alone_on_common_episodes():
+    """member_values [M, P]: row m is the elite member m rolled alone (as a one-member
+    simulator made of its weights), over the same start states and keys for every member and
+    policy; the elites come best first (rank [1, 0, 2], 2 elites: members 1, 0)."""
+    sim = _ensemble_simulator().replace(noise_scale=0.0)
+    policies, pool, key = _policies([-1.0, 0.0, 1.5]), jnp.asarray(_pool(8)), jax.random.PRNGKey(4)
+    roll = dict(n_episodes=5, horizon=12, gamma=0.9)
+    v = member_values(sim, "pointmass", policies, pool, key, **roll)
+    assert v.shape == (2, 3)
+    for row, m in enumerate((1, 0)):
+        alone = Simulator(gen=jax.tree_util.tree_map(lambda x, m=m: x[m:m + 1], sim.gen),
+                          norm=sim.norm, task="pointmass", noise_scale=0.0)
+        ret, _ = simulated_returns(policies, alone.dynamics, TASK.reward_fn, TASK.done_fn, pool,
+                                   key, **roll)
+        np.testing.assert_allclose(v[row], np.asarray(ret).mean(1), rtol=1e-5, atol=1e-5)
+    assert not np.allclose(v[0], v[1])  # the two members differ
+
+
+def test_deployment_guard_matches_a_loop_and_keeps_the_start():
+    rng = np.random.default_rng(0)
+    v0 = rng.normal(10.0, 5.0, (3, 6))
+    v1 = v0 + rng.normal(0.5, 1.0, (3, 6))
+    for margin in (0.0, 0.05, 10.0):
+        want = [all(v1[m, p] - v0[m, p] > margin * abs(v0[m, p]) for m in range(3))
+                for p in range(6)]
+        assert deployment_guard(v0, v1, margin).tolist() == want
+    assert not deployment_guard(v0, v1, 10.0).any()
+    assert deployment_guard(v0, v0 + 1.0).all()  # every member agrees on a gain
+    one_disagrees = (v0 + 1.0).copy()
+    one_disagrees[2, 4] = v0[2, 4] - 0.1
+    assert deployment_guard(v0, one_disagrees).tolist() == [True] * 4 + [False, True]
+    start, tuned = _policies([0.0, 0.0, 0.0]), _policies([1.0, 2.0, 3.0])
+    out = guarded(start, tuned, np.array([True, False, True]))
+    for a, s0, t1 in zip(jax.tree_util.tree_leaves(out), jax.tree_util.tree_leaves(start),
+                         jax.tree_util.tree_leaves(tuned), strict=True):
+        np.testing.assert_array_equal(a[1], s0[1])
+        np.testing.assert_array_equal(a[0], t1[0])
+        np.testing.assert_array_equal(a[2], t1[2])
+    with pytest.raises(ValueError, match="tuned_values"):
+        deployment_guard(v0, v1[:, :3])
+    with pytest.raises(ValueError, match="margin"):
+        deployment_guard(v0, v1, -0.1)
+    with pytest.raises(ValueError, match="finite"):
+        deployment_guard(v0, np.full_like(v1, np.nan))

@@ -77,6 +77,42 @@ def test_improve_branched_with_penalty_runs(pointmass_checkpoint, tmp_path):
     assert zoo.size == 1 and np.isnan(zoo.returns[0])
 
 
+def test_improve_guard_keeps_the_start_where_the_simulator_sees_no_gain(pointmass_checkpoint,
+                                                                        tmp_path):
+    """--guard-margin: each fine-tuned policy is deployed only if every elite member predicts
+    a gain above the margin; a margin no policy can clear keeps every start policy (the zoo
+    holds them unchanged, their improvement is 0); the decisions follow the recorded
+    simulated values."""
+    run = pointmass_checkpoint
+    before = pol.index_params(policies_for(load_dataset(run["data"])), np.array([0, 3]))
+    for margin, name in ((1e6, "strict"),):
+        out = tmp_path / name
+        assert cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--policies",
+                         "0,3", "--out", str(out), "--iterations", "20", "--episodes", "2",
+                         "--quiet", "--guard-margin", str(margin), "--guard-episodes", "4",
+                         *SMALL]) == 0
+        s = json.loads((out / "summary.json").read_text())
+        g = s["guard"]
+        v0, v1 = np.asarray(g["sim_value_start"]), np.asarray(g["sim_value_tuned"])
+        assert v0.shape == v1.shape and v0.shape[1] == 2
+        assert g["accepted"] == np.all(v1 - v0 > margin * np.abs(v0), axis=0).tolist()
+        i_all = np.asarray([r["I"] for r in s["policies"]])
+        assert g["I"] == pytest.approx(np.where(g["accepted"], i_all, 0.0).tolist())
+        assert g["mpi"] == pytest.approx(min(g["I"])) and g["api"] == pytest.approx(
+            np.mean(g["I"]))
+        zoo = pol.load_zoo(str(out))
+        for j, keep in enumerate(g["accepted"]):
+            assert zoo.origins[j]["deployed"].startswith("fine-tuned" if keep else "start")
+            r = s["policies"][j]
+            assert zoo.returns[j] == pytest.approx(r["c1"] if keep else r["c0"], rel=1e-5)
+        if name == "strict":
+            assert g["accepted"] == [False, False] and g["mpi"] == 0.0
+            for a, b in zip(jax.tree_util.tree_leaves(zoo.params),
+                            jax.tree_util.tree_leaves(before), strict=True):
+                np.testing.assert_array_equal(a, b)
+            assert "0 of 2 fine-tuned policies deployed" in (out / "summary.md").read_text()
+
+
 def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, capsys):
     run = pointmass_checkpoint
     out = tmp_path / "never"
@@ -98,6 +134,8 @@ def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, c
     assert rc == 2 and "nope" in err and "kl_weight" in err
     rc, err = refused("--set", "kl_weight=-1")
     assert rc == 2 and "kl_weight" in err
+    rc, err = refused("--guard-margin", "-0.5")
+    assert rc == 2 and "guard-margin" in err
     # data of another task
     ds = load_dataset(run["data"])
     other = ds.replace(meta={**ds.meta, "task": "twomass"})

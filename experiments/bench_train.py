@@ -121,7 +121,8 @@ def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
     compile_s = time.perf_counter() - t0
     seconds = timed(run, state) / steps / runs  # per train_step of one run
     fl = step_flops(cfg, P, heldout)
-    return {"method": cfg.method, "ensemble_size": cfg.ensemble_size, "policies": P, "vd_horizon": cfg.vd_horizon, "sim_steps": cfg.sim_steps,
+    return {"method": cfg.method, "ensemble_size": cfg.ensemble_size, "policies": P,
+            "vd_horizon": cfg.vd_horizon, "sim_steps": cfg.sim_steps,
             "vmapped_runs": runs,
             "step_ms": 1e3 * seconds, "steps_per_s": 1 / seconds,
             "gen_updates_per_s": cfg.updates_per_step / seconds,
@@ -165,7 +166,8 @@ def main(argv=None) -> int:
     steps = args.steps or steps
     rate = matmul_rate(mm)
     print(f"device {jax.devices()[0].device_kind} ({backend}), jax {jax.__version__}; profile "
-          f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen {cfg.gen_hidden}, disc {cfg.disc_hidden}, batch {cfg.batch_size}, "
+          f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen {cfg.gen_hidden}, "
+          f"disc {cfg.disc_hidden}, batch {cfg.batch_size}, "
           f"{cfg.updates_per_step} gen x {cfg.disc_updates} critic updates/step, "
           f"{cfg.sim_envs} sim envs x {cfg.sim_steps} steps, VD {cfg.vd_episodes} episodes x "
           f"{cfg.vd_horizon} steps every {cfg.vd_every}", flush=True)

@@ -57,7 +57,10 @@ by a time limit still leaves what it finished, with "complete": false):
    ``ablation``. ``--control`` runs the same fine-tuning (same policies, budget and SAC
    settings) in the real env, ``--control-seeds`` times, with real returns before and after
    (``improve.improve_in_real_env``): the ``control`` entry, the ceiling of improvement for
-   that budget.
+   that budget. ``--guard-margin M`` adds, per variant, the deployed policies' MPI / API
+   when each lane keeps a fine-tuned policy only where every elite member of its simulator
+   predicts a gain above M x |start value| (``improve.deployment_guard``; a kept start
+   policy has I = 0): ablation entry ``<variant>+guard``.
 """
 from __future__ import annotations
 
@@ -78,7 +81,12 @@ from rl2s_jax.collect import measure_values
 from rl2s_jax.data import load_dataset, save_dataset
 from rl2s_jax.evaluate import bootstrap_intervals, ranking_metrics
 from rl2s_jax.fit import make_config, policies_for
-from rl2s_jax.improve import improve_in_real_env, improvement_metrics
+from rl2s_jax.improve import (
+    deployment_guard,
+    improve_in_real_env,
+    improvement_metrics,
+    member_values,
+)
 from rl2s_jax.policies import index_params
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, replicate, shard_lanes
@@ -106,17 +114,15 @@ EVAL_METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearma
 METRICS = EVAL_METRICS + ("mpi", "api")
 VARIANT_PARTS = ("full", "branched", "penalty", "stop")
 
-# Sizes per profile. gpu: one task in about 7-8 minutes of an H100 (hopper; ant is slower),
-# estimated from measured costs (docs/RESULTS.md, docs/BENCHMARKS.md): one collection of the 60
-# zoo policies (1000 steps of collection + 1000 of true values, MJX at ~13 ms a step, ~60-90 s
-# with compiles); the adversarial program, 6 lanes x 800 steps at ~25 ms per lane-step
-# (~120 s + ~25 s compile); the likelihood program ~4x cheaper (~50 s); 2 x 4 test evaluations
-# (~25 s); SAC 4 simulators x 10 policies x 2000 iterations as one program (not measured on a
-# GPU yet: its time is printed); the real measurement of the 40 fine-tuned policies (~35 s).
-# cpu: small, for a 2-core machine.
+# Sizes per profile. gpu: the sizes of the measured protocol (docs/RESULTS.md, "The protocol
+# with the new defaults"): on one H100, per task, data 140-230 s, the adversarial program
+# (6 lanes x 300 steps: 200 pre-training, 100 WGAIL) 125-196 s, the likelihood program 74-127 s,
+# evaluations 13-22 s per program (four tasks' processes sharing the GPU;
+# docs/BENCHMARKS.md); SAC 4 simulators x 10 policies x 2000 iterations as one program (its
+# time is printed). cpu: small, for a 2-core machine.
 PROFILES = {
-    "gpu": dict(seeds=3, transitions_per_policy=20_000, value_episodes=16, steps=800,
-                eval_every=200, eval_episodes=16, improve_policies=10, improve_seeds=1,
+    "gpu": dict(seeds=3, transitions_per_policy=20_000, value_episodes=16, steps=300,
+                eval_every=100, eval_episodes=32, improve_policies=10, improve_seeds=1,
                 improve_iterations=2000, sac_envs=16, sac=dict()),
     "cpu": dict(seeds=3, transitions_per_policy=2000, value_episodes=4, steps=300,
                 eval_every=100, eval_episodes=8, improve_policies=10, improve_seeds=1,
@@ -564,6 +570,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "that preceded it (train.LEGACY_MODEL); --set overrides either")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
+    ap.add_argument("--guard-margin", type=float, help="also report MPI / API of the deployed "
+                    "policies when a fine-tuned policy is kept only where every elite member of "
+                    "its simulator predicts a gain above this fraction (improve."
+                    "deployment_guard): the ablation entry '<variant>+guard'")
     ap.add_argument("--families", default="adversarial,mle", help="comma list of the training "
                     "programs to run: adversarial (rl2s, gail) and / or mle (rl2s-bc, bc); one "
                     "of them splits the protocol over two calls (merge_results.py joins them)")
@@ -647,6 +657,9 @@ def main(argv=None) -> int:
                          f"got {args.ablation_methods!r}")
     sac_overrides = _sac_overrides(args.sac_set)
     families = parse_families(args.families)
+    if args.guard_margin is not None and not (np.isfinite(args.guard_margin)
+                                              and args.guard_margin >= 0):
+        raise SystemExit(f"guard-margin: expected a finite float >= 0, got {args.guard_margin}")
     S = sizes["seeds"]
     out, data_dir = args.out, args.data_dir or args.out
     os.makedirs(out, exist_ok=True)
@@ -898,8 +911,24 @@ def main(argv=None) -> int:
             c1 = np.asarray(real["value"], np.float64).reshape(L, P)
             se = np.asarray(real["value_se"], np.float64).reshape(L, P)
             phase("improve_measure" if vi == 0 else f"improve_measure[{variant}]", t0)
+            accepted = None
+            if args.guard_margin is not None:  # each simulator's own verdict per policy
+                t0 = time.perf_counter()
+                accepted = []
+                for i in range(L):
+                    lane_sim = _take(v_sims, [i])
+                    lane_sim = jax.tree_util.tree_map(lambda x: x[0], lane_sim)
+                    tuned = jax.tree_util.tree_map(lambda x, i=i: x[i], actors)
+                    both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), pols,
+                                                  tuned)
+                    v = member_values(lane_sim, task, both, start_pool(test_ds),
+                                      jax.random.PRNGKey(40 + i), n_episodes=16,
+                                      horizon=horizon, gamma=gamma_data)
+                    accepted.append(deployment_guard(v[:, :P], v[:, P:], args.guard_margin))
+                phase("improve_guard" if vi == 0 else f"improve_guard[{variant}]", t0)
             improvement, per_method = {}, {m: {"mpi": [], "api": []} for m in result["per_seed"]
                                            if m in METHODS}
+            guarded_method = {m: {"mpi": [], "api": []} for m in per_method}
             for i, (m, s) in enumerate(v_lanes):
                 try:
                     imp = improvement_metrics(c0, c1[i])
@@ -914,6 +943,13 @@ def main(argv=None) -> int:
                     "I": [_none_if_nan(x) for x in imp["I"]],
                     "sim_return": [_none_if_nan(x) for x in sim_return[i]],
                     "mpi": imp["mpi"], "api": imp["api"]}
+                if accepted is not None and imp["mpi"] is not None:
+                    i_dep = np.where(accepted[i], imp["I"], 0.0)
+                    improvement[f"{m}/{s}"].update(
+                        guard_accepted=accepted[i].tolist(), I_deployed=i_dep.tolist(),
+                        mpi_deployed=float(i_dep.min()), api_deployed=float(i_dep.mean()))
+                    guarded_method[m]["mpi"].append(float(i_dep.min()))
+                    guarded_method[m]["api"].append(float(i_dep.mean()))
                 if imp["mpi"] is not None:
                     log(f"  {m:<8} seed {s}  MPI {imp['mpi']:8.3f}  API {imp['api']:8.3f}  "
                         f"(C1 - C0 mean {np.mean(c1[i] - c0):.1f}, simulated training return "
@@ -928,6 +964,11 @@ def main(argv=None) -> int:
                 "settings": settings, "lanes": improvement,
                 "methods": {m: {k: _mean_or_none(v[k]) for k in ("mpi", "api")}
                             for m, v in per_method.items() if v["mpi"]}}
+            if accepted is not None:
+                result["ablation"][f"{variant}+guard"] = {
+                    "settings": {**settings, "guard_margin": args.guard_margin},
+                    "methods": {m: {k: _mean_or_none(v[k]) for k in ("mpi", "api")}
+                                for m, v in guarded_method.items() if v["mpi"]}}
             write(path, result)
     if it and args.control:
         t0 = time.perf_counter()

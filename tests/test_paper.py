@@ -222,7 +222,8 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     args = ["--task", "hopper", "--profile", "cpu", "--seeds", "2", "--steps", "4",
             "--eval-every", "2", "--eval-episodes", "2", "--transitions-per-policy", "200",
             "--value-episodes", "2", "--episode-length", "50", "--improve-policies", "2",
-            "--improve-iterations", "2", "--out", str(out), "--check-eval"]
+            "--improve-iterations", "2", "--out", str(out), "--check-eval",
+            "--guard-margin", "0"]
     assert paper.main(args) == 0
     printed = capsys.readouterr().out
     for phase in ("data", "oracle", "train_adversarial", "train_mle", "improve_sac",
@@ -301,6 +302,12 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     c0 = imp["rl2s/0"]["c0"]
     assert c0 == [r["true_value_undiscounted"][i] for i in imp["rl2s/0"]["policy_ids"]]
     assert min(c0) == pytest.approx(min(r["true_value_undiscounted"]))
+    # the deployment guard: deployed I is the lane's I where the simulator kept the fine-tuned
+    # policy, else 0; its MPI / API are the ablation entry "full+guard"
+    for v in imp.values():
+        assert v["I_deployed"] == pytest.approx(np.where(v["guard_accepted"], v["I"], 0.0))
+        assert v["mpi_deployed"] == pytest.approx(min(v["I_deployed"]))
+    assert set(r["ablation"]["full+guard"]["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
     assert max(c0) == pytest.approx(max(r["true_value_undiscounted"]))
     # the data is reused when the sizes match (no collection)
     ds, reused = paper.load_or_collect("hopper", r["sizes"], str(out), 0, 50, False)

@@ -395,6 +395,12 @@ def _mean_or_none(vals):
     return float(np.mean(vals)) if vals else None
 
 
+def _method_means(per_method: dict) -> dict:
+    """{method: {"mpi": [per lane], "api": [...]}} -> their means, for methods that have any."""
+    return {m: {k: _mean_or_none(v[k]) for k in ("mpi", "api")}
+            for m, v in per_method.items() if v["mpi"]}
+
+
 def _fmt_ms(mean, std):
     return "n/a" if mean is None else f"{mean:.3f}" + ("" if std is None else f" ±{std:.2g}")
 
@@ -914,16 +920,13 @@ def main(argv=None) -> int:
             accepted = None
             if args.guard_margin is not None:  # each simulator's own verdict per policy
                 t0 = time.perf_counter()
-                accepted = []
-                for i in range(L):
-                    lane_sim = _take(v_sims, [i])
-                    lane_sim = jax.tree_util.tree_map(lambda x: x[0], lane_sim)
-                    tuned = jax.tree_util.tree_map(lambda x, i=i: x[i], actors)
+                accepted, starts = [], start_pool(test_ds)
+                for i in range(L):  # the elites differ per lane (chosen on the host)
+                    lane = jax.tree_util.tree_map(lambda x, i=i: x[i], (v_sims, actors))
                     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), pols,
-                                                  tuned)
-                    v = member_values(lane_sim, task, both, start_pool(test_ds),
-                                      jax.random.PRNGKey(40 + i), n_episodes=16,
-                                      horizon=horizon, gamma=gamma_data)
+                                                  lane[1])
+                    v = member_values(lane[0], task, both, starts, jax.random.PRNGKey(40 + i),
+                                      n_episodes=16, horizon=horizon, gamma=gamma_data)
                     accepted.append(deployment_guard(v[:, :P], v[:, P:], args.guard_margin))
                 phase("improve_guard" if vi == 0 else f"improve_guard[{variant}]", t0)
             improvement, per_method = {}, {m: {"mpi": [], "api": []} for m in result["per_seed"]
@@ -944,12 +947,13 @@ def main(argv=None) -> int:
                     "sim_return": [_none_if_nan(x) for x in sim_return[i]],
                     "mpi": imp["mpi"], "api": imp["api"]}
                 if accepted is not None and imp["mpi"] is not None:
-                    i_dep = np.where(accepted[i], imp["I"], 0.0)
+                    # a kept start policy earns its C0: I = 0
+                    dep = improvement_metrics(c0, np.where(accepted[i], c1[i], c0))
                     improvement[f"{m}/{s}"].update(
-                        guard_accepted=accepted[i].tolist(), I_deployed=i_dep.tolist(),
-                        mpi_deployed=float(i_dep.min()), api_deployed=float(i_dep.mean()))
-                    guarded_method[m]["mpi"].append(float(i_dep.min()))
-                    guarded_method[m]["api"].append(float(i_dep.mean()))
+                        guard_accepted=accepted[i].tolist(), I_deployed=dep["I"].tolist(),
+                        mpi_deployed=dep["mpi"], api_deployed=dep["api"])
+                    guarded_method[m]["mpi"].append(dep["mpi"])
+                    guarded_method[m]["api"].append(dep["api"])
                 if imp["mpi"] is not None:
                     log(f"  {m:<8} seed {s}  MPI {imp['mpi']:8.3f}  API {imp['api']:8.3f}  "
                         f"(C1 - C0 mean {np.mean(c1[i] - c0):.1f}, simulated training return "
@@ -962,13 +966,11 @@ def main(argv=None) -> int:
                 result["improve_variant"] = variant
             result["ablation"][variant] = {
                 "settings": settings, "lanes": improvement,
-                "methods": {m: {k: _mean_or_none(v[k]) for k in ("mpi", "api")}
-                            for m, v in per_method.items() if v["mpi"]}}
+                "methods": _method_means(per_method)}
             if accepted is not None:
                 result["ablation"][f"{variant}+guard"] = {
                     "settings": {**settings, "guard_margin": args.guard_margin},
-                    "methods": {m: {k: _mean_or_none(v[k]) for k in ("mpi", "api")}
-                                for m, v in guarded_method.items() if v["mpi"]}}
+                    "methods": _method_means(guarded_method)}
             write(path, result)
     if it and args.control:
         t0 = time.perf_counter()

@@ -22,6 +22,7 @@ improvement is exactly 0. Only the simulator is used for the decision, never the
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -95,31 +96,37 @@ def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
     return states.actor, metrics
 
 
+@partial(jax.jit, static_argnames=("task", "n_episodes", "horizon", "gamma"))
+def _member_returns(sim: Simulator, members, policies, pool, key, *, task: Task,
+                    n_episodes: int, horizon: int, gamma: float) -> jax.Array:
+    """[M, P] mean simulated return of each policy under each of ``members`` [M] alone
+    (``sim`` in member_mode "fixed": the member ranked first is the one that steps)."""
+    E = sim.n_members
+
+    def one(m):
+        alone = sim.replace(rank=((jnp.arange(E) - m) % E).astype(jnp.int32))
+        ret, _ = simulated_returns(policies, alone.dynamics, task.reward_fn, task.done_fn, pool,
+                                   key, n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+        return ret.mean(1)
+    return jax.vmap(one)(members)
+
+
 def member_values(sim: Simulator, task: Task | str, policies: Params, start_pool,
                   key: jax.Array, *, n_episodes: int, horizon: int, gamma: float
                   ) -> np.ndarray:
     """Each elite member's simulated discounted value of each policy, the member alone (its
-    mean step when the simulator's noise_scale is 0): [M elites, P]. Every member and policy
-    runs from the same start states with the same keys, so differences between two policies
-    are paired comparisons."""
+    mean step when the simulator's noise_scale is 0): [M elites, P], best elite first. Every
+    member and policy runs from the same start states with the same keys, so differences
+    between two policies are paired comparisons."""
     task = get_task(task) if isinstance(task, str) else task
     E = sim.n_members
     rank = np.arange(E) if sim.rank is None else np.asarray(sim.rank)
     n_el = E if sim.n_elites is None else min(int(sim.n_elites), E)
     elites = jnp.asarray(np.argsort(rank, kind="stable")[:n_el], jnp.int32)
-    fixed = sim.replace(member_mode="fixed")
-
-    @jax.jit
-    def run(sim, elites, policies, pool, key):
-        def one(m):  # member m ranked first: "fixed" rolls it alone
-            alone = sim.replace(rank=((jnp.arange(E) - m) % E).astype(jnp.int32))
-            ret, _ = simulated_returns(policies, alone.dynamics, task.reward_fn, task.done_fn,
-                                       pool, key, n_episodes=n_episodes, horizon=horizon,
-                                       gamma=gamma)
-            return ret.mean(1)
-        return jax.vmap(one)(elites)
-
-    return np.asarray(run(fixed, elites, policies, jnp.asarray(start_pool), key), np.float64)
+    values = _member_returns(sim.replace(member_mode="fixed"), elites, policies,
+                             jnp.asarray(start_pool), key, task=task, n_episodes=n_episodes,
+                             horizon=horizon, gamma=float(gamma))
+    return np.asarray(values, np.float64)
 
 
 def deployment_guard(start_values, tuned_values, margin: float = 0.0) -> np.ndarray:

@@ -101,6 +101,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         deployment_guard,
         guarded,
         improve_policies,
+        improvement_metrics,
         measure_improvement,
         member_values,
         training_return_curve,
@@ -147,7 +148,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     curve_x, curve = training_return_curve(metrics)
     gamma = float(ds.meta.get("gamma") or 0.999)
 
-    guard = None
+    guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
     if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
         both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]), policies,
                                       after)
@@ -157,7 +158,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         P = len(ids)
         v0, v1 = values[:, :P], values[:, P:]
         accept = deployment_guard(v0, v1, guard_margin)
-        after_raw, after = after, guarded(policies, after, accept)
+        deployed = guarded(policies, after, accept)
         guard = {"margin": guard_margin, "episodes": guard_episodes,
                  "accepted": accept.tolist(), "sim_value_start": v0.tolist(),
                  "sim_value_tuned": v1.tolist()}
@@ -167,8 +168,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     measured = None
     if measure:
         t0 = time.perf_counter()
-        measured = measure_improvement(task.make_env(), policies,
-                                       after if guard is None else after_raw, k_measure,
+        measured = measure_improvement(task.make_env(), policies, after, k_measure,
                                        n_episodes=n_episodes, episode_length=episode_length,
                                        gamma=gamma)
         log(f"[improve] real returns measured in {time.perf_counter() - t0:.0f}s")
@@ -190,12 +190,11 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         keep = np.asarray(guard["accepted"])
         returns = np.where(keep, returns, np.asarray(measured["c0"]))
         return_se = np.where(keep, return_se, np.asarray(measured["c0_se"]))
-        i_deployed = np.where(keep, np.asarray(measured["I"]), 0.0)
-        guard.update(I=i_deployed.tolist(), mpi=float(i_deployed.min()),
-                     api=float(i_deployed.mean()))
+        dep = improvement_metrics(measured["c0"], returns)  # a kept start: C1 = C0, I = 0
+        guard.update(I=dep["I"].tolist(), mpi=dep["mpi"], api=dep["api"])
         log(f"[improve] deployed: MPI {guard['mpi']:.3f}  API {guard['api']:.3f} (fine-tuned "
             f"everywhere: MPI {measured['mpi']:.3f}  API {measured['api']:.3f})")
-    save_zoo(Zoo(task=task.name, params=jax.device_get(after), returns=returns,
+    save_zoo(Zoo(task=task.name, params=jax.device_get(deployed), returns=returns,
                  return_se=return_se, origins=origins, train_ids=[], test_ids=list(range(P)),
                  info={"made_by": "rl2s improve", "checkpoint": os.path.abspath(ckpt),
                        "data": os.path.abspath(data_path), "sac": _jsonable(cfg),

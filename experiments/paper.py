@@ -472,6 +472,21 @@ def merge_runs(parts: list[dict]) -> dict:
         for k in MERGED_BY_METHOD:
             into = merged.setdefault(k, {})
             into.update({m: v for m, v in part.get(k, {}).items() if m not in into})
+        for variant, entry in part.get("ablation", {}).items():  # {variant: {settings,
+            into = merged.setdefault("ablation", {}).setdefault(variant, {})  # lanes, methods}}
+            if "settings" in into and into["settings"] != entry.get("settings"):
+                raise ValueError(f"ablation.{variant}.settings: the runs differ "
+                                 f"({into['settings']!r} vs {entry.get('settings')!r})")
+            for k, v in entry.items():
+                if isinstance(v, dict) and k != "settings":
+                    into.setdefault(k, {}).update({m: x for m, x in v.items()
+                                                   if m not in into[k]})
+                else:
+                    into.setdefault(k, v)
+        if part.get("sac_config") and merged.get("sac_config") not in (None,
+                                                                         part["sac_config"]):
+            raise ValueError("sac_config: the runs fine-tuned with different SAC settings")
+        merged.setdefault("sac_config", part.get("sac_config"))
         merged["curves"] = merged.get("curves", []) + part.get("curves", [])
         merged["families"] = merged.get("families", []) + part.get("families", [])
         t = merged["timings"]

@@ -218,6 +218,55 @@ def ablation_rows(results: dict) -> list[str]:
     return rows
 
 
+def policy_rows(results: dict) -> list[str]:
+    """Per task, simulated-env variant and method, the fine-tuned test policies pooled over
+    the improvement seeds (``ablation.<variant>.lanes``, else ``improvement``): how many, the
+    share whose real return rose (I > 0), the median I, and the API without the policy of the
+    smallest |C0| (one policy near C0 = 0 can carry API alone), mean over seeds; where the
+    deployment guard ran, how many fine-tuned policies it deployed."""
+    rows = []
+    for task in TASKS:
+        r = results.get(task) or {}
+        by_variant = {v: e.get("lanes") for v, e in (r.get("ablation") or {}).items()
+                      if e.get("lanes")}
+        if not by_variant and r.get("improvement"):
+            by_variant = {r.get("improve_variant", "full"): r["improvement"]}
+        for variant, lanes in by_variant.items():
+            for method in METHODS:
+                mine = [ln for ln in lanes.values() if ln.get("method") == method]
+                if not mine:
+                    continue
+                pooled, trimmed, deployed, offered = [], [], 0, 0
+                for ln in mine:
+                    pairs = [(i, c) for i, c in zip(ln.get("I") or [], ln.get("c0") or [])
+                             if i is not None and math.isfinite(i)]
+                    if not pairs:
+                        continue
+                    pooled += [i for i, _ in pairs]
+                    smallest = min(range(len(pairs)), key=lambda k: abs(pairs[k][1]))
+                    rest = [i for k, (i, _) in enumerate(pairs) if k != smallest]
+                    if rest:
+                        trimmed.append(sum(rest) / len(rest))
+                    if ln.get("guard_accepted") is not None:
+                        deployed += sum(bool(a) for a in ln["guard_accepted"])
+                        offered += len(ln["guard_accepted"])
+                if not pooled:
+                    continue
+                srt = sorted(pooled)
+                n = len(srt)
+                median = srt[n // 2] if n % 2 else 0.5 * (srt[n // 2 - 1] + srt[n // 2])
+                share = sum(i > 0 for i in pooled) / n
+                api_trim = "n/a" if not trimmed else f"{sum(trimmed) / len(trimmed):.3f}"
+                guard = f"{deployed} of {offered}" if offered else "n/a"
+                rows.append(f"| {task} | {variant} | {method} | {n} ({len(mine)} seeds) | "
+                            f"{share:.2f} | {median:+.3f} | {api_trim} | {guard} |")
+    if rows:
+        rows = ["| task | variant | method | policies | share improved | median I | API "
+                "without the smallest abs(C0) | deployed by the guard |",
+                "|---|---|---|---:|---:|---:|---:|---:|", *rows]
+    return rows
+
+
 def selected_rows(results: dict) -> list[str]:
     """The test metrics at the evaluation point chosen on the TRAINING policies' held-out
     episodes (paper.py's ``selected``: per method, per-seed lists and the chosen steps); no
@@ -287,6 +336,10 @@ def render(results: dict, source: str) -> str:
     if ablation:
         lines += ["", "### Improvement by simulated-env variant (means over the improvement "
                   "seeds)", "", *ablation]
+    per_policy = policy_rows(results)
+    if per_policy:
+        lines += ["", "### Improvement per fine-tuned policy (pooled over the improvement "
+                  "seeds)", "", *per_policy]
     lines += ["", "### Value difference on the test policies", ""]
     lines += metric_table(results, TABLE3)
     chosen = selected_rows(results)

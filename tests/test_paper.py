@@ -142,6 +142,28 @@ def test_paper_tables_model_selection_rows():
     assert "| walker2d | gail |" not in table
 
 
+def test_paper_tables_policy_rows():
+    """Share improved, median I and the API without the smallest-|C0| policy, pooled over
+    the seeds, against hand-computed values; guard counts only where the guard ran."""
+    pt = _load("paper_tables")
+    lanes = {"rl2s/0": {"method": "rl2s", "I": [0.1, -0.2, 9.0], "c0": [100.0, 50.0, 1.0],
+                        "guard_accepted": [True, False, False]},
+             "rl2s/1": {"method": "rl2s", "I": [0.3, 0.0, None], "c0": [100.0, -5.0, 1.0],
+                        "guard_accepted": [False, False, True]},
+             "gail/0": {"method": "gail", "I": [-0.1, 0.2], "c0": [10.0, 20.0]}}
+    rows = pt.policy_rows({"hopper": {"ablation": {"full": {"lanes": lanes},
+                                                   "full+guard": {"methods": {}}}}})
+    assert len(rows) == 4
+    # rl2s: I pooled = [0.1, -0.2, 9.0, 0.3, 0.0] -> share 2/5... I > 0: 0.1, 9.0, 0.3 = 3/5
+    # median 0.1; without the smallest |C0|: seed 0 mean(0.1, -0.2) = -0.05, seed 1 (0.3) ->
+    # mean 0.125; guard 2 of 6
+    assert rows[2] == "| hopper | full | rl2s | 5 (2 seeds) | 0.60 | +0.100 | 0.125 | 2 of 6 |"
+    assert rows[3] == "| hopper | full | gail | 2 (1 seeds) | 0.50 | +0.050 | 0.200 | n/a |"
+    only = pt.policy_rows({"ant": {"improvement": lanes, "improve_variant": "branched"}})
+    assert only[2].startswith("| ant | branched | rl2s |")
+    assert pt.policy_rows({"ant": {}}) == []
+
+
 def test_paper_tables_fallbacks():
     pt = _load("paper_tables")
     # no per_seed: methods / std / n are used; unknown numbers print n/a
@@ -197,6 +219,37 @@ def test_merge_runs_joins_the_two_families():
         paper.merge_runs([adv, {**mle, "sizes": {**mle["sizes"], "steps": 400}}])
     with pytest.raises(ValueError, match="rl2s"):
         paper.merge_runs([adv, adv])
+
+
+def test_merge_runs_joins_the_improvement_variants():
+    """Each family's run fine-tuned its own lanes: the merged 'ablation' holds every method of
+    every variant; runs fine-tuned with other settings are refused."""
+    paper = _load("paper")
+
+    def with_ablation(run, methods):
+        settings = {"rollout_length": None}
+        run["ablation"] = {
+            "full": {"settings": settings,
+                     "lanes": {f"{m}/0": {"mpi": -0.1} for m in methods},
+                     "methods": {m: {"mpi": -0.1, "api": 0.5} for m in methods}},
+            "full+guard": {"settings": settings,
+                           "methods": {m: {"mpi": 0.0, "api": 0.4} for m in methods}}}
+        run["sac_config"] = {"kl_weight": 0.1}
+        return run
+
+    adv = with_ablation(_family_run(("rl2s", "gail"), ["adversarial"], 0.5), ("rl2s", "gail"))
+    mle = with_ablation(_family_run(("rl2s-bc", "bc"), ["mle"], 0.2), ("rl2s-bc", "bc"))
+    merged = paper.merge_runs([adv, mle])
+    for variant in ("full", "full+guard"):
+        assert set(merged["ablation"][variant]["methods"]) == {"rl2s", "gail", "rl2s-bc", "bc"}
+    assert set(merged["ablation"]["full"]["lanes"]) == {"rl2s/0", "gail/0", "rl2s-bc/0", "bc/0"}
+    assert set(adv["ablation"]["full"]["methods"]) == {"rl2s", "gail"}  # inputs untouched
+    other = json.loads(json.dumps(mle))
+    other["ablation"]["full"]["settings"] = {"rollout_length": 10}
+    with pytest.raises(ValueError, match="ablation.full.settings"):
+        paper.merge_runs([adv, other])
+    with pytest.raises(ValueError, match="sac_config"):
+        paper.merge_runs([adv, {**mle, "sac_config": {"kl_weight": 0.01}}])
 
 
 def test_paper_families_flag():

@@ -29,12 +29,11 @@ test-all: setup
 hopper walker2d halfcheetah ant: setup
 	$(VENV)/bin/rl2s pipeline --task $@
 
-# The paper's protocol on the four tasks (>= 3 seeds; sizes by JAX backend, see
-# experiments/paper.py) into results/paper/<task>.json, then the tables.
+# The paper's protocol on the four tasks (sizes by JAX backend, see experiments/paper.py)
+# into results/paper/<task>.json, then the tables; with GPUs the tasks run at once, one
+# process per task pinned round-robin to the GPUs (experiments/paper_all.sh).
 paper: setup
-	for t in hopper walker2d halfcheetah ant; do \
-	  $(PY) experiments/paper.py --task $$t --out results/paper || exit 1; done
-	$(PY) experiments/paper_tables.py --results results/paper --out results/paper/tables.md
+	PY=$(PY) bash experiments/paper_all.sh results/paper
 
 bench: setup
 	$(PY) experiments/bench.py

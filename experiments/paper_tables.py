@@ -238,7 +238,8 @@ def policy_rows(results: dict) -> list[str]:
                     continue
                 pooled, trimmed, deployed, offered = [], [], 0, 0
                 for ln in mine:
-                    pairs = [(i, c) for i, c in zip(ln.get("I") or [], ln.get("c0") or [])
+                    gains, c0 = ln.get("I") or [], ln.get("c0") or []
+                    pairs = [(i, c) for i, c in zip(gains, c0, strict=True)
                              if i is not None and math.isfinite(i)]
                     if not pairs:
                         continue

@@ -114,15 +114,14 @@ EVAL_METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearma
 METRICS = EVAL_METRICS + ("mpi", "api")
 VARIANT_PARTS = ("full", "branched", "penalty", "stop")
 
-# Sizes per profile. gpu: the sizes of the measured protocol (docs/RESULTS.md, "The protocol
-# with the new defaults"): on one H100, per task, data 140-230 s, the adversarial program
-# (6 lanes x 300 steps: 200 pre-training, 100 WGAIL) 125-196 s, the likelihood program 74-127 s,
-# evaluations 13-22 s per program (four tasks' processes sharing the GPU;
-# docs/BENCHMARKS.md); SAC 4 simulators x 10 policies x 2000 iterations as one program (its
-# time is printed). cpu: small, for a 2-core machine.
+# Sizes per profile. gpu: the sizes of the measured protocol (docs/RESULTS.md, "5 seeds, 400
+# steps, and fine-tuning in the simulators"): 5 seeds, 400 steps (200 pre-training, 200 WGAIL),
+# every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1. On an H200
+# shared by two tasks' processes, per task: data 110-150 s, the adversarial program (10 lanes)
+# 240-255 s, the likelihood program 95-120 s, SAC 16-27 s, the real measurement of the
+# fine-tuned policies 35-52 s, the guard 6-8 s (logs:
+# experiments/gpu_runs/2026-11-23d/paper_{adv,mle}/). cpu: small, for a 2-core machine.
 PROFILES = {
-    # the sizes of the measured protocol (docs/RESULTS.md, session 5): 5 seeds, 400 steps,
-    # every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1
     "gpu": dict(seeds=5, transitions_per_policy=20_000, value_episodes=16, steps=400,
                 eval_every=100, eval_episodes=32, improve_policies=0, improve_seeds=2,
                 improve_iterations=2000, sac_envs=16, sac=dict(kl_weight=0.1)),

@@ -16,6 +16,7 @@ import argparse
 import json
 import math
 import os
+import statistics
 import sys
 
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
@@ -253,9 +254,7 @@ def policy_rows(results: dict) -> list[str]:
                         offered += len(ln["guard_accepted"])
                 if not pooled:
                     continue
-                srt = sorted(pooled)
-                n = len(srt)
-                median = srt[n // 2] if n % 2 else 0.5 * (srt[n // 2 - 1] + srt[n // 2])
+                n, median = len(pooled), statistics.median(pooled)
                 share = sum(i > 0 for i in pooled) / n
                 api_trim = "n/a" if not trimmed else f"{sum(trimmed) / len(trimmed):.3f}"
                 guard = f"{deployed} of {offered}" if offered else "n/a"

@@ -154,9 +154,9 @@ def test_paper_tables_policy_rows():
     rows = pt.policy_rows({"hopper": {"ablation": {"full": {"lanes": lanes},
                                                    "full+guard": {"methods": {}}}}})
     assert len(rows) == 4
-    # rl2s: I pooled = [0.1, -0.2, 9.0, 0.3, 0.0] -> share 2/5... I > 0: 0.1, 9.0, 0.3 = 3/5
-    # median 0.1; without the smallest |C0|: seed 0 mean(0.1, -0.2) = -0.05, seed 1 (0.3) ->
-    # mean 0.125; guard 2 of 6
+    # rl2s: I pooled = [0.1, -0.2, 9.0, 0.3, 0.0] (None dropped): 3 of 5 above 0, median 0.1;
+    # without the smallest |C0| per seed: mean(0.1, -0.2) = -0.05 and mean(0.3) = 0.3 ->
+    # 0.125; the guard deployed 2 of 6
     assert rows[2] == "| hopper | full | rl2s | 5 (2 seeds) | 0.60 | +0.100 | 0.125 | 2 of 6 |"
     assert rows[3] == "| hopper | full | gail | 2 (1 seeds) | 0.50 | +0.050 | 0.200 | n/a |"
     only = pt.policy_rows({"ant": {"improvement": lanes, "improve_variant": "branched"}})

@@ -425,11 +425,21 @@ def cmd_diagnose(args) -> int:
         raise ValueError(f"seeds: expected an int >= 1, got {args.seeds}")
     if args.ckpt is not None and not os.path.isdir(args.ckpt):
         raise ValueError(f"ckpt: expected a checkpoint directory, got {args.ckpt!r}")
+    if args.reference is not None and not os.path.isfile(args.reference):
+        raise ValueError(f"reference: expected a Dataset file (.npz), got {args.reference!r}")
     ds = load_dataset(args.data)
+    reference = None
+    if args.reference is not None:
+        reference = load_dataset(args.reference)
+        for name in ("obs_size", "action_size"):
+            if reference.meta.get(name) != ds.meta.get(name):
+                raise ValueError(f"reference: its {name} {reference.meta.get(name)} differs "
+                                 f"from the data's {ds.meta.get(name)}")
     spec = ModelSpec()
     if args.model_steps is not None:
         spec = dataclasses.replace(spec, steps=args.model_steps)
     report = diagnose(ds, args.out, ckpt=args.ckpt, seeds=tuple(range(args.seeds)),
+                      reference=reference,
                       heldout_frac=args.heldout, split_seed=args.seed, lags=args.lags,
                       k_max=args.k_max, base_spec=spec.validate(), zoo=args.zoo,
                       value_episodes=args.value_episodes, alpha=args.alpha,
@@ -641,6 +651,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="Dataset (.npz), any task or none")
     p.add_argument("--ckpt", help="a trained simulator's checkpoint directory to diagnose "
                    "(default: fit the base model here)")
+    p.add_argument("--reference", help="a Dataset of the same system without the effects "
+                   "sought (e.g. a clean recording): name only what the data shows beyond it")
     p.add_argument("--out", required=True, help="directory for report.md, report.json, PNGs")
     p.add_argument("--seeds", type=int, default=3, help="model seeds for the gain (>= 1)")
     p.add_argument("--heldout", type=float, default=0.3, help="fraction of episodes held out")

@@ -4,6 +4,7 @@ Plus the statistics underneath (cross-fitting, the sign-flip test, the episode e
 against plain NumPy references."""
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import json
 import os
@@ -15,9 +16,10 @@ from rl2s_jax.diagnose.causes import (
     crossfit_ridge,
     diagnose_causes,
     episode_estimate,
+    rank_sum_p,
     sign_flip_p,
 )
-from rl2s_jax.diagnose.episodes import from_dataset, half_split, split_episodes
+from rl2s_jax.diagnose.episodes import from_dataset, half_split, pool_episodes, split_episodes
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.diagnose.planted import make_planted
 from rl2s_jax.diagnose.run import diagnose, extension_for
@@ -47,6 +49,8 @@ def _gain_on_every_seed(report, metric="heldout_nll"):
 
 def test_clean_data_reports_none(reports):
     report, out, _ = reports("clean")
+    assert report["verdict"]["trust"] == "base"
+    assert report["verdict"]["wrong"].startswith("No cause explains")
     assert report["top_cause"] == "none", [(c["name"], c["score"], c["p_value"])
                                            for c in report["causes"]]
     assert report["extension"]["changes"] == [] and report["gain"]["after"] is None
@@ -111,6 +115,11 @@ def test_report_files_and_schema(reports):
     assert {"lag", "actuators"} <= set(saved["causes"][0]["details"])
     md = open(os.path.join(out, "report.md")).read()
     assert "actuation_delay" in md and "| heldout_nll |" in md
+    # the report opens with its verdict: what is wrong, why, the gain, whether to trust it
+    assert saved["verdict"]["trust"] == "extended"
+    first = md.split("\n")[2]
+    assert first.startswith("**The simulator misses an actuation delay")
+    assert "lag 2 steps on actuator(s) [0]" in first and "lower on 3 of 3 seeds" in first
     for png in saved["plots"]:
         assert os.path.getsize(os.path.join(out, png)) > 1000
 
@@ -198,4 +207,86 @@ def test_cli_diagnose_bad_input_names_the_field(tmp_path, capsys):
     assert main(["diagnose", "--data", path, "--out", str(tmp_path / "o"),
                  "--ckpt", str(tmp_path / "missing")]) == 2
     assert "ckpt" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "o")
+
+
+# ------------------------------------------------------------------ differential mode
+
+
+def _quick(target, reference, seed_ref=2):
+    ds = make_planted(target, n_episodes=N_EPISODES, seed=1)
+    ref = None if reference is None else make_planted(reference, n_episodes=N_EPISODES,
+                                                      seed=seed_ref)
+    return diagnose(ds, None, seeds=(0,), base_spec=ModelSpec(steps=MODEL_STEPS),
+                    reference=ref, plots=False, log=lambda s: None)
+
+
+def test_reference_separates_a_new_effect_from_one_both_datasets_show():
+    """Delay in both datasets, noise only in the target: alone, the delay wins; against
+    the reference, only the noise (on v2) is named."""
+    plain = _quick("delay+noise", None)
+    assert plain["top_cause"] == "actuation_delay"
+    diff = _quick("delay+noise", "delay")
+    assert diff["top_cause"] == "stochastic_noise"
+    top = diff["causes"][0]
+    assert 3 in top["details"]["dims"] and set(top["details"]["dims"]) <= {2, 3}
+    delay = next(c for c in diff["causes"] if c["name"] == "actuation_delay")
+    assert not delay["significant"] and delay["score"] < 0.05
+    assert diff["reference"]["episodes"] == N_EPISODES
+    assert diff["extension"]["extended"]["noise"] == "state"
+    assert "beyond what the reference data shows" in diff["verdict"]["wrong"]
+
+
+def test_reference_showing_the_same_effect_leaves_none():
+    report = _quick("delay", "delay")
+    assert report["top_cause"] == "none", [(c["name"], c["score"], c["p_value"])
+                                           for c in report["causes"]]
+    assert report["cause_settings"]["differential"]
+
+
+def test_rank_sum_p_matches_exact_enumeration():
+    rng = np.random.default_rng(0)
+    x, y = rng.normal(0.8, 1, 7), rng.normal(0, 1, 6)
+    both = np.concatenate([x, y])
+    ranks = np.argsort(np.argsort(both)) + 1.0
+    observed = ranks[:7].sum()
+    sums = np.array([ranks[list(c)].sum() for c in itertools.combinations(range(13), 7)])
+    exact = float((sums >= observed).mean())
+    assert abs(rank_sum_p(x, y) - exact) < 0.02
+    assert rank_sum_p(x, y) < rank_sum_p(y, x)
+    assert rank_sum_p(np.ones(3), np.ones(4)) == 1.0  # all tied: no evidence
+
+
+def test_pool_episodes_renumbers_the_reference_and_checks_sizes():
+    a = from_dataset(make_planted("clean", n_episodes=6, seed=0))
+    b = from_dataset(make_planted("delay", n_episodes=4, seed=1))
+    pooled, in_target = pool_episodes(a, b)
+    assert pooled.n == a.n + b.n and in_target.sum() == a.n
+    assert pooled.n_episodes == 10 and pooled.n_policies == a.n_policies + b.n_policies
+    np.testing.assert_array_equal(pooled.episode[~in_target], b.episode + 6)
+    np.testing.assert_array_equal(pooled.rows(np.arange(6, 10)), np.flatnonzero(~in_target))
+    np.testing.assert_array_equal(pooled.order[~in_target], b.order)
+    small = dataclasses.replace(b, obs=b.obs[:, :3], next_obs=b.next_obs[:, :3])
+    with pytest.raises(ValueError, match="reference: its obs size 3"):
+        pool_episodes(a, small)
+
+
+def test_cli_diagnose_reference_of_another_system_is_refused(tmp_path, capsys):
+    from rl2s_jax.cli import main
+    from rl2s_jax.data import Dataset, save_dataset
+
+    data, ref = str(tmp_path / "d.npz"), str(tmp_path / "r.npz")
+    ds = make_planted("clean", n_episodes=8, seed=0)
+    save_dataset(data, ds)
+    arrays = {k: np.asarray(getattr(ds, k)) for k in ("obs", "action", "next_obs", "reward",
+                                                      "done", "truncated", "policy_id",
+                                                      "episode_id", "t")}
+    arrays["action"] = arrays["action"][:, :1]
+    save_dataset(ref, Dataset.from_arrays(arrays, {**ds.meta, "action_size": 1}))
+    assert main(["diagnose", "--data", data, "--out", str(tmp_path / "o"),
+                 "--reference", ref]) == 2
+    assert "reference: its action_size 1" in capsys.readouterr().err
+    assert main(["diagnose", "--data", data, "--out", str(tmp_path / "o"),
+                 "--reference", str(tmp_path / "missing.npz")]) == 2
+    assert "reference" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "o")

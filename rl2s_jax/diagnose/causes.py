@@ -243,34 +243,12 @@ def _gain(nll_without: np.ndarray, nll_with: np.ndarray, episode: np.ndarray) ->
             "per_dim": (nll_without - nll_with).mean(0)}
 
 
-def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndarray,
-                fit_rows: np.ndarray, *, pred_mean: np.ndarray | None = None, lags: int = 5,
-                n_folds: int = 5, seed: int = 0,
-                alpha: float = 0.01, min_score: float = 0.02, resolution: float = 0.03,
-                n_boot: int = 200, obs_names=None, action_names=None) -> dict:
-    """Test the held-out residuals against every cause.
-
-    eps: the episodes; rows [n]: held-out rows (whole episodes, dataset order); resid [n, o]:
-    normalised residuals (delta / delta_std minus the model's mean); std [n, o]: the model's
-    std in the same units; fit_rows: the rows the model was fit on (for the density feature);
-    pred_mean [n, o]: the model's predicted mean in the same units (recommended).
-
-    resolution: errors below this fraction of the data's delta std count as exact (a variance
-    floor in every NLL), so that round-off on a dim the model gets right is never "explained".
-    A cause is *significant* when its p-value is below alpha / (number of causes) and its unique
-    score is at least ``min_score`` nats per transition. Returns {"causes": [...] ranked (most
-    significant first, then by score), "top_cause", "confidence", "scores": {...}}; each cause is
-    {"name", "score", "p_value", "significant", "marginal_score", "details"}.
-    """
-    rows = np.asarray(rows)
-    resid, std = np.asarray(resid, np.float64), np.asarray(std, np.float64)
-    if resid.shape != (len(rows), eps.obs_size) or std.shape != resid.shape:
-        raise ValueError(f"resid, std: expected shape [{len(rows)}, {eps.obs_size}], got "
-                         f"{resid.shape} and {std.shape}")
-    if not (np.isfinite(resid).all() and np.isfinite(std).all() and (std > 0).all()):
-        raise ValueError("resid, std: expected finite residuals and positive stds")
-    obs_names = obs_names or [f"obs{d}" for d in range(eps.obs_size)]
-    action_names = action_names or [f"act{i}" for i in range(eps.action_size)]
+def _test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndarray,
+                 fit_rows: np.ndarray, *, pred_mean, lags: int, n_folds: int, seed: int,
+                 resolution: float) -> dict:
+    """Every cause's unique gain on these rows. -> {"results": cause -> gain (``_gain`` plus
+    "marginal"), "nll" / "vnll": model -> per-row NLL [n, o] of the mean / variance models,
+    "u2" [n, o], "episode" [n], "rows", "resid", "blocks"}."""
     episode = eps.episode[rows]
     folds = episode_folds(eps, rows, n_folds, seed)
     blocks = build_features(eps, rows, resid, fit_rows, pred_mean=pred_mean, lags=lags,
@@ -326,16 +304,113 @@ def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.
         g = _gain(vnll[f"-{block}"], vnll["full"], episode)
         g["marginal"] = _gain(vnll["none"], vnll[f"+{block}"], episode)["score"]
         results[cause] = g
+    return {"results": results, "nll": nll, "vnll": vnll, "u2": u2, "episode": episode,
+            "rows": rows, "resid": resid, "blocks": blocks}
 
+
+def _difference(tested: dict, ref: dict) -> dict:
+    """Differential gains: target minus reference score, per dim and marginal; the p-value
+    from the rank-sum test of per-episode mean gains (target > reference)."""
+    out = {}
+    for c, g in tested["results"].items():
+        r = ref["results"][c]
+        out[c] = {"score": g["score"] - r["score"], "per_dim": g["per_dim"] - r["per_dim"],
+                  "marginal": g["marginal"] - r["marginal"],
+                  "per_episode": g["per_episode"],
+                  "p_value": rank_sum_p(_per_row(g["per_episode"], tested["episode"]),
+                                        _per_row(r["per_episode"], ref["episode"]))}
+    return out
+
+
+def _per_row(per_episode: np.ndarray, episode: np.ndarray) -> np.ndarray:
+    """Per-episode sums [E'] divided by the episodes' row counts: mean gain per transition."""
+    _, counts = np.unique(episode, return_counts=True)
+    return per_episode / counts
+
+
+def rank_sum_p(x: np.ndarray, y: np.ndarray) -> float:
+    """One-sided p-value that the values x [n] tend to exceed y [m]: the Wilcoxon rank-sum
+    (Mann-Whitney) test with average ranks for ties and the normal approximation to its null,
+    tie-corrected."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    n, m = x.size, y.size
+    if n == 0 or m == 0:
+        return 1.0
+    both = np.concatenate([x, y])
+    _, inv, counts = np.unique(both, return_inverse=True, return_counts=True)
+    first = np.cumsum(counts) - counts  # 0-based rank of each distinct value's first copy
+    ranks = (first + (counts + 1) / 2.0)[inv]
+    u = ranks[:n].sum() - n * (n + 1) / 2.0
+    N = n + m
+    var = n * m / 12.0 * ((N + 1) - (counts ** 3 - counts).sum() / (N * (N - 1)))
+    if var <= 0:
+        return 1.0
+    z = (u - n * m / 2.0) / math.sqrt(var)
+    return 0.5 * math.erfc(z / math.sqrt(2.0))
+
+
+def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndarray,
+                fit_rows: np.ndarray, *, pred_mean: np.ndarray | None = None, lags: int = 5,
+                n_folds: int = 5, seed: int = 0,
+                alpha: float = 0.01, min_score: float = 0.02, resolution: float = 0.03,
+                n_boot: int = 200, obs_names=None, action_names=None,
+                in_target: np.ndarray | None = None) -> dict:
+    """Test the held-out residuals against every cause.
+
+    eps: the episodes; rows [n]: held-out rows (whole episodes, dataset order); resid [n, o]:
+    normalised residuals (delta / delta_std minus the model's mean); std [n, o]: the model's
+    std in the same units; fit_rows: the rows the model was fit on (for the density feature);
+    pred_mean [n, o]: the model's predicted mean in the same units (recommended).
+
+    resolution: errors below this fraction of the data's delta std count as exact (a variance
+    floor in every NLL), so that round-off on a dim the model gets right is never "explained".
+    A cause is *significant* when its p-value is below alpha / (number of causes) and its unique
+    score is at least ``min_score`` nats per transition. Returns {"causes": [...] ranked (most
+    significant first, then by score), "top_cause", "confidence", "scores": {...}}; each cause is
+    {"name", "score", "p_value", "significant", "marginal_score", "details"}.
+
+    Differential mode (``in_target`` [n] bool given): ``rows`` hold the held-out rows of a
+    target dataset and of a reference dataset of the same system (``episodes.pool_episodes``),
+    the residuals of both from the same model. The tests run on each side alone; a cause's
+    score is its target gain minus its reference gain (per transition), and its p-value is a
+    one-sided rank-sum test that the target's per-episode gains exceed the reference's. An
+    effect that both datasets show scores about zero; what is new in the target stands out.
+    The details (lag, actuators, dims) come from the same differences.
+    """
+    rows = np.asarray(rows)
+    resid, std = np.asarray(resid, np.float64), np.asarray(std, np.float64)
+    if resid.shape != (len(rows), eps.obs_size) or std.shape != resid.shape:
+        raise ValueError(f"resid, std: expected shape [{len(rows)}, {eps.obs_size}], got "
+                         f"{resid.shape} and {std.shape}")
+    if not (np.isfinite(resid).all() and np.isfinite(std).all() and (std > 0).all()):
+        raise ValueError("resid, std: expected finite residuals and positive stds")
+    obs_names = obs_names or [f"obs{d}" for d in range(eps.obs_size)]
+    action_names = action_names or [f"act{i}" for i in range(eps.action_size)]
+    kw = dict(pred_mean=pred_mean, lags=lags, n_folds=n_folds, seed=seed, resolution=resolution)
+    if in_target is None:
+        tested = _test_causes(eps, rows, resid, std, fit_rows, **kw)
+        ref = None
+    else:
+        sel = np.asarray(in_target, bool)
+        if sel.shape != (len(rows),):
+            raise ValueError(f"in_target: expected a bool mask of shape [{len(rows)}], got "
+                             f"{sel.shape}")
+        pm = (lambda m: None) if pred_mean is None else (lambda m: pred_mean[m])
+        tested = _test_causes(eps, rows[sel], resid[sel], std[sel], fit_rows,
+                              **{**kw, "pred_mean": pm(sel)})
+        ref = _test_causes(eps, rows[~sel], resid[~sel], std[~sel], fit_rows,
+                           **{**kw, "pred_mean": pm(~sel)})
+    results = tested["results"] if ref is None else _difference(tested, ref)
     n_tests = len(CAUSES)
     for g in results.values():
         g["significant"] = bool(g["p_value"] < alpha / n_tests and g["score"] >= min_score)
 
-    details = _details(results, nll, vnll, u2, episode, eps, rows, resid, blocks, lags=lags,
-                       alpha=alpha, obs_names=obs_names, action_names=action_names)
+    details = _details(results, tested, ref, eps, lags=lags, alpha=alpha,
+                       obs_names=obs_names, action_names=action_names)
     ranked = sorted(results, key=lambda c: (not results[c]["significant"], -results[c]["score"]))
     top = ranked[0] if results[ranked[0]]["significant"] else "none"
-    confidence = _confidence(results, top, episode, min_score, n_boot, seed)
+    confidence = _confidence(results, top, [tested] if ref is None else [tested, ref],
+                             min_score, n_boot, seed)
     causes = [{"name": c, "score": results[c]["score"], "p_value": results[c]["p_value"],
                "significant": results[c]["significant"],
                "marginal_score": results[c]["marginal"], "details": details[c]} for c in ranked]
@@ -348,8 +423,13 @@ def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.
     causes.insert(0 if top == "none" else len(causes), none_entry)
     return {"causes": causes, "top_cause": top, "confidence": confidence,
             "settings": {"lags": lags, "folds": n_folds, "alpha": alpha,
-                         "min_score": min_score, "n_boot": n_boot, "rows": int(len(rows)),
-                         "episodes": int(len(np.unique(episode)))}}
+                         "min_score": min_score, "n_boot": n_boot,
+                         "rows": int(len(tested["episode"])),
+                         "episodes": int(len(np.unique(tested["episode"]))),
+                         "differential": ref is not None,
+                         **({} if ref is None else {
+                             "reference_rows": int(len(ref["episode"])),
+                             "reference_episodes": int(len(np.unique(ref["episode"])))})}}
 
 
 def _dims_of(per_dim: np.ndarray, frac: float = 0.1) -> list[int]:
@@ -359,12 +439,26 @@ def _dims_of(per_dim: np.ndarray, frac: float = 0.1) -> list[int]:
     return [int(d) for d in np.flatnonzero(per_dim >= frac * per_dim.max())]
 
 
-def _details(results, nll, vnll, u2, episode, eps, rows, resid, blocks, *, lags, alpha,
-             obs_names, action_names) -> dict:
-    full = nll["full"]
+def _details(results, tested, ref, eps, *, lags, alpha, obs_names, action_names) -> dict:
+    u2, episode = tested["u2"], tested["episode"]
+    rows, resid, blocks = tested["rows"], tested["resid"], tested["blocks"]
 
-    def drop_gain(name):
-        return _gain(nll[name], full, episode)
+    def side_gain(t, name, d=None):
+        """The gain of dropping model ``name`` on one side (summed dims, or dim d)."""
+        if d is None:
+            return _gain(t["nll"][name], t["nll"]["full"], t["episode"])
+        return _gain(t["vnll"]["-magnitude"][:, d:d + 1], t["vnll"]["full"][:, d:d + 1],
+                     t["episode"])
+
+    def drop_gain(name, d=None):
+        """Its gain, the reference's subtracted in differential mode."""
+        g = side_gain(tested, name, d)
+        if ref is None:
+            return g
+        r = side_gain(ref, name, d)
+        return {"score": g["score"] - r["score"],
+                "p_value": rank_sum_p(_per_row(g["per_episode"], episode),
+                                      _per_row(r["per_episode"], ref["episode"]))}
 
     n_a = eps.action_size
     lag_gain = [drop_gain(f"-a_lag{j + 1}")["score"] for j in range(lags)]
@@ -382,10 +476,7 @@ def _details(results, nll, vnll, u2, episode, eps, rows, resid, blocks, *, lags,
     between = (counts[:, None] * (ep_mean - resid.mean(0)) ** 2).sum(0)
     total = ((resid - resid.mean(0)) ** 2).sum(0) + 1e-12
     noise_dim = results["stochastic_noise"]["per_dim"]
-    noise_p = []
-    for d in range(u2.shape[1]):
-        per_ep = episode_sums(vnll["-magnitude"][:, d] - vnll["full"][:, d], episode)
-        noise_p.append(sign_flip_p(per_ep))
+    noise_p = [drop_gain(None, d)["p_value"] for d in range(u2.shape[1])]
     noise_dims = [d for d in range(u2.shape[1])
                   if noise_p[d] < alpha / u2.shape[1] and noise_dim[d] > 0.01]
     dens = blocks["density"][:, 0]
@@ -429,19 +520,24 @@ def _details(results, nll, vnll, u2, episode, eps, rows, resid, blocks, *, lags,
     }
 
 
-def _confidence(results: dict, top: str, episode: np.ndarray, min_score: float, n_boot: int,
+def _confidence(results: dict, top: str, sides: list[dict], min_score: float, n_boot: int,
                 seed: int) -> float:
     """Share of episode resamples in which the reported cause still wins: the top cause has
-    the highest score (or, for "none", no cause reaches min_score)."""
+    the highest score (or, for "none", no cause reaches min_score). ``sides``: the tested
+    target, and in differential mode the reference, whose resampled scores are subtracted."""
     names = list(results)
-    per_ep = np.stack([results[c]["per_episode"] for c in names])  # [C, E]
-    _, inv = np.unique(episode, return_inverse=True)
-    n_rows = np.bincount(inv).astype(float)
     rng = np.random.default_rng(seed + 1)
+    parts = []
+    for sign, t in zip((1.0, -1.0), sides, strict=False):
+        per_ep = np.stack([t["results"][c]["per_episode"] for c in names])  # [C, E]
+        _, inv = np.unique(t["episode"], return_inverse=True)
+        parts.append((sign, per_ep, np.bincount(inv).astype(float)))
     wins = 0
     for _ in range(n_boot):
-        pick = rng.integers(0, per_ep.shape[1], per_ep.shape[1])
-        scores = per_ep[:, pick].sum(1) / n_rows[pick].sum()
+        scores = 0.0
+        for sign, per_ep, n_rows in parts:
+            pick = rng.integers(0, per_ep.shape[1], per_ep.shape[1])
+            scores = scores + sign * per_ep[:, pick].sum(1) / n_rows[pick].sum()
         if top == "none":
             wins += bool(scores.max() < min_score)
         else:

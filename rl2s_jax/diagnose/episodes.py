@@ -162,3 +162,32 @@ def half_split(eps: Episodes) -> np.ndarray:
     Used to estimate a per-episode quantity from one half and test it on the other."""
     mid = eps.length[eps.episode] // 2
     return (eps.t >= mid).astype(np.int64)
+
+
+def pool_episodes(target: Episodes, reference: Episodes) -> tuple[Episodes, np.ndarray]:
+    """One episode view of a target and a reference dataset of the same system, for the
+    differential diagnosis: the target's rows first, then the reference's, with the
+    reference's episodes and policies renumbered after the target's (a policy of both counts
+    as two). Each dataset keeps its own recording order and step fractions.
+
+    -> (pooled Episodes, in_target [N_target + N_reference] bool)."""
+    for name, a, b in (("obs size", target.obs_size, reference.obs_size),
+                       ("action size", target.action_size, reference.action_size)):
+        if a != b:
+            raise ValueError(f"reference: its {name} {b} differs from the data's {a}; the "
+                             "reference must come from the same system with the same "
+                             "observation")
+    cat = lambda f: np.concatenate([getattr(target, f), getattr(reference, f)])
+    pooled = Episodes(
+        obs=cat("obs"), action=cat("action"), next_obs=cat("next_obs"),
+        policy=np.concatenate([target.policy, reference.policy + target.n_policies]),
+        episode=np.concatenate([target.episode, reference.episode + target.n_episodes]),
+        t=cat("t"), order=cat("order"), step_frac=cat("step_frac"),
+        start=np.concatenate([target.start, reference.start + target.n]),
+        length=cat("length"),
+        episode_policy=np.concatenate([target.episode_policy,
+                                       reference.episode_policy + target.n_policies]),
+        n_policies=target.n_policies + reference.n_policies,
+        position_dims=target.position_dims)
+    in_target = np.r_[np.ones(target.n, bool), np.zeros(reference.n, bool)]
+    return pooled, in_target

@@ -101,9 +101,24 @@ def make_planted(effect: str = "clean", *, n_episodes: int = 240, episode_length
                       "parameter": "actuator_gain", "actuators": [0, 1], "start": 1.0,
                       "end": 0.6}
 
+    Effects combine with "+" (for example "delay+noise": both at once, each with its
+    defaults; ``effect_kwargs`` must then be empty). The truth of a combination is
+    {"effect": "combined", "effects": [the truth of each part]}.
+
     Raises ValueError on a bad argument, before any work.
     """
-    kw = _check_args(effect, effect_kwargs, n_episodes, episode_length, n_policies)
+    parts = tuple(str(effect).split("+")) if isinstance(effect, str) else (effect,)
+    if len(parts) > 1:
+        if effect_kwargs:
+            raise ValueError(f"effect {effect!r}: a combination takes no effect arguments, "
+                             f"got {', '.join(sorted(effect_kwargs))}")
+        if len(set(parts)) != len(parts) or "clean" in parts:
+            raise ValueError(f"effect: expected distinct effects other than 'clean' joined "
+                             f"by '+', got {effect!r}")
+        kws = {p: _check_args(p, {}, n_episodes, episode_length, n_policies) for p in parts}
+    else:
+        kws = {effect: _check_args(effect, effect_kwargs, n_episodes, episode_length,
+                                   n_policies)}
     E, L, P = n_episodes, episode_length, n_policies
     rng = {k: np.random.default_rng([seed, k]) for k in
            (_RNG_POLICIES, _RNG_STARTS, _RNG_EXPLORE, _RNG_EFFECT)}
@@ -122,33 +137,40 @@ def make_planted(effect: str = "clean", *, n_episodes: int = 240, episode_length
 
     mass1 = np.full(E, TWOMASS["mass"][0])
     gain_scale = np.ones(E)
-    truth: dict[str, Any] = {"effect": "none"}
-    if effect == "delay":
-        queue = np.zeros((E, kw["lag"], 2))  # a_{t-lag} ... a_{t-1}
-        delayed = np.isin(np.arange(2), kw["actuators"])
-        truth = {"effect": "actuation_delay", "lag": kw["lag"],
-                 "actuators": sorted(kw["actuators"])}
-    elif effect == "episode_param":
-        lo, hi = kw["mass_range"]
+    truths: list[dict[str, Any]] = []
+    if "delay" in kws:
+        kd = kws["delay"]
+        queue = np.zeros((E, kd["lag"], 2))  # a_{t-lag} ... a_{t-1}
+        delayed = np.isin(np.arange(2), kd["actuators"])
+        truths.append({"effect": "actuation_delay", "lag": kd["lag"],
+                       "actuators": sorted(kd["actuators"])})
+    if "episode_param" in kws:
+        lo, hi = kws["episode_param"]["mass_range"]
         mass1 = np.exp(erng.uniform(math.log(lo), math.log(hi), E))
-        truth = {"effect": "hidden_episode_parameter", "parameter": "mass1",
-                 "distribution": "log-uniform", "range": [lo, hi],
-                 "values": [round(float(m), 6) for m in mass1]}
-    elif effect == "noise":
-        noisy_bodies = [_VELOCITY_DIM_OF_BODY.index(d) for d in kw["dims"]]
-        truth = {"effect": "stochastic_noise", "dims": sorted(kw["dims"]),
-                 "std": "scale * (base + |a_j|), a_j the actuator of the body",
-                 "scale": kw["scale"], "base": kw["base"]}
-    elif effect == "unobserved":
+        truths.append({"effect": "hidden_episode_parameter", "parameter": "mass1",
+                       "distribution": "log-uniform", "range": [lo, hi],
+                       "values": [round(float(m), 6) for m in mass1]})
+    if "noise" in kws:
+        kn = kws["noise"]
+        noisy_bodies = [_VELOCITY_DIM_OF_BODY.index(d) for d in kn["dims"]]
+        truths.append({"effect": "stochastic_noise", "dims": sorted(kn["dims"]),
+                       "std": "scale * (base + |a_j|), a_j the actuator of the body",
+                       "scale": kn["scale"], "base": kn["base"]})
+    if "unobserved" in kws:
+        ku = kws["unobserved"]
         hidden = np.concatenate([rng[_RNG_STARTS].uniform(-1.0, 1.0, (E, 1)),
                                  rng[_RNG_STARTS].uniform(-0.5, 0.5, (E, 1))], axis=1)
-        truth = {"effect": "unobserved_state", "hidden": ["p3", "v3"], "coupled_to": "body1",
-                 "dims": [0, 1], "spring": kw["spring"], "mass": kw["mass"],
-                 "decay": kw["decay"]}
-    elif effect == "drift":
-        gain_scale = kw["gain_start"] + (kw["gain_end"] - kw["gain_start"]) * order
-        truth = {"effect": "time_drift", "over": "episode_order", "parameter": "actuator_gain",
-                 "actuators": [0, 1], "start": kw["gain_start"], "end": kw["gain_end"]}
+        truths.append({"effect": "unobserved_state", "hidden": ["p3", "v3"],
+                       "coupled_to": "body1", "dims": [0, 1], "spring": ku["spring"],
+                       "mass": ku["mass"], "decay": ku["decay"]})
+    if "drift" in kws:
+        kg = kws["drift"]
+        gain_scale = kg["gain_start"] + (kg["gain_end"] - kg["gain_start"]) * order
+        truths.append({"effect": "time_drift", "over": "episode_order",
+                       "parameter": "actuator_gain", "actuators": [0, 1],
+                       "start": kg["gain_start"], "end": kg["gain_end"]})
+    truth = (truths[0] if len(truths) == 1 else {"effect": "none"} if not truths
+             else {"effect": "combined", "effects": truths})
 
     obs = np.zeros((E, L, 4), np.float32)
     action = np.zeros((E, L, 2), np.float32)
@@ -156,20 +178,20 @@ def make_planted(effect: str = "clean", *, n_episodes: int = 240, episode_length
         a, explore = _policy_action(pol, state, t, phase, explore, rng[_RNG_EXPLORE])
         applied = a.astype(np.float64)
         force1 = 0.0
-        if effect == "delay":
+        if "delay" in kws:
             applied = np.where(delayed, queue[:, 0], applied)
             queue = np.concatenate([queue[:, 1:], a[:, None]], axis=1)
-        if effect == "unobserved":
-            force1 = -kw["spring"] * (state[:, 0] - hidden[:, 0])
+        if "unobserved" in kws:
+            force1 = -ku["spring"] * (state[:, 0] - hidden[:, 0])
         nxt = twomass_dynamics(state, applied, mass1=mass1, gain_scale=gain_scale,
                                force1=force1)
-        if effect == "noise":
-            for d, j in zip(kw["dims"], noisy_bodies, strict=True):
-                std = kw["scale"] * (kw["base"] + np.abs(a[:, j]))
+        if "noise" in kws:
+            for d, j in zip(kn["dims"], noisy_bodies, strict=True):
+                std = kn["scale"] * (kn["base"] + np.abs(a[:, j]))
                 nxt[:, d] += std * erng.standard_normal(E)
-        if effect == "unobserved":
-            v3 = kw["decay"] * hidden[:, 1] + TWOMASS["dt"] * kw["spring"] * (
-                state[:, 0] - hidden[:, 0]) / kw["mass"]
+        if "unobserved" in kws:
+            v3 = ku["decay"] * hidden[:, 1] + TWOMASS["dt"] * ku["spring"] * (
+                state[:, 0] - hidden[:, 0]) / ku["mass"]
             hidden = np.stack([hidden[:, 0] + TWOMASS["dt"] * v3, v3], axis=1)
         obs[:, t], action[:, t] = state, a
         state = _f32(nxt)
@@ -191,7 +213,9 @@ def make_planted(effect: str = "clean", *, n_episodes: int = 240, episode_length
     meta = {"task": None, "obs_size": 4, "action_size": 2, "n_policies": P, "gamma": None,
             "episode_length": L, "policy_names": [f"twomass-pd-{i}" for i in range(P)],
             "source": {"generator": "planted.twomass", "planted": truth, "seed": seed,
-                       "effect": effect, "effect_kwargs": _jsonable(kw),
+                       "effect": effect,
+                       "effect_kwargs": (_jsonable(kws[effect]) if effect in kws
+                                         else {p: _jsonable(k) for p, k in kws.items()}),
                        "system": _jsonable(TWOMASS)}}
     return Dataset.from_arrays(arrays, meta)
 

@@ -16,7 +16,7 @@ import numpy as np
 
 from rl2s_jax.data import Dataset
 from rl2s_jax.diagnose.causes import diagnose_causes
-from rl2s_jax.diagnose.episodes import Episodes, from_dataset, split_episodes
+from rl2s_jax.diagnose.episodes import Episodes, from_dataset, pool_episodes, split_episodes
 from rl2s_jax.diagnose.gaps import error_breakdown, gaps_markdown, jsonable, plot_gaps
 from rl2s_jax.diagnose.model import (
     FittedModels,
@@ -90,6 +90,30 @@ def _checkpoint_residuals(ckpt: str, base: FittedModels, eps: Episodes, rows: np
     resid = (eps.delta[rows] - pred) / d_std
     std = s_std * np.asarray(std_n, np.float64) / d_std
     return resid, std, (pred - np.asarray(base.norm.delta_mean, np.float64)) / d_std
+
+
+def _differential_causes(eps: Episodes, ref_eps: Episodes, fit_eps, held_eps,
+                         base: FittedModels, base_spec: ModelSpec, ckpt: str | None, seed: int,
+                         heldout_frac: float, split_seed: int, lags: int, alpha: float,
+                         min_score: float, progress: bool, log) -> dict:
+    """The cause tests of the target against a reference dataset (see ``diagnose``)."""
+    pooled, in_target = pool_episodes(eps, ref_eps)
+    ref_fit, ref_held = split_episodes(ref_eps, heldout_frac, split_seed)
+    fit_ep = np.r_[fit_eps, ref_fit + eps.n_episodes]
+    held_ep = np.r_[held_eps, ref_held + eps.n_episodes]
+    fit_rows, held_rows = pooled.rows(fit_ep), pooled.rows(held_ep)
+    log(f"[diagnose] reference: {ref_eps.n} transitions, {ref_eps.n_episodes} episodes; the "
+        f"causes are tested on what the data shows beyond it")
+    if ckpt is not None:
+        resid, std, pred_mean = _checkpoint_residuals(ckpt, base, pooled, held_rows)
+    else:
+        model = fit_models(pooled, fit_ep, base_spec, (seed,), progress=progress)
+        mean, std_all = predict(model, pooled, held_rows)
+        resid = normalized_delta(model, pooled, held_rows) - mean[0]
+        std, pred_mean = std_all[0], mean[0]
+    return diagnose_causes(pooled, held_rows, resid, std, fit_rows, pred_mean=pred_mean,
+                           lags=lags, seed=split_seed, alpha=alpha, min_score=min_score,
+                           in_target=in_target[held_rows])
 
 
 def _value_setup(ds: Dataset, zoo: str | None, horizon: int | None, gamma: float | None):
@@ -180,13 +204,21 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
              lags: int = 5, k_max: int = 20, base_spec: ModelSpec | None = None,
              zoo: str | None = None, value_episodes: int = 8, value_horizon: int | None = None,
              alpha: float = 0.01, min_score: float = 0.02, plots: bool = True,
-             progress: bool = False, log: Callable[[str], None] = print) -> dict:
+             reference: Dataset | None = None, progress: bool = False,
+             log: Callable[[str], None] = print) -> dict:
     """Diagnose a simulator of ``ds``: the one saved at ``ckpt``, or a base model fitted here.
 
     Fits the base model (``base_spec``, default ``ModelSpec()``) on the fit episodes for every
     seed, shows its held-out errors, tests the causes, fits the extension the causes call for
     with the same seeds, and measures before vs after. Writes report.json, report.md and PNGs
     to ``out_dir`` when given. -> the report dict (docs/DIAGNOSIS.md).
+
+    ``reference``: a dataset of the same system without the effects sought (for example a
+    clean recording). The causes are then tested differentially: only what the target's
+    residuals show beyond the reference's counts (``causes.diagnose_causes(in_target=...)``).
+    The residuals of both come from the saved simulator, or else from one base model fitted
+    on the fit episodes of both (seed ``seeds[0]``); the extension is still fitted, and its
+    gain measured, on ``ds`` alone.
     """
     seeds = tuple(int(s) for s in seeds)
     if not seeds:
@@ -205,6 +237,12 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
         log(f"[diagnose] {name}: {timings[name]:.1f}s")
 
     eps = from_dataset(ds)
+    ref_eps = None
+    if reference is not None:
+        if not isinstance(reference, Dataset):
+            raise ValueError(f"reference: expected a Dataset, got {type(reference).__name__}")
+        ref_eps = from_dataset(reference, position_dims=eps.position_dims)
+        pool_episodes(eps, ref_eps)  # checks the sizes before any work
     fit_eps, held_eps = split_episodes(eps, heldout_frac, split_seed)
     fit_rows, held_rows = eps.rows(fit_eps), eps.rows(held_eps)
     if eps.length[held_eps].min() < 2 and base_spec.context_dim:
@@ -242,8 +280,13 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
     gaps = error_breakdown(eps, held_rows, resid, std, kstep=before["kstep_rmse"], vd=vd)
     phase("error breakdown", t0)
     t0 = time.perf_counter()
-    causes = diagnose_causes(eps, held_rows, resid, std, fit_rows, pred_mean=pred_mean,
-                             lags=lags, seed=split_seed, alpha=alpha, min_score=min_score)
+    if ref_eps is None:
+        causes = diagnose_causes(eps, held_rows, resid, std, fit_rows, pred_mean=pred_mean,
+                                 lags=lags, seed=split_seed, alpha=alpha, min_score=min_score)
+    else:
+        causes = _differential_causes(eps, ref_eps, fit_eps, held_eps, base, base_spec, ckpt,
+                                      seeds[0], heldout_frac, split_seed, lags, alpha,
+                                      min_score, progress, log)
     phase("cause tests", t0)
     top = causes["top_cause"]
     log(f"[diagnose] top cause: {top} (confidence {causes['confidence']:.2f})")
@@ -254,6 +297,9 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
                  "task": ds.meta.get("task"), "fit_episodes": int(len(fit_eps)),
                  "heldout_episodes": int(len(held_eps))},
         "residuals_from": source,
+        "reference": None if ref_eps is None else {
+            "transitions": ref_eps.n, "episodes": ref_eps.n_episodes,
+            "policies": ref_eps.n_policies, "task": reference.meta.get("task")},
         "value_views": "on" if setup else f"skipped: {no_values}",
         "gaps": gaps, "causes": causes["causes"], "top_cause": top,
         "confidence": causes["confidence"], "cause_settings": causes["settings"],
@@ -273,6 +319,7 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
         gain["after"] = None
         gain["difference"] = None
     report["gain"] = gain
+    report["verdict"] = verdict(report)
     report["timings"] = timings
     report["seconds"] = round(time.perf_counter() - t_start, 1)
     if out_dir:
@@ -288,6 +335,89 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
         log(f"[diagnose] wrote {out_dir}/report.json, report.md and {len(figs)} plots "
             f"({report['seconds']:.0f}s in all)")
     return report
+
+
+_CAUSE_WORDS = {
+    "actuation_delay": "an actuation delay", "unobserved_state": "an unobserved state",
+    "hidden_episode_parameter": "a hidden parameter that changes from episode to episode",
+    "time_drift": "a drift of the dynamics", "stochastic_noise": "state-dependent noise",
+    "coverage_gap": "a coverage gap (too little data where the error is)",
+}
+_EXTENSION_WORDS = {
+    "action_history": "past actions", "obs_history": "past observations",
+    "context_dim": "a per-episode context", "noise": "a state-dependent noise head",
+    "time_inputs": "time inputs", "policy_cvar_eps": "CVaR weighting of the worst policies",
+}
+
+
+def _cause_details(c: dict) -> str:
+    d = c["details"]
+    name = c["name"]
+    if name == "actuation_delay":
+        return f"lag {d['lag']} steps on actuator(s) {d['actuators']}"
+    if name == "unobserved_state":
+        return f"past observations at lags {d['lags']} explain dims {d['dims']}"
+    if name == "time_drift":
+        return f"over the {d['over'].replace('_', ' ')}, in dims {d['dims']}"
+    if name == "stochastic_noise":
+        return f"in dims {d['dims']}"
+    if name == "coverage_gap":
+        return f"worst policies {d['worst_policies']}"
+    return f"in dims {d.get('dims', [])}"
+
+
+def verdict(report: dict) -> dict:
+    """The two sentences at the top of report.md: what is wrong and why; what the extension
+    gained and whether to trust the extended simulator. -> {"wrong", "gain", "trust"}; trust
+    is "extended" (the extension lowered held-out NLL on every seed without raising MSE by
+    more than 10% or, where values exist, AVD), "base" (nothing to extend) or "neither"
+    (the extension did not help cleanly: each failing check is named)."""
+    top = report["top_cause"]
+    ref = " beyond what the reference data shows" if report.get("reference") else ""
+    worst = report["gaps"].get("by_dim") or []
+    worst = max(worst, key=lambda d: d["share"] or 0) if worst else None
+    where = (f"; the largest share of its one-step error ({worst['share']:.0%}) is in "
+             f"{worst['name']}") if worst and worst["share"] is not None else ""
+    if top == "none":
+        wrong = (f"No cause explains the simulator's held-out errors{ref} (every test below "
+                 f"{report['cause_settings']['min_score']} nats per transition or not "
+                 f"significant){where}.")
+        return {"wrong": wrong, "gain": "Nothing was extended, so the base simulator stands "
+                "as it is.", "trust": "base"}
+    c = next(c for c in report["causes"] if c["name"] == top)
+    wrong = (f"The simulator misses {_CAUSE_WORDS[top]}{ref} ({_cause_details(c)}; it saves "
+             f"{c['score']:.3g} nats per held-out transition, p = {c['p_value']:.1g}, "
+             f"confidence {report['confidence']:.2f}){where}.")
+    changes = report["extension"]["changes"]
+    g = report["gain"]
+    if not changes or not g.get("after"):
+        return {"wrong": wrong, "gain": "The base model already has the extension this cause "
+                "calls for, so nothing was retrained: a larger model or more data is the next "
+                "step, and the base simulator should be trusted only where its errors are "
+                "small.", "trust": "base"}
+    added = ", ".join(sorted({_EXTENSION_WORDS.get(k, k) for ch in changes for k in ch["change"]}))
+    d, b, a = g["difference"], g["before"], g["after"]
+    nll_seeds = sum(x < 0 for x in d["heldout_nll"]["per_seed"])
+    n = len(d["heldout_nll"]["per_seed"])
+    parts = [f"held-out NLL {b['heldout_nll']:.3g} -> {a['heldout_nll']:.3g} (lower on "
+             f"{nll_seeds} of {n} seeds)",
+             f"MSE {b['heldout_mse']:.3g} -> {a['heldout_mse']:.3g}"]
+    problems = []
+    if nll_seeds < n:
+        problems.append(f"NLL rose on {n - nll_seeds} seed(s)")
+    if a["heldout_mse"] > 1.1 * b["heldout_mse"]:
+        problems.append(f"MSE rose {a['heldout_mse'] / b['heldout_mse']:.2g}x (the likelihood "
+                        "gained by widening the noise, not by a better mean)")
+    if "avd" in b:
+        parts.append(f"AVD {b['avd']:.3g} -> {a['avd']:.3g}")
+        if a["avd"] > b["avd"]:
+            problems.append("AVD rose")
+    gain = f"Adding {added} gave {', '.join(parts)}"
+    if problems:
+        return {"wrong": wrong, "gain": gain + f"; do not trust the extended simulator yet: "
+                f"{'; '.join(problems)}.", "trust": "neither"}
+    return {"wrong": wrong, "gain": gain + "; the extended simulator can be trusted where the "
+            "base one was, and more.", "trust": "extended"}
 
 
 def plot_gain(out_dir: str, gain: dict) -> list[str]:
@@ -325,11 +455,19 @@ def plot_gain(out_dir: str, gain: dict) -> list[str]:
 def report_markdown(report: dict, gaps_md: str) -> str:
     """The human-readable report."""
     lines = ["# Simulator diagnosis", ""]
+    v = report.get("verdict")
+    if v:
+        lines += [f"**{v['wrong']}** {v['gain']}", ""]
     d = report["data"]
     lines += [f"Data: {d['transitions']} transitions, {d['episodes']} episodes, "
               f"{d['policies']} policies (task: {d['task']}). Residuals from the "
               f"{report['residuals_from']}, on {d['heldout_episodes']} held-out episodes. "
               f"Value views: {report['value_views']}.", ""]
+    r = report.get("reference")
+    if r:
+        lines += [f"Differential: tested against a reference of {r['transitions']} transitions "
+                  f"({r['episodes']} episodes); scores are the data's gain minus the "
+                  "reference's, p-values a rank-sum test over episodes.", ""]
     lines += [f"## Cause: **{report['top_cause']}** (confidence {report['confidence']:.2f})", "",
               "| cause | score (nats/transition) | p-value | significant | details |",
               "|---|---|---|---|---|"]

@@ -245,6 +245,12 @@ def test_diagnose_a_saved_simulator(pm, tmp_path):
     resid = (eps.next_obs[held] - pred) / eps.delta[eps.rows(fit_eps)].std(0)
     np.testing.assert_allclose([d["rmse"] for d in from_ckpt["gaps"]["by_dim"]],
                                np.sqrt((resid ** 2).mean(0)), rtol=1e-3)
+    # The gain is also stated against the saved simulator itself, and the extension is
+    # trained by the checkpoint's method.
+    np.testing.assert_allclose(from_ckpt["gain"]["saved"]["heldout_mse"], (resid ** 2).mean(),
+                               rtol=2e-3)
+    assert CFG.method in from_ckpt["extension"]["trained_by"]
+    assert "saved" not in own["gain"]
 
 
 # ------------------------------------------------------------------ broken checkpoints

@@ -116,6 +116,37 @@ def _differential_causes(eps: Episodes, ref_eps: Episodes, fit_eps, held_eps,
                            in_target=in_target[held_rows])
 
 
+def _gaussian_nll(resid: np.ndarray, std: np.ndarray) -> float:
+    """Mean per-row Gaussian NLL (summed over dims) of residuals [n, o] under stds [n, o]."""
+    z = resid / std
+    return float((0.5 * z ** 2 + np.log(std) + 0.5 * np.log(2 * np.pi)).sum(-1).mean())
+
+
+def _method_spec(spec: ModelSpec, changes: list, ckpt: str | None) -> tuple[ModelSpec, str]:
+    """The extended model's training, from the saved simulator's method where there is one.
+
+    bc: maximum likelihood, as the base. rl2s-bc: maximum likelihood with its CVaR over
+    policies (``policy_cvar_eps`` = the checkpoint's eps; the worst policies are chosen by
+    their NLL here, not by simulated values). rl2s / gail: maximum likelihood too, which is
+    their pre-training phase: an adversarial retrain of an extended model (history, context
+    or time inputs in the rollouts) is not built. -> (spec, how it was trained, in words)."""
+    if ckpt is None:
+        return spec, "maximum likelihood (as the base model)"
+    from rl2s_jax.checkpoint import load_meta
+    from rl2s_jax.config import TrainConfig
+
+    cfg = TrainConfig.from_dict(load_meta(ckpt)["config"])
+    if cfg.method == "bc":
+        return spec, "maximum likelihood: the checkpoint's method, bc"
+    if cfg.method == "rl2s-bc":
+        if changes and spec.policy_cvar_eps is None:
+            spec = dataclasses.replace(spec, policy_cvar_eps=float(cfg.initial_eps)).validate()
+        return spec, (f"maximum likelihood with CVaR over the worst {cfg.initial_eps:g} of "
+                      "policies (the checkpoint's method, rl2s-bc; policies ranked by NLL)")
+    return spec, (f"maximum likelihood: the pre-training phase of the checkpoint's method, "
+                  f"{cfg.method}; its adversarial phase is not run for extended models")
+
+
 def _value_setup(ds: Dataset, zoo: str | None, horizon: int | None, gamma: float | None):
     """Policies, task functions and true values for the value views, or (None, reason)."""
     task_name = ds.meta.get("task")
@@ -307,6 +338,11 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
                       "changes": changes},
     }
     gain = {"seeds": list(seeds), "before": _summarise(before), "k_max": k_max}
+    if ckpt is not None:  # the saved simulator itself, on the same held-out rows
+        gain["saved"] = {"heldout_nll": float(_gaussian_nll(resid, std)),
+                         "heldout_mse": float((resid ** 2).mean())}
+    spec, trained_by = _method_spec(spec, changes, ckpt)
+    report["extension"]["trained_by"] = trained_by
     if changes:
         t0 = time.perf_counter()
         ext = fit_models(eps, fit_eps, spec, seeds, progress=progress)
@@ -315,6 +351,11 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
         phase("fit and measure the extension", t0)
         gain["after"] = _summarise(after)
         gain["difference"] = _difference(before, after)
+        if "saved" in gain:
+            gain["saved"]["extended_minus_saved"] = {
+                k: {"mean": float(np.mean(after[k] - gain["saved"][k])),
+                    "per_seed": (np.asarray(after[k]) - gain["saved"][k]).tolist()}
+                for k in ("heldout_nll", "heldout_mse")}
     else:
         gain["after"] = None
         gain["difference"] = None
@@ -412,7 +453,11 @@ def verdict(report: dict) -> dict:
         parts.append(f"AVD {b['avd']:.3g} -> {a['avd']:.3g}")
         if a["avd"] > b["avd"]:
             problems.append("AVD rose")
-    gain = f"Adding {added} gave {', '.join(parts)}"
+    if "saved" in g:
+        parts.append(f"against the saved simulator's own held-out NLL "
+                     f"{g['saved']['heldout_nll']:.3g} and MSE {g['saved']['heldout_mse']:.3g}")
+    by = report["extension"].get("trained_by", "maximum likelihood")
+    gain = f"Adding {added}, trained by {by}, gave {', '.join(parts)}"
     if problems:
         return {"wrong": wrong, "gain": gain + f"; do not trust the extended simulator yet: "
                 f"{'; '.join(problems)}.", "trust": "neither"}

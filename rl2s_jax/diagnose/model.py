@@ -47,7 +47,8 @@ from flax import struct
 from rl2s_jax import dynamics as dyn
 from rl2s_jax.diagnose.episodes import Episodes, half_split
 from rl2s_jax.dynamics import NOISE_KINDS, TIME_INPUTS, DynamicsSpec, Normalizer
-from rl2s_jax.policies import num_policies, sample_action
+from rl2s_jax.models import spectral_normalize
+from rl2s_jax.policies import init_mlp, num_policies, sample_action
 from rl2s_jax.train import n_worst, select_worst
 
 __all__ = ["NOISE_KINDS", "TIME_INPUTS", "FittedModels", "ModelDiverged", "ModelSpec",
@@ -72,6 +73,11 @@ class ModelSpec:
     hidden, steps, batch_size, lr: the generator MLP and its Adam training (lr decays to lr/10
     along a cosine). log_std_bounds ("fixed" | "learned", with log_std_bound_weight) and
     weight_decay (L2 on the weight matrices): as the family's (``TrainConfig.gen_*``).
+    adversarial_steps: generator updates of the adversarial phase (0: maximum likelihood
+    only), run after the ``steps`` likelihood updates as RL2S / GAIL run after their
+    pre-training (see ``fit_models``); disc_updates critic updates per generator update,
+    adv_lr / disc_lr their Adam rates, adv_nll_weight the likelihood anchor on the real batch
+    (``TrainConfig.adv_nll_weight``), disc_hidden the critic's hidden sizes.
     """
 
     action_history: int = 0
@@ -90,6 +96,12 @@ class ModelSpec:
     log_std_bounds: str = "fixed"
     log_std_bound_weight: float = 0.01
     weight_decay: float = 0.0
+    adversarial_steps: int = 0
+    disc_updates: int = 2
+    adv_lr: float = 1e-4
+    disc_lr: float = 1e-4
+    adv_nll_weight: float = 10.0
+    disc_hidden: tuple[int, ...] = (128, 128)
 
     @property
     def dynamics(self) -> DynamicsSpec:
@@ -105,10 +117,20 @@ class ModelSpec:
         def is_int(v):
             return isinstance(v, int | np.integer) and not isinstance(v, bool)
 
-        for name in ("steps", "batch_size", "context_rows", "cvar_every"):
+        for name in ("steps", "batch_size", "context_rows", "cvar_every", "disc_updates"):
             v = getattr(self, name)
             if not is_int(v) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
+        if not is_int(self.adversarial_steps) or self.adversarial_steps < 0:
+            raise ValueError(f"adversarial_steps: expected an int >= 0, got "
+                             f"{self.adversarial_steps!r}")
+        if not (len(self.disc_hidden) and all(is_int(h) and h >= 1 for h in self.disc_hidden)):
+            raise ValueError(f"disc_hidden: expected a non-empty tuple of ints >= 1, got "
+                             f"{self.disc_hidden!r}")
+        for name in ("adv_lr", "disc_lr"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name}: expected a positive finite float, got {v!r}")
         e = self.policy_cvar_eps
         if e is not None and not (isinstance(e, int | float) and not isinstance(e, bool)
                                   and 0.0 < e <= 1.0):
@@ -116,7 +138,7 @@ class ModelSpec:
         self.dynamics.validate()
         if not (isinstance(self.lr, int | float) and math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr: expected a positive finite float, got {self.lr!r}")
-        for name in ("weight_decay", "log_std_bound_weight"):
+        for name in ("weight_decay", "log_std_bound_weight", "adv_nll_weight"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a finite float >= 0, got {v!r}")
@@ -355,16 +377,21 @@ def _draw(u, lo, count):
     return lo[:, None] + off
 
 
-def _rows_nll(params, spec: ModelSpec, data: _TrainData, rows, u_ctx):
-    """NLL [G, R] of rows [G, R] of the fit data, each group of R rows sharing one context
-    drawn (by uniforms u_ctx [G, M]) from the other half of its first row's episode; all R
-    must lie in one half."""
+def _rows_dist(params, spec: ModelSpec, data: _TrainData, rows, u_ctx):
+    """The model's (mean, log_std) [G, R, o] for rows [G, R] of the fit data, each group of R
+    rows sharing one context drawn (by uniforms u_ctx [G, M]) from the other half of its
+    first row's episode; all R must lie in one half."""
     ctx = None
     if spec.context_dim:
         idx = _draw(u_ctx, data.ctx_lo[rows[:, 0]], data.ctx_count[rows[:, 0]])
         ctx = jnp.broadcast_to(_pool(params, data.enc[idx])[:, None],
                                rows.shape + (spec.context_dim,))
-    mean, log_std = _dist(params, spec, data.x[rows], ctx)
+    return _dist(params, spec, data.x[rows], ctx)
+
+
+def _rows_nll(params, spec: ModelSpec, data: _TrainData, rows, u_ctx):
+    """NLL [G, R] of rows [G, R] of the fit data (contexts as ``_rows_dist``)."""
+    mean, log_std = _rows_dist(params, spec, data, rows, u_ctx)
     return _nll(mean, log_std, data.y[rows])
 
 
@@ -472,6 +499,148 @@ def _train_blocks(states: _TrainState, data: _TrainData, *, spec: ModelSpec, n_b
 
 _train_blocks_jit = jax.jit(_train_blocks,
                             static_argnames=("spec", "n_blocks", "block_len", "n_present"))
+
+
+# ------------------------------------------------------------ adversarial phase
+
+
+def _critic(disc: dict, x, y, update_us: bool = False):
+    """Conditional Wasserstein critic D(inputs, normalised delta): x [..., d], y [..., o] ->
+    ([...], new power-iteration vectors). Every layer spectrally normalised (as
+    ``models.discriminator``); it sees the model's inputs, histories and times included."""
+    h = jnp.concatenate([x, y], -1)
+    new_us = []
+    for i, (layer, u) in enumerate(zip(disc["layers"], disc["us"], strict=True)):
+        w, u = spectral_normalize(layer["w"], u, update_us)
+        new_us.append(u)
+        h = h @ w + layer["b"]
+        if i < len(disc["layers"]) - 1:
+            h = jax.nn.relu(h)
+    return h[..., 0], new_us
+
+
+def _init_critic(key, spec: ModelSpec, d: int, o: int) -> dict:
+    k_w, k_u = jax.random.split(key)
+    layers = init_mlp(k_w, [d + o, *spec.disc_hidden, 1])
+    us = [u / jnp.linalg.norm(u) for u in
+          (jax.random.normal(k, (layer["w"].shape[1],))
+           for k, layer in zip(jax.random.split(k_u, len(layers)), layers, strict=True))]
+    return {"layers": layers, "us": us}
+
+
+@struct.dataclass
+class _AdvState:
+    """One seed's adversarial state: the generator (params, Adam), the critic (layers and
+    power-iteration vectors, Adam), key, CVaR selection [P] and NLL [P]."""
+
+    params: Any
+    opt_state: Any
+    disc: Any
+    disc_opt: Any
+    key: jax.Array
+    selected: jax.Array
+    policy_nll: jax.Array
+
+
+def _adversarial_blocks(states: _AdvState, data: _TrainData, *, spec: ModelSpec,
+                        n_blocks: int, block_len: int, n_present: int
+                        ) -> tuple[_AdvState, jax.Array]:
+    """The adversarial phase (WGAIL with a likelihood anchor, as ``train.py``'s adversarial
+    step but one-step: fake transitions are the model's samples at real fit rows, histories
+    and contexts included): per update, ``disc_updates`` critic updates on real rows vs the
+    model's samples at other rows, then one generator update minimising -E[D] of its
+    reparameterised samples plus adv_nll_weight x the real batch's NLL. Under CVaR the real
+    and fake rows come from the policies ``_refresh`` selects (half of each batch, as the
+    likelihood fit). States stacked over seeds. -> (states, mean generator loss per block
+    [S, n_blocks])."""
+    gen_tx = optax.chain(optax.clip_by_global_norm(10.0), optax.adam(spec.adv_lr))
+    disc_tx = optax.adam(spec.disc_lr)
+    _, _, layout = _step_layout(spec)
+    per_batch = sum(math.prod(s) for s in layout.values())
+    cvar = spec.policy_cvar_eps is not None
+    m_ctx = spec.context_rows if spec.context_dim else 0
+    n_refresh = data.probe.size * m_ctx if cvar else 0
+    n_batches = 2 * spec.disc_updates + 2  # real and fake per critic update, then the gen's
+
+    def fake(params, rows, u_ctx, key):
+        mean, log_std = _rows_dist(params, spec, data, rows, u_ctx)
+        return data.x[rows], mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
+
+    def update(state: _AdvState, inputs):
+        u, key = inputs
+        u = u.reshape(n_batches, per_batch)
+        batches = [_split_uniforms(u[i], layout) for i in range(n_batches)]
+        keys = jax.random.split(key, spec.disc_updates + 1)
+        disc, disc_opt = state.disc, state.disc_opt
+        for j in range(spec.disc_updates):
+            real_u, fake_u = batches[2 * j], batches[2 * j + 1]
+            r_rows = _batch_rows(real_u, spec, data, state.selected)
+            f_x, f_y = fake(state.params, _batch_rows(fake_u, spec, data, state.selected),
+                            fake_u["ctx"], keys[j])
+            f_y = jax.lax.stop_gradient(f_y)
+
+            def critic_loss(layers, r_rows=r_rows, f_x=f_x, f_y=f_y, us=disc["us"]):
+                d = {"layers": layers, "us": us}
+                d_real, new_us = _critic(d, data.x[r_rows], data.y[r_rows], update_us=True)
+                d_fake, _ = _critic({"layers": layers, "us": new_us}, f_x, f_y)
+                return d_fake.mean() - d_real.mean(), new_us
+
+            (_, new_us), grads = jax.value_and_grad(critic_loss, has_aux=True)(disc["layers"])
+            upd, disc_opt = disc_tx.update(grads, disc_opt, disc["layers"])
+            disc = {"layers": optax.apply_updates(disc["layers"], upd), "us": new_us}
+        real_u, fake_u = batches[-2], batches[-1]
+        r_rows = _batch_rows(real_u, spec, data, state.selected)
+        f_rows = _batch_rows(fake_u, spec, data, state.selected)
+
+        def gen_loss(p):
+            f_x, f_y = fake(p, f_rows, fake_u["ctx"], keys[-1])
+            loss = -_critic(disc, f_x, f_y)[0].mean()
+            if spec.adv_nll_weight:
+                loss = loss + spec.adv_nll_weight * _rows_nll(p, spec, data, r_rows,
+                                                              real_u["ctx"]).mean()
+            if spec.log_std_bounds == "learned":
+                loss = loss + spec.log_std_bound_weight * dyn.bound_penalty(p)
+            return loss
+
+        loss, grads = jax.value_and_grad(gen_loss)(state.params)
+        upd, opt_state = gen_tx.update(grads, state.opt_state, state.params)
+        return state.replace(params=optax.apply_updates(state.params, upd), opt_state=opt_state,
+                             disc=disc, disc_opt=disc_opt), loss
+
+    def block(state: _AdvState, _):
+        key, k_u, k_n = jax.random.split(state.key, 3)
+        u = jax.random.uniform(k_u, (n_refresh + block_len * n_batches * per_batch,))
+        state = state.replace(key=key)
+        if cvar:
+            state = _refresh(state, spec, data, n_present,
+                             u[:n_refresh].reshape(data.probe.size, m_ctx))
+        u = u[n_refresh:].reshape(block_len, n_batches * per_batch)
+        state, losses = jax.lax.scan(update, state, (u, jax.random.split(k_n, block_len)))
+        return state, losses.mean()
+
+    return jax.vmap(lambda st: jax.lax.scan(block, st, None, length=n_blocks))(states)
+
+
+_adversarial_blocks_jit = jax.jit(_adversarial_blocks,
+                                  static_argnames=("spec", "n_blocks", "block_len",
+                                                   "n_present"))
+
+
+@functools.partial(jax.jit, static_argnames=("spec", "d", "o"))
+def _init_adv_states(states: _TrainState, *, spec: ModelSpec, d: int, o: int) -> _AdvState:
+    """Adversarial states from the likelihood fit's final states (fresh Adam moments for the
+    generator, as ``train._start_adversarial``)."""
+    gen_tx = optax.chain(optax.clip_by_global_norm(10.0), optax.adam(spec.adv_lr))
+    disc_tx = optax.adam(spec.disc_lr)
+
+    def one(st: _TrainState):
+        key, k_disc = jax.random.split(st.key)
+        disc = _init_critic(k_disc, spec, d, o)
+        return _AdvState(params=st.params, opt_state=gen_tx.init(st.params), disc=disc,
+                         disc_opt=disc_tx.init(disc["layers"]), key=key,
+                         selected=st.selected, policy_nll=st.policy_nll)
+
+    return jax.vmap(one)(states)
 
 
 @functools.partial(jax.jit, static_argnames=("spec", "n_policies"))
@@ -582,7 +751,7 @@ def fit_models(eps: Episodes, fit_episodes: np.ndarray, spec: ModelSpec,
     bar = None
     if progress:
         from tqdm.auto import tqdm
-        bar = tqdm(total=spec.steps, unit="step", dynamic_ncols=True,
+        bar = tqdm(total=spec.steps + spec.adversarial_steps, unit="step", dynamic_ncols=True,
                    desc="fit " + ",".join(spec.extensions))
     losses, done = [], 0
     try:
@@ -600,6 +769,8 @@ def fit_models(eps: Episodes, fit_episodes: np.ndarray, spec: ModelSpec,
             if bar is not None:
                 bar.update(n_blocks * length)
                 bar.set_postfix(nll=f"{float(losses[-1][:, -1].mean()):.3f}", refresh=False)
+        if spec.adversarial_steps:
+            states = _fit_adversarial(states, data, spec, n_present, seeds, bar)
     finally:
         if bar is not None:
             bar.close()
@@ -619,6 +790,29 @@ def fit_models(eps: Episodes, fit_episodes: np.ndarray, spec: ModelSpec,
         fm = fm.replace(ctx_mean=jnp.asarray(mean, jnp.float32),
                         ctx_cov=jnp.asarray(cov, jnp.float32))
     return fm
+
+
+def _fit_adversarial(states: _TrainState, data: _TrainData, spec: ModelSpec, n_present: int,
+                     seeds: tuple[int, ...], bar) -> _TrainState:
+    """Run the adversarial phase on the likelihood fit's states; -> the states with the
+    adversarially trained params (ModelDiverged names the seed and update on a NaN)."""
+    adv = _init_adv_states(states, spec=spec, d=int(data.x.shape[1]), o=int(data.y.shape[1]))
+    block_len = min(spec.cvar_every, spec.adversarial_steps)
+    done = spec.steps
+    for n_blocks, length in _chunk_plan(spec.adversarial_steps, block_len, bar is not None):
+        last_good = adv
+        adv, block_loss = _adversarial_blocks_jit(adv, data, spec=spec, n_blocks=n_blocks,
+                                                  block_len=length, n_present=n_present)
+        block_loss = np.asarray(block_loss)
+        if not np.isfinite(block_loss).all():
+            seed_i, block = (int(x[0]) for x in np.nonzero(~np.isfinite(block_loss)))
+            raise ModelDiverged(seeds[seed_i], done + (block + 1) * length, spec,
+                                last_good.params)
+        done += n_blocks * length
+        if bar is not None:
+            bar.update(n_blocks * length)
+            bar.set_postfix(adv_loss=f"{float(block_loss[:, -1].mean()):.3f}", refresh=False)
+    return states.replace(params=adv.params, selected=adv.selected, policy_nll=adv.policy_nll)
 
 
 # ---------------------------------------------------------------------- evaluation

@@ -122,29 +122,37 @@ def _gaussian_nll(resid: np.ndarray, std: np.ndarray) -> float:
     return float((0.5 * z ** 2 + np.log(std) + 0.5 * np.log(2 * np.pi)).sum(-1).mean())
 
 
-def _method_spec(spec: ModelSpec, changes: list, ckpt: str | None) -> tuple[ModelSpec, str]:
-    """The extended model's training, from the saved simulator's method where there is one.
+ADVERSARIAL_SHARE = 0.2  # adversarial updates per likelihood update for rl2s / gail retrains
 
-    bc: maximum likelihood, as the base. rl2s-bc: maximum likelihood with its CVaR over
-    policies (``policy_cvar_eps`` = the checkpoint's eps; the worst policies are chosen by
-    their NLL here, not by simulated values). rl2s / gail: maximum likelihood too, which is
-    their pre-training phase: an adversarial retrain of an extended model (history, context
-    or time inputs in the rollouts) is not built. -> (spec, how it was trained, in words)."""
+
+def _method_spec(spec: ModelSpec, ckpt: str | None) -> tuple[ModelSpec, str]:
+    """The training of the models fitted here, from the saved simulator's method where there
+    is one, so that the extension is retrained as the simulator was trained.
+
+    bc: maximum likelihood. rl2s-bc: maximum likelihood with CVaR over the worst eps of the
+    policies (``policy_cvar_eps``; ranked by NLL here, by simulated values in ``train.py``).
+    gail / rl2s: the likelihood fit as pre-training, then ADVERSARIAL_SHARE x steps WGAIL
+    updates (``ModelSpec.adversarial_steps``), with the CVaR selection for rl2s.
+    -> (spec, how it is trained, in words)."""
     if ckpt is None:
-        return spec, "maximum likelihood (as the base model)"
+        return spec, "maximum likelihood"
     from rl2s_jax.checkpoint import load_meta
     from rl2s_jax.config import TrainConfig
 
     cfg = TrainConfig.from_dict(load_meta(ckpt)["config"])
-    if cfg.method == "bc":
-        return spec, "maximum likelihood: the checkpoint's method, bc"
-    if cfg.method == "rl2s-bc":
-        if changes and spec.policy_cvar_eps is None:
-            spec = dataclasses.replace(spec, policy_cvar_eps=float(cfg.initial_eps)).validate()
-        return spec, (f"maximum likelihood with CVaR over the worst {cfg.initial_eps:g} of "
-                      "policies (the checkpoint's method, rl2s-bc; policies ranked by NLL)")
-    return spec, (f"maximum likelihood: the pre-training phase of the checkpoint's method, "
-                  f"{cfg.method}; its adversarial phase is not run for extended models")
+    eps = float(cfg.initial_eps)
+    change, words = {}, f"the checkpoint's method, {cfg.method}: "
+    if cfg.method in ("rl2s", "gail"):
+        change["adversarial_steps"] = spec.adversarial_steps or max(
+            1, int(ADVERSARIAL_SHARE * spec.steps))
+        words += (f"maximum likelihood, then {change['adversarial_steps']} one-step WGAIL "
+                  "updates with a likelihood anchor")
+    else:
+        words += "maximum likelihood"
+    if cfg.method in ("rl2s", "rl2s-bc") and eps < 1.0:
+        change["policy_cvar_eps"] = eps
+        words += f", CVaR over the worst {eps:g} of policies (ranked by NLL)"
+    return dataclasses.replace(spec, **change).validate(), words
 
 
 def _value_setup(ds: Dataset, zoo: str | None, horizon: int | None, gamma: float | None):
@@ -261,6 +269,7 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
     base_spec = (base_spec or ModelSpec()).validate()
     if ckpt is not None and not os.path.isdir(ckpt):
         raise ValueError(f"ckpt: expected a checkpoint directory, got {ckpt!r}")
+    base_spec, trained_by = _method_spec(base_spec, ckpt)
     t_start, timings = time.perf_counter(), {}
 
     def phase(name, t0):
@@ -341,7 +350,6 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
     if ckpt is not None:  # the saved simulator itself, on the same held-out rows
         gain["saved"] = {"heldout_nll": float(_gaussian_nll(resid, std)),
                          "heldout_mse": float((resid ** 2).mean())}
-    spec, trained_by = _method_spec(spec, changes, ckpt)
     report["extension"]["trained_by"] = trained_by
     if changes:
         t0 = time.perf_counter()

@@ -1,10 +1,14 @@
 """Diagnosis on MJX Hopper with planted effects: collect data from the shipped zoo's training
-policies in a wrapped Hopper (clean, actuation delay, per-episode mass, signal-dependent
-noise), run `diagnose` on each, and tabulate what it found against the truth.
+policies in a Hopper with one planted effect (clean, actuation delay, per-episode mass,
+signal-dependent noise, hidden joint velocities, actuator gain drifting over the recording
+order), run `diagnose` on each, and tabulate what it found against the truth.
 
-    python experiments/diagnose_hopper.py --out DIR [--effects clean delay episode_param noise]
-        [--transitions-per-policy 5000] [--seeds 3] [--model-steps N] [--value-episodes 0]
+    python experiments/diagnose_hopper.py --out DIR [--effects clean delay episode_param noise
+        unobserved drift] [--reference] [--transitions-per-policy 5000] [--seeds 3]
+        [--model-steps N] [--value-episodes 0]
 
+``--reference``: also record a clean Hopper with another seed (the same obs dims hidden for
+"unobserved") and diagnose differentially against it (``diagnose(reference=...)``).
 Writes DIR/<effect>/report.{json,md} + plots, and DIR/summary.{json,md}.
 """
 from __future__ import annotations
@@ -18,51 +22,57 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax.collect import collect
 from rl2s_jax.diagnose.model import ModelSpec
-from rl2s_jax.diagnose.planted_mjx import make_planted_env, planted_truth
+from rl2s_jax.diagnose.planted_mjx import EFFECTS, collect_planted, hide_obs_dims
 from rl2s_jax.diagnose.run import diagnose
 from rl2s_jax.policies import index_params, load_zoo
 from rl2s_jax.tasks import get_task
 
+ZOO = "experiments/zoo/hopper"
 
-def collect_planted(effect: str, transitions_per_policy: int, value_episodes: int, seed: int,
-                    episode_length: int | None = None):
-    task = get_task("hopper")
+
+def record(effect: str, transitions_per_policy: int, value_episodes: int, seed: int,
+           episode_length: int | None = None):
+    """The Hopper dataset of ``effect`` from the zoo's training policies."""
     zoo = load_zoo("hopper")
     ids = zoo.split_ids("train")
-    truth = planted_truth(effect, task_name="hopper")
-    return collect(make_planted_env("hopper", effect), index_params(zoo.params, ids),
-                   key=jax.random.PRNGKey(seed), transitions_per_policy=transitions_per_policy,
-                   episode_length=episode_length or task.episode_length, task="hopper",
-                   policy_names=zoo.policy_names(ids), gamma=0.999,
-                   value_episodes=value_episodes, progress=False,
-                   source={"zoo": "experiments/zoo/hopper", "split": "train", "zoo_ids": ids,
-                           "seed": seed, "planted": truth})
+    return collect_planted(
+        "hopper", effect, index_params(zoo.params, ids), key=jax.random.PRNGKey(seed),
+        transitions_per_policy=transitions_per_policy,
+        episode_length=episode_length or get_task("hopper").episode_length,
+        policy_names=zoo.policy_names(ids), gamma=0.999, value_episodes=value_episodes,
+        progress=False, source={"zoo": ZOO, "split": "train", "zoo_ids": ids, "seed": seed})
+
+
+def expected_cause(truth: dict) -> str:
+    return "none" if truth["effect"] == "none" else truth["effect"]
 
 
 def write_summary(args, argv, device, rows) -> None:
     """DIR/summary.json and summary.md (rewritten after every effect, so a cut-off run keeps
     what it finished)."""
     summary = {"device": device, "jax": jax.__version__, "seeds": args.seeds,
+               "reference": args.reference,
                "transitions_per_policy": args.transitions_per_policy,
                "command": "python experiments/diagnose_hopper.py " + " ".join(argv or []),
                "rows": rows}
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=1, default=lambda x: np.asarray(x).tolist())
-    lines = ["| planted | truth | base model | found | confidence | details | held-out NLL "
-             "base -> extended (diff ± std) | MSE base -> extended |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = ["| planted | truth | mode | top cause | planted cause found? | confidence | details "
+             "| held-out NLL base -> extended (diff ± std) | MSE base -> extended |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         n, m = r["heldout_nll"], r["heldout_mse"]
         truth = {k: v for k, v in r["truth"].items() if k in ("effect", "lag", "actuators",
-                                                               "dims")}
+                                                               "dims", "over")}
+        found = ("yes, top" if r["found"] else
+                 f"ranked {r['rank']}" if r["rank"] else "no")
         nll = (f"{n['before']:.3f} -> {n['after']:.3f} ({n['diff']:+.3f} ± {n['diff_std']:.3f})"
                if "after" in n else f"{n['before']:.3f} (no extension)")
         mse = (f"{m['before']:.4f} -> {m['after']:.4f}" if "after" in m
                else f"{m['before']:.4f}")
-        lines.append(f"| {r['effect']} | {truth} | {', '.join(r['base'])} | **{r['top_cause']}** | "
-                     f"{r['confidence']:.2f} | {r['details']} | {nll} | {mse} |")
+        lines.append(f"| {r['effect']} | {truth} | {r['mode']} | **{r['top_cause']}** | "
+                     f"{found} | {r['confidence']:.2f} | {r['details']} | {nll} | {mse} |")
     with open(os.path.join(args.out, "summary.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     print("\n".join(lines), flush=True)
@@ -71,7 +81,9 @@ def write_summary(args, argv, device, rows) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--out", required=True)
-    ap.add_argument("--effects", nargs="+", default=["clean", "delay", "episode_param", "noise"])
+    ap.add_argument("--effects", nargs="+", default=list(EFFECTS), choices=list(EFFECTS))
+    ap.add_argument("--reference", action="store_true",
+                    help="diagnose differentially against a clean recording (seed + 1000)")
     ap.add_argument("--transitions-per-policy", type=int, default=5000)
     ap.add_argument("--value-episodes", type=int, default=0)
     ap.add_argument("--episode-length", type=int)
@@ -91,15 +103,29 @@ def main(argv=None) -> int:
         spec = dataclasses.replace(spec, steps=args.model_steps)
     device = jax.devices()[0].device_kind
     rows = []
+    clean_reference = None
+    if args.reference:
+        t0 = time.perf_counter()
+        clean_reference = record("clean", args.transitions_per_policy, 0, args.seed + 1000,
+                                 args.episode_length)
+        print(f"[reference] clean Hopper, seed {args.seed + 1000}: "
+              f"{clean_reference.n_transitions} transitions in {time.perf_counter() - t0:.0f}s",
+              flush=True)
     for effect in args.effects:
         t0 = time.perf_counter()
-        ds = collect_planted(effect, args.transitions_per_policy, args.value_episodes,
-                             args.seed, args.episode_length)
+        ds = record(effect, args.transitions_per_policy, args.value_episodes, args.seed,
+                    args.episode_length)
         t_collect = time.perf_counter() - t0
         print(f"[{effect}] collected {ds.n_transitions} transitions in {t_collect:.0f}s",
               flush=True)
+        truth = ds.meta["source"]["planted"]
+        reference = clean_reference
+        if reference is not None and "removed_obs_dims" in truth:
+            reference = hide_obs_dims(reference, truth["removed_obs_dims"])
         report = diagnose(ds, os.path.join(args.out, effect), seeds=tuple(range(args.seeds)),
-                          base_spec=spec, log=lambda s, e=effect: print(f"[{e}] {s}", flush=True))
+                          base_spec=spec, reference=reference,
+                          zoo=ZOO if args.value_episodes else None,
+                          log=lambda s, e=effect: print(f"[{e}] {s}", flush=True))
         if effect == "clean" and args.base_from_clean:
             ext = report["extension"]["extended"]
             spec = dataclasses.replace(spec, **{k: (tuple(v) if isinstance(v, list) else v)
@@ -108,8 +134,13 @@ def main(argv=None) -> int:
                   flush=True)
         top = report["causes"][0]
         g = report["gain"]
-        row = {"effect": effect, "truth": ds.meta["source"]["planted"],
+        names = [c["name"] for c in report["causes"] if c["significant"]]
+        want = expected_cause(truth)
+        row = {"effect": effect, "truth": truth,
+               "mode": "differential" if reference is not None else "plain",
                "top_cause": report["top_cause"], "confidence": report["confidence"],
+               "found": report["top_cause"] == want,
+               "rank": names.index(want) + 1 if want in names else None,
                "score": top["score"], "p_value": top["p_value"],
                "details": {k: v for k, v in top["details"].items()
                            if k in ("lag", "actuators", "dims", "over", "lags")},
@@ -119,7 +150,10 @@ def main(argv=None) -> int:
                           for c in report["causes"]],
                "collect_seconds": round(t_collect, 1), "diagnose_seconds": report["seconds"],
                "transitions": ds.n_transitions}
-        for k in ("heldout_nll", "heldout_mse", f"kstep_rmse@{g['k_max']}"):
+        for k in ("heldout_nll", "heldout_mse", f"kstep_rmse@{g['k_max']}", "avd",
+                  "kendall_tau"):
+            if k not in g["before"]:
+                continue
             row[k] = {"before": g["before"][k], "before_std": g["before"][f"{k}_std"]}
             if g["after"]:
                 row[k].update(after=g["after"][k], after_std=g["after"][f"{k}_std"],

@@ -28,6 +28,7 @@ __all__ = [
     "META_KEYS",
     "Dataset",
     "DatasetError",
+    "concat_datasets",
     "save_dataset",
     "load_dataset",
     "validate_dataset",
@@ -169,6 +170,45 @@ class Dataset:
         source["selected_policies"] = [int(prev[i]) if prev is not None else int(i) for i in ids]
         meta["source"] = source
         return Dataset(**fields, meta=meta)
+
+
+def concat_datasets(datasets: Sequence[Dataset]) -> Dataset:
+    """The rows of ``datasets`` one after another, in the order given (recording order), as
+    one Dataset of the same policies.
+
+    Episode ids continue across the parts (part k's episodes come after part k-1's). The
+    parts must agree on task, obs/action sizes, policies and episode length. True values
+    are kept when every part has them: a policy's value is then its mean over the parts
+    (each part measured with the same number of episodes) and its standard error
+    sqrt(sum se^2) / K. ``meta["source"]`` is the first part's, with ``parts`` = K.
+    """
+    parts = list(datasets)
+    if not parts or not all(isinstance(d, Dataset) for d in parts):
+        raise ValueError("datasets: expected a non-empty sequence of Dataset")
+    first = parts[0]
+    for i, d in enumerate(parts[1:], 1):
+        for key in ("task", "obs_size", "action_size", "n_policies", "policy_names",
+                    "episode_length"):
+            if d.meta.get(key) != first.meta.get(key):
+                raise ValueError(f"datasets[{i}]: meta {key!r} is {d.meta.get(key)!r}, but "
+                                 f"datasets[0] has {first.meta.get(key)!r}")
+    fields = {}
+    for k in TRANSITION_FIELDS:
+        fields[k] = np.concatenate([np.asarray(getattr(d, k)) for d in parts], axis=0)
+    ids = [np.asarray(d.episode_id, np.int64) - int(np.min(d.episode_id)) for d in parts]
+    offsets = np.cumsum([0] + [int(i.max()) + 1 for i in ids[:-1]])
+    fields["episode_id"] = np.concatenate(
+        [i + o for i, o in zip(ids, offsets, strict=True)]).astype(np.int32)
+    meta = {**first.meta, "source": {**(first.meta.get("source") or {}), "parts": len(parts)}}
+    if all(d.has_values for d in parts):
+        k = len(parts)
+        for name in ("value", "value_discounted"):
+            fields[name] = np.mean([np.asarray(getattr(d, name)) for d in parts], axis=0)
+            fields[name + "_se"] = np.sqrt(np.sum(
+                [np.asarray(getattr(d, name + "_se")) ** 2 for d in parts], axis=0)) / k
+    elif any(d.has_values for d in parts):
+        meta["gamma"] = None  # values of only some parts: dropped with their discount
+    return Dataset.from_arrays(fields, meta)
 
 
 # --------------------------------------------------------------------------- file format

@@ -13,6 +13,7 @@ from rl2s_jax.data import (
     VALUE_FIELDS,
     Dataset,
     DatasetError,
+    concat_datasets,
     dataset_summary,
     episode_returns,
     load_dataset,
@@ -373,3 +374,26 @@ def test_select_policies_renumbers():
     assert sub.select_policies([1]).meta["source"]["selected_policies"] == [0]
     with pytest.raises(ValueError):
         ds.select_policies([0, 4])
+
+
+def test_concat_datasets_continues_episodes_and_averages_values():
+    a, b = make_fake_dataset(seed=1), make_fake_dataset(seed=2)
+    both = concat_datasets([a, b])
+    validate_dataset(both)
+    n_a = a.n_transitions
+    np.testing.assert_array_equal(both.obs[:n_a], a.obs)
+    np.testing.assert_array_equal(both.obs[n_a:], b.obs)
+    # part b's episodes keep their boundaries and come after all of a's
+    ep_a, ep_b = both.episode_id[:n_a], both.episode_id[n_a:]
+    assert ep_b.min() > ep_a.max()
+    np.testing.assert_array_equal(np.diff(ep_b) != 0, np.diff(b.episode_id) != 0)
+    np.testing.assert_allclose(both.value, (a.value + b.value) / 2, rtol=1e-6)
+    np.testing.assert_allclose(both.value_se, np.hypot(a.value_se, b.value_se) / 2, rtol=1e-6)
+    assert both.meta["source"]["parts"] == 2 and "parts" not in a.meta["source"]
+    mixed = concat_datasets([a, make_fake_dataset(seed=3, with_values=False)])
+    assert not mixed.has_values and mixed.meta["gamma"] is None
+    validate_dataset(mixed)
+    with pytest.raises(ValueError, match=r"datasets\[1\]: meta 'n_policies'"):
+        concat_datasets([a, make_fake_dataset(n_policies=2)])
+    with pytest.raises(ValueError, match="datasets: expected a non-empty"):
+        concat_datasets([])

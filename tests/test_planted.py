@@ -204,8 +204,8 @@ def test_bad_arguments_are_refused_with_the_accepted_values():
         make_planted("episode_param", mass_range=(2.0, 1.0))
     with pytest.raises(ValueError, match="n_episodes"):
         make_planted(n_episodes=0)
-    with pytest.raises(ValueError, match=r"effect: expected one of .*got 'drift'"):
-        planted_truth("drift")
+    with pytest.raises(ValueError, match=r"effect: expected one of .*'drift'.*got 'wind'"):
+        planted_truth("wind")
     with pytest.raises(ValueError, match="unknown argument"):
         make_planted_env("hopper", "noise", sigma=1.0)
     with pytest.raises(ValueError, match="EpisodeMass needs a brax PipelineEnv"):
@@ -286,3 +286,42 @@ def test_episode_mass_on_mjx_hopper(env_cache):
     joint_speed = np.abs(final[:, 9:12] - start[:, 9:12]).sum(axis=1)
     assert joint_speed[0] > joint_speed[1] > joint_speed[2]
     np.testing.assert_array_equal(np.asarray(env.sys.body_mass), nominal)  # env untouched
+
+
+def test_collect_planted_unobserved_and_drift_on_pointmass():
+    """The two recorded effects: a hidden velocity leaves only the position in the data; the
+    drift records chunks whose applied action is scaled by a falling gain, in order."""
+    from rl2s_jax import policies as pol
+    from rl2s_jax.diagnose.planted_mjx import collect_planted
+
+    params = pol.stack_params([pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(4,))
+                               for i in range(2)])
+    kw = dict(key=jax.random.PRNGKey(0), transitions_per_policy=40, envs_per_policy=2,
+              episode_length=10, value_episodes=0, progress=False)
+    clean = collect_planted("pointmass", "clean", params, **kw)
+    hidden = collect_planted("pointmass", "unobserved", params, effect_kwargs={"dims": (0,)},
+                             **kw)
+    validate_dataset(hidden)
+    assert hidden.obs_size == 1 and hidden.meta["task"] is None
+    np.testing.assert_array_equal(hidden.obs[:, 0], clean.obs[:, 0])  # same key: same run
+    truth = hidden.meta["source"]["planted"]
+    assert truth["effect"] == "unobserved_state" and truth["removed_obs_dims"] == [1]
+    assert truth["dims"] == [0] and hidden.meta["source"]["hidden_obs_dims"] == [1]
+
+    drift = collect_planted("pointmass", "drift", params, effect_kwargs={
+        "gain_start": 1.0, "gain_end": 0.5, "chunks": 2}, **kw)
+    validate_dataset(drift)
+    assert drift.n_transitions == 2 * 2 * 20  # 2 chunks x 2 policies x 20 each
+    half = drift.n_transitions // 2
+    assert drift.episode_id[half:].min() > drift.episode_id[:half].max()
+    for rows, gain in ((slice(0, half), 1.0), (slice(half, None), 0.5)):
+        np.testing.assert_allclose(
+            drift.next_obs[rows], pointmass_dynamics(drift.obs[rows], gain * drift.action[rows]),
+            atol=1e-6)
+    assert drift.meta["source"]["planted"]["gains"] == [1.0, 0.5]
+    with pytest.raises(ValueError, match="chunks: expected an int >= 2"):
+        collect_planted("pointmass", "drift", params, effect_kwargs={"chunks": 1}, **kw)
+    with pytest.raises(ValueError, match="use collect_planted"):
+        make_planted_env("pointmass", "drift")
+    with pytest.raises(ValueError, match=r"dims: expected .* in \[0, 1\)"):
+        planted_truth("unobserved", task_name="pointmass")  # default dims are Hopper's

@@ -9,9 +9,14 @@ distinct ``info`` key).
 * :class:`DelayedActions`: listed actuators apply the action of ``lag`` steps ago.
 * :class:`EpisodeMass`: body masses (and inertias) scaled by a factor drawn per episode.
 * :class:`ProcessNoise`: signal-dependent Gaussian noise on chosen joint velocities.
+* :class:`ActionGain`: every action scaled by a fixed gain (weaker actuators).
 
-:func:`make_planted_env` builds a registered task with one effect; :func:`planted_truth`
-gives its ground truth in the form of :func:`rl2s_jax.diagnose.planted.make_planted`.
+Two effects live in the data rather than in one env: "unobserved" (joint velocities removed
+from the observation, :func:`hide_obs_dims`) and "drift" (the actuator gain falls over the
+recording order: the data is recorded in chunks, each with a lower :class:`ActionGain`).
+:func:`collect_planted` records any effect; :func:`make_planted_env` builds a registered task
+with one env effect; :func:`planted_truth` gives the ground truth in the form of
+:func:`rl2s_jax.diagnose.planted.make_planted`.
 """
 from __future__ import annotations
 
@@ -29,9 +34,12 @@ from rl2s_jax.tasks import PointMass, get_task
 
 __all__ = [
     "EFFECTS",
+    "ActionGain",
     "DelayedActions",
     "EpisodeMass",
     "ProcessNoise",
+    "collect_planted",
+    "hide_obs_dims",
     "make_planted_env",
     "planted_truth",
     "velocity_obs_dims",
@@ -43,7 +51,11 @@ EFFECTS: dict[str, dict[str, Any]] = {
     "delay": {"lag": 2, "actuators": (0,)},
     "episode_param": {"scale_range": (0.5, 2.0), "bodies": None},
     "noise": {"dims": (3,), "scale": 0.3, "base": 0.1},
+    "unobserved": {"dims": (3, 4, 5)},
+    "drift": {"gain_start": 1.0, "gain_end": 0.6, "chunks": 4},
 }
+#: Effects made at recording time (:func:`collect_planted`), not by one wrapped env.
+DATA_EFFECTS = ("unobserved", "drift")
 
 
 def _index_tuple(name: str, value: Any, size: int, low: int = 0) -> tuple[int, ...]:
@@ -268,14 +280,83 @@ class ProcessNoise(Wrapper):
         return state.replace(pipeline_state=ps, obs=base._get_obs(ps))
 
 
+# --------------------------------------------------------------------------- drift
+
+
+class ActionGain(Wrapper):
+    """Every action multiplied by ``gain`` before the inner env applies it (a weaker or
+    stronger actuator; brax/MuJoCo clip the result to the control range as usual)."""
+
+    def __init__(self, env: Env, gain: float = 1.0):
+        super().__init__(env)
+        self.gain = _check_nonneg("gain", gain, positive=True)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        return self.env.step(state, action * jnp.asarray(self.gain, action.dtype))
+
+
+def _drift_gains(kw: dict[str, Any]) -> np.ndarray:
+    """[chunks] the actuator gain of each recording chunk, linear from start to end."""
+    start = _check_nonneg("gain_start", kw["gain_start"], positive=True)
+    end = _check_nonneg("gain_end", kw["gain_end"], positive=True)
+    chunks = kw["chunks"]
+    if not isinstance(chunks, (int, np.integer)) or isinstance(chunks, bool) or chunks < 2:
+        raise ValueError(f"chunks: expected an int >= 2 (recording chunks), got {chunks!r}")
+    if start == end:
+        raise ValueError(f"gain_end: expected a gain other than gain_start ({start}), got {end}")
+    return np.linspace(start, end, int(chunks))
+
+
+# --------------------------------------------------------------------------- unobserved
+
+
+def hide_obs_dims(ds: Any, dims: Sequence[int]) -> Any:
+    """A copy of Dataset ``ds`` without obs columns ``dims`` (in obs and next_obs).
+
+    The result no longer matches its registered task's observation, so ``meta["task"]`` is
+    cleared (the task is kept as ``meta["source"]["task"]``) and the hidden columns are
+    recorded as ``meta["source"]["hidden_obs_dims"]``.
+    """
+    from rl2s_jax.data import Dataset
+
+    hidden = _index_tuple("dims", dims, ds.obs_size)
+    if len(hidden) == ds.obs_size:
+        raise ValueError(f"dims: expected to leave at least one obs dim, got all of {hidden}")
+    keep = np.setdiff1d(np.arange(ds.obs_size), hidden)
+    arrays = ds.arrays()
+    arrays["obs"], arrays["next_obs"] = arrays["obs"][:, keep], arrays["next_obs"][:, keep]
+    source = {**(ds.meta.get("source") or {}), "task": ds.meta.get("task"),
+              "hidden_obs_dims": sorted(hidden)}
+    meta = {**ds.meta, "task": None, "obs_size": int(keep.size), "source": source}
+    return Dataset.from_arrays(arrays, meta)
+
+
+def _hidden_truth(task_name: str, qvel: Sequence[int]) -> dict[str, Any]:
+    """Truth of the "unobserved" effect: the obs columns removed and, for tasks whose joints
+    all have one dof (so qvel j is the rate of qpos j), the obs dims of those joints'
+    positions, which need the lost velocity to be predicted."""
+    vel_obs = _registered_velocity_obs_dims(task_name)
+    qvel = sorted(_index_tuple("dims", qvel, len(vel_obs)))
+    truth = {"effect": "unobserved_state", "hidden": [f"qvel[{j}]" for j in qvel],
+             "removed_obs_dims": [vel_obs[j] for j in qvel]}
+    n_q_obs = vel_obs[0]
+    excluded = _ONE_DOF_EXCLUDED.get(task_name)
+    if excluded is not None:  # qpos j is obs j - excluded
+        truth["dims"] = [j - excluded for j in qvel if j >= excluded and j - excluded < n_q_obs]
+    return truth
+
+
+# brax tasks whose joints all have one dof -> how many leading qpos the observation drops.
+_ONE_DOF_EXCLUDED = {"hopper": 1, "walker2d": 1, "halfcheetah": 1, "pointmass": 0}
+
+
 # --------------------------------------------------------------------------- by name
 
 
 def _resolve(effect: Any, kwargs: dict[str, Any]) -> dict[str, Any]:
     if effect not in EFFECTS:
         raise ValueError(f"effect: expected one of {', '.join(map(repr, EFFECTS))} for brax "
-                         f"envs, got {effect!r} ('unobserved' and 'drift' exist only in "
-                         "rl2s_jax.diagnose.planted.make_planted)")
+                         f"envs, got {effect!r}")
     unknown = sorted(set(kwargs) - set(EFFECTS[effect]))
     if unknown:
         raise ValueError(f"effect {effect!r}: unknown argument(s) {', '.join(unknown)}; "
@@ -292,6 +373,9 @@ def make_planted_env(task_name: str, effect: str = "clean", *,
     Arguments are checked before the env is built where they can be.
     """
     kw = _resolve(effect, effect_kwargs)
+    if effect in DATA_EFFECTS:
+        raise ValueError(f"effect: {effect!r} is made while recording, not by one env: use "
+                         "collect_planted")
     task = get_task(task_name)
     if effect == "delay":
         _check_lag(kw["lag"])
@@ -319,6 +403,10 @@ def planted_truth(effect: str = "clean", *, task_name: str = "hopper",
        "body_inertia", "bodies": "all" | [ids], "distribution": "log-uniform", "range": [lo, hi]}
       {"effect": "stochastic_noise", "dims": [obs indices], "qvel": [qvel indices], "std":
        ..., "scale": s, "base": b}
+      {"effect": "unobserved_state", "hidden": ["qvel[j]", ...], "removed_obs_dims": [...],
+       "dims": [obs indices of those joints' positions] (tasks of one-dof joints)}
+      {"effect": "time_drift", "over": "episode_order", "parameter": "actuator_gain",
+       "actuators": "all", "start": g0, "end": g1, "chunks": K, "gains": [...]}
     """
     kw = _resolve(effect, effect_kwargs)
     task = get_task(task_name)
@@ -339,7 +427,57 @@ def planted_truth(effect: str = "clean", *, task_name: str = "hopper",
                 "qvel": dims, "std": "scale * (base + |a_k|), a_k the joint's actuator",
                 "scale": _check_nonneg("scale", kw["scale"], positive=True),
                 "base": _check_nonneg("base", kw["base"], positive=False)}
+    if effect == "unobserved":
+        return _hidden_truth(task_name, kw["dims"])
+    if effect == "drift":
+        gains = _drift_gains(kw)
+        return {"effect": "time_drift", "over": "episode_order", "parameter": "actuator_gain",
+                "actuators": "all", "start": float(gains[0]), "end": float(gains[-1]),
+                "chunks": int(gains.size), "gains": [round(float(g), 6) for g in gains]}
     return {"effect": "none"}
+
+
+def collect_planted(task_name: str, effect: str, params: Any, *, key: jax.Array,
+                    transitions_per_policy: int, env_kwargs: dict[str, Any] | None = None,
+                    effect_kwargs: dict[str, Any] | None = None, **collect_kwargs) -> Any:
+    """Record a registered task with one planted effect from the stacked policies ``params``.
+
+    Env effects collect from :func:`make_planted_env`. "unobserved" collects the clean task
+    and removes the listed joint velocities (``dims``, qvel indices) from the observation
+    (:func:`hide_obs_dims`). "drift" records ``chunks`` chunks one after another, chunk k
+    with every action scaled by the k-th gain (linear from ``gain_start`` to ``gain_end``),
+    and concatenates them in recording order (:func:`rl2s_jax.data.concat_datasets`; each
+    policy's true value is then the mean over the chunks). ``collect_kwargs`` go to
+    :func:`rl2s_jax.collect.collect` (``task`` is set here); ``meta["source"]["planted"]``
+    holds :func:`planted_truth`. -> Dataset
+    """
+    from rl2s_jax.collect import collect
+    from rl2s_jax.data import concat_datasets
+
+    effect_kwargs = dict(effect_kwargs or {})
+    truth = planted_truth(effect, task_name=task_name, **effect_kwargs)  # checks arguments
+    source = {**(collect_kwargs.pop("source", None) or {}), "planted": truth}
+    n = int(transitions_per_policy)
+    if effect == "drift":
+        gains = _drift_gains(_resolve(effect, effect_kwargs))
+        keys = jax.random.split(key, gains.size)
+        env = get_task(task_name).make_env(**(env_kwargs or {}))
+        parts = [collect(ActionGain(env, float(g)), params, key=k,
+                         transitions_per_policy=-(-n // gains.size), task=task_name,
+                         source={**source, "chunk": i, "actuator_gain": float(g)},
+                         **collect_kwargs)
+                 for i, (g, k) in enumerate(zip(gains, keys, strict=True))]
+        ds = concat_datasets(parts)
+        ds.meta["source"] = {**source, "chunks": int(gains.size)}
+        return ds
+    env_effect = "clean" if effect == "unobserved" else effect
+    env = make_planted_env(task_name, env_effect, env_kwargs=env_kwargs,
+                           **({} if effect == "unobserved" else effect_kwargs))
+    ds = collect(env, params, key=key, transitions_per_policy=n, task=task_name,
+                 source=source, **collect_kwargs)
+    if effect == "unobserved":
+        ds = hide_obs_dims(ds, truth["removed_obs_dims"])
+    return ds
 
 
 def _registered_velocity_obs_dims(task_name: str) -> tuple[int, ...]:

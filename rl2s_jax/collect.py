@@ -234,24 +234,41 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
 
 def measure_values(env: Env, params: Params, *, key: jax.Array, n_episodes: int,
                    episode_length: int, gamma: float = 0.999, chunk_steps: int = 100,
-                   progress: bool = False, shard: bool = True) -> dict[str, np.ndarray]:
+                   progress: bool = False, shard: bool = True, common_groups: int = 1,
+                   per_episode: bool = False) -> dict[str, np.ndarray]:
     """True value of each policy of a stacked zoo: n_episodes fresh episodes each.
 
     Returns {"value", "value_se", "value_discounted", "value_discounted_se"}, each [P]:
-    mean (discounted) episode return over the episodes and its standard error.
+    mean (discounted) episode return over the episodes and its standard error;
+    ``per_episode`` adds "returns" and "returns_discounted" [P, n_episodes].
+
+    ``common_groups`` G > 1: the P policies are G groups of P / G (policy p in group
+    p // (P / G)); the policies at one position of every group run with common random
+    numbers: the same start states and the same action-noise draws, episode by episode. A
+    difference between groups (for example a policy before and after fine-tuning) is then
+    measured paired, with far less noise than two independent measurements.
     """
     check_env(env)
     P, E, L = num_policies(params), int(n_episodes), int(episode_length)
     if E < 1:
         raise ValueError(f"n_episodes: expected >= 1, got {E}")
+    G = common_groups
+    if (not isinstance(G, (int, np.integer)) or isinstance(G, bool) or G < 1 or P % G):
+        raise ValueError(f"common_groups: expected an int >= 1 dividing the {P} policies, "
+                         f"got {G!r}")
+    G = int(G)
     B = P * E
+
+    def common(k, n):  # n keys per group, the same in every group -> [G * n]
+        keys = jax.random.split(k, n)
+        return keys if G == 1 else jnp.concatenate([keys] * G)
     act = jax.vmap(sample_action)
     v_step = jax.vmap(env.step)
 
     def step(carry, _):
         state, alive, ret, dret, disc, key = carry
         key, k_act = jax.random.split(key)
-        action, _, _ = act(params, state.obs.reshape(P, E, -1), jax.random.split(k_act, P))
+        action, _, _ = act(params, state.obs.reshape(P, E, -1), common(k_act, P // G))
         nxt = v_step(state, action.reshape(B, -1))
         r = jnp.where(alive, nxt.reward, 0.0)
         alive_next = alive & (nxt.done < 0.5)
@@ -260,7 +277,7 @@ def measure_values(env: Env, params: Params, *, key: jax.Array, n_episodes: int,
     mesh = _policy_mesh(P, shard)
     params = shard_lanes(params, mesh)
     k_reset, key = jax.random.split(key)
-    carry = (jax.jit(jax.vmap(env.reset))(jax.random.split(k_reset, B)),
+    carry = (jax.jit(jax.vmap(env.reset))(common(k_reset, B // G)),
              jnp.ones((B,), bool), jnp.zeros((B,)), jnp.zeros((B,)), jnp.ones(()), key)
     carry = _shard_batch(carry, mesh, B)
     carry, _ = run_chunked(lambda c: step(c, None), carry, L, chunk_steps, "measure values",
@@ -268,6 +285,9 @@ def measure_values(env: Env, params: Params, *, key: jax.Array, n_episodes: int,
     ret = np.asarray(carry[2], np.float64).reshape(P, E)
     dret = np.asarray(carry[3], np.float64).reshape(P, E)
     se = lambda x: (x.std(axis=1, ddof=1) / np.sqrt(E)) if E > 1 else np.zeros(P)
-    return {"value": ret.mean(1).astype(np.float32), "value_se": se(ret).astype(np.float32),
-            "value_discounted": dret.mean(1).astype(np.float32),
-            "value_discounted_se": se(dret).astype(np.float32)}
+    out = {"value": ret.mean(1).astype(np.float32), "value_se": se(ret).astype(np.float32),
+           "value_discounted": dret.mean(1).astype(np.float32),
+           "value_discounted_se": se(dret).astype(np.float32)}
+    if per_episode:
+        out.update(returns=ret, returns_discounted=dret)
+    return out

@@ -221,45 +221,66 @@ def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.A
     """Real returns of the stacked policies before and after [P, ...] (``measure_values`` in
     ``real_env``, n_episodes each) and their improvement.
 
-    C is the mean undiscounted episode return (``discounted=True``: the discounted one).
-    -> {"c0", "c0_se", "c1", "c1_se": [P], "I": [P], "mpi", "api"}.
+    The two are measured paired: policy p before and after fine-tuning run from the same
+    start states with the same action-noise draws (``measure_values(common_groups=2)``), so
+    C1 - C0 is measured with the per-episode differences' standard error ``diff_se``, far
+    smaller than the two returns' own. C is the mean undiscounted episode return
+    (``discounted=True``: the discounted one).
+    -> {"c0", "c0_se", "c1", "c1_se", "diff_se": [P], "I": [P], "mpi", "api"}.
     """
     P = num_policies(before)
     if num_policies(after) != P:
         raise ValueError(f"after: expected {P} policies as before, got {num_policies(after)}")
-    kw = dict(n_episodes=n_episodes, episode_length=episode_length, gamma=gamma)
-    field = "value_discounted" if discounted else "value"
+    kw = dict(n_episodes=n_episodes, episode_length=episode_length, gamma=gamma,
+              per_episode=True)
+    field = "returns_discounted" if discounted else "returns"
     same = (jax.tree_util.tree_structure(before) == jax.tree_util.tree_structure(after)
             and all(a.shape == b.shape for a, b in zip(jax.tree_util.tree_leaves(before),
                                                        jax.tree_util.tree_leaves(after),
                                                        strict=True)))
-    if same:  # one batch of 2P policies
+    if same:  # one batch of 2P policies, the halves with common random numbers
         both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), before, after)
-        v = measure_values(real_env, both, key=key, **kw)
-        c, se = v[field], v[field + "_se"]
-        c0, c1, se0, se1 = c[:P], c[P:], se[:P], se[P:]
-    else:
-        k0, k1 = jax.random.split(key)
-        v0 = measure_values(real_env, before, key=k0, **kw)
-        v1 = measure_values(real_env, after, key=k1, **kw)
-        c0, c1, se0, se1 = v0[field], v1[field], v0[field + "_se"], v1[field + "_se"]
-    return {"c0": c0, "c0_se": se0, "c1": c1, "c1_se": se1, **improvement_metrics(c0, c1)}
+        r = measure_values(real_env, both, key=key, common_groups=2, **kw)[field]
+        r0, r1 = r[:P], r[P:]
+    else:  # the same key gives both calls the same starts and noise draws
+        r0 = measure_values(real_env, before, key=key, **kw)[field]
+        r1 = measure_values(real_env, after, key=key, **kw)[field]
+    return paired_returns(r0, r1)
 
 
-def improvement_intervals(c0, c0_se, c1, c1_se, *, level: float = 0.95, n_boot: int = 2000,
-                          seed: int = 0) -> dict[str, list[float]]:
+def paired_returns(r0: np.ndarray, r1: np.ndarray) -> dict[str, np.ndarray | float]:
+    """Means, standard errors and improvement from paired episode returns r0, r1 [P, E]
+    (episode e of policy p before and after shares its start and noise draws).
+    -> {"c0", "c0_se", "c1", "c1_se", "diff_se": [P], "I": [P], "mpi", "api"}."""
+    r0, r1 = np.asarray(r0, np.float64), np.asarray(r1, np.float64)
+    if r0.ndim != 2 or r0.shape != r1.shape:
+        raise ValueError(f"r0, r1: expected one shape [P, E], got {r0.shape} and {r1.shape}")
+    E = r0.shape[1]
+    se = (lambda x: x.std(axis=1, ddof=1) / np.sqrt(E)) if E > 1 else (
+        lambda x: np.zeros(x.shape[0]))
+    c0, c1 = r0.mean(1), r1.mean(1)
+    return {"c0": c0, "c0_se": se(r0), "c1": c1, "c1_se": se(r1), "diff_se": se(r1 - r0),
+            **improvement_metrics(c0, c1)}
+
+
+def improvement_intervals(c0, c0_se, c1, c1_se, *, diff_se=None, level: float = 0.95,
+                          n_boot: int = 2000, seed: int = 0) -> dict[str, list[float]]:
     """Bootstrap intervals of MPI and API from real returns with their standard errors
     (all [R, P]: R seeds of the fine-tuning x P policies, or [P]).
 
     Each replicate resamples the P policies with replacement (the same draw for every seed)
     and redraws each measured return from N(C, SE^2) (the measurement's own noise), then takes
-    MPI = min I and API = mean I over the drawn policies, averaged over the seeds. The interval
-    is the replicates' central ``level`` quantile range.
-    -> {"mpi": [low, high], "api": [low, high]}."""
+    MPI = min I and API = mean I over the drawn policies, averaged over the seeds. With
+    ``diff_se`` (paired measurement, ``measure_improvement``) C1 is redrawn as C0 + (C1 - C0)
+    + diff_se * z, keeping the pairing. The interval is the replicates' central ``level``
+    quantile range. -> {"mpi": [low, high], "api": [low, high]}."""
     c0, s0, c1, s1 = (np.atleast_2d(np.asarray(x, np.float64)) for x in (c0, c0_se, c1, c1_se))
     if not c0.shape == s0.shape == c1.shape == s1.shape:
         raise ValueError(f"c0, c0_se, c1, c1_se: expected one shape, got {c0.shape}, "
                          f"{s0.shape}, {c1.shape}, {s1.shape}")
+    sd = None if diff_se is None else np.atleast_2d(np.asarray(diff_se, np.float64))
+    if sd is not None and sd.shape != c0.shape:
+        raise ValueError(f"diff_se: expected the shape of c0 {c0.shape}, got {sd.shape}")
     improvement_metrics(c0.reshape(-1), c1.reshape(-1))  # the same checks
     if not 0 < level < 1:
         raise ValueError(f"level: expected in (0, 1), got {level}")
@@ -267,10 +288,12 @@ def improvement_intervals(c0, c0_se, c1, c1_se, *, level: float = 0.95, n_boot: 
     R, P = c0.shape
     idx = rng.integers(0, P, (n_boot, P))
     z0, z1 = rng.standard_normal((2, n_boot, R, P))
-    b0 = np.take_along_axis(c0[None] + s0[None] * z0, np.broadcast_to(idx[:, None], z0.shape),
-                            axis=-1)
-    b1 = np.take_along_axis(c1[None] + s1[None] * z1, np.broadcast_to(idx[:, None], z1.shape),
-                            axis=-1)
+    d0 = c0[None] + s0[None] * z0
+    d1 = (c1[None] + s1[None] * z1 if sd is None
+          else d0 + (c1 - c0)[None] + sd[None] * z1)
+    take = np.broadcast_to(idx[:, None], z0.shape)
+    b0 = np.take_along_axis(d0, take, axis=-1)
+    b1 = np.take_along_axis(d1, take, axis=-1)
     imp = (b1 - b0) / np.maximum(np.abs(b0), 1e-8)
     mpi, api = imp.min(-1).mean(-1), imp.mean(-1).mean(-1)
     q = [(1 - level) / 2, (1 + level) / 2]

@@ -10,6 +10,7 @@ from brax.envs import training as brax_training
 
 from rl2s_jax import dynamics as dyn
 from rl2s_jax import policies as pol
+from rl2s_jax.collect import measure_values
 from rl2s_jax.improve import (
     deployment_guard,
     guarded,
@@ -212,6 +213,41 @@ def test_sac_fine_tuning_improves_poor_policies():
     assert np.all(res["c1"] > 30.0), res  # seeds 0-3 give 45-49
     assert np.all(res["c1"] - res["c0"] > 25.0), res
     assert res["mpi"] > 1.0 and res["api"] >= res["mpi"]
+
+
+def test_measure_improvement_is_paired():
+    """Policy p before and after runs from the same starts with the same noise draws: an
+    unchanged policy measures exactly I = 0 with diff_se = 0, and a small change is measured
+    with a far smaller standard error than the two returns' own; the batched path (same
+    layout) and the two-call path (different layouts) pair episodes alike."""
+    before = _policies([0.3, -0.5, 1.0])
+    same = measure_improvement(PointMass(), before, before, jax.random.PRNGKey(5), n_episodes=32,
+                               episode_length=TASK.episode_length, gamma=0.99)
+    np.testing.assert_array_equal(same["c1"], same["c0"])
+    np.testing.assert_array_equal(same["diff_se"], 0.0)
+    assert same["mpi"] == same["api"] == 0.0 and np.all(same["c0_se"] > 0)
+    nudged = jax.tree_util.tree_map(lambda x: x, before)
+    nudged["layers"][-1]["b"] = nudged["layers"][-1]["b"] + 0.05
+    res = measure_improvement(PointMass(), before, nudged, jax.random.PRNGKey(5), n_episodes=32,
+                              episode_length=TASK.episode_length, gamma=0.99)
+    np.testing.assert_allclose(res["c0"], same["c0"], rtol=1e-6)  # the same episodes
+    assert np.all(res["diff_se"] < 0.5 * np.hypot(res["c0_se"], res["c1_se"])), res
+    # a wider policy network (another layout) for the same function: measured in two calls
+    wide = jax.tree_util.tree_map(lambda x: x, before)
+    w0 = wide["layers"][0]
+    wide["layers"][0] = {"w": jnp.concatenate([w0["w"], jnp.zeros_like(w0["w"])], -1),
+                         "b": jnp.concatenate([w0["b"], jnp.zeros_like(w0["b"])], -1)}
+    w1 = wide["layers"][1]
+    wide["layers"][1] = {"w": jnp.concatenate([w1["w"], jnp.zeros_like(w1["w"])], -2),
+                         "b": w1["b"]}
+    two = measure_improvement(PointMass(), before, wide, jax.random.PRNGKey(5), n_episodes=32,
+                              episode_length=TASK.episode_length, gamma=0.99)
+    np.testing.assert_allclose(two["c0"], same["c0"], rtol=1e-5)
+    np.testing.assert_allclose(two["c1"], two["c0"], rtol=1e-4)
+    np.testing.assert_allclose(two["diff_se"], 0.0, atol=1e-3 * np.abs(two["c0"]).max())
+    with pytest.raises(ValueError, match="common_groups: expected an int >= 1 dividing the 3"):
+        measure_values(PointMass(), before, key=jax.random.PRNGKey(0), n_episodes=2,
+                       episode_length=5, common_groups=2)
 
 
 def test_improvement_metrics_hand_computed():
@@ -523,6 +559,15 @@ def test_improvement_intervals():
         improvement_intervals(c0, c0[:1], c1, c1)
     with pytest.raises(ValueError, match="level"):
         improvement_intervals(c0, c0, c1, c1, level=1.0)
+    # paired: C1 moves with C0, so a tiny diff_se gives a far narrower API interval
+    paired = improvement_intervals(c0[:, :1], np.full((2, 1), 0.5), c1[:, :1],
+                                   np.full((2, 1), 0.5), diff_se=np.full((2, 1), 0.01))
+    unpaired = improvement_intervals(c0[:, :1], np.full((2, 1), 0.5), c1[:, :1],
+                                     np.full((2, 1), 0.5))
+    assert np.ptp(paired["api"]) < 0.3 * np.ptp(unpaired["api"])
+    assert paired["api"][0] < 0.15 < paired["api"][1]
+    with pytest.raises(ValueError, match="diff_se: expected the shape"):
+        improvement_intervals(c0, c0, c1, c1, diff_se=c0[:1, :1])
 
 
 def test_member_values_are_each_elite_alone_on_common_episodes():

@@ -93,14 +93,15 @@ def run_task(task_name: str, args) -> dict:
         _, metrics, res = improve_in_real_env(
             task, tiled, jax.random.PRNGKey(30), cfg, n_iterations=args.iterations,
             n_episodes=args.episodes, chunk_iterations=min(1000, args.iterations))
-        c0, s0, c1, s1 = (np.asarray(res[k], np.float64).reshape(R, P)
-                          for k in ("c0", "c0_se", "c1", "c1_se"))
+        c0, s0, c1, s1, sd = (np.asarray(res[k], np.float64).reshape(R, P)
+                              for k in ("c0", "c0_se", "c1", "c1_se", "diff_se"))
         per = [improvement_metrics(c0[r], c1[r]) for r in range(R)]
-        ci = improvement_intervals(c0, s0, c1, s1)
+        ci = improvement_intervals(c0, s0, c1, s1, diff_se=sd)  # C0, C1 measured paired
         entry = {"sac": {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in dataclasses.asdict(cfg).items()},
                  "c0": c0.tolist(), "c0_se": s0.tolist(), "c1": c1.tolist(),
-                 "c1_se": s1.tolist(), "I": [p["I"].tolist() for p in per],
+                 "c1_se": s1.tolist(), "diff_se": sd.tolist(), "paired": True,
+                 "I": [p["I"].tolist() for p in per],
                  "mpi_per_seed": [p["mpi"] for p in per],
                  "api_per_seed": [p["api"] for p in per],
                  "mpi": float(np.mean([p["mpi"] for p in per])),

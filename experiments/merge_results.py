@@ -84,7 +84,8 @@ def main(argv=None) -> int:
                              "iterations": ctl["iterations"], "policies": len(ctl["zoo_ids"]),
                              "mpi": c["mpi"], "api": c["api"], "mpi_ci95": c["mpi_ci95"],
                              "api_ci95": c["api_ci95"], "c0": c["c0"], "c1": c["c1"],
-                             "I": c["I"], "device": ctl["device"]}
+                             "I": c["I"], "device": ctl["device"],
+                             "paired": bool(c.get("paired"))}
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, f"{args.task}.json")
     with open(path, "w") as f:

@@ -86,6 +86,7 @@ from rl2s_jax.improve import (
     improve_in_real_env,
     improvement_metrics,
     member_values,
+    paired_returns,
 )
 from rl2s_jax.policies import index_params
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
@@ -111,7 +112,10 @@ METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 FAMILIES = (("adversarial", "rl2s", ("rl2s", "gail")), ("mle", "rl2s-bc", ("rl2s-bc", "bc")))
 EVAL_METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearman",
                 "regret@1", "avd", "mvd")
-METRICS = EVAL_METRICS + ("mpi", "api")
+# mpi/api: C0 from the data's true values, C1 measured apart; *_paired: C0 and C1 measured
+# paired (the same starts and noise draws, --improve-episodes each)
+IMPROVE_METRICS = ("mpi", "api", "mpi_paired", "api_paired")
+METRICS = EVAL_METRICS + IMPROVE_METRICS
 VARIANT_PARTS = ("full", "branched", "penalty", "stop")
 
 # Sizes per profile. gpu: the sizes of the measured protocol (docs/RESULTS.md, "5 seeds, 400
@@ -124,9 +128,11 @@ VARIANT_PARTS = ("full", "branched", "penalty", "stop")
 PROFILES = {
     "gpu": dict(seeds=5, transitions_per_policy=20_000, value_episodes=16, steps=400,
                 eval_every=100, eval_episodes=32, improve_policies=0, improve_seeds=2,
+                improve_episodes=32,
                 improve_iterations=2000, sac_envs=16, sac=dict(kl_weight=0.1)),
     "cpu": dict(seeds=3, transitions_per_policy=2000, value_episodes=4, steps=300,
                 eval_every=100, eval_episodes=8, improve_policies=10, improve_seeds=1,
+                improve_episodes=4,
                 improve_iterations=300, sac_envs=4, sac=dict(hidden=(64, 64), batch_size=128)),
 }
 
@@ -397,8 +403,9 @@ def _mean_or_none(vals):
 
 
 def _method_means(per_method: dict) -> dict:
-    """{method: {"mpi": [per lane], "api": [...]}} -> their means, for methods that have any."""
-    return {m: {k: _mean_or_none(v[k]) for k in ("mpi", "api")}
+    """{method: {"mpi": [per lane], "api": [...], ...}} -> their means, for methods that have
+    any."""
+    return {m: {k: _mean_or_none(vals) for k, vals in v.items()}
             for m, v in per_method.items() if v["mpi"]}
 
 
@@ -414,12 +421,14 @@ def control_entry(res: dict, ids: list[int], c0_data: np.ndarray, n_seeds: int,
     P = len(ids)
     shape = lambda k: np.asarray(res[k], np.float64).reshape(n_seeds, P)
     c0, c0_se, c1, c1_se = shape("c0"), shape("c0_se"), shape("c1"), shape("c1_se")
+    diff_se = shape("diff_se")  # measure_improvement measures C0 and C1 paired
     per = [improvement_metrics(c0[r], c1[r]) for r in range(n_seeds)]
     mpi, api = [p["mpi"] for p in per], [p["api"] for p in per]
     std = lambda x: float(np.std(x, ddof=1)) if len(x) > 1 else None
     return {"policy_ids": ids, "seeds": n_seeds, "c0_data": np.asarray(c0_data).tolist(),
             "c0": c0.tolist(), "c0_se": c0_se.tolist(), "c1": c1.tolist(),
-            "c1_se": c1_se.tolist(), "I": [p["I"].tolist() for p in per],
+            "c1_se": c1_se.tolist(), "diff_se": diff_se.tolist(), "paired": True,
+            "I": [p["I"].tolist() for p in per],
             "train_return": [_none_if_nan(x) for x in np.asarray(train_return).reshape(-1)],
             "mpi_per_seed": mpi, "api_per_seed": api, "mpi": float(np.mean(mpi)),
             "api": float(np.mean(api)), "mpi_std": std(mpi), "api_std": std(api)}
@@ -561,6 +570,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--improve-policies", type=int, help="test policies fine-tuned, spread "
                     "evenly over their true returns (0 or more than there are: all)")
     ap.add_argument("--improve-seeds", type=int, help="seeds whose simulators are used")
+    ap.add_argument("--improve-episodes", type=pos, help="real episodes per policy for the "
+                    "paired measurement of C0 and C1 (start and fine-tuned policies from the "
+                    "same starts and noise draws)")
     ap.add_argument("--sac-envs", type=pos, help="SAC envs per fine-tuned policy")
     ap.add_argument("--sac-critic-warmup", type=int, help="updates training only the critics "
                     "(default: a quarter of --improve-iterations)")
@@ -927,11 +939,17 @@ def main(argv=None) -> int:
             L, P = len(v_lanes), len(ids)
             flat = jax.tree_util.tree_map(lambda x, n=L * P: x.reshape((n,) + x.shape[2:]),
                                           actors)
-            real = measure_values(task.make_env(), flat, key=jax.random.PRNGKey(20),
-                                  n_episodes=sizes["value_episodes"], episode_length=ep_len,
-                                  gamma=gamma_data)
-            c1 = np.asarray(real["value"], np.float64).reshape(L, P)
-            se = np.asarray(real["value_se"], np.float64).reshape(L, P)
+            # paired: the start policies and every lane's fine-tuned ones from common starts
+            # and noise draws (measure_values' common_groups), C0 measured alongside
+            with_start = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), pols,
+                                                flat)
+            real = measure_values(task.make_env(), with_start, key=jax.random.PRNGKey(20),
+                                  n_episodes=sizes["improve_episodes"], episode_length=ep_len,
+                                  gamma=gamma_data, common_groups=L + 1, per_episode=True)
+            r = np.asarray(real["returns"], np.float64).reshape(L + 1, P, -1)
+            paired = [paired_returns(r[0], r[1 + i]) for i in range(L)]
+            c1 = np.stack([pr["c1"] for pr in paired])
+            se = np.stack([pr["c1_se"] for pr in paired])
             phase("improve_measure" if vi == 0 else f"improve_measure[{variant}]", t0)
             accepted = None
             if args.guard_margin is not None:  # each simulator's own verdict per policy
@@ -945,8 +963,8 @@ def main(argv=None) -> int:
                                       n_episodes=16, horizon=horizon, gamma=gamma_data)
                     accepted.append(deployment_guard(v[:, :P], v[:, P:], args.guard_margin))
                 phase("improve_guard" if vi == 0 else f"improve_guard[{variant}]", t0)
-            improvement, per_method = {}, {m: {"mpi": [], "api": []} for m in result["per_seed"]
-                                           if m in METHODS}
+            improvement, per_method = {}, {m: {k: [] for k in IMPROVE_METRICS}
+                                           for m in result["per_seed"] if m in METHODS}
             guarded_method = {m: {"mpi": [], "api": []} for m in per_method}
             for i, (m, s) in enumerate(v_lanes):
                 try:
@@ -956,12 +974,20 @@ def main(argv=None) -> int:
                     imp = {"I": np.full(len(ids), np.nan), "mpi": None, "api": None}
                 per_method[m]["mpi"].append(imp["mpi"])
                 per_method[m]["api"].append(imp["api"])
+                pr = paired[i]
                 improvement[f"{m}/{s}"] = {
                     "method": m, "seed": s, "policy_ids": ids, "c0": c0.tolist(),
                     "c1": [_none_if_nan(x) for x in c1[i]], "c1_se": se[i].tolist(),
                     "I": [_none_if_nan(x) for x in imp["I"]],
                     "sim_return": [_none_if_nan(x) for x in sim_return[i]],
-                    "mpi": imp["mpi"], "api": imp["api"]}
+                    "mpi": imp["mpi"], "api": imp["api"],
+                    # C0 re-measured on the episodes of C1 (paired), I from the pair
+                    "paired_episodes": int(r.shape[-1]),
+                    "c0_paired": pr["c0"].tolist(), "c0_paired_se": pr["c0_se"].tolist(),
+                    "diff_se": pr["diff_se"].tolist(), "I_paired": pr["I"].tolist(),
+                    "mpi_paired": pr["mpi"], "api_paired": pr["api"]}
+                per_method[m]["mpi_paired"].append(pr["mpi"])
+                per_method[m]["api_paired"].append(pr["api"])
                 if accepted is not None and imp["mpi"] is not None:
                     # a kept start policy earns its C0: I = 0
                     dep = improvement_metrics(c0, np.where(accepted[i], c1[i], c0))
@@ -976,8 +1002,9 @@ def main(argv=None) -> int:
                         f"{_finite_mean(sim_return[i])})")
             if vi == 0:
                 for m in per_method:
-                    result["per_seed"][m]["mpi"] += per_method[m]["mpi"]
-                    result["per_seed"][m]["api"] += per_method[m]["api"]
+                    for k in IMPROVE_METRICS:
+                        result["per_seed"][m].setdefault(k, [])
+                        result["per_seed"][m][k] += per_method[m][k]
                 result["improvement"] = improvement
                 result["improve_variant"] = variant
             result["ablation"][variant] = {
@@ -996,7 +1023,7 @@ def main(argv=None) -> int:
         tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * R), pols)
         _, ctrl_metrics, ctrl = improve_in_real_env(
             task, tiled, jax.random.PRNGKey(30), sac_cfg, n_iterations=it,
-            n_episodes=sizes["value_episodes"], episode_length=ep_len, gamma=gamma_data,
+            n_episodes=sizes["improve_episodes"], episode_length=ep_len, gamma=gamma_data,
             chunk_iterations=min(sizes["sac_chunk"], it))
         last = min(sizes["sac_chunk"], it)  # the training return of the last chunk
         result["control"] = control_entry(ctrl, ids, c0, R, np.asarray(episode_returns(

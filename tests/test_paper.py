@@ -114,7 +114,10 @@ def test_paper_tables_control_and_ablation(tmp_path):
     text = pt.render({"hopper": r}, "res")
     table2 = text.split("### Table 2")[1].split("### Value")[0]
     assert ("| hopper | control (real env) | 0.050 ± 0.010 (2 seeds) | n/a | "
-            "0.300 ± 0.100 (2 seeds) | n/a |") in table2
+            "0.300 ± 0.100 (2 seeds) | n/a | n/a | n/a | n/a | n/a |") in table2
+    r["control"]["paired"] = True  # measure_improvement's C0 and C1: the paired columns too
+    assert ("| 0.300 ± 0.100 (2 seeds) | n/a | 0.050 ± 0.010 (2 seeds) | n/a | "
+            "0.300 ± 0.100 (2 seeds) | n/a |") in pt.render({"hopper": r}, "res")
     assert "| hopper | oracle |" in text.split("### Table 1")[1].split("### Table 2")[0]
     ablation = text.split("### Improvement by simulated-env variant")[1].split("### Value")[0]
     assert "| hopper | full | rl2s | 0.200 | 0.100 |" in ablation
@@ -297,7 +300,8 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         assert set(vals) == set(METRICS), m
         per = r["per_seed"][m]
         for k in METRICS:
-            n = 1 if k in ("mpi", "api") else 2  # improvement on the first seed only
+            # improvement on the first seed only
+            n = 1 if k in ("mpi", "api", "mpi_paired", "api_paired") else 2
             assert len(per[k]) == n and all(np.isfinite(per[k])), (m, k)
             assert vals[k] == pytest.approx(np.mean(per[k]))
             assert (r["std"][m][k] is None) == (n == 1)
@@ -346,6 +350,11 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         np.testing.assert_allclose(v["I"], (c1 - c0) / np.abs(c0), rtol=1e-6)
         assert v["mpi"] == pytest.approx(min(v["I"])) and v["api"] == pytest.approx(
             np.mean(v["I"]))
+        # paired: C0 re-measured on C1's episodes, the same for every lane
+        cp = np.asarray(v["c0_paired"])
+        np.testing.assert_allclose(v["I_paired"], (c1 - cp) / np.abs(cp), rtol=1e-6)
+        assert v["mpi_paired"] == pytest.approx(min(v["I_paired"]))
+        assert v["c0_paired"] == imp["rl2s/0"]["c0_paired"] and len(v["diff_se"]) == 2
     from rl2s_jax.policies import load_zoo
     zoo = load_zoo("hopper")  # the split's sizes come from the shipped zoo
     n_train, n_test = len(zoo.train_ids), len(zoo.test_ids)

@@ -167,6 +167,18 @@ def test_episode_estimate_never_sees_its_own_half():
     assert not np.allclose(after[~first], before[~first])
 
 
+def test_split_episodes_leaves_short_episodes_out_of_both_sides():
+    eps = from_dataset(make_planted("clean", n_episodes=12, episode_length=5, seed=0))
+    length = eps.length.copy()
+    length[[0, 7]] = 1  # as if two recordings were cut right after a reset
+    short = dataclasses.replace(eps, length=length)
+    fit, held = split_episodes(short, 0.3, 0, min_length=2)
+    assert not {0, 7} & (set(fit.tolist()) | set(held.tolist()))
+    assert sorted(np.r_[fit, held].tolist()) == [e for e in range(12) if e not in (0, 7)]
+    fit1, held1 = split_episodes(short, 0.3, 0)  # default: every episode is used
+    assert len(fit1) + len(held1) == 12
+
+
 def test_test_causes_rejects_bad_shapes():
     ds = make_planted("clean", n_episodes=8, seed=0)
     eps = from_dataset(ds)

@@ -135,17 +135,18 @@ def from_dataset(ds: Dataset, position_dims: tuple[int, ...] | None = None) -> E
     )
 
 
-def split_episodes(eps: Episodes, heldout_frac: float = 0.3, seed: int = 0
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def split_episodes(eps: Episodes, heldout_frac: float = 0.3, seed: int = 0,
+                   min_length: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Split whole episodes into fit and held-out sets, per policy (every policy with at least
-    2 episodes keeps at least one on each side). -> (fit_episodes [E1], heldout_episodes [E2]),
-    sorted episode indices."""
+    2 episodes keeps at least one on each side). Episodes shorter than ``min_length`` rows go
+    to neither side. -> (fit_episodes [E1], heldout_episodes [E2]), sorted episode indices."""
     if not 0.0 < heldout_frac < 1.0:
         raise ValueError(f"heldout_frac: expected a fraction in (0, 1), got {heldout_frac}")
     rng = np.random.default_rng(seed)
     fit, held = [], []
+    long_enough = eps.length >= min_length
     for p in np.unique(eps.episode_policy):
-        ids = rng.permutation(np.flatnonzero(eps.episode_policy == p))
+        ids = rng.permutation(np.flatnonzero((eps.episode_policy == p) & long_enough))
         if ids.size < 2:
             fit.extend(ids)
             continue

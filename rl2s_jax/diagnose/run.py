@@ -98,7 +98,7 @@ def _differential_causes(eps: Episodes, ref_eps: Episodes, fit_eps, held_eps,
                          min_score: float, progress: bool, log) -> dict:
     """The cause tests of the target against a reference dataset (see ``diagnose``)."""
     pooled, in_target = pool_episodes(eps, ref_eps)
-    ref_fit, ref_held = split_episodes(ref_eps, heldout_frac, split_seed)
+    ref_fit, ref_held = split_episodes(ref_eps, heldout_frac, split_seed, min_length=2)
     fit_ep = np.r_[fit_eps, ref_fit + eps.n_episodes]
     held_ep = np.r_[held_eps, ref_held + eps.n_episodes]
     fit_rows, held_rows = pooled.rows(fit_ep), pooled.rows(held_ep)
@@ -283,10 +283,13 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
             raise ValueError(f"reference: expected a Dataset, got {type(reference).__name__}")
         ref_eps = from_dataset(reference, position_dims=eps.position_dims)
         pool_episodes(eps, ref_eps)  # checks the sizes before any work
-    fit_eps, held_eps = split_episodes(eps, heldout_frac, split_seed)
+    # One-row episodes (a recording cut right after a reset) cannot give a per-episode
+    # context from their other half, and the extension may add one: both sides leave them out.
+    fit_eps, held_eps = split_episodes(eps, heldout_frac, split_seed, min_length=2)
     fit_rows, held_rows = eps.rows(fit_eps), eps.rows(held_eps)
-    if eps.length[held_eps].min() < 2 and base_spec.context_dim:
-        raise ValueError("data: episodes of one row cannot give a context from the other half")
+    one_row = int((eps.length < 2).sum())
+    if one_row:
+        log(f"[diagnose] {one_row} one-row episode(s) left out of fit and held-out sets")
     log(f"[diagnose] {eps.n} transitions, {eps.n_episodes} episodes, {eps.n_policies} "
         f"policies; fit on {len(fit_eps)} episodes, hold out {len(held_eps)}; seeds {seeds}")
     setup, no_values = _value_setup(ds, zoo, value_horizon, None)
@@ -335,7 +338,7 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
         "data": {"transitions": eps.n, "episodes": eps.n_episodes, "policies": eps.n_policies,
                  "obs_size": eps.obs_size, "action_size": eps.action_size,
                  "task": ds.meta.get("task"), "fit_episodes": int(len(fit_eps)),
-                 "heldout_episodes": int(len(held_eps))},
+                 "heldout_episodes": int(len(held_eps)), "one_row_episodes_left_out": one_row},
         "residuals_from": source,
         "reference": None if ref_eps is None else {
             "transitions": ref_eps.n, "episodes": ref_eps.n_episodes,

@@ -59,8 +59,9 @@ def write_summary(args, argv, device, rows) -> None:
     with open(os.path.join(args.out, "summary.json"), "w") as f:
         json.dump(summary, f, indent=1, default=lambda x: np.asarray(x).tolist())
     lines = ["| planted | truth | mode | top cause | planted cause found? | confidence | details "
-             "| held-out NLL base -> extended (diff ± std) | MSE base -> extended |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| held-out NLL base -> extended (diff ± std) | MSE base -> extended "
+             "| AVD base -> extended |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         n, m = r["heldout_nll"], r["heldout_mse"]
         truth = {k: v for k, v in r["truth"].items() if k in ("effect", "lag", "actuators",
@@ -71,8 +72,12 @@ def write_summary(args, argv, device, rows) -> None:
                if "after" in n else f"{n['before']:.3f} (no extension)")
         mse = (f"{m['before']:.4f} -> {m['after']:.4f}" if "after" in m
                else f"{m['before']:.4f}")
+        a = r.get("avd")
+        avd = ("-" if a is None else
+               f"{a['before']:.1f} -> {a['after']:.1f} ({a['diff']:+.1f} ± {a['diff_std']:.1f})"
+               if "after" in a else f"{a['before']:.1f}")
         lines.append(f"| {r['effect']} | {truth} | {r['mode']} | **{r['top_cause']}** | "
-                     f"{found} | {r['confidence']:.2f} | {r['details']} | {nll} | {mse} |")
+                     f"{found} | {r['confidence']:.2f} | {r['details']} | {nll} | {mse} | {avd} |")
     with open(os.path.join(args.out, "summary.md"), "w") as f:
         f.write("\n".join(lines) + "\n")
     print("\n".join(lines), flush=True)

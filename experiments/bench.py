@@ -2,10 +2,14 @@
 
 Collection throughput (transitions/s, policy inference, fresh resets and the copy to the host
 included) next to raw MJX stepping (vmap(env.step) in a scan, random actions, no resets) for
-the same env and batch, and their ratio. Also collection with a full reset every step
-(refresh_fraction=1), to show what the pooled fresh starts buy.
+the same env and batch, and their ratio; collection with a full reset every step
+(refresh_fraction=1), to show what the pooled fresh starts buy. With --breakdown also the
+pieces: raw stepping with the policies' actions, raw stepping where ended envs go back to a
+stored start (the state distribution of collection without its machinery), collection
+without the copy to the host, and with a smaller pool of fresh starts.
 
-    python experiments/bench.py [--task hopper] [--batch 1024 8192 ...] [--json out.json]
+    python experiments/bench.py [--task hopper] [--batch 1024 8192 ...] [--breakdown]
+        [--json out.json]
 """
 
 from __future__ import annotations
@@ -17,8 +21,8 @@ import time
 
 import jax
 
-from rl2s_jax.collect import make_rollout_step
-from rl2s_jax.policies import init_policy, stack_params
+from rl2s_jax.collect import make_rollout_step, tree_where
+from rl2s_jax.policies import init_policy, sample_action, stack_params
 from rl2s_jax.tasks import get_task
 
 
@@ -33,43 +37,85 @@ def timed(fn, *args, repeats: int = 3):
     return best
 
 
-def bench_batch(env, n_policies: int, batch: int, steps: int, reset_every_step: bool) -> dict:
+def bench_batch(env, n_policies: int, batch: int, steps: int, reset_every_step: bool,
+                breakdown: bool = False) -> dict:
+    """Transitions/s of raw stepping and of collection variants at one batch size.
+
+    ``breakdown`` adds the pieces: raw stepping with the policies' actions instead of random
+    ones ("policy"); raw stepping in which an env that is done goes back to its stored first
+    state by a select ("raw_autoreset": no reset computed, no records); collection without
+    the copy of its records to the host ("collect_no_copy"); collection refreshing at most
+    1/32 of the starts per step instead of 1/8 ("collect_refresh_1_32")."""
     E = batch // n_policies
     B = n_policies * E
     keys = jax.random.split(jax.random.PRNGKey(0), n_policies)
     params = stack_params([init_policy(k, env.observation_size, env.action_size)
                            for k in keys])
     state0 = jax.jit(jax.vmap(env.reset))(jax.random.split(jax.random.PRNGKey(1), B))
+    v_step, act = jax.vmap(env.step), jax.vmap(sample_action)
 
-    @jax.jit
-    def raw(state, key):
-        def body(c, _):
-            s, k = c
-            k, ka = jax.random.split(k)
-            a = jax.random.uniform(ka, (B, env.action_size), minval=-1.0, maxval=1.0)
-            return (jax.vmap(env.step)(s, a), k), None
-        return jax.lax.scan(body, (state, key), None, length=steps)[0][0].obs
+    def raw_with(actions, autoreset: bool = False):
+        @jax.jit
+        def raw(state, key):
+            def body(c, _):
+                s, k = c
+                k, ka = jax.random.split(k)
+                nxt = v_step(s, actions(s, ka))
+                if autoreset:
+                    nxt = tree_where(nxt.done > 0.5, state, nxt)
+                return (nxt, k), None
+            return jax.lax.scan(body, (state, key), None, length=steps)[0][0].obs
+        return raw
 
-    raw_s = timed(raw, state0, jax.random.PRNGKey(2))
+    def random_actions(s, k):
+        return jax.random.uniform(k, (B, env.action_size), minval=-1.0, maxval=1.0)
+
+    def policy_actions(s, k):
+        a, _, _ = act(params, s.obs.reshape(n_policies, E, -1), jax.random.split(k, n_policies))
+        return a.reshape(B, -1)
+
+    raw_s = timed(raw_with(random_actions), state0, jax.random.PRNGKey(2))
     row = {"batch": B, "policies": n_policies, "envs_per_policy": E, "steps": steps,
            "raw_steps_per_s": B * steps / raw_s}
-    variants = [("collect", 0.125)] + ([("collect_reset_every_step", 1.0)]
-                                       if reset_every_step else [])
-    for label, frac in variants:
+    variants = [("collect", 0.125, True)]
+    if reset_every_step:
+        variants.append(("collect_reset_every_step", 1.0, True))
+    if breakdown:
+        for label, actions, autoreset in (("policy", policy_actions, False),
+                                          ("raw_autoreset", random_actions, True)):
+            row[f"{label}_steps_per_s"] = B * steps / timed(
+                raw_with(actions, autoreset), state0, jax.random.PRNGKey(2))
+            row[f"{label}_ratio"] = row[f"{label}_steps_per_s"] / row["raw_steps_per_s"]
+            _progress(B, label, row)
+        variants += [("collect_no_copy", 0.125, False), ("collect_refresh_1_32", 1 / 32, True)]
+    for label, frac, copy in variants:
         init, step = make_rollout_step(env, n_policies, E, episode_length=1000,
                                        refresh_fraction=frac)
         carry = jax.jit(init)(jax.random.PRNGKey(3))
         chunk = jax.jit(lambda c, step=step: jax.lax.scan(
             lambda x, _: step(params, x), c, None, length=steps))
 
-        def run(c, chunk=chunk):
+        def run(c, chunk=chunk, copy=copy):
             # as collect() does: one jitted scanned chunk, its records copied to the host
             c, records = chunk(c)
-            jax.device_get(records)
+            if copy:
+                jax.device_get(records)
+            else:
+                jax.block_until_ready(records)
             return c.t
         row[f"{label}_steps_per_s"] = B * steps / timed(run, carry)
         row[f"{label}_ratio"] = row[f"{label}_steps_per_s"] / row["raw_steps_per_s"]
+        _progress(B, label, row)
+        if copy:  # how often envs end: the refresh pool must keep up with it
+            _, records = chunk(carry)
+            ends = records["done"] | records["truncated"]
+            row[f"{label}_end_rate"] = float(ends.mean())
     return row
+
+
+def _progress(batch: int, label: str, row: dict) -> None:
+    print(f"#   batch {batch} {label}: {row[f'{label}_steps_per_s']:,.0f}/s, ratio "
+          f"{row[f'{label}_ratio']:.3f}", file=sys.stderr, flush=True)
 
 
 def main(argv=None) -> int:
@@ -83,24 +129,30 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=200 if on_gpu else 20)
     parser.add_argument("--reset-every-step-batch", type=int, nargs="*", default=[8192, 64],
                         help="batch sizes at which to also time a full reset every step")
+    parser.add_argument("--breakdown", action="store_true",
+                        help="also time the pieces: policy actions, no copy to the host")
     parser.add_argument("--json")
     args = parser.parse_args(argv)
     env = get_task(args.task).make_env()
     device = str(jax.devices()[0].device_kind)
     print(f"# collection vs raw MJX stepping: {args.task}, {device}, jax {jax.__version__}, "
           f"{args.steps} steps per timed run, best of 3")
-    print("| batch | raw MJX steps/s | collect transitions/s | ratio | reset-every-step "
-          "transitions/s | ratio |")
-    print("|---:|---:|---:|---:|---:|---:|")
+    cols = [("collect", "collect"), ("collect_reset_every_step", "reset every step")]
+    if args.breakdown:
+        cols += [("policy", "raw + policy actions"), ("raw_autoreset", "raw + autoreset"),
+                 ("collect_no_copy", "collect, no host copy"),
+                 ("collect_refresh_1_32", "collect, refresh 1/32")]
+    print("| batch | raw MJX steps/s | " + " | ".join(f"{c} /s | ratio" for _, c in cols) + " |")
+    print("|---:|---:|" + "---:|---:|" * len(cols))
     rows = []
     for b in args.batch:
-        r = bench_batch(env, args.policies, b, args.steps, b in args.reset_every_step_batch)
+        r = bench_batch(env, args.policies, b, args.steps, b in args.reset_every_step_batch,
+                        args.breakdown)
         rows.append(r)
-        full = (f"{r['collect_reset_every_step_steps_per_s']:,.0f} | "
-                f"{r['collect_reset_every_step_ratio']:.2f}"
-                if "collect_reset_every_step_ratio" in r else "- | -")
-        print(f"| {r['batch']} | {r['raw_steps_per_s']:,.0f} | {r['collect_steps_per_s']:,.0f} "
-              f"| {r['collect_ratio']:.2f} | {full} |", flush=True)
+        cells = [f"{r[k + '_steps_per_s']:,.0f} | {r[k + '_ratio']:.2f}"
+                 if k + "_ratio" in r else "- | -" for k, _ in cols]
+        print(f"| {r['batch']} | {r['raw_steps_per_s']:,.0f} | " + " | ".join(cells) + " |",
+              flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"task": args.task, "device": device, "jax": jax.__version__,

@@ -245,14 +245,20 @@ def _gain(nll_without: np.ndarray, nll_with: np.ndarray, episode: np.ndarray) ->
 
 def _test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.ndarray,
                  fit_rows: np.ndarray, *, pred_mean, lags: int, n_folds: int, seed: int,
-                 resolution: float) -> dict:
+                 resolution: float, side: np.ndarray | None = None) -> dict:
     """Every cause's unique gain on these rows. -> {"results": cause -> gain (``_gain`` plus
     "marginal"), "nll" / "vnll": model -> per-row NLL [n, o] of the mean / variance models,
-    "u2" [n, o], "episode" [n], "rows", "resid", "blocks"}."""
+    "u2" [n, o], "episode" [n], "rows", "resid", "blocks"}.
+
+    side [n] (0/1, differential mode): which dataset each row comes from; every mean and
+    variance model then carries a per-side intercept, so that a side's overall offset or
+    error scale is never credited to a cause."""
     episode = eps.episode[rows]
     folds = episode_folds(eps, rows, n_folds, seed)
     blocks = build_features(eps, rows, resid, fit_rows, pred_mean=pred_mean, lags=lags,
                             seed=seed)
+    if side is not None:
+        blocks["side"] = np.asarray(side, np.float64)[:, None]
     mean_names = ["current", *MEAN_CAUSES.values()]
     x, idx = _cols(blocks, mean_names)
     everything = np.concatenate([idx[n] for n in mean_names])
@@ -271,6 +277,10 @@ def _test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.nda
     split = 1 + n_s + n_a  # the time block: order and order * (s, a) first, then step
     models["-order"] = np.setdiff1d(everything, idx["time"][:split])
     models["-step"] = np.setdiff1d(everything, idx["time"][split:])
+    models["-time-episode"] = np.setdiff1d(everything, np.r_[idx["time"], idx["episode"]])
+    if side is not None:
+        x = np.concatenate([x, blocks["side"]], 1)
+        models = {m: np.append(cols, x.shape[1] - 1) for m, cols in models.items()}
     fits = crossfit_ridge(x, resid, folds, models)
     floor = resolution ** 2
     # Each model's error variance per dim is that of its own held-out errors, so a model that
@@ -278,11 +288,7 @@ def _test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.nda
     nll = {m: gaussian_nll(resid - pred, np.maximum(((resid - pred) ** 2).mean(0), floor))
            for m, pred in fits.items()}
 
-    results = {}
-    for cause, block in MEAN_CAUSES.items():
-        g = _gain(nll[f"-{block}"], nll["full"], episode)
-        g["marginal"] = _gain(nll["current"], nll[f"+{block}"], episode)["score"]
-        results[cause] = g
+    results = _mean_results(nll, episode)
 
     # The residuals' size, after the full mean model, in units of the model's own std.
     err = resid - fits["full"]
@@ -291,6 +297,20 @@ def _test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.nda
     vmodels = {"none": np.array([], int), "full": np.arange(xv.shape[1]),
                "-magnitude": vidx["density"], "-density": vidx["magnitude"],
                "+magnitude": vidx["magnitude"], "+density": vidx["density"]}
+    if side is not None:
+        # What is new in the target's error size: a side intercept and side x magnitude (its
+        # noise, overall or signal-dependent) and side x density (its sparse regions) on top
+        # of the structure both sides share.
+        sv = blocks["side"]
+        on = sv[:, 0] > 0  # density centred on the target, so the side's overall error
+        dens = blocks["density"] - blocks["density"][on].mean(0)  # scale stays with noise
+        xv = np.concatenate([xv, sv, sv * blocks["magnitude"], sv * dens], 1)
+        shared = np.arange(vidx["density"][-1] + 1)
+        noise_new = np.arange(shared.size, shared.size + 1 + blocks["magnitude"].shape[1])
+        gap_new = np.arange(noise_new[-1] + 1, xv.shape[1])
+        vmodels = {"none": shared, "full": np.arange(xv.shape[1]),
+                   "-magnitude": np.r_[shared, gap_new], "-density": np.r_[shared, noise_new],
+                   "+magnitude": np.r_[shared, noise_new], "+density": np.r_[shared, gap_new]}
     # Log-variance regression (robust to the heavy tails of squared errors); each model's
     # predicted variance is rescaled per dim so that it is unbiased for u^2 on average.
     log_u2 = np.log(u2 + 1e-3 * u2.mean(0) + 1e-30)
@@ -308,11 +328,47 @@ def _test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.nda
             "rows": rows, "resid": resid, "blocks": blocks}
 
 
-def _difference(tested: dict, ref: dict) -> dict:
-    """Differential gains: target minus reference score, per dim and marginal; the p-value
-    from the rank-sum test of per-episode mean gains (target > reference)."""
+def _mean_results(nll: dict, episode: np.ndarray) -> dict:
+    """Each mean cause's unique gain (``_gain`` plus "marginal") from the per-row NLLs of the
+    mean models. Drift is the structured case of a per-episode difference (one that the
+    recording order predicts), so it is credited first: its gain is measured without the
+    per-episode block, and the per-episode block keeps only what the time inputs cannot
+    explain."""
+    results = {}
+    for cause, block in MEAN_CAUSES.items():
+        without, with_ = ("-time-episode", "-episode") if block == "time" else (f"-{block}",
+                                                                                 "full")
+        results[cause] = _gain(nll[without], nll[with_], episode)
+        results[cause]["marginal"] = _gain(nll["current"], nll[f"+{block}"], episode)["score"]
+    return results
+
+
+def _side_view(tested: dict, mask: np.ndarray) -> dict:
+    """The rows ``mask`` [n] of a pooled ``_test_causes`` result, with each cause's gains
+    recomputed on them alone (the fitted models stay the pooled ones)."""
+    episode = tested["episode"][mask]
+    nll = {m: v[mask] for m, v in tested["nll"].items()}
+    vnll = {m: v[mask] for m, v in tested["vnll"].items()}
+    results = _mean_results(nll, episode)
+    for cause, block in VARIANCE_CAUSES.items():
+        results[cause] = _gain(vnll[f"-{block}"], vnll["full"], episode)
+        results[cause]["marginal"] = _gain(vnll["none"], vnll[f"+{block}"], episode)["score"]
+    return {"results": results, "nll": nll, "vnll": vnll, "u2": tested["u2"][mask],
+            "episode": episode, "rows": tested["rows"][mask], "resid": tested["resid"][mask],
+            "blocks": {b: v[mask] for b, v in tested["blocks"].items()}}
+
+
+def _difference(tested: dict, ref: dict, pooled: dict) -> dict:
+    """Differential gains. Mean causes: target minus reference score, per dim and marginal,
+    the p-value from the rank-sum test of per-episode mean gains (target > reference).
+    Variance causes: the pooled gain of the target-only terms (side x magnitude / density),
+    which only the target's own error size can earn, with the sign-flip p over all
+    episodes."""
     out = {}
     for c, g in tested["results"].items():
+        if c in VARIANCE_CAUSES:
+            out[c] = dict(pooled["results"][c])
+            continue
         r = ref["results"][c]
         out[c] = {"score": g["score"] - r["score"], "per_dim": g["per_dim"] - r["per_dim"],
                   "marginal": g["marginal"] - r["marginal"],
@@ -371,9 +427,13 @@ def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.
 
     Differential mode (``in_target`` [n] bool given): ``rows`` hold the held-out rows of a
     target dataset and of a reference dataset of the same system (``episodes.pool_episodes``),
-    the residuals of both from the same model. The tests run on each side alone; a cause's
-    score is its target gain minus its reference gain (per transition), and its p-value is a
-    one-sided rank-sum test that the target's per-episode gains exceed the reference's. An
+    the residuals of both from the same model. The tests' regressions are fitted once, on
+    both sides' rows (cross-fitted over the pooled episodes, with a per-side intercept); a
+    cause's score is its mean gain on the target's rows minus that on the reference's, and its
+    p-value is a one-sided rank-sum test that the target's per-episode gains exceed the
+    reference's. Both sides share every fitted model, so the side labels are exchangeable when
+    the datasets do not differ and the rank-sum test keeps its level (fitting each side on its
+    own, as an earlier version did, made clean-vs-clean "significant" on large data). An
     effect that both datasets show scores about zero; what is new in the target stands out.
     The details (lag, actuators, dims) come from the same differences.
     """
@@ -395,22 +455,26 @@ def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.
         if sel.shape != (len(rows),):
             raise ValueError(f"in_target: expected a bool mask of shape [{len(rows)}], got "
                              f"{sel.shape}")
-        pm = (lambda m: None) if pred_mean is None else (lambda m: pred_mean[m])
-        tested = _test_causes(eps, rows[sel], resid[sel], std[sel], fit_rows,
-                              **{**kw, "pred_mean": pm(sel)})
-        ref = _test_causes(eps, rows[~sel], resid[~sel], std[~sel], fit_rows,
-                           **{**kw, "pred_mean": pm(~sel)})
-    results = tested["results"] if ref is None else _difference(tested, ref)
+        if sel.all() or not sel.any():
+            raise ValueError("in_target: expected held-out rows of both the target and the "
+                             "reference")
+        pooled = _test_causes(eps, rows, resid, std, fit_rows, **kw, side=sel.astype(int))
+        tested, ref = _side_view(pooled, sel), _side_view(pooled, ~sel)
+    results = tested["results"] if ref is None else _difference(tested, ref, pooled)
     n_tests = len(CAUSES)
     for g in results.values():
         g["significant"] = bool(g["p_value"] < alpha / n_tests and g["score"] >= min_score)
 
-    details = _details(results, tested, ref, eps, lags=lags, alpha=alpha,
+    details = _details(results, tested, ref, None if ref is None else pooled, eps, lags=lags,
+                       alpha=alpha,
                        obs_names=obs_names, action_names=action_names)
-    ranked = sorted(results, key=lambda c: (not results[c]["significant"], -results[c]["score"]))
+    # Mechanisms before symptoms: the variance causes are tested on what the linear mean
+    # model leaves, and a mean cause it captures only in part leaves errors whose size also
+    # looks "explained" (larger where the state is unusual, larger in the target overall).
+    ranked = sorted(results, key=lambda c: (not results[c]["significant"],
+                                            c in VARIANCE_CAUSES, -results[c]["score"]))
     top = ranked[0] if results[ranked[0]]["significant"] else "none"
-    confidence = _confidence(results, top, [tested] if ref is None else [tested, ref],
-                             min_score, n_boot, seed)
+    confidence = _confidence(results, top, tested, ref, min_score, n_boot, seed)
     causes = [{"name": c, "score": results[c]["score"], "p_value": results[c]["p_value"],
                "significant": results[c]["significant"],
                "marginal_score": results[c]["marginal"], "details": details[c]} for c in ranked]
@@ -439,7 +503,8 @@ def _dims_of(per_dim: np.ndarray, frac: float = 0.1) -> list[int]:
     return [int(d) for d in np.flatnonzero(per_dim >= frac * per_dim.max())]
 
 
-def _details(results, tested, ref, eps, *, lags, alpha, obs_names, action_names) -> dict:
+def _details(results, tested, ref, pooled, eps, *, lags, alpha, obs_names, action_names
+             ) -> dict:
     u2, episode = tested["u2"], tested["episode"]
     rows, resid, blocks = tested["rows"], tested["resid"], tested["blocks"]
 
@@ -451,7 +516,10 @@ def _details(results, tested, ref, eps, *, lags, alpha, obs_names, action_names)
                      t["episode"])
 
     def drop_gain(name, d=None):
-        """Its gain, the reference's subtracted in differential mode."""
+        """Its gain, the reference's subtracted in differential mode (a noise dim's: pooled,
+        as the stochastic_noise score)."""
+        if ref is not None and name is None:
+            return side_gain(pooled, name, d)
         g = side_gain(tested, name, d)
         if ref is None:
             return g
@@ -520,26 +588,37 @@ def _details(results, tested, ref, eps, *, lags, alpha, obs_names, action_names)
     }
 
 
-def _confidence(results: dict, top: str, sides: list[dict], min_score: float, n_boot: int,
-                seed: int) -> float:
+def _confidence(results: dict, top: str, tested: dict, ref: dict | None, min_score: float,
+                n_boot: int, seed: int) -> float:
     """Share of episode resamples in which the reported cause still wins: the top cause has
-    the highest score (or, for "none", no cause reaches min_score). ``sides``: the tested
-    target, and in differential mode the reference, whose resampled scores are subtracted."""
+    the highest score (among the mean causes when it is one; for "none": no cause reaches
+    min_score). Each side's episodes are
+    resampled on their own; in differential mode a mean cause's score is the target's minus
+    the reference's, a variance cause's the gain over both sides' rows (``_difference``)."""
     names = list(results)
+    variance = np.array([c in VARIANCE_CAUSES for c in names])
     rng = np.random.default_rng(seed + 1)
-    parts = []
-    for sign, t in zip((1.0, -1.0), sides, strict=False):
+    sides = []
+    for t in [tested] if ref is None else [tested, ref]:
         per_ep = np.stack([t["results"][c]["per_episode"] for c in names])  # [C, E]
         _, inv = np.unique(t["episode"], return_inverse=True)
-        parts.append((sign, per_ep, np.bincount(inv).astype(float)))
+        sides.append((per_ep, np.bincount(inv).astype(float)))
     wins = 0
     for _ in range(n_boot):
-        scores = 0.0
-        for sign, per_ep, n_rows in parts:
+        sums, rows = [], []
+        for per_ep, n_rows in sides:
             pick = rng.integers(0, per_ep.shape[1], per_ep.shape[1])
-            scores = scores + sign * per_ep[:, pick].sum(1) / n_rows[pick].sum()
+            sums.append(per_ep[:, pick].sum(1))
+            rows.append(n_rows[pick].sum())
+        if ref is None:
+            scores = sums[0] / rows[0]
+        else:
+            scores = np.where(variance, (sums[0] + sums[1]) / (rows[0] + rows[1]),
+                              sums[0] / rows[0] - sums[1] / rows[1])
         if top == "none":
             wins += bool(scores.max() < min_score)
-        else:
-            wins += bool(names[int(np.argmax(scores))] == top and scores.max() >= min_score)
+        else:  # mechanisms before symptoms, as in the ranking
+            pool = ~variance if top in MEAN_CAUSES else np.ones_like(variance)
+            best = np.flatnonzero(pool)[int(np.argmax(scores[pool]))]
+            wins += bool(names[best] == top and scores[best] >= min_score)
     return wins / n_boot

@@ -5,12 +5,15 @@ order), run `diagnose` on each, and tabulate what it found against the truth.
 
     python experiments/diagnose_hopper.py --out DIR [--effects clean delay episode_param noise
         unobserved drift] [--reference] [--transitions-per-policy 5000] [--seeds 3]
-        [--model-steps N] [--value-episodes 0]
+        [--model-steps N] [--value-episodes 0] [--save-data] [--load-data DIR]
 
 ``--reference``: also record a clean Hopper with another seed and diagnose differentially
 against it (``diagnose(reference=...)``); "unobserved" is diagnosed without it, since a
 reference with the same observation hides the same state.
-Writes DIR/<effect>/report.{json,md} + plots, and DIR/summary.{json,md}.
+Writes DIR/<effect>/report.{json,md} + plots, and DIR/summary.{json,md}. ``--save-data``
+also writes each recording (DIR/<effect>/data.npz, DIR/reference.npz); ``--load-data DIR2``
+diagnoses the recordings saved there instead of collecting (for example GPU-collected data
+re-diagnosed on a CPU).
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax.data import load_dataset, save_dataset
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.diagnose.planted_mjx import EFFECTS, collect_planted
 from rl2s_jax.diagnose.run import diagnose
@@ -96,11 +100,22 @@ def main(argv=None) -> int:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--model-steps", type=int)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--save-data", action="store_true",
+                    help="write each recording to DIR/<effect>/data.npz (reference.npz)")
+    ap.add_argument("--load-data", metavar="DIR2",
+                    help="diagnose the recordings a --save-data run wrote to DIR2")
     ap.add_argument("--base-from-clean", action="store_true",
                     help="diagnose the planted effects against the model the clean run's "
                     "diagnosis extended (clean runs first): what is wrong beyond what clean "
                     "Hopper already shows")
     args = ap.parse_args(argv)
+    if args.load_data:  # every file must be there before any work is spent
+        wanted = [os.path.join(args.load_data, e, "data.npz") for e in args.effects]
+        if args.reference:
+            wanted.append(os.path.join(args.load_data, "reference.npz"))
+        missing = [w for w in wanted if not os.path.isfile(w)]
+        if missing:
+            ap.error(f"--load-data: expected saved recordings, missing {missing}")
     if args.base_from_clean:
         args.effects = ["clean"] + [e for e in args.effects if e != "clean"]
     os.makedirs(args.out, exist_ok=True)
@@ -112,16 +127,27 @@ def main(argv=None) -> int:
     clean_reference = None
     if args.reference:
         t0 = time.perf_counter()
-        clean_reference = record("clean", args.transitions_per_policy, 0, args.seed + 1000,
-                                 args.episode_length)
+        if args.load_data:
+            clean_reference = load_dataset(os.path.join(args.load_data, "reference.npz"))
+        else:
+            clean_reference = record("clean", args.transitions_per_policy, 0,
+                                     args.seed + 1000, args.episode_length)
+        if args.save_data:
+            save_dataset(os.path.join(args.out, "reference.npz"), clean_reference)
         print(f"[reference] clean Hopper, seed {args.seed + 1000}: "
               f"{clean_reference.n_transitions} transitions in {time.perf_counter() - t0:.0f}s",
               flush=True)
     for effect in args.effects:
         t0 = time.perf_counter()
-        ds = record(effect, args.transitions_per_policy, args.value_episodes, args.seed,
-                    args.episode_length)
+        if args.load_data:
+            ds = load_dataset(os.path.join(args.load_data, effect, "data.npz"))
+        else:
+            ds = record(effect, args.transitions_per_policy, args.value_episodes, args.seed,
+                        args.episode_length)
         t_collect = time.perf_counter() - t0
+        if args.save_data:
+            os.makedirs(os.path.join(args.out, effect), exist_ok=True)
+            save_dataset(os.path.join(args.out, effect, "data.npz"), ds)
         print(f"[{effect}] collected {ds.n_transitions} transitions in {t_collect:.0f}s",
               flush=True)
         truth = ds.meta["source"]["planted"]

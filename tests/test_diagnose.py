@@ -18,6 +18,7 @@ from rl2s_jax.diagnose.causes import (
     episode_estimate,
     rank_sum_p,
     sign_flip_p,
+    variance_from_log,
 )
 from rl2s_jax.diagnose.episodes import from_dataset, half_split, pool_episodes, split_episodes
 from rl2s_jax.diagnose.model import ModelSpec
@@ -254,6 +255,31 @@ def test_reference_showing_the_same_effect_leaves_none():
     assert report["top_cause"] == "none", [(c["name"], c["score"], c["p_value"])
                                            for c in report["causes"]]
     assert report["cause_settings"]["differential"]
+
+
+def test_clean_against_clean_leaves_none():
+    """Two recordings of one system with other seeds: nothing is new in the target."""
+    report = _quick("clean", "clean")
+    assert report["top_cause"] == "none", [(c["name"], c["score"], c["p_value"])
+                                           for c in report["causes"]]
+
+
+def test_variance_from_log_keeps_one_extreme_prediction_from_flooring_the_rest():
+    """A log-variance prediction far beyond any error seen (one extreme input row) is
+    clipped to the observed range, so the other rows keep their relative sizes."""
+    rng = np.random.default_rng(0)
+    u2 = rng.chisquare(1, (200, 2)) * np.array([1.0, 4.0])
+    log_u2 = np.log(u2)
+    pred = np.tile(np.log([1.0, 4.0]) - 1.27, (200, 1))
+    pred[7] = 60.0  # the extrapolated row
+    v = variance_from_log(pred, log_u2, u2)
+    np.testing.assert_allclose(v.mean(0), u2.mean(0))
+    rest = np.delete(v, 7, axis=0)
+    expect = np.exp(np.clip(60.0, log_u2.min(0), log_u2.max(0)) - np.log([1.0, 4.0]) + 1.27)
+    # every other row gets the same share of the per-dim mean, as in plain NumPy
+    np.testing.assert_allclose(rest, np.broadcast_to(u2.mean(0) * 200 / (199 + expect),
+                                                     rest.shape), rtol=1e-10)
+    assert (rest > 0.1 * u2.mean(0)).all()
 
 
 def test_rank_sum_p_matches_exact_enumeration():

@@ -315,17 +315,28 @@ def _test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.nda
     # predicted variance is rescaled per dim so that it is unbiased for u^2 on average.
     log_u2 = np.log(u2 + 1e-3 * u2.mean(0) + 1e-30)
     vfits = crossfit_ridge(xv, log_u2, folds, vmodels)
-    vnll = {}
-    for m, pred in vfits.items():
-        v = np.exp(pred - pred.max())
-        v *= u2.mean(0) / v.mean(0)
-        vnll[m] = gaussian_nll(err, np.maximum(std ** 2 * v, floor))
+    vnll = {m: gaussian_nll(err, np.maximum(std ** 2 * variance_from_log(pred, log_u2, u2),
+                                            floor))
+            for m, pred in vfits.items()}
     for cause, block in VARIANCE_CAUSES.items():
         g = _gain(vnll[f"-{block}"], vnll["full"], episode)
         g["marginal"] = _gain(vnll["none"], vnll[f"+{block}"], episode)["score"]
         results[cause] = g
     return {"results": results, "nll": nll, "vnll": vnll, "u2": u2, "episode": episode,
             "rows": rows, "resid": resid, "blocks": blocks}
+
+
+def variance_from_log(pred: np.ndarray, log_u2: np.ndarray, u2: np.ndarray) -> np.ndarray:
+    """Relative variances [n, o] from predicted log squared errors pred [n, o]: each
+    prediction clipped to the range of its dim's log_u2 [n, o], exponentiated and rescaled
+    per dim so that its mean is that of u2 [n, o].
+
+    A linear log-variance model extrapolates: on a row with an extreme input (a velocity
+    kicked by process noise, squared) it can predict a variance far beyond any error seen,
+    and the rescaling would then shrink every other row's variance towards zero."""
+    pred = np.clip(pred, log_u2.min(0), log_u2.max(0))
+    v = np.exp(pred - pred.max(0))
+    return v * (u2.mean(0) / v.mean(0))
 
 
 def _mean_results(nll: dict, episode: np.ndarray) -> dict:

@@ -202,7 +202,8 @@ def test_extension_for_maps_every_cause():
     assert extension_for(causes("actuation_delay", {"lag": 3}), base)[0].action_history == 3
     assert extension_for(causes("unobserved_state", {"lags": [1, 4]}), base)[0].obs_history == 4
     assert extension_for(causes("hidden_episode_parameter", {}), base)[0].context_dim == 2
-    assert extension_for(causes("stochastic_noise", {}), base)[0].noise == "state"
+    noisy = extension_for(causes("stochastic_noise", {}), base)[0]
+    assert noisy.noise == "state" and noisy.nll_beta == 0.5
     assert extension_for(causes("time_drift", {"over": "step"}), base)[0].time_inputs == ("step",)
     assert extension_for(causes("coverage_gap", {}), base)[0].policy_cvar_eps == 0.25
     assert extension_for({"top_cause": "none", "causes": []}, base) == (base, [])

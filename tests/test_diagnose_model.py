@@ -106,7 +106,7 @@ def per_dim_mse(fm, eps, rows):
     ("hidden", ()), ("hidden", (64, 0)), ("steps", 0), ("batch_size", 0),
     ("lr", float("nan")), ("context_rows", 0), ("cvar_every", 0),
     ("adversarial_steps", -1), ("disc_updates", 0), ("adv_lr", 0.0), ("disc_lr", float("inf")),
-    ("adv_nll_weight", -1.0), ("disc_hidden", ())])
+    ("adv_nll_weight", -1.0), ("disc_hidden", ()), ("nll_beta", 1.5), ("nll_beta", -0.1)])
 def test_bad_spec_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         M.ModelSpec(**{field: value}).validate()
@@ -259,6 +259,22 @@ def test_context_never_sees_the_target_row(system, fitted):
     lo, count, inverse = M._context_pairs(eps, rows)
     np.testing.assert_array_equal(lo[inverse], [first + LENGTH // 2] + [first] * second.size)
     np.testing.assert_array_equal(count[inverse], LENGTH // 2)
+
+
+def test_beta_nll_matches_numpy_and_gives_the_mean_the_squared_error_gradient():
+    rng = np.random.default_rng(0)
+    mean, log_std, y = (rng.normal(size=(5, 3)) for _ in range(3))
+    nll = 0.5 * ((y - mean) / np.exp(log_std)) ** 2 + log_std + 0.5 * np.log(2 * np.pi)
+    for beta in (0.0, 0.5, 1.0):
+        w = np.exp(2 * beta * log_std)
+        np.testing.assert_allclose(M.beta_nll(mean, log_std, y, beta), (w * nll).sum(-1),
+                                   rtol=1e-5)
+    g_mean, g_log_std = jax.grad(lambda m, s: M.beta_nll(m, s, y, 1.0).sum(),
+                                 argnums=(0, 1))(mean, log_std)
+    np.testing.assert_allclose(g_mean, mean - y, rtol=1e-5, atol=1e-6)
+    # the std still learns its NLL gradient, only rescaled (the weight is a constant)
+    np.testing.assert_allclose(g_log_std, np.exp(2 * log_std) * (1 - ((y - mean)
+                               / np.exp(log_std)) ** 2), rtol=1e-4, atol=1e-6)
 
 
 def test_state_noise_lowers_nll_but_not_mse(system, fitted):

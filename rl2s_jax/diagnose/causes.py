@@ -275,9 +275,13 @@ def _test_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.nda
     for i in range(n_a):
         models[f"-actuator{i}"] = np.setdiff1d(everything, pa[np.arange(lags) * n_a + i])
     split = 1 + n_s + n_a  # the time block: order and order * (s, a) first, then step
-    models["-order"] = np.setdiff1d(everything, idx["time"][:split])
-    models["-step"] = np.setdiff1d(everything, idx["time"][split:])
     models["-time-episode"] = np.setdiff1d(everything, np.r_[idx["time"], idx["episode"]])
+    # Drift's sub-blocks, measured as drift itself is (without the per-episode block, which
+    # otherwise absorbs a change over the recording order and leaves only "step" to credit).
+    models["-order-episode"] = np.setdiff1d(everything,
+                                            np.r_[idx["time"][:split], idx["episode"]])
+    models["-step-episode"] = np.setdiff1d(everything,
+                                           np.r_[idx["time"][split:], idx["episode"]])
     if side is not None:
         x = np.concatenate([x, blocks["side"]], 1)
         models = {m: np.append(cols, x.shape[1] - 1) for m, cols in models.items()}
@@ -519,22 +523,23 @@ def _details(results, tested, ref, pooled, eps, *, lags, alpha, obs_names, actio
     u2, episode = tested["u2"], tested["episode"]
     rows, resid, blocks = tested["rows"], tested["resid"], tested["blocks"]
 
-    def side_gain(t, name, d=None):
-        """The gain of dropping model ``name`` on one side (summed dims, or dim d)."""
+    def side_gain(t, name, d=None, against="full"):
+        """The gain of dropping model ``name`` (from model ``against``) on one side (summed
+        dims), or of the noise terms on dim d."""
         if d is None:
-            return _gain(t["nll"][name], t["nll"]["full"], t["episode"])
+            return _gain(t["nll"][name], t["nll"][against], t["episode"])
         return _gain(t["vnll"]["-magnitude"][:, d:d + 1], t["vnll"]["full"][:, d:d + 1],
                      t["episode"])
 
-    def drop_gain(name, d=None):
+    def drop_gain(name, d=None, against="full"):
         """Its gain, the reference's subtracted in differential mode (a noise dim's: pooled,
         as the stochastic_noise score)."""
         if ref is not None and name is None:
             return side_gain(pooled, name, d)
-        g = side_gain(tested, name, d)
+        g = side_gain(tested, name, d, against)
         if ref is None:
             return g
-        r = side_gain(ref, name, d)
+        r = side_gain(ref, name, d, against)
         return {"score": g["score"] - r["score"],
                 "p_value": rank_sum_p(_per_row(g["per_episode"], episode),
                                       _per_row(r["per_episode"], ref["episode"]))}
@@ -546,7 +551,8 @@ def _details(results, tested, ref, pooled, eps, *, lags, alpha, obs_names, actio
     actuators = [i for i, g in enumerate(act)
                  if g["score"] >= 0.2 * best_act and g["score"] > 0 and g["p_value"] < alpha]
     obs_lag_gain = [drop_gain(f"-s_lag{j + 1}")["score"] for j in range(lags)]
-    order_gain, step_gain = drop_gain("-order")["score"], drop_gain("-step")["score"]
+    order_gain = drop_gain("-order-episode", against="-episode")["score"]
+    step_gain = drop_gain("-step-episode", against="-episode")["score"]
     # Between-episode share of the residual variance, per dim (intra-class correlation).
     _, inv = np.unique(episode, return_inverse=True)
     counts = np.bincount(inv)

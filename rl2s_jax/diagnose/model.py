@@ -68,6 +68,9 @@ class ModelSpec:
     context_dim: size of the per-episode latent context (0: off); context_rows: M, the rows
     of the other half pooled into it; context_hidden: the encoder's hidden sizes.
     noise: "global" (one learned log-std per dim) or "state" (a log-std head of the inputs).
+    nll_beta: the beta-NLL exponent of the training loss (0: plain NLL; 1: each dim's NLL
+    weighted by stop_gradient(std^2), so the mean learns as under squared error and a
+    state-dependent std cannot buy likelihood by giving up on the mean in noisy regions).
     time_inputs: subset of ("order", "step"). policy_cvar_eps: None, or the CVaR fraction of
     policies whose rows fill half of each batch, re-chosen every cvar_every updates.
     hidden, steps, batch_size, lr: the generator MLP and its Adam training (lr decays to lr/10
@@ -84,6 +87,7 @@ class ModelSpec:
     obs_history: int = 0
     context_dim: int = 0
     noise: str = "global"
+    nll_beta: float = 0.0
     time_inputs: tuple[str, ...] = ()
     policy_cvar_eps: float | None = None
     hidden: tuple[int, ...] = (128, 128)
@@ -138,6 +142,9 @@ class ModelSpec:
         self.dynamics.validate()
         if not (isinstance(self.lr, int | float) and math.isfinite(self.lr) and self.lr > 0):
             raise ValueError(f"lr: expected a positive finite float, got {self.lr!r}")
+        b = self.nll_beta
+        if not (isinstance(b, int | float) and not isinstance(b, bool) and 0.0 <= b <= 1.0):
+            raise ValueError(f"nll_beta: expected a float in [0, 1], got {b!r}")
         for name in ("weight_decay", "log_std_bound_weight", "adv_nll_weight"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
@@ -156,6 +163,8 @@ class ModelSpec:
             out.append(f"context_dim={self.context_dim}")
         if self.noise != "global":
             out.append(f"noise={self.noise}")
+        if self.nll_beta:
+            out.append(f"nll_beta={self.nll_beta:g}")
         if self.time_inputs:
             out.append("time_inputs=" + "+".join(self.time_inputs))
         if self.policy_cvar_eps is not None:
@@ -395,6 +404,23 @@ def _rows_nll(params, spec: ModelSpec, data: _TrainData, rows, u_ctx):
     return _nll(mean, log_std, data.y[rows])
 
 
+def _rows_loss(params, spec: ModelSpec, data: _TrainData, rows, u_ctx):
+    """The training loss [G, R] of rows [G, R]: their NLL, each dim's weighted by
+    stop_gradient(std^(2 nll_beta)) (beta-NLL, Seitzer et al. 2022)."""
+    if not spec.nll_beta:
+        return _rows_nll(params, spec, data, rows, u_ctx)
+    mean, log_std = _rows_dist(params, spec, data, rows, u_ctx)
+    return beta_nll(mean, log_std, data.y[rows], spec.nll_beta)
+
+
+def beta_nll(mean, log_std, y, beta: float):
+    """beta-NLL (Seitzer et al. 2022), summed over the last axis: each element's Gaussian
+    NLL weighted by stop_gradient(std^(2 beta)). Its gradient in the mean is that of the
+    NLL times std^(2 beta): at beta = 1, (mean - y), as under squared error. -> [...]"""
+    weight = jax.lax.stop_gradient(jnp.exp(2.0 * beta * log_std))
+    return jnp.sum(weight * dyn.gaussian_nll_per_dim(mean, log_std, y), -1)
+
+
 def _step_layout(spec: ModelSpec) -> tuple[int, int, dict[str, tuple[int, ...]]]:
     """(groups G, rows per group R, name -> shape of the uniforms one update draws)."""
     group = CONTEXT_GROUP if spec.context_dim else 1
@@ -471,7 +497,7 @@ def _train_blocks(states: _TrainState, data: _TrainData, *, spec: ModelSpec, n_b
         u = _split_uniforms(u, layout)
         rows = _batch_rows(u, spec, data, state.selected)
         def loss_fn(p):
-            loss = _rows_nll(p, spec, data, rows, u["ctx"]).mean()
+            loss = _rows_loss(p, spec, data, rows, u["ctx"]).mean()
             if spec.log_std_bounds == "learned":
                 loss = loss + spec.log_std_bound_weight * dyn.bound_penalty(p)
             return loss

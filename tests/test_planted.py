@@ -319,6 +319,13 @@ def test_collect_planted_unobserved_and_drift_on_pointmass():
             drift.next_obs[rows], pointmass_dynamics(drift.obs[rows], gain * drift.action[rows]),
             atol=1e-6)
     assert drift.meta["source"]["planted"]["gains"] == [1.0, 0.5]
+    # Without envs_per_policy, each chunk runs the envs of the whole recording (40 // 10 = 4
+    # per policy, 5 steps each), not its own default (20 // 10 = 2, 10 steps each).
+    auto = collect_planted("pointmass", "drift", params, effect_kwargs={
+        "gain_start": 1.0, "gain_end": 0.5, "chunks": 2},
+        **{k: v for k, v in kw.items() if k != "envs_per_policy"})
+    first = slice(0, auto.n_transitions // 2)
+    assert np.unique(auto.episode_id[first]).size == 2 * 4 and auto.t[first].max() == 4
     with pytest.raises(ValueError, match="chunks: expected an int >= 2"):
         collect_planted("pointmass", "drift", params, effect_kwargs={"chunks": 1}, **kw)
     with pytest.raises(ValueError, match="use collect_planted"):

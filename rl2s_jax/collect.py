@@ -157,8 +157,18 @@ def run_chunked(step_fn, carry, total_steps: int, chunk_steps: int, desc: str,
     return carry, outputs
 
 
+EPISODE_LENGTH = 1000  # collect's default episode length
+
+
+def default_envs_per_policy(transitions_per_policy: int,
+                            episode_length: int = EPISODE_LENGTH) -> int:
+    """As few envs per policy as let each run about one episode length (so the data covers
+    whole episodes, not only their starts), at most 64."""
+    return max(1, min(64, int(transitions_per_policy) // int(episode_length)))
+
+
 def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy: int,
-            envs_per_policy: int | None = None, episode_length: int = 1000,
+            envs_per_policy: int | None = None, episode_length: int = EPISODE_LENGTH,
             refresh_fraction: float = 0.125, chunk_steps: int = 100, task: str | None = None,
             policy_names: list[str] | None = None, gamma: float = 0.999,
             value_episodes: int = 16, source: dict | None = None, progress: bool = True,
@@ -180,9 +190,7 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
         raise ValueError(f"transitions_per_policy: expected a positive integer, got {N}")
     if episode_length <= 0:
         raise ValueError(f"episode_length: expected a positive integer, got {episode_length}")
-    # By default as few envs as let each run about one episode length (so the data covers
-    # whole episodes, not only their starts), at most 64 per policy.
-    E = int(envs_per_policy or max(1, min(64, N // episode_length)))
+    E = int(envs_per_policy or default_envs_per_policy(N, episode_length))
     if not 0 < E <= N:
         raise ValueError(f"envs_per_policy: expected 1..{N}, got {E}")
     steps = math.ceil(N / E)

@@ -355,6 +355,14 @@ def gaussian_nll(mean, log_std, y):
     return jnp.sum(gaussian_nll_per_dim(mean, log_std, y), -1)
 
 
+def beta_nll(mean, log_std, y, beta: float):
+    """beta-NLL (Seitzer et al. 2022), summed over the last axis: each element's Gaussian
+    NLL weighted by stop_gradient(std^(2 beta)). Its gradient in the mean is that of the
+    NLL times std^(2 beta): at beta = 1, (mean - y), as under squared error. -> [...]"""
+    weight = jax.lax.stop_gradient(jnp.exp(2.0 * beta * log_std))
+    return jnp.sum(weight * gaussian_nll_per_dim(mean, log_std, y), -1)
+
+
 def bound_penalty(params: dict) -> jax.Array:
     """sum(max_log_std) - sum(min_log_std) of a member with learned bounds (else 0): the
     PETS term that keeps the learned bounds tight. -> []"""

@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rl2s_jax.dynamics import gaussian_nll_per_dim
+from rl2s_jax.dynamics import beta_nll
 from rl2s_jax.models import (
     Normalizer,
     discriminator,
@@ -52,9 +52,7 @@ def generator_beta_nll_loss(gen, norm: Normalizer, obs, action, next_obs, beta: 
     if not beta:
         return generator_nll_loss(gen, norm, obs, action, next_obs)
     mean, log_std = generator_dist(gen, norm, obs, action)
-    per_dim = gaussian_nll_per_dim(mean, log_std, norm.norm_delta(obs, next_obs))
-    weight = jax.lax.stop_gradient(jnp.exp(2.0 * beta * log_std))
-    return jnp.mean(jnp.sum(weight * per_dim, -1)), {}
+    return jnp.mean(beta_nll(mean, log_std, norm.norm_delta(obs, next_obs), beta)), {}
 
 
 def tree_all_finite(tree) -> jax.Array:

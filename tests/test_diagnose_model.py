@@ -11,6 +11,7 @@ import pytest
 from rl2s_jax.data import Dataset
 from rl2s_jax.diagnose import model as M
 from rl2s_jax.diagnose.episodes import from_dataset, split_episodes
+from rl2s_jax.dynamics import beta_nll
 from rl2s_jax.policies import init_policy, stack_params
 
 LENGTH = 40
@@ -267,9 +268,9 @@ def test_beta_nll_matches_numpy_and_gives_the_mean_the_squared_error_gradient():
     nll = 0.5 * ((y - mean) / np.exp(log_std)) ** 2 + log_std + 0.5 * np.log(2 * np.pi)
     for beta in (0.0, 0.5, 1.0):
         w = np.exp(2 * beta * log_std)
-        np.testing.assert_allclose(M.beta_nll(mean, log_std, y, beta), (w * nll).sum(-1),
+        np.testing.assert_allclose(beta_nll(mean, log_std, y, beta), (w * nll).sum(-1),
                                    rtol=1e-5)
-    g_mean, g_log_std = jax.grad(lambda m, s: M.beta_nll(m, s, y, 1.0).sum(),
+    g_mean, g_log_std = jax.grad(lambda m, s: beta_nll(m, s, y, 1.0).sum(),
                                  argnums=(0, 1))(mean, log_std)
     np.testing.assert_allclose(g_mean, mean - y, rtol=1e-5, atol=1e-6)
     # the std still learns its NLL gradient, only rescaled (the weight is a constant)

@@ -410,15 +410,7 @@ def _rows_loss(params, spec: ModelSpec, data: _TrainData, rows, u_ctx):
     if not spec.nll_beta:
         return _rows_nll(params, spec, data, rows, u_ctx)
     mean, log_std = _rows_dist(params, spec, data, rows, u_ctx)
-    return beta_nll(mean, log_std, data.y[rows], spec.nll_beta)
-
-
-def beta_nll(mean, log_std, y, beta: float):
-    """beta-NLL (Seitzer et al. 2022), summed over the last axis: each element's Gaussian
-    NLL weighted by stop_gradient(std^(2 beta)). Its gradient in the mean is that of the
-    NLL times std^(2 beta): at beta = 1, (mean - y), as under squared error. -> [...]"""
-    weight = jax.lax.stop_gradient(jnp.exp(2.0 * beta * log_std))
-    return jnp.sum(weight * dyn.gaussian_nll_per_dim(mean, log_std, y), -1)
+    return dyn.beta_nll(mean, log_std, data.y[rows], spec.nll_beta)
 
 
 def _step_layout(spec: ModelSpec) -> tuple[int, int, dict[str, tuple[int, ...]]]:

@@ -453,7 +453,7 @@ def collect_planted(task_name: str, effect: str, params: Any, *, key: jax.Array,
     :func:`rl2s_jax.collect.collect` (``task`` is set here); ``meta["source"]["planted"]``
     holds :func:`planted_truth`. -> Dataset
     """
-    from rl2s_jax.collect import collect
+    from rl2s_jax.collect import EPISODE_LENGTH, collect, default_envs_per_policy
     from rl2s_jax.data import concat_datasets
 
     effect_kwargs = dict(effect_kwargs or {})
@@ -468,8 +468,8 @@ def collect_planted(task_name: str, effect: str, params: Any, *, key: jax.Array,
         # As many envs per policy as the whole recording would get (collect's default): with
         # the chunk's own default, 4 chunks took 4x the sequential steps of a plain recording
         # (1 env per policy at 5000 transitions), 523 s on the H100 against ~100 s.
-        envs = collect_kwargs.pop("envs_per_policy", None) or max(
-            1, min(64, n // int(collect_kwargs.get("episode_length", 1000))))
+        envs = collect_kwargs.pop("envs_per_policy", None) or default_envs_per_policy(
+            n, collect_kwargs.get("episode_length", EPISODE_LENGTH))
         parts = [collect(ActionGain(env, float(g)), params, key=k,
                          transitions_per_policy=per_chunk,
                          envs_per_policy=min(int(envs), per_chunk), task=task_name,

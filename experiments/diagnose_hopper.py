@@ -5,7 +5,7 @@ order), run `diagnose` on each, and tabulate what it found against the truth.
 
     python experiments/diagnose_hopper.py --out DIR [--effects clean delay episode_param noise
         unobserved drift] [--reference] [--transitions-per-policy 5000] [--seeds 3]
-        [--model-steps N] [--value-episodes 0] [--save-data] [--load-data DIR]
+        [--model-steps N] [--value-episodes 0] [--sim-episodes 8] [--save-data] [--load-data DIR]
 
 ``--reference``: also record a clean Hopper with another seed and diagnose differentially
 against it (``diagnose(reference=...)``); "unobserved" is diagnosed without it, since a
@@ -95,7 +95,10 @@ def main(argv=None) -> int:
     ap.add_argument("--reference", action="store_true",
                     help="diagnose differentially against a clean recording (seed + 1000)")
     ap.add_argument("--transitions-per-policy", type=int, default=5000)
-    ap.add_argument("--value-episodes", type=int, default=0)
+    ap.add_argument("--value-episodes", type=int, default=0,
+                    help="real episodes per policy for the true values (0: no value views)")
+    ap.add_argument("--sim-episodes", type=int, default=8,
+                    help="simulated episodes per policy and model seed for AVD")
     ap.add_argument("--episode-length", type=int)
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--model-steps", type=int)
@@ -161,6 +164,7 @@ def main(argv=None) -> int:
         report = diagnose(ds, os.path.join(args.out, effect), seeds=tuple(range(args.seeds)),
                           base_spec=spec, reference=reference,
                           zoo=ZOO if args.value_episodes else None,
+                          value_episodes=args.sim_episodes,
                           log=lambda s, e=effect: print(f"[{e}] {s}", flush=True))
         if effect == "clean" and args.base_from_clean:
             ext = report["extension"]["extended"]

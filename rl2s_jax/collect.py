@@ -160,6 +160,18 @@ def run_chunked(step_fn, carry, total_steps: int, chunk_steps: int, desc: str,
 EPISODE_LENGTH = 1000  # collect's default episode length
 
 
+def equal_chunks(total_steps: int, chunk_steps: int) -> tuple[int, int]:
+    """(n, size): the fewest chunks of at most ``chunk_steps`` steps, all of one size, that
+    cover ``total_steps`` (n * size - total_steps < n). One size means one compiled scan: a
+    remainder chunk compiles the whole env step again (tens of seconds for MJX on a GPU)."""
+    if not isinstance(chunk_steps, (int, np.integer)) or chunk_steps < 1:
+        raise ValueError(f"chunk_steps: expected an int >= 1, got {chunk_steps!r}")
+    if total_steps < 1:
+        raise ValueError(f"total_steps: expected an int >= 1, got {total_steps!r}")
+    n = math.ceil(total_steps / chunk_steps)
+    return n, math.ceil(total_steps / n)
+
+
 def default_envs_per_policy(transitions_per_policy: int,
                             episode_length: int = EPISODE_LENGTH) -> int:
     """As few envs per policy as let each run about one episode length (so the data covers
@@ -193,7 +205,8 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
     E = int(envs_per_policy or default_envs_per_policy(N, episode_length))
     if not 0 < E <= N:
         raise ValueError(f"envs_per_policy: expected 1..{N}, got {E}")
-    steps = math.ceil(N / E)
+    n_chunks, chunk_steps = equal_chunks(math.ceil(N / E), chunk_steps)
+    steps = n_chunks * chunk_steps  # >= ceil(N / E); the extra steps are trimmed below
     policy_names = policy_names or [f"policy-{i:03d}" for i in range(P)]
     if len(policy_names) != P:
         raise ValueError(f"policy_names: expected {P} names, got {len(policy_names)}")

@@ -8,7 +8,7 @@ from brax.envs import training as brax_training
 from brax.envs.base import Env, State
 
 from rl2s_jax import policies as pol
-from rl2s_jax.collect import collect, measure_values
+from rl2s_jax.collect import collect, equal_chunks, measure_values
 from rl2s_jax.data import load_dataset, save_dataset
 from rl2s_jax.tasks import get_task
 
@@ -111,6 +111,34 @@ def test_user_env_collection_and_exact_values():
         np.testing.assert_allclose(v["value_discounted"],
                                    [sum(gamma**t for t in range(length))] * 2, rtol=1e-6)
         np.testing.assert_allclose(v["value_se"], 0.0, atol=1e-6)
+
+
+class TracedCounterEnv(CounterEnv):
+    """CounterEnv that counts how often its step is traced (once per compiled scan)."""
+
+    traces = 0
+
+    def step(self, state, action):
+        type(self).traces += 1
+        return super().step(state, action)
+
+
+def test_collection_compiles_one_scan_for_uneven_steps():
+    # 25 steps per env in chunks of at most 10: three chunks of 9 (not 10, 10, 5, which
+    # compiles the env step twice), the 2 extra steps trimmed.
+    assert equal_chunks(25, 10) == (3, 9)
+    for total, chunk in ((1, 100), (100, 100), (101, 100), (250, 100), (999, 7)):
+        n, size = equal_chunks(total, chunk)
+        assert size <= chunk and 0 <= n * size - total < n
+    env = TracedCounterEnv()
+    ds = collect(env, _policies(2, 1, [0.0, 1.0]), key=jax.random.PRNGKey(1),
+                 transitions_per_policy=50, envs_per_policy=2, episode_length=5,
+                 chunk_steps=10, value_episodes=0, progress=False)
+    assert TracedCounterEnv.traces == 1
+    assert ds.n_transitions == 100 and np.all(np.bincount(ds.policy_id) == 50)
+    check_episode_structure(ds, lambda o: o[..., 0] >= CounterEnv.K, 5)
+    with pytest.raises(ValueError, match="chunk_steps"):
+        equal_chunks(10, 0)
 
 
 def test_bad_input_refused_before_work():

@@ -288,6 +288,16 @@ def test_episode_mass_on_mjx_hopper(env_cache):
     np.testing.assert_array_equal(np.asarray(env.sys.body_mass), nominal)  # env untouched
 
 
+def test_hopper_unobserved_truth_names_the_hidden_joints_positions():
+    # Hopper's obs is q (6) ++ qd (6): hiding qvel 3-5 (obs 9-11) leaves their joints'
+    # angles qpos 3-5, obs 3-5, as the dims that need the lost velocities.
+    from rl2s_jax.tasks import _LOCO
+
+    assert _LOCO["hopper"].x_idx == 0 and _LOCO["hopper"].vx_idx == 6
+    truth = planted_truth("unobserved", task_name="hopper")
+    assert truth["removed_obs_dims"] == [9, 10, 11] and truth["dims"] == [3, 4, 5]
+
+
 def test_collect_planted_unobserved_and_drift_on_pointmass():
     """The two recorded effects: a hidden velocity leaves only the position in the data; the
     drift records chunks whose applied action is scaled by a falling gain, in order."""

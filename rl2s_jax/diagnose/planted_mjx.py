@@ -339,15 +339,14 @@ def _hidden_truth(task_name: str, qvel: Sequence[int]) -> dict[str, Any]:
     qvel = sorted(_index_tuple("dims", qvel, len(vel_obs)))
     truth = {"effect": "unobserved_state", "hidden": [f"qvel[{j}]" for j in qvel],
              "removed_obs_dims": [vel_obs[j] for j in qvel]}
-    n_q_obs = vel_obs[0]
-    excluded = _ONE_DOF_EXCLUDED.get(task_name)
-    if excluded is not None:  # qpos j is obs j - excluded
-        truth["dims"] = [j - excluded for j in qvel if j >= excluded and j - excluded < n_q_obs]
+    if task_name in _ONE_DOF_TASKS:  # the registered tasks keep every q: qpos j is obs j
+        truth["dims"] = [j for j in qvel if j < vel_obs[0]]
     return truth
 
 
-# brax tasks whose joints all have one dof -> how many leading qpos the observation drops.
-_ONE_DOF_EXCLUDED = {"hopper": 1, "walker2d": 1, "halfcheetah": 1, "pointmass": 0}
+# Registered tasks whose joints all have one dof (qvel j is the rate of qpos j). Their
+# observations keep every q (tasks.make_env: exclude_current_positions_from_observation=False).
+_ONE_DOF_TASKS = ("hopper", "walker2d", "halfcheetah", "pointmass")
 
 
 # --------------------------------------------------------------------------- by name

@@ -13,10 +13,13 @@ import numpy as np
 import pytest
 
 from rl2s_jax.diagnose.causes import (
+    CAUSES,
+    MEAN_CAUSES,
     crossfit_ridge,
     diagnose_causes,
     episode_estimate,
     rank_sum_p,
+    rivals,
     sign_flip_p,
     variance_from_log,
 )
@@ -207,6 +210,25 @@ def test_extension_for_maps_every_cause():
     assert extension_for(causes("time_drift", {"over": "step"}), base)[0].time_inputs == ("step",)
     assert extension_for(causes("coverage_gap", {}), base)[0].policy_cvar_eps == 0.25
     assert extension_for({"top_cause": "none", "causes": []}, base) == (base, [])
+
+
+def test_extension_joins_mechanisms_before_symptoms():
+    # A significant noise score under a delay is a symptom of the delay (the linear mean model
+    # left part of it): it neither joins the extension nor competes for the top.
+    def causes(*entries):
+        return {"top_cause": entries[0][0], "causes": [
+            {"name": n, "score": sc, "significant": True,
+             "details": {"lag": 2} if n == "actuation_delay" else {}} for n, sc in entries]}
+    base = ModelSpec()
+    spec, changes = extension_for(causes(("actuation_delay", 1.0), ("stochastic_noise", 0.9)),
+                                  base)
+    assert spec.action_history == 2 and spec.noise == base.noise
+    assert [c["cause"] for c in changes] == ["actuation_delay"]
+    # Under a symptom at the top, a mechanism scoring enough joins.
+    spec, changes = extension_for(causes(("stochastic_noise", 1.0), ("actuation_delay", 0.5)),
+                                  base)
+    assert spec.noise == "state" and spec.action_history == 2
+    assert rivals("actuation_delay") == tuple(MEAN_CAUSES) and rivals("coverage_gap") == CAUSES
 
 
 def test_cli_diagnose_bad_input_names_the_field(tmp_path, capsys):

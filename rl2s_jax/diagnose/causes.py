@@ -38,6 +38,15 @@ VARIANCE_CAUSES = {  # cause -> the feature block that would explain the residua
 CAUSES = (*MEAN_CAUSES, *VARIANCE_CAUSES)
 
 
+def rivals(top: str) -> tuple[str, ...]:
+    """The causes that may outrank or join ``top``. Mechanisms before symptoms: the variance
+    causes are tested on what the linear mean model leaves, and a mean cause it captures only
+    in part leaves errors whose size also looks "explained" (larger where the state is
+    unusual, larger in the target overall). So under a mean cause only the mean causes
+    compete (ranking, confidence) and join its extension; under a variance cause, all do."""
+    return tuple(MEAN_CAUSES) if top in MEAN_CAUSES else CAUSES
+
+
 # ----------------------------------------------------------------------------- features
 
 
@@ -483,11 +492,9 @@ def diagnose_causes(eps: Episodes, rows: np.ndarray, resid: np.ndarray, std: np.
     details = _details(results, tested, ref, None if ref is None else pooled, eps, lags=lags,
                        alpha=alpha,
                        obs_names=obs_names, action_names=action_names)
-    # Mechanisms before symptoms: the variance causes are tested on what the linear mean
-    # model leaves, and a mean cause it captures only in part leaves errors whose size also
-    # looks "explained" (larger where the state is unusual, larger in the target overall).
+    # Significant mean causes first, then by score (mechanisms before symptoms: ``rivals``).
     ranked = sorted(results, key=lambda c: (not results[c]["significant"],
-                                            c in VARIANCE_CAUSES, -results[c]["score"]))
+                                            c not in MEAN_CAUSES, -results[c]["score"]))
     top = ranked[0] if results[ranked[0]]["significant"] else "none"
     confidence = _confidence(results, top, tested, ref, min_score, n_boot, seed)
     causes = [{"name": c, "score": results[c]["score"], "p_value": results[c]["p_value"],
@@ -634,8 +641,8 @@ def _confidence(results: dict, top: str, tested: dict, ref: dict | None, min_sco
                               sums[0] / rows[0] - sums[1] / rows[1])
         if top == "none":
             wins += bool(scores.max() < min_score)
-        else:  # mechanisms before symptoms, as in the ranking
-            pool = ~variance if top in MEAN_CAUSES else np.ones_like(variance)
+        else:  # among the causes that may outrank it, as in the ranking
+            pool = np.isin(names, rivals(top))
             best = np.flatnonzero(pool)[int(np.argmax(scores[pool]))]
             wins += bool(names[best] == top and scores[best] >= min_score)
     return wins / n_boot

@@ -15,7 +15,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from rl2s_jax.data import Dataset
-from rl2s_jax.diagnose.causes import MEAN_CAUSES, diagnose_causes
+from rl2s_jax.diagnose.causes import diagnose_causes, rivals
 from rl2s_jax.diagnose.episodes import Episodes, from_dataset, pool_episodes, split_episodes
 from rl2s_jax.diagnose.gaps import error_breakdown, gaps_markdown, jsonable, plot_gaps
 from rl2s_jax.diagnose.model import (
@@ -43,8 +43,7 @@ def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]
     if causes["top_cause"] == "none":
         return base, []
     ranked = [c for c in causes["causes"] if c["significant"] and c["name"] != "none"]
-    if ranked[0]["name"] in MEAN_CAUSES:  # the error sizes follow the mechanism: no noise
-        ranked = [c for c in ranked if c["name"] in MEAN_CAUSES]  # or coverage extension
+    ranked = [c for c in ranked if c["name"] in rivals(ranked[0]["name"])]
     top_score = ranked[0]["score"]
     spec, changes = base, []
     for c in ranked:

@@ -5,6 +5,7 @@ improvement phase, and their real returns before and after. No simulator is need
     python experiments/improve_control.py --tasks hopper,walker2d,halfcheetah,ant --out DIR
         [--policies 0] [--seeds 2] [--iterations 2000] [--episodes 16] [--sac-envs 16]
         [--critic-warmup 500] [--updates-per-step 1] [--sac-set KEY=VALUE ...] [--plain]
+        [--select-episodes 0] [--select-every 400] [--select-z 2]
 
 For each task: C0 and C1 of every chosen test policy (``--policies`` N spread over their
 returns, 0 = all) over ``--episodes`` fresh real episodes, for ``--seeds`` SAC seeds (one
@@ -13,6 +14,10 @@ MPI = min I and API = mean I, their mean over seeds and 95% bootstrap intervals
 (``improve.improvement_intervals``: policies resampled, returns redrawn from their standard
 errors). ``--plain`` also runs plain SAC (``SACConfig()``'s from-scratch defaults: alpha from
 1, target entropy -action_size, no KL anchor) with the same budget, for comparison.
+``--select-episodes E`` (> 0): early stopping on real validation returns: the actor is kept
+every ``--select-every`` iterations and each policy deploys the snapshot with a significant
+paired gain over its start on E further real episodes (``improve.select_by_validation``), else
+its start; the JSON then also holds the undeployed final snapshot's MPI / API ("final_*").
 Writes OUT/control_<task>.json after each task and prints a table.
 """
 from __future__ import annotations
@@ -90,9 +95,12 @@ def run_task(task_name: str, args) -> dict:
         t0 = time.perf_counter()
         log(f"[control] {task_name} {name}: SAC x {args.iterations} iterations in the real env "
             f"for {P} test policies x {R} seed(s)")
+        select = args.select_episodes > 0
         _, metrics, res = improve_in_real_env(
             task, tiled, jax.random.PRNGKey(30), cfg, n_iterations=args.iterations,
-            n_episodes=args.episodes, chunk_iterations=min(1000, args.iterations))
+            n_episodes=args.episodes,
+            chunk_iterations=min(args.select_every if select else 1000, args.iterations),
+            select_episodes=args.select_episodes, select_z=args.select_z)
         c0, s0, c1, s1, sd = (np.asarray(res[k], np.float64).reshape(R, P)
                               for k in ("c0", "c0_se", "c1", "c1_se", "diff_se"))
         per = [improvement_metrics(c0[r], c1[r]) for r in range(R)]
@@ -110,6 +118,26 @@ def run_task(task_name: str, args) -> dict:
                  "final_alpha": np.asarray(metrics["alpha"][:, -1]).tolist(),
                  "final_kl": np.asarray(metrics["kl"][:, -1]).tolist(),
                  "seconds": round(time.perf_counter() - t0, 1)}
+        if select:
+            fin = res["final"]
+            fc1 = np.asarray(fin["c1"], np.float64).reshape(R, P)
+            fper = [improvement_metrics(c0[r], fc1[r]) for r in range(R)]
+            fci = improvement_intervals(
+                c0, s0, fc1, np.asarray(fin["c1_se"], np.float64).reshape(R, P),
+                diff_se=np.asarray(fin["diff_se"], np.float64).reshape(R, P))
+            entry.update(
+                select={"episodes": args.select_episodes, "every": args.select_every,
+                        "z": args.select_z},
+                selected=np.asarray(res["selected"]).reshape(R, P).tolist(),
+                validation_mean=np.asarray(res["validation_mean"]).reshape(-1, R, P).tolist(),
+                final_c1=fc1.tolist(), final_I=[p["I"].tolist() for p in fper],
+                final_mpi=float(np.mean([p["mpi"] for p in fper])),
+                final_api=float(np.mean([p["api"] for p in fper])),
+                final_mpi_ci95=fci["mpi"], final_api_ci95=fci["api"])
+            log(f"  {name:<12} without the selection (final snapshot): MPI "
+                f"{entry['final_mpi']:+.3f}  API {entry['final_api']:+.3f}; "
+                f"deployed a fine-tuned snapshot for "
+                f"{int((np.asarray(res['selected']) > 0).sum())} of {R * P}")
         result["configs"][name] = entry
         log(f"  {name:<12} MPI {entry['mpi']:+.3f} [{ci['mpi'][0]:+.3f}, {ci['mpi'][1]:+.3f}]  "
             f"API {entry['api']:+.3f} [{ci['api'][0]:+.3f}, {ci['api'][1]:+.3f}]  "
@@ -130,6 +158,12 @@ def main(argv=None) -> int:
     ap.add_argument("--updates-per-step", type=int, default=1)
     ap.add_argument("--sac-set", action="append", metavar="KEY=VALUE")
     ap.add_argument("--plain", action="store_true", help="also run plain SAC")
+    ap.add_argument("--select-episodes", type=int, default=0,
+                    help="validation episodes for early stopping (0: off)")
+    ap.add_argument("--select-every", type=int, default=400,
+                    help="iterations between the snapshots offered to the selection")
+    ap.add_argument("--select-z", type=float, default=2.0,
+                    help="standard errors of paired gain a snapshot needs to be deployed")
     args = ap.parse_args(argv)
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
     bad = [t for t in tasks if t not in task_names()]
@@ -140,6 +174,10 @@ def main(argv=None) -> int:
             raise SystemExit(f"{name.replace('_', '-')}: expected >= 1")
     if args.episodes < 2:
         raise SystemExit("episodes: expected >= 2 (for standard errors)")
+    if args.select_episodes < 0 or args.select_episodes == 1:
+        raise SystemExit("select-episodes: expected 0 (off) or >= 2")
+    if args.select_every < 1 or not (args.select_z >= 0):
+        raise SystemExit("select-every: expected >= 1; select-z: expected >= 0")
     sac_configs(args, 1000)  # bad --sac-set fails before any work
     os.makedirs(args.out, exist_ok=True)
     for t in tasks:

@@ -41,7 +41,7 @@ def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
                      start_pool, policies: Params, key: jax.Array, sac_cfg: SACConfig, *,
                      n_iterations: int, deterministic: bool = False,
                      chunk_iterations: int | None = None, env_options: dict | None = None,
-                     progress: bool = False) -> tuple[Params, dict]:
+                     progress: bool = False, snapshots: bool = False) -> tuple[Params, dict]:
     """Fine-tune each of the stacked ``policies`` [P, ...] with SAC inside the simulator.
 
     sim: a ``SimulatorEnv`` (or any unwrapped brax Env, e.g. the real ``task.make_env()``;
@@ -54,7 +54,9 @@ def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
       (default: all at once); ``progress``: a progress bar over the chunks.
 
     Returns (improved policies [P, ...] in the same layout, metrics: dict of [P, n_iterations]
-    arrays from ``sac.train``).
+    arrays from ``sac.train``). ``snapshots=True``: the first item is instead the actor at the
+    start and after every chunk, [C + 1, P, ...] (index 0: the start policies, index C: the
+    final ones), the candidates of ``select_by_validation``.
     """
     if n_iterations < 1:
         raise ValueError(f"n_iterations: expected >= 1, got {n_iterations}")
@@ -70,6 +72,7 @@ def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
     n_pol = num_policies(policies)
     states = jax.jit(jax.vmap(sac.init))(jax.random.split(key, n_pol), policies)
     compiled, metrics, done = {}, [], 0
+    kept = [states.actor] if snapshots else None
     bar = None
     if progress:
         from tqdm.auto import tqdm
@@ -82,6 +85,8 @@ def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
                 compiled[n] = jax.jit(jax.vmap(lambda s, n=n: sac.train(s, n)))
             states, m = compiled[n](states)
             metrics.append(m)
+            if kept is not None:
+                kept.append(states.actor)
             done += n
             if bar is not None:
                 ret = np.asarray(episode_returns(m))
@@ -93,7 +98,66 @@ def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
         if bar is not None:
             bar.close()
     metrics = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=1), *metrics)
+    if kept is not None:
+        return jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *kept), metrics
     return states.actor, metrics
+
+
+def choose_candidates(returns, z: float = 2.0) -> np.ndarray:
+    """The rule of ``select_by_validation`` on measured returns.
+
+    returns: [K + 1, P, E] episode returns of K + 1 candidates of each of P policies
+    (candidate 0: the start policy), episode e of every candidate of policy p from the same
+    start state and noise draws. Candidate k > 0 is eligible when its mean paired gain over the
+    start exceeds ``z`` standard errors of the paired differences (and is > 0); the eligible
+    candidate with the highest mean return wins, else the start (0). -> [P] int indices.
+    """
+    r = np.asarray(returns, np.float64)
+    if r.ndim != 3 or r.shape[0] < 2 or r.shape[2] < 2:
+        raise ValueError(f"returns: expected [K + 1 >= 2, P, E >= 2], got {r.shape}")
+    if not np.all(np.isfinite(r)):
+        raise ValueError("returns: expected finite episode returns")
+    if not (np.isfinite(z) and z >= 0):
+        raise ValueError(f"z: expected a finite float >= 0, got {z!r}")
+    gain = r[1:] - r[:1]  # [K, P, E]
+    mean = gain.mean(-1)
+    se = gain.std(-1, ddof=1) / np.sqrt(r.shape[2])
+    eligible = (mean > z * se) & (mean > 0)
+    score = np.where(eligible, r[1:].mean(-1), -np.inf)
+    best = score.argmax(0)
+    return np.where(eligible.any(0), best + 1, 0).astype(np.int32)
+
+
+def select_by_validation(env: Env, candidates: Params, key: jax.Array, *, n_episodes: int,
+                         episode_length: int, gamma: float = 0.999, z: float = 2.0
+                         ) -> tuple[Params, dict]:
+    """Per policy, the candidate with the best validated return in ``env``.
+
+    candidates: [K + 1, P, ...] (``improve_policies(snapshots=True)``; index 0 the start
+    policies). All (K + 1) x P run ``n_episodes`` episodes in ``env`` with common random
+    numbers across the candidates of a policy; ``choose_candidates`` then keeps a fine-tuned
+    snapshot only where its paired gain over the start is significant (``z`` standard errors),
+    so a policy that fine-tuning did not clearly improve is deployed unchanged. Use episodes
+    (a key) that the final measurement does not reuse. -> (chosen policies [P, ...],
+    {"index": [P] chosen candidate, "validation_mean": [K + 1, P], "gain_se": [K, P]}).
+    """
+    leaves = jax.tree_util.tree_leaves(candidates)
+    K1 = int(leaves[0].shape[0])
+    if (K1 < 2 or any(x.ndim < 2 or x.shape[:2] != leaves[0].shape[:2] for x in leaves)):
+        raise ValueError(f"candidates: expected leaves [K + 1 >= 2, P, ...] with one leading "
+                         f"[K + 1, P], got {sorted({x.shape[:2] for x in leaves})}")
+    P = int(leaves[0].shape[1])
+    flat = jax.tree_util.tree_map(lambda x: x.reshape((K1 * P,) + x.shape[2:]), candidates)
+    r = measure_values(env, flat, key=key, n_episodes=n_episodes,
+                       episode_length=episode_length, gamma=gamma, common_groups=K1,
+                       per_episode=True)["returns"]
+    r = np.asarray(r, np.float64).reshape(K1, P, -1)
+    index = choose_candidates(r, z)
+    pick = jnp.asarray(index)
+    chosen = jax.tree_util.tree_map(lambda x: x[pick, jnp.arange(P)], candidates)
+    gain = r[1:] - r[:1]
+    return chosen, {"index": index, "validation_mean": r.mean(-1),
+                    "gain_se": gain.std(-1, ddof=1) / np.sqrt(r.shape[2])}
 
 
 @partial(jax.jit, static_argnames=("task", "n_episodes", "horizon", "gamma"))
@@ -157,7 +221,8 @@ def improve_in_real_env(task: Task | str, policies: Params, key: jax.Array,
                         sac_cfg: SACConfig, *, n_iterations: int, n_episodes: int,
                         episode_length: int | None = None, gamma: float = 0.999,
                         chunk_iterations: int | None = None, env: Env | None = None,
-                        progress: bool = False) -> tuple[Params, dict, dict]:
+                        progress: bool = False, select_episodes: int = 0,
+                        select_z: float = 2.0) -> tuple[Params, dict, dict]:
     """The real-env control: the same SAC fine-tuning (same start policies, budget and
     settings) run in the real env instead of a learned simulator, then the real returns
     before and after (``measure_improvement``, ``n_episodes`` fresh episodes each).
@@ -166,16 +231,37 @@ def improve_in_real_env(task: Task | str, policies: Params, key: jax.Array,
     no simulator can be blamed. task: a Task or its name (``env`` defaults to
     ``task.make_env()``). -> (improved policies [P, ...], SAC metrics [P, n_iterations],
     {"c0", "c0_se", "c1", "c1_se", "I": [P], "mpi", "api"}).
+
+    ``select_episodes`` > 0: early stopping on real validation returns. The actor is kept at
+    the start and after every chunk of ``chunk_iterations``, and each policy deploys the
+    snapshot that ``select_by_validation`` picks over ``select_episodes`` further real
+    episodes (start states and noise draws apart from the final measurement's); the result
+    then also holds "selected" (the chosen snapshot [P], 0 = the start) and "final" (the same
+    measurement of the last snapshot, undeployed, for comparison).
     """
     task = get_task(task) if isinstance(task, str) else task
     env = task.make_env() if env is None else env
-    k_sac, k_measure = jax.random.split(key)
-    after, metrics = improve_policies(env, None, None, policies, k_sac, sac_cfg,
-                                      n_iterations=n_iterations,
-                                      chunk_iterations=chunk_iterations, progress=progress)
+    if select_episodes < 0 or select_episodes == 1:
+        raise ValueError(f"select_episodes: expected 0 (off) or >= 2, got {select_episodes}")
+    k_sac, k_measure, k_select = jax.random.split(key, 3)
+    length = episode_length or task.episode_length
+    out, metrics = improve_policies(env, None, None, policies, k_sac, sac_cfg,
+                                    n_iterations=n_iterations, chunk_iterations=chunk_iterations,
+                                    progress=progress, snapshots=select_episodes > 0)
+    if select_episodes == 0:
+        res = measure_improvement(env, policies, out, k_measure, n_episodes=n_episodes,
+                                  episode_length=length, gamma=gamma)
+        return out, metrics, res
+    after, info = select_by_validation(env, out, k_select, n_episodes=select_episodes,
+                                       episode_length=length, gamma=gamma, z=select_z)
+    final = jax.tree_util.tree_map(lambda x: x[-1], out)
     res = measure_improvement(env, policies, after, k_measure, n_episodes=n_episodes,
-                              episode_length=episode_length or task.episode_length,
-                              gamma=gamma)
+                              episode_length=length, gamma=gamma)
+    res_final = measure_improvement(env, policies, final, k_measure, n_episodes=n_episodes,
+                                    episode_length=length, gamma=gamma)
+    res["selected"] = info["index"]
+    res["validation_mean"] = info["validation_mean"]
+    res["final"] = res_final
     return after, metrics, res
 
 

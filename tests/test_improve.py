@@ -12,13 +12,16 @@ from rl2s_jax import dynamics as dyn
 from rl2s_jax import policies as pol
 from rl2s_jax.collect import measure_values
 from rl2s_jax.improve import (
+    choose_candidates,
     deployment_guard,
     guarded,
+    improve_in_real_env,
     improve_policies,
     improvement_intervals,
     improvement_metrics,
     measure_improvement,
     member_values,
+    select_by_validation,
 )
 from rl2s_jax.models import Normalizer, init_generator
 from rl2s_jax.sac import FINE_TUNING, Buffer, SACConfig, gaussian_kl, make_sac, q_values
@@ -347,7 +350,8 @@ def test_fine_tuning_in_the_true_env_improves_mediocre_and_keeps_near_optimal(po
     """SACConfig.fine_tuning() in the real pointmass env: a mediocre PPO snapshot (return ~20
     of ~48) improves a lot, a near-optimal one stays near optimal. (Plain SAC from alpha = 1,
     or fine-tuning without the KL anchor, drops the near-optimal one by 5-60: see
-    docs/EVALUATION.md.)"""
+    docs/EVALUATION.md.) Run as the control runs it, with early stopping on validation
+    episodes: the mediocre policy deploys a fine-tuned snapshot."""
     ret = pointmass_ppo["returns"]
     ids = np.array([1, 4])
     assert 10 < ret[1] < 30 and ret[4] > 47  # the fixture gives what this test is about
@@ -356,13 +360,65 @@ def test_fine_tuning_in_the_true_env_improves_mediocre_and_keeps_near_optimal(po
                                 buffer_size=20_000, episode_length=50, updates_per_step=2,
                                 critic_warmup_updates=400)
     env = PointMass()
-    after, m = improve_policies(env, None, None, before, jax.random.PRNGKey(2), cfg,
-                                n_iterations=1000)
+    after, m, res = improve_in_real_env(TASK, before, jax.random.PRNGKey(2), cfg,
+                                        n_iterations=1000, chunk_iterations=250, env=env,
+                                        n_episodes=64, episode_length=50, gamma=0.99,
+                                        select_episodes=32)
     assert np.all(np.isfinite(np.asarray(m["q_loss"])))
-    res = measure_improvement(env, before, after, jax.random.PRNGKey(3), n_episodes=64,
-                              episode_length=50, gamma=0.99)
     assert res["c1"][0] > res["c0"][0] + 10, res  # measured: 18 -> 42
     assert res["c1"][1] > res["c0"][1] - 1.5, res  # measured: 48.6 -> 48.6
+    assert res["selected"][0] > 0 and res["validation_mean"].shape == (5, 2), res
+    fin = res["final"]
+    np.testing.assert_allclose(fin["c0"], res["c0"])  # one measurement, the same episodes
+    assert fin["c1"][0] > fin["c0"][0] + 10, fin  # SAC itself improved it, not the selection
+
+
+def test_choose_candidates_matches_a_loop():
+    """The eligibility (paired gain > z standard errors) and the choice (highest mean among the
+    eligible, else the start) against a plain loop, with planted gains of known size."""
+    rng = np.random.default_rng(0)
+    K1, P, E = 4, 6, 20
+    base = rng.normal(100, 10, (1, P, E))
+    shift = np.zeros((K1, P, 1))
+    shift[2, 0], shift[3, 0] = 30, 10  # policy 0: candidate 2 clearly best
+    shift[1, 1] = -30  # policy 1: only a worse one (and noise) -> the start
+    shift[1:, 2] = 0.5  # policy 2: gains far below the noise of the differences
+    shift[3, 3] = 5
+    r = base + shift + rng.normal(0, 1, (K1, P, E)) * np.array([1, 1, 5, 1, 1, 1])[:, None]
+    z = 2.0
+    got = choose_candidates(r, z)
+    want = []
+    for p in range(P):
+        best, best_mean = 0, -np.inf
+        for k in range(1, K1):
+            d = r[k, p] - r[0, p]
+            if d.mean() > max(0.0, z * d.std(ddof=1) / np.sqrt(E)) and r[k, p].mean() > best_mean:
+                best, best_mean = k, r[k, p].mean()
+        want.append(best)
+    np.testing.assert_array_equal(got, want)
+    assert got[0] == 2 and got[1] == 0 and got[2] == 0 and got[3] == 3
+    with pytest.raises(ValueError, match="returns"):
+        choose_candidates(r[:1])
+    with pytest.raises(ValueError, match="z"):
+        choose_candidates(r, -1.0)
+
+
+def test_select_by_validation_keeps_the_start_or_a_clearly_better_snapshot(pointmass_ppo):
+    """Real pointmass episodes: a mediocre start (snapshot 1) offered the random policy and the
+    near-optimal one takes the near-optimal; a near-optimal start offered worse ones keeps its
+    own parameters exactly."""
+    params = pointmass_ppo["params"]
+    stack = lambda ids: pol.index_params(params, np.asarray(ids))  # noqa: E731
+    cands = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs),
+                                   stack([1, 4]), stack([0, 0]), stack([4, 1]))
+    chosen, info = select_by_validation(PointMass(), cands, jax.random.PRNGKey(5),
+                                        n_episodes=32, episode_length=50, gamma=0.99)
+    np.testing.assert_array_equal(info["index"], [2, 0])
+    _leaves_equal(chosen, stack([4, 4]))
+    assert info["validation_mean"].shape == (3, 2) and info["gain_se"].shape == (2, 2)
+    with pytest.raises(ValueError, match="candidates"):
+        select_by_validation(PointMass(), stack([1]), jax.random.PRNGKey(5), n_episodes=4,
+                             episode_length=50)
 
 
 def test_critic_warmup_evaluates_the_start_policy():

@@ -130,6 +130,8 @@ def run_task(task_name: str, args) -> dict:
                         "z": args.select_z},
                 selected=np.asarray(res["selected"]).reshape(R, P).tolist(),
                 validation_mean=np.asarray(res["validation_mean"]).reshape(-1, R, P).tolist(),
+                validation_gain_se=np.asarray(res["validation_gain_se"]).reshape(-1, R, P)
+                .tolist(),
                 final_c1=fc1.tolist(), final_I=[p["I"].tolist() for p in fper],
                 final_mpi=float(np.mean([p["mpi"] for p in fper])),
                 final_api=float(np.mean([p["api"] for p in fper])),

@@ -261,6 +261,7 @@ def improve_in_real_env(task: Task | str, policies: Params, key: jax.Array,
                                     episode_length=length, gamma=gamma)
     res["selected"] = info["index"]
     res["validation_mean"] = info["validation_mean"]
+    res["validation_gain_se"] = info["gain_se"]
     res["final"] = res_final
     return after, metrics, res
 

@@ -311,8 +311,9 @@ def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.A
     The two are measured paired: policy p before and after fine-tuning run from the same
     start states with the same action-noise draws (``measure_values(common_groups=2)``), so
     C1 - C0 is measured with the per-episode differences' standard error ``diff_se``, far
-    smaller than the two returns' own. C is the mean undiscounted episode return
-    (``discounted=True``: the discounted one).
+    smaller than the two returns' own. A policy whose parameters did not change (a guard or
+    the selection kept its start) gets C1 = C0 exactly. C is the mean undiscounted episode
+    return (``discounted=True``: the discounted one).
     -> {"c0", "c0_se", "c1", "c1_se", "diff_se": [P], "I": [P], "mpi", "api"}.
     """
     P = num_policies(before)
@@ -329,10 +330,22 @@ def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.A
         both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), before, after)
         r = measure_values(real_env, both, key=key, common_groups=2, **kw)[field]
         r0, r1 = r[:P], r[P:]
+        # An unchanged policy is the same random variable: its episodes are its start's. (Two
+        # lanes of one batch can round differently, on the CPU and for Ant on the GPU, and a
+        # chaotic task turns that into a different episode.)
+        r1 = np.where(unchanged_policies(before, after)[:, None], r0, r1)
     else:  # the same key gives both calls the same starts and noise draws
         r0 = measure_values(real_env, before, key=key, **kw)[field]
         r1 = measure_values(real_env, after, key=key, **kw)[field]
     return paired_returns(r0, r1)
+
+
+def unchanged_policies(before: Params, after: Params) -> np.ndarray:
+    """[P] bool: policy p's parameters are equal in ``before`` and ``after`` (same layout)."""
+    eq = [np.asarray(a == b).reshape(a.shape[0], -1).all(1)
+          for a, b in zip(jax.tree_util.tree_leaves(before), jax.tree_util.tree_leaves(after),
+                          strict=True)]
+    return np.logical_and.reduce(eq)
 
 
 def paired_returns(r0: np.ndarray, r1: np.ndarray) -> dict[str, np.ndarray | float]:

@@ -22,6 +22,7 @@ from rl2s_jax.improve import (
     measure_improvement,
     member_values,
     select_by_validation,
+    unchanged_policies,
 )
 from rl2s_jax.models import Normalizer, init_generator
 from rl2s_jax.sac import FINE_TUNING, Buffer, SACConfig, gaussian_kl, make_sac, q_values
@@ -235,6 +236,15 @@ def test_measure_improvement_is_paired():
                               episode_length=TASK.episode_length, gamma=0.99)
     np.testing.assert_allclose(res["c0"], same["c0"], rtol=1e-6)  # the same episodes
     assert np.all(res["diff_se"] < 0.5 * np.hypot(res["c0_se"], res["c1_se"])), res
+    # only policy 1 changed: the other two keep their start's episodes, I = 0 exactly
+    mixed = jax.tree_util.tree_map(lambda x: x, before)
+    mixed["layers"][-1]["b"] = mixed["layers"][-1]["b"].at[1].add(0.05)
+    np.testing.assert_array_equal(unchanged_policies(before, mixed), [True, False, True])
+    part = measure_improvement(PointMass(), before, mixed, jax.random.PRNGKey(5), n_episodes=32,
+                               episode_length=TASK.episode_length, gamma=0.99)
+    np.testing.assert_array_equal(part["I"][[0, 2]], 0.0)
+    np.testing.assert_allclose(part["c1"][1], res["c1"][1], rtol=1e-6)
+    assert part["I"][1] != 0.0
     # a wider policy network (another layout) for the same function: measured in two calls
     wide = jax.tree_util.tree_map(lambda x: x, before)
     w0 = wide["layers"][0]

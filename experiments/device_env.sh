@@ -3,6 +3,12 @@
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
   --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+# Repeatable GPU numbers: without this flag identical policies from identical starts earn
+# different returns on walker2d, halfcheetah and ant (docs/RESULTS.md, "Why pairing did not
+# help"); it cost 0-40% of wall time there. RL2S_NONDETERMINISTIC=1 leaves XLA's default.
+if [ "${RL2S_NONDETERMINISTIC:-0}" != 1 ]; then
+  export XLA_FLAGS="${XLA_FLAGS:+$XLA_FLAGS }--xla_gpu_deterministic_ops=true"
+fi
 OUT=${OUT:-/tmp/out}
 RL2S="python3 -m rl2s_jax.cli"
 W=/tmp/work && mkdir -p "$W" "$OUT"

@@ -5,7 +5,8 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 # Repeatable GPU numbers: without this flag identical policies from identical starts earn
 # different returns on walker2d, halfcheetah and ant (docs/RESULTS.md, "Why pairing did not
-# help"); it cost 0-40% of wall time there. RL2S_NONDETERMINISTIC=1 leaves XLA's default.
+# help"); it cost 0-40% of wall time there, but large-batch collection may slow far more
+# (unmeasured: docs/BENCHMARKS.md). RL2S_NONDETERMINISTIC=1 leaves XLA's default.
 if [ "${RL2S_NONDETERMINISTIC:-0}" != 1 ]; then
   export XLA_FLAGS="${XLA_FLAGS:+$XLA_FLAGS }--xla_gpu_deterministic_ops=true"
 fi

@@ -80,6 +80,20 @@ def sac_configs(args, episode_length: int) -> dict[str, SACConfig]:
     return out
 
 
+def summarise(res: dict, R: int, P: int) -> dict:
+    """MPI / API per seed, their means and 95% bootstrap intervals from one paired
+    measurement (``measure_improvement``'s fields, [R * P] as seeds x policies)."""
+    c0, s0, c1, s1, sd = (np.asarray(res[k], np.float64).reshape(R, P)
+                          for k in ("c0", "c0_se", "c1", "c1_se", "diff_se"))
+    per = [improvement_metrics(c0[r], c1[r]) for r in range(R)]
+    ci = improvement_intervals(c0, s0, c1, s1, diff_se=sd)  # C0, C1 measured paired
+    return {"I": [p["I"].tolist() for p in per],
+            "mpi_per_seed": [p["mpi"] for p in per], "api_per_seed": [p["api"] for p in per],
+            "mpi": float(np.mean([p["mpi"] for p in per])),
+            "api": float(np.mean([p["api"] for p in per])),
+            "mpi_ci95": ci["mpi"], "api_ci95": ci["api"]}
+
+
 def run_task(task_name: str, args) -> dict:
     task = get_task(task_name)
     zoo = load_zoo(task_name)
@@ -103,28 +117,17 @@ def run_task(task_name: str, args) -> dict:
             select_episodes=args.select_episodes, select_z=args.select_z)
         c0, s0, c1, s1, sd = (np.asarray(res[k], np.float64).reshape(R, P)
                               for k in ("c0", "c0_se", "c1", "c1_se", "diff_se"))
-        per = [improvement_metrics(c0[r], c1[r]) for r in range(R)]
-        ci = improvement_intervals(c0, s0, c1, s1, diff_se=sd)  # C0, C1 measured paired
+        summary = summarise(res, R, P)
         entry = {"sac": {k: (list(v) if isinstance(v, tuple) else v)
                          for k, v in dataclasses.asdict(cfg).items()},
                  "c0": c0.tolist(), "c0_se": s0.tolist(), "c1": c1.tolist(),
                  "c1_se": s1.tolist(), "diff_se": sd.tolist(), "paired": True,
-                 "I": [p["I"].tolist() for p in per],
-                 "mpi_per_seed": [p["mpi"] for p in per],
-                 "api_per_seed": [p["api"] for p in per],
-                 "mpi": float(np.mean([p["mpi"] for p in per])),
-                 "api": float(np.mean([p["api"] for p in per])),
-                 "mpi_ci95": ci["mpi"], "api_ci95": ci["api"],
+                 **summary,
                  "final_alpha": np.asarray(metrics["alpha"][:, -1]).tolist(),
                  "final_kl": np.asarray(metrics["kl"][:, -1]).tolist(),
                  "seconds": round(time.perf_counter() - t0, 1)}
         if select:
-            fin = res["final"]
-            fc1 = np.asarray(fin["c1"], np.float64).reshape(R, P)
-            fper = [improvement_metrics(c0[r], fc1[r]) for r in range(R)]
-            fci = improvement_intervals(
-                c0, s0, fc1, np.asarray(fin["c1_se"], np.float64).reshape(R, P),
-                diff_se=np.asarray(fin["diff_se"], np.float64).reshape(R, P))
+            fin = summarise(res["final"], R, P)
             entry.update(
                 select={"episodes": args.select_episodes, "every": args.select_every,
                         "z": args.select_z},
@@ -132,17 +135,16 @@ def run_task(task_name: str, args) -> dict:
                 validation_mean=np.asarray(res["validation_mean"]).reshape(-1, R, P).tolist(),
                 validation_gain_se=np.asarray(res["validation_gain_se"]).reshape(-1, R, P)
                 .tolist(),
-                final_c1=fc1.tolist(), final_I=[p["I"].tolist() for p in fper],
-                final_mpi=float(np.mean([p["mpi"] for p in fper])),
-                final_api=float(np.mean([p["api"] for p in fper])),
-                final_mpi_ci95=fci["mpi"], final_api_ci95=fci["api"])
+                final_c1=np.asarray(res["final"]["c1"]).reshape(R, P).tolist(),
+                **{f"final_{k}": fin[k] for k in ("I", "mpi", "api", "mpi_ci95", "api_ci95")})
             log(f"  {name:<12} without the selection (final snapshot): MPI "
                 f"{entry['final_mpi']:+.3f}  API {entry['final_api']:+.3f}; "
                 f"deployed a fine-tuned snapshot for "
                 f"{int((np.asarray(res['selected']) > 0).sum())} of {R * P}")
         result["configs"][name] = entry
-        log(f"  {name:<12} MPI {entry['mpi']:+.3f} [{ci['mpi'][0]:+.3f}, {ci['mpi'][1]:+.3f}]  "
-            f"API {entry['api']:+.3f} [{ci['api'][0]:+.3f}, {ci['api'][1]:+.3f}]  "
+        (m0, m1), (a0, a1) = entry["mpi_ci95"], entry["api_ci95"]
+        log(f"  {name:<12} MPI {entry['mpi']:+.3f} [{m0:+.3f}, {m1:+.3f}]  "
+            f"API {entry['api']:+.3f} [{a0:+.3f}, {a1:+.3f}]  "
             f"mean C0 {c0.mean():.1f} -> C1 {c1.mean():.1f}  ({entry['seconds']:.0f}s)")
     return result
 

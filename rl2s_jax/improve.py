@@ -21,7 +21,7 @@ improvement is exactly 0. Only the simulator is used for the decision, never the
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from functools import partial
 
 import jax
@@ -119,13 +119,18 @@ def choose_candidates(returns, z: float = 2.0) -> np.ndarray:
         raise ValueError("returns: expected finite episode returns")
     if not (np.isfinite(z) and z >= 0):
         raise ValueError(f"z: expected a finite float >= 0, got {z!r}")
-    gain = r[1:] - r[:1]  # [K, P, E]
-    mean = gain.mean(-1)
-    se = gain.std(-1, ddof=1) / np.sqrt(r.shape[2])
+    mean, se = _paired_gain(r)
     eligible = (mean > z * se) & (mean > 0)
     score = np.where(eligible, r[1:].mean(-1), -np.inf)
     best = score.argmax(0)
     return np.where(eligible.any(0), best + 1, 0).astype(np.int32)
+
+
+def _paired_gain(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and standard error of candidate k's paired gain over candidate 0, from episode
+    returns r [K + 1, P, E]. -> ([K, P], [K, P])."""
+    gain = r[1:] - r[:1]
+    return gain.mean(-1), gain.std(-1, ddof=1) / np.sqrt(r.shape[2])
 
 
 def select_by_validation(env: Env, candidates: Params, key: jax.Array, *, n_episodes: int,
@@ -147,17 +152,15 @@ def select_by_validation(env: Env, candidates: Params, key: jax.Array, *, n_epis
         raise ValueError(f"candidates: expected leaves [K + 1 >= 2, P, ...] with one leading "
                          f"[K + 1, P], got {sorted({x.shape[:2] for x in leaves})}")
     P = int(leaves[0].shape[1])
-    flat = jax.tree_util.tree_map(lambda x: x.reshape((K1 * P,) + x.shape[2:]), candidates)
-    r = measure_values(env, flat, key=key, n_episodes=n_episodes,
-                       episode_length=episode_length, gamma=gamma, common_groups=K1,
-                       per_episode=True)["returns"]
-    r = np.asarray(r, np.float64).reshape(K1, P, -1)
+    group = lambda k: jax.tree_util.tree_map(lambda x: x[k], candidates)  # noqa: E731
+    r0, rest = paired_episode_returns(env, group(0), [group(k) for k in range(1, K1)], key,
+                                      n_episodes=n_episodes, episode_length=episode_length,
+                                      gamma=gamma)
+    r = np.stack([r0, *rest]).astype(np.float64)
     index = choose_candidates(r, z)
     pick = jnp.asarray(index)
     chosen = jax.tree_util.tree_map(lambda x: x[pick, jnp.arange(P)], candidates)
-    gain = r[1:] - r[:1]
-    return chosen, {"index": index, "validation_mean": r.mean(-1),
-                    "gain_se": gain.std(-1, ddof=1) / np.sqrt(r.shape[2])}
+    return chosen, {"index": index, "validation_mean": r.mean(-1), "gain_se": _paired_gain(r)[1]}
 
 
 @partial(jax.jit, static_argnames=("task", "n_episodes", "horizon", "gamma"))
@@ -255,10 +258,10 @@ def improve_in_real_env(task: Task | str, policies: Params, key: jax.Array,
     after, info = select_by_validation(env, out, k_select, n_episodes=select_episodes,
                                        episode_length=length, gamma=gamma, z=select_z)
     final = jax.tree_util.tree_map(lambda x: x[-1], out)
-    res = measure_improvement(env, policies, after, k_measure, n_episodes=n_episodes,
-                              episode_length=length, gamma=gamma)
-    res_final = measure_improvement(env, policies, final, k_measure, n_episodes=n_episodes,
-                                    episode_length=length, gamma=gamma)
+    r0, (r_after, r_final) = paired_episode_returns(env, policies, [after, final], k_measure,
+                                                    n_episodes=n_episodes,
+                                                    episode_length=length, gamma=gamma)
+    res, res_final = paired_returns(r0, r_after), paired_returns(r0, r_final)
     res["selected"] = info["index"]
     res["validation_mean"] = info["validation_mean"]
     res["validation_gain_se"] = info["gain_se"]
@@ -316,28 +319,54 @@ def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.A
     return (``discounted=True``: the discounted one).
     -> {"c0", "c0_se", "c1", "c1_se", "diff_se": [P], "I": [P], "mpi", "api"}.
     """
+    r0, (r1,) = paired_episode_returns(real_env, before, [after], key, n_episodes=n_episodes,
+                                       episode_length=episode_length, gamma=gamma,
+                                       discounted=discounted)
+    return paired_returns(r0, r1)
+
+
+def paired_episode_returns(env: Env, before: Params, afters: Sequence[Params], key: jax.Array,
+                           *, n_episodes: int, episode_length: int, gamma: float,
+                           discounted: bool = False) -> tuple[np.ndarray, list[np.ndarray]]:
+    """Episode returns of ``before`` [P, ...] and of each of ``afters`` (each [P, ...]) in
+    ``env``, policy p of every group from the same start states with the same action-noise
+    draws. -> (r0 [P, E], [r_k [P, E] per after]).
+
+    Groups of one layout run as one batch (``measure_values(common_groups=1 + K)``), others in
+    calls of their own with the same key (the same starts and draws). A policy whose parameters
+    equal its ``before`` gets r0: it is the same random variable (two lanes of one batch can
+    round differently, on the CPU and for Ant on the GPU, and a chaotic task turns that into a
+    different episode).
+    """
     P = num_policies(before)
-    if num_policies(after) != P:
-        raise ValueError(f"after: expected {P} policies as before, got {num_policies(after)}")
+    for k, a in enumerate(afters):
+        if num_policies(a) != P:
+            raise ValueError(f"after: expected {P} policies as before, got {num_policies(a)} "
+                             f"(group {k})")
     kw = dict(n_episodes=n_episodes, episode_length=episode_length, gamma=gamma,
               per_episode=True)
     field = "returns_discounted" if discounted else "returns"
-    same = (jax.tree_util.tree_structure(before) == jax.tree_util.tree_structure(after)
-            and all(a.shape == b.shape for a, b in zip(jax.tree_util.tree_leaves(before),
-                                                       jax.tree_util.tree_leaves(after),
+    same = [_same_layout(before, a) for a in afters]
+    batched = [a for a, s in zip(afters, same, strict=True) if s]
+    groups = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), before, *batched)
+    r = np.asarray(measure_values(env, groups, key=key, common_groups=1 + len(batched),
+                                  **kw)[field])
+    r0, out, k = r[:P], [], 0
+    for a, s in zip(afters, same, strict=True):
+        if s:
+            k += 1
+            rk = r[k * P:(k + 1) * P]
+            out.append(np.where(unchanged_policies(before, a)[:, None], r0, rk))
+        else:
+            out.append(np.asarray(measure_values(env, a, key=key, **kw)[field]))
+    return r0, out
+
+
+def _same_layout(a: Params, b: Params) -> bool:
+    return (jax.tree_util.tree_structure(a) == jax.tree_util.tree_structure(b)
+            and all(x.shape == y.shape for x, y in zip(jax.tree_util.tree_leaves(a),
+                                                       jax.tree_util.tree_leaves(b),
                                                        strict=True)))
-    if same:  # one batch of 2P policies, the halves with common random numbers
-        both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), before, after)
-        r = measure_values(real_env, both, key=key, common_groups=2, **kw)[field]
-        r0, r1 = r[:P], r[P:]
-        # An unchanged policy is the same random variable: its episodes are its start's. (Two
-        # lanes of one batch can round differently, on the CPU and for Ant on the GPU, and a
-        # chaotic task turns that into a different episode.)
-        r1 = np.where(unchanged_policies(before, after)[:, None], r0, r1)
-    else:  # the same key gives both calls the same starts and noise draws
-        r0 = measure_values(real_env, before, key=key, **kw)[field]
-        r1 = measure_values(real_env, after, key=key, **kw)[field]
-    return paired_returns(r0, r1)
 
 
 def unchanged_policies(before: Params, after: Params) -> np.ndarray:

@@ -263,6 +263,36 @@ def test_measure_improvement_is_paired():
                        episode_length=5, common_groups=2)
 
 
+def test_unchanged_policies_keep_their_start_episodes_when_lanes_round_apart(monkeypatch):
+    """Where two lanes of one batch round differently (the CPU, Ant on the GPU), an unchanged
+    policy still measures I = 0 exactly, in the improvement and in the validation; a changed
+    one keeps its own episodes. The lanes' rounding is imitated by a lane-dependent offset."""
+    import rl2s_jax.improve as imp
+
+    real = imp.measure_values
+
+    def lanes_apart(env, params, **kw):
+        out = real(env, params, **kw)
+        lane = np.arange(out["returns"].size).reshape(out["returns"].shape)
+        return {**out, "returns": out["returns"] + 1e-3 * lane}
+    monkeypatch.setattr(imp, "measure_values", lanes_apart)
+    before = _policies([0.3, -0.5, 1.0])
+    mixed = jax.tree_util.tree_map(lambda x: x, before)
+    mixed["layers"][-1]["b"] = mixed["layers"][-1]["b"].at[1].add(0.05)
+    kw = dict(n_episodes=8, episode_length=TASK.episode_length, gamma=0.99)
+    res = measure_improvement(PointMass(), before, mixed, jax.random.PRNGKey(5), **kw)
+    np.testing.assert_array_equal(res["I"][[0, 2]], 0.0)
+    assert res["I"][1] != 0.0
+    r0, (r_same, r_mixed) = imp.paired_episode_returns(PointMass(), before, [before, mixed],
+                                                       jax.random.PRNGKey(5), **kw)
+    np.testing.assert_array_equal(r_same, r0)
+    assert np.all(r_mixed[1] != r0[1])
+    cands = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), before, before)
+    _, info = select_by_validation(PointMass(), cands, jax.random.PRNGKey(5), **kw)
+    np.testing.assert_array_equal(info["index"], 0)
+    np.testing.assert_array_equal(info["gain_se"], 0.0)
+
+
 def test_improvement_metrics_hand_computed():
     m = improvement_metrics([10.0, -20.0, 4.0], [15.0, -10.0, 3.0])
     np.testing.assert_allclose(m["I"], [0.5, 0.5, -0.25])  # |c0|: -20 -> -10 is +50%

@@ -2,14 +2,14 @@
 
 Collection throughput (transitions/s, policy inference, fresh resets and the copy to the host
 included) next to raw MJX stepping (vmap(env.step) in a scan, random actions, no resets) for
-the same env and batch, and their ratio; collection with a full reset every step
-(refresh_fraction=1), to show what the pooled fresh starts buy. With --breakdown also the
-pieces: raw stepping with the policies' actions, raw stepping where ended envs go back to a
-stored start (the state distribution of collection without its machinery), collection
-without the copy to the host, and with a smaller pool of fresh starts.
+the same env and batch, and their ratio; collection with a batched reset every step
+(refresh_every=1), to show what resetting rarely buys. With --breakdown also the pieces: raw
+stepping with the policies' actions, raw stepping where ended envs go back to a stored start
+(the state distribution of collection without its machinery), collection without the copy to
+the host, and with a reset every 32 steps.
 
     python experiments/bench.py [--task hopper] [--batch 1024 8192 ...] [--breakdown]
-        [--json out.json]
+        [--refresh-every K ...] [--json out.json]
 """
 
 from __future__ import annotations
@@ -38,14 +38,15 @@ def timed(fn, *args, repeats: int = 3):
 
 
 def bench_batch(env, n_policies: int, batch: int, steps: int, reset_every_step: bool,
-                breakdown: bool = False) -> dict:
+                breakdown: bool = False, refresh_every: tuple[int, ...] = ()) -> dict:
     """Transitions/s of raw stepping and of collection variants at one batch size.
 
     ``breakdown`` adds the pieces: raw stepping with the policies' actions instead of random
     ones ("policy"); raw stepping in which an env that is done goes back to its stored first
     state by a select ("raw_autoreset": no reset computed, no records); collection without
-    the copy of its records to the host ("collect_no_copy"); collection refreshing at most
-    1/32 of the starts per step instead of 1/8 ("collect_refresh_1_32")."""
+    the copy of its records to the host ("collect_no_copy"); collection resetting used starts
+    every 32 steps instead of 8 ("collect_refresh_every_32"). ``refresh_every``: more
+    collection variants, one per period ("collect_refresh_every_K")."""
     E = batch // n_policies
     B = n_policies * E
     keys = jax.random.split(jax.random.PRNGKey(0), n_policies)
@@ -77,9 +78,9 @@ def bench_batch(env, n_policies: int, batch: int, steps: int, reset_every_step: 
     raw_s = timed(raw_with(random_actions), state0, jax.random.PRNGKey(2))
     row = {"batch": B, "policies": n_policies, "envs_per_policy": E, "steps": steps,
            "raw_steps_per_s": B * steps / raw_s}
-    variants = [("collect", 0.125, True)]
+    variants = [("collect", 8, True)]
     if reset_every_step:
-        variants.append(("collect_reset_every_step", 1.0, True))
+        variants.append(("collect_reset_every_step", 1, True))
     if breakdown:
         for label, actions, autoreset in (("policy", policy_actions, False),
                                           ("raw_autoreset", random_actions, True)):
@@ -87,10 +88,12 @@ def bench_batch(env, n_policies: int, batch: int, steps: int, reset_every_step: 
                 raw_with(actions, autoreset), state0, jax.random.PRNGKey(2))
             row[f"{label}_ratio"] = row[f"{label}_steps_per_s"] / row["raw_steps_per_s"]
             _progress(B, label, row)
-        variants += [("collect_no_copy", 0.125, False), ("collect_refresh_1_32", 1 / 32, True)]
-    for label, frac, copy in variants:
+        variants += [("collect_no_copy", 8, False), ("collect_refresh_every_32", 32, True)]
+    variants += [(f"collect_refresh_every_{k}", k, True) for k in refresh_every
+                 if f"collect_refresh_every_{k}" not in [v[0] for v in variants]]
+    for label, every, copy in variants:
         init, step = make_rollout_step(env, n_policies, E, episode_length=1000,
-                                       refresh_fraction=frac)
+                                       refresh_every=every)
         carry = jax.jit(init)(jax.random.PRNGKey(3))
         chunk = jax.jit(lambda c, step=step: jax.lax.scan(
             lambda x, _: step(params, x), c, None, length=steps))
@@ -106,7 +109,7 @@ def bench_batch(env, n_policies: int, batch: int, steps: int, reset_every_step: 
         row[f"{label}_steps_per_s"] = B * steps / timed(run, carry)
         row[f"{label}_ratio"] = row[f"{label}_steps_per_s"] / row["raw_steps_per_s"]
         _progress(B, label, row)
-        if copy:  # how often envs end: the refresh pool must keep up with it
+        if copy:  # how often envs end (two ends in one refresh period force a reset)
             _, records = chunk(carry)
             ends = records["done"] | records["truncated"]
             row[f"{label}_end_rate"] = float(ends.mean())
@@ -131,6 +134,8 @@ def main(argv=None) -> int:
                         help="batch sizes at which to also time a full reset every step")
     parser.add_argument("--breakdown", action="store_true",
                         help="also time the pieces: policy actions, no copy to the host")
+    parser.add_argument("--refresh-every", type=int, nargs="*", default=[],
+                        help="also time collection with a reset of used starts every K steps")
     parser.add_argument("--json")
     args = parser.parse_args(argv)
     env = get_task(args.task).make_env()
@@ -141,13 +146,15 @@ def main(argv=None) -> int:
     if args.breakdown:
         cols += [("policy", "raw + policy actions"), ("raw_autoreset", "raw + autoreset"),
                  ("collect_no_copy", "collect, no host copy"),
-                 ("collect_refresh_1_32", "collect, refresh 1/32")]
+                 ("collect_refresh_every_32", "collect, reset every 32 steps")]
+    cols += [(f"collect_refresh_every_{k}", f"collect, reset every {k} steps")
+             for k in args.refresh_every if f"collect_refresh_every_{k}" not in dict(cols)]
     print("| batch | raw MJX steps/s | " + " | ".join(f"{c} /s | ratio" for _, c in cols) + " |")
     print("|---:|---:|" + "---:|---:|" * len(cols))
     rows = []
     for b in args.batch:
         r = bench_batch(env, args.policies, b, args.steps, b in args.reset_every_step_batch,
-                        args.breakdown)
+                        args.breakdown, tuple(args.refresh_every))
         rows.append(r)
         cells = [f"{r[k + '_steps_per_s']:,.0f} | {r[k + '_ratio']:.2f}"
                  if k + "_ratio" in r else "- | -" for k, _ in cols]

@@ -3,12 +3,13 @@
 All P policies x E parallel envs step together as one flat batch of B = P * E envs. Every
 episode starts from a *fresh* random initial state: brax's AutoResetWrapper reuses one cached
 start state, so we keep our own pool instead. Each env holds one pending start state drawn
-from ``env.reset``; when its episode ends it swaps that start in, and every step refreshes up
-to M = ceil(refresh_fraction * B) used pending starts in one small batched reset. If more envs
-end in one step than have fresh pending starts, a full batched reset runs for that step only
-(``lax.cond``), so the guarantee holds whatever the episode lengths. A reset costs about one
-physics sub-step, so refreshing a fraction instead of all B every step keeps collection close
-to raw stepping speed (docs/BENCHMARKS.md).
+from ``env.reset``; when its episode ends it swaps that start in. Every ``refresh_every``
+steps one batched reset replaces all used pending starts; if an env ends before its pending
+start was replaced (two ends within one refresh period), that step refreshes at once
+(the same ``lax.cond`` branch), so the guarantee holds whatever the episode lengths. On a GPU
+a batched reset costs about the same whatever the number of envs it resets (its kernels are
+latency-bound at these batch sizes), so resetting rarely, not resetting few, is what keeps
+collection close to raw stepping speed (docs/BENCHMARKS.md).
 
 With several local devices the policy axis is split over them (``shard=True``, the default):
 the policies and their envs' states live on the device of their policy, the same program runs
@@ -60,18 +61,23 @@ class RolloutCarry(NamedTuple):
     fresh: jax.Array        # [B] bool: pending start not used yet
     t: jax.Array            # [B] int32: step within the current episode
     key: jax.Array
+    n: jax.Array            # [] int32: rollout steps taken (sets the refresh schedule)
 
 
 def make_rollout_step(env: Env, n_policies: int, envs_per_policy: int, episode_length: int,
-                      refresh_fraction: float = 0.125):
+                      refresh_every: int = 8):
     """Returns ``init(key) -> carry`` and ``step(params, carry) -> (carry, record)``.
 
     params: stacked policy params [P, ...]. record: dict of [B, ...] arrays for one step
     (obs, action, next_obs, reward, done, truncated, t), B = P * E, row b = p * E + e.
+    ``refresh_every``: steps between the batched resets that replace used pending starts
+    (1: every step).
     """
+    if (not isinstance(refresh_every, (int, np.integer)) or isinstance(refresh_every, bool)
+            or refresh_every < 1):
+        raise ValueError(f"refresh_every: expected an int >= 1, got {refresh_every!r}")
     P, E, L = n_policies, envs_per_policy, episode_length
     B = P * E
-    M = max(1, min(B, math.ceil(refresh_fraction * B)))
     v_reset, v_step = jax.vmap(env.reset), jax.vmap(env.step)
     act = jax.vmap(sample_action)
 
@@ -79,10 +85,11 @@ def make_rollout_step(env: Env, n_policies: int, envs_per_policy: int, episode_l
         k_start, k_pending, key = jax.random.split(key, 3)
         return RolloutCarry(env_state=v_reset(jax.random.split(k_start, B)),
                             pending=v_reset(jax.random.split(k_pending, B)),
-                            fresh=jnp.ones((B,), bool), t=jnp.zeros((B,), jnp.int32), key=key)
+                            fresh=jnp.ones((B,), bool), t=jnp.zeros((B,), jnp.int32), key=key,
+                            n=jnp.zeros((), jnp.int32))
 
     def step(params, carry: RolloutCarry):
-        key, k_act, k_all, k_part = jax.random.split(carry.key, 4)
+        key, k_act, k_reset = jax.random.split(carry.key, 3)
         obs = carry.env_state.obs
         action, _, _ = act(params, obs.reshape(P, E, -1), jax.random.split(k_act, P))
         action = action.reshape(B, -1)
@@ -91,26 +98,19 @@ def make_rollout_step(env: Env, n_policies: int, envs_per_policy: int, episode_l
         truncated = (carry.t + 1 >= L) & ~done
         end = done | truncated
 
-        # Every env that ends now must find a fresh start waiting.
-        short = jnp.any(end & ~carry.fresh)
+        # Refresh on schedule, or now if an env that ends has no fresh start waiting.
+        refresh = (carry.n % refresh_every == 0) | jnp.any(end & ~carry.fresh)
         pending = jax.lax.cond(
-            short, lambda p: tree_where(carry.fresh, p, v_reset(jax.random.split(k_all, B))),
+            refresh, lambda p: tree_where(carry.fresh, p, v_reset(jax.random.split(k_reset, B))),
             lambda p: p, carry.pending)
-        fresh = carry.fresh | short
+        fresh = (carry.fresh | refresh) & ~end
         env_state = tree_where(end, pending, nxt)
-        fresh = fresh & ~end
-        # Refresh up to M used starts (index B = padding, dropped by the scatter).
-        idx = jnp.nonzero(~fresh, size=M, fill_value=B)[0]
-        new = v_reset(jax.random.split(k_part, M))
-        pending = jax.tree_util.tree_map(lambda p, n: p.at[idx].set(n, mode="drop"),
-                                         pending, new)
-        fresh = fresh.at[idx].set(True, mode="drop")
 
         record = {"obs": obs, "action": action, "next_obs": nxt.obs,
                   "reward": nxt.reward.astype(jnp.float32), "done": done,
                   "truncated": truncated, "t": carry.t}
         t = jnp.where(end, 0, carry.t + 1).astype(jnp.int32)
-        return RolloutCarry(env_state, pending, fresh, t, key), record
+        return RolloutCarry(env_state, pending, fresh, t, key, carry.n + 1), record
 
     return init, step
 
@@ -181,7 +181,7 @@ def default_envs_per_policy(transitions_per_policy: int,
 
 def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy: int,
             envs_per_policy: int | None = None, episode_length: int = EPISODE_LENGTH,
-            refresh_fraction: float = 0.125, chunk_steps: int = 100, task: str | None = None,
+            refresh_every: int = 8, chunk_steps: int = 100, task: str | None = None,
             policy_names: list[str] | None = None, gamma: float = 0.999,
             value_episodes: int = 16, source: dict | None = None, progress: bool = True,
             shard: bool = True):
@@ -212,7 +212,7 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
         raise ValueError(f"policy_names: expected {P} names, got {len(policy_names)}")
 
     key_collect, key_values = jax.random.split(key)
-    init, step = make_rollout_step(env, P, E, episode_length, refresh_fraction)
+    init, step = make_rollout_step(env, P, E, episode_length, refresh_every)
 
     mesh = _policy_mesh(P, shard)
     params = shard_lanes(params, mesh)
@@ -239,7 +239,7 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
             "gamma": float(gamma) if values else None, "episode_length": int(episode_length),
             "policy_names": list(policy_names),
             "source": {"collector": "rl2s_jax.collect", "envs_per_policy": E,
-                       "steps_per_env": steps, "refresh_fraction": refresh_fraction,
+                       "steps_per_env": steps, "refresh_every": refresh_every,
                        "value_episodes": value_episodes, "env": type(env).__name__,
                        **(source or {})}}
     return Dataset(obs=fields["obs"].astype(np.float32),

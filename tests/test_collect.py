@@ -141,6 +141,18 @@ def test_collection_compiles_one_scan_for_uneven_steps():
         equal_chunks(10, 0)
 
 
+@pytest.mark.parametrize("refresh_every", [1, 3, 100])
+def test_every_episode_starts_fresh_whatever_the_refresh_period(refresh_every):
+    # Episodes of 5 steps: with a period of 100 every end after the first needs the
+    # on-demand refresh; with 3 some ends fall between scheduled refreshes.
+    ds = collect(CounterEnv(), _policies(2, 1, [0.0, 1.0]), key=jax.random.PRNGKey(3),
+                 transitions_per_policy=60, envs_per_policy=3, episode_length=5,
+                 refresh_every=refresh_every, value_episodes=0, progress=False)
+    check_episode_structure(ds, lambda o: o[..., 0] >= CounterEnv.K, 5)
+    assert (ds.t == 0).sum() == 2 * 3 * 4  # 20 steps per env: 4 whole episodes each
+    assert ds.meta["source"]["refresh_every"] == refresh_every
+
+
 def test_bad_input_refused_before_work():
     env = CounterEnv()
     params = _policies(2, 1, [0.0])
@@ -149,6 +161,10 @@ def test_bad_input_refused_before_work():
     with pytest.raises(ValueError, match="envs_per_policy"):
         collect(env, params, key=jax.random.PRNGKey(0), transitions_per_policy=4,
                 envs_per_policy=8)
+    for bad in (0, 2.5, True):
+        with pytest.raises(ValueError, match="refresh_every"):
+            collect(env, params, key=jax.random.PRNGKey(0), transitions_per_policy=4,
+                    refresh_every=bad)
     with pytest.raises(ValueError, match="AutoResetWrapper"):
         collect(brax_training.AutoResetWrapper(env), params, key=jax.random.PRNGKey(0),
                 transitions_per_policy=4)

@@ -17,6 +17,9 @@ policy only where the simulator itself predicts a gain: every elite member, alon
 the fine-tuned policy above the start by more than ``margin * |start value|`` over the same
 simulated episodes (common start states and keys). Elsewhere the start policy is kept, so its
 improvement is exactly 0. Only the simulator is used for the decision, never the real system.
+``select_by_members`` applies the same rule to the actor's snapshots along fine-tuning
+(early stopping by the simulator) and deploys the snapshot whose smallest predicted gain over
+the members is largest.
 """
 
 from __future__ import annotations
@@ -167,15 +170,18 @@ def select_by_validation(env: Env, candidates: Params, key: jax.Array, *, n_epis
 def _member_returns(sim: Simulator, members, policies, pool, key, *, task: Task,
                     n_episodes: int, horizon: int, gamma: float) -> jax.Array:
     """[M, P] mean simulated return of each policy under each of ``members`` [M] alone
-    (``sim`` in member_mode "fixed": the member ranked first is the one that steps)."""
+    (``sim`` in member_mode "fixed": the member ranked first is the one that steps). Every
+    policy runs its episodes as if it were alone, with the same key: common start states and
+    noise draws for every policy and member."""
     E = sim.n_members
 
-    def one(m):
+    def one(m, policy):
         alone = sim.replace(rank=((jnp.arange(E) - m) % E).astype(jnp.int32))
-        ret, _ = simulated_returns(policies, alone.dynamics, task.reward_fn, task.done_fn, pool,
-                                   key, n_episodes=n_episodes, horizon=horizon, gamma=gamma)
-        return ret.mean(1)
-    return jax.vmap(one)(members)
+        ret, _ = simulated_returns(jax.tree_util.tree_map(lambda x: x[None], policy),
+                                   alone.dynamics, task.reward_fn, task.done_fn, pool, key,
+                                   n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+        return ret[0].mean()
+    return jax.vmap(lambda m: jax.vmap(lambda p: one(m, p))(policies))(members)
 
 
 def member_values(sim: Simulator, task: Task | str, policies: Params, start_pool,
@@ -183,8 +189,9 @@ def member_values(sim: Simulator, task: Task | str, policies: Params, start_pool
                   ) -> np.ndarray:
     """Each elite member's simulated discounted value of each policy, the member alone (its
     mean step when the simulator's noise_scale is 0): [M elites, P], best elite first. Every
-    member and policy runs from the same start states with the same keys, so differences
-    between two policies are paired comparisons."""
+    member and policy runs from the same start states with the same keys (each policy as if
+    valued alone, so a value does not depend on the other policies valued with it), and
+    differences between two policies are paired comparisons."""
     task = get_task(task) if isinstance(task, str) else task
     E = sim.n_members
     rank = np.arange(E) if sim.rank is None else np.asarray(sim.rank)
@@ -209,6 +216,55 @@ def deployment_guard(start_values, tuned_values, margin: float = 0.0) -> np.ndar
     if not (np.all(np.isfinite(v0)) and np.all(np.isfinite(v1))):
         raise ValueError("start_values, tuned_values: expected finite simulated values")
     return np.all(v1 - v0 > margin * np.abs(v0), axis=0)
+
+
+def choose_by_members(values, margin: float = 0.0) -> np.ndarray:
+    """The deployment guard over several snapshots: early stopping by the simulator alone.
+
+    values: [K + 1, M, P] each elite member's simulated value (``member_values``) of K + 1
+    candidates of each of P policies (candidate 0: the start policy). Candidate k > 0 is
+    eligible when every member predicts a gain over the start above ``margin`` x |start
+    value| (``deployment_guard``); the eligible candidate with the largest smallest gain over
+    the members wins, else the start (0). With K = 1 this is ``deployment_guard``.
+    -> [P] int indices.
+    """
+    v = np.asarray(values, np.float64)
+    if v.ndim != 3 or v.shape[0] < 2:
+        raise ValueError(f"values: expected [K + 1 >= 2, M, P], got {v.shape}")
+    if not np.all(np.isfinite(v)):
+        raise ValueError("values: expected finite simulated values")
+    if not (np.isfinite(margin) and margin >= 0):
+        raise ValueError(f"margin: expected a finite float >= 0, got {margin!r}")
+    gain = v[1:] - v[:1]                                          # [K, M, P]
+    eligible = np.all(gain > margin * np.abs(v[:1]), axis=1)      # [K, P]
+    score = np.where(eligible, gain.min(axis=1), -np.inf)
+    return np.where(eligible.any(0), score.argmax(0) + 1, 0).astype(np.int32)
+
+
+def select_by_members(sim: Simulator, task: Task | str, candidates: Params, start_pool,
+                      key: jax.Array, *, n_episodes: int, horizon: int, gamma: float,
+                      margin: float = 0.0) -> tuple[Params, dict]:
+    """Per policy, the snapshot the simulator's elite members all rank above the start.
+
+    candidates: [K + 1, P, ...] (``improve_policies(snapshots=True)``; index 0 the start
+    policies). Every candidate is valued by every elite member alone over the same simulated
+    episodes (``member_values``); ``choose_by_members`` picks. Only the simulator decides.
+    -> (chosen policies [P, ...], {"index": [P], "values": [K + 1, M, P]}).
+    """
+    leaves = jax.tree_util.tree_leaves(candidates)
+    K1 = int(leaves[0].shape[0])
+    if (K1 < 2 or any(x.ndim < 2 or x.shape[:2] != leaves[0].shape[:2] for x in leaves)):
+        raise ValueError(f"candidates: expected leaves [K + 1 >= 2, P, ...] with one leading "
+                         f"[K + 1, P], got {sorted({x.shape[:2] for x in leaves})}")
+    P = int(leaves[0].shape[1])
+    flat = jax.tree_util.tree_map(lambda x: x.reshape((K1 * P,) + x.shape[2:]), candidates)
+    v = member_values(sim, task, flat, start_pool, key, n_episodes=n_episodes,
+                      horizon=horizon, gamma=gamma)                # [M, (K + 1) * P]
+    values = v.reshape(v.shape[0], K1, P).transpose(1, 0, 2)
+    index = choose_by_members(values, margin)
+    chosen = jax.tree_util.tree_map(lambda x: x[jnp.asarray(index), jnp.arange(P)],
+                                    candidates)
+    return chosen, {"index": index, "values": values}
 
 
 def guarded(start: Params, tuned: Params, accept) -> Params:

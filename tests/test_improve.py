@@ -12,6 +12,7 @@ from rl2s_jax import dynamics as dyn
 from rl2s_jax import policies as pol
 from rl2s_jax.collect import measure_values
 from rl2s_jax.improve import (
+    choose_by_members,
     choose_candidates,
     deployment_guard,
     guarded,
@@ -21,6 +22,7 @@ from rl2s_jax.improve import (
     improvement_metrics,
     measure_improvement,
     member_values,
+    select_by_members,
     select_by_validation,
     unchanged_policies,
 )
@@ -671,17 +673,27 @@ def test_member_values_are_each_elite_alone_on_common_episodes():
     simulator made of its weights), over the same start states and keys for every member and
     policy; the elites come best first (rank [1, 0, 2], 2 elites: members 1, 0)."""
     sim = _ensemble_simulator().replace(noise_scale=0.0)
-    policies, pool, key = _policies([-1.0, 0.0, 1.5]), jnp.asarray(_pool(8)), jax.random.PRNGKey(4)
+    biases = [-1.0, 0.0, 1.5]
+    policies, pool, key = _policies(biases), jnp.asarray(_pool(8)), jax.random.PRNGKey(4)
     roll = dict(n_episodes=5, horizon=12, gamma=0.9)
     v = member_values(sim, "pointmass", policies, pool, key, **roll)
     assert v.shape == (2, 3)
     for row, m in enumerate((1, 0)):
         alone = Simulator(gen=jax.tree_util.tree_map(lambda x, m=m: x[m:m + 1], sim.gen),
                           norm=sim.norm, task="pointmass", noise_scale=0.0)
-        ret, _ = simulated_returns(policies, alone.dynamics, TASK.reward_fn, TASK.done_fn, pool,
-                                   key, **roll)
-        np.testing.assert_allclose(v[row], np.asarray(ret).mean(1), rtol=1e-5, atol=1e-5)
+        for p in range(3):  # each policy valued alone, with the same key
+            one = jax.tree_util.tree_map(lambda x, p=p: x[p:p + 1], policies)
+            ret, _ = simulated_returns(one, alone.dynamics, TASK.reward_fn, TASK.done_fn,
+                                       pool, key, **roll)
+            np.testing.assert_allclose(v[row, p], np.asarray(ret).mean(), rtol=1e-5,
+                                       atol=1e-5)
     assert not np.allclose(v[0], v[1])  # the two members differ
+    # common episodes for every policy: a copy of a policy gets its value wherever it stands
+    copies = _policies([biases[2], biases[0], biases[2]])
+    w = member_values(sim, "pointmass", copies, pool, key, **roll)
+    # (to float rounding: batch lanes round apart on the CPU; other episodes differ by ~5%)
+    np.testing.assert_allclose(w[:, 0], w[:, 2], rtol=1e-3)
+    np.testing.assert_allclose(w[:, 0], v[:, 2], rtol=1e-3)
 
 
 def test_deployment_guard_matches_a_loop_and_keeps_the_start():
@@ -710,3 +722,53 @@ def test_deployment_guard_matches_a_loop_and_keeps_the_start():
         deployment_guard(v0, v1, -0.1)
     with pytest.raises(ValueError, match="finite"):
         deployment_guard(v0, np.full_like(v1, np.nan))
+
+
+def test_choose_by_members_matches_a_loop_and_is_the_guard_for_one_snapshot():
+    rng = np.random.default_rng(1)
+    K, M, P = 4, 3, 7
+    v = rng.normal(10.0, 5.0, (K + 1, M, P))
+    v[1:] = v[:1] + rng.normal(0.3, 1.0, (K, M, P))
+    for margin in (0.0, 0.02, 10.0):
+        want = []
+        for p in range(P):
+            best, best_score = 0, -np.inf
+            for k in range(1, K + 1):
+                gains = [v[k, m, p] - v[0, m, p] for m in range(M)]
+                if all(g > margin * abs(v[0, m, p]) for m, g in enumerate(gains)):
+                    if min(gains) > best_score:
+                        best, best_score = k, min(gains)
+            want.append(best)
+        assert choose_by_members(v, margin).tolist() == want
+    assert not choose_by_members(v, 10.0).any()  # no snapshot clears the margin: the starts
+    assert 0 < np.count_nonzero(choose_by_members(v)) < P  # some snapshots, not every policy
+    # with one snapshot it is the deployment guard
+    np.testing.assert_array_equal(choose_by_members(v[:2], 0.02),
+                                  deployment_guard(v[0], v[1], 0.02).astype(int))
+    with pytest.raises(ValueError, match=r"values: expected \[K \+ 1 >= 2"):
+        choose_by_members(v[:1])
+    with pytest.raises(ValueError, match="margin"):
+        choose_by_members(v, -1.0)
+    with pytest.raises(ValueError, match="finite"):
+        choose_by_members(np.full_like(v, np.nan))
+
+
+def test_select_by_members_values_every_snapshot_and_deploys_the_choice():
+    sim = _ensemble_simulator().replace(noise_scale=0.0)
+    biases = ([-1.0, 0.0, 1.5], [-0.5, 0.2, 1.0], [0.0, 0.0, 0.0])
+    cands = jax.tree_util.tree_map(lambda *xs: jnp.stack(xs), *[_policies(b) for b in biases])
+    pool, key = jnp.asarray(_pool(8)), jax.random.PRNGKey(4)
+    roll = dict(n_episodes=5, horizon=12, gamma=0.9)
+    chosen, info = select_by_members(sim, "pointmass", cands, pool, key, **roll, margin=0.0)
+    assert info["values"].shape == (3, 2, 3)
+    for k, b in enumerate(biases):  # the values of each snapshot, as member_values gives them
+        np.testing.assert_allclose(info["values"][k], member_values(
+            sim, "pointmass", _policies(b), pool, key, **roll), rtol=1e-5, atol=1e-5)
+    np.testing.assert_array_equal(info["index"], choose_by_members(info["values"]))
+    for leaf, c in zip(jax.tree_util.tree_leaves(chosen), jax.tree_util.tree_leaves(cands),
+                       strict=True):
+        for p, k in enumerate(info["index"]):
+            np.testing.assert_array_equal(leaf[p], c[k, p])
+    with pytest.raises(ValueError, match="candidates"):
+        select_by_members(sim, "pointmass", jax.tree_util.tree_map(lambda x: x[:1], cands),
+                          pool, key, **roll)

@@ -60,7 +60,10 @@ by a time limit still leaves what it finished, with "complete": false):
    that budget. ``--guard-margin M`` adds, per variant, the deployed policies' MPI / API
    when each lane keeps a fine-tuned policy only where every elite member of its simulator
    predicts a gain above M x |start value| (``improve.deployment_guard``; a kept start
-   policy has I = 0): ablation entry ``<variant>+guard``.
+   policy has I = 0): ablation entry ``<variant>+guard``. ``--guard-snapshots`` applies
+   that guard to the actor after every ``--sac-chunk`` iterations as well
+   (``improve.select_by_members``: early stopping by the simulator alone) and measures the
+   chosen snapshots in the real env: ablation entry ``<variant>+guard-snapshots``.
 """
 from __future__ import annotations
 
@@ -87,6 +90,7 @@ from rl2s_jax.improve import (
     improvement_metrics,
     member_values,
     paired_returns,
+    select_by_members,
 )
 from rl2s_jax.policies import index_params
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
@@ -355,19 +359,21 @@ def variant_settings(variant: str, args) -> dict:
 
 
 def improve_in_lanes(sims: Simulator, task, pool, policies, keys, cfg: SACConfig, *,
-                     n_iterations: int, chunk: int, log=log, env_options=None):
+                     n_iterations: int, chunk: int, log=log, env_options=None,
+                     snapshots: bool = False):
     """SAC fine-tuning of the stacked ``policies`` [P] inside each of the stacked simulators
     ``sims`` [L] (improve.improve_policies for every simulator at once: one program, vmapped
     over simulators and policies). keys [L, P]. ``env_options(sim)``: SimulatorEnv keywords
     for one (traced) simulator. -> (actors [L, P, ...], simulated training return [L, P] of
-    the episodes that ended in the last chunk (NaN if none))."""
+    the episodes that ended in the last chunk (NaN if none)); ``snapshots``: the actors after
+    every chunk instead, [C, L, P, ...] (the last is the final one)."""
     pool = jnp.asarray(pool)
 
     def init_one(sim, ks, pols):
         return jax.vmap(_sac_for(sim, pool, task, cfg, env_options).init)(ks, pols)
 
     states = jax.jit(jax.vmap(init_one, in_axes=(0, 0, None)))(sims, keys, policies)
-    compiled, done, sim_return = {}, 0, None
+    compiled, done, sim_return, kept = {}, 0, None, []
     while done < n_iterations:
         n = min(chunk, n_iterations - done)
         if n not in compiled:
@@ -377,10 +383,14 @@ def improve_in_lanes(sims: Simulator, task, pool, policies, keys, cfg: SACConfig
             compiled[n] = jax.jit(jax.vmap(train_one))
         t0 = time.perf_counter()
         states, metrics = compiled[n](sims, states)
+        if snapshots:
+            kept.append(states.actor)
         sim_return = np.asarray(episode_returns(metrics))
         done += n
         log(f"[paper]   SAC {done}/{n_iterations} iterations ({time.perf_counter() - t0:.1f}s"
             f"); mean simulated training return {_finite_mean(sim_return)}")
+    if snapshots:
+        return _stack(kept), sim_return
     return states.actor, sim_return
 
 
@@ -608,6 +618,11 @@ def build_parser() -> argparse.ArgumentParser:
                     "policies when a fine-tuned policy is kept only where every elite member of "
                     "its simulator predicts a gain above this fraction (improve."
                     "deployment_guard): the ablation entry '<variant>+guard'")
+    ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
+                    "also apply the guard to the actor after every --sac-chunk iterations and "
+                    "deploy the snapshot with the largest smallest predicted gain "
+                    "(improve.select_by_members), measured in the real env: the ablation "
+                    "entry '<variant>+guard-snapshots'")
     ap.add_argument("--families", default="adversarial,mle", help="comma list of the training "
                     "programs to run: adversarial (rl2s, gail) and / or mle (rl2s-bc, bc); one "
                     "of them splits the protocol over two calls (merge_results.py joins them)")
@@ -694,6 +709,8 @@ def main(argv=None) -> int:
     if args.guard_margin is not None and not (np.isfinite(args.guard_margin)
                                               and args.guard_margin >= 0):
         raise SystemExit(f"guard-margin: expected a finite float >= 0, got {args.guard_margin}")
+    if args.guard_snapshots and args.guard_margin is None:
+        raise SystemExit("guard-snapshots: needs --guard-margin (the guard's margin)")
     S = sizes["seeds"]
     out, data_dir = args.out, args.data_dir or args.out
     os.makedirs(out, exist_ok=True)
@@ -932,29 +949,19 @@ def main(argv=None) -> int:
             actors, sim_return = improve_in_lanes(v_sims, task, pool, pols, v_keys, sac_cfg,
                                                   n_iterations=it,
                                                   chunk=min(sizes["sac_chunk"], it),
-                                                  env_options=env_options)
+                                                  env_options=env_options,
+                                                  snapshots=args.guard_snapshots)
+            snaps = None
+            if args.guard_snapshots:  # [C, L, P, ...]; the final actors are the last
+                snaps, actors = actors, jax.tree_util.tree_map(lambda x: x[-1], actors)
             name = "improve_sac" if vi == 0 else f"improve_sac[{variant}]"
             phase(name, t0)
-            t0 = time.perf_counter()
             L, P = len(v_lanes), len(ids)
-            flat = jax.tree_util.tree_map(lambda x, n=L * P: x.reshape((n,) + x.shape[2:]),
-                                          actors)
-            # paired: the start policies and every lane's fine-tuned ones from common starts
-            # and noise draws (measure_values' common_groups), C0 measured alongside
-            with_start = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), pols,
-                                                flat)
-            real = measure_values(task.make_env(), with_start, key=jax.random.PRNGKey(20),
-                                  n_episodes=sizes["improve_episodes"], episode_length=ep_len,
-                                  gamma=gamma_data, common_groups=L + 1, per_episode=True)
-            r = np.asarray(real["returns"], np.float64).reshape(L + 1, P, -1)
-            paired = [paired_returns(r[0], r[1 + i]) for i in range(L)]
-            c1 = np.stack([pr["c1"] for pr in paired])
-            se = np.stack([pr["c1_se"] for pr in paired])
-            phase("improve_measure" if vi == 0 else f"improve_measure[{variant}]", t0)
-            accepted = None
+            accepted, chosen_index, chosen = None, None, []
             if args.guard_margin is not None:  # each simulator's own verdict per policy
                 t0 = time.perf_counter()
                 accepted, starts = [], start_pool(test_ds)
+                chosen_index = [] if snaps is not None else None
                 for i in range(L):  # the elites differ per lane (chosen on the host)
                     lane = jax.tree_util.tree_map(lambda x, i=i: x[i], (v_sims, actors))
                     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), pols,
@@ -962,10 +969,38 @@ def main(argv=None) -> int:
                     v = member_values(lane[0], task, both, starts, jax.random.PRNGKey(40 + i),
                                       n_episodes=16, horizon=horizon, gamma=gamma_data)
                     accepted.append(deployment_guard(v[:, :P], v[:, P:], args.guard_margin))
+                    if snaps is not None:  # the start and every snapshot: [C + 1, P, ...]
+                        cands = jax.tree_util.tree_map(
+                            lambda p0, x, i=i: jnp.concatenate([p0[None], x[:, i]]), pols, snaps)
+                        pick, info = select_by_members(
+                            lane[0], task, cands, starts, jax.random.PRNGKey(40 + i),
+                            n_episodes=16, horizon=horizon, gamma=gamma_data,
+                            margin=args.guard_margin)
+                        chosen_index.append(info["index"])
+                        chosen.append(pick)
                 phase("improve_guard" if vi == 0 else f"improve_guard[{variant}]", t0)
+            t0 = time.perf_counter()
+            flat = jax.tree_util.tree_map(lambda x, n=L * P: x.reshape((n,) + x.shape[2:]),
+                                          actors)
+            # paired: the start policies, every lane's fine-tuned ones (and the snapshots the
+            # guard chose) from common starts and noise draws (measure_values'
+            # common_groups), C0 measured alongside
+            groups = [pols, flat, *chosen]
+            with_start = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *groups)
+            G = 1 + L + len(chosen)
+            real = measure_values(task.make_env(), with_start, key=jax.random.PRNGKey(20),
+                                  n_episodes=sizes["improve_episodes"], episode_length=ep_len,
+                                  gamma=gamma_data, common_groups=G, per_episode=True)
+            r = np.asarray(real["returns"], np.float64).reshape(G, P, -1)
+            paired = [paired_returns(r[0], r[1 + i]) for i in range(L)]
+            c1 = np.stack([pr["c1"] for pr in paired])
+            se = np.stack([pr["c1_se"] for pr in paired])
+            phase("improve_measure" if vi == 0 else f"improve_measure[{variant}]", t0)
             improvement, per_method = {}, {m: {k: [] for k in IMPROVE_METRICS}
                                            for m in result["per_seed"] if m in METHODS}
             guarded_method = {m: {"mpi": [], "api": []} for m in per_method}
+            snapshot_method = {m: {"mpi": [], "api": [], "mpi_paired": [], "api_paired": []}
+                               for m in per_method}
             for i, (m, s) in enumerate(v_lanes):
                 try:
                     imp = improvement_metrics(c0, c1[i])
@@ -996,6 +1031,19 @@ def main(argv=None) -> int:
                         mpi_deployed=dep["mpi"], api_deployed=dep["api"])
                     guarded_method[m]["mpi"].append(dep["mpi"])
                     guarded_method[m]["api"].append(dep["api"])
+                if chosen_index is not None and imp["mpi"] is not None:
+                    idx = chosen_index[i]
+                    c1_snap = paired_returns(r[0], r[1 + L + i])
+                    dep = improvement_metrics(c0, np.where(idx > 0, c1_snap["c1"], c0))
+                    i_paired = np.where(idx > 0, c1_snap["I"], 0.0)  # a kept start: I = 0
+                    improvement[f"{m}/{s}"].update(
+                        guard_snapshot=idx.tolist(), I_snapshot=dep["I"].tolist(),
+                        mpi_snapshot=dep["mpi"], api_snapshot=dep["api"],
+                        I_snapshot_paired=i_paired.tolist())
+                    snapshot_method[m]["mpi"].append(dep["mpi"])
+                    snapshot_method[m]["api"].append(dep["api"])
+                    snapshot_method[m]["mpi_paired"].append(float(i_paired.min()))
+                    snapshot_method[m]["api_paired"].append(float(i_paired.mean()))
                 if imp["mpi"] is not None:
                     log(f"  {m:<8} seed {s}  MPI {imp['mpi']:8.3f}  API {imp['api']:8.3f}  "
                         f"(C1 - C0 mean {np.mean(c1[i] - c0):.1f}, simulated training return "
@@ -1014,6 +1062,11 @@ def main(argv=None) -> int:
                 result["ablation"][f"{variant}+guard"] = {
                     "settings": {**settings, "guard_margin": args.guard_margin},
                     "methods": _method_means(guarded_method)}
+            if chosen_index is not None:
+                result["ablation"][f"{variant}+guard-snapshots"] = {
+                    "settings": {**settings, "guard_margin": args.guard_margin,
+                                 "snapshot_every": min(sizes["sac_chunk"], it)},
+                    "methods": _method_means(snapshot_method)}
             write(path, result)
     if it and args.control:
         t0 = time.perf_counter()

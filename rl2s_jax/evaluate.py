@@ -221,6 +221,43 @@ def ranking_metrics(true_values, sim_values, ks: Iterable[int] = (1, 3, 5, 10),
 # ----------------------------------------------------------------------------- intervals
 
 
+def noise_ceiling(values, episode_sd, *, n_truth: int, n_sim: int, n_rep: int = 2000,
+                  seed: int = 0, ks: Iterable[int] = (1,), level: float = 0.95) -> dict:
+    """The ranking an EXACT simulator can be measured to reach when both sides are means of
+    finitely many episodes: the ceiling that evaluation noise alone puts on tau and nDCG.
+
+    values: [P] policy values; episode_sd: [P] (or a scalar) standard deviation of one
+    episode's return; n_truth / n_sim: episodes behind each true / simulated value. Each of
+    n_rep replicates draws truth = values + episode_sd / sqrt(n_truth) * z1 and sim = values +
+    episode_sd / sqrt(n_sim) * z2 (Gaussian means) and scores ``ranking_metrics(truth, sim)``.
+    -> {metric: {"mean", "lo", "hi"}} for kendall_tau, spearman, ndcg@k and regret@k.
+    Unlike ``bootstrap_intervals``' spread of tau around its own estimate, this is the bias
+    the noise puts on tau: packed values with a large per-episode spread (Ant's falls) keep
+    even the real dynamics below tau 1.
+    """
+    v = _as_values(values, "values")
+    sd = np.broadcast_to(np.asarray(episode_sd, np.float64), v.shape)
+    if not np.all(np.isfinite(sd)) or (sd < 0).any():
+        raise ValueError(f"episode_sd must be finite and >= 0, [P = {v.size}] or a scalar")
+    for name, n in (("n_truth", n_truth), ("n_sim", n_sim), ("n_rep", n_rep)):
+        if not isinstance(n, int | np.integer) or n < 1:
+            raise ValueError(f"{name} must be an int >= 1, got {n!r}")
+    if not 0.0 < level < 1.0:
+        raise ValueError(f"level must be in (0, 1), got {level}")
+    rng = np.random.default_rng(seed)
+    ks = tuple(ks)
+    reps = []
+    for _ in range(n_rep):
+        truth = v + sd / np.sqrt(n_truth) * rng.standard_normal(v.size)
+        sim = v + sd / np.sqrt(n_sim) * rng.standard_normal(v.size)
+        m = ranking_metrics(truth, sim, ks)
+        reps.append({k: x for k, x in m.items() if k not in ("avd", "mvd")})
+    q = (1.0 - level) / 2.0
+    return {k: {"mean": float(np.mean(x)), "lo": float(np.quantile(x, q)),
+                "hi": float(np.quantile(x, 1.0 - q))}
+            for k, x in ((k, np.array([r[k] for r in reps])) for k in reps[0])}
+
+
 def bootstrap_intervals(true_values, sim_returns, true_se=None, *, n_boot: int = 1000,
                         seed: int = 0, ks: Iterable[int] = (1, 3, 5, 10), level: float = 0.95
                         ) -> dict:

@@ -382,3 +382,39 @@ def test_bootstrap_bad_input(kwargs, field):
     args.update(kwargs)
     with pytest.raises(ValueError, match=field):
         bootstrap_intervals(**args)
+
+
+def test_noise_ceiling_matches_the_two_policy_formula():
+    """Two policies g apart, per-episode sd s: the truth orders them right with probability
+    p1 = Phi(g / (s sqrt(2 / n_truth))), the simulator with p2 (n_sim); tau is +1 when both
+    agree, so E[tau] = 2 (p1 p2 + (1 - p1)(1 - p2)) - 1. No noise: tau 1 exactly."""
+    from math import erf, sqrt
+
+    from rl2s_jax.evaluate import noise_ceiling
+    phi = lambda x: 0.5 * (1.0 + erf(x / sqrt(2.0)))
+    g, s, n1, n2 = 1.0, 4.0, 16, 64
+    p1, p2 = phi(g / (s * sqrt(2 / n1))), phi(g / (s * sqrt(2 / n2)))
+    ref = 2 * (p1 * p2 + (1 - p1) * (1 - p2)) - 1
+    out = noise_ceiling([0.0, g], s, n_truth=n1, n_sim=n2, n_rep=20000, seed=3)
+    assert out["kendall_tau"]["mean"] == pytest.approx(ref, abs=0.015)
+    assert out["kendall_tau"]["lo"] == -1.0 and out["kendall_tau"]["hi"] == 1.0
+    exact = noise_ceiling(np.arange(6.0), 0.0, n_truth=1, n_sim=1, n_rep=5)
+    assert exact["kendall_tau"] == {"mean": 1.0, "lo": 1.0, "hi": 1.0}
+    assert exact["ndcg@1"]["mean"] == 1.0 and "avd" not in exact
+    # more episodes on either side raise the ceiling
+    vals, sd = np.linspace(0.0, 10.0, 12), np.full(12, 20.0)
+    few = noise_ceiling(vals, sd, n_truth=16, n_sim=32, n_rep=400)["kendall_tau"]["mean"]
+    many = noise_ceiling(vals, sd, n_truth=256, n_sim=256, n_rep=400)["kendall_tau"]["mean"]
+    assert few < many - 0.2
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(episode_sd=-1.0, n_truth=4, n_sim=4), "episode_sd"),
+    (dict(episode_sd=[1.0, float("nan")], n_truth=4, n_sim=4), "episode_sd"),
+    (dict(episode_sd=1.0, n_truth=0, n_sim=4), "n_truth"),
+    (dict(episode_sd=1.0, n_truth=4, n_sim=2.5), "n_sim"),
+])
+def test_noise_ceiling_rejects_bad_input(kwargs, match):
+    from rl2s_jax.evaluate import noise_ceiling
+    with pytest.raises(ValueError, match=match):
+        noise_ceiling([0.0, 1.0], **kwargs)

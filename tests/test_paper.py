@@ -441,8 +441,11 @@ def test_noise_ceiling_script_reads_the_oracle_seeds(tmp_path, capsys):
     assert a["n_truth_episodes"] == 8 and a["episodes_for_target"] == 4096
     path = tmp_path / "ant.json"
     path.write_text(json.dumps(res))
-    assert nc.main([str(path), "--episodes", "4,4096", "--n-rep", "50"]) == 0
-    assert "oracle seed vs oracle seed" in capsys.readouterr().out
+    assert nc.main([str(path), "--episodes", "4,4096", "--n-rep", "50", "--pairs", "2:3"]) == 0
+    out = capsys.readouterr().out
+    assert "oracle seed vs oracle seed" in out and "truth:simulator 2:3 episodes" in out
+    with pytest.raises(SystemExit, match="pairs"):
+        nc.main([str(path), "--pairs", "16-32"])
     with pytest.raises(SystemExit, match="oracle_sim_value"):
         nc.analyse({**res, "oracle_sim_value": sims[:1]})
     with pytest.raises(SystemExit, match="oracle row"):

@@ -183,8 +183,10 @@ def bars(result: dict) -> dict[str, tuple[bool | None, str]]:
     c = (result.get("control") or {}).get("mpi")
     out["control"] = (None if c is None else c > 0, "n/a" if c is None else f"{c:.3f}")
     ot, on = mean("oracle", "kendall_tau"), mean("oracle", "ndcg@1")
+    nc = (result.get("noise_ceiling") or {}).get("kendall_tau")
+    noise = "" if nc is None else f"; noise alone allows tau {nc['mean']:.2f}"
     out["oracle"] = (None if ot is None else (ot >= 0.8 and on >= 0.95),
-                     "n/a" if ot is None else f"{ot:.3f} / {on:.3f}")
+                     "n/a" if ot is None else f"{ot:.3f} / {on:.3f}{noise}")
     return out
 
 
@@ -224,13 +226,9 @@ def ablation_rows(results: dict) -> list[str]:
     return rows
 
 
-def policy_rows(results: dict) -> list[str]:
-    """Per task, simulated-env variant and method, the fine-tuned test policies pooled over
-    the improvement seeds (``ablation.<variant>.lanes``, else ``improvement``): how many, the
-    share whose real return rose (I > 0), the median I, and the API without the policy of the
-    smallest |C0| (one policy near C0 = 0 can carry API alone), mean over seeds; where the
-    deployment guard ran, how many fine-tuned policies it deployed."""
-    rows = []
+def improvement_lanes(results: dict):
+    """(task, variant, method, [lane]) for every method's fine-tuning lanes, per simulated-env
+    variant (``ablation.<variant>.lanes``, else ``improvement`` under its variant name)."""
     for task in TASKS:
         r = results.get(task) or {}
         by_variant = {v: e.get("lanes") for v, e in (r.get("ablation") or {}).items()
@@ -240,31 +238,41 @@ def policy_rows(results: dict) -> list[str]:
         for variant, lanes in by_variant.items():
             for method in METHODS:
                 mine = [ln for ln in lanes.values() if ln.get("method") == method]
-                if not mine:
-                    continue
-                pooled, trimmed, deployed, offered = [], [], 0, 0
-                for ln in mine:
-                    gains, c0 = ln.get("I") or [], ln.get("c0") or []
-                    pairs = [(i, c) for i, c in zip(gains, c0, strict=True)
-                             if i is not None and math.isfinite(i)]
-                    if not pairs:
-                        continue
-                    pooled += [i for i, _ in pairs]
-                    smallest = min(range(len(pairs)), key=lambda k: abs(pairs[k][1]))
-                    rest = [i for k, (i, _) in enumerate(pairs) if k != smallest]
-                    if rest:
-                        trimmed.append(sum(rest) / len(rest))
-                    if ln.get("guard_accepted") is not None:
-                        deployed += sum(bool(a) for a in ln["guard_accepted"])
-                        offered += len(ln["guard_accepted"])
-                if not pooled:
-                    continue
-                n, median = len(pooled), statistics.median(pooled)
-                share = sum(i > 0 for i in pooled) / n
-                api_trim = "n/a" if not trimmed else f"{sum(trimmed) / len(trimmed):.3f}"
-                guard = f"{deployed} of {offered}" if offered else "n/a"
-                rows.append(f"| {task} | {variant} | {method} | {n} ({len(mine)} seeds) | "
-                            f"{share:.2f} | {median:+.3f} | {api_trim} | {guard} |")
+                if mine:
+                    yield task, variant, method, mine
+
+
+def policy_rows(results: dict) -> list[str]:
+    """Per task, simulated-env variant and method, the fine-tuned test policies pooled over
+    the improvement seeds (``ablation.<variant>.lanes``, else ``improvement``): how many, the
+    share whose real return rose (I > 0), the median I, and the API without the policy of the
+    smallest |C0| (one policy near C0 = 0 can carry API alone), mean over seeds; where the
+    deployment guard ran, how many fine-tuned policies it deployed."""
+    rows = []
+    for task, variant, method, mine in improvement_lanes(results):
+        pooled, trimmed, deployed, offered = [], [], 0, 0
+        for ln in mine:
+            gains, c0 = ln.get("I") or [], ln.get("c0") or []
+            pairs = [(i, c) for i, c in zip(gains, c0, strict=True)
+                     if i is not None and math.isfinite(i)]
+            if not pairs:
+                continue
+            pooled += [i for i, _ in pairs]
+            smallest = min(range(len(pairs)), key=lambda k: abs(pairs[k][1]))
+            rest = [i for k, (i, _) in enumerate(pairs) if k != smallest]
+            if rest:
+                trimmed.append(sum(rest) / len(rest))
+            if ln.get("guard_accepted") is not None:
+                deployed += sum(bool(a) for a in ln["guard_accepted"])
+                offered += len(ln["guard_accepted"])
+        if not pooled:
+            continue
+        n, median = len(pooled), statistics.median(pooled)
+        share = sum(i > 0 for i in pooled) / n
+        api_trim = "n/a" if not trimmed else f"{sum(trimmed) / len(trimmed):.3f}"
+        guard = f"{deployed} of {offered}" if offered else "n/a"
+        rows.append(f"| {task} | {variant} | {method} | {n} ({len(mine)} seeds) | "
+                    f"{share:.2f} | {median:+.3f} | {api_trim} | {guard} |")
     if rows:
         rows = ["| task | variant | method | policies | share improved | median I | API "
                 "without the smallest abs(C0) | deployed by the guard |",
@@ -284,40 +292,33 @@ def guard_rows(results: dict, snapshots_only: bool = False) -> list[str]:
     rows = []
     mean = lambda xs: sum(xs) / len(xs)
     cell = lambda x: "n/a" if x is None else f"{x:.3f}"
-    for task in TASKS:
-        r = results.get(task) or {}
-        by_variant = {v: e.get("lanes") for v, e in (r.get("ablation") or {}).items()
-                      if e.get("lanes")}
-        if not by_variant and r.get("improvement"):
-            by_variant = {r.get("improve_variant", "full"): r["improvement"]}
-        for variant, lanes in by_variant.items():
-            for method in METHODS:
-                mine = [ln for ln in lanes.values() if ln.get("method") == method
-                        and ln.get("guard_accepted") is not None]
-                if not mine:
-                    continue
-                def avg(key, mine=mine):
-                    vals = [ln.get(key) for ln in mine]
-                    return None if None in vals else mean(vals)
+    for task, variant, method, lanes in improvement_lanes(results):
+        mine = [ln for ln in lanes if ln.get("guard_accepted") is not None]
+        if not mine:
+            continue
 
-                snap = all(ln.get("guard_snapshot") is not None for ln in mine)
-                if snapshots_only and not snap:
-                    continue
-                paired = [ln.get("I_snapshot_paired") for ln in mine]
-                paired_ok = snap and all(p for p in paired)
-                n_final = sum(sum(bool(a) for a in ln["guard_accepted"]) for ln in mine)
-                n_snap = (sum(sum(int(k) > 0 for k in ln["guard_snapshot"]) for ln in mine)
-                          if snap else None)
-                offered = sum(len(ln["guard_accepted"]) for ln in mine)
-                cells = [avg("mpi"), avg("api"), avg("mpi_deployed"), avg("api_deployed"),
-                         avg("mpi_snapshot") if snap else None,
-                         avg("api_snapshot") if snap else None,
-                         mean([min(p) for p in paired]) if paired_ok else None,
-                         mean([mean(p) for p in paired]) if paired_ok else None]
-                deployed = f"{n_final}" + ("" if n_snap is None else f" / {n_snap}")
-                rows.append(f"| {task} | {variant} | {method} | {len(mine)} | "
-                            + " | ".join(cell(c) for c in cells)
-                            + f" | {deployed} of {offered} |")
+        def avg(key, mine=mine):
+            vals = [ln.get(key) for ln in mine]
+            return None if None in vals else mean(vals)
+
+        snap = all(ln.get("guard_snapshot") is not None for ln in mine)
+        if snapshots_only and not snap:
+            continue
+        paired = [ln.get("I_snapshot_paired") for ln in mine]
+        paired_ok = snap and all(p for p in paired)
+        n_final = sum(sum(bool(a) for a in ln["guard_accepted"]) for ln in mine)
+        n_snap = (sum(sum(int(k) > 0 for k in ln["guard_snapshot"]) for ln in mine)
+                  if snap else None)
+        offered = sum(len(ln["guard_accepted"]) for ln in mine)
+        cells = [avg("mpi"), avg("api"), avg("mpi_deployed"), avg("api_deployed"),
+                 avg("mpi_snapshot") if snap else None,
+                 avg("api_snapshot") if snap else None,
+                 mean([min(p) for p in paired]) if paired_ok else None,
+                 mean([mean(p) for p in paired]) if paired_ok else None]
+        deployed = f"{n_final}" + ("" if n_snap is None else f" / {n_snap}")
+        rows.append(f"| {task} | {variant} | {method} | {len(mine)} | "
+                    + " | ".join(cell(c) for c in cells)
+                    + f" | {deployed} of {offered} |")
     if rows:
         rows = ["| task | variant | method | seeds | MPI, all deployed | API | MPI, guard "
                 "(final actor) | API | MPI, guard over snapshots | API | MPI, snapshots "

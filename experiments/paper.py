@@ -82,7 +82,7 @@ import numpy as np
 from rl2s_jax.cli import _overrides, collect_dataset
 from rl2s_jax.collect import measure_values
 from rl2s_jax.data import load_dataset, save_dataset
-from rl2s_jax.evaluate import bootstrap_intervals, ranking_metrics
+from rl2s_jax.evaluate import bootstrap_intervals, noise_ceiling, ranking_metrics
 from rl2s_jax.fit import make_config, policies_for
 from rl2s_jax.improve import (
     deployment_guard,
@@ -283,7 +283,8 @@ def oracle_rows(task: str, test_ds, test_pols, seeds, *, n_episodes, horizon, ga
     from rl2s_jax.assess import evaluate_oracle
 
     env = get_task(task).make_env()
-    out = {"per_seed": {k: [] for k in EVAL_METRICS}, "intervals": [], "sim_value": []}
+    out = {"per_seed": {k: [] for k in EVAL_METRICS}, "intervals": [], "sim_value": [],
+           "sim_return_sd": []}
     for s in seeds:
         r = evaluate_oracle(task, test_ds, test_pols, key=jax.random.PRNGKey(1000 + s),
                             n_episodes=n_episodes, horizon=horizon, gamma=gamma,
@@ -292,7 +293,30 @@ def oracle_rows(task: str, test_ds, test_pols, seeds, *, n_episodes, horizon, ga
             out["per_seed"][k].append(r["metrics"][k])
         out["intervals"].append(r.get("intervals", {}).get("metrics"))
         out["sim_value"].append(r["sim_value"])
+        out["sim_return_sd"].append(r["sim_return_sd"])
     return out
+
+
+def oracle_noise_ceiling(test_ds, truth, sim_return_sd, *, n_sim: int, horizon: int,
+                         gamma: float, n_rep: int = 1000) -> dict:
+    """What evaluation noise alone lets an exact simulator reach on these test policies
+    (``evaluate.noise_ceiling``): the simulator's per-episode spread from the oracle's episodes
+    ([S, P], averaged over seeds), the truth's from the data's value SE x sqrt(its episodes)
+    where it was measured (else the oracle's spread). -> {"n_truth", "n_sim", "kendall_tau",
+    "ndcg@1"}: each {"mean", "lo", "hi"}."""
+    sd = np.mean(np.asarray(sim_return_sd, np.float64), axis=0)
+    n_truth = int((test_ds.meta.get("source") or {}).get("value_episodes") or 0)
+    se = true_values_se(test_ds, horizon, gamma)
+    if se is None or n_truth < 1:   # true values from the logged episodes: their count
+        n_truth = max(int(np.unique(np.asarray(test_ds.episode_id)).size
+                          // max(test_ds.n_policies, 1)), 1)
+        truth_sd = None
+    else:
+        truth_sd = np.asarray(se, np.float64) * np.sqrt(n_truth)
+    nc = noise_ceiling(truth, sd, n_truth=n_truth, n_sim=n_sim, n_rep=n_rep,
+                       truth_episode_sd=truth_sd)
+    return {"n_truth": n_truth, "n_sim": n_sim, "kendall_tau": nc["kendall_tau"],
+            "ndcg@1": nc["ndcg@1"]}
 
 
 # ------------------------------------------------------------------ training of lanes
@@ -763,11 +787,19 @@ def main(argv=None) -> int:
         result["lane_intervals"] = {"oracle": orc["intervals"]}
         result["intervals"] = {"oracle": intervals_over_seeds(orc["intervals"])}
         result["oracle_sim_value"] = orc["sim_value"]
+        result["noise_ceiling"] = oracle_noise_ceiling(
+            test_ds, true_values(test_ds, cfg.vd_horizon, cfg.gamma), orc["sim_return_sd"],
+            n_sim=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
         phase("oracle", t0)
         write(path, result)
         log(f"[paper] oracle (real dynamics, horizon {cfg.vd_horizon}): "
             + "  ".join(f"{k} {np.mean(v):.3f}" for k, v in orc["per_seed"].items()
                         if k in ("kendall_tau", "ndcg@1", "spearman", "avd", "mvd")))
+        nc = result["noise_ceiling"]
+        log(f"[paper] noise ceiling (an exact simulator, {nc['n_truth']} truth / "
+            f"{nc['n_sim']} simulated episodes): kendall_tau {nc['kendall_tau']['mean']:.3f} "
+            f"[{nc['kendall_tau']['lo']:.2f}, {nc['kendall_tau']['hi']:.2f}]  ndcg@1 "
+            f"{nc['ndcg@1']['mean']:.3f}")
 
     # ---- 2. training, one vmapped program per family
     overrides = {**(LEGACY_MODEL if args.model == "legacy" else {}), **_overrides(args.set)}

@@ -40,7 +40,8 @@ def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 
                  n_boot: int = 0, boot_seed: int = 0) -> dict:
     """The report of simulated episodes against the data's true values.
 
-    returns, lengths: [P, n] each simulated episode's discounted return and length. n_boot > 0
+    returns, lengths: [P, n] each simulated episode's discounted return and length
+    ("sim_return_sd": [P] the spread of one episode's return, the evaluation noise). n_boot > 0
     adds "intervals" (``evaluate.bootstrap_intervals`` over the episodes, with the true values'
     standard errors when the data measured them).
     """
@@ -49,6 +50,8 @@ def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 
     sim_value = returns.mean(1)
     out = {"true_value": truth.tolist(), "sim_value": sim_value.tolist(),
            "sim_length": np.asarray(lengths, np.float64).mean(1).tolist(),
+           "sim_return_sd": (returns.std(1, ddof=1) if returns.shape[1] > 1
+                             else np.zeros(returns.shape[0])).tolist(),
            "vd": np.abs(truth - sim_value).tolist(), "horizon": horizon, "gamma": gamma,
            "n_episodes": int(returns.shape[1]),
            "policy_names": list(ds.meta.get("policy_names") or range(ds.n_policies))}

@@ -222,14 +222,17 @@ def ranking_metrics(true_values, sim_values, ks: Iterable[int] = (1, 3, 5, 10),
 
 
 def noise_ceiling(values, episode_sd, *, n_truth: int, n_sim: int, n_rep: int = 2000,
-                  seed: int = 0, ks: Iterable[int] = (1,), level: float = 0.95) -> dict:
+                  seed: int = 0, ks: Iterable[int] = (1,), level: float = 0.95,
+                  truth_episode_sd=None) -> dict:
     """The ranking an EXACT simulator can be measured to reach when both sides are means of
     finitely many episodes: the ceiling that evaluation noise alone puts on tau and nDCG.
 
     values: [P] policy values; episode_sd: [P] (or a scalar) standard deviation of one
     episode's return; n_truth / n_sim: episodes behind each true / simulated value. Each of
     n_rep replicates draws truth = values + episode_sd / sqrt(n_truth) * z1 and sim = values +
-    episode_sd / sqrt(n_sim) * z2 (Gaussian means) and scores ``ranking_metrics(truth, sim)``.
+    episode_sd / sqrt(n_sim) * z2 (Gaussian means) and scores ``ranking_metrics(truth, sim)``;
+    truth_episode_sd ([P] or scalar) replaces episode_sd on the truth's side where the real
+    episodes were measured apart (e.g. the Dataset's value SE x sqrt(value episodes)).
     -> {metric: {"mean", "lo", "hi"}} for kendall_tau, spearman, ndcg@k and regret@k.
     Unlike ``bootstrap_intervals``' spread of tau around its own estimate, this is the bias
     the noise puts on tau: packed values with a large per-episode spread (Ant's falls) keep
@@ -237,8 +240,11 @@ def noise_ceiling(values, episode_sd, *, n_truth: int, n_sim: int, n_rep: int = 
     """
     v = _as_values(values, "values")
     sd = np.broadcast_to(np.asarray(episode_sd, np.float64), v.shape)
-    if not np.all(np.isfinite(sd)) or (sd < 0).any():
-        raise ValueError(f"episode_sd must be finite and >= 0, [P = {v.size}] or a scalar")
+    truth_sd = sd if truth_episode_sd is None else np.broadcast_to(
+        np.asarray(truth_episode_sd, np.float64), v.shape)
+    for name, x in (("episode_sd", sd), ("truth_episode_sd", truth_sd)):
+        if not np.all(np.isfinite(x)) or (x < 0).any():
+            raise ValueError(f"{name} must be finite and >= 0, [P = {v.size}] or a scalar")
     for name, n in (("n_truth", n_truth), ("n_sim", n_sim), ("n_rep", n_rep)):
         if not isinstance(n, int | np.integer) or n < 1:
             raise ValueError(f"{name} must be an int >= 1, got {n!r}")
@@ -248,7 +254,7 @@ def noise_ceiling(values, episode_sd, *, n_truth: int, n_sim: int, n_rep: int = 
     ks = tuple(ks)
     reps = []
     for _ in range(n_rep):
-        truth = v + sd / np.sqrt(n_truth) * rng.standard_normal(v.size)
+        truth = v + truth_sd / np.sqrt(n_truth) * rng.standard_normal(v.size)
         sim = v + sd / np.sqrt(n_sim) * rng.standard_normal(v.size)
         m = ranking_metrics(truth, sim, ks)
         reps.append({k: x for k, x in m.items() if k not in ("avd", "mvd")})

@@ -42,6 +42,22 @@ def test_train_with_test_evaluation_then_evaluate_in_fresh_process(pm_files, tmp
     assert all(0 < n <= 50 for n in r["sim_length"])
 
 
+def test_value_report_states_the_spread_of_one_episode(pm_files):
+    """value_report's sim_return_sd is each policy's sample std over its episodes (the noise
+    that noise_ceiling needs), 0 with one episode."""
+    from rl2s_jax.assess import value_report
+    from rl2s_jax.data import load_dataset
+    ds = load_dataset(pm_files["test"])
+    rng = np.random.default_rng(0)
+    returns = rng.normal(10.0, 3.0, size=(ds.n_policies, 7))
+    r = value_report(ds, returns, np.full_like(returns, 50.0), horizon=50, gamma=0.99)
+    np.testing.assert_allclose(r["sim_return_sd"], np.std(returns, axis=1, ddof=1))
+    np.testing.assert_allclose(r["sim_value"], returns.mean(1))
+    one = value_report(ds, returns[:, :1], np.ones_like(returns[:, :1]), horizon=50,
+                       gamma=0.99)
+    assert one["sim_return_sd"] == [0.0] * ds.n_policies
+
+
 def test_evaluate_bad_input(pm_files, tmp_path, capsys):
     rc = main(["evaluate", "--ckpt", str(tmp_path / "none"), "--data", pm_files["test"]])
     assert rc == 2 and "ckpt" in capsys.readouterr().err

@@ -398,6 +398,10 @@ def test_noise_ceiling_matches_the_two_policy_formula():
     out = noise_ceiling([0.0, g], s, n_truth=n1, n_sim=n2, n_rep=20000, seed=3)
     assert out["kendall_tau"]["mean"] == pytest.approx(ref, abs=0.015)
     assert out["kendall_tau"]["lo"] == -1.0 and out["kendall_tau"]["hi"] == 1.0
+    # an exact truth (its own sd 0): tau is +1 with probability p2 alone
+    exact_truth = noise_ceiling([0.0, g], s, n_truth=n1, n_sim=n2, n_rep=20000, seed=4,
+                                truth_episode_sd=0.0)
+    assert exact_truth["kendall_tau"]["mean"] == pytest.approx(2 * p2 - 1, abs=0.015)
     exact = noise_ceiling(np.arange(6.0), 0.0, n_truth=1, n_sim=1, n_rep=5)
     assert exact["kendall_tau"] == {"mean": 1.0, "lo": 1.0, "hi": 1.0}
     assert exact["ndcg@1"]["mean"] == 1.0 and "avd" not in exact
@@ -412,6 +416,7 @@ def test_noise_ceiling_matches_the_two_policy_formula():
     (dict(episode_sd=-1.0, n_truth=4, n_sim=4), "episode_sd"),
     (dict(episode_sd=[1.0, float("nan")], n_truth=4, n_sim=4), "episode_sd"),
     (dict(episode_sd=1.0, n_truth=0, n_sim=4), "n_truth"),
+    (dict(episode_sd=1.0, n_truth=4, n_sim=4, truth_episode_sd=[-1.0, 1.0]), "truth_episode_sd"),
     (dict(episode_sd=1.0, n_truth=4, n_sim=2.5), "n_sim"),
 ])
 def test_noise_ceiling_rejects_bad_input(kwargs, match):

@@ -88,9 +88,12 @@ def test_paper_tables(tmp_path):
     with open(out, "a") as f:
         f.write("\nafter the block\n")
     good["per_seed"]["rl2s"]["kendall_tau"] = [0.9, 0.9, 0.9]
+    good["noise_ceiling"] = {"n_truth": 16, "n_sim": 32, "kendall_tau": {
+        "mean": 0.987, "lo": 0.9, "hi": 1.0}, "ndcg@1": {"mean": 1.0, "lo": 1.0, "hi": 1.0}}
     (res / "hopper.json").write_text(json.dumps(good))
     assert pt.main(["--results", str(res), "--out", str(out)]) == 0
     text2 = out.read_text()
+    assert "met (0.970 / 1.000; noise alone allows tau 0.99)" in text2
     assert text2.count(pt.BEGIN) == 1 and text2.count(pt.END) == 1
     assert "| hopper | rl2s | 0.900 ± 0.000 (3 seeds) | 0.3474 |" in text2
     assert "0.850 ± 0.050" not in text2
@@ -329,6 +332,9 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     # the control: per seed, same protocol, with intervals that contain its own estimate
     orc = r["per_seed"]["oracle"]
     assert len(orc["kendall_tau"]) == 2 and orc["mpi"] == []
+    nc = r["noise_ceiling"]   # what evaluation noise alone lets an exact simulator reach
+    assert nc["n_truth"] == 2 and nc["n_sim"] == 2
+    assert -1.0 <= nc["kendall_tau"]["lo"] <= nc["kendall_tau"]["mean"] <= 1.0
     for m in ("oracle", "rl2s"):
         iv = r["intervals"][m]["avd"]
         assert iv["lo"] - 1e-6 <= r["methods"][m]["avd"] <= iv["hi"] + 1e-6, (m, iv)

@@ -241,13 +241,8 @@ def choose_by_members(values, margin: float = 0.0) -> np.ndarray:
     v = np.asarray(values, np.float64)
     if v.ndim != 3 or v.shape[0] < 2:
         raise ValueError(f"values: expected [K + 1 >= 2, M, P], got {v.shape}")
-    if not np.all(np.isfinite(v)):
-        raise ValueError("values: expected finite simulated values")
-    if not (np.isfinite(margin) and margin >= 0):
-        raise ValueError(f"margin: expected a finite float >= 0, got {margin!r}")
-    gain = v[1:] - v[:1]                                          # [K, M, P]
-    eligible = np.all(gain > margin * np.abs(v[:1]), axis=1)      # [K, P]
-    score = np.where(eligible, gain.min(axis=1), -np.inf)
+    eligible = np.stack([deployment_guard(v[0], vk, margin) for vk in v[1:]])  # [K, P]
+    score = np.where(eligible, (v[1:] - v[:1]).min(axis=1), -np.inf)
     return np.where(eligible.any(0), score.argmax(0) + 1, 0).astype(np.int32)
 
 

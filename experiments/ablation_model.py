@@ -41,11 +41,12 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paper import (  # noqa: E402
-    PROFILES,
     _lane_returns,
+    episode_lengths,
     heldout_start_pool,
     load_or_collect,
     log,
+    profile_sizes,
     select_point,
     train_lanes,
 )
@@ -165,20 +166,6 @@ def termination_causes(task_name: str, terminal, ended) -> dict | None:
     out = {name: float(np.asarray(rule(jnp.asarray(terminal)))[ended].sum() / n)
            for name, rule in rules}
     return {"ended": float(ended.mean()), **out}
-
-
-def episode_lengths(ds) -> np.ndarray:
-    """[P] mean length of each policy's logged episodes (a terminated or truncated one counts
-    its steps; the last, cut-off episode of a policy is left out when others exist)."""
-    pid, ep = np.asarray(ds.policy_id), np.asarray(ds.episode_id)
-    ended = np.asarray(ds.done) | np.asarray(ds.truncated)
-    out = np.zeros(ds.n_policies)
-    for p in range(ds.n_policies):
-        mine = pid == p
-        ids, counts = np.unique(ep[mine], return_counts=True)
-        whole = np.isin(ids, ep[mine & ended])
-        out[p] = counts[whole].mean() if whole.any() else counts.mean()
-    return out
 
 
 _select = select_point  # the rule lives in paper.py; tests call it by this name
@@ -427,7 +414,8 @@ def main(argv=None) -> int:
             sizes[k] = getattr(args, k)
     if sizes["steps"] % sizes["eval_every"]:
         raise SystemExit(f"steps: expected a multiple of --eval-every ({sizes['eval_every']})")
-    data_sizes = {k: PROFILES[profile][k] for k in ("transitions_per_policy", "value_episodes")}
+    data_sizes = {k: profile_sizes(profile, args.task)[k]
+                  for k in ("transitions_per_policy", "value_episodes")}
     for k in data_sizes:
         if getattr(args, k, None) is not None:
             data_sizes[k] = getattr(args, k)

@@ -140,6 +140,17 @@ PROFILES = {
                 improve_iterations=300, sac_envs=4, sac=dict(hidden=(64, 64), batch_size=128)),
 }
 
+# Per-task changes to a profile. Ant's returns spread so widely between episodes (per-episode
+# sd ~830 against ~90 between neighbouring test policies) that with 16 truth / 32 simulated
+# episodes even the real dynamics rank at tau 0.78; with 256 / 256 the oracle reaches 0.88
+# (docs/RESULTS.md, "Many episodes on Ant and Hopper").
+TASK_SIZES = {"gpu": {"ant": dict(value_episodes=256, eval_episodes=256)}}
+
+
+def profile_sizes(profile: str, task: str) -> dict:
+    """A profile's sizes with the task's changes (TASK_SIZES) applied."""
+    return {**PROFILES[profile], **TASK_SIZES.get(profile, {}).get(task, {})}
+
 
 def log(msg: str) -> None:
     print(msg, flush=True)
@@ -225,10 +236,10 @@ def evaluate_lanes(states, seeds, policies, pool, truth, *, key_base: int, n_epi
     PRNGKey(key_base + seed) (1000: the test policies, 2000: the training policies' held-out
     episodes, for model selection).
     -> (list of metric dicts (None where the simulated values are not finite), values [L, P],
-    per-episode returns [L, P, n])"""
+    per-episode returns [L, P, n], mean simulated episode lengths [L, P])"""
     keys = jnp.stack([jax.random.PRNGKey(key_base + s) for s in seeds])
-    returns, _ = _lane_returns(simulator(states), policies, pool, keys,
-                               n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    returns, lengths = _lane_returns(simulator(states), policies, pool, keys,
+                                     n_episodes=n_episodes, horizon=horizon, gamma=gamma)
     returns = np.asarray(returns, np.float64)
     values = returns.mean(-1)
     out = []
@@ -237,7 +248,21 @@ def evaluate_lanes(states, seeds, policies, pool, truth, *, key_base: int, n_epi
             out.append(ranking_metrics(truth, v, ks=(1, 3, 5, 10)))
         except ValueError:  # non-finite simulated values: the lane diverged
             out.append(None)
-    return out, values, returns
+    return out, values, returns, np.asarray(lengths, np.float64).mean(-1)
+
+
+def episode_lengths(ds) -> np.ndarray:
+    """[P] mean length of each policy's logged episodes (a terminated or truncated one counts
+    its steps; the last, cut-off episode of a policy is left out when others exist)."""
+    pid, ep = np.asarray(ds.policy_id), np.asarray(ds.episode_id)
+    ended = np.asarray(ds.done) | np.asarray(ds.truncated)
+    out = np.zeros(ds.n_policies)
+    for p in range(ds.n_policies):
+        mine = pid == p
+        ids, counts = np.unique(ep[mine], return_counts=True)
+        whole = np.isin(ids, ep[mine & ended])
+        out[p] = counts[whole].mean() if whole.any() else counts.mean()
+    return out
 
 
 def heldout_start_pool(train_ds) -> jax.Array:
@@ -279,12 +304,13 @@ def oracle_rows(task: str, test_ds, test_pols, seeds, *, n_episodes, horizon, ga
                 n_boot: int) -> dict:
     """The control: ``assess.evaluate_oracle`` (the real dynamics through the lanes' evaluation
     path: same start states, horizon, gamma, episodes) once per seed with the lanes' key
-    PRNGKey(1000 + seed). -> {"per_seed": {metric: [S]}, "intervals": [S], "sim_value": [S][P]}"""
+    PRNGKey(1000 + seed). -> {"per_seed": {metric: [S]}, "intervals": [S], "sim_value",
+    "sim_length", "sim_return_sd": [S][P] each}"""
     from rl2s_jax.assess import evaluate_oracle
 
     env = get_task(task).make_env()
     out = {"per_seed": {k: [] for k in EVAL_METRICS}, "intervals": [], "sim_value": [],
-           "sim_return_sd": []}
+           "sim_length": [], "sim_return_sd": []}
     for s in seeds:
         r = evaluate_oracle(task, test_ds, test_pols, key=jax.random.PRNGKey(1000 + s),
                             n_episodes=n_episodes, horizon=horizon, gamma=gamma,
@@ -293,6 +319,7 @@ def oracle_rows(task: str, test_ds, test_pols, seeds, *, n_episodes, horizon, ga
             out["per_seed"][k].append(r["metrics"][k])
         out["intervals"].append(r.get("intervals", {}).get("metrics"))
         out["sim_value"].append(r["sim_value"])
+        out["sim_length"].append(np.round(r["sim_length"], 1).tolist())
         out["sim_return_sd"].append(r["sim_return_sd"])
     return out
 
@@ -694,7 +721,7 @@ def parse_families(text: str) -> tuple:
 
 
 def resolve_sizes(args, profile: str) -> dict:
-    sizes = {k: v for k, v in PROFILES[profile].items() if k != "sac"}
+    sizes = {k: v for k, v in profile_sizes(profile, args.task).items() if k != "sac"}
     for k in list(sizes):
         if getattr(args, k, None) is not None:
             sizes[k] = getattr(args, k)
@@ -774,6 +801,7 @@ def main(argv=None) -> int:
     train_pols, test_pols = policies_for(train_ds), policies_for(test_ds)
     result["test_policy_names"] = list(test_ds.meta.get("policy_names") or [])
     result["true_value_undiscounted"] = np.asarray(test_ds.value, np.float64).tolist()
+    result["true_length"] = np.round(episode_lengths(test_ds), 1).tolist()  # logged episodes
     result["zoo_sha256"] = zoo_sha256(args.task)
 
     # ---- 1b. the control: the real dynamics through the same evaluation path
@@ -787,6 +815,7 @@ def main(argv=None) -> int:
         result["lane_intervals"] = {"oracle": orc["intervals"]}
         result["intervals"] = {"oracle": intervals_over_seeds(orc["intervals"])}
         result["oracle_sim_value"] = orc["sim_value"]
+        result["oracle_sim_length"] = orc["sim_length"]
         result["noise_ceiling"] = oracle_noise_ceiling(
             test_ds, true_values(test_ds, cfg.vd_horizon, cfg.gamma), orc["sim_return_sd"],
             n_sim=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
@@ -847,8 +876,8 @@ def main(argv=None) -> int:
             roll = dict(n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
                         gamma=cfg.gamma)
             seeds = [s for _, s in lanes]
-            evals, _values, _returns = evaluate_lanes(states, seeds, test_pols, test_pool, truth,
-                                                      key_base=1000, **roll)
+            evals, _values, _returns, _lengths = evaluate_lanes(
+                states, seeds, test_pols, test_pool, truth, key_base=1000, **roll)
             selects = evaluate_lanes(states, seeds, data.policies, select_pool, select_truth,
                                      key_base=2000, **roll)[0]
             t_eval += time.perf_counter() - t1
@@ -895,6 +924,7 @@ def main(argv=None) -> int:
             result["lanes"][f"{meth}/{s}"] = {
                 "family": family, "eps": eps[i], "seed": s,
                 "sim_value": np.asarray(_values[i]).tolist(),
+                "sim_length": np.round(_lengths[i], 1).tolist(),
                 "finite": all(row["finite"] for row in result["curves"]
                               if row["lane"] == f"{meth}/{s}")}
         result["true_value"] = np.asarray(truth).tolist()

@@ -303,6 +303,21 @@ def test_paper_families_flag():
             paper.parse_families(bad)
 
 
+def test_paper_sizes_per_task():
+    """Ant's gpu sizes measure enough episodes for its noisy returns; flags still win."""
+    paper = _load("paper")
+    args = paper.build_parser().parse_args(["--task", "ant"])
+    sizes = paper.resolve_sizes(args, "gpu")
+    assert (sizes["value_episodes"], sizes["eval_episodes"]) == (256, 256)
+    assert sizes["seeds"] == paper.PROFILES["gpu"]["seeds"]
+    hopper = paper.resolve_sizes(paper.build_parser().parse_args(["--task", "hopper"]), "gpu")
+    assert (hopper["value_episodes"], hopper["eval_episodes"]) == (16, 32)
+    cpu = paper.resolve_sizes(paper.build_parser().parse_args(["--task", "ant"]), "cpu")
+    assert cpu["value_episodes"] == paper.PROFILES["cpu"]["value_episodes"]
+    flags = paper.build_parser().parse_args(["--task", "ant", "--eval-episodes", "64"])
+    assert paper.resolve_sizes(flags, "gpu")["eval_episodes"] == 64
+
+
 # ------------------------------------------------------------------ paper.py smoke
 
 
@@ -325,6 +340,9 @@ def test_paper_smoke_hopper(tmp_path, capsys):
                   "improve_measure"):
         assert f"[paper] {phase}: " in printed
     r = json.loads((out / "hopper.json").read_text())
+    from rl2s_jax.policies import load_zoo
+    zoo = load_zoo("hopper")  # the split's sizes come from the shipped zoo
+    n_train, n_test = len(zoo.train_ids), len(zoo.test_ids)
     assert r["complete"] and r["seeds"] == 2 and r["hardware"] == "cpu"
     assert r["command"].startswith("python experiments/paper.py --task hopper")
     assert set(r["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc", "oracle"}
@@ -356,6 +374,12 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         "rl2s-bc/0": 0.25, "rl2s-bc/1": 0.25, "bc/0": 1.0, "bc/1": 1.0}
     assert r["train_config"]["adversarial"]["method"] == "rl2s"
     assert r["train_config"]["mle"]["method"] == "rl2s-bc"
+    # lengths beside values: the simulated episodes of every lane and the oracle (at most the
+    # 50-step horizon) against the logged episodes' mean length
+    assert len(r["true_length"]) == n_test and all(1 <= x <= 50 for x in r["true_length"])
+    assert len(r["oracle_sim_length"]) == 2
+    for lengths in [v["sim_length"] for v in r["lanes"].values()] + r["oracle_sim_length"]:
+        assert len(lengths) == n_test and all(1 <= x <= 50 for x in lengths)
     # curves: every lane at every --eval-every steps; the final metrics are the last point
     steps = {}
     for row in r["curves"]:
@@ -397,9 +421,6 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         np.testing.assert_allclose(v["I_paired"], (c1 - cp) / np.abs(cp), rtol=1e-6)
         assert v["mpi_paired"] == pytest.approx(min(v["I_paired"]))
         assert v["c0_paired"] == imp["rl2s/0"]["c0_paired"] and len(v["diff_se"]) == 2
-    from rl2s_jax.policies import load_zoo
-    zoo = load_zoo("hopper")  # the split's sizes come from the shipped zoo
-    n_train, n_test = len(zoo.train_ids), len(zoo.test_ids)
     assert r["sizes"]["test_policies"] == n_test and r["sizes"]["train_policies"] == n_train
     for key in ("data", "train_adversarial", "train_mle", "improve_sac", "total"):
         assert r["timings"][key] >= 0

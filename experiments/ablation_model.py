@@ -414,8 +414,8 @@ def main(argv=None) -> int:
             sizes[k] = getattr(args, k)
     if sizes["steps"] % sizes["eval_every"]:
         raise SystemExit(f"steps: expected a multiple of --eval-every ({sizes['eval_every']})")
-    data_sizes = {k: profile_sizes(profile, args.task)[k]
-                  for k in ("transitions_per_policy", "value_episodes")}
+    profile_data = profile_sizes(profile, args.task)
+    data_sizes = {k: profile_data[k] for k in ("transitions_per_policy", "value_episodes")}
     for k in data_sizes:
         if getattr(args, k, None) is not None:
             data_sizes[k] = getattr(args, k)

@@ -16,11 +16,12 @@ episodes, against their true values; ties to the lower training AVD).
 Every variant is one vmapped program over the seeds (``paper.train_lanes``: the MLE
 pre-training and the adversarial phase are separate compiled pieces) and writes
 OUT/ablation_<task>_<variant>.json after every evaluation (a run cut off by a time limit keeps
-what it finished); ``--rollouts MODE:NOISE,...`` also evaluates each variant's simulator with
-other rollout settings (member mode random / mean / fixed, noise scale; rows
-"<variant>@<mode>:<noise>"), which costs no training. A variant may carry its own settings,
-"bc:multistep_steps=5+multistep_weight=0.5" (its row is that whole name). The last variant
-also writes OUT/ablation_<task>.json and .md, the table of
+what it finished); ``--rollouts MODE:NOISE[:TERMINATION],...`` also evaluates each variant's
+simulator with other rollout settings (member mode random / mean / fixed, noise scale, and for
+a variant trained with a learned hazard, ``termination`` rule / hazard / both; rows
+"<variant>@<mode>:<noise>[:<termination>]"), which costs no training. A variant may carry its
+own settings, "bc:multistep_steps=5+multistep_weight=0.5" (its row is that whole name). The
+last variant also writes OUT/ablation_<task>.json and .md, the table of
 every variant's JSON found in OUT. ``--summarize`` rebuilds that table from the JSONs of
 several directories (variants run in separate device calls). Data: the zoo's train / test split
 as experiments/paper.py collects it (``paper.load_or_collect``, reused from --data-dir).
@@ -56,7 +57,8 @@ from rl2s_jax.dynamics import MEMBER_MODES  # noqa: E402
 from rl2s_jax.evaluate import ranking_metrics  # noqa: E402
 from rl2s_jax.fit import make_config, policies_for  # noqa: E402
 from rl2s_jax.simulate import advance_values, start_pool, start_values  # noqa: E402
-from rl2s_jax.tasks import get_task, task_names  # noqa: E402
+from rl2s_jax.tasks import _LOCO, get_task, task_names  # noqa: E402
+from rl2s_jax.termination import LEARNED, TERMINATIONS  # noqa: E402
 from rl2s_jax.train import (  # noqa: E402
     LEGACY_MODEL,
     TrainConfig,
@@ -88,20 +90,29 @@ def _metrics(truth, values) -> dict | None:
     return {k: float(r[k]) for k in METRICS}
 
 
-def parse_rollouts(text: str | None) -> list[tuple[str, float]]:
-    """--rollouts 'random:1,mean:0' -> [("random", 1.0), ("mean", 0.0)]."""
+def parse_rollouts(text: str | None) -> list[tuple]:
+    """--rollouts 'random:1,mean:0,random:0:both' -> [("random", 1.0), ("mean", 0.0),
+    ("random", 0.0, "both")]: member mode, noise scale and optionally the termination."""
     out = []
     for item in (x.strip() for x in (text or "").split(",") if x.strip()):
-        mode, _, noise = item.partition(":")
+        mode, _, rest = item.partition(":")
+        noise, _, term = rest.partition(":")
         try:
             scale = float(noise)
         except ValueError:
             scale = -1.0
-        if mode not in MEMBER_MODES or not (np.isfinite(scale) and scale >= 0):
-            raise SystemExit(f"rollouts: expected MODE:NOISE items with MODE in "
-                             f"{', '.join(MEMBER_MODES)} and NOISE >= 0, got {item!r}")
-        out.append((mode, scale))
+        if (mode not in MEMBER_MODES or not (np.isfinite(scale) and scale >= 0)
+                or (term and term not in TERMINATIONS)):
+            raise SystemExit(f"rollouts: expected MODE:NOISE[:TERMINATION] items with MODE in "
+                             f"{', '.join(MEMBER_MODES)}, NOISE >= 0 and TERMINATION in "
+                             f"{', '.join(TERMINATIONS)}, got {item!r}")
+        out.append((mode, scale, term) if term else (mode, scale))
     return out
+
+
+def rollout_row(variant: str, rollout: tuple) -> str:
+    return f"{variant}@{rollout[0]}:{rollout[1]:g}" + (f":{rollout[2]}" if len(rollout) > 2
+                                                         else "")
 
 
 def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
@@ -111,7 +122,8 @@ def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
     scale). test / select: (policies, start pool, true values)."""
     sims = simulator(states, average=weights)
     if rollout is not None:
-        sims = sims.replace(member_mode=rollout[0], noise_scale=rollout[1])
+        sims = sims.replace(member_mode=rollout[0], noise_scale=rollout[1],
+                            termination=rollout[2] if len(rollout) > 2 else sims.termination)
     out = [{} for _ in seeds]
     for name, (pols, pool, truth), base in (("test", test, 1000), ("select", select, 2000)):
         keys = jnp.stack([jax.random.PRNGKey(base + s) for s in seeds])
@@ -135,7 +147,15 @@ TERMINATION_RULES = {
     "walker2d": (("z <= 0.8", lambda o: o[..., 1] <= 0.8),
                  ("z >= 2", lambda o: o[..., 1] >= 2.0),
                  ("|angle| >= 1", lambda o: jnp.abs(o[..., 2]) >= 1.0)),
-}
+    "ant": (("z < 0.2", lambda o: _ant_z(o) < 0.2),
+            ("z > 1", lambda o: _ant_z(o) > 1.0)),
+}  # an ended episode that breaks none was ended by a learned hazard (termination "hazard")
+
+
+def _ant_z(o):
+    """The torso height ``tasks.ant_done`` tests (one physics substep behind)."""
+    spec = _LOCO["ant"]
+    return o[..., 2] - spec.substep * o[..., spec.vx_idx + 2]
 
 
 def terminal_states(sims, policies, pool, keys, *, task, n_episodes, horizon):
@@ -147,12 +167,32 @@ def terminal_states(sims, policies, pool, keys, *, task, n_episodes, horizon):
 
     def one(sim, key):
         k_start, k_run = jax.random.split(key)
+        done_fn, hazard_fn = sim.terminations(task.done_fn)
         roll = advance_values(start_values(pool, n_pol, n_episodes, k_start), policies,
-                              sim.dynamics, task.reward_fn, task.done_fn, k_run,
-                              n_steps=horizon, horizon=horizon, gamma=1.0)
+                              sim.dynamics, task.reward_fn, done_fn, k_run,
+                              n_steps=horizon, horizon=horizon, gamma=1.0, hazard_fn=hazard_fn)
         return roll.obs, ~roll.alive
 
     return jax.jit(jax.vmap(one))(sims, keys)
+
+
+def hazard_check(states, ds) -> dict:
+    """How the learned hazard of each lane predicts the logged terminations of a Dataset's
+    rows: the summed h(s, a) against the count of done rows, and its mean cross-entropy
+    against the base rate's. A diagnosis of the test policies' data (never used to select)."""
+    from rl2s_jax.termination import bce, hazard_logit
+
+    obs, act = jnp.asarray(ds.obs), jnp.asarray(ds.action)
+    done = jnp.asarray(np.asarray(ds.done), jnp.float32)
+    logits = jax.jit(jax.vmap(lambda h, n: hazard_logit(h, n, obs, act)))(states.hazard,
+                                                                          states.norm)
+    base = float(done.mean())
+    base_bce = float(bce(jnp.full(done.shape, np.log(base / (1 - base))), done)) if 0 < base < 1 \
+        else float("nan")
+    return {"rows": int(done.size), "done": int(done.sum()),
+            "predicted": [round(float(x), 1) for x in jax.nn.sigmoid(logits).sum(-1)],
+            "bce": [round(float(bce(lg, done)), 5) for lg in logits],
+            "base_rate_bce": round(base_bce, 5)}
 
 
 def termination_causes(task_name: str, terminal, ended) -> dict | None:
@@ -280,7 +320,13 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     select = (data.policies, heldout_start_pool(train_ds), np.asarray(data.true_value))
     rows = {(False, None): variant} | ({(True, None): f"{variant}+ema"} if cfg.ema_decay
                                        else {})
-    rows |= {(False, r): f"{variant}@{r[0]}:{r[1]:g}" for r in parse_rollouts(args.rollouts)}
+    rollouts = parse_rollouts(args.rollouts)
+    if cfg.termination not in LEARNED and any(len(r) > 2 and r[2] in LEARNED
+                                              for r in rollouts):
+        raise SystemExit(f"rollouts: a learned termination needs a variant trained with one "
+                         f"({variant!r} has termination {cfg.termination!r}; add "
+                         f"':termination=both')")
+    rows |= {(False, r): rollout_row(variant, r) for r in rollouts}
     seeds = list(range(sizes["seeds"]))
     safe = re.sub(r"[^A-Za-z0-9_.-]", "_", variant)  # a file name any tool copies back
     path = os.path.join(args.out, f"ablation_{args.task}_{safe}.json")
@@ -329,6 +375,9 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
         res["timings"].update(train=round(t_train, 1), eval=round(t_eval, 1))
         log(f"[ablation] {variant} step {step}: train {t_train:.1f}s, eval {t_eval:.1f}s")
         _write(path, res)
+    if cfg.termination in LEARNED:  # the hazard's calibration on the test policies' rows
+        res["hazard_check"] = hazard_check(states, test_ds)
+        log(f"[ablation] {variant}: hazard on the test rows {res['hazard_check']}")
     if args.task in TERMINATION_RULES:  # why the simulated episodes end, vs the logged ones
         task = get_task(args.task)
         keys = jnp.stack([jax.random.PRNGKey(3000 + s) for s in seeds])
@@ -372,9 +421,10 @@ def main(argv=None) -> int:
     ap.add_argument("--episode-length", type=pos)
     ap.add_argument("--ema-decay", type=float, default=0.99)
     ap.add_argument("--set", action="append", metavar="KEY=VALUE")
-    ap.add_argument("--rollouts", metavar="MODE:NOISE,...",
+    ap.add_argument("--rollouts", metavar="MODE:NOISE[:TERMINATION],...",
                     help="also evaluate every variant with these rollout settings (member mode "
-                    "random|mean|fixed : noise scale), e.g. random:1,mean:0")
+                    "random|mean|fixed : noise scale [: rule|hazard|both]), e.g. "
+                    "random:1,mean:0,random:0:rule")
     ap.add_argument("--out", default="results/ablation")
     ap.add_argument("--data-dir")
     ap.add_argument("--summarize", nargs="+", metavar="DIR",

@@ -224,9 +224,13 @@ def _lane_returns(sims: Simulator, policies, pool, keys, *, n_episodes, horizon,
     """assess._sim_returns vmapped over lanes: sims and keys carry a leading lane axis.
     -> (returns, lengths) [L, P, n]"""
     task = get_task(sims.task)
-    return jax.vmap(lambda sim, key: simulated_returns(
-        policies, sim.dynamics, task.reward_fn, task.done_fn, pool, key,
-        n_episodes=n_episodes, horizon=horizon, gamma=gamma))(sims, keys)
+
+    def one(sim, key):
+        done_fn, hazard_fn = sim.terminations(task.done_fn)
+        return simulated_returns(policies, sim.dynamics, task.reward_fn, done_fn, pool, key,
+                                 n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                                 hazard_fn=hazard_fn)
+    return jax.vmap(one)(sims, keys)
 
 
 def evaluate_lanes(states, seeds, policies, pool, truth, *, key_base: int, n_episodes, horizon,

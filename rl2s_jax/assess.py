@@ -22,8 +22,10 @@ from rl2s_jax.train import true_values, true_values_se
 @partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
 def _sim_returns(sim: Simulator, policies, pool, key, *, n_episodes, horizon, gamma):
     task = get_task(sim.task)
-    return simulated_returns(policies, sim.dynamics, task.reward_fn, task.done_fn, pool, key,
-                             n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    done_fn, hazard_fn = sim.terminations(task.done_fn)
+    return simulated_returns(policies, sim.dynamics, task.reward_fn, done_fn, pool, key,
+                             n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                             hazard_fn=hazard_fn)
 
 
 def _protocol(ds, policies, n_episodes, horizon, gamma) -> tuple[int, float]:

@@ -2,7 +2,8 @@
 
 - ``state``: the whole TrainState (exact resume: keys, optimisers, buffers, selection);
 - ``simulator``: what evaluation needs: the generator ensemble (the moving average when the
-  config has ``ema_decay``), its members' ranks and the normaliser;
+  config has ``ema_decay``), its members' ranks and the normaliser, and the learned
+  termination hazard where the config's ``termination`` uses one;
 - ``meta``: JSON with the TrainConfig and what the data looked like (task, sizes, policy names).
 
 ``load_simulator(dir)`` rebuilds a ``Simulator`` from ``simulator`` + ``meta`` alone, in a fresh
@@ -34,6 +35,7 @@ import orbax.checkpoint as ocp
 from rl2s_jax import dynamics as dyn
 from rl2s_jax.models import Normalizer, init_generator
 from rl2s_jax.simulate import Simulator
+from rl2s_jax.termination import LEARNED, init_hazard
 from rl2s_jax.train import LEGACY_MODEL, TrainConfig, TrainState, simulator
 
 FORMAT_VERSION = 3  # 2: Normalizer.obs_input_mask; 3: the ensemble model family
@@ -92,6 +94,8 @@ class Checkpointer:
                 "config": state.config.to_dict(), **meta}
         sim_ = simulator(state)
         sim = {"gen": sim_.gen, "norm": sim_.norm, "rank": sim_.rank}
+        if sim_.hazard is not None:
+            sim["hazard"] = sim_.hazard
         self._mgr.save(step, args=ocp.args.Composite(
             state=ocp.args.StandardSave(state), simulator=ocp.args.StandardSave(sim),
             meta=ocp.args.JsonSave(meta)), force=True)
@@ -332,12 +336,15 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None
             template = jax.eval_shape(lambda: {
                 "gen": dyn.init_ensemble(jax.random.PRNGKey(0), cfg.dynamics_spec, o, a,
                                          cfg.ensemble_size),
-                "norm": norm, "rank": jax.numpy.zeros((cfg.ensemble_size,), jax.numpy.int32)})
+                "norm": norm, "rank": jax.numpy.zeros((cfg.ensemble_size,), jax.numpy.int32),
+                **({"hazard": init_hazard(jax.random.PRNGKey(0), o, a, cfg.hazard_hidden)}
+                   if cfg.termination in LEARNED else {})})
         sim = ck._restore_item(s, "simulator", ocp.args.StandardRestore(template))
-        return Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"), task=cfg.task,
-                         obs_clip=cfg.obs_clip, noise_scale=cfg.sim_noise,
-                         n_elites=cfg.n_elites, member_mode=cfg.member_mode,
-                         uncertainty=cfg.uncertainty), meta
+        return Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"),
+                         hazard=sim.get("hazard"), task=cfg.task, obs_clip=cfg.obs_clip,
+                         noise_scale=cfg.sim_noise, n_elites=cfg.n_elites,
+                         member_mode=cfg.member_mode, uncertainty=cfg.uncertainty,
+                         termination=cfg.termination), meta
 
     try:
         return ck.load_intact(step, ("meta", "simulator"), load)[1]

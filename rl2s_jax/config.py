@@ -19,6 +19,7 @@ from rl2s_jax.dynamics import (
     DynamicsSpec,
 )
 from rl2s_jax.tasks import TASKS, get_task
+from rl2s_jax.termination import LEARNED, TERMINATIONS
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 DEFAULT_EPS = {"rl2s": 0.25, "gail": 1.0, "bc": 1.0, "rl2s-bc": 0.25}
@@ -86,6 +87,11 @@ class TrainConfig:
     adv_nll_weight: float = 10.0   # rl2s / gail: weight of the NLL of the real batch kept in
     # the adversarial generator loss; anchors the MLE start (0: pure WGAIL, the paper's,
     # which undid the start on every task: RESULTS)
+    termination: str = "rule"      # what ends a simulated episode: the task's "rule" on the
+    # simulated state | a learned "hazard" h(s, a) of the logged done flags | "both" |
+    # "predictive": the rule also on one draw at noise scale 1 (rl2s_jax.termination)
+    hazard_hidden: tuple[int, ...] = (256, 256)  # the hazard classifier's hidden sizes
+    hazard_steps: int = 3000       # its Adam updates (in ``init``, on every training row)
 
     @property
     def adversarial(self) -> bool:
@@ -149,14 +155,15 @@ class TrainConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
-        for name in ("vd_every", "early_stop_patience", "pretrain_steps", "disc_warmup_steps"):
+        for name in ("vd_every", "early_stop_patience", "pretrain_steps", "disc_warmup_steps",
+                     "hazard_steps"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"{name}: expected an int >= 0 (0 = off), got {v!r}")
         if self.vd_every == 0 and self.initial_eps < 1.0:
             raise ValueError(f"vd_every: 0 turns off VD, which method {self.method!r} with eps "
                              f"{self.initial_eps} needs to choose its worst policies")
-        for name in ("gen_hidden", "disc_hidden"):
+        for name in ("gen_hidden", "disc_hidden", "hazard_hidden"):
             v = getattr(self, name)
             if not (isinstance(v, tuple) and v and all(isinstance(h, int) and h > 0 for h in v)):
                 raise ValueError(f"{name}: expected a non-empty tuple of positive ints, got {v!r}")
@@ -179,10 +186,14 @@ class TrainConfig:
             raise ValueError(f"ema_decay: expected a float in [0, 1) (0 = off), got "
                              f"{self.ema_decay!r}")
         for name, kinds in (("member_mode", MEMBER_MODES), ("uncertainty", UNCERTAINTY_KINDS),
-                            ("gen_noise", NOISE_KINDS), ("gen_log_std_bounds", BOUND_KINDS)):
+                            ("gen_noise", NOISE_KINDS), ("gen_log_std_bounds", BOUND_KINDS),
+                            ("termination", TERMINATIONS)):
             if getattr(self, name) not in kinds:
                 raise ValueError(f"{name}: expected one of {', '.join(map(repr, kinds))}, got "
                                  f"{getattr(self, name)!r}")
+        if self.termination in LEARNED and self.hazard_steps == 0:
+            raise ValueError(f"hazard_steps: termination {self.termination!r} learns a hazard; "
+                             f"expected an int >= 1, got 0")
         if self.n_elites > self.ensemble_size:
             raise ValueError(f"n_elites: expected at most ensemble_size ({self.ensemble_size}), "
                              f"got {self.n_elites}")

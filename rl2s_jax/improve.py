@@ -187,9 +187,11 @@ def _member_returns(sim: Simulator, members, policies, pool, key, *, task: Task,
 
     def one(m, policy):
         alone = sim.replace(rank=((jnp.arange(E) - m) % E).astype(jnp.int32))
+        done_fn, hazard_fn = alone.terminations(task.done_fn)
         ret, _ = simulated_returns(jax.tree_util.tree_map(lambda x: x[None], policy),
-                                   alone.dynamics, task.reward_fn, task.done_fn, pool, key,
-                                   n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+                                   alone.dynamics, task.reward_fn, done_fn, pool, key,
+                                   n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                                   hazard_fn=hazard_fn)
         return ret[0].mean()
     return jax.vmap(lambda m: jax.vmap(lambda p: one(m, p))(policies))(members)
 

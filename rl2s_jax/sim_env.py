@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from brax.envs.base import Env, State
 
-from rl2s_jax.simulate import Simulator
+from rl2s_jax.simulate import Simulator, ends_episode
 from rl2s_jax.tasks import Task, get_task
 
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
@@ -166,6 +166,10 @@ class SimulatorEnv(Env):
         self.task = get_task(task) if isinstance(task, str) else task
         if not isinstance(self.task, Task):
             raise TypeError(f"task: expected a Task or a task name, got {type(task).__name__}")
+        # A Simulator with a learned termination hazard ends episodes as value rollouts do.
+        self._done_fn, self._hazard_fn = (sim.terminations(self.task.done_fn)
+                                          if isinstance(sim, Simulator)
+                                          else (self.task.done_fn, None))
         pool = np.asarray(start_pool, np.float32)
         if pool.ndim != 2 or pool.shape[0] < 1 or pool.shape[1] != self.task.obs_size:
             raise ValueError(f"start_pool: expected shape [S >= 1, {self.task.obs_size}] "
@@ -208,9 +212,14 @@ class SimulatorEnv(Env):
         """One simulated step. action [a] -> next State (reward from obs, action, next obs)."""
         k_dyn, k_next = jax.random.split(state.info["rng"])
         obs = state.obs
+        if self._hazard_fn is not None:  # its own key; without a hazard the draws stay
+            k_dyn, k_end = jax.random.split(k_dyn)
+        else:
+            k_end = None
         next_obs = self._dynamics(obs, action, k_dyn).astype(jnp.float32)
         reward = self.task.reward_fn(obs, action, next_obs).astype(jnp.float32)
-        done = self.task.done_fn(next_obs).astype(jnp.float32)
+        done = ends_episode(obs, action, next_obs, k_end, self._done_fn,
+                            self._hazard_fn).astype(jnp.float32)
         u = halted = jnp.zeros((), jnp.float32)
         if self.uncertainty_fn is not None:
             u = jnp.asarray(self.uncertainty_fn(obs, action), jnp.float32).reshape(())

@@ -20,6 +20,7 @@ from flax import struct
 from rl2s_jax import dynamics as dyn
 from rl2s_jax.models import Normalizer, sample_next
 from rl2s_jax.policies import Params, sample_action
+from rl2s_jax.termination import TERMINATIONS, hazard_prob
 
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 
@@ -37,6 +38,11 @@ class Simulator:
       (the elites' average), "fixed" (the best member). ``uncertainty``: the disagreement
       measure ("std" or "max_pairwise", ``dynamics.disagreement``).
 
+    hazard: a learned termination classifier (``termination.init_hazard``) or None;
+    termination: what ends a simulated episode, "rule" (the task's done_fn on the simulated
+    next state), "hazard" (a draw below h(s, a)), "both", or "predictive" (the rule, or the
+    rule on one noise-scale-1 draw of the next state; ``terminations``).
+
     ``dynamics`` is the ``Dynamics`` function the rollouts here take; ``task`` names the
     registered task whose reward_fn / done_fn apply (None for data without a task).
     ``uncertainty_fn(obs, action)`` and ``step(obs, action, key) -> (next_obs, u)`` give the
@@ -46,12 +52,14 @@ class Simulator:
     gen: Params
     norm: Normalizer
     rank: jax.Array | None = None
+    hazard: Params | None = None
     task: str | None = struct.field(pytree_node=False, default=None)
     obs_clip: float = struct.field(pytree_node=False, default=10.0)
     noise_scale: float = struct.field(pytree_node=False, default=1.0)
     n_elites: int | None = struct.field(pytree_node=False, default=None)
     member_mode: str = struct.field(pytree_node=False, default="random")
     uncertainty: str = struct.field(pytree_node=False, default="std")
+    termination: str = struct.field(pytree_node=False, default="rule")
 
     def __post_init__(self):
         if isinstance(self.gen, list | tuple):  # one generator: an ensemble of one
@@ -147,6 +155,37 @@ class Simulator:
     def dynamics(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
         return self.sample(obs, action, key)
 
+    def hazard_prob(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """The learned chance that the step from (obs, action) ends the episode.
+        [..., o], [..., a] -> [...]"""
+        if self.hazard is None:
+            raise ValueError("hazard: this simulator has no learned termination (train with "
+                             "termination='hazard' or 'both')")
+        return hazard_prob(self.hazard, self.norm, obs, action)
+
+    def terminations(self, done_fn: Callable | None) -> tuple[Callable | None, Callable | None]:
+        """(done_fn, hazard_fn) for ``advance_values`` under this simulator's ``termination``:
+        the task's rule ``done_fn`` unless "hazard"; the learned h(s, a) for "hazard" and
+        "both"; for "predictive", 1 where ``done_fn`` holds for a draw of the next state at
+        noise scale 1 (a Bernoulli of the model's own P(end))."""
+        if self.termination not in TERMINATIONS:
+            raise ValueError(f"termination: expected one of {', '.join(TERMINATIONS)}, got "
+                             f"{self.termination!r}")
+        if self.termination == "rule":
+            return done_fn, None
+        if self.termination == "predictive":
+            if done_fn is None:
+                raise ValueError("termination: 'predictive' applies the task's done_fn to a "
+                                 "draw of the next state; got done_fn=None")
+            noisy = self.replace(noise_scale=1.0)
+            return done_fn, lambda obs, action, key: (
+                done_fn(noisy.sample(obs, action, key)) > 0.5).astype(jnp.float32)
+        if self.hazard is None:
+            raise ValueError(f"termination: {self.termination!r} needs a learned hazard, and "
+                             f"this simulator has none (hazard=None)")
+        learned = lambda obs, action, key: self.hazard_prob(obs, action)
+        return (None if self.termination == "hazard" else done_fn), learned
+
 
 @struct.dataclass
 class ValueRollout:
@@ -181,12 +220,28 @@ def start_values(start_pool: jax.Array, n_policies: int, n_episodes: int, key: j
                         t=jnp.zeros((), jnp.int32))
 
 
+def ends_episode(obs: jax.Array, action: jax.Array, next_obs: jax.Array, key: jax.Array,
+                 done_fn: Callable | None, hazard_fn: Callable | None) -> jax.Array:
+    """Whether a step ends its episode: the task's rule ``done_fn(next_obs)`` (None: never) or
+    a draw below the hazard ``hazard_fn(obs, action, key) -> P(end) [...]`` (None: none).
+    -> bool [...]"""
+    done = (jnp.zeros(next_obs.shape[:-1], bool) if done_fn is None
+            else done_fn(next_obs) > 0.5)
+    if hazard_fn is not None:
+        k_prob, k_draw = jax.random.split(key)
+        done = done | (jax.random.uniform(k_draw, done.shape) < hazard_fn(obs, action, k_prob))
+    return done
+
+
 def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics,
-                   reward_fn: Callable, done_fn: Callable, key: jax.Array, *, n_steps: int,
-                   horizon: int, gamma: float | jax.Array) -> ValueRollout:
+                   reward_fn: Callable, done_fn: Callable | None, key: jax.Array, *,
+                   n_steps: int, horizon: int, gamma: float | jax.Array,
+                   hazard_fn: Callable | None = None) -> ValueRollout:
     """Run ``n_steps`` more steps (steps past ``horizon`` change nothing).
 
     policy_params: stacked [P, ...]; each policy acts stochastically in its own episodes.
+    An episode ends as ``ends_episode`` says (``Simulator.terminations`` gives a simulator's
+    done_fn / hazard_fn).
     """
     n_pol = roll.obs.shape[0]
     act = jax.vmap(sample_action)  # over policies; each call batches its n episodes
@@ -194,10 +249,14 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
     def step(roll: ValueRollout, key):
         k_act, k_dyn = jax.random.split(key)
         action, _, _ = act(policy_params, roll.obs, jax.random.split(k_act, n_pol))
+        if hazard_fn is not None:  # its own key; without a hazard the draws stay as they were
+            k_dyn, k_end = jax.random.split(k_dyn)
+        else:
+            k_end = None
         next_obs = dynamics(roll.obs, action, k_dyn)
         live = roll.alive & (roll.t < horizon)
         reward = reward_fn(roll.obs, action, next_obs)
-        done = done_fn(next_obs) > 0.5
+        done = ends_episode(roll.obs, action, next_obs, k_end, done_fn, hazard_fn)
         discount = jnp.asarray(gamma, jnp.float32) ** roll.t.astype(jnp.float32)
         return ValueRollout(
             obs=jnp.where(live[..., None], next_obs, roll.obs),
@@ -211,27 +270,30 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
 
 
 def simulated_returns(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
-                      done_fn: Callable, start_pool: jax.Array, key: jax.Array, *,
-                      n_episodes: int, horizon: int, gamma: float
-                      ) -> tuple[jax.Array, jax.Array]:
+                      done_fn: Callable | None, start_pool: jax.Array, key: jax.Array, *,
+                      n_episodes: int, horizon: int, gamma: float,
+                      hazard_fn: Callable | None = None) -> tuple[jax.Array, jax.Array]:
     """Each simulated episode's discounted return and length: n_episodes episodes of at most
-    ``horizon`` steps per policy. -> (returns [P, n], lengths [P, n] int32)."""
+    ``horizon`` steps per policy, ended as ``ends_episode`` says.
+    -> (returns [P, n], lengths [P, n] int32)."""
     k_start, k_run = jax.random.split(key)
     n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
     roll = start_values(start_pool, n_pol, n_episodes, k_start)
     roll = advance_values(roll, policy_params, dynamics, reward_fn, done_fn, k_run,
-                          n_steps=horizon, horizon=horizon, gamma=gamma)
+                          n_steps=horizon, horizon=horizon, gamma=gamma, hazard_fn=hazard_fn)
     return roll.ret, roll.length
 
 
 def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
-                     done_fn: Callable, start_pool: jax.Array, key: jax.Array, *,
-                     n_episodes: int, horizon: int, gamma: float) -> tuple[jax.Array, jax.Array]:
+                     done_fn: Callable | None, start_pool: jax.Array, key: jax.Array, *,
+                     n_episodes: int, horizon: int, gamma: float,
+                     hazard_fn: Callable | None = None) -> tuple[jax.Array, jax.Array]:
     """Discounted value of each policy in ``dynamics``: mean over n_episodes episodes of at
     most ``horizon`` steps (``simulated_returns`` averaged).
     -> (values [P], mean episode lengths [P])."""
     ret, length = simulated_returns(policy_params, dynamics, reward_fn, done_fn, start_pool,
-                                    key, n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+                                    key, n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                                    hazard_fn=hazard_fn)
     return ret.mean(1), length.mean(1).astype(jnp.float32)
 
 

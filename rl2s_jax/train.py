@@ -70,6 +70,7 @@ from rl2s_jax.simulate import (
     value_difference,
 )
 from rl2s_jax.tasks import get_task
+from rl2s_jax.termination import LEARNED, fit_hazard, init_hazard
 
 __all__ = ["DEFAULT_EPS", "LEGACY_MODEL", "METHODS", "TrainConfig", "TrainData", "TrainState",
            "heldout_mask", "init", "make_train_data", "member_mle_updates", "n_worst",
@@ -90,6 +91,8 @@ class TrainData:
     scored on (V = 0 without held-out episodes); those episodes are not among the N rows.
     steps_left [N] int32: how many rows of the same episode follow row i, in order (row i + j
     continues row i for j <= steps_left[i]); the multi-step loss needs it (None: unknown).
+    done [N] float32: 1 where the row's next state is terminal (the learned termination hazard
+    is fitted to it; None: unknown).
     """
 
     obs: jax.Array
@@ -105,6 +108,7 @@ class TrainData:
     val_action: jax.Array
     val_next_obs: jax.Array
     steps_left: jax.Array | None = None
+    done: jax.Array | None = None
 
     @property
     def n_policies(self) -> int:
@@ -215,7 +219,8 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
                                                ignore_dims=config.ignore_dims),
                      val_obs=f32(ds.obs, val), val_action=f32(ds.action, val),
                      val_next_obs=f32(ds.next_obs, val),
-                     steps_left=jnp.asarray(steps_left, jnp.int32))
+                     steps_left=jnp.asarray(steps_left, jnp.int32),
+                     done=f32(ds.done, order))
 
 
 def episode_steps_left(policy_id: np.ndarray, episode_id: np.ndarray, t: np.ndarray
@@ -269,6 +274,7 @@ class TrainState:
     stopped: jax.Array            # [E] bool: early-stopped (frozen at its best weights)
     best_gen: Params | None       # [E, ...] weights at best_nll (None: early stopping off)
     ema_gen: Params | None        # [E, ...] moving average of gen (None: ema_decay = 0)
+    hazard: Params | None         # learned termination classifier (None: termination "rule")
     config: TrainConfig = struct.field(pytree_node=False)
 
 
@@ -351,9 +357,10 @@ def _sampler(gen, state: TrainState, noise_scale: float) -> Simulator:
     """The members as rollouts use them (no gradient into the generator)."""
     cfg = state.config
     return Simulator(gen=jax.lax.stop_gradient(gen), norm=state.norm, rank=state.rank,
-                     task=cfg.task, obs_clip=cfg.obs_clip, noise_scale=noise_scale,
-                     n_elites=cfg.n_elites, member_mode=cfg.member_mode,
-                     uncertainty=cfg.uncertainty)
+                     hazard=state.hazard, task=cfg.task, obs_clip=cfg.obs_clip,
+                     noise_scale=noise_scale, n_elites=cfg.n_elites,
+                     member_mode=cfg.member_mode, uncertainty=cfg.uncertainty,
+                     termination=cfg.termination)
 
 
 def _gen_tx(cfg: TrainConfig, lr: float) -> optax.GradientTransformation:
@@ -400,8 +407,17 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
     P = data.n_policies
     E = cfg.ensemble_size
     obs_size, act_size = data.obs.shape[1], data.action.shape[1]
+    k_hazard = jax.random.fold_in(key, 7)  # apart from the split: other draws stay as they were
     k_gen, k_disc, k_sim, k_buf, k_vd, k_roll, key = jax.random.split(key, 7)
     gen = dyn.init_ensemble(k_gen, cfg.dynamics_spec, obs_size, act_size, E)
+    hazard = None
+    if cfg.termination in LEARNED:
+        if data.done is None:
+            raise ValueError(f"termination: {cfg.termination!r} learns from the data's done "
+                             f"flags, and TrainData.done is None (make_train_data sets it)")
+        k_init, k_fit = jax.random.split(k_hazard)
+        hazard, _ = fit_hazard(k_fit, init_hazard(k_init, obs_size, act_size, cfg.hazard_hidden),
+                               norm, data.obs, data.action, data.done, steps=cfg.hazard_steps)
     heldout = _heldout_nll(gen, norm, data)
     rank = dyn.rank_members(heldout)
     eps = jnp.asarray(cfg.initial_eps if eps is None else eps, jnp.float32)
@@ -417,13 +433,15 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
         heldout_nll=heldout, rank=rank, best_nll=jnp.full((E,), jnp.inf, jnp.float32),
         since_best=jnp.zeros((E,), jnp.int32), stopped=jnp.zeros((E,), bool),
         best_gen=gen if cfg.early_stopping else None,
-        ema_gen=gen if cfg.ema_decay else None, config=cfg)
+        ema_gen=gen if cfg.ema_decay else None, hazard=hazard, config=cfg)
     if cfg.vd_every:
         task = get_task(cfg.task)
+        sim = _sampler(gen, state, cfg.sim_noise)
+        done_fn, hazard_fn = sim.terminations(task.done_fn)
         sim_value, sim_length = simulated_values(
-            data.policies, _sampler(gen, state, cfg.sim_noise).dynamics, task.reward_fn,
-            task.done_fn, data.start_pool, k_vd, n_episodes=cfg.vd_episodes,
-            horizon=cfg.vd_horizon, gamma=cfg.gamma)
+            data.policies, sim.dynamics, task.reward_fn, done_fn, data.start_pool, k_vd,
+            n_episodes=cfg.vd_episodes, horizon=cfg.vd_horizon, gamma=cfg.gamma,
+            hazard_fn=hazard_fn)
         vd = value_difference(sim_value, data.true_value)
         selected = select_worst(vd, n_worst(eps, P))
         vd_roll = start_values(data.start_pool, P, cfg.vd_episodes, k_roll)
@@ -673,10 +691,11 @@ def _advance_vd(state: TrainState, data: TrainData, key):
     task = get_task(cfg.task)
     H, K = cfg.vd_horizon, cfg.vd_every
     k_run, k_restart = jax.random.split(key)
-    roll = advance_values(state.vd_roll, data.policies,
-                          _sampler(state.gen, state, cfg.sim_noise).dynamics,
-                          task.reward_fn, task.done_fn, k_run, n_steps=-(-H // K), horizon=H,
-                          gamma=cfg.gamma)
+    sim = _sampler(state.gen, state, cfg.sim_noise)
+    done_fn, hazard_fn = sim.terminations(task.done_fn)
+    roll = advance_values(state.vd_roll, data.policies, sim.dynamics, task.reward_fn, done_fn,
+                          k_run, n_steps=-(-H // K), horizon=H, gamma=cfg.gamma,
+                          hazard_fn=hazard_fn)
     done = roll.t >= H
     sim_value = roll.ret.mean(1)
     vd = value_difference(sim_value, data.true_value)

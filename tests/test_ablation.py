@@ -85,7 +85,11 @@ def test_rollout_settings_parse_and_reject_bad_input(ab):
     assert ab.parse_rollouts("random:1, mean:0,fixed:0.5") == [
         ("random", 1.0), ("mean", 0.0), ("fixed", 0.5)]
     assert ab.parse_rollouts(None) == [] and ab.parse_rollouts("") == []
-    for bad in ("average:0", "mean", "mean:-1", "mean:x", "random:nan"):
+    assert ab.parse_rollouts("random:0:predictive,mean:1:rule") == [
+        ("random", 0.0, "predictive"), ("mean", 1.0, "rule")]
+    assert ab.rollout_row("rl2s", ("random", 0.0, "both")) == "rl2s@random:0:both"
+    assert ab.rollout_row("rl2s", ("mean", 1.5)) == "rl2s@mean:1.5"
+    for bad in ("average:0", "mean", "mean:-1", "mean:x", "random:nan", "random:0:often"):
         with pytest.raises(SystemExit, match="rollouts"):
             ab.parse_rollouts(bad)
 

@@ -177,22 +177,26 @@ def terminal_states(sims, policies, pool, keys, *, task, n_episodes, horizon):
 
 
 def hazard_check(states, ds) -> dict:
-    """How the learned hazard of each lane predicts the logged terminations of a Dataset's
-    rows: the summed h(s, a) against the count of done rows, and its mean cross-entropy
-    against the base rate's. A diagnosis of the test policies' data (never used to select)."""
-    from rl2s_jax.termination import bce, hazard_logit
+    """How the learned per-step hazard of each lane predicts the logged terminations of a
+    Dataset's rows: the summed h(s, a) against the count of done rows, and its mean
+    cross-entropy against the base rate's. A diagnosis of the test policies' data (never used
+    to select)."""
+    from rl2s_jax.termination import hazard_prob
 
     obs, act = jnp.asarray(ds.obs), jnp.asarray(ds.action)
-    done = jnp.asarray(np.asarray(ds.done), jnp.float32)
-    logits = jax.jit(jax.vmap(lambda h, n: hazard_logit(h, n, obs, act)))(states.hazard,
-                                                                          states.norm)
-    base = float(done.mean())
-    base_bce = float(bce(jnp.full(done.shape, np.log(base / (1 - base))), done)) if 0 < base < 1 \
-        else float("nan")
+    done = np.asarray(ds.done, np.float64)
+    window = states.config.hazard_window
+    h = np.asarray(jax.jit(jax.vmap(lambda p, n: hazard_prob(p, n, obs, act, window)))(
+        states.hazard, states.norm), np.float64)
+
+    def xent(p):
+        p = np.clip(p, 1e-7, 1 - 1e-7)
+        return float(-np.mean(done * np.log(p) + (1 - done) * np.log1p(-p)))
+
     return {"rows": int(done.size), "done": int(done.sum()),
-            "predicted": [round(float(x), 1) for x in jax.nn.sigmoid(logits).sum(-1)],
-            "bce": [round(float(bce(lg, done)), 5) for lg in logits],
-            "base_rate_bce": round(base_bce, 5)}
+            "predicted": [round(float(x), 1) for x in h.sum(-1)],
+            "bce": [round(xent(x), 5) for x in h],
+            "base_rate_bce": round(xent(np.full(done.shape, done.mean())), 5)}
 
 
 def termination_causes(task_name: str, terminal, ended) -> dict | None:

@@ -344,7 +344,7 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None
                          hazard=sim.get("hazard"), task=cfg.task, obs_clip=cfg.obs_clip,
                          noise_scale=cfg.sim_noise, n_elites=cfg.n_elites,
                          member_mode=cfg.member_mode, uncertainty=cfg.uncertainty,
-                         termination=cfg.termination), meta
+                         termination=cfg.termination, hazard_window=cfg.hazard_window), meta
 
     try:
         return ck.load_intact(step, ("meta", "simulator"), load)[1]

@@ -92,6 +92,8 @@ class TrainConfig:
     # "predictive": the rule also on one draw at noise scale 1 (rl2s_jax.termination)
     hazard_hidden: tuple[int, ...] = (256, 256)  # the hazard classifier's hidden sizes
     hazard_steps: int = 3000       # its Adam updates (in ``init``, on every training row)
+    hazard_window: int = 1         # K: it learns P(end within K steps), steps end with
+    # 1 - (1 - P)^(1/K) (1: the one-step hazard itself)
 
     @property
     def adversarial(self) -> bool:
@@ -151,7 +153,8 @@ class TrainConfig:
             raise ValueError(f"eps: expected a float in (0, 1], got {self.eps!r}")
         for name in ("batch_size", "updates_per_step", "disc_updates", "sim_envs", "sim_steps",
                      "sim_horizon", "buffer_size", "vd_episodes", "vd_horizon",
-                     "ensemble_size", "n_elites", "holdout_rows", "multistep_steps"):
+                     "ensemble_size", "n_elites", "holdout_rows", "multistep_steps",
+                     "hazard_window"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")

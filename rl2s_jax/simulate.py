@@ -38,7 +38,8 @@ class Simulator:
       (the elites' average), "fixed" (the best member). ``uncertainty``: the disagreement
       measure ("std" or "max_pairwise", ``dynamics.disagreement``).
 
-    hazard: a learned termination classifier (``termination.init_hazard``) or None;
+    hazard: a learned termination classifier (``termination.init_hazard``) or None, of
+    P(end within ``hazard_window`` steps);
     termination: what ends a simulated episode, "rule" (the task's done_fn on the simulated
     next state), "hazard" (a draw below h(s, a)), "both", or "predictive" (the rule, or the
     rule on one noise-scale-1 draw of the next state; ``terminations``).
@@ -60,6 +61,7 @@ class Simulator:
     member_mode: str = struct.field(pytree_node=False, default="random")
     uncertainty: str = struct.field(pytree_node=False, default="std")
     termination: str = struct.field(pytree_node=False, default="rule")
+    hazard_window: int = struct.field(pytree_node=False, default=1)
 
     def __post_init__(self):
         if isinstance(self.gen, list | tuple):  # one generator: an ensemble of one
@@ -161,7 +163,7 @@ class Simulator:
         if self.hazard is None:
             raise ValueError("hazard: this simulator has no learned termination (train with "
                              "termination='hazard' or 'both')")
-        return hazard_prob(self.hazard, self.norm, obs, action)
+        return hazard_prob(self.hazard, self.norm, obs, action, self.hazard_window)
 
     def terminations(self, done_fn: Callable | None) -> tuple[Callable | None, Callable | None]:
         """(done_fn, hazard_fn) for ``advance_values`` under this simulator's ``termination``:

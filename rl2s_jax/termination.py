@@ -20,6 +20,11 @@ model's own one-step predictive distribution (noise scale 1), while the rollout 
 the state it would anyway (with ``sim_noise`` 0, the mean). A mean rollout then keeps the
 chance of ending that the model's one-step uncertainty gives, without the drift that sampling
 every step adds up to (sampled rollouts ended strong Ants far too early: RESULTS).
+A window K > 1 smooths the target: the classifier learns q(s, a) = P(the episode ends within
+the next K steps), and a step ends with h = 1 - (1 - q)^(1/K), the constant per-step hazard
+that gives q over K steps (``window_labels``, ``hazard_prob``). Summed over real rows h still
+counts the terminations where q is small, while a model whose states only come near the
+states before an end (not onto the boundary itself) still gets a chance of ending.
 Shapes: N rows, o = obs size, a = action size.
 """
 from __future__ import annotations
@@ -52,10 +57,24 @@ def hazard_logit(params: dict, norm: Normalizer, obs: jax.Array, action: jax.Arr
     return dyn.relu_mlp(params["layers"], dyn.markov_inputs(norm, obs, action))[..., 0]
 
 
-def hazard_prob(params: dict, norm: Normalizer, obs: jax.Array, action: jax.Array
-                ) -> jax.Array:
-    """h(s, a) in [0, 1]. [..., o], [..., a] -> [...]"""
-    return jax.nn.sigmoid(hazard_logit(params, norm, obs, action))
+def hazard_prob(params: dict, norm: Normalizer, obs: jax.Array, action: jax.Array,
+                window: int = 1) -> jax.Array:
+    """The per-step hazard h(s, a) in [0, 1]: the classifier's probability for window 1, else
+    1 - (1 - q)^(1/window) of its q = P(end within window steps). [..., o], [..., a] -> [...]"""
+    logit = hazard_logit(params, norm, obs, action)
+    if window == 1:
+        return jax.nn.sigmoid(logit)
+    return -jnp.expm1(jax.nn.log_sigmoid(-logit) / window)
+
+
+def window_labels(done: jax.Array, steps_left: jax.Array, window: int) -> jax.Array:
+    """[N] float32: 1 where the row's episode ends by termination within ``window`` steps
+    (this row included). done [N]: 1 on terminal rows; steps_left [N]: rows of the same episode
+    that follow (``train.episode_steps_left``). Window 1 gives ``done`` itself."""
+    if window == 1:
+        return done.astype(jnp.float32)
+    last = jnp.arange(done.shape[0]) + steps_left
+    return ((steps_left < window) & (done[last] > 0.5)).astype(jnp.float32)
 
 
 def bce(logit: jax.Array, done: jax.Array) -> jax.Array:

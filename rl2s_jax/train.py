@@ -70,7 +70,7 @@ from rl2s_jax.simulate import (
     value_difference,
 )
 from rl2s_jax.tasks import get_task
-from rl2s_jax.termination import LEARNED, fit_hazard, init_hazard
+from rl2s_jax.termination import LEARNED, fit_hazard, init_hazard, window_labels
 
 __all__ = ["DEFAULT_EPS", "LEGACY_MODEL", "METHODS", "TrainConfig", "TrainData", "TrainState",
            "heldout_mask", "init", "make_train_data", "member_mle_updates", "n_worst",
@@ -360,7 +360,7 @@ def _sampler(gen, state: TrainState, noise_scale: float) -> Simulator:
                      hazard=state.hazard, task=cfg.task, obs_clip=cfg.obs_clip,
                      noise_scale=noise_scale, n_elites=cfg.n_elites,
                      member_mode=cfg.member_mode, uncertainty=cfg.uncertainty,
-                     termination=cfg.termination)
+                     termination=cfg.termination, hazard_window=cfg.hazard_window)
 
 
 def _gen_tx(cfg: TrainConfig, lr: float) -> optax.GradientTransformation:
@@ -416,8 +416,13 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
             raise ValueError(f"termination: {cfg.termination!r} learns from the data's done "
                              f"flags, and TrainData.done is None (make_train_data sets it)")
         k_init, k_fit = jax.random.split(k_hazard)
+        if cfg.hazard_window > 1 and data.steps_left is None:
+            raise ValueError("hazard_window: a window > 1 needs TrainData.steps_left "
+                             "(make_train_data sets it); set hazard_window=1")
+        labels = (data.done if cfg.hazard_window == 1
+                  else window_labels(data.done, data.steps_left, cfg.hazard_window))
         hazard, _ = fit_hazard(k_fit, init_hazard(k_init, obs_size, act_size, cfg.hazard_hidden),
-                               norm, data.obs, data.action, data.done, steps=cfg.hazard_steps)
+                               norm, data.obs, data.action, labels, steps=cfg.hazard_steps)
     heldout = _heldout_nll(gen, norm, data)
     rank = dyn.rank_members(heldout)
     eps = jnp.asarray(cfg.initial_eps if eps is None else eps, jnp.float32)

@@ -192,3 +192,34 @@ def test_sim_env_ends_episodes_by_the_hazard(pm):
                               get_task("pointmass").reward_fn, done_fn, jax.random.PRNGKey(2),
                               n_steps=5, horizon=5, gamma=1.0, hazard_fn=hazard_fn)
         assert (np.asarray(roll.length) == (1 if ends else 5)).all()
+
+
+def test_window_labels_and_the_per_step_hazard_match_numpy():
+    """Episodes of lengths 5 (terminated), 4 (truncated), 3 (terminated), rows in order."""
+    from rl2s_jax.termination import window_labels
+    from rl2s_jax.train import episode_steps_left
+
+    ep = np.repeat([0, 1, 2], [5, 4, 3])
+    t = np.concatenate([np.arange(5), np.arange(4), np.arange(3)])
+    done = np.zeros(12, np.float32)
+    done[[4, 11]] = 1
+    left = episode_steps_left(np.zeros(12, int), ep, t)
+    for k in (1, 2, 4):
+        ref = np.zeros(12, np.float32)
+        for start, n, ended in ((0, 5, True), (5, 4, False), (9, 3, True)):
+            if ended:
+                ref[start + max(n - k, 0):start + n] = 1
+        got = window_labels(jnp.asarray(done), jnp.asarray(left), k)
+        np.testing.assert_array_equal(np.asarray(got), ref, err_msg=f"window {k}")
+    from rl2s_jax.termination import hazard_logit
+
+    params = init_hazard(jax.random.PRNGKey(0), 2, 1, (8,))
+    norm = _identity_norm(2, 1)
+    obs = jnp.asarray(np.random.default_rng(0).normal(0, 3, (6, 2)), jnp.float32)
+    act = jnp.zeros((6, 1))
+    params["layers"][-1]["w"] = params["layers"][-1]["w"] * 300  # logits of several units
+    q = 1 / (1 + np.exp(-np.asarray(hazard_logit(params, norm, obs, act), np.float64)))
+    assert q.min() < 0.01 and q.max() > 0.3
+    for k in (1, 3, 20):
+        h = np.asarray(hazard_prob(params, norm, obs, act, k), np.float64)
+        np.testing.assert_allclose(h, 1 - (1 - q) ** (1 / k), rtol=1e-4)

@@ -96,7 +96,7 @@ from rl2s_jax.policies import index_params
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, replicate, shard_lanes
 from rl2s_jax.sim_env import SimulatorEnv, branch_pool, real_rows, scaled_env_options
-from rl2s_jax.simulate import Simulator, simulated_returns, start_pool
+from rl2s_jax.simulate import Simulator, simulator_returns, start_pool
 from rl2s_jax.tasks import get_task, task_names
 from rl2s_jax.train import (
     DEFAULT_EPS,
@@ -224,13 +224,9 @@ def _lane_returns(sims: Simulator, policies, pool, keys, *, n_episodes, horizon,
     """assess._sim_returns vmapped over lanes: sims and keys carry a leading lane axis.
     -> (returns, lengths) [L, P, n]"""
     task = get_task(sims.task)
-
-    def one(sim, key):
-        done_fn, hazard_fn = sim.terminations(task.done_fn)
-        return simulated_returns(policies, sim.dynamics, task.reward_fn, done_fn, pool, key,
-                                 n_episodes=n_episodes, horizon=horizon, gamma=gamma,
-                                 hazard_fn=hazard_fn)
-    return jax.vmap(one)(sims, keys)
+    return jax.vmap(lambda sim, key: simulator_returns(
+        sim, task, policies, pool, key, n_episodes=n_episodes, horizon=horizon,
+        gamma=gamma))(sims, keys)
 
 
 def evaluate_lanes(states, seeds, policies, pool, truth, *, key_base: int, n_episodes, horizon,

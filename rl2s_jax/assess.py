@@ -14,18 +14,15 @@ import numpy as np
 from rl2s_jax.evaluate import bootstrap_intervals, ranking_metrics
 from rl2s_jax.oracle import oracle_dynamics
 from rl2s_jax.policies import Params, num_policies
-from rl2s_jax.simulate import Simulator, simulated_returns, start_pool
+from rl2s_jax.simulate import Simulator, simulated_returns, simulator_returns, start_pool
 from rl2s_jax.tasks import get_task
 from rl2s_jax.train import true_values, true_values_se
 
 
 @partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
 def _sim_returns(sim: Simulator, policies, pool, key, *, n_episodes, horizon, gamma):
-    task = get_task(sim.task)
-    done_fn, hazard_fn = sim.terminations(task.done_fn)
-    return simulated_returns(policies, sim.dynamics, task.reward_fn, done_fn, pool, key,
-                             n_episodes=n_episodes, horizon=horizon, gamma=gamma,
-                             hazard_fn=hazard_fn)
+    return simulator_returns(sim, get_task(sim.task), policies, pool, key,
+                             n_episodes=n_episodes, horizon=horizon, gamma=gamma)
 
 
 def _protocol(ds, policies, n_episodes, horizon, gamma) -> tuple[int, float]:

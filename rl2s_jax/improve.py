@@ -36,7 +36,7 @@ from rl2s_jax.collect import measure_values
 from rl2s_jax.policies import Params, num_policies
 from rl2s_jax.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sim_env import SimulatorEnv
-from rl2s_jax.simulate import Simulator, simulated_returns
+from rl2s_jax.simulate import Simulator, simulator_returns
 from rl2s_jax.tasks import Task, get_task
 
 
@@ -187,11 +187,9 @@ def _member_returns(sim: Simulator, members, policies, pool, key, *, task: Task,
 
     def one(m, policy):
         alone = sim.replace(rank=((jnp.arange(E) - m) % E).astype(jnp.int32))
-        done_fn, hazard_fn = alone.terminations(task.done_fn)
-        ret, _ = simulated_returns(jax.tree_util.tree_map(lambda x: x[None], policy),
-                                   alone.dynamics, task.reward_fn, done_fn, pool, key,
-                                   n_episodes=n_episodes, horizon=horizon, gamma=gamma,
-                                   hazard_fn=hazard_fn)
+        ret, _ = simulator_returns(alone, task, jax.tree_util.tree_map(lambda x: x[None], policy),
+                                   pool, key, n_episodes=n_episodes, horizon=horizon,
+                                   gamma=gamma)
         return ret[0].mean()
     return jax.vmap(lambda m: jax.vmap(lambda p: one(m, p))(policies))(members)
 

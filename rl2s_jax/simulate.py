@@ -286,6 +286,18 @@ def simulated_returns(policy_params: Params, dynamics: Dynamics, reward_fn: Call
     return roll.ret, roll.length
 
 
+def simulator_returns(sim: Simulator, task, policy_params: Params, start_pool: jax.Array,
+                      key: jax.Array, *, n_episodes: int, horizon: int, gamma: float
+                      ) -> tuple[jax.Array, jax.Array]:
+    """``simulated_returns`` of a Simulator under a task's ``reward_fn`` / ``done_fn``, its
+    episodes ended as the simulator's ``termination`` says (``Simulator.terminations``).
+    -> (returns [P, n], lengths [P, n] int32)"""
+    done_fn, hazard_fn = sim.terminations(task.done_fn)
+    return simulated_returns(policy_params, sim.dynamics, task.reward_fn, done_fn, start_pool,
+                             key, n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                             hazard_fn=hazard_fn)
+
+
 def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
                      done_fn: Callable | None, start_pool: jax.Array, key: jax.Array, *,
                      n_episodes: int, horizon: int, gamma: float,

@@ -116,16 +116,19 @@ def rollout_row(variant: str, rollout: tuple) -> str:
 
 
 def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
-             rollout: tuple[str, float] | None = None) -> list[dict]:
+             rollout: tuple[str, float] | None = None, validation=None) -> list[dict]:
     """Test and selection metrics of every lane, with the moving average (weights=True) or the
     trained weights, rolled out with the config's settings or ``rollout`` (member mode, noise
-    scale). test / select: (policies, start pool, true values)."""
+    scale). test / select / validation (optional): (policies, start pool, true values)."""
     sims = simulator(states, average=weights)
     if rollout is not None:
         sims = sims.replace(member_mode=rollout[0], noise_scale=rollout[1],
                             termination=rollout[2] if len(rollout) > 2 else sims.termination)
     out = [{} for _ in seeds]
-    for name, (pols, pool, truth), base in (("test", test, 1000), ("select", select, 2000)):
+    sets = [("test", test, 1000), ("select", select, 2000)]
+    if validation is not None:
+        sets.append(("validation", validation, 3000))
+    for name, (pols, pool, truth), base in sets:
         keys = jnp.stack([jax.random.PRNGKey(base + s) for s in seeds])
         returns, lengths = _lane_returns(sims, pols, pool, keys, n_episodes=n_episodes,
                                          horizon=cfg.vd_horizon, gamma=cfg.gamma)
@@ -199,6 +202,55 @@ def hazard_check(states, ds) -> dict:
             "base_rate_bce": round(xent(np.full(done.shape, done.mean())), 5)}
 
 
+def open_loop_check(states, ds, task, *, ks=(1, 10, 50), n_windows: int = 256) -> dict:
+    """Each lane's simulator rolled from the test policies' logged states under their LOGGED
+    actions for k steps (``simulate.open_loop_returns``), against what the logged episodes
+    earned in the same windows: per k, the Kendall tau of the policies' mean k-step returns,
+    the spread ratio (std over policies, model / real: below 1 the model compresses the
+    policies), the mean relative error, the fraction of windows that end, and the per-policy
+    means at the largest k. A diagnosis of the test data (never used to select): if the
+    model ranks the policies' windows well here but not in closed loop, the error is in how
+    the policies react to the model's states, not in the dynamics under their actions."""
+    from rl2s_jax.evaluate import kendall_tau
+    from rl2s_jax.simulate import logged_window_returns, open_loop_returns, open_loop_windows
+
+    k_max = max(ks)
+    rows, steps = open_loop_windows(ds, k_max, n_windows, seed=7)
+    real_r, real_end = logged_window_returns(ds, rows, steps, k_max, task.reward_fn)
+    idx = rows[..., None] + np.minimum(np.arange(k_max), steps[..., None] - 1)
+    obs = jnp.asarray(np.asarray(ds.obs)[rows.ravel()])
+    act = jnp.asarray(np.asarray(ds.action)[idx.reshape(-1, k_max)])
+    n_steps = jnp.asarray(steps.ravel())
+    sims = simulator(states, average=False)
+
+    def one(sim, key):
+        done_fn, hazard_fn = sim.terminations(task.done_fn)
+        r, _, ended = open_loop_returns(sim.dynamics, task.reward_fn, done_fn, obs, act,
+                                        n_steps, key, hazard_fn=hazard_fn)
+        return r, ended
+
+    n_lanes = int(states.step.shape[0])
+    keys = jnp.stack([jax.random.PRNGKey(4000 + i) for i in range(n_lanes)])
+    sim_r, sim_end = (np.asarray(x) for x in jax.jit(jax.vmap(one))(sims, keys))
+    sim_r = sim_r.reshape(n_lanes, *rows.shape, k_max).astype(np.float64)
+    sim_end = sim_end.reshape(n_lanes, *rows.shape, k_max)
+    out = {"windows_per_policy": n_windows}
+    for k in ks:
+        real = real_r[..., :k].sum(-1).mean(-1)  # [P]
+        model = sim_r[..., :k].sum(-1).mean(-1)  # [L, P]
+        out[str(k)] = {
+            "tau": [round(kendall_tau(real, m), 3) for m in model],
+            "spread_ratio": [round(float(np.std(m) / np.std(real)), 3) for m in model],
+            "relative_error": [round(float(np.mean(np.abs(m - real)) / np.mean(np.abs(real))),
+                                     3) for m in model],
+            "real_end": round(float((real_end & (steps <= k)).mean()), 4),
+            "model_end": [round(float(e[..., :k].any(-1).mean()), 4) for e in sim_end]}
+        if k == k_max:
+            out[str(k)]["real_per_policy"] = [round(float(x), 2) for x in real]
+            out[str(k)]["model_per_policy"] = [[round(float(x), 2) for x in m] for m in model]
+    return out
+
+
 def termination_causes(task_name: str, terminal, ended) -> dict | None:
     """{rule: share of the ended episodes whose terminal state breaks it (rules can overlap)},
     plus "ended": share of episodes that ended; None for a task without rules."""
@@ -238,19 +290,21 @@ def summarize_rows(results: list[dict]) -> dict:
         adversarial = cfg.get("method") in ("rl2s", "gail")
         from_step = int(cfg.get("pretrain_steps") or 0) if adversarial else 0
         for row, lanes in res["curves"].items():
-            finals, chosen, steps, swings = [], [], [], []
+            finals, chosen, steps, swings, valids = [], [], [], [], []
             for points in lanes.values():
                 sw = tau_swing(points, from_step)
                 if sw is not None:
                     swings.append(sw)
                 if points and points[-1]["test"] is not None:
                     finals.append(points[-1]["test"])
+                if points and points[-1].get("validation") is not None:
+                    valids.append(points[-1]["validation"])
                 sel = _select(points)
                 if sel is not None:
                     chosen.append(sel["test"])
                     steps.append(sel["step"])
             entry = {}
-            for what, rs in (("final", finals), ("selected", chosen)):
+            for what, rs in (("final", finals), ("selected", chosen), ("validation", valids)):
                 entry[what] = {}
                 for k in METRICS:
                     v = np.asarray([r[k] for r in rs], np.float64)
@@ -267,16 +321,20 @@ def summarize_rows(results: list[dict]) -> dict:
 
 def markdown(table: dict, task: str) -> str:
     cols = ("kendall_tau", "ndcg@1", "avd", "mvd")
+    vcols = ("kendall_tau", "avd") if any(e.get("validation", {}).get("avd", (None,))[0]
+                                          is not None for e in table.values()) else ()
     head = (f"| {task} | " + " | ".join(f"{c} final" for c in cols) + " | "
-            + " | ".join(f"{c} selected" for c in cols) + " | tau swing | selected steps |")
-    lines = [head, "|" + "---|" * (2 * len(cols) + 3)]
+            + " | ".join(f"{c} selected" for c in cols) + " | tau swing | selected steps |"
+            + "".join(f" validation {c} |" for c in vcols))
+    lines = [head, "|" + "---|" * (2 * len(cols) + 3 + len(vcols))]
     fmt = lambda c: "n/a" if c[0] is None else (f"{c[0]:.3g}" + ("" if c[1] is None
                                                                   else f" ± {c[1]:.2g}"))
     for row in [r for r in ROWS if r in table] + sorted(set(table) - set(ROWS)):
         e = table[row]
         cells = ([fmt(e["final"][c]) for c in cols] + [fmt(e["selected"][c]) for c in cols]
                  + [fmt(e.get("tau_swing", (None, None, 0)))])
-        lines.append(f"| {row} | " + " | ".join(cells) + f" | {e['selected_steps']} |")
+        lines.append(f"| {row} | " + " | ".join(cells) + f" | {e['selected_steps']} |"
+                     + "".join(f" {fmt(e['validation'][c])} |" for c in vcols))
     return "\n".join(lines)
 
 
@@ -297,6 +355,29 @@ def write_summary(out: str, task: str, paths: list[str]) -> str:
     return md
 
 
+def split_validation(train_ds, n: int):
+    """Leave-policies-out validation inside the training zoo: ``n`` training policies spread
+    over its value ranking (the middle of n equal slices) are held out whole, the model is
+    fitted on the rest, and the held-out ones are ranked like test policies. A choice made on
+    them (e.g. the termination) never sees the test policies, and unlike the training
+    policies' held-out episodes it measures generalisation to policies the model has not seen.
+    -> (fit Dataset, validation Dataset)"""
+    p = train_ds.n_policies
+    if not 2 <= n <= p - 2:
+        raise SystemExit(f"validation-policies: expected 2 ... {p - 2} (the training split "
+                         f"has {p} policies), got {n}")
+    order = np.argsort(np.asarray(train_ds.value_discounted, np.float64))
+    held = sorted(int(order[int((i + 0.5) * p / n)]) for i in range(n))
+    rest = [i for i in range(p) if i not in held]
+    zoo_ids = list(train_ds.meta["source"]["zoo_ids"])
+    out = []
+    for ids in (rest, held):
+        part = train_ds.select_policies(ids)
+        part.meta["source"] = {**part.meta["source"], "zoo_ids": [int(zoo_ids[i]) for i in ids]}
+        out.append(part)
+    return tuple(out)
+
+
 def parse_variant(spec: str) -> tuple[str, dict]:
     """'bc' or 'bc:multistep_steps=5+multistep_weight=0.5' -> (base variant, its own config
     overrides); the row is named by the whole spec."""
@@ -311,7 +392,8 @@ def parse_variant(spec: str) -> tuple[str, dict]:
     return base, own
 
 
-def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds) -> dict:
+def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds,
+                valid_ds=None) -> dict:
     base, own = parse_variant(variant)
     method, model = VARIANTS[base]
     overrides = {**_overrides(args.set), **model, **own}  # a legacy variant stays legacy
@@ -322,6 +404,9 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     test = (policies_for(test_ds), start_pool(test_ds),
             true_values(test_ds, cfg.vd_horizon, cfg.gamma))
     select = (data.policies, heldout_start_pool(train_ds), np.asarray(data.true_value))
+    validation = None if valid_ds is None else (
+        policies_for(valid_ds), start_pool(valid_ds),
+        true_values(valid_ds, cfg.vd_horizon, cfg.gamma))
     rows = {(False, None): variant} | ({(True, None): f"{variant}+ema"} if cfg.ema_decay
                                        else {})
     rollouts = parse_rollouts(args.rollouts)
@@ -361,7 +446,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
         for (weights, rollout), row in rows.items():
             for s, r in zip(seeds, evaluate(states, seeds, weights, test=test, select=select,
                                             cfg=cfg, n_episodes=sizes["eval_episodes"],
-                                            rollout=rollout),
+                                            rollout=rollout, validation=validation),
                             strict=True):
                 res["curves"][row][str(s)].append({"step": step, **r,
                                                    "finite": bool(m["finite"][s])})
@@ -369,7 +454,10 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
                 f = lambda d, k: "n/a" if k not in d else f"{d[k]:.3f}"
                 log(f"  {row:<9} seed {s} step {step:>5}  test tau {f(t, 'kendall_tau')}"
                     f"  nDCG@1 {f(t, 'ndcg@1')}  AVD {f(t, 'avd')}  MVD {f(t, 'mvd')}  | "
-                    f"select tau {f(sl, 'kendall_tau')}  AVD {f(sl, 'avd')}")
+                    f"select tau {f(sl, 'kendall_tau')}  AVD {f(sl, 'avd')}"
+                    + ("" if validation is None else
+                       f"  | validation tau {f(r['validation'] or {}, 'kendall_tau')}  AVD "
+                       f"{f(r['validation'] or {}, 'avd')}"))
         if data.n_heldout:
             elite = np.asarray(states.rank) < cfg.n_elites
             nll = np.where(elite, np.asarray(states.heldout_nll), 0).sum(1) / cfg.n_elites
@@ -382,6 +470,13 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     if cfg.termination in LEARNED:  # the hazard's calibration on the test policies' rows
         res["hazard_check"] = hazard_check(states, test_ds)
         log(f"[ablation] {variant}: hazard on the test rows {res['hazard_check']}")
+    if args.open_loop:
+        res["open_loop"] = open_loop_check(states, test_ds, get_task(args.task),
+                                           ks=args.open_loop, n_windows=256)
+        log(f"[ablation] {variant}: open loop on the test policies' logged actions "
+            + "; ".join(f"k={k}: tau {v['tau']} spread {v['spread_ratio']} end "
+                        f"{v['real_end']} vs {v['model_end']}"
+                        for k, v in res["open_loop"].items() if k != "windows_per_policy"))
     if args.task in TERMINATION_RULES:  # why the simulated episodes end, vs the logged ones
         task = get_task(args.task)
         keys = jnp.stack([jax.random.PRNGKey(3000 + s) for s in seeds])
@@ -429,6 +524,16 @@ def main(argv=None) -> int:
                     help="also evaluate every variant with these rollout settings (member mode "
                     "random|mean|fixed : noise scale [: rule|hazard|both]), e.g. "
                     "random:1,mean:0,random:0:rule")
+    ap.add_argument("--open-loop", metavar="K,K,...",
+                    type=lambda t: tuple(sorted({pos(x) for x in t.split(",") if x})),
+                    help="also roll each trained simulator from the test policies' logged "
+                    "states under their logged actions for K steps and compare the K-step "
+                    "returns per policy (open_loop in the JSON), e.g. 1,10,50")
+    ap.add_argument("--validation-policies", type=int, metavar="N",
+                    help="hold N training policies (spread over their values) out of the "
+                    "model's data and rank them as validation policies (a choice made on "
+                    "them never sees the test policies); the test rows are then of a model "
+                    "fitted on the other training policies")
     ap.add_argument("--out", default="results/ablation")
     ap.add_argument("--data-dir")
     ap.add_argument("--summarize", nargs="+", metavar="DIR",
@@ -460,6 +565,13 @@ def main(argv=None) -> int:
                                    **VARIANTS[base][1], **own}).validate()
         except (ValueError, TypeError) as e:
             raise SystemExit(f"variants: {v!r}: {e}") from None
+    if args.validation_policies is not None:  # the zoo's split sizes, before any collection
+        from rl2s_jax.policies import load_zoo
+        n_train = len(load_zoo(args.task).split_ids("train"))
+        if not 2 <= args.validation_policies <= n_train - 2:
+            raise SystemExit(f"validation-policies: expected 2 ... {n_train - 2} (the "
+                             f"training split has {n_train} policies), got "
+                             f"{args.validation_policies}")
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
     sizes = dict(SIZES[profile])
@@ -479,9 +591,14 @@ def main(argv=None) -> int:
     log(f"[ablation] {args.task} on {jax.devices()[0].device_kind} ({backend}, jax "
         f"{jax.__version__}), profile {profile}, sizes {sizes}, data {data_sizes} "
         f"({'reused' if reused else 'collected'} in {time.perf_counter() - t0:.1f}s)")
+    train_ds, valid_ds = datasets["train"], None
+    if args.validation_policies is not None:
+        train_ds, valid_ds = split_validation(train_ds, args.validation_policies)
+        log(f"[ablation] validation policies {valid_ds.meta['policy_names']}; fitting on "
+            f"{train_ds.n_policies}")
     for v in variants:
         t1 = time.perf_counter()
-        run_variant(v, args, profile, sizes, datasets["train"], datasets["test"])
+        run_variant(v, args, profile, sizes, train_ds, datasets["test"], valid_ds)
         log(f"[ablation] {v}: {time.perf_counter() - t1:.1f}s")
     mine = sorted(glob.glob(os.path.join(args.out, f"ablation_{args.task}_*.json")))
     print(write_summary(args.out, args.task, mine))

@@ -340,3 +340,83 @@ def data_values(reward: np.ndarray, ended: np.ndarray, policy_id: np.ndarray,
         counts[p] += 1
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(counts > 0, sums / np.maximum(counts, 1), np.nan), counts
+
+
+# ------------------------------------------------------------------ open loop
+
+
+def open_loop_windows(ds, k: int, n_windows: int, seed: int = 0
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Windows of at most ``k`` logged steps per policy of a Dataset, for ``open_loop_returns``.
+
+    Start rows are drawn uniformly (with replacement, ``seed``) among a policy's rows whose
+    episode either goes on for k more steps in the data or ends by termination before that; a
+    window cut by the time limit or the end of collection has no known outcome and is never
+    drawn. -> (rows [P, n_windows] int64 start rows, steps [P, n_windows] int64: the logged
+    steps of each window, k unless the episode terminates first)."""
+    if not (isinstance(k, int | np.integer) and k >= 1):
+        raise ValueError(f"k: expected an int >= 1, got {k!r}")
+    if not (isinstance(n_windows, int | np.integer) and n_windows >= 1):
+        raise ValueError(f"n_windows: expected an int >= 1, got {n_windows!r}")
+    pid, eid = np.asarray(ds.policy_id), np.asarray(ds.episode_id)
+    done = np.asarray(ds.done, bool)
+    n = pid.shape[0]
+    new = np.r_[True, (np.diff(eid) != 0) | (np.diff(pid) != 0)]
+    last = np.r_[np.flatnonzero(new)[1:] - 1, n - 1][np.cumsum(new) - 1]  # each row's episode end
+    left = last - np.arange(n) + 1  # logged steps from this row to its episode's end
+    ok = (left >= k) | done[last]
+    rng = np.random.default_rng(seed)
+    rows = np.empty((ds.n_policies, n_windows), np.int64)
+    for p in range(ds.n_policies):
+        mine = np.flatnonzero(ok & (pid == p))
+        if mine.size == 0:
+            raise ValueError(f"policy_id: policy {p} has no window of {k} logged steps that "
+                             f"ends by the data's own termination or goes on k steps")
+        rows[p] = rng.choice(mine, n_windows)
+    return rows, np.minimum(left[rows], k)
+
+
+def open_loop_returns(dynamics: Dynamics, reward_fn: Callable, done_fn: Callable | None,
+                      obs: jax.Array, actions: jax.Array, steps: jax.Array, key: jax.Array, *,
+                      hazard_fn: Callable | None = None
+                      ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``dynamics`` rolled from real states under LOGGED actions (no policy in the loop): the
+    model's error on a fixed action sequence, which a closed-loop episode mixes with the
+    policy's reaction to it.
+
+    obs [N, o] start states; actions [N, k, a] (entries past ``steps`` are never used);
+    steps [N] logged steps of each window. The simulated episode ends as ``ends_episode``
+    says. -> (reward [N, k]: each simulated step's reward, 0 once the simulated episode has
+    ended or past ``steps``; live [N, k]: step j was taken; ended [N, k]: step j ended it)."""
+    n_steps = actions.shape[1]
+
+    def step(carry, xs):
+        s, alive = carry
+        a, j, k_step = xs
+        k_dyn, k_end = jax.random.split(k_step)
+        nxt = dynamics(s, a, k_dyn)
+        live = alive & (j < steps)
+        reward = jnp.where(live, reward_fn(s, a, nxt), 0.0)
+        done = ends_episode(s, a, nxt, k_end, done_fn, hazard_fn)
+        return (nxt, alive & ~(live & done)), (reward, live, live & done)
+
+    alive0 = jnp.ones(obs.shape[:-1], bool)
+    xs = (jnp.swapaxes(actions, 0, 1), jnp.arange(n_steps), jax.random.split(key, n_steps))
+    _, out = jax.lax.scan(step, (obs, alive0), xs)
+    return tuple(jnp.swapaxes(x, 0, 1) for x in out)
+
+
+def logged_window_returns(ds, rows: np.ndarray, steps: np.ndarray, k: int,
+                          reward_fn: Callable) -> tuple[np.ndarray, np.ndarray]:
+    """What the real system did in the windows of ``open_loop_windows``: the per-step reward
+    ``reward_fn`` gives the logged transitions (as the simulator's rewards are computed) and
+    whether the window ends by termination. rows, steps [...] -> (reward [..., k] (0 past
+    ``steps``), ended [...] bool)."""
+    j = np.arange(k)
+    idx = np.asarray(rows)[..., None] + np.minimum(j, np.asarray(steps)[..., None] - 1)
+    valid = j < np.asarray(steps)[..., None]
+    reward = np.asarray(reward_fn(jnp.asarray(np.asarray(ds.obs)[idx]),
+                                  jnp.asarray(np.asarray(ds.action)[idx]),
+                                  jnp.asarray(np.asarray(ds.next_obs)[idx])), np.float64)
+    ended = np.asarray(ds.done, bool)[idx[..., -1]]
+    return np.where(valid, reward, 0.0), ended

@@ -154,3 +154,23 @@ def pm_checkpoint(pm_files, tmp_path_factory):
             {"data": {"obs_size": ds.obs_size, "action_size": ds.action_size}})
     ck.close()
     return str(path)
+
+
+@pytest.fixture(scope="session")
+def pm_falls():
+    """Pointmass data where two of four policies push the mass out (|p| > 2 ends):
+    (Dataset, stacked policy params)."""
+    import jax
+    import numpy as np
+    from test_train import _policies
+
+    from rl2s_jax.collect import collect
+    from rl2s_jax.tasks import get_task
+
+    task = get_task("pointmass")
+    params = _policies([-2.0, 0.0, 1.0, 2.0])
+    ds = collect(task.make_env(), params, key=jax.random.PRNGKey(0), transitions_per_policy=400,
+                 envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
+                 value_episodes=4, progress=False)
+    assert np.asarray(ds.done).any()
+    return ds, params

@@ -170,3 +170,48 @@ def test_terminal_states_are_where_the_value_rollouts_stop(ab):
     assert np.all(ended[length < horizon]) and np.all(length[~ended] == horizon)
     done = np.asarray(task.done_fn(jnp.asarray(terminal)))
     np.testing.assert_array_equal(done[ended], True)
+
+
+def test_open_loop_check_compares_each_lane_with_the_logged_windows(ab, pm_falls):
+    """Two lanes of an (untrained) pointmass BC model: the real side is the logged windows'
+    reward sums (NumPy), the model side each lane's own open-loop rollout, and the summaries
+    are what their definitions say."""
+    import jax
+    import jax.numpy as jnp
+
+    from rl2s_jax.simulate import logged_window_returns, open_loop_windows
+    from rl2s_jax.tasks import get_task
+    from rl2s_jax.train import TrainConfig, init, make_train_data
+
+    ds, params = pm_falls
+    task = get_task("pointmass")
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=20, vd_every=3)
+    data = make_train_data(ds, params, cfg)
+    states = jax.vmap(lambda k: init(k, cfg, data))(jnp.stack(
+        [jax.random.PRNGKey(0), jax.random.PRNGKey(1)]))
+    res = ab.open_loop_check(states, ds, task, ks=(1, 5), n_windows=64)
+    rows, steps = open_loop_windows(ds, 5, 64, seed=7)
+    real, real_end = logged_window_returns(ds, rows, steps, 5, task.reward_fn)
+    np.testing.assert_allclose(res["5"]["real_per_policy"], real.sum(-1).mean(-1), atol=0.01)
+    assert res["5"]["real_end"] == pytest.approx(real_end.mean(), abs=1e-4)
+    model = np.asarray(res["5"]["model_per_policy"])
+    assert model.shape == (2, ds.n_policies) and not np.allclose(model[0], model[1])
+    ratio = np.std(model, axis=1) / np.std(real.sum(-1).mean(-1))
+    np.testing.assert_allclose(res["5"]["spread_ratio"], ratio, atol=2e-3)
+    assert all(-1 <= t <= 1 for t in res["1"]["tau"] + res["5"]["tau"])
+    assert res["1"]["real_end"] <= res["5"]["real_end"]  # windows end more often when longer
+
+
+def test_validation_policies_are_spread_over_the_values_and_held_out_whole(ab, pm_falls):
+    ds, _ = pm_falls
+    ds = ds.replace(meta={**ds.meta, "source": {"zoo": "z", "zoo_ids": [10, 11, 12, 13]}})
+    order = np.argsort(np.asarray(ds.value_discounted))
+    fit, valid = ab.split_validation(ds, 2)
+    held = sorted([int(order[1]), int(order[3])])  # the middle of each half of the ranking
+    assert valid.meta["source"]["zoo_ids"] == [10 + i for i in held]
+    assert fit.meta["source"]["zoo_ids"] == [10 + i for i in range(4) if i not in held]
+    assert valid.n_transitions + fit.n_transitions == ds.n_transitions
+    np.testing.assert_allclose(np.asarray(valid.value_discounted),
+                               np.asarray(ds.value_discounted)[held])
+    with pytest.raises(SystemExit, match="validation-policies: expected 2 ... 2"):
+        ab.split_validation(ds, 3)

@@ -11,7 +11,6 @@ from scipy.stats import norm as gauss
 from test_train import _policies as _pm_policies
 
 from rl2s_jax.checkpoint import Checkpointer, load_simulator
-from rl2s_jax.collect import collect
 from rl2s_jax.dynamics import Normalizer
 from rl2s_jax.sim_env import SimulatorEnv
 from rl2s_jax.simulate import advance_values, ends_episode, simulated_returns, start_values
@@ -24,15 +23,8 @@ CFG = TrainConfig.small(task="pointmass", method="bc", vd_horizon=50, vd_every=3
 
 
 @pytest.fixture(scope="module")
-def pm():
-    """Pointmass data where two of four policies push the mass out (|p| > 2 ends)."""
-    task = get_task("pointmass")
-    params = _pm_policies([-2.0, 0.0, 1.0, 2.0])
-    ds = collect(task.make_env(), params, key=jax.random.PRNGKey(0), transitions_per_policy=400,
-                 envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
-                 value_episodes=4, progress=False)
-    assert np.asarray(ds.done).any()
-    return ds, params
+def pm(pm_falls):
+    return pm_falls
 
 
 def _identity_norm(o, a):

@@ -1,0 +1,94 @@
+"""Open-loop rollouts under logged actions (rl2s_jax.simulate.open_loop_*): the windows against
+a NumPy scan of the episodes, the true dynamics reproducing the logged rewards and ends
+exactly, and a biased dynamics against a NumPy rollout."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rl2s_jax.simulate import logged_window_returns, open_loop_returns, open_loop_windows
+from rl2s_jax.tasks import get_task, pointmass_dynamics
+
+K = 12
+
+
+def _windows_ref(ds, k):
+    """Per row: (logged steps from it to its episode's end, that end is a termination)."""
+    pid, eid, done = (np.asarray(x) for x in (ds.policy_id, ds.episode_id, ds.done))
+    left, term = np.zeros(len(pid), int), np.zeros(len(pid), bool)
+    for r in range(len(pid)):
+        e = r
+        while e + 1 < len(pid) and eid[e + 1] == eid[r] and pid[e + 1] == pid[r]:
+            e += 1
+        left[r], term[r] = e - r + 1, bool(done[e])
+    return left, term
+
+
+def test_windows_match_a_scan_of_the_episodes(pm_falls):
+    ds, _ = pm_falls
+    rows, steps = open_loop_windows(ds, K, 300, seed=1)
+    left, term = _windows_ref(ds, K)
+    assert rows.shape == steps.shape == (ds.n_policies, 300)
+    assert np.all(np.asarray(ds.policy_id)[rows] == np.arange(ds.n_policies)[:, None])
+    assert np.all((left[rows] >= K) | term[rows])  # never a window of unknown outcome
+    np.testing.assert_array_equal(steps, np.minimum(left[rows], K))
+    assert (steps < K).any() and (steps == K).any()  # both kinds occur in this data
+    with pytest.raises(ValueError, match="k: expected an int >= 1"):
+        open_loop_windows(ds, 0, 10)
+
+
+def test_true_dynamics_reproduce_the_logged_windows(pm_falls):
+    """Pointmass's own dynamics under the logged actions earn the logged rewards and end where
+    the logged episodes ended."""
+    ds, _ = pm_falls
+    task = get_task("pointmass")
+    rows, steps = open_loop_windows(ds, K, 200)
+    real_r, real_end = logged_window_returns(ds, rows, steps, K, task.reward_fn)
+    idx = rows[..., None] + np.minimum(np.arange(K), steps[..., None] - 1)
+    r, live, ended = jax.jit(lambda o, a, s: open_loop_returns(
+        lambda x, u, key: pointmass_dynamics(x, u), task.reward_fn, task.done_fn, o, a, s,
+        jax.random.PRNGKey(0)))(jnp.asarray(np.asarray(ds.obs)[rows.ravel()]),
+                                jnp.asarray(np.asarray(ds.action)[idx.reshape(-1, K)]),
+                                jnp.asarray(steps.ravel()))
+    np.testing.assert_allclose(np.asarray(r).reshape(real_r.shape), real_r, atol=1e-5)
+    np.testing.assert_array_equal(np.asarray(live).sum(-1).reshape(steps.shape), steps)
+    assert real_end.any() and not real_end.all()
+    np.testing.assert_array_equal(np.asarray(ended).any(-1).reshape(steps.shape), real_end)
+
+
+def test_a_biased_dynamics_against_a_numpy_rollout(pm_falls):
+    """The mass drifts outward by 0.05 a step: its windows end earlier and earn other rewards,
+    as a plain NumPy loop over the same logged actions says."""
+    ds, _ = pm_falls
+    task = get_task("pointmass")
+    rows, steps = open_loop_windows(ds, K, 50)
+    rows, steps = rows.ravel(), steps.ravel()
+    idx = rows[:, None] + np.minimum(np.arange(K), steps[:, None] - 1)
+    obs0, acts = np.asarray(ds.obs, np.float64)[rows], np.asarray(ds.action, np.float64)[idx]
+
+    def biased(x, u):
+        nxt = np.asarray(pointmass_dynamics(jnp.asarray(x, jnp.float32),
+                                            jnp.asarray(u, jnp.float32)), np.float64)
+        return nxt + np.stack([0.05 * np.sign(x[..., 0]), 0 * x[..., 1]], -1)
+
+    want_r, want_live = np.zeros((len(rows), K)), np.zeros((len(rows), K), bool)
+    for i in range(len(rows)):
+        s = obs0[i]
+        for j in range(steps[i]):
+            nxt = biased(s, acts[i, j])
+            want_live[i, j] = True
+            want_r[i, j] = 1 - nxt[0] ** 2 - 0.1 * acts[i, j, 0] ** 2
+            if abs(nxt[0]) > 2.0:
+                break
+            s = nxt
+    dyn = lambda x, u, key: (pointmass_dynamics(x, u)
+                             + jnp.stack([0.05 * jnp.sign(x[..., 0]), 0 * x[..., 1]], -1))
+    r, live, _ = open_loop_returns(dyn, task.reward_fn, task.done_fn,
+                                   jnp.asarray(obs0, jnp.float32),
+                                   jnp.asarray(acts, jnp.float32), jnp.asarray(steps),
+                                   jax.random.PRNGKey(0))
+    np.testing.assert_array_equal(np.asarray(live), want_live)
+    np.testing.assert_allclose(np.asarray(r), want_r, atol=1e-4)
+    real_r, _ = logged_window_returns(ds, rows, steps, K, task.reward_fn)
+    assert np.abs(np.asarray(r) - real_r).max() > 0.01  # the bias is seen
+    assert want_live.sum() < steps.sum()  # and it ends windows early

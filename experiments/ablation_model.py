@@ -42,6 +42,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paper import (  # noqa: E402
+    TASK_SIZES,
     _lane_returns,
     episode_lengths,
     heldout_start_pool,
@@ -574,13 +575,16 @@ def main(argv=None) -> int:
                              f"{args.validation_policies}")
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
-    sizes = dict(SIZES[profile])
+    profile_data = profile_sizes(profile, args.task)
+    # the task's evaluation episodes follow paper.py's (TASK_SIZES: Ant's 256 on the gpu
+    # profile, where fewer leave its ranking at the evaluation noise's own ceiling)
+    task_sizes = TASK_SIZES.get(profile, {}).get(args.task, {})
+    sizes = {**SIZES[profile], **{k: v for k, v in task_sizes.items() if k in SIZES[profile]}}
     for k in sizes:
         if getattr(args, k, None) is not None:
             sizes[k] = getattr(args, k)
     if sizes["steps"] % sizes["eval_every"]:
         raise SystemExit(f"steps: expected a multiple of --eval-every ({sizes['eval_every']})")
-    profile_data = profile_sizes(profile, args.task)
     data_sizes = {k: profile_data[k] for k in ("transitions_per_policy", "value_episodes")}
     for k in data_sizes:
         if getattr(args, k, None) is not None:

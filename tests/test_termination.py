@@ -140,6 +140,14 @@ def test_training_fits_the_hazard_and_a_checkpoint_keeps_it(pm, tmp_path):
     for a, b in zip(jax.tree_util.tree_leaves(loaded.hazard),
                     jax.tree_util.tree_leaves(simulator(state).hazard), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    # the hazard's window travels with it (a window lost on load would turn q = P(end within
+    # K steps) into a per-step hazard K times too high)
+    windowed = state.replace(config=dataclasses.replace(state.config, hazard_window=4))
+    ck = Checkpointer(tmp_path / "ck4")
+    ck.save(windowed, {"data": {"obs_size": 2, "action_size": 1}})
+    ck.close()
+    assert load_simulator(tmp_path / "ck4").hazard_window == 4
+    assert loaded.hazard_window == 1
 
 
 def test_predictive_termination_ends_with_the_models_own_chance(pm):

@@ -64,6 +64,7 @@ from rl2s_jax.simulate import (
     ValueRollout,
     advance_values,
     data_values,
+    ends_episode,
     simulated_values,
     start_pool,
     start_values,
@@ -578,7 +579,10 @@ def _advance_sim(state: TrainState, data: TrainData, key):
     """Step the simulated envs sim_steps times in p_phi; write their (s, a) to the buffer."""
     cfg = state.config
     task = get_task(cfg.task)
-    sim_step = _sampler(state.gen, state, cfg.sim_noise).step
+    sampler = _sampler(state.gen, state, cfg.sim_noise)
+    sim_step = sampler.step
+    # the simulated envs end as the value rollouts do (rule, learned hazard or both)
+    done_fn, hazard_fn = sampler.terminations(task.done_fn)
     E, B = cfg.sim_envs, cfg.buffer_size
     act = jax.vmap(sample_action)
 
@@ -591,7 +595,10 @@ def _advance_sim(state: TrainState, data: TrainData, key):
         rows = (pos + jnp.arange(E)) % B
         buf_obs, buf_act = buf_obs.at[rows].set(sim.obs), buf_act.at[rows].set(action)
         t = sim.t + 1
-        reset = (task.done_fn(next_obs) > 0.5) | (t >= cfg.sim_horizon)
+        # fold_in: with no hazard the draws are those of the rule-only code before it
+        ended = ends_episode(sim.obs, action, next_obs, jax.random.fold_in(k_reset, 1),
+                             done_fn, hazard_fn)
+        reset = ended | (t >= cfg.sim_horizon)
         sim = _reset_sim(SimEnvs(next_obs, sim.policy, t), reset, data, state.selected, k_reset)
         return (sim, buf_obs, buf_act, (pos + E) % B), (reset.mean(), u.mean())
 

@@ -223,3 +223,24 @@ def test_window_labels_and_the_per_step_hazard_match_numpy():
     for k in (1, 3, 20):
         h = np.asarray(hazard_prob(params, norm, obs, act, k), np.float64)
         np.testing.assert_allclose(h, 1 - (1 - q) ** (1 / k), rtol=1e-4)
+
+
+def test_the_adversarial_phase_simulated_envs_end_by_the_hazard(pm):
+    """WGAIL's simulated envs (the buffer of fake (s, a)) end as the value rollouts do: a
+    hazard of ~1 restarts every env at every step, one of ~0 (and no rule) lets them all run
+    sim_steps steps."""
+    from rl2s_jax.train import _advance_sim
+
+    ds, params = pm
+    cfg = dataclasses.replace(CFG, method="rl2s", termination="hazard", hazard_steps=1,
+                              vd_every=0, eps=1.0)
+    data = make_train_data(ds, params, cfg)
+    state = init(jax.random.PRNGKey(0), cfg, data)
+    for bias, t_after in ((30.0, 0), (-30.0, cfg.sim_steps)):
+        layers = [dict(x) for x in state.hazard["layers"]]
+        layers[-1] = {"w": jnp.zeros_like(layers[-1]["w"]),
+                      "b": jnp.full_like(layers[-1]["b"], bias)}  # h = sigmoid(bias)
+        moved, metrics = _advance_sim(state.replace(hazard={"layers": layers}), data,
+                                      jax.random.PRNGKey(1))
+        np.testing.assert_array_equal(np.asarray(moved.sim.t), t_after)
+        assert float(metrics["sim_reset_rate"]) == (1.0 if t_after == 0 else 0.0)

@@ -212,7 +212,6 @@ def open_loop_check(states, ds, task, *, ks=(1, 10, 50), n_windows: int = 256) -
     means at the largest k. A diagnosis of the test data (never used to select): if the
     model ranks the policies' windows well here but not in closed loop, the error is in how
     the policies react to the model's states, not in the dynamics under their actions."""
-    from rl2s_jax.evaluate import kendall_tau
     from rl2s_jax.simulate import logged_window_returns, open_loop_returns, open_loop_windows
 
     k_max = max(ks)
@@ -235,7 +234,19 @@ def open_loop_check(states, ds, task, *, ks=(1, 10, 50), n_windows: int = 256) -
     sim_r, sim_end = (np.asarray(x) for x in jax.jit(jax.vmap(one))(sims, keys))
     sim_r = sim_r.reshape(n_lanes, *rows.shape, k_max).astype(np.float64)
     sim_end = sim_end.reshape(n_lanes, *rows.shape, k_max)
-    out = {"windows_per_policy": n_windows}
+    return {"windows_per_policy": n_windows,
+            **open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks)}
+
+
+def open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks) -> dict:
+    """Per k of ``ks``: the simulators' mean k-step returns per policy against the logged ones.
+    real_r [P, n, K] logged rewards, real_end [P, n], steps [P, n] (``logged_window_returns``,
+    ``open_loop_windows``); sim_r [L, P, n, K], sim_end [L, P, n, K] of L simulators. -> {k:
+    {tau, spread_ratio (std over policies, model / real), relative_error, real_end, model_end:
+    lists over L; at the largest k also real_per_policy, model_per_policy}}"""
+    from rl2s_jax.evaluate import kendall_tau
+
+    out = {}
     for k in ks:
         real = real_r[..., :k].sum(-1).mean(-1)  # [P]
         model = sim_r[..., :k].sum(-1).mean(-1)  # [L, P]
@@ -246,7 +257,7 @@ def open_loop_check(states, ds, task, *, ks=(1, 10, 50), n_windows: int = 256) -
                                      3) for m in model],
             "real_end": round(float((real_end & (steps <= k)).mean()), 4),
             "model_end": [round(float(e[..., :k].any(-1).mean()), 4) for e in sim_end]}
-        if k == k_max:
+        if k == max(ks):
             out[str(k)]["real_per_policy"] = [round(float(x), 2) for x in real]
             out[str(k)]["model_per_policy"] = [[round(float(x), 2) for x in m] for m in model]
     return out

@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from brax.envs.base import Env, State
 
-from rl2s_jax.simulate import Simulator, ends_episode
+from rl2s_jax.simulate import Simulator, end_key, ends_episode
 from rl2s_jax.tasks import Task, get_task
 
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
@@ -212,10 +212,7 @@ class SimulatorEnv(Env):
         """One simulated step. action [a] -> next State (reward from obs, action, next obs)."""
         k_dyn, k_next = jax.random.split(state.info["rng"])
         obs = state.obs
-        if self._hazard_fn is not None:  # its own key; without a hazard the draws stay
-            k_dyn, k_end = jax.random.split(k_dyn)
-        else:
-            k_end = None
+        k_dyn, k_end = end_key(k_dyn, self._hazard_fn)
         next_obs = self._dynamics(obs, action, k_dyn).astype(jnp.float32)
         reward = self.task.reward_fn(obs, action, next_obs).astype(jnp.float32)
         done = ends_episode(obs, action, next_obs, k_end, self._done_fn,

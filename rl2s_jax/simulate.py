@@ -222,6 +222,15 @@ def start_values(start_pool: jax.Array, n_policies: int, n_episodes: int, key: j
                         t=jnp.zeros((), jnp.int32))
 
 
+def end_key(key: jax.Array, hazard_fn: Callable | None) -> tuple[jax.Array, jax.Array | None]:
+    """(key for the dynamics, key for ``ends_episode``'s hazard draw): split only where there
+    is a hazard, so that without one the dynamics' draws stay those of the rule-only code."""
+    if hazard_fn is None:
+        return key, None
+    k_dyn, k_end = jax.random.split(key)
+    return k_dyn, k_end
+
+
 def ends_episode(obs: jax.Array, action: jax.Array, next_obs: jax.Array, key: jax.Array,
                  done_fn: Callable | None, hazard_fn: Callable | None) -> jax.Array:
     """Whether a step ends its episode: the task's rule ``done_fn(next_obs)`` (None: never) or
@@ -251,10 +260,7 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
     def step(roll: ValueRollout, key):
         k_act, k_dyn = jax.random.split(key)
         action, _, _ = act(policy_params, roll.obs, jax.random.split(k_act, n_pol))
-        if hazard_fn is not None:  # its own key; without a hazard the draws stay as they were
-            k_dyn, k_end = jax.random.split(k_dyn)
-        else:
-            k_end = None
+        k_dyn, k_end = end_key(k_dyn, hazard_fn)
         next_obs = dynamics(roll.obs, action, k_dyn)
         live = roll.alive & (roll.t < horizon)
         reward = reward_fn(roll.obs, action, next_obs)

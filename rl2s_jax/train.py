@@ -64,6 +64,7 @@ from rl2s_jax.simulate import (
     ValueRollout,
     advance_values,
     data_values,
+    end_key,
     ends_episode,
     simulated_values,
     start_pool,
@@ -591,13 +592,12 @@ def _advance_sim(state: TrainState, data: TrainData, key):
         k_act, k_dyn, k_reset = jax.random.split(key, 3)
         action, _, _ = act(index_params(data.policies, sim.policy), sim.obs,
                            jax.random.split(k_act, E))
+        k_dyn, k_end = end_key(k_dyn, hazard_fn)
         next_obs, u = sim_step(sim.obs, action, k_dyn)
         rows = (pos + jnp.arange(E)) % B
         buf_obs, buf_act = buf_obs.at[rows].set(sim.obs), buf_act.at[rows].set(action)
         t = sim.t + 1
-        # fold_in: with no hazard the draws are those of the rule-only code before it
-        ended = ends_episode(sim.obs, action, next_obs, jax.random.fold_in(k_reset, 1),
-                             done_fn, hazard_fn)
+        ended = ends_episode(sim.obs, action, next_obs, k_end, done_fn, hazard_fn)
         reset = ended | (t >= cfg.sim_horizon)
         sim = _reset_sim(SimEnvs(next_obs, sim.policy, t), reset, data, state.selected, k_reset)
         return (sim, buf_obs, buf_act, (pos + E) % B), (reset.mean(), u.mean())

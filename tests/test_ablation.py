@@ -215,3 +215,71 @@ def test_validation_policies_are_spread_over_the_values_and_held_out_whole(ab, p
                                np.asarray(ds.value_discounted)[held])
     with pytest.raises(SystemExit, match="validation-policies: expected 2 ... 2"):
         ab.split_validation(ds, 3)
+
+
+@pytest.fixture(scope="module")
+def olc():
+    spec = importlib.util.spec_from_file_location(
+        "open_loop_control", os.path.join(ROOT, "experiments", "open_loop_control.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_open_loop_control_reproduces_the_logged_windows_without_noise(olc, pm_falls):
+    """experiments/open_loop_control.py: the real dynamics under the logged actions give the
+    logged k-step returns (pointmass's oracle is exact), and an added step error moves them."""
+    from rl2s_jax.tasks import get_task
+
+    ds, _ = pm_falls
+    res = olc.run(ds, get_task("pointmass"), ks=(1, 5), n_windows=32, scales=[0.0, 0.5],
+                  seeds=2)
+    exact, noisy = res["scales"]["0.0"], res["scales"]["0.5"]
+    for k in ("1", "5"):
+        assert exact[k]["tau"] == [1.0, 1.0] and exact[k]["spread_ratio"] == [1.0, 1.0]
+        assert exact[k]["relative_error"] == [0.0, 0.0]
+        assert exact[k]["model_end"] == [exact[k]["real_end"]] * 2
+        assert min(noisy[k]["relative_error"]) > 0.0
+    np.testing.assert_allclose(exact["5"]["model_per_policy"][0], exact["5"]["real_per_policy"],
+                               atol=0.01)
+
+
+def test_open_loop_control_noise_scale_and_bad_input(olc, pm_falls):
+    ds, _ = pm_falls
+    delta = np.asarray(ds.next_obs, np.float64) - np.asarray(ds.obs, np.float64)
+    std = olc.one_step_std(ds, (0,))
+    assert std[0] == 0.0  # a position dim gets no noise
+    np.testing.assert_allclose(std[1:], delta.std(0)[1:], rtol=1e-5)
+    for argv, field in ((["--noise", "a"], "noise"), (["--noise", "-1"], "noise"),
+                        (["--windows", "0"], "windows"), (["--ks", "0,5"], "ks")):
+        with pytest.raises(SystemExit, match=field):
+            olc.main(argv + ["--out", "/tmp/olc_bad_input"])
+
+
+def test_closed_loop_control_pairs_every_scale_with_the_exact_dynamics(pm_falls):
+    """experiments/closed_loop_control.py on pointmass (exact oracle): the exact values are
+    simulated_returns' on key 0, a vanishing step error leaves them (paired keys), a large one
+    moves them, and another key gives other episodes."""
+    import jax
+
+    from rl2s_jax.oracle import oracle_dynamics
+    from rl2s_jax.simulate import simulated_returns, start_pool
+    from rl2s_jax.tasks import get_task
+
+    spec = importlib.util.spec_from_file_location(
+        "closed_loop_control", os.path.join(ROOT, "experiments", "closed_loop_control.py"))
+    clc = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(clc)
+    ds, params = pm_falls
+    task = get_task("pointmass")
+    res = clc.run(ds, task, params, scales=[1e-6, 0.5], n_episodes=8, horizon=20, gamma=0.99)
+    ret, _ = simulated_returns(params, oracle_dynamics(task), task.reward_fn, task.done_fn,
+                               start_pool(ds), jax.random.PRNGKey(0), n_episodes=8,
+                               horizon=20, gamma=0.99)
+    np.testing.assert_allclose(res["exact"]["value"], np.asarray(ret).mean(-1), atol=0.01)
+    tiny, big = res["scales"]["1e-06"], res["scales"]["0.5"]
+    assert tiny["tau_vs_exact"] == 1.0 and tiny["relative_change"] < 1e-3
+    assert big["relative_change"] > 10 * max(tiny["relative_change"], 1e-4)
+    assert res["exact_other_keys"]["value"] != res["exact"]["value"]
+    with pytest.raises(SystemExit, match="noise"):
+        clc.main(["--noise", "0", "--out", "/tmp/clc_bad_input"])

@@ -1,0 +1,161 @@
+"""The control of the open-loop diagnostic (``ablation_model.py --open-loop``): the REAL
+dynamics (``oracle.oracle_dynamics``) rolled from the test policies' logged states under their
+logged actions, exactly and with a small unbiased error added at every step.
+
+The diagnostic compares a learned simulator's k-step returns under the logged actions with the
+logged ones, and reads a shortfall as the model's own bias. But a fixed action sequence does
+not correct a drifting state the way the policy that chose it would: a system whose gait is
+kept up by feedback may lose it under replayed actions after any small error, with no bias at
+all. This script measures that: at noise scale 0 the oracle should reproduce the logged
+returns (the check of the windows and the oracle); at a scale sigma each step's next state gets
+sigma x N(0, 1) x the data's one-step change std per dim (not on the absolute positions, which
+no step reads), an error of known size and no bias. The scale whose k = 1 and k = 10 errors
+match a learned model's says what its k = 50 numbers would be from noise alone.
+
+    python experiments/open_loop_control.py --task ant [--transitions-per-policy 2000]
+        [--windows 32] [--ks 1,10,50] [--noise 0,0.01,0.03,0.1] [--seeds 2]
+        [--data test.npz] [--out DIR]
+
+CPU: Ant, 19 test policies x 32 windows x 50 steps x 4 scales x 2 seeds, about 10 minutes on 2
+cores with the collection. Writes OUT/open_loop_control_<task>.json and prints a table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from ablation_model import open_loop_summary  # noqa: E402
+
+from rl2s_jax.oracle import oracle_dynamics  # noqa: E402
+from rl2s_jax.simulate import (  # noqa: E402
+    logged_window_returns,
+    open_loop_returns,
+    open_loop_windows,
+)
+from rl2s_jax.tasks import get_task, task_names  # noqa: E402
+
+
+def noisy(dynamics, scale: jax.Array, noise_std: jax.Array):
+    """``dynamics`` with scale x N(0, 1) x noise_std [o] added to every next state."""
+    def step(obs, action, key):
+        nxt = dynamics(obs, action, key)
+        return nxt + scale * noise_std * jax.random.normal(key, nxt.shape, nxt.dtype)
+    return step
+
+
+def one_step_std(ds, position_dims) -> np.ndarray:
+    """The std of the logged one-step change per obs dim [o], 0 on the absolute positions."""
+    std = np.std(np.asarray(ds.next_obs, np.float64) - np.asarray(ds.obs, np.float64), 0)
+    std[list(position_dims)] = 0.0
+    return std.astype(np.float32)
+
+
+def run(ds, task, *, ks, n_windows: int, scales, seeds: int, window_seed: int = 7) -> dict:
+    """The oracle's open loop at every noise scale and seed against the logged windows.
+    -> {"scales": {scale: open_loop_summary over the seeds as lanes}, ...}"""
+    k_max = max(ks)
+    rows, steps = open_loop_windows(ds, k_max, n_windows, seed=window_seed)
+    real_r, real_end = logged_window_returns(ds, rows, steps, k_max, task.reward_fn)
+    idx = rows[..., None] + np.minimum(np.arange(k_max), steps[..., None] - 1)
+    obs = jnp.asarray(np.asarray(ds.obs)[rows.ravel()])
+    act = jnp.asarray(np.asarray(ds.action)[idx.reshape(-1, k_max)])
+    n_steps = jnp.asarray(steps.ravel())
+    noise_std = jnp.asarray(one_step_std(ds, task.position_dims))
+    real_dyn = oracle_dynamics(task)
+
+    @jax.jit
+    def lanes(scale, keys):
+        def one(key):
+            r, _, ended = open_loop_returns(noisy(real_dyn, scale, noise_std), task.reward_fn,
+                                            task.done_fn, obs, act, n_steps, key)
+            return r, ended
+        return jax.lax.map(one, keys)
+
+    out = {"windows_per_policy": n_windows, "seeds": seeds, "scales": {}}
+    for scale in scales:
+        t0 = time.perf_counter()
+        keys = jnp.stack([jax.random.PRNGKey(100 + s) for s in range(seeds)])
+        sim_r, sim_end = (np.asarray(x) for x in lanes(jnp.float32(scale), keys))
+        sim_r = sim_r.reshape(seeds, *rows.shape, k_max).astype(np.float64)
+        sim_end = sim_end.reshape(seeds, *rows.shape, k_max)
+        out["scales"][str(scale)] = open_loop_summary(real_r, real_end, steps, sim_r, sim_end,
+                                                      ks)
+        print(f"[open-loop control] scale {scale}: {time.perf_counter() - t0:.1f}s", flush=True)
+    return out
+
+
+def table(res: dict, ks) -> str:
+    lines = ["| noise scale | k | tau | spread | relative error | windows that end, oracle vs "
+             "logged |", "|---:|---:|---|---|---|---|"]
+    for scale, by_k in res["scales"].items():
+        for k in ks:
+            v = by_k[str(k)]
+            f = lambda xs: ", ".join(f"{x:.3g}" for x in xs)
+            lines.append(f"| {scale} | {k} | {f(v['tau'])} | {f(v['spread_ratio'])} | "
+                         f"{f(v['relative_error'])} | {f(v['model_end'])} vs {v['real_end']} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ints = lambda t: tuple(sorted({int(x) for x in t.split(",") if x}))
+    ap.add_argument("--task", choices=[t for t in task_names() if t != "pointmass"],
+                    default="ant")
+    ap.add_argument("--transitions-per-policy", type=int, default=2000)
+    ap.add_argument("--windows", type=int, default=32)
+    ap.add_argument("--ks", type=ints, default=(1, 10, 50))
+    ap.add_argument("--noise", default="0,0.01,0.03,0.1")
+    ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--data", help="a Dataset .npz of the policies to use (default: collect "
+                    "the zoo's test split)")
+    ap.add_argument("--out", default="results/open_loop_control")
+    args = ap.parse_args(argv)
+    bad_noise = f"noise: expected comma-separated floats >= 0, got {args.noise!r}"
+    try:
+        scales = [float(x) for x in args.noise.split(",") if x]
+    except ValueError:
+        raise SystemExit(bad_noise) from None
+    if not scales or any(not np.isfinite(x) or x < 0 for x in scales):
+        raise SystemExit(bad_noise)
+    for name in ("transitions_per_policy", "windows", "seeds"):
+        if getattr(args, name) < 1:
+            raise SystemExit(f"{name.replace('_', '-')}: expected an int >= 1, got "
+                             f"{getattr(args, name)}")
+    if not args.ks or args.ks[0] < 1:
+        raise SystemExit(f"ks: expected ints >= 1, got {args.ks}")
+    os.makedirs(args.out, exist_ok=True)
+    task = get_task(args.task)
+    t0 = time.perf_counter()
+    if args.data:
+        from rl2s_jax.data import load_dataset
+        ds = load_dataset(args.data)
+    else:
+        from rl2s_jax.cli import collect_dataset
+        ds = collect_dataset(args.task, "test", args.transitions_per_policy, value_episodes=0,
+                             progress=False)
+    print(f"[open-loop control] {args.task}: {ds.n_policies} policies, {ds.n_transitions} "
+          f"rows ({time.perf_counter() - t0:.1f}s) on {jax.devices()[0].device_kind} (jax "
+          f"{jax.__version__})", flush=True)
+    res = run(ds, task, ks=args.ks, n_windows=args.windows, scales=scales, seeds=args.seeds)
+    res.update(task=args.task, command=" ".join(["python", "experiments/open_loop_control.py",
+                                                 *(argv if argv is not None else sys.argv[1:])]),
+               hardware=jax.devices()[0].device_kind, jax_version=jax.__version__,
+               transitions=ds.n_transitions, wall_s=round(time.perf_counter() - t0, 1))
+    path = os.path.join(args.out, f"open_loop_control_{args.task}.json")
+    with open(path, "w") as f:
+        json.dump(res, f, indent=1)
+    print(table(res, args.ks))
+    print(f"[open-loop control] wrote {path} ({res['wall_s']}s)")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

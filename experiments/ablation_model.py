@@ -263,6 +263,52 @@ def open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks) -> dict:
     return out
 
 
+def visited_error_check(states, test_ds, test, task, *, n_episodes: int, horizon: int,
+                        rows_per_policy: int = 2048) -> dict:
+    """Each lane's one-step error against the real dynamics (``oracle.oracle_dynamics``) on the
+    states its own closed-loop episodes of the test policies visit
+    (``simulate.visited_step_errors``) and on logged states of the same policies (a random
+    ``rows_per_policy`` of each), in units of the data's one-step change std per dim, with the
+    reward difference per step. A diagnosis of the test policies (never used to select): an
+    error that grows from the logged states to the visited ones is the model taking the
+    policies where it was not fitted; a reward bias per step times the episode length is the
+    value error it makes. -> {"visited" | "logged": {"rmse" | "reward_bias" | "reward_abs":
+    [L][P]}, "visited_steps": [L][P]}"""
+    from rl2s_jax.oracle import oracle_dynamics
+    from rl2s_jax.simulate import step_errors, visited_step_errors
+
+    reference = oracle_dynamics(task)
+    policies, pool = test[0], test[1]
+    pid = np.asarray(test_ds.policy_id)
+    rng = np.random.default_rng(11)
+    idx = np.stack([rng.choice(np.flatnonzero(pid == p), rows_per_policy)
+                    for p in range(test_ds.n_policies)])  # [P, R]
+    obs = jnp.asarray(np.asarray(test_ds.obs)[idx])
+    act = jnp.asarray(np.asarray(test_ds.action)[idx])
+
+    def one(sim, key):
+        done_fn, hazard_fn = sim.terminations(task.done_fn)
+        k_run, k_model, k_ref = jax.random.split(key, 3)
+        visited = visited_step_errors(policies, sim.dynamics, reference, task.reward_fn,
+                                      done_fn, pool, k_run, n_episodes=n_episodes,
+                                      horizon=horizon, scale=sim.norm.delta_std,
+                                      hazard_fn=hazard_fn)
+        sq, dr = step_errors(sim.dynamics(obs, act, k_model), reference(obs, act, k_ref), obs,
+                             act, task.reward_fn, sim.norm.delta_std)
+        logged = {"rmse": jnp.sqrt(sq.mean(-1)), "reward_bias": dr.mean(-1),
+                  "reward_abs": jnp.abs(dr).mean(-1)}
+        return visited, logged
+
+    n_lanes = int(states.step.shape[0])
+    keys = jnp.stack([jax.random.PRNGKey(5000 + i) for i in range(n_lanes)])
+    visited, logged = jax.jit(jax.vmap(one))(simulator(states, average=False), keys)
+    rnd = lambda x: np.round(np.asarray(x, np.float64), 4).tolist()
+    return {"visited": {k: rnd(visited[k]) for k in ("rmse", "reward_bias", "reward_abs")},
+            "logged": {k: rnd(v) for k, v in logged.items()},
+            "visited_steps": rnd(visited["steps"]), "rows_per_policy": rows_per_policy,
+            "episodes_per_policy": n_episodes}
+
+
 def termination_causes(task_name: str, terminal, ended) -> dict | None:
     """{rule: share of the ended episodes whose terminal state breaks it (rules can overlap)},
     plus "ended": share of episodes that ended; None for a task without rules."""
@@ -489,6 +535,15 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
             + "; ".join(f"k={k}: tau {v['tau']} spread {v['spread_ratio']} end "
                         f"{v['real_end']} vs {v['model_end']}"
                         for k, v in res["open_loop"].items() if k != "windows_per_policy"))
+    if args.visited_error:
+        res["visited_error"] = v = visited_error_check(
+            states, test_ds, test, get_task(args.task), n_episodes=args.visited_error,
+            horizon=cfg.vd_horizon)
+        mean = lambda d, k: [round(float(np.mean(x)), 4) for x in d[k]]
+        log(f"[ablation] {variant}: one-step error against the real dynamics (per seed, mean "
+            f"over the test policies): visited states rmse {mean(v['visited'], 'rmse')} "
+            f"reward bias {mean(v['visited'], 'reward_bias')} | logged states rmse "
+            f"{mean(v['logged'], 'rmse')} reward bias {mean(v['logged'], 'reward_bias')}")
     if args.task in TERMINATION_RULES:  # why the simulated episodes end, vs the logged ones
         task = get_task(args.task)
         keys = jnp.stack([jax.random.PRNGKey(3000 + s) for s in seeds])
@@ -541,6 +596,10 @@ def main(argv=None) -> int:
                     help="also roll each trained simulator from the test policies' logged "
                     "states under their logged actions for K steps and compare the K-step "
                     "returns per policy (open_loop in the JSON), e.g. 1,10,50")
+    ap.add_argument("--visited-error", type=pos, metavar="N",
+                    help="also measure each trained simulator's one-step error against the "
+                    "real dynamics (the oracle) on the states its own N episodes per test "
+                    "policy visit and on logged states (visited_error in the JSON)")
     ap.add_argument("--validation-policies", type=int, metavar="N",
                     help="hold N training policies (spread over their values) out of the "
                     "model's data and rank them as validation policies (a choice made on "

@@ -283,3 +283,48 @@ def test_closed_loop_control_pairs_every_scale_with_the_exact_dynamics(pm_falls)
     assert res["exact_other_keys"]["value"] != res["exact"]["value"]
     with pytest.raises(SystemExit, match="noise"):
         clc.main(["--noise", "0", "--out", "/tmp/clc_bad_input"])
+
+
+def test_visited_error_check_measures_each_lane_against_the_real_dynamics(ab, pm_falls):
+    """Two lanes of an untrained pointmass BC model: per lane and test policy, the one-step
+    error on visited and on logged states (pointmass's oracle is its exact dynamics), in the
+    shapes the JSON keeps; the logged error against a NumPy computation at member mode
+    'fixed' (the best member's mean: no draw)."""
+    import jax
+    import jax.numpy as jnp
+
+    from rl2s_jax.simulate import start_pool
+    from rl2s_jax.tasks import get_task, pointmass_dynamics
+    from rl2s_jax.train import TrainConfig, init, make_train_data, simulator
+
+    ds, params = pm_falls
+    task = get_task("pointmass")
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=20, vd_every=3,
+                            member_mode="fixed")
+    data = make_train_data(ds, params, cfg)
+    states = jax.vmap(lambda k: init(k, cfg, data))(jnp.stack(
+        [jax.random.PRNGKey(0), jax.random.PRNGKey(1)]))
+    test = (params, start_pool(ds), None)
+    res = ab.visited_error_check(states, ds, test, task, n_episodes=3, horizon=20,
+                                 rows_per_policy=64)
+    P = ds.n_policies
+    for side in ("visited", "logged"):
+        for k in ("rmse", "reward_bias", "reward_abs"):
+            assert np.asarray(res[side][k]).shape == (2, P)
+        assert np.all(np.asarray(res[side]["rmse"]) > 0)  # an untrained model errs
+        assert np.all(np.asarray(res[side]["reward_abs"]) + 1e-4
+                      >= np.abs(np.asarray(res[side]["reward_bias"])))
+    assert np.all((np.asarray(res["visited_steps"]) >= 3)
+                  & (np.asarray(res["visited_steps"]) <= 60))
+    # the logged side by NumPy: the same rows (seed 11), the lane's own model and scale
+    rng = np.random.default_rng(11)
+    pid = np.asarray(ds.policy_id)
+    idx = np.stack([rng.choice(np.flatnonzero(pid == p), 64) for p in range(P)])
+    obs, act = np.asarray(ds.obs)[idx], np.asarray(ds.action)[idx]
+    for lane in range(2):
+        sim = simulator(jax.tree_util.tree_map(lambda x, i=lane: x[i], states), average=False)
+        model = np.asarray(sim.mean(jnp.asarray(obs), jnp.asarray(act)), np.float64)
+        true = np.asarray(pointmass_dynamics(jnp.asarray(obs), jnp.asarray(act)), np.float64)
+        z = (model - true) / np.asarray(sim.norm.delta_std, np.float64)
+        np.testing.assert_allclose(res["logged"]["rmse"][lane],
+                                   np.sqrt((z ** 2).mean(-1).mean(-1)), rtol=2e-3, atol=1e-4)

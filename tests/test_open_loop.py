@@ -92,3 +92,39 @@ def test_a_biased_dynamics_against_a_numpy_rollout(pm_falls):
     real_r, _ = logged_window_returns(ds, rows, steps, K, task.reward_fn)
     assert np.abs(np.asarray(r) - real_r).max() > 0.01  # the bias is seen
     assert want_live.sum() < steps.sum()  # and it ends windows early
+
+
+def test_visited_step_errors_of_a_known_offset(pm_falls):
+    """A simulator that is the true pointmass plus a constant offset (c_p, c_v): on every
+    visited state its error is exactly that offset in units of the scale, and under the
+    reward p' the reward difference is c_p; the reference against itself errs by nothing."""
+    from rl2s_jax.simulate import simulated_returns, start_pool, step_errors, visited_step_errors
+
+    ds, params = pm_falls
+    true = lambda o, a, k: pointmass_dynamics(o, a)
+    c = jnp.asarray([0.03, -0.2])
+    scale = jnp.asarray([0.1, 0.5])
+    shifted = lambda o, a, k: pointmass_dynamics(o, a) + c
+    reward_p = lambda o, a, n: n[..., 0]
+    pool = start_pool(ds)
+    out = visited_step_errors(params, shifted, true, reward_p, None, pool, jax.random.PRNGKey(3),
+                              n_episodes=5, horizon=30, scale=scale)
+    want_rmse = np.sqrt(np.mean((np.asarray(c) / np.asarray(scale)) ** 2))
+    np.testing.assert_allclose(out["rmse"], want_rmse, rtol=1e-4)
+    np.testing.assert_allclose(out["reward_bias"], 0.03, rtol=1e-4)
+    np.testing.assert_allclose(out["reward_abs"], 0.03, rtol=1e-4)
+    np.testing.assert_array_equal(out["steps"], 5 * 30)  # no termination: every step counts
+    # a scale of 0 leaves a dim out
+    sq, _ = step_errors(jnp.asarray([1.0, 5.0]), jnp.zeros(2), jnp.zeros(2), jnp.zeros(1),
+                        reward_p, jnp.asarray([2.0, 0.0]))
+    assert float(sq) == pytest.approx(0.25)
+    # the episodes are those of simulated_returns (same key: start states, actions, ends)
+    task = get_task("pointmass")
+    same = visited_step_errors(params, true, true, task.reward_fn, task.done_fn, pool,
+                               jax.random.PRNGKey(4), n_episodes=6, horizon=40, scale=scale)
+    _, lengths = simulated_returns(params, true, task.reward_fn, task.done_fn, pool,
+                                   jax.random.PRNGKey(4), n_episodes=6, horizon=40, gamma=1.0)
+    np.testing.assert_array_equal(same["steps"], np.asarray(lengths).sum(-1))
+    assert (np.asarray(lengths) < 40).any()  # some episodes did end early
+    np.testing.assert_array_equal(same["rmse"], 0.0)
+    np.testing.assert_array_equal(same["reward_bias"], 0.0)

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from open_loop_control import noisy, one_step_std  # noqa: E402
+from open_loop_control import noisy, one_step_std, parse_noise, test_split  # noqa: E402
 
 from rl2s_jax.evaluate import kendall_tau  # noqa: E402
 from rl2s_jax.oracle import oracle_dynamics  # noqa: E402
@@ -103,13 +103,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data", help="a Dataset .npz of the zoo's test split (default: collect)")
     ap.add_argument("--out", default="results/closed_loop_control")
     args = ap.parse_args(argv)
-    bad_noise = f"noise: expected comma-separated floats > 0, got {args.noise!r}"
-    try:
-        scales = [float(x) for x in args.noise.split(",") if x]
-    except ValueError:
-        raise SystemExit(bad_noise) from None
-    if not scales or any(not np.isfinite(x) or x <= 0 for x in scales):
-        raise SystemExit(bad_noise)
+    scales = parse_noise(args.noise, zero_ok=False)  # 0 is the exact run, always made
     for name in ("transitions_per_policy", "episodes", "horizon"):
         if getattr(args, name) < 1:
             raise SystemExit(f"{name.replace('_', '-')}: expected an int >= 1, got "
@@ -123,13 +117,7 @@ def main(argv=None) -> int:
     zoo = load_zoo(args.task)
     policies = index_params(zoo.params, zoo.test_ids)
     t0 = time.perf_counter()
-    if args.data:
-        from rl2s_jax.data import load_dataset
-        ds = load_dataset(args.data)
-    else:
-        from rl2s_jax.cli import collect_dataset
-        ds = collect_dataset(args.task, "test", args.transitions_per_policy, value_episodes=0,
-                             progress=False)
+    ds = test_split(args.task, args.data, args.transitions_per_policy)
     if ds.n_policies != len(zoo.test_ids):
         raise SystemExit(f"data: expected the {len(zoo.test_ids)} test policies of the "
                          f"{args.task} zoo, got {ds.n_policies}")

@@ -58,6 +58,29 @@ def one_step_std(ds, position_dims) -> np.ndarray:
     return std.astype(np.float32)
 
 
+def parse_noise(text: str, *, zero_ok: bool) -> list[float]:
+    """--noise '0,0.01' -> [0.0, 0.01]; SystemExit naming the field on bad input."""
+    bad = f"noise: expected comma-separated floats {'>=' if zero_ok else '>'} 0, got {text!r}"
+    try:
+        scales = [float(x) for x in text.split(",") if x]
+    except ValueError:
+        raise SystemExit(bad) from None
+    if not scales or any(not np.isfinite(x) or x < 0 or (x == 0 and not zero_ok)
+                         for x in scales):
+        raise SystemExit(bad)
+    return scales
+
+
+def test_split(task_name: str, path: str | None, transitions_per_policy: int):
+    """The Dataset at ``path``, else the zoo's test split collected (no value episodes)."""
+    if path:
+        from rl2s_jax.data import load_dataset
+        return load_dataset(path)
+    from rl2s_jax.cli import collect_dataset
+    return collect_dataset(task_name, "test", transitions_per_policy, value_episodes=0,
+                           progress=False)
+
+
 def run(ds, task, *, ks, n_windows: int, scales, seeds: int, window_seed: int = 7) -> dict:
     """The oracle's open loop at every noise scale and seed against the logged windows.
     -> {"scales": {scale: open_loop_summary over the seeds as lanes}, ...}"""
@@ -118,13 +141,7 @@ def main(argv=None) -> int:
                     "the zoo's test split)")
     ap.add_argument("--out", default="results/open_loop_control")
     args = ap.parse_args(argv)
-    bad_noise = f"noise: expected comma-separated floats >= 0, got {args.noise!r}"
-    try:
-        scales = [float(x) for x in args.noise.split(",") if x]
-    except ValueError:
-        raise SystemExit(bad_noise) from None
-    if not scales or any(not np.isfinite(x) or x < 0 for x in scales):
-        raise SystemExit(bad_noise)
+    scales = parse_noise(args.noise, zero_ok=True)
     for name in ("transitions_per_policy", "windows", "seeds"):
         if getattr(args, name) < 1:
             raise SystemExit(f"{name.replace('_', '-')}: expected an int >= 1, got "
@@ -134,13 +151,7 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)
     task = get_task(args.task)
     t0 = time.perf_counter()
-    if args.data:
-        from rl2s_jax.data import load_dataset
-        ds = load_dataset(args.data)
-    else:
-        from rl2s_jax.cli import collect_dataset
-        ds = collect_dataset(args.task, "test", args.transitions_per_policy, value_episodes=0,
-                             progress=False)
+    ds = test_split(args.task, args.data, args.transitions_per_policy)
     print(f"[open-loop control] {args.task}: {ds.n_policies} policies, {ds.n_transitions} "
           f"rows ({time.perf_counter() - t0:.1f}s) on {jax.devices()[0].device_kind} (jax "
           f"{jax.__version__})", flush=True)

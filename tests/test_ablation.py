@@ -11,13 +11,18 @@ import pytest
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-@pytest.fixture(scope="module")
-def ab():
+def _script(name: str):
+    """experiments/<name>.py as a module."""
     spec = importlib.util.spec_from_file_location(
-        "ablation_model", os.path.join(ROOT, "experiments", "ablation_model.py"))
+        name, os.path.join(ROOT, "experiments", f"{name}.py"))
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(scope="module")
+def ab():
+    return _script("ablation_model")
 
 
 def _m(tau, avd, ndcg=1.0):
@@ -219,11 +224,7 @@ def test_validation_policies_are_spread_over_the_values_and_held_out_whole(ab, p
 
 @pytest.fixture(scope="module")
 def olc():
-    spec = importlib.util.spec_from_file_location(
-        "open_loop_control", os.path.join(ROOT, "experiments", "open_loop_control.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return _script("open_loop_control")
 
 
 def test_open_loop_control_reproduces_the_logged_windows_without_noise(olc, pm_falls):
@@ -266,10 +267,7 @@ def test_closed_loop_control_pairs_every_scale_with_the_exact_dynamics(pm_falls)
     from rl2s_jax.simulate import simulated_returns, start_pool
     from rl2s_jax.tasks import get_task
 
-    spec = importlib.util.spec_from_file_location(
-        "closed_loop_control", os.path.join(ROOT, "experiments", "closed_loop_control.py"))
-    clc = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(clc)
+    clc = _script("closed_loop_control")
     ds, params = pm_falls
     task = get_task("pointmass")
     res = clc.run(ds, task, params, scales=[1e-6, 0.5], n_episodes=8, horizon=20, gamma=0.99)

@@ -264,48 +264,68 @@ def open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks) -> dict:
 
 
 def visited_error_check(states, test_ds, test, task, *, n_episodes: int, horizon: int,
-                        rows_per_policy: int = 2048) -> dict:
+                        rows_per_policy: int = 2048, train_ds=None) -> dict:
     """Each lane's one-step error against the real dynamics (``oracle.oracle_dynamics``) on the
     states its own closed-loop episodes of the test policies visit
-    (``simulate.visited_step_errors``) and on logged states of the same policies (a random
-    ``rows_per_policy`` of each), in units of the data's one-step change std per dim, with the
-    reward difference per step. A diagnosis of the test policies (never used to select): an
-    error that grows from the logged states to the visited ones is the model taking the
-    policies where it was not fitted; a reward bias per step times the episode length is the
-    value error it makes. -> {"visited" | "logged": {"rmse" | "reward_bias" | "reward_abs":
-    [L][P]}, "visited_steps": [L][P]}"""
+    (``simulate.visited_step_errors``), on logged states of the same policies (a random
+    ``rows_per_policy`` of each) and, with ``train_ds``, on logged states of the training
+    policies (the model's own data: an error as large there is underfitting, not a shift), in
+    units of the data's one-step change std per dim, with the reward difference per step. A
+    diagnosis of the test policies (never used to select): an error that grows from the logged
+    states to the visited ones is the model taking the policies where it was not fitted; a
+    reward bias per step times the episode length is the value error it makes.
+    -> {"visited" | "logged" [| "train_logged"]: {"rmse" | "reward_bias" | "reward_abs": [L][P],
+    "rmse_per_dim": [L][o] (mean over the policies' squared errors)}, "visited_steps": [L][P]}"""
     from rl2s_jax.oracle import oracle_dynamics
-    from rl2s_jax.simulate import step_errors, visited_step_errors
+    from rl2s_jax.simulate import scaled_error, step_errors, visited_step_errors
 
     reference = oracle_dynamics(task)
     policies, pool = test[0], test[1]
-    pid = np.asarray(test_ds.policy_id)
     rng = np.random.default_rng(11)
-    idx = np.stack([rng.choice(np.flatnonzero(pid == p), rows_per_policy)
-                    for p in range(test_ds.n_policies)])  # [P, R]
-    obs = jnp.asarray(np.asarray(test_ds.obs)[idx])
-    act = jnp.asarray(np.asarray(test_ds.action)[idx])
 
-    def one(sim, key):
+    def rows_of(ds):  # [P, R] obs and actions
+        pid = np.asarray(ds.policy_id)
+        idx = np.stack([rng.choice(np.flatnonzero(pid == p), rows_per_policy)
+                        for p in range(ds.n_policies)])
+        return jnp.asarray(np.asarray(ds.obs)[idx]), jnp.asarray(np.asarray(ds.action)[idx])
+
+    logged_sets = {"logged": rows_of(test_ds)}
+    if train_ds is not None:
+        logged_sets["train_logged"] = rows_of(train_ds)
+
+    def on_rows(sim, obs, act, key):
+        k_model, k_ref = jax.random.split(key)
+        nxt, ref = sim.dynamics(obs, act, k_model), reference(obs, act, k_ref)
+        sq, dr = step_errors(nxt, ref, obs, act, task.reward_fn, sim.norm.delta_std)
+        z2 = scaled_error(nxt, ref, sim.norm.delta_std) ** 2  # [P, R, o]
+        return {"rmse": jnp.sqrt(sq.mean(-1)), "reward_bias": dr.mean(-1),
+                "reward_abs": jnp.abs(dr).mean(-1), "rmse_per_dim": jnp.sqrt(z2.mean((0, 1)))}
+
+    def visited_of(sim, key):
         done_fn, hazard_fn = sim.terminations(task.done_fn)
-        k_run, k_model, k_ref = jax.random.split(key, 3)
         visited = visited_step_errors(policies, sim.dynamics, reference, task.reward_fn,
-                                      done_fn, pool, k_run, n_episodes=n_episodes,
+                                      done_fn, pool, key, n_episodes=n_episodes,
                                       horizon=horizon, scale=sim.norm.delta_std,
                                       hazard_fn=hazard_fn)
-        sq, dr = step_errors(sim.dynamics(obs, act, k_model), reference(obs, act, k_ref), obs,
-                             act, task.reward_fn, sim.norm.delta_std)
-        logged = {"rmse": jnp.sqrt(sq.mean(-1)), "reward_bias": dr.mean(-1),
-                  "reward_abs": jnp.abs(dr).mean(-1)}
-        return visited, logged
+        steps = visited["steps"]
+        per_dim = jnp.sqrt(jnp.sum(visited["rmse_per_dim"] ** 2 * steps[:, None], 0)
+                           / jnp.maximum(steps.sum(), 1.0))  # over every visited step
+        return {**visited, "rmse_per_dim": per_dim}
 
+    # one compiled program per piece: XLA's CPU runtime hung (every thread in a futex wait)
+    # running the visited rollout and both logged sets as one program
+    sims = simulator(states, average=False)
     n_lanes = int(states.step.shape[0])
     keys = jnp.stack([jax.random.PRNGKey(5000 + i) for i in range(n_lanes)])
-    visited, logged = jax.jit(jax.vmap(one))(simulator(states, average=False), keys)
+    res = {"visited": jax.block_until_ready(jax.jit(jax.vmap(visited_of))(sims, keys))}
+    for i, (name, (obs, act)) in enumerate(logged_sets.items()):
+        lane_keys = jax.vmap(lambda k, i=i: jax.random.fold_in(k, i + 1))(keys)
+        res[name] = jax.block_until_ready(jax.jit(jax.vmap(
+            lambda sim, k, o=obs, a=act: on_rows(sim, o, a, k)))(sims, lane_keys))
     rnd = lambda x: np.round(np.asarray(x, np.float64), 4).tolist()
-    return {"visited": {k: rnd(visited[k]) for k in ("rmse", "reward_bias", "reward_abs")},
-            "logged": {k: rnd(v) for k, v in logged.items()},
-            "visited_steps": rnd(visited["steps"]), "rows_per_policy": rows_per_policy,
+    keep = ("rmse", "reward_bias", "reward_abs", "rmse_per_dim")
+    return {**{side: {k: rnd(v[k]) for k in keep} for side, v in res.items()},
+            "visited_steps": rnd(res["visited"]["steps"]), "rows_per_policy": rows_per_policy,
             "episodes_per_policy": n_episodes}
 
 
@@ -538,12 +558,13 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     if args.visited_error:
         res["visited_error"] = v = visited_error_check(
             states, test_ds, test, get_task(args.task), n_episodes=args.visited_error,
-            horizon=cfg.vd_horizon)
+            horizon=cfg.vd_horizon, train_ds=train_ds)
         mean = lambda d, k: [round(float(np.mean(x)), 4) for x in d[k]]
         log(f"[ablation] {variant}: one-step error against the real dynamics (per seed, mean "
             f"over the test policies): visited states rmse {mean(v['visited'], 'rmse')} "
             f"reward bias {mean(v['visited'], 'reward_bias')} | logged states rmse "
-            f"{mean(v['logged'], 'rmse')} reward bias {mean(v['logged'], 'reward_bias')}")
+            f"{mean(v['logged'], 'rmse')} reward bias {mean(v['logged'], 'reward_bias')} | "
+            f"training policies' logged states rmse {mean(v['train_logged'], 'rmse')}")
     if args.task in TERMINATION_RULES:  # why the simulated episodes end, vs the logged ones
         task = get_task(args.task)
         keys = jnp.stack([jax.random.PRNGKey(3000 + s) for s in seeds])

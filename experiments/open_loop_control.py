@@ -10,7 +10,8 @@ all. This script measures that: at noise scale 0 the oracle should reproduce the
 returns (the check of the windows and the oracle); at a scale sigma each step's next state gets
 sigma x N(0, 1) x the data's one-step change std per dim (not on the absolute positions, which
 no step reads), an error of known size and no bias. The scale whose k = 1 and k = 10 errors
-match a learned model's says what its k = 50 numbers would be from noise alone.
+match a learned model's says what its k = 50 numbers would be from noise alone. It also
+records the oracle's own one-step error on logged rows (``oracle_step_check``).
 
     python experiments/open_loop_control.py --task ant [--transitions-per-policy 2000]
         [--windows 32] [--ks 1,10,50] [--noise 0,0.01,0.03,0.1] [--seeds 2]
@@ -79,6 +80,25 @@ def test_split(task_name: str, path: str | None, transitions_per_policy: int):
     from rl2s_jax.cli import collect_dataset
     return collect_dataset(task_name, "test", transitions_per_policy, value_episodes=0,
                            progress=False)
+
+
+def oracle_step_check(ds, task, n_rows: int = 4096, seed: int = 0) -> dict:
+    """The oracle's own one-step error on logged rows (``simulate.step_errors`` against the
+    logged next states, in stds of the logged one-step change per dim): how exact the real
+    dynamics rebuilt from an observation are, the control of every error measured against
+    them. -> {"rows", "rmse", "reward_bias", "reward_abs", "rmse_per_dim"}"""
+    from rl2s_jax.simulate import step_errors
+
+    obs, act, nxt = (np.asarray(x) for x in (ds.obs, ds.action, ds.next_obs))
+    idx = np.random.default_rng(seed).choice(len(obs), min(n_rows, len(obs)), replace=False)
+    o, a, n = (jnp.asarray(x[idx]) for x in (obs, act, nxt))
+    scale = jnp.asarray(np.std(nxt.astype(np.float64) - obs, 0), jnp.float32)
+    pred = jax.jit(oracle_dynamics(task))(o, a, jax.random.PRNGKey(seed))
+    sq, dr = step_errors(pred, n, o, a, task.reward_fn, scale)
+    z = np.asarray((pred - n) / jnp.where(scale > 0, scale, 1.0), np.float64)
+    return {"rows": int(idx.size), "rmse": float(jnp.sqrt(sq.mean())),
+            "reward_bias": float(dr.mean()), "reward_abs": float(jnp.abs(dr).mean()),
+            "rmse_per_dim": np.round(np.sqrt((z ** 2).mean(0)), 5).tolist()}
 
 
 def run(ds, task, *, ks, n_windows: int, scales, seeds: int, window_seed: int = 7) -> dict:
@@ -156,6 +176,10 @@ def main(argv=None) -> int:
           f"rows ({time.perf_counter() - t0:.1f}s) on {jax.devices()[0].device_kind} (jax "
           f"{jax.__version__})", flush=True)
     res = run(ds, task, ks=args.ks, n_windows=args.windows, scales=scales, seeds=args.seeds)
+    res["oracle_step_error"] = check = oracle_step_check(ds, task)
+    print(f"[open-loop control] the oracle's own one-step error on {check['rows']} logged rows: "
+          f"rmse {check['rmse']:.2g} stds of a step's change, reward {check['reward_bias']:.2g} "
+          f"(mean absolute {check['reward_abs']:.2g})", flush=True)
     res.update(task=args.task, command=" ".join(["python", "experiments/open_loop_control.py",
                                                  *(argv if argv is not None else sys.argv[1:])]),
                hardware=jax.devices()[0].device_kind, jax_version=jax.__version__,

@@ -438,11 +438,17 @@ def step_errors(model_next: jax.Array, reference_next: jax.Array, obs: jax.Array
     the mean squared difference of the next states over the dims with ``scale`` > 0, each in
     units of its scale [o], and the reward difference r(s, a, model) - r(s, a, reference).
     [..., o] -> (squared error [...], reward difference [...])"""
+    z = scaled_error(model_next, reference_next, scale)
+    sq = jnp.sum(z ** 2, -1) / jnp.maximum(jnp.sum(jnp.asarray(scale) > 0), 1)
+    return sq, reward_fn(obs, action, model_next) - reward_fn(obs, action, reference_next)
+
+
+def scaled_error(model_next: jax.Array, reference_next: jax.Array, scale: jax.Array
+                 ) -> jax.Array:
+    """(model - reference) / scale per dim, 0 where scale is 0. [..., o] -> [..., o]"""
     scale = jnp.asarray(scale, jnp.float32)
     used = scale > 0
-    z = jnp.where(used, (model_next - reference_next) / jnp.where(used, scale, 1.0), 0.0)
-    sq = jnp.sum(z ** 2, -1) / jnp.maximum(jnp.sum(used), 1)
-    return sq, reward_fn(obs, action, model_next) - reward_fn(obs, action, reference_next)
+    return jnp.where(used, (model_next - reference_next) / jnp.where(used, scale, 1.0), 0.0)
 
 
 def visited_step_errors(policy_params: Params, dynamics: Dynamics, reference: Dynamics,
@@ -457,7 +463,8 @@ def visited_step_errors(policy_params: Params, dynamics: Dynamics, reference: Dy
     takes the policies than where the data is.
 
     policy_params [P, ...]; scale [o]. -> {"rmse", "reward_bias" (mean reward difference per
-    step), "reward_abs" (its mean absolute value), "steps" (live steps)}: each [P]."""
+    step), "reward_abs" (its mean absolute value), "steps" (live steps)}: each [P]; and
+    "rmse_per_dim" [P, o]."""
     n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
     k_start, k_run = jax.random.split(key)
     roll = start_values(start_pool, n_pol, n_episodes, k_start)
@@ -465,22 +472,26 @@ def visited_step_errors(policy_params: Params, dynamics: Dynamics, reference: Dy
     zeros = jnp.zeros(roll.alive.shape, jnp.float32)
 
     def step(carry, key):
-        obs, alive, t, sq_sum, bias_sum, abs_sum, count = carry
+        obs, alive, t, dim_sum, sq_sum, bias_sum, abs_sum, count = carry
         k_act, k_dyn = jax.random.split(key)  # advance_values' draws: the same episodes
         action, _, _ = act(policy_params, obs, jax.random.split(k_act, n_pol))
         k_ref = jax.random.fold_in(k_dyn, 1)
         k_dyn, k_end = end_key(k_dyn, hazard_fn)
         nxt = dynamics(obs, action, k_dyn)
-        sq, dr = step_errors(nxt, reference(obs, action, k_ref), obs, action, reward_fn, scale)
+        ref = reference(obs, action, k_ref)
+        sq, dr = step_errors(nxt, ref, obs, action, reward_fn, scale)
         live = alive & (t < horizon)
         w = live.astype(jnp.float32)
         done = ends_episode(obs, action, nxt, k_end, done_fn, hazard_fn)
-        return (jnp.where(live[..., None], nxt, obs), alive & ~(live & done), t + 1,
+        dim_sum = dim_sum + w[..., None] * scaled_error(nxt, ref, scale) ** 2
+        return (jnp.where(live[..., None], nxt, obs), alive & ~(live & done), t + 1, dim_sum,
                 sq_sum + w * sq, bias_sum + w * dr, abs_sum + w * jnp.abs(dr), count + w), None
 
-    carry = (roll.obs, roll.alive, jnp.zeros((), jnp.int32), zeros, zeros, zeros, zeros)
+    carry = (roll.obs, roll.alive, jnp.zeros((), jnp.int32), jnp.zeros_like(roll.obs), zeros,
+             zeros, zeros, zeros)
     carry, _ = jax.lax.scan(step, carry, jax.random.split(k_run, horizon))
-    sq_sum, bias_sum, abs_sum, count = (jnp.sum(x, -1) for x in carry[3:])  # over episodes
+    sq_sum, bias_sum, abs_sum, count = (jnp.sum(x, -1) for x in carry[4:])  # over episodes
     n = jnp.maximum(count, 1.0)
     return {"rmse": jnp.sqrt(sq_sum / n), "reward_bias": bias_sum / n,
-            "reward_abs": abs_sum / n, "steps": count}
+            "reward_abs": abs_sum / n, "steps": count,
+            "rmse_per_dim": jnp.sqrt(carry[3].sum(1) / n[:, None])}

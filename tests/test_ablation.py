@@ -304,11 +304,12 @@ def test_visited_error_check_measures_each_lane_against_the_real_dynamics(ab, pm
         [jax.random.PRNGKey(0), jax.random.PRNGKey(1)]))
     test = (params, start_pool(ds), None)
     res = ab.visited_error_check(states, ds, test, task, n_episodes=3, horizon=20,
-                                 rows_per_policy=64)
+                                 rows_per_policy=64, train_ds=ds)
     P = ds.n_policies
-    for side in ("visited", "logged"):
+    for side in ("visited", "logged", "train_logged"):
         for k in ("rmse", "reward_bias", "reward_abs"):
             assert np.asarray(res[side][k]).shape == (2, P)
+        assert np.asarray(res[side]["rmse_per_dim"]).shape == (2, 2)
         assert np.all(np.asarray(res[side]["rmse"]) > 0)  # an untrained model errs
         assert np.all(np.asarray(res[side]["reward_abs"]) + 1e-4
                       >= np.abs(np.asarray(res[side]["reward_bias"])))
@@ -326,3 +327,14 @@ def test_visited_error_check_measures_each_lane_against_the_real_dynamics(ab, pm
         z = (model - true) / np.asarray(sim.norm.delta_std, np.float64)
         np.testing.assert_allclose(res["logged"]["rmse"][lane],
                                    np.sqrt((z ** 2).mean(-1).mean(-1)), rtol=2e-3, atol=1e-4)
+        np.testing.assert_allclose(res["logged"]["rmse_per_dim"][lane],
+                                   np.sqrt((z ** 2).mean((0, 1))), rtol=2e-3, atol=1e-4)
+
+
+def test_oracle_step_check_is_exact_on_pointmass(olc, pm_falls):
+    from rl2s_jax.tasks import get_task
+
+    ds, _ = pm_falls
+    check = olc.oracle_step_check(ds, get_task("pointmass"), n_rows=100)
+    assert check["rows"] == 100 and check["rmse"] < 1e-5 and check["reward_abs"] < 1e-5
+    assert len(check["rmse_per_dim"]) == 2

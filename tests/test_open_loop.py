@@ -111,6 +111,9 @@ def test_visited_step_errors_of_a_known_offset(pm_falls):
                               n_episodes=5, horizon=30, scale=scale)
     want_rmse = np.sqrt(np.mean((np.asarray(c) / np.asarray(scale)) ** 2))
     np.testing.assert_allclose(out["rmse"], want_rmse, rtol=1e-4)
+    np.testing.assert_allclose(out["rmse_per_dim"],
+                               np.broadcast_to(np.abs(np.asarray(c) / np.asarray(scale)),
+                                               (ds.n_policies, 2)), rtol=1e-4)
     np.testing.assert_allclose(out["reward_bias"], 0.03, rtol=1e-4)
     np.testing.assert_allclose(out["reward_abs"], 0.03, rtol=1e-4)
     np.testing.assert_array_equal(out["steps"], 5 * 30)  # no termination: every step counts

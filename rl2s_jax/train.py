@@ -20,8 +20,8 @@ One step of an MLE method (bc, rl2s-bc), and of the pre-training phase of an adv
 One step of the adversarial phase (rl2s, gail), the official code's "train call" (the first one
 starts from the pre-trained members: their best weights, fresh Adam moments):
   1. the simulated envs advance ``sim_steps`` steps: each runs a selected training policy inside
-     p_phi from a real state of that policy (reset when done_fn fires or after ``sim_horizon``
-     steps); their (s, a) go into a ring buffer;
+     p_phi from a real state of that policy (reset when the episode ends as the config's
+     ``termination`` says, or after ``sim_horizon`` steps); their (s, a) go into a ring buffer;
   2. ``updates_per_step`` times: ``disc_updates`` Wasserstein critic updates (real (s, a, s') of
      the selected policies vs (s, a) from the buffer with s' from p_phi), then one update of
      every member maximising D on real and simulated (s, a), reparameterised through D (the

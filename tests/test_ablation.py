@@ -338,3 +338,29 @@ def test_oracle_step_check_is_exact_on_pointmass(olc, pm_falls):
     check = olc.oracle_step_check(ds, get_task("pointmass"), n_rows=100)
     assert check["rows"] == 100 and check["rmse"] < 1e-5 and check["reward_abs"] < 1e-5
     assert len(check["rmse_per_dim"]) == 2
+
+
+def test_plot_controls_reads_the_control_runs_and_draws_them(tmp_path):
+    pc = _script("plot_controls")
+    open_run = {"task": "ant", "scales": {
+        "0.0": {"50": {"relative_error": [0.01, 0.03]}},
+        "0.1": {"50": {"relative_error": [0.5, 0.6]}}}}
+    closed_run = {"task": "ant", "episodes": 8, "exact_other_keys": {"tau_vs_exact": 0.8},
+                  "scales": {"0.1": {"tau_vs_exact": 0.7, "spread_ratio": 0.6,
+                                     "relative_change": 0.3}}}
+    (tmp_path / "runs").mkdir()
+    (tmp_path / "runs" / "open_loop_control_ant.json").write_text(json.dumps(open_run))
+    (tmp_path / "runs" / "closed_loop_control_ant.json").write_text(json.dumps(closed_run))
+    s, err = pc.open_loop_curve(open_run)
+    np.testing.assert_allclose(s, [0.0, 0.1])
+    np.testing.assert_allclose(err, [0.02, 0.55])
+    s, tau = pc.closed_loop_curve(closed_run, "tau_vs_exact")
+    np.testing.assert_allclose(s, [0.0, 0.1])
+    np.testing.assert_allclose(tau, [1.0, 0.7])
+    out = tmp_path / "fig.png"
+    assert pc.main(["--runs", str(tmp_path / "runs"), "--out", str(out)]) == 0
+    assert out.stat().st_size > 1000
+    with pytest.raises(SystemExit, match="runs"):
+        pc.main(["--runs", str(tmp_path / "empty"), "--out", str(out)])
+    with pytest.raises(SystemExit, match="model"):
+        pc.main(["--runs", str(tmp_path / "runs"), "--model", "ant=/nonexistent.json"])

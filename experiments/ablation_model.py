@@ -277,7 +277,7 @@ def visited_error_check(states, test_ds, test, task, *, n_episodes: int, horizon
     -> {"visited" | "logged" [| "train_logged"]: {"rmse" | "reward_bias" | "reward_abs": [L][P],
     "rmse_per_dim": [L][o] (mean over the policies' squared errors)}, "visited_steps": [L][P]}"""
     from rl2s_jax.oracle import oracle_dynamics
-    from rl2s_jax.simulate import scaled_error, step_errors, visited_step_errors
+    from rl2s_jax.simulate import mean_square, step_errors, visited_step_errors
 
     reference = oracle_dynamics(task)
     policies, pool = test[0], test[1]
@@ -296,10 +296,10 @@ def visited_error_check(states, test_ds, test, task, *, n_episodes: int, horizon
     def on_rows(sim, obs, act, key):
         k_model, k_ref = jax.random.split(key)
         nxt, ref = sim.dynamics(obs, act, k_model), reference(obs, act, k_ref)
-        sq, dr = step_errors(nxt, ref, obs, act, task.reward_fn, sim.norm.delta_std)
-        z2 = scaled_error(nxt, ref, sim.norm.delta_std) ** 2  # [P, R, o]
-        return {"rmse": jnp.sqrt(sq.mean(-1)), "reward_bias": dr.mean(-1),
-                "reward_abs": jnp.abs(dr).mean(-1), "rmse_per_dim": jnp.sqrt(z2.mean((0, 1)))}
+        z, dr = step_errors(nxt, ref, obs, act, task.reward_fn, sim.norm.delta_std)  # [P, R]
+        return {"rmse": jnp.sqrt(mean_square(z, sim.norm.delta_std).mean(-1)),
+                "reward_bias": dr.mean(-1), "reward_abs": jnp.abs(dr).mean(-1),
+                "rmse_per_dim": jnp.sqrt((z ** 2).mean((0, 1)))}
 
     def visited_of(sim, key):
         done_fn, hazard_fn = sim.terminations(task.done_fn)

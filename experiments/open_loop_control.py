@@ -87,18 +87,18 @@ def oracle_step_check(ds, task, n_rows: int = 4096, seed: int = 0) -> dict:
     logged next states, in stds of the logged one-step change per dim): how exact the real
     dynamics rebuilt from an observation are, the control of every error measured against
     them. -> {"rows", "rmse", "reward_bias", "reward_abs", "rmse_per_dim"}"""
-    from rl2s_jax.simulate import step_errors
+    from rl2s_jax.simulate import mean_square, step_errors
 
     obs, act, nxt = (np.asarray(x) for x in (ds.obs, ds.action, ds.next_obs))
     idx = np.random.default_rng(seed).choice(len(obs), min(n_rows, len(obs)), replace=False)
     o, a, n = (jnp.asarray(x[idx]) for x in (obs, act, nxt))
     scale = jnp.asarray(np.std(nxt.astype(np.float64) - obs, 0), jnp.float32)
     pred = jax.jit(oracle_dynamics(task))(o, a, jax.random.PRNGKey(seed))
-    sq, dr = step_errors(pred, n, o, a, task.reward_fn, scale)
-    z = np.asarray((pred - n) / jnp.where(scale > 0, scale, 1.0), np.float64)
-    return {"rows": int(idx.size), "rmse": float(jnp.sqrt(sq.mean())),
+    z, dr = step_errors(pred, n, o, a, task.reward_fn, scale)
+    return {"rows": int(idx.size), "rmse": float(jnp.sqrt(mean_square(z, scale).mean())),
             "reward_bias": float(dr.mean()), "reward_abs": float(jnp.abs(dr).mean()),
-            "rmse_per_dim": np.round(np.sqrt((z ** 2).mean(0)), 5).tolist()}
+            "rmse_per_dim": np.round(np.sqrt((np.asarray(z, np.float64) ** 2).mean(0)),
+                                     5).tolist()}
 
 
 def run(ds, task, *, ks, n_windows: int, scales, seeds: int, window_seed: int = 7) -> dict:

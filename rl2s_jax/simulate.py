@@ -434,21 +434,20 @@ def logged_window_returns(ds, rows: np.ndarray, steps: np.ndarray, k: int,
 def step_errors(model_next: jax.Array, reference_next: jax.Array, obs: jax.Array,
                 action: jax.Array, reward_fn: Callable, scale: jax.Array
                 ) -> tuple[jax.Array, jax.Array]:
-    """One step's error of a simulator against a reference from the same (obs, action):
-    the mean squared difference of the next states over the dims with ``scale`` > 0, each in
-    units of its scale [o], and the reward difference r(s, a, model) - r(s, a, reference).
-    [..., o] -> (squared error [...], reward difference [...])"""
-    z = scaled_error(model_next, reference_next, scale)
-    sq = jnp.sum(z ** 2, -1) / jnp.maximum(jnp.sum(jnp.asarray(scale) > 0), 1)
-    return sq, reward_fn(obs, action, model_next) - reward_fn(obs, action, reference_next)
-
-
-def scaled_error(model_next: jax.Array, reference_next: jax.Array, scale: jax.Array
-                 ) -> jax.Array:
-    """(model - reference) / scale per dim, 0 where scale is 0. [..., o] -> [..., o]"""
+    """One step's error of a simulator against a reference from the same (obs, action): the
+    next states' difference per dim in units of ``scale`` [o] (0 where the scale is 0: the dim
+    is left out), and the reward difference r(s, a, model) - r(s, a, reference).
+    [..., o] -> (scaled error [..., o], reward difference [...]); ``mean_square`` of the first
+    is the step's squared error over the dims used."""
     scale = jnp.asarray(scale, jnp.float32)
     used = scale > 0
-    return jnp.where(used, (model_next - reference_next) / jnp.where(used, scale, 1.0), 0.0)
+    z = jnp.where(used, (model_next - reference_next) / jnp.where(used, scale, 1.0), 0.0)
+    return z, reward_fn(obs, action, model_next) - reward_fn(obs, action, reference_next)
+
+
+def mean_square(z: jax.Array, scale: jax.Array) -> jax.Array:
+    """The mean of z ** 2 over the dims with ``scale`` > 0. [..., o] -> [...]"""
+    return jnp.sum(z ** 2, -1) / jnp.maximum(jnp.sum(jnp.asarray(scale) > 0), 1)
 
 
 def visited_step_errors(policy_params: Params, dynamics: Dynamics, reference: Dynamics,
@@ -472,26 +471,27 @@ def visited_step_errors(policy_params: Params, dynamics: Dynamics, reference: Dy
     zeros = jnp.zeros(roll.alive.shape, jnp.float32)
 
     def step(carry, key):
-        obs, alive, t, dim_sum, sq_sum, bias_sum, abs_sum, count = carry
+        obs, alive, t, dim_sum, bias_sum, abs_sum, count = carry
         k_act, k_dyn = jax.random.split(key)  # advance_values' draws: the same episodes
         action, _, _ = act(policy_params, obs, jax.random.split(k_act, n_pol))
         k_ref = jax.random.fold_in(k_dyn, 1)
         k_dyn, k_end = end_key(k_dyn, hazard_fn)
         nxt = dynamics(obs, action, k_dyn)
         ref = reference(obs, action, k_ref)
-        sq, dr = step_errors(nxt, ref, obs, action, reward_fn, scale)
+        z, dr = step_errors(nxt, ref, obs, action, reward_fn, scale)
         live = alive & (t < horizon)
         w = live.astype(jnp.float32)
         done = ends_episode(obs, action, nxt, k_end, done_fn, hazard_fn)
-        dim_sum = dim_sum + w[..., None] * scaled_error(nxt, ref, scale) ** 2
-        return (jnp.where(live[..., None], nxt, obs), alive & ~(live & done), t + 1, dim_sum,
-                sq_sum + w * sq, bias_sum + w * dr, abs_sum + w * jnp.abs(dr), count + w), None
+        return (jnp.where(live[..., None], nxt, obs), alive & ~(live & done), t + 1,
+                dim_sum + w[..., None] * z ** 2, bias_sum + w * dr, abs_sum + w * jnp.abs(dr),
+                count + w), None
 
     carry = (roll.obs, roll.alive, jnp.zeros((), jnp.int32), jnp.zeros_like(roll.obs), zeros,
-             zeros, zeros, zeros)
+             zeros, zeros)
     carry, _ = jax.lax.scan(step, carry, jax.random.split(k_run, horizon))
-    sq_sum, bias_sum, abs_sum, count = (jnp.sum(x, -1) for x in carry[4:])  # over episodes
+    dim_sum = carry[3].sum(1)  # [P, o], over episodes
+    bias_sum, abs_sum, count = (jnp.sum(x, -1) for x in carry[4:])
     n = jnp.maximum(count, 1.0)
-    return {"rmse": jnp.sqrt(sq_sum / n), "reward_bias": bias_sum / n,
-            "reward_abs": abs_sum / n, "steps": count,
-            "rmse_per_dim": jnp.sqrt(carry[3].sum(1) / n[:, None])}
+    per_dim = jnp.sqrt(dim_sum / n[:, None])
+    return {"rmse": jnp.sqrt(mean_square(per_dim, scale)), "reward_bias": bias_sum / n,
+            "reward_abs": abs_sum / n, "steps": count, "rmse_per_dim": per_dim}

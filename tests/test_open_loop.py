@@ -98,7 +98,13 @@ def test_visited_step_errors_of_a_known_offset(pm_falls):
     """A simulator that is the true pointmass plus a constant offset (c_p, c_v): on every
     visited state its error is exactly that offset in units of the scale, and under the
     reward p' the reward difference is c_p; the reference against itself errs by nothing."""
-    from rl2s_jax.simulate import simulated_returns, start_pool, step_errors, visited_step_errors
+    from rl2s_jax.simulate import (
+        mean_square,
+        simulated_returns,
+        start_pool,
+        step_errors,
+        visited_step_errors,
+    )
 
     ds, params = pm_falls
     true = lambda o, a, k: pointmass_dynamics(o, a)
@@ -118,9 +124,10 @@ def test_visited_step_errors_of_a_known_offset(pm_falls):
     np.testing.assert_allclose(out["reward_abs"], 0.03, rtol=1e-4)
     np.testing.assert_array_equal(out["steps"], 5 * 30)  # no termination: every step counts
     # a scale of 0 leaves a dim out
-    sq, _ = step_errors(jnp.asarray([1.0, 5.0]), jnp.zeros(2), jnp.zeros(2), jnp.zeros(1),
-                        reward_p, jnp.asarray([2.0, 0.0]))
-    assert float(sq) == pytest.approx(0.25)
+    z, _ = step_errors(jnp.asarray([1.0, 5.0]), jnp.zeros(2), jnp.zeros(2), jnp.zeros(1),
+                       reward_p, jnp.asarray([2.0, 0.0]))
+    np.testing.assert_array_equal(z, [0.5, 0.0])
+    assert float(mean_square(z, jnp.asarray([2.0, 0.0]))) == pytest.approx(0.25)
     # the episodes are those of simulated_returns (same key: start states, actions, ends)
     task = get_task("pointmass")
     same = visited_step_errors(params, true, true, task.reward_fn, task.done_fn, pool,

@@ -212,15 +212,11 @@ def open_loop_check(states, ds, task, *, ks=(1, 10, 50), n_windows: int = 256) -
     means at the largest k. A diagnosis of the test data (never used to select): if the
     model ranks the policies' windows well here but not in closed loop, the error is in how
     the policies react to the model's states, not in the dynamics under their actions."""
-    from rl2s_jax.simulate import logged_window_returns, open_loop_returns, open_loop_windows
+    from rl2s_jax.simulate import open_loop_returns
 
     k_max = max(ks)
-    rows, steps = open_loop_windows(ds, k_max, n_windows, seed=7)
-    real_r, real_end = logged_window_returns(ds, rows, steps, k_max, task.reward_fn)
-    idx = rows[..., None] + np.minimum(np.arange(k_max), steps[..., None] - 1)
-    obs = jnp.asarray(np.asarray(ds.obs)[rows.ravel()])
-    act = jnp.asarray(np.asarray(ds.action)[idx.reshape(-1, k_max)])
-    n_steps = jnp.asarray(steps.ravel())
+    rows, steps, real_r, real_end, obs, act, n_steps = open_loop_inputs(ds, task, k_max,
+                                                                        n_windows, seed=7)
     sims = simulator(states, average=False)
 
     def one(sim, key):
@@ -236,6 +232,21 @@ def open_loop_check(states, ds, task, *, ks=(1, 10, 50), n_windows: int = 256) -
     sim_end = sim_end.reshape(n_lanes, *rows.shape, k_max)
     return {"windows_per_policy": n_windows,
             **open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks)}
+
+
+def open_loop_inputs(ds, task, k_max: int, n_windows: int, seed: int):
+    """The logged windows of every policy (``simulate.open_loop_windows``), what the logged
+    episodes earned in them (``logged_window_returns``), and the flat inputs of
+    ``open_loop_returns``. -> (rows, steps [P, n], real reward [P, n, k_max], real end [P, n],
+    start obs [P * n, o], actions [P * n, k_max, a], steps [P * n])"""
+    from rl2s_jax.simulate import logged_window_returns, open_loop_windows
+
+    rows, steps = open_loop_windows(ds, k_max, n_windows, seed=seed)
+    real_r, real_end = logged_window_returns(ds, rows, steps, k_max, task.reward_fn)
+    idx = rows[..., None] + np.minimum(np.arange(k_max), steps[..., None] - 1)
+    obs = jnp.asarray(np.asarray(ds.obs)[rows.ravel()])
+    act = jnp.asarray(np.asarray(ds.action)[idx.reshape(-1, k_max)])
+    return rows, steps, real_r, real_end, obs, act, jnp.asarray(steps.ravel())
 
 
 def open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks) -> dict:

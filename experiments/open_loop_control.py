@@ -33,14 +33,10 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from ablation_model import open_loop_summary  # noqa: E402
+from ablation_model import open_loop_inputs, open_loop_summary  # noqa: E402
 
 from rl2s_jax.oracle import oracle_dynamics  # noqa: E402
-from rl2s_jax.simulate import (  # noqa: E402
-    logged_window_returns,
-    open_loop_returns,
-    open_loop_windows,
-)
+from rl2s_jax.simulate import open_loop_returns  # noqa: E402
 from rl2s_jax.tasks import get_task, task_names  # noqa: E402
 
 
@@ -105,12 +101,8 @@ def run(ds, task, *, ks, n_windows: int, scales, seeds: int, window_seed: int = 
     """The oracle's open loop at every noise scale and seed against the logged windows.
     -> {"scales": {scale: open_loop_summary over the seeds as lanes}, ...}"""
     k_max = max(ks)
-    rows, steps = open_loop_windows(ds, k_max, n_windows, seed=window_seed)
-    real_r, real_end = logged_window_returns(ds, rows, steps, k_max, task.reward_fn)
-    idx = rows[..., None] + np.minimum(np.arange(k_max), steps[..., None] - 1)
-    obs = jnp.asarray(np.asarray(ds.obs)[rows.ravel()])
-    act = jnp.asarray(np.asarray(ds.action)[idx.reshape(-1, k_max)])
-    n_steps = jnp.asarray(steps.ravel())
+    rows, steps, real_r, real_end, obs, act, n_steps = open_loop_inputs(
+        ds, task, k_max, n_windows, seed=window_seed)
     noise_std = jnp.asarray(one_step_std(ds, task.position_dims))
     real_dyn = oracle_dynamics(task)
 

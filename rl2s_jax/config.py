@@ -12,6 +12,7 @@ import dataclasses
 import math
 
 from rl2s_jax.dynamics import (
+    ACTIVATIONS,
     BOUND_KINDS,
     MEMBER_MODES,
     NOISE_KINDS,
@@ -70,6 +71,7 @@ class TrainConfig:
     member_mode: str = "random"    # rollout step: a random elite | "mean" | "fixed" (best)
     uncertainty: str = "std"       # disagreement: "std" of elite means | "max_pairwise"
     gen_noise: str = "state"       # "state": log-std head | "global": one log-std per dim
+    gen_activation: str = "relu"   # the members' hidden activation: "relu" | "silu"
     gen_log_std_bounds: str = "learned"  # "fixed" [-5, 1] | "learned" (PETS)
     log_std_bound_weight: float = 0.01   # PETS' weight on sum(max) - sum(min) log-std
     gen_weight_decay: float = 5e-5  # L2 on the generator's weight matrices (mbrl-lib MBPO)
@@ -113,6 +115,7 @@ class TrainConfig:
     def dynamics_spec(self) -> DynamicsSpec:
         """The generator as a member of the dynamics-model family."""
         return DynamicsSpec(hidden=self.gen_hidden, noise=self.gen_noise,
+                            activation=self.gen_activation,
                             log_std_bounds=self.gen_log_std_bounds)
 
     @property
@@ -190,6 +193,7 @@ class TrainConfig:
                              f"{self.ema_decay!r}")
         for name, kinds in (("member_mode", MEMBER_MODES), ("uncertainty", UNCERTAINTY_KINDS),
                             ("gen_noise", NOISE_KINDS), ("gen_log_std_bounds", BOUND_KINDS),
+                            ("gen_activation", ACTIVATIONS),
                             ("termination", TERMINATIONS)):
             if getattr(self, name) not in kinds:
                 raise ValueError(f"{name}: expected one of {', '.join(map(repr, kinds))}, got "

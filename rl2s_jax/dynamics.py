@@ -45,6 +45,7 @@ LOG_STD_MIN = -5.0  # std >= 0.7% of the data's delta std: sharper made BC colla
 LOG_STD_MAX = 1.0
 NOISE_KINDS = ("state", "global")
 BOUND_KINDS = ("fixed", "learned")
+ACTIVATIONS = ("relu", "silu")
 TIME_INPUTS = ("order", "step")
 MEMBER_MODES = ("random", "mean", "fixed")
 UNCERTAINTY_KINDS = ("std", "max_pairwise")
@@ -121,14 +122,19 @@ class DynamicsSpec:
     """One member of the family (hashable: a static argument of compiled programs).
 
     hidden: the MLP's hidden sizes; noise: "state" | "global"; log_std_bounds: "fixed" |
-    "learned"; action_history / obs_history: past actions / observations fed as inputs;
-    time_inputs: subset of ("order", "step"); context_dim: per-episode latent (0: off) from an
-    encoder with hidden sizes context_hidden.
+    "learned"; activation: of the hidden layers, "relu" | "silu" (x sigmoid(x), PETS' and
+    MBPO's "swish"; a SiLU member carries a marker ``params["silu"]``, a scalar 0 that no
+    computation reads, so no update moves it, and its parameters alone say how to apply it;
+    an empty array would not, since orbax refuses to save one); action_history /
+    obs_history: past actions / observations fed as inputs; time_inputs: subset of ("order",
+    "step"); context_dim: per-episode latent (0: off) from an encoder with hidden sizes
+    context_hidden.
     """
 
     hidden: tuple[int, ...] = (512, 512, 512, 512)
     noise: str = "state"
     log_std_bounds: str = "fixed"
+    activation: str = "relu"
     action_history: int = 0
     obs_history: int = 0
     time_inputs: tuple[str, ...] = ()
@@ -143,7 +149,8 @@ class DynamicsSpec:
             v = getattr(self, f)
             if not _is_int(v) or v < 0:
                 raise ValueError(f"{name(f, f)}: expected an int >= 0, got {v!r}")
-        for f, kinds in (("noise", NOISE_KINDS), ("log_std_bounds", BOUND_KINDS)):
+        for f, kinds in (("noise", NOISE_KINDS), ("log_std_bounds", BOUND_KINDS),
+                         ("activation", ACTIVATIONS)):
             if getattr(self, f) not in kinds:
                 raise ValueError(f"{name(f, f)}: expected one of "
                                  f"{', '.join(map(repr, kinds))}, got {getattr(self, f)!r}")
@@ -213,6 +220,8 @@ def init_member_numpy(seed: int, spec: DynamicsSpec, obs_size: int, action_size:
 
 
 def _add_extras(params: dict, spec: DynamicsSpec, o: int, xp=jnp) -> None:
+    if spec.activation == "silu":
+        params["silu"] = xp.zeros((), xp.float32)
     if spec.noise == "global":
         params["log_std"] = xp.zeros((o,), xp.float32)
     if spec.log_std_bounds == "learned":
@@ -313,9 +322,10 @@ def pool_context(params: dict, enc_in, mask=None):
 # ------------------------------------------------------------------------------ apply
 
 
-def relu_mlp(layers: list[dict], x: jax.Array) -> jax.Array:
+def relu_mlp(layers: list[dict], x: jax.Array, activation: Callable = jax.nn.relu
+             ) -> jax.Array:
     for layer in layers[:-1]:
-        x = jax.nn.relu(x @ layer["w"] + layer["b"])
+        x = activation(x @ layer["w"] + layer["b"])
     return x @ layers[-1]["w"] + layers[-1]["b"]
 
 
@@ -337,7 +347,7 @@ def member_dist(params: dict, x: jax.Array, ctx: jax.Array | None = None
     -> (mean, log_std), each [..., o]."""
     if ctx is not None:
         x = jnp.concatenate([x, ctx], -1)
-    out = relu_mlp(params["layers"], x)
+    out = relu_mlp(params["layers"], x, jax.nn.silu if "silu" in params else jax.nn.relu)
     if "log_std" in params:
         return out, jnp.broadcast_to(bounded_log_std(params["log_std"], params), out.shape)
     mean, raw = jnp.split(out, 2, axis=-1)

@@ -364,3 +364,56 @@ def test_plot_controls_reads_the_control_runs_and_draws_them(tmp_path):
         pc.main(["--runs", str(tmp_path / "empty"), "--out", str(out)])
     with pytest.raises(SystemExit, match="model"):
         pc.main(["--runs", str(tmp_path / "runs"), "--model", "ant=/nonexistent.json"])
+
+
+def test_model_fit_measures_the_elites_average_and_learns_pointmass(pm_falls):
+    """experiments/model_fit.py: the step error of the elites' average mean, against NumPy on
+    an untrained two-lane model, and a BC fit on pointmass (linear dynamics) whose error on
+    every set falls well below the untrained one's; variant specs and bad input."""
+    import jax
+    import jax.numpy as jnp
+
+    mf = _script("model_fit")
+    from rl2s_jax.train import TrainConfig, init, make_train_data
+
+    ds, params = pm_falls
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_every=0, n_elites=2,
+                            holdout_frac=0.25)
+    data = make_train_data(ds, params, cfg)
+    states = jax.vmap(lambda k: init(k, cfg, data))(jnp.stack([jax.random.PRNGKey(0),
+                                                               jax.random.PRNGKey(1)]))
+    rows = mf.logged_rows(ds.obs, ds.action, ds.next_obs, 100, 0)
+    got = jax.vmap(lambda s: mf.step_error(s.gen, s.rank, s.norm, 2, *rows))(states)
+    obs, act, nxt = (np.asarray(x, np.float64) for x in rows)
+    for lane in range(2):
+        s = jax.tree_util.tree_map(lambda x, i=lane: x[i], states)
+        from rl2s_jax import dynamics as dyn
+        means = np.asarray(dyn.ensemble_dist(s.gen, dyn.markov_inputs(
+            s.norm, jnp.asarray(rows[0]), jnp.asarray(rows[1])))[0], np.float64)
+        elites = np.argsort(np.asarray(s.rank))[:2]
+        assert set(elites) == set(np.flatnonzero(np.asarray(s.rank) < 2))
+        y = ((nxt - obs - np.asarray(s.norm.delta_mean)) / np.asarray(s.norm.delta_std))
+        avg = means[elites].mean(0)
+        np.testing.assert_allclose(float(got["rmse"][lane]), np.sqrt(((avg - y) ** 2).mean()),
+                                   rtol=1e-4)
+        np.testing.assert_allclose(np.asarray(got["rmse_per_dim"][lane]),
+                                   np.sqrt(((avg - y) ** 2).mean(0)), rtol=1e-4)
+        member = np.sqrt(((means[elites] - y) ** 2).mean((1, 2))).mean()
+        np.testing.assert_allclose(float(got["member_rmse"][lane]), member, rtol=1e-4)
+    # learning: 60 steps of BC take every set's error far below the untrained model's
+    res = mf.fit_and_measure(cfg, ds, ds, dict(seeds=1, steps=60, eval_every=30, rows=512),
+                             {}, policies=params)
+    first = float(got["rmse"].mean())
+    for name in ("train", "heldout", "test"):
+        assert res["curves"][-1][name]["rmse"][0] < 0.2 * first, (name, res["curves"][-1])
+    assert res["complete"] and len(res["rmse_per_dim"]["test"][0]) == 2
+    row = f"| x | {res['curves'][-1]['train']['rmse'][0]:.3f} |"
+    assert row in mf.table([{**res, "variant": "x", "train_seconds": 1.0}])
+    # variant specs: hidden sizes by 'x' and '-', other keys as ablation_model's; bad input
+    assert mf.parse_fit_variant("bc:gen_hidden=64x3+bc_lr=3e-4") == (
+        "bc", {"gen_hidden": (64, 64, 64), "bc_lr": 3e-4})
+    assert mf.parse_fit_variant("bc:gen_hidden=128-64")[1] == {"gen_hidden": (128, 64)}
+    with pytest.raises(SystemExit, match="likelihood"):
+        mf.parse_fit_variant("rl2s")
+    with pytest.raises(SystemExit, match="gen_hidden"):
+        mf.parse_fit_variant("bc:gen_hidden=x")

@@ -157,6 +157,25 @@ def test_checkpoint_loads_in_fresh_process(pm, tmp_path):
     assert load_meta(tmp_path / "ck")["config"]["method"] == "rl2s"
 
 
+def test_a_silu_simulator_loads_as_silu(pm, tmp_path):
+    """gen_activation="silu" survives save and load: the loaded simulator's means are the
+    trained one's (a load that fell back to ReLU would differ)."""
+    import dataclasses
+    _, _, data = pm
+    cfg = dataclasses.replace(CFG, gen_activation="silu", vd_every=0, method="bc")
+    state, _ = fit(init(jax.random.PRNGKey(1), cfg, data), data, 2, chunk=2, progress=False)
+    ck = Checkpointer(tmp_path / "ck")
+    ck.save(state, META)
+    ck.close()
+    obs, act = jnp.asarray([[0.3, -0.2], [1.0, 0.5]]), jnp.asarray([[0.5], [-1.0]])
+    loaded = load_simulator(tmp_path / "ck")
+    assert "silu" in loaded.gen
+    np.testing.assert_allclose(np.asarray(loaded.mean(obs, act)),
+                               np.asarray(simulator(state).mean(obs, act)), rtol=1e-6)
+    relu = loaded.replace(gen={k: v for k, v in loaded.gen.items() if k != "silu"})
+    assert np.abs(np.asarray(relu.mean(obs, act) - loaded.mean(obs, act))).max() > 1e-4
+
+
 def test_load_simulator_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="ckpt"):
         load_simulator(tmp_path / "nothing")

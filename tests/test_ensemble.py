@@ -35,10 +35,11 @@ def pm():
     return ds, policies
 
 
-def _np_mlp(layers, x):
+def _np_mlp(layers, x, silu=False):
     x = np.asarray(x, np.float64)
+    act = (lambda v: v / (1.0 + np.exp(-v))) if silu else (lambda v: np.maximum(v, 0.0))
     for layer in layers[:-1]:
-        x = np.maximum(x @ np.asarray(layer["w"], np.float64) + np.asarray(layer["b"]), 0.0)
+        x = act(x @ np.asarray(layer["w"], np.float64) + np.asarray(layer["b"]))
     return x @ np.asarray(layers[-1]["w"], np.float64) + np.asarray(layers[-1]["b"])
 
 
@@ -49,7 +50,7 @@ def _np_bound(raw, lo, hi):
 
 def _np_member(params, x):
     """(mean, log_std) of one member in NumPy (state or global noise, fixed or learned bounds)."""
-    out = _np_mlp(params["layers"], x)
+    out = _np_mlp(params["layers"], x, silu="silu" in params)
     lo, hi = dyn.LOG_STD_MIN, dyn.LOG_STD_MAX
     if "max_log_std" in params:
         lo, hi = (np.asarray(params[k], np.float64) for k in ("min_log_std", "max_log_std"))
@@ -106,6 +107,33 @@ def test_member_with_learned_bounds_matches_numpy(noise):
     mask = dyn.weight_mask(p)
     assert all(mask["layers"][i]["w"] and not mask["layers"][i]["b"] for i in range(2))
     assert not mask["max_log_std"] and not mask["min_log_std"]
+
+
+def test_silu_member_matches_numpy_and_its_parameters_name_the_activation():
+    """activation="silu": the hidden layers apply x sigmoid(x); the member's parameters carry
+    the marker (a scalar that no computation reads) so that every apply path, and a member
+    loaded from a checkpoint, takes it; the ReLU member of the same weights differs."""
+    o, a, n = 3, 2, 100
+    spec = dyn.DynamicsSpec(hidden=(16, 16), activation="silu")
+    p = dyn.init_member(jax.random.PRNGKey(1), spec, o, a)
+    assert set(p) == {"layers", "silu"} and p["silu"].shape == ()
+    assert not dyn.weight_mask(p)["silu"]
+    p["layers"][-1]["w"] = p["layers"][-1]["w"] * 100.0
+    x = np.random.default_rng(1).normal(size=(n, o + a)).astype(np.float32)
+    mean, log_std = (np.asarray(v, np.float64) for v in dyn.member_dist(p, jnp.asarray(x)))
+    ref_mean, ref_ls = _np_member(p, x)
+    np.testing.assert_allclose(mean, ref_mean, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(log_std, ref_ls, rtol=1e-4, atol=1e-4)
+    relu = {"layers": p["layers"]}
+    assert np.abs(np.asarray(dyn.member_dist(relu, jnp.asarray(x))[0]) - mean).max() > 1e-2
+    # an ensemble of SiLU members keeps the marker per member, and the numpy init matches
+    ens = dyn.init_ensemble(jax.random.PRNGKey(2), spec, o, a, 3)
+    assert ens["silu"].shape == (3,)
+    assert set(dyn.init_member_numpy(0, spec, o, a)) == {"layers", "silu"}
+    with pytest.raises(ValueError, match="activation"):
+        dyn.DynamicsSpec(activation="tanh").validate()
+    with pytest.raises(ValueError, match="gen_activation"):
+        T.TrainConfig(gen_activation="gelu").validate()
 
 
 def test_rank_members_matches_numpy():

@@ -8,7 +8,7 @@ TRAINING policies' simulated values, started from the start states of their held
 episodes, against their true values; ties to the lower training AVD).
 
     python experiments/ablation_model.py --task hopper --out DIR [--data-dir DIR]
-        [--variants legacy,bc,rl2s] [--seeds 3] [--steps 600] [--eval-every 100]
+        [--variants legacy,bc,rl2s] [--seeds 3] [--steps 1200] [--eval-every 200]
         [--eval-episodes 16] [--ema-decay 0.99] [--profile auto|cpu|gpu] [--set key=value ...]
         [--rollouts random:1,mean:0,...]
     python experiments/ablation_model.py --summarize DIR [DIR ...]
@@ -78,7 +78,7 @@ VARIANTS = {
 }
 ROWS = ("legacy", "legacy-bc", "bc", "rl2s", "rl2s+ema")
 METRICS = ("kendall_tau", "ndcg@1", "avd", "mvd", "spearman")
-SIZES = {"gpu": dict(seeds=3, steps=600, eval_every=100, eval_episodes=16),
+SIZES = {"gpu": dict(seeds=3, steps=1200, eval_every=200, eval_episodes=16),
          "cpu": dict(seeds=2, steps=40, eval_every=20, eval_episodes=4)}
 
 

@@ -122,16 +122,18 @@ IMPROVE_METRICS = ("mpi", "api", "mpi_paired", "api_paired")
 METRICS = EVAL_METRICS + IMPROVE_METRICS
 VARIANT_PARTS = ("full", "branched", "penalty", "stop")
 
-# Sizes per profile. gpu: the sizes of the measured protocol (docs/RESULTS.md, "5 seeds, 400
-# steps, and fine-tuning in the simulators"): 5 seeds, 400 steps (200 pre-training, 200 WGAIL),
-# every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1. On an H200
-# shared by two tasks' processes, per task: data 110-150 s, the adversarial program (10 lanes)
-# 240-255 s, the likelihood program 95-120 s, SAC 16-27 s, the real measurement of the
-# fine-tuned policies 35-52 s, the guard 6-8 s (logs:
-# experiments/gpu_runs/2026-11-23d/paper_{adv,mle}/). cpu: small, for a 2-core machine.
+# Sizes per profile. gpu: 5 seeds, 1200 steps (the 1000 pre-training steps of the fitted
+# model family, then 200 WGAIL; docs/RESULTS.md, "Ant and Hopper: the likelihood model was
+# underfit"), every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1.
+# With the earlier 400 steps (200 + 200) at batch 256, on an H200 shared by two tasks'
+# processes, per task: data 110-150 s, the adversarial program (10 lanes) 240-255 s, the
+# likelihood program 95-120 s, SAC 16-27 s, the real measurement of the fine-tuned policies
+# 35-52 s, the guard 6-8 s (logs: experiments/gpu_runs/2026-11-23d/paper_{adv,mle}/); the
+# 1200 steps at batch 1024 took 150-170 s for 2 lanes on an H100 (10 lanes: not yet
+# measured). cpu: small, for a 2-core machine.
 PROFILES = {
-    "gpu": dict(seeds=5, transitions_per_policy=20_000, value_episodes=16, steps=400,
-                eval_every=100, eval_episodes=32, improve_policies=0, improve_seeds=2,
+    "gpu": dict(seeds=5, transitions_per_policy=20_000, value_episodes=16, steps=1200,
+                eval_every=200, eval_episodes=32, improve_policies=0, improve_seeds=2,
                 improve_episodes=32,
                 improve_iterations=2000, sac_envs=16, sac=dict(kl_weight=0.1)),
     "cpu": dict(seeds=3, transitions_per_policy=2000, value_episodes=4, steps=300,

@@ -142,9 +142,9 @@ class TrainConfig:
     def small(cls, **overrides) -> TrainConfig:
         """A CPU-sized config: 2x64 networks, 3 members, short value rollouts, few updates per
         step. No pre-training (the tests exercise the adversarial step from the first call;
-        the 'cpu' profile of ``fit.make_config`` adds it). It keeps the members the CPU
-        results were measured with (ReLU, weight decay 5e-5, early stopping at patience 30,
-        batch 64), not the paper-scale defaults."""
+        the 'cpu' profile of ``fit.make_config`` adds it, and fits larger members,
+        ``fit.CPU_MODEL``). Its members are the tests' small ones: 2x64 ReLU, batch 64,
+        weight decay 5e-5, early stopping at patience 30."""
         base = dict(gen_hidden=(64, 64), disc_hidden=(64, 64), batch_size=64,
                     updates_per_step=5, disc_updates=2, sim_envs=16, sim_steps=4,
                     buffer_size=1024, vd_every=5, vd_episodes=4, vd_horizon=100,

@@ -750,3 +750,28 @@ def test_gail_learns_the_pointmass_one_step_model(pm):
     assert gaps.mean() > 0, gaps          # the critic tells real from simulated
     assert 0.8 < mse0 < 1.2               # untrained: predicts the mean delta
     assert np.mean(mses[2:]) < 0.7 * mse0, (mse0, mses)
+
+
+def test_make_config_profiles():
+    """fit.make_config: 'gpu' is TrainConfig's defaults at the data's episode length; 'cpu' is
+    TrainConfig.small with the fitted members (fit.CPU_MODEL) and a short pre-training; --set
+    overrides win; bad profiles and unknown fields are refused by name."""
+    from types import SimpleNamespace
+
+    from rl2s_jax.fit import CPU_MODEL, make_config
+
+    ds = SimpleNamespace(meta={"task": "hopper", "episode_length": 1000, "gamma": 0.99})
+    gpu = make_config(ds, "rl2s", "gpu")
+    assert gpu == T.TrainConfig(task="hopper", method="rl2s", vd_horizon=1000, gamma=0.99)
+    assert (gpu.gen_activation, gpu.batch_size, gpu.early_stop_patience,
+            gpu.pretrain_steps) == ("silu", 1024, 0, 1000)
+    cpu = make_config(ds, "bc", "cpu", overrides={"batch_size": 32})
+    assert cpu.vd_horizon == 100 and cpu.pretrain_steps == 100 and cpu.batch_size == 32
+    for k, v in CPU_MODEL.items():
+        if k != "batch_size":
+            assert getattr(cpu, k) == v, k
+    assert cpu.ensemble_size == T.TrainConfig.small().ensemble_size
+    with pytest.raises(ValueError, match="profile"):
+        make_config(ds, "bc", "tpu")
+    with pytest.raises(ValueError, match="unknown config field"):
+        make_config(ds, "bc", "cpu", overrides={"gen_size": 3})

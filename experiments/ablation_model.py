@@ -481,6 +481,23 @@ def parse_variant(spec: str) -> tuple[str, dict]:
     return base, own
 
 
+def check_variants(task: str, text: str, parse=parse_variant) -> list[str]:
+    """The comma-separated variant specs of ``text``, each parsed by ``parse`` and its config
+    validated for ``task``: bad input stops here (SystemExit naming the spec), before any
+    work."""
+    variants = [v for v in text.split(",") if v]
+    if not variants:
+        raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)}")
+    for v in variants:
+        base, own = parse(v)
+        try:
+            TrainConfig.from_dict({"task": task, "method": VARIANTS[base][0],
+                                   **VARIANTS[base][1], **own}).validate()
+        except (ValueError, TypeError) as e:
+            raise SystemExit(f"variants: {v!r}: {e}") from None
+    return variants
+
+
 def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds,
                 valid_ds=None) -> dict:
     base, own = parse_variant(variant)
@@ -658,16 +675,7 @@ def main(argv=None) -> int:
     if not args.task:
         raise SystemExit("task: required (or --summarize)")
     parse_rollouts(args.rollouts)  # bad input stops here, before any work
-    variants = [v for v in args.variants.split(",") if v]
-    if not variants:
-        raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)}")
-    for v in variants:  # bad input stops here, before any work
-        base, own = parse_variant(v)
-        try:
-            TrainConfig.from_dict({"task": args.task, "method": VARIANTS[base][0],
-                                   **VARIANTS[base][1], **own}).validate()
-        except (ValueError, TypeError) as e:
-            raise SystemExit(f"variants: {v!r}: {e}") from None
+    variants = check_variants(args.task, args.variants)
     if args.validation_policies is not None:  # the zoo's split sizes, before any collection
         from rl2s_jax.policies import load_zoo
         n_train = len(load_zoo(args.task).split_ids("train"))

@@ -33,13 +33,13 @@ import jax.numpy as jnp
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from ablation_model import VARIANTS, parse_variant  # noqa: E402
+from ablation_model import VARIANTS, check_variants, parse_variant  # noqa: E402
 from paper import load_or_collect, log, profile_sizes, train_lanes  # noqa: E402
 
 from rl2s_jax import dynamics as dyn  # noqa: E402
 from rl2s_jax.fit import make_config, policies_for  # noqa: E402
 from rl2s_jax.tasks import task_names  # noqa: E402
-from rl2s_jax.train import TrainConfig, init, make_train_data  # noqa: E402
+from rl2s_jax.train import init, make_train_data  # noqa: E402
 
 MLE_BASES = ("bc", "legacy-bc")
 SIZES = {"gpu": dict(seeds=2, steps=600, eval_every=200, rows=65536),
@@ -203,16 +203,7 @@ def main(argv=None) -> int:
     ap.add_argument("--data-dir")
     args = ap.parse_args(argv)
     args.argv = argv
-    variants = [v for v in args.variants.split(",") if v]
-    if not variants:
-        raise SystemExit("variants: expected at least one, e.g. bc")
-    for v in variants:  # bad input stops here, before any collection
-        base, own = parse_fit_variant(v)
-        try:
-            TrainConfig.from_dict({"task": args.task, "method": VARIANTS[base][0],
-                                   **VARIANTS[base][1], **own}).validate()
-        except (ValueError, TypeError) as e:
-            raise SystemExit(f"variants: {v!r}: {e}") from None
+    variants = check_variants(args.task, args.variants, parse_fit_variant)
     if args.profile == "auto":
         args.profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
     sizes = dict(SIZES[args.profile])

@@ -417,3 +417,12 @@ def test_model_fit_measures_the_elites_average_and_learns_pointmass(pm_falls):
         mf.parse_fit_variant("rl2s")
     with pytest.raises(SystemExit, match="gen_hidden"):
         mf.parse_fit_variant("bc:gen_hidden=x")
+    # the whole --variants list is checked before any work (ablation_model.check_variants)
+    assert mf.check_variants("pointmass", "bc,bc:gen_hidden=8x2,", mf.parse_fit_variant) == [
+        "bc", "bc:gen_hidden=8x2"]
+    with pytest.raises(SystemExit, match="bc_lr"):
+        mf.check_variants("pointmass", "bc,bc:bc_lr=-1", mf.parse_fit_variant)
+    with pytest.raises(SystemExit, match="likelihood"):
+        mf.check_variants("pointmass", "bc,rl2s", mf.parse_fit_variant)
+    with pytest.raises(SystemExit, match="variants"):
+        mf.check_variants("pointmass", ",", mf.parse_fit_variant)

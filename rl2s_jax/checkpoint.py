@@ -217,7 +217,7 @@ class Checkpointer:
 
     def _config(self, step: int) -> TrainConfig:
         try:
-            return TrainConfig.from_dict(self._read_meta(step)["config"])
+            return TrainConfig.from_saved(self._read_meta(step)["config"])
         except (TypeError, ValueError) as e:
             raise _Broken(f"meta/metadata holds an unreadable config ({e})") from None
 
@@ -320,7 +320,7 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None
             raise CheckpointError(f"ckpt: format_version 2 or {FORMAT_VERSION} expected, got "
                                   f"{version!r} in {directory} step {s}")
         if version == 2:  # one generator (a list of layers), trained before the family
-            cfg = TrainConfig.from_dict({**meta["config"], **LEGACY_MODEL})
+            cfg = TrainConfig.from_saved({**meta["config"], **LEGACY_MODEL})
         else:
             cfg = ck._config(s)
         try:

@@ -30,6 +30,10 @@ LEGACY_MODEL = dict(ensemble_size=1, n_elites=1, gen_log_std_bounds="fixed",
                     nll_beta=0.0, sim_noise=1.0, adv_nll_weight=0.0, gen_activation="relu",
                     batch_size=256)
 
+# Fields added after checkpoints were saved without them, with the value those runs had (a
+# saved config that lacks one must not take today's default).
+SAVED_BEFORE = {"gen_activation": "relu"}
+
 
 @dataclasses.dataclass(frozen=True)
 class TrainConfig:
@@ -233,3 +237,9 @@ class TrainConfig:
             raise ValueError(f"config: unknown field(s) {unknown}")
         d = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
         return cls(**d)
+
+    @classmethod
+    def from_saved(cls, d: dict) -> TrainConfig:
+        """A config read back from a checkpoint: the fields it predates take the values its
+        run had (``SAVED_BEFORE``), not today's defaults."""
+        return cls.from_dict({**SAVED_BEFORE, **d})

@@ -176,6 +176,29 @@ def test_a_silu_simulator_loads_as_silu(pm, tmp_path):
     assert np.abs(np.asarray(relu.mean(obs, act) - loaded.mean(obs, act))).max() > 1e-4
 
 
+def test_a_checkpoint_saved_before_gen_activation_loads_as_relu(pm, tmp_path):
+    """A saved config without gen_activation (checkpoints from before the field) is a ReLU
+    run: it loads and gives the saved means, although today's default is SiLU."""
+    _, _, data = pm
+    assert CFG.gen_activation == "relu" and TrainConfig().gen_activation == "silu"
+    state = init(jax.random.PRNGKey(1), CFG, data)
+    ck = Checkpointer(tmp_path / "ck")
+    step = ck.save(state, META)
+    ck.close()
+    path = tmp_path / "ck" / str(step) / "meta" / "metadata"
+    meta = json.loads(path.read_text())
+    del meta["config"]["gen_activation"]
+    path.write_text(json.dumps(meta))
+    loaded = load_simulator(tmp_path / "ck")
+    assert "silu" not in loaded.gen
+    obs, act = jnp.asarray([[0.3, -0.2]]), jnp.asarray([[0.5]])
+    np.testing.assert_allclose(np.asarray(loaded.mean(obs, act)),
+                               np.asarray(simulator(state).mean(obs, act)), rtol=1e-6)
+    ck = Checkpointer(tmp_path / "ck")  # and training resumes it under the ReLU config
+    _leaves_equal(ck.restore(state).gen, state.gen)
+    ck.close()
+
+
 def test_load_simulator_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="ckpt"):
         load_simulator(tmp_path / "nothing")

@@ -145,7 +145,7 @@ def _method_spec(spec: ModelSpec, ckpt: str | None) -> tuple[ModelSpec, str]:
     from rl2s_jax.checkpoint import load_meta
     from rl2s_jax.config import TrainConfig
 
-    cfg = TrainConfig.from_dict(load_meta(ckpt)["config"])
+    cfg = TrainConfig.from_saved(load_meta(ckpt)["config"])
     eps = float(cfg.initial_eps)
     change, words = {}, f"the checkpoint's method, {cfg.method}: "
     if cfg.method in ("rl2s", "gail"):

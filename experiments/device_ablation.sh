@@ -8,7 +8,5 @@ set -euo pipefail
 TASK=${1:?usage: bash experiments/device_ablation.sh TASK [ablation_model.py args]}
 shift
 source experiments/device_env.sh
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a $OUT/ablation_$TASK.log
-{ time python3 experiments/ablation_model.py --task $TASK --profile gpu --out $OUT \
-    --data-dir $W "$@" ; } 2>&1 | grep -v -i -e warn -e "Failed to import" \
-  | tee -a $OUT/ablation_$TASK.log
+run_logged ablation_$TASK.log python3 experiments/ablation_model.py --task $TASK --profile gpu \
+  --out $OUT --data-dir $W "$@"

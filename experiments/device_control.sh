@@ -5,6 +5,4 @@
 #   bash experiments/device_control.sh [--tasks hopper,walker2d --seeds 2 --plain ...]
 set -euo pipefail
 source experiments/device_env.sh
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee $OUT/control.log
-{ time python3 experiments/improve_control.py --out $OUT "$@" ; } \
-  2>&1 | grep -v -i -e warn -e "Failed to import" | tee -a $OUT/control.log
+run_logged control.log python3 experiments/improve_control.py --out $OUT "$@"

@@ -1,5 +1,6 @@
 # Sourced by the experiments/device_*.sh scripts on the GPU machine: installs the carried
-# wheels (.whl, from ../shared/tools/device-wheels) and sets PYTHONPATH, OUT, RL2S and W.
+# wheels (.whl, from ../shared/tools/device-wheels), sets PYTHONPATH, OUT, RL2S and W, and
+# defines run_logged.
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
   --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
@@ -13,3 +14,12 @@ fi
 OUT=${OUT:-/tmp/out}
 RL2S="python3 -m rl2s_jax.cli"
 W=/tmp/work && mkdir -p "$W" "$OUT"
+
+# run_logged LOG CMD...: the GPU's name, then CMD timed with its warnings dropped, to stdout
+# and appended to $OUT/LOG.
+run_logged() {
+  local log=$OUT/$1
+  shift
+  nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$log"
+  { time "$@" ; } 2>&1 | grep -v -i -e warn -e "Failed to import" | tee -a "$log"
+}

@@ -8,7 +8,5 @@ set -euo pipefail
 TASK=${1:?usage: bash experiments/device_model_fit.sh TASK [model_fit.py args]}
 shift
 source experiments/device_env.sh
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a $OUT/model_fit_$TASK.log
-{ time python3 experiments/model_fit.py --task $TASK --profile gpu --out $OUT \
-    --data-dir $W "$@" ; } 2>&1 | grep -v -i -e warn -e "Failed to import" \
-  | tee -a $OUT/model_fit_$TASK.log
+run_logged model_fit_$TASK.log python3 experiments/model_fit.py --task $TASK --profile gpu \
+  --out $OUT --data-dir $W "$@"

@@ -7,6 +7,5 @@ set -euo pipefail
 TASK=${1:?usage: bash experiments/device_paper.sh TASK [paper.py args]}
 shift
 source experiments/device_env.sh
-nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee $OUT/paper_$TASK.log
-{ time python3 experiments/paper.py --task $TASK --profile gpu --out $OUT --data-dir $W "$@" ; } \
-  2>&1 | grep -v -i -e warn -e "Failed to import" | tee -a $OUT/paper_$TASK.log
+run_logged paper_$TASK.log python3 experiments/paper.py --task $TASK --profile gpu --out $OUT \
+  --data-dir $W "$@"

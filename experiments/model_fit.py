@@ -89,9 +89,10 @@ def step_error(gen, rank, norm, n_elites: int, obs, action, next_obs) -> dict:
     elite = dyn.elite_mask(rank, n_elites, means.shape[0]).astype(jnp.float32)  # [E]
     avg = jnp.einsum("e,eno->no", elite, means) / elite.sum()
     member = jnp.sqrt(((means - y) ** 2).mean((1, 2)))                   # [E]
-    return {"rmse": jnp.sqrt(((avg - y) ** 2).mean()),
+    per_dim = ((avg - y) ** 2).mean(0)                                   # [o]
+    return {"rmse": jnp.sqrt(per_dim.mean()),
             "member_rmse": (member * elite).sum() / elite.sum(),
-            "rmse_per_dim": jnp.sqrt(((avg - y) ** 2).mean(0))}
+            "rmse_per_dim": jnp.sqrt(per_dim)}
 
 
 def run_variant(spec: str, args, sizes: dict, train_ds, test_ds) -> dict:

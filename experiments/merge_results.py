@@ -3,7 +3,7 @@
 control (experiments/improve_control.py), each optional.
 
     python experiments/merge_results.py --task hopper [--paper P.json [--paper Q.json]]
-        [--oracle O.json] [--control C.json] [--out docs/results]
+        [--oracle O.json | --oracle-paper R.json] [--control C.json] [--out docs/results]
 
 Two --paper files are runs of one protocol that trained different families (paper.py
 --families adversarial / mle, e.g. over two device calls): they are joined by
@@ -11,7 +11,10 @@ paper.merge_runs, which refuses runs of different sizes, seeds, zoo or data.
 
 The oracle's row with the most episodes at the longest horizon becomes the "oracle" method
 (per_seed lists of one value, its bootstrap intervals) unless the paper run has its own; the
-control's MPI/API and their 95% intervals become "control". zoo_sha256 is the shipped zoo's,
+control's MPI/API and their 95% intervals become "control". --oracle-paper takes the oracle
+row (per seed, intervals, noise ceiling) from another paper.py run that measured it with the
+same test policies and episode counts (its own data collection: the ceiling of the protocol's
+sizes, not of this run's draw), so a protocol split over calls need not measure it again. zoo_sha256 is the shipped zoo's,
 checked against the paper run's when both exist.
 """
 from __future__ import annotations
@@ -30,12 +33,49 @@ def zoo_sha256(task: str) -> str:
         return hashlib.sha256(f.read()).hexdigest()
 
 
+ORACLE_SIZES = ("test_policies", "eval_episodes", "value_episodes", "episode_length")
+
+
+def attach_paper_oracle(result: dict, path: str, sha: str) -> None:
+    """Copy the oracle row of the paper.py run at ``path`` into ``result`` (in place); exits
+    naming the field where that run's protocol differs from ``result``'s."""
+    with open(path) as f:
+        orc = json.load(f)
+    if "oracle" not in orc.get("per_seed", {}):
+        raise SystemExit(f"oracle-paper: {path} has no oracle row (run without --no-oracle)")
+    if orc.get("task") != result.get("task"):
+        raise SystemExit(f"oracle-paper: task {orc.get('task')!r}, expected "
+                         f"{result.get('task')!r}")
+    if orc.get("zoo_sha256") not in (None, sha):
+        raise SystemExit(f"oracle-paper: measured on zoo {orc['zoo_sha256']}, the shipped zoo "
+                         f"is {sha}")
+    if "sizes" in result:
+        for k in ORACLE_SIZES:
+            if orc["sizes"].get(k) != result["sizes"].get(k):
+                raise SystemExit(f"oracle-paper: sizes.{k} differs ({orc['sizes'].get(k)!r} "
+                                 f"vs {result['sizes'].get(k)!r})")
+    result["per_seed"]["oracle"] = orc["per_seed"]["oracle"]
+    for k in ("methods", "std", "n"):
+        if "oracle" in orc.get(k, {}):
+            result.setdefault(k, {})["oracle"] = orc[k]["oracle"]
+    result.setdefault("intervals", {})["oracle"] = orc.get("intervals", {}).get("oracle", {})
+    if "noise_ceiling" in orc:
+        result["noise_ceiling"] = orc["noise_ceiling"]
+    result["oracle"] = {"source": orc.get("command"), "hardware": orc.get("hardware"),
+                        "n_episodes": orc["sizes"].get("eval_episodes"),
+                        "seeds": len(orc["per_seed"]["oracle"].get("kendall_tau", [])),
+                        "metrics": orc["methods"].get("oracle"),
+                        "data": "its own collection (another run)"}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
     ap.add_argument("--paper", action="append", help="paper.py's <task>.json (repeat for "
                     "runs of different --families)")
     ap.add_argument("--oracle")
+    ap.add_argument("--oracle-paper", help="paper.py's <task>.json of a run with the oracle, "
+                    "same test policies and episode counts: its oracle row")
     ap.add_argument("--control")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
     args = ap.parse_args(argv)
@@ -76,6 +116,10 @@ def main(argv=None) -> int:
                             "policies": orc["policies"], "metrics": row["metrics"],
                             "eval_noise_tau_std": ((row.get("intervals") or {}).get(
                                 "sim_only", {}).get("kendall_tau", {}).get("std"))}
+    if args.oracle and args.oracle_paper:
+        raise SystemExit("oracle, oracle-paper: expected at most one oracle source")
+    if args.oracle_paper and "oracle" not in result.get("per_seed", {}):
+        attach_paper_oracle(result, args.oracle_paper, sha)
     if args.control:
         with open(args.control) as f:
             ctl = json.load(f)

@@ -122,18 +122,18 @@ IMPROVE_METRICS = ("mpi", "api", "mpi_paired", "api_paired")
 METRICS = EVAL_METRICS + IMPROVE_METRICS
 VARIANT_PARTS = ("full", "branched", "penalty", "stop")
 
-# Sizes per profile. gpu: 5 seeds, 1200 steps (the 1000 pre-training steps of the fitted
+# Sizes per profile. gpu: 3 seeds, 1200 steps (the 1000 pre-training steps of the fitted
 # model family, then 200 WGAIL; docs/RESULTS.md, "Ant and Hopper: the likelihood model was
 # underfit"), every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1.
-# With the earlier 400 steps (200 + 200) at batch 256, on an H200 shared by two tasks'
-# processes, per task: data 110-150 s, the adversarial program (10 lanes) 240-255 s, the
-# likelihood program 95-120 s, SAC 16-27 s, the real measurement of the fine-tuned policies
-# 35-52 s, the guard 6-8 s (logs: experiments/gpu_runs/2026-11-23d/paper_{adv,mle}/); the
-# 1200 steps at batch 1024 took 150-170 s for 2 lanes on an H100 (10 lanes: not yet
-# measured). cpu: small, for a 2-core machine.
+# Measured on one H100 (docs/RESULTS.md, "The protocol on the new model family"), per task,
+# each family alone: data 83-97 s, the adversarial program (6 lanes) 355-375 s, the
+# likelihood program 190-210 s, SAC 18-22 s, the real measurement of the fine-tuned policies
+# 38 s (Hopper; more with 43 test policies), Hopper's oracle at 128 / 128 episodes 261 s.
+# Two processes sharing the GPU run no faster than one after the other. cpu: small, for a
+# 2-core machine.
 PROFILES = {
-    "gpu": dict(seeds=5, transitions_per_policy=20_000, value_episodes=16, steps=1200,
-                eval_every=200, eval_episodes=32, improve_policies=0, improve_seeds=2,
+    "gpu": dict(seeds=3, transitions_per_policy=20_000, value_episodes=16, steps=1200,
+                eval_every=600, eval_episodes=32, improve_policies=0, improve_seeds=2,
                 improve_episodes=32,
                 improve_iterations=2000, sac_envs=16, sac=dict(kl_weight=0.1)),
     "cpu": dict(seeds=3, transitions_per_policy=2000, value_episodes=4, steps=300,

@@ -263,6 +263,38 @@ def test_merge_runs_joins_the_two_families():
         paper.merge_runs([adv, adv])
 
 
+def test_merge_results_takes_the_oracle_of_another_run(tmp_path):
+    """--oracle-paper copies another run's oracle row (per seed, intervals, noise ceiling) into
+    a protocol run without one, and refuses a run with other episode counts or no oracle."""
+    mr = _load("merge_results")
+    sha = mr.zoo_sha256("hopper")
+    run = {**_family_run(("rl2s", "gail"), ["adversarial"], 0.5), "zoo_sha256": sha}
+    run["sizes"].update(eval_episodes=128, value_episodes=128, episode_length=None)
+    orc = json.loads(json.dumps(run))
+    orc["per_seed"] = {"oracle": {"kendall_tau": [0.97, 0.99]}}
+    orc["methods"] = {"oracle": {"kendall_tau": 0.98}}
+    orc["intervals"] = {"oracle": {"kendall_tau": {"lo": 0.9, "hi": 1.0}}}
+    orc["noise_ceiling"] = {"kendall_tau": {"mean": 0.97}}
+    paths = {}
+    for name, r in (("run", run), ("orc", orc), ("none", run),
+                    ("other", {**orc, "sizes": {**orc["sizes"], "eval_episodes": 32}})):
+        paths[name] = tmp_path / f"{name}.json"
+        paths[name].write_text(json.dumps(r))
+    out = tmp_path / "out"
+    assert mr.main(["--task", "hopper", "--paper", str(paths["run"]), "--oracle-paper",
+                    str(paths["orc"]), "--out", str(out)]) == 0
+    merged = json.loads((out / "hopper.json").read_text())
+    assert merged["per_seed"]["oracle"] == {"kendall_tau": [0.97, 0.99]}
+    assert merged["per_seed"]["rl2s"] == run["per_seed"]["rl2s"]
+    assert merged["intervals"]["oracle"]["kendall_tau"]["lo"] == 0.9
+    assert merged["noise_ceiling"]["kendall_tau"]["mean"] == 0.97
+    assert merged["oracle"]["n_episodes"] == 128 and merged["oracle"]["seeds"] == 2
+    for name, field in (("other", "sizes.eval_episodes"), ("none", "no oracle row")):
+        with pytest.raises(SystemExit, match=field):
+            mr.main(["--task", "hopper", "--paper", str(paths["run"]), "--oracle-paper",
+                     str(paths[name]), "--out", str(out)])
+
+
 def test_merge_runs_joins_the_improvement_variants():
     """Each family's run fine-tuned its own lanes: the merged 'ablation' holds every method of
     every variant; runs fine-tuned with other settings are refused."""
@@ -304,14 +336,21 @@ def test_paper_families_flag():
 
 
 def test_paper_sizes_per_task():
-    """Ant's gpu sizes measure enough episodes for its noisy returns; flags still win."""
+    """Ant's, Hopper's and Walker2d's gpu sizes measure enough episodes for their noisy
+    returns, HalfCheetah keeps the profile's; flags still win."""
     paper = _load("paper")
     args = paper.build_parser().parse_args(["--task", "ant"])
     sizes = paper.resolve_sizes(args, "gpu")
     assert (sizes["value_episodes"], sizes["eval_episodes"]) == (256, 256)
     assert sizes["seeds"] == paper.PROFILES["gpu"]["seeds"]
     hopper = paper.resolve_sizes(paper.build_parser().parse_args(["--task", "hopper"]), "gpu")
-    assert (hopper["value_episodes"], hopper["eval_episodes"]) == (16, 32)
+    assert (hopper["value_episodes"], hopper["eval_episodes"]) == (128, 128)
+    walker = paper.resolve_sizes(paper.build_parser().parse_args(["--task", "walker2d"]), "gpu")
+    assert (walker["value_episodes"], walker["eval_episodes"]) == (64, 64)
+    cheetah = paper.resolve_sizes(paper.build_parser().parse_args(["--task", "halfcheetah"]),
+                                  "gpu")
+    assert (cheetah["value_episodes"], cheetah["eval_episodes"]) == (
+        paper.PROFILES["gpu"]["value_episodes"], paper.PROFILES["gpu"]["eval_episodes"])
     cpu = paper.resolve_sizes(paper.build_parser().parse_args(["--task", "ant"]), "cpu")
     assert cpu["value_episodes"] == paper.PROFILES["cpu"]["value_episodes"]
     flags = paper.build_parser().parse_args(["--task", "ant", "--eval-episodes", "64"])

@@ -30,8 +30,8 @@ hopper walker2d halfcheetah ant: setup
 	$(VENV)/bin/rl2s pipeline --task $@
 
 # The paper's protocol on the four tasks (sizes by JAX backend, see experiments/paper.py)
-# into results/paper/<task>.json, then the tables; with GPUs the tasks run at once, one
-# process per task pinned round-robin to the GPUs (experiments/paper_all.sh).
+# into results/paper/<task>.json, then the tables; with GPUs the tasks go round-robin to the
+# GPUs, one process per GPU at a time (experiments/paper_all.sh).
 paper: setup
 	PY=$(PY) bash experiments/paper_all.sh results/paper
 

@@ -516,3 +516,59 @@ def test_noise_ceiling_script_reads_the_oracle_seeds(tmp_path, capsys):
         nc.analyse({**res, "oracle_sim_value": sims[:1]})
     with pytest.raises(SystemExit, match="oracle row"):
         nc.analyse({"true_value": truth})
+
+
+# ------------------------------------------------------------------ make paper's driver
+
+
+def _run_paper_all(tmp_path, n_gpu: int, fail_task: str = ""):
+    """experiments/paper_all.sh with a stub nvidia-smi (n_gpu GPUs) and a stub python that logs
+    each paper.py run's start and end with its CUDA_VISIBLE_DEVICES. -> (rc, [event lines])"""
+    import subprocess
+    import textwrap
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    bin_dir, events = tmp_path / "bin", tmp_path / "events"
+    bin_dir.mkdir(parents=True)
+    smi = bin_dir / "nvidia-smi"
+    smi.write_text("#!/usr/bin/env bash\n" + "".join(f"echo 'GPU {g}: stub'\n"
+                                                      for g in range(n_gpu)))
+    py = bin_dir / "stubpy"
+    py.write_text(textwrap.dedent(f"""\
+        #!/usr/bin/env bash
+        [ "$1" = experiments/paper_tables.py ] && {{ echo tables >> {events}; exit 0; }}
+        task=$3
+        echo "start $task gpu=${{CUDA_VISIBLE_DEVICES:-none}}" >> {events}
+        sleep 0.3
+        echo "end $task gpu=${{CUDA_VISIBLE_DEVICES:-none}}" >> {events}
+        [ "$task" != "{fail_task}" ]
+        """))
+    for f in (smi, py):
+        f.chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PY": str(py),
+           "TASKS": "hopper walker2d halfcheetah ant"}
+    proc = subprocess.run(["bash", "experiments/paper_all.sh", str(tmp_path / "out")],
+                          cwd=root, env=env, capture_output=True, text=True, timeout=60)
+    return proc.returncode, events.read_text().split("\n")[:-1]
+
+
+def test_paper_all_runs_one_task_per_gpu_at_a_time(tmp_path):
+    """make paper's driver: the tasks go round-robin to the GPUs, each GPU runs its tasks one
+    after another (never two processes on one GPU), the GPUs in parallel; a failed task fails
+    the run after the others have run, and no tables are written."""
+    rc, ev = _run_paper_all(tmp_path / "a", 2)
+    assert rc == 0 and ev[-1] == "tables"
+    gpu_of = {e.split()[1]: e.split()[2] for e in ev if e.startswith("start")}
+    assert gpu_of == {"hopper": "gpu=0", "halfcheetah": "gpu=0", "walker2d": "gpu=1",
+                      "ant": "gpu=1"}
+    running = {}
+    for e in ev[:-1]:
+        what, task, gpu = e.split()
+        if what == "start":
+            assert gpu not in running.values(), f"two tasks on {gpu}: {ev}"
+            running[task] = gpu
+        else:
+            del running[task]
+    assert ev[0].startswith("start") and ev[1].startswith("start")  # both GPUs busy at once
+    rc, ev = _run_paper_all(tmp_path / "b", 1, fail_task="walker2d")
+    assert rc == 1 and "tables" not in ev
+    assert sum(e.startswith("end") for e in ev) == 4

@@ -14,8 +14,8 @@ The oracle's row with the most episodes at the longest horizon becomes the "orac
 control's MPI/API and their 95% intervals become "control". --oracle-paper takes the oracle
 row (per seed, intervals, noise ceiling) from another paper.py run that measured it with the
 same test policies and episode counts (its own data collection: the ceiling of the protocol's
-sizes, not of this run's draw), so a protocol split over calls need not measure it again. zoo_sha256 is the shipped zoo's,
-checked against the paper run's when both exist.
+sizes, not of this run's draw), so a protocol split over calls need not measure it again.
+zoo_sha256 is the shipped zoo's, checked against the paper run's when both exist.
 """
 from __future__ import annotations
 

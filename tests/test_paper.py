@@ -572,3 +572,7 @@ def test_paper_all_runs_one_task_per_gpu_at_a_time(tmp_path):
     rc, ev = _run_paper_all(tmp_path / "b", 1, fail_task="walker2d")
     assert rc == 1 and "tables" not in ev
     assert sum(e.startswith("end") for e in ev) == 4
+    rc, ev = _run_paper_all(tmp_path / "c", 0, fail_task="ant")  # no GPU: one after another
+    assert rc == 1 and "tables" not in ev
+    assert [e.split()[:2] for e in ev] == [[w, t] for t in ("hopper", "walker2d", "halfcheetah",
+                                                             "ant") for w in ("start", "end")]

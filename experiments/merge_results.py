@@ -79,6 +79,8 @@ def main(argv=None) -> int:
     ap.add_argument("--control")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
     args = ap.parse_args(argv)
+    if args.oracle and args.oracle_paper:
+        raise SystemExit("oracle, oracle-paper: expected at most one oracle source")
     sha = zoo_sha256(args.task)
     if args.paper:
         parts = []
@@ -116,8 +118,6 @@ def main(argv=None) -> int:
                             "policies": orc["policies"], "metrics": row["metrics"],
                             "eval_noise_tau_std": ((row.get("intervals") or {}).get(
                                 "sim_only", {}).get("kendall_tau", {}).get("std"))}
-    if args.oracle and args.oracle_paper:
-        raise SystemExit("oracle, oracle-paper: expected at most one oracle source")
     if args.oracle_paper and "oracle" not in result.get("per_seed", {}):
         attach_paper_oracle(result, args.oracle_paper, sha)
     if args.control:

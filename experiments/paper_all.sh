@@ -16,11 +16,10 @@ TASKS=${TASKS:-hopper walker2d halfcheetah ant}
 DATA_DIR=${DATA_DIR:-$OUT/data}
 mkdir -p "$OUT"
 N_GPU=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
-run_task() {  # run_task TASK [paper.py args]: one task, its log in OUT
+run_task() {  # run_task TASK [paper.py args]: one task's paper.py run
   local t=$1
   shift
-  $PY experiments/paper.py --task "$t" --out "$OUT" --data-dir "$DATA_DIR" "$@" \
-    > "$OUT/paper_$t.log" 2>&1
+  $PY experiments/paper.py --task "$t" --out "$OUT" --data-dir "$DATA_DIR" "$@"
 }
 failed=0
 if [ "${N_GPU:-0}" -gt 0 ]; then
@@ -35,7 +34,7 @@ if [ "${N_GPU:-0}" -gt 0 ]; then
     (
       export CUDA_VISIBLE_DEVICES=$g
       rc=0
-      for t in "${mine[@]}"; do run_task "$t" "$@" || rc=1; done
+      for t in "${mine[@]}"; do run_task "$t" "$@" > "$OUT/paper_$t.log" 2>&1 || rc=1; done
       exit $rc
     ) &
     pids+=($!)
@@ -43,8 +42,7 @@ if [ "${N_GPU:-0}" -gt 0 ]; then
   for p in "${pids[@]}"; do wait "$p" || failed=1; done
 else
   for t in $TASKS; do
-    $PY experiments/paper.py --task "$t" --out "$OUT" --data-dir "$DATA_DIR" "$@" 2>&1 \
-      | tee "$OUT/paper_$t.log" || failed=1
+    run_task "$t" "$@" 2>&1 | tee "$OUT/paper_$t.log" || failed=1
   done
 fi
 [ "$failed" = 0 ] || { echo "paper_all: a task failed, see $OUT/paper_*.log" >&2; exit 1; }

@@ -293,6 +293,9 @@ def test_merge_results_takes_the_oracle_of_another_run(tmp_path):
         with pytest.raises(SystemExit, match=field):
             mr.main(["--task", "hopper", "--paper", str(paths["run"]), "--oracle-paper",
                      str(paths[name]), "--out", str(out)])
+    with pytest.raises(SystemExit, match="at most one oracle source"):
+        mr.main(["--task", "hopper", "--paper", str(paths["run"]), "--oracle", str(paths["orc"]),
+                 "--oracle-paper", str(paths["orc"]), "--out", str(out)])
 
 
 def test_merge_runs_joins_the_improvement_variants():

@@ -5,9 +5,11 @@ control (experiments/improve_control.py), each optional.
     python experiments/merge_results.py --task hopper [--paper P.json [--paper Q.json]]
         [--oracle O.json | --oracle-paper R.json] [--control C.json] [--out docs/results]
 
-Two --paper files are runs of one protocol that trained different families (paper.py
---families adversarial / mle, e.g. over two device calls): they are joined by
-paper.merge_runs, which refuses runs of different sizes, seeds, zoo or data.
+Several --paper files are runs of one protocol split over calls or GPUs on the same data:
+other families (paper.py --families adversarial / mle) or other seeds (--first-seed K, e.g.
+seeds 3-4 beside a run of seeds 0-2). paper.merge_runs joins them (a method's seeds in seed
+order) and refuses runs of different sizes, zoo, data or training settings, a method's seed
+in two runs, and methods left with different seeds.
 
 The oracle's row with the most episodes at the longest horizon becomes the "oracle" method
 (per_seed lists of one value, its bootstrap intervals) unless the paper run has its own; the
@@ -72,7 +74,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
     ap.add_argument("--paper", action="append", help="paper.py's <task>.json (repeat for "
-                    "runs of different --families)")
+                    "runs of other --families or --first-seed on the same data)")
     ap.add_argument("--oracle")
     ap.add_argument("--oracle-paper", help="paper.py's <task>.json of a run with the oracle, "
                     "same test policies and episode counts: its oracle row")

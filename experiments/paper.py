@@ -11,7 +11,7 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--ablation-methods rl2s]
         [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
-        [--set field=value ...] [--families adversarial,mle]
+        [--set field=value ...] [--families adversarial,mle] [--first-seed K]
 
 Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
 by a time limit still leaves what it finished, with "complete": false):
@@ -33,6 +33,8 @@ by a time limit still leaves what it finished, with "complete": false):
    final states are bitwise equal unvmapped; a vmapped lane matches to ~3e-8).
    ``--families adversarial`` (or ``mle``) runs one of the two, so a task's protocol can be
    split over two device calls; experiments/merge_results.py joins the two JSON files.
+   ``--first-seed K`` runs seeds K..K+S-1 (keys, evaluation keys and lane names as in one
+   run of K+S seeds), so more seeds can join a result later, on the same --data-dir.
    Every --eval-every steps every lane's simulator is evaluated on the test policies as
    ``assess.evaluate_simulator`` does (simulated discounted value over the config's vd_horizon
    from the test data's start states, ``evaluate.ranking_metrics`` against the true values),
@@ -523,17 +525,65 @@ def summarise(result: dict) -> None:
 # stays when both ran one)
 MERGED_BY_METHOD = ("per_seed", "selected", "lane_intervals", "intervals", "lanes",
                     "train_config", "improvement")
-SAME_IN_PARTS = ("task", "model", "seeds", "profile", "zoo_sha256", "true_value")
+SAME_IN_PARTS = ("task", "model", "profile", "zoo_sha256", "true_value")
+
+
+def seed_ids_of(result: dict) -> list[int]:
+    """The seeds a paper.py result ran (``seed_ids``; results older than --first-seed ran
+    0 .. seeds - 1)."""
+    return [int(s) for s in result.get("seed_ids") or range(int(result["seeds"]))]
+
+
+def _join_seeds(merged: dict, part: dict, methods: set, has: dict, ids: list[int]) -> None:
+    """Append ``part``'s seeds of ``methods`` (run by ``merged`` on other seeds) to merged's
+    per-seed lists, in place; ``has`` maps each method to the seeds merged holds."""
+    twice = {m: sorted(set(has[m]) & set(ids)) for m in sorted(methods)}
+    twice = {m: v for m, v in twice.items() if v}
+    if twice:
+        raise ValueError(f"per_seed: method(s) and seed(s) {twice} in more than one run")
+    for m in sorted(methods):
+        if merged["per_seed"][m].get("mpi") and part["per_seed"][m].get("mpi"):
+            raise ValueError(f"improvement: method {m!r} was fine-tuned in two seed-split "
+                             f"runs; fine-tune in one of them only")
+        for k, vals in part["per_seed"][m].items():
+            merged["per_seed"][m].setdefault(k, []).extend(vals)
+        for k, vals in part.get("selected", {}).get(m, {}).items():
+            merged.setdefault("selected", {}).setdefault(m, {}).setdefault(k, []).extend(vals)
+        merged.setdefault("lane_intervals", {}).setdefault(m, []).extend(
+            part.get("lane_intervals", {}).get(m, []))
+        has[m] = has[m] + ids
+    for family, cfg in part.get("train_config", {}).items():
+        if merged.get("train_config", {}).get(family, cfg) != cfg:
+            raise ValueError(f"train_config.{family}: the runs trained with different "
+                             f"settings")
+
+
+def _order_by_seed(merged: dict, has: dict) -> None:
+    """Sort each method's per-seed lists by seed (in place)."""
+    for m, ids in has.items():
+        order = np.argsort(ids, kind="stable")
+        take = lambda v, order=order: [v[i] for i in order] if len(v) == len(order) else v
+        merged["per_seed"][m] = {k: take(v) for k, v in merged["per_seed"][m].items()}
+        if m in merged.get("selected", {}):
+            merged["selected"][m] = {k: take(v) for k, v in merged["selected"][m].items()}
+        if m in merged.get("lane_intervals", {}):
+            merged["lane_intervals"][m] = take(merged["lane_intervals"][m])
+            merged.setdefault("intervals", {})[m] = intervals_over_seeds(
+                merged["lane_intervals"][m])
 
 
 def merge_runs(parts: list[dict]) -> dict:
-    """One result from runs of the same protocol that trained different families
-    (``--families``): the per-method entries joined, curves concatenated, timings summed,
-    complete when every part is. Raises ValueError naming the field where the runs differ
-    (task, seeds, sizes of the data, zoo, ...) or when two of them ran the same method."""
+    """One result from runs of the same protocol split over calls: runs that trained
+    different families (``--families``) and runs of other seeds (``--first-seed``) on the
+    same data. The per-method entries joined (a method's seeds in seed order, its intervals
+    over seeds recomputed), curves concatenated, timings summed, complete when every part is.
+    Raises ValueError naming the field where the runs differ (task, sizes of the data, zoo,
+    training settings, ...), when two of them ran the same method and seed, or when the
+    methods do not end up with the same seeds."""
     if not parts:
         raise ValueError("parts: expected at least one result")
     merged = json.loads(json.dumps(parts[0]))
+    has = {m: seed_ids_of(merged) for m in merged["per_seed"] if m != "oracle"}
     for part in parts[1:]:
         for k in SAME_IN_PARTS:
             if part.get(k) != merged.get(k):
@@ -543,9 +593,12 @@ def merge_runs(parts: list[dict]) -> dict:
             if part["sizes"].get(k) != merged["sizes"].get(k):
                 raise ValueError(f"sizes.{k}: the runs differ ({merged['sizes'].get(k)!r} vs "
                                  f"{part['sizes'].get(k)!r})")
-        twice = (set(part["per_seed"]) & set(merged["per_seed"])) - {"oracle"}
-        if twice:
-            raise ValueError(f"per_seed: method(s) {sorted(twice)} in more than one run")
+        part = json.loads(json.dumps(part))
+        ids = seed_ids_of(part)
+        methods = set(part["per_seed"]) - {"oracle"}
+        _join_seeds(merged, part, methods & set(has), has, ids)
+        for m in methods - set(has):
+            has[m] = ids
         for k in MERGED_BY_METHOD:
             into = merged.setdefault(k, {})
             into.update({m: v for m, v in part.get(k, {}).items() if m not in into})
@@ -565,12 +618,20 @@ def merge_runs(parts: list[dict]) -> dict:
             raise ValueError("sac_config: the runs fine-tuned with different SAC settings")
         merged.setdefault("sac_config", part.get("sac_config"))
         merged["curves"] = merged.get("curves", []) + part.get("curves", [])
-        merged["families"] = merged.get("families", []) + part.get("families", [])
+        merged["families"] = merged.get("families", []) + [
+            f for f in part.get("families", []) if f not in merged.get("families", [])]
         t = merged["timings"]
         for k, v in part.get("timings", {}).items():
             t[k] = round(t.get(k, 0.0) + v, 1)
         merged["complete"] = bool(merged.get("complete")) and bool(part.get("complete"))
         merged["command"] = f"{merged['command']} && {part['command']}"
+    seed_sets = {m: sorted(ids) for m, ids in has.items()}
+    if len({tuple(v) for v in seed_sets.values()}) > 1:
+        raise ValueError(f"seeds: the methods ran different seeds {seed_sets}")
+    _order_by_seed(merged, has)
+    ids = next(iter(seed_sets.values()), seed_ids_of(merged))
+    merged["seeds"], merged["seed_ids"] = len(ids), ids
+    merged.setdefault("sizes", {})["seeds"] = len(ids)
     merged["methods"], merged["std"], merged["n"] = {}, {}, {}
     merged.pop("methods_selected", None)
     summarise(merged)
@@ -623,6 +684,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--task", required=True, choices=task_names())
     ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
     ap.add_argument("--seeds", type=pos)
+    ap.add_argument("--first-seed", type=int, default=0, help="the seeds are first-seed ... "
+                    "first-seed + seeds - 1, so more seeds of one protocol can run in another "
+                    "call on the same data (merge_results.py joins them)")
     ap.add_argument("--steps", type=pos, help="train_steps per lane")
     ap.add_argument("--eval-every", type=pos, help="steps between test evaluations "
                     "(divides --steps)")
@@ -769,6 +833,9 @@ def main(argv=None) -> int:
     if args.guard_snapshots and args.guard_margin is None:
         raise SystemExit("guard-snapshots: needs --guard-margin (the guard's margin)")
     S = sizes["seeds"]
+    if args.first_seed < 0:
+        raise SystemExit(f"first-seed: expected an int >= 0, got {args.first_seed}")
+    seed_ids = list(range(args.first_seed, args.first_seed + S))
     out, data_dir = args.out, args.data_dir or args.out
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, f"{args.task}.json")
@@ -781,9 +848,9 @@ def main(argv=None) -> int:
             f"{time.perf_counter() - t_start:.0f}s)")
 
     log(f"[paper] task {args.task} on {device} ({backend}, jax {jax.__version__}), profile "
-        f"{profile}, {S} seeds -> {path}\n[paper] sizes {sizes}")
+        f"{profile}, {S} seeds ({seed_ids[0]}..{seed_ids[-1]}) -> {path}\n[paper] sizes {sizes}")
     result = {"task": args.task, "model": args.model, "methods": {}, "std": {}, "n": {},
-              "seeds": S,
+              "seeds": S, "seed_ids": seed_ids,
               "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
               "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
               "command": " ".join(["python", "experiments/paper.py", *argv]),
@@ -814,7 +881,7 @@ def main(argv=None) -> int:
     if sizes["oracle"]:
         t0 = time.perf_counter()
         cfg = make_config(train_ds, "rl2s", profile, overrides=_overrides(args.set))
-        orc = oracle_rows(args.task, test_ds, test_pols, range(S),
+        orc = oracle_rows(args.task, test_ds, test_pols, seed_ids,
                           n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
                           gamma=cfg.gamma, n_boot=sizes["bootstrap"])
         result["per_seed"]["oracle"] = {**orc["per_seed"], "mpi": [], "api": []}
@@ -855,7 +922,7 @@ def main(argv=None) -> int:
         truth = true_values(test_ds, cfg.vd_horizon, cfg.gamma)
         test_pool = start_pool(test_ds)
         select_pool, select_truth = heldout_start_pool(train_ds), np.asarray(data.true_value)
-        lanes = [(m, s) for m in methods for s in range(S)]
+        lanes = [(m, s) for m in methods for s in seed_ids]
         points = [[] for _ in lanes]  # per lane: {"step", "select", "test"} (model selection)
         eps = [float(robust_eps) if robust_eps is not None and DEFAULT_EPS[m] < 1
                else DEFAULT_EPS[m] for m, _ in lanes]
@@ -978,7 +1045,8 @@ def main(argv=None) -> int:
         lanes, sims = [], []
         for family, _, _ in families:
             fam_lanes, states = finals[family]
-            idx = [i for i, (_, s) in enumerate(fam_lanes) if s < sizes["improve_seeds"]]
+            idx = [i for i, (_, s) in enumerate(fam_lanes)
+                   if s < seed_ids[0] + sizes["improve_seeds"]]
             lanes += [fam_lanes[i] for i in idx]
             sims.append(_take(simulator(states), idx))
         statics = {(s.task, s.obs_clip, s.noise_scale, s.n_elites, s.member_mode, s.uncertainty)

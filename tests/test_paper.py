@@ -219,19 +219,27 @@ def test_paper_tables_fallbacks():
     assert "No results" in pt.render({}, "nowhere")
 
 
-def _family_run(methods, families, offset, complete=True):
-    """A result as ``paper.py --families F`` writes it: only its methods' entries."""
-    per = {m: {k: [offset + 0.1 * s for s in range(3)] for k in METRICS} for m in methods}
-    return {"task": "hopper", "model": "ensemble", "seeds": 3, "profile": "gpu",
+def _family_run(methods, families, offset, complete=True, seeds=range(3)):
+    """A result as ``paper.py --families F [--first-seed K]`` writes it: only its methods'
+    entries, each a value per seed (offset + 0.1 * seed)."""
+    seeds = list(seeds)
+    per = {m: {k: [] if k in ("mpi", "api") else [offset + 0.1 * s for s in seeds]
+               for k in METRICS} for m in methods}  # not fine-tuned
+    return {"task": "hopper", "model": "ensemble", "seeds": len(seeds), "seed_ids": seeds,
+            "profile": "gpu",
             "zoo_sha256": "ab" * 32, "true_value": [1.0, 2.0], "families": families,
-            "sizes": {"steps": 300, "eval_every": 100, "test_policies": 2},
+            "sizes": {"steps": 300, "eval_every": 100, "test_policies": 2,
+                      "seeds": len(seeds)},
             "command": f"python experiments/paper.py --families {families[0]}",
             "timings": {"data": 10.0, f"train_{families[0]}": 5.0, "total": 20.0},
             "complete": complete, "per_seed": per, "methods": {}, "std": {}, "n": {},
-            "selected": {m: {"step": [100, 200, 300], "kendall_tau": [offset] * 3}
-                         for m in methods},
-            "lanes": {f"{m}/{s}": {"seed": s} for m in methods for s in range(3)},
-            "curves": [{"lane": f"{m}/0", "step": 100} for m in methods]}
+            "selected": {m: {"step": [100 * (s + 1) for s in seeds],
+                             "kendall_tau": [offset] * len(seeds)} for m in methods},
+            "lane_intervals": {m: [{"avd": {"lo": s - 1.0, "hi": s + 1.0, "std": 0.5}}
+                                   for s in seeds] for m in methods},
+            "train_config": {families[0]: {"method": families[0]}},
+            "lanes": {f"{m}/{s}": {"seed": s} for m in methods for s in seeds},
+            "curves": [{"lane": f"{m}/{seeds[0]}", "step": 100} for m in methods]}
 
 
 def test_merge_runs_joins_the_two_families():
@@ -254,13 +262,62 @@ def test_merge_runs_joins_the_two_families():
     assert merged["complete"] is False  # one part was cut off
     assert "--families adversarial && " in merged["command"]
     assert "methods" not in adv["per_seed"] and adv["methods"] == {}  # inputs untouched
-    for field, change in (("seeds", 2), ("zoo_sha256", "cd" * 32), ("true_value", [1.0])):
+    for field, change in (("zoo_sha256", "cd" * 32), ("true_value", [1.0])):
         with pytest.raises(ValueError, match=field):
             paper.merge_runs([adv, {**mle, field: change}])
+    with pytest.raises(ValueError, match="seeds"):
+        paper.merge_runs([adv, _family_run(("rl2s-bc", "bc"), ["mle"], 0.2, seeds=range(2))])
+    old = {k: v for k, v in mle.items() if k != "seed_ids"}  # results before --first-seed
+    assert paper.merge_runs([adv, {**old, "seeds": 3}])["seed_ids"] == [0, 1, 2]
+    with pytest.raises(ValueError, match="seeds"):
+        paper.merge_runs([adv, {**old, "seeds": 2}])
     with pytest.raises(ValueError, match="sizes.steps"):
         paper.merge_runs([adv, {**mle, "sizes": {**mle["sizes"], "steps": 400}}])
     with pytest.raises(ValueError, match="rl2s"):
         paper.merge_runs([adv, adv])
+
+
+def test_merge_runs_joins_seeds_of_other_runs():
+    """Seeds run in another call on the same data (--first-seed) join their methods: every
+    per-seed list in seed order whatever the parts' order, means, std and intervals over all
+    seeds; a seed twice, methods left with different seeds, other training settings or a
+    method fine-tuned in two seed-split runs are refused."""
+    paper = _load("paper")
+    adv = _family_run(("rl2s", "gail"), ["adversarial"], 0.5)
+    more = _family_run(("rl2s", "gail"), ["adversarial"], 0.5, seeds=(3, 4))
+    mle = _family_run(("rl2s-bc", "bc"), ["mle"], 0.2, seeds=range(5))
+    merged = paper.merge_runs([more, mle, adv])
+    assert merged["seeds"] == 5 and merged["seed_ids"] == [0, 1, 2, 3, 4]
+    assert merged["sizes"]["seeds"] == 5
+    expect = [0.5 + 0.1 * s for s in range(5)]
+    for m in ("rl2s", "gail"):
+        assert merged["per_seed"][m]["avd"] == pytest.approx(expect)
+        assert merged["selected"][m]["step"] == [100, 200, 300, 400, 500]
+        assert [iv["avd"]["lo"] for iv in merged["lane_intervals"][m]] == [-1, 0, 1, 2, 3]
+        assert merged["intervals"][m]["avd"]["lo"] == pytest.approx(1.0)
+        assert merged["methods"][m]["avd"] == pytest.approx(np.mean(expect))
+        assert merged["std"][m]["avd"] == pytest.approx(np.std(expect, ddof=1))
+        assert merged["n"][m]["avd"] == 5
+    assert merged["per_seed"]["bc"]["avd"] == pytest.approx([0.2 + 0.1 * s for s in range(5)])
+    assert len(merged["lanes"]) == 20 and merged["families"] == ["adversarial", "mle"]
+    assert more["per_seed"]["rl2s"]["avd"] == pytest.approx([0.8, 0.9])  # inputs untouched
+    with pytest.raises(ValueError, match=r"\{'gail': \[2\], 'rl2s': \[2\]\} in more than one"):
+        paper.merge_runs([adv, _family_run(("rl2s", "gail"), ["adversarial"], 0.5,
+                                           seeds=(2, 3))])
+    with pytest.raises(ValueError, match="seeds: the methods ran different seeds"):
+        paper.merge_runs([adv, mle])
+    other = {**more, "train_config": {"adversarial": {"method": "gail"}}}
+    with pytest.raises(ValueError, match="train_config.adversarial"):
+        paper.merge_runs([adv, other, mle])
+    tuned = json.loads(json.dumps(more))
+    tuned["per_seed"]["rl2s"]["mpi"] = [0.1]
+    adv_tuned = json.loads(json.dumps(adv))
+    adv_tuned["per_seed"]["rl2s"]["mpi"] = [0.2]
+    with pytest.raises(ValueError, match="improvement: method 'rl2s'"):
+        paper.merge_runs([adv_tuned, tuned, mle])
+    # one part fine-tuned: its values are kept as they are (not reordered by seed)
+    one = paper.merge_runs([adv_tuned, more, mle])
+    assert one["per_seed"]["rl2s"]["mpi"] == [0.2]
 
 
 def test_merge_results_takes_the_oracle_of_another_run(tmp_path):
@@ -366,12 +423,13 @@ def test_paper_sizes_per_task():
 @pytest.mark.slow
 @pytest.mark.heavy
 def test_paper_smoke_hopper(tmp_path, capsys):
-    """The whole protocol at toy sizes: 2 seeds x 4 methods as two vmapped programs, curves,
-    final evaluation, SAC improvement of 2 test policies. ~5-10 min on 2 busy CPU cores
+    """The whole protocol at toy sizes: 2 seeds (1 and 2: --first-seed) x 4 methods as two
+    vmapped programs, curves, final evaluation, SAC improvement of 2 test policies. ~5-10 min on 2 busy CPU cores
     (mostly MJX and XLA compiles)."""
     paper = _load("paper")
     out = tmp_path / "paper"
-    args = ["--task", "hopper", "--profile", "cpu", "--seeds", "2", "--steps", "4",
+    args = ["--task", "hopper", "--profile", "cpu", "--seeds", "2", "--first-seed", "1",
+            "--steps", "4",
             "--eval-every", "2", "--eval-episodes", "2", "--transitions-per-policy", "200",
             "--value-episodes", "2", "--episode-length", "50", "--improve-policies", "2",
             "--improve-iterations", "2", "--out", str(out), "--check-eval",
@@ -386,6 +444,7 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     zoo = load_zoo("hopper")  # the split's sizes come from the shipped zoo
     n_train, n_test = len(zoo.train_ids), len(zoo.test_ids)
     assert r["complete"] and r["seeds"] == 2 and r["hardware"] == "cpu"
+    assert r["seed_ids"] == [1, 2]
     assert r["command"].startswith("python experiments/paper.py --task hopper")
     assert set(r["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc", "oracle"}
     assert len(r["zoo_sha256"]) == 64
@@ -412,8 +471,8 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         assert vals["mvd"] >= vals["avd"] >= 0 and vals["mpi"] <= vals["api"]
     # gail/bc lanes ran with eps 1, rl2s/rl2s-bc with 0.25, in one program per family
     assert {k: v["eps"] for k, v in r["lanes"].items()} == {
-        "rl2s/0": 0.25, "rl2s/1": 0.25, "gail/0": 1.0, "gail/1": 1.0,
-        "rl2s-bc/0": 0.25, "rl2s-bc/1": 0.25, "bc/0": 1.0, "bc/1": 1.0}
+        "rl2s/1": 0.25, "rl2s/2": 0.25, "gail/1": 1.0, "gail/2": 1.0,
+        "rl2s-bc/1": 0.25, "rl2s-bc/2": 0.25, "bc/1": 1.0, "bc/2": 1.0}
     assert r["train_config"]["adversarial"]["method"] == "rl2s"
     assert r["train_config"]["mle"]["method"] == "rl2s-bc"
     # lengths beside values: the simulated episodes of every lane and the oracle (at most the
@@ -428,7 +487,7 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         steps.setdefault(row["lane"], []).append(row["step"])
         assert {"step", "lane", "avd", "mvd", "tau"} <= set(row)
     assert steps == {lane: [2, 4] for lane in r["lanes"]}
-    last = [row for row in r["curves"] if row["lane"] == "rl2s/1" and row["step"] == 4][0]
+    last = [row for row in r["curves"] if row["lane"] == "rl2s/2" and row["step"] == 4][0]
     assert last["tau"] == r["per_seed"]["rl2s"]["kendall_tau"][1]
     # model selection: per lane the step with the best TRAINING-policy tau (held-out episode
     # starts; ties to the lower training AVD), reported with the test metrics of that step
@@ -436,13 +495,13 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         meth, seed = lane.split("/")
         rows = [row for row in r["curves"] if row["lane"] == lane]
         ok = [row for row in rows if row["select_tau"] is not None and row["tau"] is not None]
-        chosen = r["selected"][meth]["step"][int(seed)]
+        chosen = r["selected"][meth]["step"][int(seed) - 1]
         if not ok:
             assert chosen is None
             continue
         best = max(ok, key=lambda row: (row["select_tau"], -row["select_avd"]))
         assert chosen == best["step"], lane
-        assert r["selected"][meth]["kendall_tau"][int(seed)] == best["tau"], lane
+        assert r["selected"][meth]["kendall_tau"][int(seed) - 1] == best["tau"], lane
     assert set(r["methods_selected"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
     # the vmapped evaluation is assess.evaluate_simulator's
     for check in r["eval_check"].values():
@@ -451,7 +510,7 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         r["per_seed"]["rl2s"]["kendall_tau"][0], abs=1e-6)
     # improvement: 2 test policies, one per end of the true-return range
     imp = r["improvement"]
-    assert set(imp) == {"rl2s/0", "gail/0", "bc/0", "rl2s-bc/0"}
+    assert set(imp) == {"rl2s/1", "gail/1", "bc/1", "rl2s-bc/1"}  # the first seed
     for v in imp.values():
         c0, c1 = np.asarray(v["c0"]), np.asarray(v["c1"])
         assert len(v["policy_ids"]) == 2
@@ -462,12 +521,12 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         cp = np.asarray(v["c0_paired"])
         np.testing.assert_allclose(v["I_paired"], (c1 - cp) / np.abs(cp), rtol=1e-6)
         assert v["mpi_paired"] == pytest.approx(min(v["I_paired"]))
-        assert v["c0_paired"] == imp["rl2s/0"]["c0_paired"] and len(v["diff_se"]) == 2
+        assert v["c0_paired"] == imp["rl2s/1"]["c0_paired"] and len(v["diff_se"]) == 2
     assert r["sizes"]["test_policies"] == n_test and r["sizes"]["train_policies"] == n_train
     for key in ("data", "train_adversarial", "train_mle", "improve_sac", "total"):
         assert r["timings"][key] >= 0
-    c0 = imp["rl2s/0"]["c0"]
-    assert c0 == [r["true_value_undiscounted"][i] for i in imp["rl2s/0"]["policy_ids"]]
+    c0 = imp["rl2s/1"]["c0"]
+    assert c0 == [r["true_value_undiscounted"][i] for i in imp["rl2s/1"]["policy_ids"]]
     assert min(c0) == pytest.approx(min(r["true_value_undiscounted"]))
     # the deployment guard: deployed I is the lane's I where the simulator kept the fine-tuned
     # policy, else 0; its MPI / API are the ablation entry "full+guard"
@@ -579,3 +638,55 @@ def test_paper_all_runs_one_task_per_gpu_at_a_time(tmp_path):
     assert rc == 1 and "tables" not in ev
     assert [e.split()[:2] for e in ev] == [[w, t] for t in ("hopper", "walker2d", "halfcheetah",
                                                              "ant") for w in ("start", "end")]
+
+
+def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):
+    """experiments/device_jobs.sh with stub nvidia-smi / python3 (pip a no-op; paper.py logs
+    its start, prints its data phase after 0.5 s, ends 0.3 s later). -> (rc, [events], out)"""
+    import subprocess
+    import textwrap
+    bin_dir, events, out = tmp_path / "bin", tmp_path / "events", tmp_path / "out"
+    bin_dir.mkdir(parents=True)
+    (bin_dir / "nvidia-smi").write_text("#!/usr/bin/env bash\necho '0, stub, 1 MiB'\n")
+    (bin_dir / "python3").write_text(textwrap.dedent(f"""\
+        #!/usr/bin/env bash
+        [ "$1" = -m ] && exit 0
+        prev=; for a in "$@"; do [ "$prev" = --out ] && name=$(basename "$a"); prev=$a; done
+        echo "start $name gpu=$CUDA_VISIBLE_DEVICES args=$*" >> {events}
+        sleep 0.5
+        echo "[paper] data: 0.5s"
+        echo "data $name" >> {events}
+        sleep 0.3
+        echo "end $name" >> {events}
+        [ "$name" != "{fail_name}" ]
+        """))
+    for f in bin_dir.iterdir():
+        f.chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "OUT": str(out),
+           "LIMIT": str(limit)}
+    proc = subprocess.run(["bash", "experiments/device_jobs.sh", *specs], cwd=ROOT, env=env,
+                          capture_output=True, text=True, timeout=60)
+    ev = events.read_text().split("\n")[:-1] if events.exists() else []
+    return proc.returncode, ev, proc
+
+
+def test_device_jobs_runs_side_by_side_and_waits_for_the_data(tmp_path):
+    """device_jobs.sh: jobs without AFTER start at once on their GPUs; a job with AFTER starts
+    only once that job's data phase has ended; out/data dirs and args reach paper.py; a failed
+    job fails the script after the others; a bad spec stops it before any job starts."""
+    rc, ev, proc = _run_device_jobs(
+        tmp_path / "a", "0 hop - --task hopper --families adversarial",
+        "1 walk - --task walker2d", "2 hop_more hop --task hopper --first-seed 3")
+    assert rc == 0, proc.stderr
+    starts = {e.split()[1]: e for e in ev if e.startswith("start")}
+    assert "gpu=0" in starts["hop"] and "gpu=2" in starts["hop_more"]
+    assert "--data-dir /tmp/work" in starts["hop"] and "--first-seed 3" in starts["hop_more"]
+    assert ev.index("data hop") < ev.index(starts["hop_more"])
+    assert ev.index(starts["walk"]) < ev.index("data hop")  # not waiting on anyone
+    assert "ended with 0" in (tmp_path / "a" / "out" / "hop_more" / "paper.log").read_text()
+    rc, ev, proc = _run_device_jobs(tmp_path / "b", "0 hop - --task hopper",
+                                    "1 walk - --task walker2d", fail_name="hop")
+    assert rc == 1 and "hop FAILED" in proc.stdout and "end walk" in ev
+    for bad in ("x hop - --task hopper", "0 hop", "0 hop nobody --task hopper"):
+        rc, ev, proc = _run_device_jobs(tmp_path / bad.replace(" ", "_"), bad)
+        assert rc == 2 and "job spec" in proc.stderr and ev == [], bad

@@ -424,8 +424,8 @@ def test_paper_sizes_per_task():
 @pytest.mark.heavy
 def test_paper_smoke_hopper(tmp_path, capsys):
     """The whole protocol at toy sizes: 2 seeds (1 and 2: --first-seed) x 4 methods as two
-    vmapped programs, curves, final evaluation, SAC improvement of 2 test policies. ~5-10 min on 2 busy CPU cores
-    (mostly MJX and XLA compiles)."""
+    vmapped programs, curves, final evaluation, SAC improvement of 2 test policies. ~5-10 min
+    on 2 busy CPU cores (mostly MJX and XLA compiles)."""
     paper = _load("paper")
     out = tmp_path / "paper"
     args = ["--task", "hopper", "--profile", "cpu", "--seeds", "2", "--first-seed", "1",

@@ -1,9 +1,12 @@
 # Sourced by the experiments/device_*.sh scripts on the GPU machine: installs the carried
 # wheels (.whl, from ../shared/tools/device-wheels), sets PYTHONPATH, OUT, RL2S and W, and
 # defines run_logged.
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade \
-  --target /tmp/site .whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+# Once per machine: a script sourced beside a running job must not rewrite its packages.
+SITE=${RL2S_SITE:-/tmp/site}
+[ -e "$SITE/.rl2s_wheels" ] || { python3 -m pip install -q --no-index --no-deps --no-compile \
+  --no-cache-dir --upgrade --target "$SITE" .whl/*.whl && mkdir -p "$SITE" \
+  && touch "$SITE/.rl2s_wheels"; } || exit 1
+export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1
 # Repeatable GPU numbers: without this flag identical policies from identical starts earn
 # different returns on walker2d, halfcheetah and ant (docs/RESULTS.md, "Why pairing did not
 # help"); it cost 0-40% of wall time there, but large-batch collection may slow far more

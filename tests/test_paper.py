@@ -663,7 +663,7 @@ def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):
     for f in bin_dir.iterdir():
         f.chmod(0o755)
     env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "OUT": str(out),
-           "LIMIT": str(limit)}
+           "LIMIT": str(limit), "RL2S_SITE": str(tmp_path / "site")}
     proc = subprocess.run(["bash", "experiments/device_jobs.sh", *specs], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=60)
     ev = events.read_text().split("\n")[:-1] if events.exists() else []

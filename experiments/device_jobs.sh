@@ -40,15 +40,15 @@ run_job() {  # GPU NAME AFTER ARGS...
         touch "$OUT/$name/.done"
         return 1
       fi
-      sleep 5
+      sleep 1
     done
   fi
   local left=$((LIMIT - (SECONDS - START)))
   echo "[jobs] $name on GPU $gpu at ${SECONDS}s, ${left}s left: paper.py $*" | tee -a "$log"
   CUDA_VISIBLE_DEVICES=$gpu timeout "$left" python3 experiments/paper.py --profile gpu \
-    --data-dir "$W" --out "$OUT/$name" "$@" 2>&1 | grep -v -i -e warn -e "Failed to import" \
-    >>"$log"
-  local rc=${PIPESTATUS[0]}
+    --data-dir "$W" --out "$OUT/$name" "$@" 2>&1 \
+    | grep --line-buffered -v -i -e warn -e "Failed to import" >>"$log"  # line-buffered:
+  local rc=${PIPESTATUS[0]}  # a job waiting for this one reads its data line as it comes
   echo "[jobs] $name ended with $rc at ${SECONDS}s" | tee -a "$log"
   touch "$OUT/$name/.done"
   return "$rc"

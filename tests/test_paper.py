@@ -642,7 +642,7 @@ def test_paper_all_runs_one_task_per_gpu_at_a_time(tmp_path):
 
 def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):
     """experiments/device_jobs.sh with stub nvidia-smi / python3 (pip a no-op; paper.py logs
-    its start, prints its data phase after 0.5 s, ends 0.3 s later). -> (rc, [events], out)"""
+    its start, prints its data phase after 0.5 s, ends 3 s later). -> (rc, [events], out)"""
     import subprocess
     import textwrap
     bin_dir, events, out = tmp_path / "bin", tmp_path / "events", tmp_path / "out"
@@ -656,7 +656,7 @@ def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):
         sleep 0.5
         echo "[paper] data: 0.5s"
         echo "data $name" >> {events}
-        sleep 0.3
+        sleep 3
         echo "end $name" >> {events}
         [ "$name" != "{fail_name}" ]
         """))
@@ -681,7 +681,8 @@ def test_device_jobs_runs_side_by_side_and_waits_for_the_data(tmp_path):
     starts = {e.split()[1]: e for e in ev if e.startswith("start")}
     assert "gpu=0" in starts["hop"] and "gpu=2" in starts["hop_more"]
     assert "--data-dir /tmp/work" in starts["hop"] and "--first-seed 3" in starts["hop_more"]
-    assert ev.index("data hop") < ev.index(starts["hop_more"])
+    # waits for the data line, not the end (the log is written line by line)
+    assert ev.index("data hop") < ev.index(starts["hop_more"]) < ev.index("end hop")
     assert ev.index(starts["walk"]) < ev.index("data hop")  # not waiting on anyone
     assert "ended with 0" in (tmp_path / "a" / "out" / "hop_more" / "paper.log").read_text()
     rc, ev, proc = _run_device_jobs(tmp_path / "b", "0 hop - --task hopper",

@@ -48,6 +48,7 @@ from paper import (  # noqa: E402
     heldout_start_pool,
     load_or_collect,
     log,
+    positive_int,
     profile_sizes,
     select_point,
     train_lanes,
@@ -621,7 +622,7 @@ def _write(path: str, res: dict) -> None:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    pos = lambda t: max(1, int(t))
+    pos = positive_int
     ap.add_argument("--task", choices=task_names())
     ap.add_argument("--variants", default="legacy,bc,rl2s",
                     help=f"comma-separated, from {', '.join(VARIANTS)}, each optionally with "

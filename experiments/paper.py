@@ -678,9 +678,17 @@ def table(result: dict) -> str:
 # ------------------------------------------------------------------ main
 
 
+def positive_int(text: str) -> int:
+    """argparse type: an int >= 1, else an error naming what was expected."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an int >= 1, got {text}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    pos = lambda t: max(1, int(t))
+    pos = positive_int
     ap.add_argument("--task", required=True, choices=task_names())
     ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
     ap.add_argument("--seeds", type=pos)

@@ -386,6 +386,18 @@ def test_merge_runs_joins_the_improvement_variants():
         paper.merge_runs([adv, {**mle, "sac_config": {"kl_weight": 0.01}}])
 
 
+def test_paper_refuses_bad_seed_arguments(tmp_path, capsys):
+    """--seeds 0 and a negative --first-seed stop with the field named, before any work."""
+    paper = _load("paper")
+    with pytest.raises(SystemExit):
+        paper.build_parser().parse_args(["--task", "hopper", "--seeds", "0"])
+    assert "--seeds: expected an int >= 1, got 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="first-seed: expected an int >= 0, got -1"):
+        paper.main(["--task", "hopper", "--profile", "cpu", "--first-seed", "-1",
+                    "--out", str(tmp_path / "out")])
+    assert not (tmp_path / "out").exists()
+
+
 def test_paper_families_flag():
     paper = _load("paper")
     assert [f for f, _, _ in paper.parse_families("mle")] == ["mle"]

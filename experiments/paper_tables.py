@@ -9,7 +9,8 @@ writes: Table 1 (Kendall tau and nDCG@1/3/5/10 per task and method, plus the ora
 Table 2 (MPI / API, plus the real-env control row of paper.py --control and, when a task ran
 several --improve-variants, MPI / API per variant), an AVD / MVD table, each cell
 "mean ± std (n seeds) [95% interval]" beside the paper's published number, and the quality
-bars per task (met / MISSED). Needs no JAX.
+bars per task (met / MISSED) with the MVD bar as paired differences over seeds. Needs no
+JAX.
 """
 from __future__ import annotations
 
@@ -188,6 +189,37 @@ def bars(result: dict) -> dict[str, tuple[bool | None, str]]:
     out["oracle"] = (None if ot is None else (ot >= 0.8 and on >= 0.95),
                      "n/a" if ot is None else f"{ot:.3f} / {on:.3f}{noise}")
     return out
+
+
+def paired_mvd(result: dict, other: str) -> tuple[float, float, float, int, int] | None:
+    """RL2S's MVD minus ``other``'s, seed by seed (the lanes of one seed share the key and the
+    data): (mean, lo, hi, seeds where RL2S is lower, seeds) with a 95% t-interval over the
+    seeds; None without two seeds that both methods ran."""
+    from scipy.stats import t as student_t
+
+    per = result.get("per_seed") or {}
+    a, b = (per.get(m, {}).get("mvd") or [] for m in ("rl2s", other))
+    diffs = [x - y for x, y in zip(a, b) if x is not None and y is not None]
+    if len(a) != len(b) or len(diffs) < 2:
+        return None
+    n, mid = len(diffs), statistics.fmean(diffs)
+    half = float(student_t.ppf(0.975, n - 1)) * statistics.stdev(diffs) / math.sqrt(n)
+    return mid, mid - half, mid + half, sum(d < 0 for d in diffs), n
+
+
+def paired_mvd_rows(results: dict) -> list[str]:
+    """The MVD bar per task as paired differences over seeds (RL2S - GAIL, RL2S - BC)."""
+    rows = ["| task | RL2S - GAIL | RL2S - BC |", "|---|---|---|"]
+    for task in TASKS:
+        if task not in results:
+            continue
+        cells = []
+        for other in ("gail", "bc"):
+            p = paired_mvd(results[task], other)
+            cells.append("n/a" if p is None else f"{p[0]:+.1f} [{p[1]:+.1f}, {p[2]:+.1f}], "
+                                                 f"lower on {p[3]} of {p[4]} seeds")
+        rows.append(f"| {task} | " + " | ".join(cells) + " |")
+    return rows
 
 
 def control_rows(results: dict) -> list[str]:
@@ -419,6 +451,11 @@ def render(results: dict, source: str) -> str:
                   "policies' metrics there:", "", *chosen]
     lines += ["", PAPER_NOTE, "", "### Quality bars (RL2S, means over seeds)", ""]
     lines += bar_table(results)
+    lines += ["", "### The MVD bar, paired by seed", "",
+              "RL2S's MVD minus the other method's, seed by seed (the lanes of one seed share "
+              "the key and the data; RL2S and GAIL also their pre-training): mean and 95% "
+              "t-interval over the seeds. An interval that contains 0 means the seeds do not "
+              "resolve the difference.", "", *paired_mvd_rows(results)]
     lines.append(END)
     return "\n".join(lines) + "\n"
 

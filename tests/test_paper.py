@@ -78,7 +78,7 @@ def test_paper_tables(tmp_path):
     assert "walker2d" not in text.split("Table 1")[1]  # no result, no rows
     assert "NVIDIA H100 80GB HBM3" in text and "python experiments/paper.py --task ant" in text
     # quality bars per task
-    bar_lines = text.split("### Quality bars")[1].splitlines()
+    bar_lines = text.split("### Quality bars")[1].split("### The MVD bar")[0].splitlines()
     bars = {line.split("|")[1].strip(): line for line in bar_lines if line.startswith("| ")}
     assert bars["hopper"].count("met (") == 5 and "MISSED" not in bars["hopper"]
     assert "met (0.970 / 1.000)" in bars["hopper"]  # the oracle's tau / nDCG@1
@@ -102,6 +102,27 @@ def test_paper_tables(tmp_path):
     fresh = tmp_path / "new" / "tables.md"
     assert pt.main(["--results", str(res), "--out", str(fresh)]) == 0
     assert fresh.read_text().startswith(pt.BEGIN)
+
+
+def test_paper_tables_mvd_paired_by_seed():
+    """The MVD bar as paired differences: per seed RL2S - other, mean, 95% t-interval over
+    seeds (t quantile 4.303 for 3 seeds), seeds where RL2S is lower; n/a without 2 seeds."""
+    pt = _load("paper_tables")
+    r = {"per_seed": {"rl2s": {"mvd": [100.0, 120.0, 90.0]},
+                      "gail": {"mvd": [110.0, 100.0, 95.0]},
+                      "bc": {"mvd": [None, 130.0, None]}}}
+    d = np.array([-10.0, 20.0, -5.0])
+    half = 4.302653 * d.std(ddof=1) / np.sqrt(3)
+    mid, lo, hi, lower, n = pt.paired_mvd(r, "gail")
+    assert (mid, lower, n) == (pytest.approx(d.mean()), 2, 3)
+    assert (lo, hi) == (pytest.approx(d.mean() - half, abs=1e-4),
+                        pytest.approx(d.mean() + half, abs=1e-4))
+    assert pt.paired_mvd(r, "bc") is None  # one seed with both
+    assert pt.paired_mvd({"per_seed": {"rl2s": {"mvd": [1.0, 2.0]},
+                                       "gail": {"mvd": [1.0, 2.0, 3.0]}}}, "gail") is None
+    rows = pt.paired_mvd_rows({"hopper": r})
+    assert rows[-1] == (f"| hopper | {d.mean():+.1f} [{d.mean() - half:+.1f}, "
+                        f"{d.mean() + half:+.1f}], lower on 2 of 3 seeds | n/a |")
 
 
 def test_paper_tables_control_and_ablation(tmp_path):

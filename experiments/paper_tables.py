@@ -199,8 +199,10 @@ def paired_mvd(result: dict, other: str) -> tuple[float, float, float, int, int]
 
     per = result.get("per_seed") or {}
     a, b = (per.get(m, {}).get("mvd") or [] for m in ("rl2s", other))
-    diffs = [x - y for x, y in zip(a, b) if x is not None and y is not None]
-    if len(a) != len(b) or len(diffs) < 2:
+    if len(a) != len(b):
+        return None
+    diffs = [x - y for x, y in zip(a, b, strict=True) if x is not None and y is not None]
+    if len(diffs) < 2:
         return None
     n, mid = len(diffs), statistics.fmean(diffs)
     half = float(student_t.ppf(0.975, n - 1)) * statistics.stdev(diffs) / math.sqrt(n)

@@ -19,10 +19,11 @@ RL2S="python3 -m rl2s_jax.cli"
 W=/tmp/work && mkdir -p "$W" "$OUT"
 
 # run_logged LOG CMD...: the GPU's name, then CMD timed with its warnings dropped, to stdout
-# and appended to $OUT/LOG.
+# and appended to $OUT/LOG line by line (another job may be waiting for a line of it).
 run_logged() {
   local log=$OUT/$1
   shift
   nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$log"
-  { time "$@" ; } 2>&1 | grep -v -i -e warn -e "Failed to import" | tee -a "$log"
+  { time "$@" ; } 2>&1 | grep --line-buffered -v -i -e warn -e "Failed to import" \
+    | tee -a "$log"
 }

@@ -45,10 +45,10 @@ run_job() {  # GPU NAME AFTER ARGS...
   fi
   local left=$((LIMIT - (SECONDS - START)))
   echo "[jobs] $name on GPU $gpu at ${SECONDS}s, ${left}s left: paper.py $*" | tee -a "$log"
-  CUDA_VISIBLE_DEVICES=$gpu timeout "$left" python3 experiments/paper.py --profile gpu \
-    --data-dir "$W" --out "$OUT/$name" "$@" 2>&1 \
-    | grep --line-buffered -v -i -e warn -e "Failed to import" >>"$log"  # line-buffered:
-  local rc=${PIPESTATUS[0]}  # a job waiting for this one reads its data line as it comes
+  export CUDA_VISIBLE_DEVICES=$gpu  # this job's subshell only
+  run_logged "$name/paper.log" timeout "$left" python3 experiments/paper.py --profile gpu \
+    --data-dir "$W" --out "$OUT/$name" "$@" >/dev/null  # its log, line by line
+  local rc=$?  # paper.py's status (pipefail)
   echo "[jobs] $name ended with $rc at ${SECONDS}s" | tee -a "$log"
   touch "$OUT/$name/.done"
   return "$rc"

@@ -13,9 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import rl2s_jax as rl2s
-from rl2s_jax import policies
-from rl2s_jax.collect import collect
-from rl2s_jax.tasks import get_task
+from rl2s_jax.data.collect import collect
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.policy import policy as policies
 
 t_start = time.perf_counter()
 task = get_task("pointmass")

@@ -11,10 +11,10 @@ import argparse
 import jax
 import numpy as np
 
-from rl2s_jax.data import load_dataset
-from rl2s_jax.fit import policies_for
-from rl2s_jax.gym_env import SimulatorGymEnv, SimulatorVectorEnv
-from rl2s_jax.policies import mode_action
+from rl2s_jax.data.dataset import load_dataset
+from rl2s_jax.improve.gym_env import SimulatorGymEnv, SimulatorVectorEnv
+from rl2s_jax.policy.policy import mode_action
+from rl2s_jax.zoo.zoo import policies_for
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 parser.add_argument("--ckpt", required=True, help="checkpoint directory of rl2s train")

@@ -54,21 +54,20 @@ from paper import (  # noqa: E402
     train_lanes,
 )
 
-from rl2s_jax.cli import _overrides  # noqa: E402
-from rl2s_jax.dynamics import MEMBER_MODES  # noqa: E402
-from rl2s_jax.evaluate import ranking_metrics  # noqa: E402
-from rl2s_jax.fit import make_config, policies_for  # noqa: E402
-from rl2s_jax.simulate import advance_values, start_pool, start_values  # noqa: E402
-from rl2s_jax.tasks import _LOCO, get_task, task_names  # noqa: E402
-from rl2s_jax.termination import LEARNED, TERMINATIONS  # noqa: E402
-from rl2s_jax.train import (  # noqa: E402
-    LEGACY_MODEL,
-    TrainConfig,
-    init,
-    make_train_data,
-    simulator,
-    true_values,
+from rl2s_jax.app.train import (
+    make_config,
+    parse_overrides,  # noqa: E402
 )
+from rl2s_jax.data.values import true_values
+from rl2s_jax.envs.tasks import _LOCO, get_task, task_names  # noqa: E402
+from rl2s_jax.evaluate.metrics import ranking_metrics  # noqa: E402
+from rl2s_jax.model.dynamics import MEMBER_MODES  # noqa: E402
+from rl2s_jax.model.simulator import advance_values, start_pool, start_values  # noqa: E402
+from rl2s_jax.model.termination import LEARNED, TERMINATIONS  # noqa: E402
+from rl2s_jax.train.config import LEGACY_MODEL, TrainConfig
+from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.step import init, simulator
+from rl2s_jax.zoo.zoo import policies_for  # noqa: E402
 
 # variant -> (config method, config overrides); "rl2s" keeps the EMA and is evaluated twice.
 VARIANTS = {
@@ -186,7 +185,7 @@ def hazard_check(states, ds) -> dict:
     Dataset's rows: the summed h(s, a) against the count of done rows, and its mean
     cross-entropy against the base rate's. A diagnosis of the test policies' data (never used
     to select)."""
-    from rl2s_jax.termination import hazard_prob
+    from rl2s_jax.model.termination import hazard_prob
 
     obs, act = jnp.asarray(ds.obs), jnp.asarray(ds.action)
     done = np.asarray(ds.done, np.float64)
@@ -213,7 +212,7 @@ def open_loop_check(states, ds, task, *, ks=(1, 10, 50), n_windows: int = 256) -
     means at the largest k. A diagnosis of the test data (never used to select): if the
     model ranks the policies' windows well here but not in closed loop, the error is in how
     the policies react to the model's states, not in the dynamics under their actions."""
-    from rl2s_jax.simulate import open_loop_returns
+    from rl2s_jax.model.simulator import open_loop_returns
 
     k_max = max(ks)
     rows, steps, real_r, real_end, obs, act, n_steps = open_loop_inputs(ds, task, k_max,
@@ -240,7 +239,7 @@ def open_loop_inputs(ds, task, k_max: int, n_windows: int, seed: int):
     episodes earned in them (``logged_window_returns``), and the flat inputs of
     ``open_loop_returns``. -> (rows, steps [P, n], real reward [P, n, k_max], real end [P, n],
     start obs [P * n, o], actions [P * n, k_max, a], steps [P * n])"""
-    from rl2s_jax.simulate import logged_window_returns, open_loop_windows
+    from rl2s_jax.model.simulator import logged_window_returns, open_loop_windows
 
     rows, steps = open_loop_windows(ds, k_max, n_windows, seed=seed)
     real_r, real_end = logged_window_returns(ds, rows, steps, k_max, task.reward_fn)
@@ -256,7 +255,7 @@ def open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks) -> dict:
     ``open_loop_windows``); sim_r [L, P, n, K], sim_end [L, P, n, K] of L simulators. -> {k:
     {tau, spread_ratio (std over policies, model / real), relative_error, real_end, model_end:
     lists over L; at the largest k also real_per_policy, model_per_policy}}"""
-    from rl2s_jax.evaluate import kendall_tau
+    from rl2s_jax.evaluate.metrics import kendall_tau
 
     out = {}
     for k in ks:
@@ -288,8 +287,8 @@ def visited_error_check(states, test_ds, test, task, *, n_episodes: int, horizon
     reward bias per step times the episode length is the value error it makes.
     -> {"visited" | "logged" [| "train_logged"]: {"rmse" | "reward_bias" | "reward_abs": [L][P],
     "rmse_per_dim": [L][o] (mean over the policies' squared errors)}, "visited_steps": [L][P]}"""
-    from rl2s_jax.oracle import oracle_dynamics
-    from rl2s_jax.simulate import mean_square, step_errors, visited_step_errors
+    from rl2s_jax.evaluate.oracle import oracle_dynamics
+    from rl2s_jax.model.simulator import mean_square, step_errors, visited_step_errors
 
     reference = oracle_dynamics(task)
     policies, pool = test[0], test[1]
@@ -476,7 +475,7 @@ def parse_variant(spec: str) -> tuple[str, dict]:
         raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)} (optionally "
                          f"':key=value+key=value'), got {spec!r}")
     try:
-        own = _overrides([kv for kv in extra.split("+") if kv]) if extra else {}
+        own = parse_overrides([kv for kv in extra.split("+") if kv]) if extra else {}
     except (ValueError, SystemExit) as e:
         raise SystemExit(f"variants: {spec!r}: {e}") from None
     return base, own
@@ -503,7 +502,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
                 valid_ds=None) -> dict:
     base, own = parse_variant(variant)
     method, model = VARIANTS[base]
-    overrides = {**_overrides(args.set), **model, **own}  # a legacy variant stays legacy
+    overrides = {**parse_overrides(args.set), **model, **own}  # a legacy variant stays legacy
     if base == "rl2s":
         overrides.setdefault("ema_decay", args.ema_decay)
     cfg = make_config(train_ds, method, profile, overrides=overrides)
@@ -678,7 +677,7 @@ def main(argv=None) -> int:
     parse_rollouts(args.rollouts)  # bad input stops here, before any work
     variants = check_variants(args.task, args.variants)
     if args.validation_policies is not None:  # the zoo's split sizes, before any collection
-        from rl2s_jax.policies import load_zoo
+        from rl2s_jax.zoo.zoo import load_zoo
         n_train = len(load_zoo(args.task).split_ids("train"))
         if not 2 <= args.validation_policies <= n_train - 2:
             raise SystemExit(f"validation-policies: expected 2 ... {n_train - 2} (the "

@@ -21,9 +21,10 @@ import time
 
 import jax
 
-from rl2s_jax.collect import make_rollout_step, tree_where
-from rl2s_jax.policies import init_policy, sample_action, stack_params
-from rl2s_jax.tasks import get_task
+from rl2s_jax.data.collect import make_rollout_step
+from rl2s_jax.envs.checks import tree_where
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.policy.policy import init_policy, sample_action, stack_params
 
 
 def timed(fn, *args, repeats: int = 3):

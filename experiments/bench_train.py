@@ -34,9 +34,11 @@ import jax.numpy as jnp
 import numpy as np
 from bench import timed  # experiments/bench.py: best of `repeats` after a compile call
 
-from rl2s_jax.models import Normalizer
-from rl2s_jax.policies import init_policy, stack_params
-from rl2s_jax.train import TrainConfig, TrainData, init, train_steps
+from rl2s_jax.model.dynamics import Normalizer
+from rl2s_jax.policy.policy import init_policy, stack_params
+from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.data import TrainData
+from rl2s_jax.train.step import init, train_steps
 
 OBS, ACT, POLICY_HIDDEN = 12, 3, (64, 64)
 

@@ -31,10 +31,10 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from open_loop_control import noisy, one_step_std, parse_noise, test_split  # noqa: E402
 
-from rl2s_jax.evaluate import kendall_tau  # noqa: E402
-from rl2s_jax.oracle import oracle_dynamics  # noqa: E402
-from rl2s_jax.simulate import simulated_returns, start_pool  # noqa: E402
-from rl2s_jax.tasks import get_task, task_names  # noqa: E402
+from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
+from rl2s_jax.evaluate.metrics import kendall_tau  # noqa: E402
+from rl2s_jax.evaluate.oracle import oracle_dynamics  # noqa: E402
+from rl2s_jax.model.simulator import simulated_returns, start_pool  # noqa: E402
 
 
 def run(ds, task, policies, *, scales, n_episodes: int, horizon: int, gamma: float,
@@ -110,7 +110,8 @@ def main(argv=None) -> int:
                              f"{getattr(args, name)}")
     if not 0 < args.gamma <= 1:
         raise SystemExit(f"gamma: expected a float in (0, 1], got {args.gamma}")
-    from rl2s_jax.policies import index_params, load_zoo
+    from rl2s_jax.policy.policy import index_params
+    from rl2s_jax.zoo.zoo import load_zoo
 
     os.makedirs(args.out, exist_ok=True)
     task = get_task(args.task)

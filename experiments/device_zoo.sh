@@ -7,7 +7,7 @@
 # /tmp/work/zoo_<task> when this machine ran it before) until the time limit or its env-step
 # budget, then measures every snapshot (16 episodes x 1000 steps), chooses the zoo and writes
 # zoo.npz, zoo.json, train_log.jsonl, curves.png, returns_hist.png and zoo.log, packed as
-# $OUT/zoo_<task>.tar (untar into experiments/zoo/). ZOO_EXPORT=1 also writes
+# $OUT/zoo_<task>.tar (untar into rl2s_jax/zoo/shipped/). ZOO_EXPORT=1 also writes
 # $OUT/zoo_<task>_export.npz, the run to continue on a fresh machine: carry it in DIR and set
 # ZOO_IMPORT=DIR. Needs the wheels from ../shared/tools/device-wheels carried as .whl.
 set -u

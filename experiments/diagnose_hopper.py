@@ -26,14 +26,15 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax.data import load_dataset, save_dataset
+from rl2s_jax.app.diagnose import diagnose
+from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.diagnose.planted_mjx import EFFECTS, collect_planted
-from rl2s_jax.diagnose.run import diagnose
-from rl2s_jax.policies import index_params, load_zoo
-from rl2s_jax.tasks import get_task
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.policy.policy import index_params
+from rl2s_jax.zoo.zoo import load_zoo
 
-ZOO = "experiments/zoo/hopper"
+ZOO = "hopper"
 
 
 def record(effect: str, transitions_per_policy: int, value_episodes: int, seed: int,

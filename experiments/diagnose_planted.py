@@ -12,8 +12,8 @@ import os
 
 import jax
 
+from rl2s_jax.app.diagnose import diagnose
 from rl2s_jax.diagnose.planted import make_planted
-from rl2s_jax.diagnose.run import diagnose
 
 EFFECTS = ("clean", "delay", "episode_param", "noise", "unobserved", "drift")
 

@@ -17,12 +17,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.assess import evaluate_simulator
-from rl2s_jax.cli import _overrides
-from rl2s_jax.data import load_dataset
-from rl2s_jax.fit import make_config, policies_for
+from rl2s_jax.app.train import make_config, parse_overrides
+from rl2s_jax.data.dataset import load_dataset
+from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, shard_lanes
-from rl2s_jax.train import init, make_train_data, simulator, train_steps
+from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.step import init, simulator, train_steps
+from rl2s_jax.zoo.zoo import policies_for
 
 
 def main(argv=None) -> int:
@@ -45,7 +46,7 @@ def main(argv=None) -> int:
     profile = args.profile if args.profile != "auto" else (
         "gpu" if jax.default_backend() == "gpu" else "cpu")
     train_ds, test_ds = load_dataset(args.train), load_dataset(args.test)
-    cfg = make_config(train_ds, args.method, profile, overrides=_overrides(args.set))
+    cfg = make_config(train_ds, args.method, profile, overrides=parse_overrides(args.set))
     data = make_train_data(train_ds, policies_for(train_ds), cfg)
     test_pols = policies_for(test_ds)
     lanes = [(e, s) for e in args.eps for s in range(args.seeds)]

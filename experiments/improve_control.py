@@ -35,15 +35,16 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
-from rl2s_jax.cli import _overrides  # noqa: E402
-from rl2s_jax.improve import (  # noqa: E402
+from rl2s_jax.app.train import parse_overrides  # noqa: E402
+from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
+from rl2s_jax.improve.finetune import (
     improve_in_real_env,
     improvement_intervals,
     improvement_metrics,
 )
-from rl2s_jax.policies import index_params, load_zoo  # noqa: E402
-from rl2s_jax.sac import SACConfig  # noqa: E402
-from rl2s_jax.tasks import get_task, task_names  # noqa: E402
+from rl2s_jax.policy.policy import index_params
+from rl2s_jax.policy.sac import SACConfig  # noqa: E402
+from rl2s_jax.zoo.zoo import load_zoo  # noqa: E402
 
 
 def log(msg: str) -> None:
@@ -61,7 +62,7 @@ def pick(returns: np.ndarray, n: int) -> list[int]:
 
 def sac_configs(args, episode_length: int) -> dict[str, SACConfig]:
     fields = {f.name for f in dataclasses.fields(SACConfig)}
-    over = _overrides(args.sac_set)
+    over = parse_overrides(args.sac_set)
     unknown = sorted(set(over) - fields)
     if unknown:
         raise SystemExit(f"sac-set: unknown SACConfig field(s) {unknown}")

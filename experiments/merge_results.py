@@ -31,7 +31,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def zoo_sha256(task: str) -> str:
-    with open(os.path.join(ROOT, "experiments", "zoo", task, "zoo.npz"), "rb") as f:
+    with open(os.path.join(ROOT, "rl2s_jax", "zoo", "shipped", task, "zoo.npz"), "rb") as f:
         return hashlib.sha256(f.read()).hexdigest()
 
 

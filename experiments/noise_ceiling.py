@@ -29,7 +29,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from rl2s_jax.evaluate import kendall_tau, noise_ceiling  # noqa: E402
+from rl2s_jax.evaluate.metrics import kendall_tau, noise_ceiling  # noqa: E402
 
 
 def analyse(result: dict, episodes=(64, 128, 256, 512, 1024), target: float = 0.9,

@@ -35,9 +35,9 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from ablation_model import open_loop_inputs, open_loop_summary  # noqa: E402
 
-from rl2s_jax.oracle import oracle_dynamics  # noqa: E402
-from rl2s_jax.simulate import open_loop_returns  # noqa: E402
-from rl2s_jax.tasks import get_task, task_names  # noqa: E402
+from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
+from rl2s_jax.evaluate.oracle import oracle_dynamics  # noqa: E402
+from rl2s_jax.model.simulator import open_loop_returns  # noqa: E402
 
 
 def noisy(dynamics, scale: jax.Array, noise_std: jax.Array):
@@ -71,9 +71,9 @@ def parse_noise(text: str, *, zero_ok: bool) -> list[float]:
 def test_split(task_name: str, path: str | None, transitions_per_policy: int):
     """The Dataset at ``path``, else the zoo's test split collected (no value episodes)."""
     if path:
-        from rl2s_jax.data import load_dataset
+        from rl2s_jax.data.dataset import load_dataset
         return load_dataset(path)
-    from rl2s_jax.cli import collect_dataset
+    from rl2s_jax.app.pipeline import collect_dataset
     return collect_dataset(task_name, "test", transitions_per_policy, value_episodes=0,
                            progress=False)
 
@@ -83,7 +83,7 @@ def oracle_step_check(ds, task, n_rows: int = 4096, seed: int = 0) -> dict:
     logged next states, in stds of the logged one-step change per dim): how exact the real
     dynamics rebuilt from an observation are, the control of every error measured against
     them. -> {"rows", "rmse", "reward_bias", "reward_abs", "rmse_per_dim"}"""
-    from rl2s_jax.simulate import mean_square, step_errors
+    from rl2s_jax.model.simulator import mean_square, step_errors
 
     obs, act, nxt = (np.asarray(x) for x in (ds.obs, ds.action, ds.next_obs))
     idx = np.random.default_rng(seed).choice(len(obs), min(n_rows, len(obs)), replace=False)

@@ -5,7 +5,8 @@ horizons and episode counts, to find where evaluation is sound before any model 
         [--transitions-per-policy 20000] [--value-episodes 16] [--horizons 1000]
         [--episodes 16,64] [--bootstrap 1000] [--split test]
 
-Per task: ONE collection of the split (``cli.collect_dataset``), then ``assess.evaluate_oracle``
+Per task: ONE collection of the split (``app.pipeline.collect_dataset``), then
+``evaluate_oracle``
 for every (horizon, episodes) pair with key PRNGKey(1000). Writes DIR/oracle_<task>.json with
 the metrics, the 95% bootstrap intervals, the sim-only tau std (the evaluation noise) and the
 true and oracle values per policy.
@@ -21,10 +22,10 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax.assess import evaluate_oracle
-from rl2s_jax.cli import collect_dataset
-from rl2s_jax.fit import policies_for
-from rl2s_jax.tasks import get_task
+from rl2s_jax.app.pipeline import collect_dataset
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.evaluate.simulator import evaluate_oracle
+from rl2s_jax.zoo.zoo import policies_for
 
 
 def ints(text: str) -> list[int]:

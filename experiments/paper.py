@@ -16,7 +16,7 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
 Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
 by a time limit still leaves what it finished, with "complete": false):
 
-1. data: train / test Datasets from the shipped zoo: ONE ``rl2s_jax.cli.collect_dataset``
+1. data: train / test Datasets from the shipped zoo: ONE ``rl2s_jax.app.pipeline.collect_dataset``
    run over all the zoo's policies (split "all": one MJX program), split into the zoo's train
    and test policies with ``Dataset.select_policies``; reused from --data-dir when the sizes
    match.
@@ -81,12 +81,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.cli import _overrides, collect_dataset
-from rl2s_jax.collect import measure_values
-from rl2s_jax.data import load_dataset, save_dataset
-from rl2s_jax.evaluate import bootstrap_intervals, noise_ceiling, ranking_metrics
-from rl2s_jax.fit import make_config, policies_for
-from rl2s_jax.improve import (
+from rl2s_jax.app.pipeline import collect_dataset
+from rl2s_jax.app.train import make_config, parse_overrides
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.data.dataset import load_dataset, save_dataset
+from rl2s_jax.data.values import true_values, true_values_se
+from rl2s_jax.envs.tasks import get_task, task_names
+from rl2s_jax.evaluate.metrics import bootstrap_intervals, noise_ceiling, ranking_metrics
+from rl2s_jax.improve.finetune import (
     deployment_guard,
     improve_in_real_env,
     improvement_metrics,
@@ -94,24 +96,15 @@ from rl2s_jax.improve import (
     paired_returns,
     select_by_members,
 )
-from rl2s_jax.policies import index_params
-from rl2s_jax.sac import SACConfig, episode_returns, make_sac
+from rl2s_jax.improve.sim_env import SimulatorEnv, branch_pool, real_rows, scaled_env_options
+from rl2s_jax.model.simulator import Simulator, simulator_returns, start_pool
+from rl2s_jax.policy.policy import index_params
+from rl2s_jax.policy.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, replicate, shard_lanes
-from rl2s_jax.sim_env import SimulatorEnv, branch_pool, real_rows, scaled_env_options
-from rl2s_jax.simulate import Simulator, simulator_returns, start_pool
-from rl2s_jax.tasks import get_task, task_names
-from rl2s_jax.train import (
-    DEFAULT_EPS,
-    LEGACY_MODEL,
-    TrainConfig,
-    heldout_mask,
-    init,
-    make_train_data,
-    simulator,
-    train_steps,
-    true_values,
-    true_values_se,
-)
+from rl2s_jax.train.config import DEFAULT_EPS, LEGACY_MODEL, TrainConfig
+from rl2s_jax.train.data import heldout_mask, make_train_data
+from rl2s_jax.train.step import init, simulator, train_steps
+from rl2s_jax.zoo.zoo import policies_for
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 # (family, config method, its lanes' methods): one vmapped program per family.
@@ -193,7 +186,7 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
     the same sizes, else collected as ONE ``collect_dataset(task, "all", ...)`` run (one MJX
     program for all the zoo's policies) and split with ``Dataset.select_policies``.
     -> ({"train": Dataset, "test": Dataset}, reused)"""
-    from rl2s_jax.policies import load_zoo
+    from rl2s_jax.zoo.zoo import load_zoo
 
     paths = {split: os.path.join(data_dir, f"{task}_{split}.npz") for split in ("train", "test")}
     key_path = os.path.join(data_dir, f"{task}_data.json")
@@ -314,7 +307,7 @@ def oracle_rows(task: str, test_ds, test_pols, seeds, *, n_episodes, horizon, ga
     path: same start states, horizon, gamma, episodes) once per seed with the lanes' key
     PRNGKey(1000 + seed). -> {"per_seed": {metric: [S]}, "intervals": [S], "sim_value",
     "sim_length", "sim_return_sd": [S][P] each}"""
-    from rl2s_jax.assess import evaluate_oracle
+    from rl2s_jax.evaluate.simulator import evaluate_oracle
 
     env = get_task(task).make_env()
     out = {"per_seed": {k: [] for k in EVAL_METRICS}, "intervals": [], "sim_value": [],
@@ -650,10 +643,10 @@ def write(path: str, result: dict) -> None:
 
 
 def zoo_sha256(task: str) -> str | None:
-    """sha256 of experiments/zoo/<task>/zoo.npz, the zoo the result was measured on."""
+    """sha256 of rl2s_jax/zoo/shipped/<task>/zoo.npz, the zoo the result was measured on."""
     import hashlib
 
-    from rl2s_jax.policies import zoo_dir
+    from rl2s_jax.zoo.zoo import zoo_dir
 
     path = os.path.join(zoo_dir(task), "zoo.npz")
     if not os.path.exists(path):
@@ -771,7 +764,7 @@ def build_parser() -> argparse.ArgumentParser:
 def _sac_overrides(items) -> dict:
     """--sac-set KEY=VALUE pairs, checked against SACConfig's fields before any work."""
     fields = {f.name for f in dataclasses.fields(SACConfig)}
-    out = _overrides(items)
+    out = parse_overrides(items)
     unknown = sorted(set(out) - fields)
     if unknown:
         raise SystemExit(f"sac-set: unknown SACConfig field(s) {unknown}; known: "
@@ -888,7 +881,7 @@ def main(argv=None) -> int:
     # ---- 1b. the control: the real dynamics through the same evaluation path
     if sizes["oracle"]:
         t0 = time.perf_counter()
-        cfg = make_config(train_ds, "rl2s", profile, overrides=_overrides(args.set))
+        cfg = make_config(train_ds, "rl2s", profile, overrides=parse_overrides(args.set))
         orc = oracle_rows(args.task, test_ds, test_pols, seed_ids,
                           n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
                           gamma=cfg.gamma, n_boot=sizes["bootstrap"])
@@ -912,7 +905,7 @@ def main(argv=None) -> int:
             f"{nc['ndcg@1']['mean']:.3f}")
 
     # ---- 2. training, one vmapped program per family
-    overrides = {**(LEGACY_MODEL if args.model == "legacy" else {}), **_overrides(args.set)}
+    overrides = {**(LEGACY_MODEL if args.model == "legacy" else {}), **parse_overrides(args.set)}
     robust_eps = overrides.pop("eps", None)
     finals, configs = {}, {}
     for family, cfg_method, methods in families:
@@ -1012,7 +1005,7 @@ def main(argv=None) -> int:
         result.setdefault("train_config", {})[family] = cfg.to_dict()
         timings[f"eval_{family}"] = round(t_eval, 1)
         if args.check_eval:
-            from rl2s_jax.assess import evaluate_simulator
+            from rl2s_jax.evaluate.simulator import evaluate_simulator
             r = evaluate_simulator(simulator(_take(states, 0)), test_ds, test_pols,
                                    key=jax.random.PRNGKey(1000 + lanes[0][1]),
                                    n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,

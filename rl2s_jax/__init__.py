@@ -7,7 +7,13 @@ checkpoint with ``Checkpointer`` and load a trained ``Simulator`` with ``load_si
 """
 # First: imports mujoco.mjx without its lines about the optional Warp backend (rl2s_jax/_quiet.py).
 import rl2s_jax._quiet  # noqa: F401
-from rl2s_jax.checkpoint import (
+from rl2s_jax.app.train import run_training
+from rl2s_jax.data.dataset import Dataset, load_dataset, save_dataset
+from rl2s_jax.improve.finetune import improve_policies, improvement_metrics, measure_improvement
+from rl2s_jax.improve.sim_env import SimulatorEnv
+from rl2s_jax.model.simulator import Simulator, simulated_values
+from rl2s_jax.policy.sac import SACConfig, make_sac
+from rl2s_jax.train.checkpoint import (
     Checkpointer,
     CheckpointError,
     CheckpointWarning,
@@ -15,24 +21,11 @@ from rl2s_jax.checkpoint import (
     load_meta,
     load_simulator,
 )
-from rl2s_jax.data import Dataset, load_dataset, save_dataset
-from rl2s_jax.fit import TrainingDiverged, fit, run_training
-from rl2s_jax.improve import improve_policies, improvement_metrics, measure_improvement
-from rl2s_jax.sac import SACConfig, make_sac
-from rl2s_jax.sim_env import SimulatorEnv
-from rl2s_jax.simulate import Simulator, simulated_values
-from rl2s_jax.train import (
-    TrainConfig,
-    TrainData,
-    TrainState,
-    init,
-    make_train_data,
-    n_worst,
-    select_worst,
-    simulator,
-    train_step,
-    train_steps,
-)
+from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.cvar import n_worst, select_worst
+from rl2s_jax.train.data import TrainData, make_train_data
+from rl2s_jax.train.loop import TrainingDiverged, fit
+from rl2s_jax.train.step import TrainState, init, simulator, train_step, train_steps
 
 __all__ = [
     "CheckpointError", "CheckpointWarning", "Checkpointer", "Dataset", "SACConfig", "Simulator",
@@ -47,7 +40,7 @@ __all__ = [
 def __getattr__(name: str):
     """The Gymnasium envs, imported on first use (gymnasium is not needed otherwise)."""
     if name in ("SimulatorGymEnv", "SimulatorVectorEnv"):
-        from rl2s_jax import gym_env
+        from rl2s_jax.improve import gym_env
 
         return getattr(gym_env, name)
     raise AttributeError(f"module 'rl2s_jax' has no attribute {name!r}")

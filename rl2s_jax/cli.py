@@ -1,5 +1,10 @@
 """The `rl2s` command line: zoo | collect | inspect | import | export | train | evaluate |
-improve | pipeline | diagnose."""
+improve | pipeline | diagnose.
+
+Argument parsing only; each command's work is in ``rl2s_jax.app``. The app modules are
+imported inside the command functions, on purpose: importing them loads JAX, brax and MuJoCo
+(seconds), which ``rl2s --help`` and a bad argument should not wait for.
+"""
 
 from __future__ import annotations
 
@@ -33,8 +38,7 @@ def _gamma(text):
 def cmd_zoo(args) -> int:
     """Train (or continue) a task's zoo learners, then measure, choose and split the zoo."""
     started = time.time()
-    from rl2s_jax.policies import zoo_dir
-    from rl2s_jax.zoo import (
+    from rl2s_jax.zoo.build import (
         DEFAULT_ALGO,
         build_zoo,
         format_spread,
@@ -42,7 +46,8 @@ def cmd_zoo(args) -> int:
         write_zoo_outputs,
         write_zoo_plots,
     )
-    from rl2s_jax.zoo_store import load_runs, read_export, write_export
+    from rl2s_jax.zoo.store import load_runs, read_export, write_export
+    from rl2s_jax.zoo.zoo import zoo_dir
 
     out = args.out or zoo_dir(args.task)
     if args.plots_only:
@@ -52,7 +57,7 @@ def cmd_zoo(args) -> int:
     if args.time_limit is not None and args.time_limit <= 0:
         raise ValueError(f"time-limit: expected seconds > 0, got {args.time_limit}")
     overrides: dict = {}
-    for k, v in _overrides(args.set).items():
+    for k, v in _set(args.set).items():
         learner, _, field = k.partition(".")
         if not field:
             raise ValueError(f"set: expected sac.FIELD=VALUE or ppo.FIELD=VALUE, got {k!r}")
@@ -92,34 +97,10 @@ def cmd_zoo(args) -> int:
     return 0
 
 
-def collect_dataset(task_name: str, split: str, transitions_per_policy: int, *, seed: int = 0,
-                    envs_per_policy: int | None = None, gamma: float = 0.999,
-                    value_episodes: int = 16, episode_length: int | None = None,
-                    zoo_path: str | None = None, progress: bool = True):
-    """Collect a Dataset from a registered task's zoo split (what `rl2s collect` runs)."""
-    import jax
-
-    from rl2s_jax.collect import collect
-    from rl2s_jax.policies import index_params, load_zoo
-    from rl2s_jax.tasks import get_task
-
-    task = get_task(task_name)
-    zoo = load_zoo(zoo_path or task_name)
-    if zoo.task != task_name:
-        raise ValueError(f"zoo: built for task {zoo.task!r}, not {task_name!r}")
-    ids = zoo.split_ids(split)
-    return collect(task.make_env(), index_params(zoo.params, ids), key=jax.random.PRNGKey(seed),
-                   transitions_per_policy=transitions_per_policy,
-                   envs_per_policy=envs_per_policy,
-                   episode_length=episode_length or task.episode_length, task=task_name,
-                   policy_names=zoo.policy_names(ids), gamma=gamma,
-                   value_episodes=value_episodes, progress=progress,
-                   source={"zoo": zoo_path or f"experiments/zoo/{task_name}", "split": split,
-                           "zoo_ids": ids, "seed": seed})
-
-
 def cmd_collect(args) -> int:
-    from rl2s_jax.data import dataset_summary, save_dataset
+    from rl2s_jax.app.pipeline import collect_dataset
+    from rl2s_jax.data.dataset import save_dataset
+    from rl2s_jax.data.summary import dataset_summary
 
     t0 = time.time()
     ds = collect_dataset(args.task, args.split, args.transitions_per_policy, seed=args.seed,
@@ -134,7 +115,8 @@ def cmd_collect(args) -> int:
 
 
 def cmd_inspect(args) -> int:
-    from rl2s_jax.data import DatasetError, dataset_summary, load_dataset
+    from rl2s_jax.data.dataset import DatasetError, load_dataset
+    from rl2s_jax.data.summary import dataset_summary
 
     try:
         ds = load_dataset(args.data)
@@ -147,8 +129,9 @@ def cmd_inspect(args) -> int:
 
 def cmd_import(args) -> int:
     """A local Minari dataset -> our Dataset file (validated)."""
-    from rl2s_jax.data import dataset_summary, save_dataset
-    from rl2s_jax.minari_io import from_minari
+    from rl2s_jax.data.dataset import save_dataset
+    from rl2s_jax.data.minari import from_minari
+    from rl2s_jax.data.summary import dataset_summary
 
     ds = from_minari(args.minari, task=args.task, gamma=args.gamma, policy_key=args.policy_key)
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
@@ -160,8 +143,8 @@ def cmd_import(args) -> int:
 
 def cmd_export(args) -> int:
     """Our Dataset file -> a Minari dataset directory."""
-    from rl2s_jax.data import load_dataset
-    from rl2s_jax.minari_io import to_minari
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.data.minari import to_minari
 
     ds = load_dataset(args.data)
     mds = to_minari(ds, args.out, dataset_id=args.dataset_id)
@@ -170,22 +153,9 @@ def cmd_export(args) -> int:
     return 0
 
 
-def _overrides(items: list[str] | None) -> dict:
-    """--set key=value pairs -> dict; values parsed as JSON where they parse (3, 1e-4, [64,64])."""
-    out = {}
-    for item in items or []:
-        if "=" not in item:
-            raise ValueError(f"set: expected key=value, got {item!r}")
-        k, v = item.split("=", 1)
-        try:
-            out[k.strip()] = json.loads(v)
-        except json.JSONDecodeError:
-            out[k.strip()] = v
-    return out
-
-
 def cmd_train(args) -> int:
-    from rl2s_jax.fit import TrainingDiverged, format_summary, run_training
+    from rl2s_jax.app.train import format_summary, run_training
+    from rl2s_jax.train.loop import TrainingDiverged
 
     if not os.path.exists(args.data):
         raise FileNotFoundError(f"data: no such file {args.data}")
@@ -193,7 +163,7 @@ def cmd_train(args) -> int:
         summary = run_training(args.data, args.method, args.steps, args.out, zoo=args.zoo,
                                profile=args.profile, seed=args.seed, eps=args.eps,
                                save_every=args.save_every, chunk=args.chunk,
-                               overrides=_overrides(args.set), progress=not args.quiet,
+                               overrides=_set(args.set), progress=not args.quiet,
                                eval_data=args.eval_data, eval_every=args.eval_every,
                                resume_step=args.resume_step)
     except TrainingDiverged as err:
@@ -204,7 +174,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from rl2s_jax.assess import evaluate_checkpoint, format_report
+    from rl2s_jax.app.evaluate import evaluate_checkpoint, format_report
 
     if not os.path.exists(args.data):
         raise FileNotFoundError(f"data: no such file {args.data}")
@@ -213,9 +183,9 @@ def cmd_evaluate(args) -> int:
     if args.oracle:
         import jax
 
-        from rl2s_jax.assess import evaluate_oracle
-        from rl2s_jax.data import load_dataset
-        from rl2s_jax.fit import policies_for
+        from rl2s_jax.data.dataset import load_dataset
+        from rl2s_jax.evaluate.simulator import evaluate_oracle
+        from rl2s_jax.zoo.zoo import policies_for
 
         ds = load_dataset(args.data)
         report = evaluate_oracle(ds.meta.get("task"), ds, policies_for(ds, args.zoo),
@@ -244,17 +214,17 @@ def _policy_ids(text):
 
 
 def cmd_improve(args) -> int:
-    from rl2s_jax.improve_run import run_improve
+    from rl2s_jax.app.improve import run_improve
 
     s = run_improve(args.ckpt, args.data, args.out, policy_ids=args.policies,
-                    iterations=args.iterations, overrides=_overrides(args.set), seed=args.seed,
+                    iterations=args.iterations, overrides=_set(args.set), seed=args.seed,
                     n_episodes=args.episodes, zoo=args.zoo, step=args.step,
                     measure=not args.no_measure, branch_length=args.branch_length,
                     uncertainty_penalty=args.uncertainty_penalty,
                     uncertainty_threshold=args.uncertainty_threshold,
                     halt_penalty=args.halt_penalty, guard_margin=args.guard_margin,
                     guard_episodes=args.guard_episodes, progress=not args.quiet)
-    from rl2s_jax.improve_run import summary_markdown
+    from rl2s_jax.app.improve import summary_markdown
 
     print(summary_markdown(s))
     print(f"-> {args.out}: zoo.npz, zoo.json, summary.json, summary.md"
@@ -262,162 +232,13 @@ def cmd_improve(args) -> int:
     return 0
 
 
-PROFILES = {
-    "cpu": dict(transitions_per_policy=2000, value_episodes=4, steps=300, eval_every=50,
-                eval_episodes=8, improve_iterations=300,
-                sac=dict(n_envs=4, hidden=(64, 64), batch_size=128, critic_warmup_updates=200,
-                         buffer_size=20_000)),
-    "gpu": dict(transitions_per_policy=100_000, value_episodes=32, steps=3000, eval_every=250,
-                eval_episodes=16, improve_iterations=5000,
-                sac=dict(n_envs=16, critic_warmup_updates=2000)),
-}
-
-
-def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
-                          horizon: int, seed: int = 0, log=print) -> dict[str, dict]:
-    """Fine-tune every test policy with SAC inside each method's simulator, then measure its
-    real return (MJX) with the same protocol as the test data's true values:
-    C0 = the data's ``value``, C1 = mean return over ``value_episodes`` episodes.
-    -> {method: {"c0", "c1", "c1_se", "I" (lists [P]), "mpi", "api"}}."""
-    import jax
-
-    from rl2s_jax.checkpoint import load_simulator
-    from rl2s_jax.collect import measure_values
-    from rl2s_jax.data import load_dataset
-    from rl2s_jax.fit import policies_for
-    from rl2s_jax.improve import improve_policies, improvement_metrics
-    from rl2s_jax.sac import SACConfig
-    from rl2s_jax.simulate import start_pool
-    from rl2s_jax.tasks import get_task
-
-    ds = load_dataset(test_path)
-    if not ds.has_values:
-        raise ValueError(f"data: {test_path} has no true values, so C0 is unknown")
-    task = get_task(task_name)
-    policies, pool = policies_for(ds), start_pool(ds)
-    episode_length = int(ds.meta.get("episode_length") or task.episode_length)
-    cfg = SACConfig.fine_tuning(episode_length=horizon, **sizes["sac"])
-    env = task.make_env()
-    c0 = [float(v) for v in ds.value]
-    improved = []
-    for i, (method, ckpt) in enumerate(ckpts.items()):
-        t0 = time.perf_counter()
-        params, _ = improve_policies(load_simulator(ckpt), task, pool, policies,
-                                     jax.random.PRNGKey(seed + 10 + i), cfg,
-                                     n_iterations=sizes["improve_iterations"],
-                                     chunk_iterations=min(1000, sizes["improve_iterations"]))
-        improved.append(params)
-        log(f"[pipeline] SAC in {method}'s simulator: {time.perf_counter() - t0:.0f}s")
-    # One real measurement of every method's improved policies (one MJX compile).
-    t0 = time.perf_counter()
-    both = jax.tree_util.tree_map(lambda *xs: jax.numpy.concatenate(xs), *improved)
-    real = measure_values(env, both, key=jax.random.PRNGKey(seed + 20),
-                          n_episodes=sizes["value_episodes"], episode_length=episode_length,
-                          gamma=float(ds.meta.get("gamma") or 0.999))
-    P, out = len(c0), {}
-    for i, method in enumerate(ckpts):
-        c1, se = real["value"][i * P:(i + 1) * P], real["value_se"][i * P:(i + 1) * P]
-        m = improvement_metrics(c0, c1)
-        out[method] = {"c0": c0, "c1": c1.tolist(), "c1_se": se.tolist(), "I": m["I"].tolist(),
-                       "mpi": m["mpi"], "api": m["api"]}
-        log(f"[pipeline] improvement in {method}'s simulator: MPI {m['mpi']:.3f}  API "
-            f"{m['api']:.3f}")
-    log(f"[pipeline] real returns of the improved policies measured in "
-        f"{time.perf_counter() - t0:.0f}s")
-    return out
-
-
-def cmd_pipeline(args) -> int:
-    """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
-    import jax
-
-    from rl2s_jax.assess import evaluate_checkpoint
-    from rl2s_jax.data import dataset_summary, load_dataset, save_dataset
-    from rl2s_jax.fit import run_training
-    from rl2s_jax.report import load_curve, write_report
-
-    t_start = time.perf_counter()
-    backend = jax.default_backend()
-    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
-    sizes = dict(PROFILES[profile])
-    for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every",
-              "improve_iterations"):
-        if getattr(args, k) is not None:
-            sizes[k] = getattr(args, k)
-    methods = args.methods.split(",")
-    bad = [m for m in methods if m not in ("rl2s", "gail", "bc", "rl2s-bc")]
-    if bad:
-        raise ValueError(f"methods: expected a comma list of rl2s, gail, bc, rl2s-bc; got {bad}")
-    out = args.out or os.path.join("results", args.task)
-    os.makedirs(out, exist_ok=True)
-    print(f"[pipeline] task {args.task}, backend {backend}, profile {profile} -> {out}\n"
-          f"[pipeline] {sizes}")
-    data_key = {k: sizes[k] for k in ("transitions_per_policy", "value_episodes")}
-    data_key.update(seed=args.seed, task=args.task)
-    if args.episode_length is not None:
-        data_key["episode_length"] = args.episode_length
-    summary = {"task": args.task, "profile": profile, "backend": backend, "sizes": sizes,
-               "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
-               "datasets": {}}
-    state_path = os.path.join(out, "pipeline.json")
-    previous = {}
-    if os.path.exists(state_path):
-        with open(state_path) as f:
-            previous = json.load(f)
-    for split in ("train", "test"):
-        path = os.path.join(out, f"{split}.npz")
-        if os.path.exists(path) and previous.get("data_key") == data_key:
-            ds = load_dataset(path)
-            print(f"[pipeline] {split} data: reusing {path}")
-        else:
-            ds = collect_dataset(args.task, split, sizes["transitions_per_policy"],
-                                 seed=args.seed, value_episodes=sizes["value_episodes"],
-                                 episode_length=args.episode_length, progress=not args.quiet)
-            save_dataset(path, ds)
-            print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
-        summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,
-                                      "policies": ds.n_policies}
-    summary["data_key"] = data_key
-    with open(state_path, "w") as f:
-        json.dump(summary, f, indent=1)
-    evals, curves, runs = {}, {}, {}
-    for method in methods:
-        run_dir = os.path.join(out, method)
-        print(f"\n[pipeline] training {method} -> {run_dir}")
-        runs[method] = run_training(
-            summary["datasets"]["train"]["path"], method, sizes["steps"], run_dir,
-            profile=profile, seed=args.seed, save_every=sizes["eval_every"],
-            eval_data=summary["datasets"]["test"]["path"], eval_every=sizes["eval_every"],
-            eval_episodes=sizes["eval_episodes"], progress=not args.quiet)
-        evals[method] = evaluate_checkpoint(os.path.join(run_dir, "checkpoints"),
-                                            summary["datasets"]["test"]["path"],
-                                            seed=args.seed, n_episodes=sizes["eval_episodes"],
-                                            horizon=runs[method]["config"]["vd_horizon"])
-        curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
-    summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
-                                                   "mvd_train")} for m, r in runs.items()}
-    if sizes["improve_iterations"]:
-        improvement = improve_in_simulators(
-            args.task, summary["datasets"]["test"]["path"],
-            {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
-            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed)
-        for m, imp in improvement.items():
-            evals[m]["metrics"].update(mpi=imp["mpi"], api=imp["api"])
-            evals[m]["improvement"] = imp
-    summary["seconds"] = round(time.perf_counter() - t_start, 1)
-    text = write_report(out, summary, evals, curves)
-    print(f"\n[pipeline] test policies ({profile} profile, {backend}), "
-          f"{summary['seconds']:.0f}s:\n{text}\n-> {out}/report.md, report.json, *.png")
-    return 0
-
-
 def cmd_diagnose(args) -> int:
     """Diagnose a simulator of a Dataset: where it is wrong, why, and the extension's gain."""
     import dataclasses
 
-    from rl2s_jax.data import load_dataset
+    from rl2s_jax.app.diagnose import diagnose
+    from rl2s_jax.data.dataset import load_dataset
     from rl2s_jax.diagnose.model import ModelSpec
-    from rl2s_jax.diagnose.run import diagnose
 
     if not 0.0 < args.heldout < 1.0:
         raise ValueError(f"heldout: expected a fraction in (0, 1), got {args.heldout}")
@@ -457,8 +278,21 @@ def cmd_diagnose(args) -> int:
     return 0
 
 
+def cmd_pipeline(args) -> int:
+    """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
+    from rl2s_jax.app.pipeline import run_pipeline
+
+    return run_pipeline(args)
+
+
+def _set(items):
+    from rl2s_jax.app.train import parse_overrides
+
+    return parse_overrides(items)
+
+
 def build_parser() -> argparse.ArgumentParser:
-    from rl2s_jax.tasks import task_names
+    from rl2s_jax.envs.tasks import task_names
 
     parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -467,7 +301,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "policy zoo")
     p.add_argument("--task", required=True, choices=task_names())
     p.add_argument("--algo", choices=("sac", "ppo", "both"),
-                   help="learner(s) (default: the task's, rl2s_jax/zoo.py DEFAULT_ALGO); both "
+                   help="learner(s) (default: the task's, zoo/build.py DEFAULT_ALGO); both "
                    "pools the snapshots of SAC and PPO")
     p.add_argument("--seeds", type=_positive("seeds"), default=4)
     p.add_argument("--seed", type=int, default=0)
@@ -498,7 +332,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resume from an export for learners with no checkpoint in --work")
     p.add_argument("--value-episodes", type=_positive("value-episodes"), default=16)
     p.add_argument("--zoo-size", type=_positive("zoo-size"), default=60)
-    p.add_argument("--out", help="directory (default: experiments/zoo/<task>)")
+    p.add_argument("--out", help="directory (default: rl2s_jax/zoo/shipped/<task>)")
     p.add_argument("--plots-only", action="store_true",
                    help="only redraw curves.png / returns_hist.png from --out's zoo.json and "
                    "train_log.jsonl")
@@ -677,9 +511,12 @@ def main(argv: list[str] | None = None) -> int:
     # brax warns on every env it builds that it is unmaintained; we use only its envs.
     warnings.filterwarnings("ignore", category=UserWarning, module="brax")
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
-    from rl2s_jax.checkpoint import CheckpointWarning
+    from rl2s_jax.train.checkpoint import CheckpointWarning
 
     args = build_parser().parse_args(argv)
+    from rl2s_jax import compile_cache
+
+    compile_cache.enable()
     default_show = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):

@@ -5,9 +5,17 @@ import functools
 import pytest
 
 
+def pytest_configure(config):
+    """The persistent compilation cache, as the CLI uses it (RL2S_COMPILATION_CACHE=off turns
+    it off): a second run of the suite skips most XLA compilation."""
+    from rl2s_jax import compile_cache
+
+    compile_cache.enable()
+
+
 @functools.cache
 def cached_env(name: str):
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.envs.tasks import get_task
 
     return get_task(name).make_env()
 
@@ -23,16 +31,17 @@ def hopper_train_ds(env_cache):
     2 true-value episodes each); meta.source names the zoo so `rl2s train` finds the policies."""
     import jax
 
-    from rl2s_jax import policies as pol
-    from rl2s_jax.collect import collect
+    from rl2s_jax.data.collect import collect
+    from rl2s_jax.policy import policy as pol
+    from rl2s_jax.zoo import zoo as zoo_mod
 
-    zoo = pol.load_zoo("hopper")
+    zoo = zoo_mod.load_zoo("hopper")
     ids = list(zoo.train_ids)
     return collect(env_cache("hopper"), pol.index_params(zoo.params, ids),
                    key=jax.random.PRNGKey(0), transitions_per_policy=80, envs_per_policy=2,
                    episode_length=40, task="hopper", value_episodes=2, progress=False,
                    policy_names=zoo.policy_names(ids),
-                   source={"zoo": "experiments/zoo/hopper", "zoo_ids": ids})
+                   source={"zoo": "hopper", "zoo_ids": ids})
 
 
 @pytest.fixture(scope="session")
@@ -43,8 +52,8 @@ def pointmass_ppo():
     import jax
     import numpy as np
 
-    from rl2s_jax.collect import measure_values
-    from rl2s_jax.ppo import PPOConfig, make_ppo, train_snapshots
+    from rl2s_jax.data.collect import measure_values
+    from rl2s_jax.policy.ppo import PPOConfig, make_ppo, train_snapshots
 
     env = cached_env("pointmass")
     cfg = PPOConfig(num_envs=64, unroll_length=16, num_minibatches=4, episode_length=50,
@@ -64,12 +73,15 @@ def pointmass_checkpoint(tmp_path_factory):
     import jax
     import numpy as np
 
-    from rl2s_jax import policies as pol
-    from rl2s_jax.checkpoint import Checkpointer
-    from rl2s_jax.collect import collect
-    from rl2s_jax.data import save_dataset
-    from rl2s_jax.fit import fit
-    from rl2s_jax.train import TrainConfig, init, make_train_data
+    from rl2s_jax.data.collect import collect
+    from rl2s_jax.data.dataset import save_dataset
+    from rl2s_jax.policy import policy as pol
+    from rl2s_jax.train.checkpoint import Checkpointer
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.loop import fit
+    from rl2s_jax.train.step import init
+    from rl2s_jax.zoo import zoo as zoo_mod
 
     root = tmp_path_factory.mktemp("pointmass_run")
     ps = []
@@ -79,7 +91,7 @@ def pointmass_checkpoint(tmp_path_factory):
         ps.append(p)
     params = pol.stack_params(ps)
     zoo_dir = str(root / "zoo")
-    pol.save_zoo(pol.Zoo(task="pointmass", params=params, returns=np.zeros(4),
+    zoo_mod.save_zoo(zoo_mod.Zoo(task="pointmass", params=params, returns=np.zeros(4),
                          return_se=np.zeros(4), origins=[{}] * 4, train_ids=[],
                          test_ids=[0, 1, 2, 3]), zoo_dir)
     ids = [0, 1, 2, 3]
@@ -106,10 +118,11 @@ def pm_files(tmp_path_factory):
     import jax
     import numpy as np
 
-    from rl2s_jax import policies as pol
-    from rl2s_jax.collect import collect
-    from rl2s_jax.data import save_dataset
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.data.collect import collect
+    from rl2s_jax.data.dataset import save_dataset
+    from rl2s_jax.envs.tasks import get_task
+    from rl2s_jax.policy import policy as pol
+    from rl2s_jax.zoo import zoo as zoo_mod
 
     root = tmp_path_factory.mktemp("pm")
     task = get_task("pointmass")
@@ -118,10 +131,12 @@ def pm_files(tmp_path_factory):
         p = pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(8,))
         p["layers"][-1]["b"] = p["layers"][-1]["b"].at[:1].set(b)
         ps.append(p)
-    zoo = pol.Zoo(task="pointmass", params=pol.stack_params(ps), returns=np.zeros(6, np.float32),
-                  return_se=np.zeros(6, np.float32), origins=[{}] * 6, train_ids=[0, 1, 2],
-                  test_ids=[3, 4, 5], info={})
-    pol.save_zoo(zoo, str(root / "zoo"))
+    zoo = zoo_mod.Zoo(task="pointmass", params=pol.stack_params(ps),
+                      returns=np.zeros(6, np.float32),
+                      return_se=np.zeros(6, np.float32), origins=[{}] * 6,
+                      train_ids=[0, 1, 2],
+                      test_ids=[3, 4, 5], info={})
+    zoo_mod.save_zoo(zoo, str(root / "zoo"))
     paths = {}
     for split, ids in (("train", [0, 1, 2]), ("test", [3, 4, 5])):
         ds = collect(task.make_env(), pol.index_params(zoo.params, ids),
@@ -140,10 +155,12 @@ def pm_checkpoint(pm_files, tmp_path_factory):
     0: no training needed where any simulator will do)."""
     import jax
 
-    from rl2s_jax.checkpoint import Checkpointer
-    from rl2s_jax.data import load_dataset
-    from rl2s_jax.fit import policies_for
-    from rl2s_jax.train import TrainConfig, init, make_train_data
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.train.checkpoint import Checkpointer
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.step import init
+    from rl2s_jax.zoo.zoo import policies_for
 
     ds = load_dataset(pm_files["train"])
     cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=50)
@@ -164,8 +181,8 @@ def pm_falls():
     import numpy as np
     from test_train import _policies
 
-    from rl2s_jax.collect import collect
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.data.collect import collect
+    from rl2s_jax.envs.tasks import get_task
 
     task = get_task("pointmass")
     params = _policies([-2.0, 0.0, 1.0, 2.0])

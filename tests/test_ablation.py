@@ -125,7 +125,7 @@ def test_episode_lengths_count_whole_episodes(ab):
 
 
 def test_termination_causes_split_the_done_rule(ab):
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.envs.tasks import get_task
     o = np.zeros((5, 12), np.float32)
     o[:, 1] = 1.2
     o[0, 1] = 0.5            # fell
@@ -151,9 +151,9 @@ def test_terminal_states_are_where_the_value_rollouts_stop(ab):
     from test_train import _policies as _pm_policies  # biased pointmass policies
 
     from rl2s_jax import train as T
-    from rl2s_jax.collect import collect
-    from rl2s_jax.simulate import simulated_returns, start_pool
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.data.collect import collect
+    from rl2s_jax.envs.tasks import get_task
+    from rl2s_jax.model.simulator import simulated_returns, start_pool
 
     task = get_task("pointmass")
     policies = _pm_policies([-2.0, 0.0, 2.0])
@@ -184,9 +184,11 @@ def test_open_loop_check_compares_each_lane_with_the_logged_windows(ab, pm_falls
     import jax
     import jax.numpy as jnp
 
-    from rl2s_jax.simulate import logged_window_returns, open_loop_windows
-    from rl2s_jax.tasks import get_task
-    from rl2s_jax.train import TrainConfig, init, make_train_data
+    from rl2s_jax.envs.tasks import get_task
+    from rl2s_jax.model.simulator import logged_window_returns, open_loop_windows
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.step import init
 
     ds, params = pm_falls
     task = get_task("pointmass")
@@ -230,7 +232,7 @@ def olc():
 def test_open_loop_control_reproduces_the_logged_windows_without_noise(olc, pm_falls):
     """experiments/open_loop_control.py: the real dynamics under the logged actions give the
     logged k-step returns (pointmass's oracle is exact), and an added step error moves them."""
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.envs.tasks import get_task
 
     ds, _ = pm_falls
     res = olc.run(ds, get_task("pointmass"), ks=(1, 5), n_windows=32, scales=[0.0, 0.5],
@@ -263,9 +265,9 @@ def test_closed_loop_control_pairs_every_scale_with_the_exact_dynamics(pm_falls)
     moves them, and another key gives other episodes."""
     import jax
 
-    from rl2s_jax.oracle import oracle_dynamics
-    from rl2s_jax.simulate import simulated_returns, start_pool
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.envs.tasks import get_task
+    from rl2s_jax.evaluate.oracle import oracle_dynamics
+    from rl2s_jax.model.simulator import simulated_returns, start_pool
 
     clc = _script("closed_loop_control")
     ds, params = pm_falls
@@ -291,9 +293,11 @@ def test_visited_error_check_measures_each_lane_against_the_real_dynamics(ab, pm
     import jax
     import jax.numpy as jnp
 
-    from rl2s_jax.simulate import start_pool
-    from rl2s_jax.tasks import get_task, pointmass_dynamics
-    from rl2s_jax.train import TrainConfig, init, make_train_data, simulator
+    from rl2s_jax.envs.tasks import get_task, pointmass_dynamics
+    from rl2s_jax.model.simulator import start_pool
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.step import init, simulator
 
     ds, params = pm_falls
     task = get_task("pointmass")
@@ -332,7 +336,7 @@ def test_visited_error_check_measures_each_lane_against_the_real_dynamics(ab, pm
 
 
 def test_oracle_step_check_is_exact_on_pointmass(olc, pm_falls):
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.envs.tasks import get_task
 
     ds, _ = pm_falls
     check = olc.oracle_step_check(ds, get_task("pointmass"), n_rows=100)
@@ -374,7 +378,9 @@ def test_model_fit_measures_the_elites_average_and_learns_pointmass(pm_falls):
     import jax.numpy as jnp
 
     mf = _script("model_fit")
-    from rl2s_jax.train import TrainConfig, init, make_train_data
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.step import init
 
     ds, params = pm_falls
     cfg = TrainConfig.small(task="pointmass", method="bc", vd_every=0, n_elites=2,
@@ -387,7 +393,7 @@ def test_model_fit_measures_the_elites_average_and_learns_pointmass(pm_falls):
     obs, act, nxt = (np.asarray(x, np.float64) for x in rows)
     for lane in range(2):
         s = jax.tree_util.tree_map(lambda x, i=lane: x[i], states)
-        from rl2s_jax import dynamics as dyn
+        from rl2s_jax.model import dynamics as dyn
         means = np.asarray(dyn.ensemble_dist(s.gen, dyn.markov_inputs(
             s.norm, jnp.asarray(rows[0]), jnp.asarray(rows[1])))[0], np.float64)
         elites = np.argsort(np.asarray(s.rank))[:2]

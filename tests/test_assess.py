@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from rl2s_jax.cli import main
-from rl2s_jax.evaluate import kendall_tau
+from rl2s_jax.evaluate.metrics import kendall_tau
 
 
 def test_train_with_test_evaluation_then_evaluate_in_fresh_process(pm_files, tmp_path, capsys):
@@ -37,7 +37,7 @@ def test_train_with_test_evaluation_then_evaluate_in_fresh_process(pm_files, tmp
     np.testing.assert_allclose(r["vd"], np.abs(true - sim), rtol=1e-6)
     assert r["metrics"]["avd"] == pytest.approx(np.mean(np.abs(true - sim)))
     assert r["metrics"]["kendall_tau"] == pytest.approx(kendall_tau(true, sim))
-    from rl2s_jax.data import load_dataset
+    from rl2s_jax.data.dataset import load_dataset
     np.testing.assert_allclose(true, load_dataset(pm_files["test"]).value_discounted, rtol=1e-6)
     assert all(0 < n <= 50 for n in r["sim_length"])
 
@@ -45,8 +45,8 @@ def test_train_with_test_evaluation_then_evaluate_in_fresh_process(pm_files, tmp
 def test_value_report_states_the_spread_of_one_episode(pm_files):
     """value_report's sim_return_sd is each policy's sample std over its episodes (the noise
     that noise_ceiling needs), 0 with one episode."""
-    from rl2s_jax.assess import value_report
-    from rl2s_jax.data import load_dataset
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.evaluate.simulator import value_report
     ds = load_dataset(pm_files["test"])
     rng = np.random.default_rng(0)
     returns = rng.normal(10.0, 3.0, size=(ds.n_policies, 7))

@@ -13,7 +13,11 @@ import numpy as np
 import pytest
 from test_train import _policies as _pm_policies  # biased pointmass policies
 
-from rl2s_jax.checkpoint import (
+from rl2s_jax.cli import main
+from rl2s_jax.data.collect import collect
+from rl2s_jax.data.dataset import save_dataset
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.train.checkpoint import (
     Checkpointer,
     CheckpointError,
     CheckpointWarning,
@@ -21,12 +25,10 @@ from rl2s_jax.checkpoint import (
     load_meta,
     load_simulator,
 )
-from rl2s_jax.cli import main
-from rl2s_jax.collect import collect
-from rl2s_jax.data import save_dataset
-from rl2s_jax.fit import TrainingDiverged, fit
-from rl2s_jax.tasks import get_task
-from rl2s_jax.train import TrainConfig, init, make_train_data, simulator
+from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.loop import TrainingDiverged, fit
+from rl2s_jax.train.step import init, simulator
 
 CFG = TrainConfig.small(task="pointmass", method="rl2s", vd_horizon=50, vd_every=3)
 META = {"data": {"obs_size": 2, "action_size": 1}}
@@ -260,8 +262,8 @@ def test_cli_train_bad_input(hopper_train_npz, tmp_path, capsys):
 
 def test_diagnose_a_saved_simulator(pm, tmp_path):
     """`diagnose(ckpt=...)` tests the causes on the checkpoint's residuals, not the base model's."""
+    from rl2s_jax.app.diagnose import diagnose
     from rl2s_jax.diagnose.model import ModelSpec
-    from rl2s_jax.diagnose.run import diagnose
 
     ds, _, data = pm
     ck = Checkpointer(tmp_path / "ck")
@@ -276,7 +278,7 @@ def test_diagnose_a_saved_simulator(pm, tmp_path):
     # A 2-step simulator is far worse than the base model fitted for 100 updates.
     assert from_ckpt["gaps"]["overall"]["rmse"] > own["gaps"]["overall"]["rmse"]
     # The per-dim error is exactly the checkpoint's on the held-out rows.
-    from rl2s_jax.diagnose.episodes import from_dataset, split_episodes
+    from rl2s_jax.data.episodes import from_dataset, split_episodes
 
     eps = from_dataset(ds)
     fit_eps, held_eps = split_episodes(eps, 0.3, 0)

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from rl2s_jax import cli
-from rl2s_jax import policies as pol
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.zoo import zoo as zoo_mod
 
 
 @pytest.fixture(scope="module")
@@ -13,7 +14,7 @@ def pm_zoo(tmp_path_factory):
     d = tmp_path_factory.mktemp("zoo")
     params = pol.stack_params([pol.init_policy(k, 2, 1) for k in jax.random.split(
         jax.random.PRNGKey(0), 4)])
-    pol.save_zoo(pol.Zoo(task="pointmass", params=params, returns=np.zeros(4),
+    zoo_mod.save_zoo(zoo_mod.Zoo(task="pointmass", params=params, returns=np.zeros(4),
                          return_se=np.zeros(4), origins=[{}] * 4, train_ids=[0, 1],
                          test_ids=[2, 3]), str(d))
     return str(d)

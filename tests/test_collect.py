@@ -7,10 +7,11 @@ import pytest
 from brax.envs import training as brax_training
 from brax.envs.base import Env, State
 
-from rl2s_jax import policies as pol
-from rl2s_jax.collect import collect, equal_chunks, measure_values
-from rl2s_jax.data import load_dataset, save_dataset
-from rl2s_jax.tasks import get_task
+from rl2s_jax.data.collect import collect, equal_chunks, measure_values
+from rl2s_jax.data.dataset import load_dataset, save_dataset
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.zoo import zoo as zoo_mod
 
 
 class CounterEnv(Env):
@@ -180,4 +181,4 @@ def test_hopper_collection_with_shipped_zoo(hopper_train_ds):
     np.testing.assert_allclose(ds.reward[later], task.reward_fn(
         ds.obs, ds.action, ds.next_obs)[later], atol=1e-4)
     assert ds.has_values and ds.value.shape == (17,)
-    assert ds.meta["source"]["zoo_ids"] == list(pol.load_zoo("hopper").train_ids)
+    assert ds.meta["source"]["zoo_ids"] == list(zoo_mod.load_zoo("hopper").train_ids)

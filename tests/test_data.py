@@ -9,17 +9,16 @@ import jax
 import numpy as np
 import pytest
 
-from rl2s_jax.data import (
+from rl2s_jax.data.dataset import (
     VALUE_FIELDS,
     Dataset,
     DatasetError,
     concat_datasets,
-    dataset_summary,
-    episode_returns,
     load_dataset,
     save_dataset,
     validate_dataset,
 )
+from rl2s_jax.data.summary import dataset_summary, episode_returns
 
 
 def make_fake_dataset(n_policies=3, episodes_per_policy=3, obs_size=4, action_size=2,
@@ -303,13 +302,14 @@ def test_default_task_sizes_uses_registry_when_present(tmp_path, monkeypatch):
             raise ValueError(f"unknown task {name}")
         return types.SimpleNamespace(obs_size=11, action_size=2)
 
-    monkeypatch.setitem(sys.modules, "rl2s_jax.tasks", types.SimpleNamespace(get_task=get_task))
+    monkeypatch.setitem(sys.modules, "rl2s_jax.envs.tasks",
+                        types.SimpleNamespace(get_task=get_task))
     with pytest.raises(DatasetError, match="registered task 'fake-task'"):
         load_dataset(path)
     # An unregistered task, or no registry at all: the check is skipped.
     path2 = save_dataset(tmp_path / "d2.npz", make_fake_dataset(task="other"))
     load_dataset(path2)
-    monkeypatch.setitem(sys.modules, "rl2s_jax.tasks", None)  # import raises ImportError
+    monkeypatch.setitem(sys.modules, "rl2s_jax.envs.tasks", None)  # import raises ImportError
     load_dataset(path)
 
 

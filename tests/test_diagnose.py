@@ -12,6 +12,8 @@ import os
 import numpy as np
 import pytest
 
+from rl2s_jax.app.diagnose import diagnose, extension_for
+from rl2s_jax.data.episodes import from_dataset, half_split, pool_episodes, split_episodes
 from rl2s_jax.diagnose.causes import (
     CAUSES,
     MEAN_CAUSES,
@@ -23,10 +25,8 @@ from rl2s_jax.diagnose.causes import (
     sign_flip_p,
     variance_from_log,
 )
-from rl2s_jax.diagnose.episodes import from_dataset, half_split, pool_episodes, split_episodes
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.diagnose.planted import make_planted
-from rl2s_jax.diagnose.run import diagnose, extension_for
 
 # Small enough for CI, large enough that every planted effect is found with a wide margin.
 N_EPISODES, MODEL_STEPS, SEEDS = 160, 1000, (0, 1, 2)
@@ -233,7 +233,7 @@ def test_extension_joins_mechanisms_before_symptoms():
 
 def test_cli_diagnose_bad_input_names_the_field(tmp_path, capsys):
     from rl2s_jax.cli import main
-    from rl2s_jax.data import save_dataset
+    from rl2s_jax.data.dataset import save_dataset
 
     path = str(tmp_path / "d.npz")
     save_dataset(path, make_planted("clean", n_episodes=8, seed=0))
@@ -334,7 +334,7 @@ def test_pool_episodes_renumbers_the_reference_and_checks_sizes():
 
 def test_cli_diagnose_reference_of_another_system_is_refused(tmp_path, capsys):
     from rl2s_jax.cli import main
-    from rl2s_jax.data import Dataset, save_dataset
+    from rl2s_jax.data.dataset import Dataset, save_dataset
 
     data, ref = str(tmp_path / "d.npz"), str(tmp_path / "r.npz")
     ds = make_planted("clean", n_episodes=8, seed=0)

@@ -5,9 +5,10 @@ import os
 import numpy as np
 import pytest
 
-from rl2s_jax.data import Dataset
-from rl2s_jax.diagnose import episodes as ep_mod
-from rl2s_jax.diagnose.gaps import error_breakdown, gaps_markdown, plot_gaps
+from rl2s_jax.data import episodes as ep_mod
+from rl2s_jax.data.dataset import Dataset
+from rl2s_jax.diagnose.gap_views import gaps_markdown, plot_gaps
+from rl2s_jax.diagnose.gaps import error_breakdown
 
 OBS, A, P, L, E = 4, 2, 4, 50, 40  # obs size, action size, policies, episode length, episodes
 

@@ -8,11 +8,11 @@ import jax
 import numpy as np
 import pytest
 
-from rl2s_jax.data import Dataset
+from rl2s_jax.data.dataset import Dataset
+from rl2s_jax.data.episodes import from_dataset, split_episodes
 from rl2s_jax.diagnose import model as M
-from rl2s_jax.diagnose.episodes import from_dataset, split_episodes
-from rl2s_jax.dynamics import beta_nll
-from rl2s_jax.policies import init_policy, stack_params
+from rl2s_jax.model.dynamics import beta_nll
+from rl2s_jax.policy.policy import init_policy, stack_params
 
 LENGTH = 40
 N_POLICIES = 4

@@ -1,4 +1,4 @@
-"""The dynamics-model family and its ensemble (rl2s_jax.dynamics, Simulator, train.py):
+"""The dynamics-model family and its ensemble (rl2s_jax.model.dynamics, Simulator, train.py):
 members against NumPy, rollout modes and disagreement, one member = the single generator, an
 ensemble = its members trained separately, elites and early stopping against NumPy
 references, the moving average, pre-training then adversarial steps.
@@ -14,12 +14,12 @@ import pytest
 from scipy import stats
 from test_train import _policies as _pm_policies  # biased pointmass policies
 
-from rl2s_jax import dynamics as dyn
-from rl2s_jax import models
 from rl2s_jax import train as T
-from rl2s_jax.collect import collect
-from rl2s_jax.simulate import Simulator
-from rl2s_jax.tasks import get_task
+from rl2s_jax.data.collect import collect
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.model import dynamics as dyn
+from rl2s_jax.model import generator as models
+from rl2s_jax.model.simulator import Simulator
 
 TASK = get_task("pointmass")
 BIASES = [-2.0, 0.0, 1.0, 2.0]
@@ -292,7 +292,7 @@ def test_one_member_training_reproduces_the_single_generator(pm):
     def updates(gen, opt, k_upd):
         def one(carry, k):
             gen, opt = carry
-            batch = T._real_batch(k, data, everyone, cfg.batch_size)
+            batch = T.step._real_batch(k, data, everyone, cfg.batch_size)
             loss, g = jax.value_and_grad(
                 lambda p: -jnp.mean(models.generator_log_prob(p, data.norm, *batch)))(gen)
             u, opt = tx.update(g, opt, gen)
@@ -467,15 +467,15 @@ def test_adversarial_phase_starts_from_the_best_pretrained_weights(pm):
     assert np.isfinite(np.asarray(m_pre["nll"])).all() and np.isnan(m_pre["gen_loss"]).all()
     # min_delta 10: only the first step gains, so every member stopped at step 2 on its best
     assert np.asarray(pre.stopped).all()
-    start = T._start_adversarial(pre)
+    start = T.step._start_adversarial(pre)
     for a, b in zip(jax.tree_util.tree_leaves(start.gen), jax.tree_util.tree_leaves(pre.best_gen),
                     strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    fresh = dyn.map_members(T._gen_tx(cfg, cfg.gen_lr).init, start.gen)
+    fresh = dyn.map_members(T.step._gen_tx(cfg, cfg.gen_lr).init, start.gen)
     for a, b in zip(jax.tree_util.tree_leaves(start.gen_opt), jax.tree_util.tree_leaves(fresh),
                     strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-    not_first = T._start_adversarial(pre.replace(step=pre.step + 1))
+    not_first = T.step._start_adversarial(pre.replace(step=pre.step + 1))
     for a, b in zip(jax.tree_util.tree_leaves(not_first.gen_opt),
                     jax.tree_util.tree_leaves(pre.gen_opt), strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -535,7 +535,7 @@ def test_multistep_error_matches_numpy(pm):
     data = T.make_train_data(ds, policies, cfg)
     norm = data.norm
     member = dyn.init_member(jax.random.PRNGKey(7), cfg.dynamics_spec, 2, 1)
-    obs, act, nxt, valid = T._real_windows(jax.random.PRNGKey(2), data,
+    obs, act, nxt, valid = T.step._real_windows(jax.random.PRNGKey(2), data,
                                            jnp.ones(data.n_policies, bool), 64, 4)
     assert (~np.asarray(valid)).any() and np.asarray(valid)[:, 0].all()
     got = T.multistep_error(member, norm, obs, act, nxt, valid, cfg.obs_clip)
@@ -563,7 +563,7 @@ def test_multistep_training_lowers_the_k_step_error(pm):
                               multistep_steps=5, multistep_weight=1.0)
     data = T.make_train_data(ds, policies, cfg)
     state = T.init(jax.random.PRNGKey(0), cfg, data)
-    windows = T._real_windows(jax.random.PRNGKey(5), data, jnp.ones(data.n_policies, bool),
+    windows = T.step._real_windows(jax.random.PRNGKey(5), data, jnp.ones(data.n_policies, bool),
                               256, 5)
 
     def k_step_error(st):
@@ -581,9 +581,9 @@ def test_multistep_training_lowers_the_k_step_error(pm):
     one = dataclasses.replace(cfg, updates_per_step=1, multistep_weight=2.5, nll_beta=0.0)
     everyone = jnp.ones(data.n_policies, bool)
     key = jax.random.PRNGKey(11)
-    _, _, got = T.member_mle_updates(member, T._gen_tx(one, one.bc_lr).init(member), key, data,
+    _, _, got = T.member_mle_updates(member, T.step._gen_tx(one, one.bc_lr).init(member), key, data,
                                      everyone, state.norm, one)
-    obs, act, nxt, valid = T._real_windows(jax.random.split(key, 1)[0], data, everyone,
+    obs, act, nxt, valid = T.step._real_windows(jax.random.split(key, 1)[0], data, everyone,
                                            one.batch_size, 5)
     want = (-jnp.mean(models.generator_log_prob(member, state.norm, obs, act[:, 0], nxt[:, 0]))
             + 2.5 * T.multistep_error(member, state.norm, obs, act, nxt, valid, one.obs_clip)
@@ -609,11 +609,11 @@ def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm):
     state = T.init(jax.random.PRNGKey(4), cfg, data)
     key = jax.random.PRNGKey(9)
     w = 2.5
-    _, m0 = T._adversarial_updates(state, data, key)
+    _, m0 = T.step._adversarial_updates(state, data, key)
     anchored = state.replace(config=dataclasses.replace(cfg, adv_nll_weight=w))
-    _, mw = T._adversarial_updates(anchored, data, key)
+    _, mw = T.step._adversarial_updates(anchored, data, key)
     k_real = jax.random.split(jax.random.split(key, 1)[0], 4)[1]
-    r_obs, r_act, r_next = T._real_batch(k_real, data, state.selected, cfg.batch_size)
+    r_obs, r_act, r_next = T.step._real_batch(k_real, data, state.selected, cfg.batch_size)
     nll = [float(-jnp.mean(models.generator_log_prob(_member(state.gen, i), state.norm, r_obs,
                                                        r_act, r_next)))
            for i in range(cfg.ensemble_size)]
@@ -622,13 +622,13 @@ def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm):
     # behaviour: from a likelihood-trained start, the anchor holds the held-out NLL
     bc = dataclasses.replace(cfg, method="bc", updates_per_step=20)
     start = T.train_steps(T.init(jax.random.PRNGKey(4), bc, data), data, 10)[0]
-    nll0 = float(np.mean(np.asarray(T._heldout_nll(start.gen, start.norm, data))))
+    nll0 = float(np.mean(np.asarray(T.step._heldout_nll(start.gen, start.norm, data))))
     after = {}
     for weight in (0.0, 10.0):
         adv_cfg = dataclasses.replace(cfg, updates_per_step=20, adv_nll_weight=weight)
         st = T.init(jax.random.PRNGKey(4), adv_cfg, data).replace(gen=start.gen)
         st = T.train_steps(st, data, 10)[0]
-        after[weight] = float(np.mean(np.asarray(T._heldout_nll(st.gen, st.norm, data))))
+        after[weight] = float(np.mean(np.asarray(T.step._heldout_nll(st.gen, st.norm, data))))
     assert after[10.0] - nll0 < 0.5 * (after[0.0] - nll0), (nll0, after)
     with pytest.raises(ValueError, match="adv_nll_weight"):
         T.TrainConfig.small(task="pointmass", adv_nll_weight=-1.0).validate()
@@ -641,7 +641,7 @@ def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm):
 def test_beta_nll_matches_numpy_and_beta_one_gives_the_mean_the_squared_error(beta):
     """generator_beta_nll_loss: SciPy's per-dim NLL weighted by std^(2 beta) (beta 0: the plain
     NLL); with beta = 1 the mean's gradient is that of half the squared error."""
-    from rl2s_jax import losses
+    from rl2s_jax.train import losses
     o, a, n = 3, 2, 64
     rng = np.random.default_rng(1)
     norm = _norm(rng, o, a)

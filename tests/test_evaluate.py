@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from rl2s_jax.evaluate import (
+from rl2s_jax.evaluate.metrics import (
     bootstrap_intervals,
     kendall_tau,
     ndcg_at_k,
@@ -390,7 +390,7 @@ def test_noise_ceiling_matches_the_two_policy_formula():
     agree, so E[tau] = 2 (p1 p2 + (1 - p1)(1 - p2)) - 1. No noise: tau 1 exactly."""
     from math import erf, sqrt
 
-    from rl2s_jax.evaluate import noise_ceiling
+    from rl2s_jax.evaluate.metrics import noise_ceiling
     phi = lambda x: 0.5 * (1.0 + erf(x / sqrt(2.0)))
     g, s, n1, n2 = 1.0, 4.0, 16, 64
     p1, p2 = phi(g / (s * sqrt(2 / n1))), phi(g / (s * sqrt(2 / n2)))
@@ -420,6 +420,6 @@ def test_noise_ceiling_matches_the_two_policy_formula():
     (dict(episode_sd=1.0, n_truth=4, n_sim=2.5), "n_sim"),
 ])
 def test_noise_ceiling_rejects_bad_input(kwargs, match):
-    from rl2s_jax.evaluate import noise_ceiling
+    from rl2s_jax.evaluate.metrics import noise_ceiling
     with pytest.raises(ValueError, match=match):
         noise_ceiling([0.0, 1.0], **kwargs)

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from rl2s_jax.checkpoint import load_simulator
-from rl2s_jax.data import load_dataset
-from rl2s_jax.gym_env import SimulatorGymEnv, SimulatorVectorEnv
-from rl2s_jax.sim_env import SimulatorEnv
-from rl2s_jax.simulate import start_pool
-from rl2s_jax.tasks import get_task, pointmass_dynamics
+from rl2s_jax.data.dataset import load_dataset
+from rl2s_jax.envs.tasks import get_task, pointmass_dynamics
+from rl2s_jax.improve.gym_env import SimulatorGymEnv, SimulatorVectorEnv
+from rl2s_jax.improve.sim_env import SimulatorEnv
+from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.train.checkpoint import load_simulator
 
 TASK = get_task("pointmass")
 

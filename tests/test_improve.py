@@ -8,10 +8,9 @@ import numpy as np
 import pytest
 from brax.envs import training as brax_training
 
-from rl2s_jax import dynamics as dyn
-from rl2s_jax import policies as pol
-from rl2s_jax.collect import measure_values
-from rl2s_jax.improve import (
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.envs.tasks import PointMass, get_task, pointmass_dynamics
+from rl2s_jax.improve.finetune import (
     choose_by_members,
     choose_candidates,
     deployment_guard,
@@ -26,16 +25,18 @@ from rl2s_jax.improve import (
     select_by_validation,
     unchanged_policies,
 )
-from rl2s_jax.models import Normalizer, init_generator
-from rl2s_jax.sac import FINE_TUNING, Buffer, SACConfig, gaussian_kl, make_sac, q_values
-from rl2s_jax.sim_env import (
+from rl2s_jax.improve.sim_env import (
     SimulatorEnv,
     branch_pool,
     scaled_env_options,
     simulator_uncertainty,
 )
-from rl2s_jax.simulate import Simulator, simulated_returns
-from rl2s_jax.tasks import PointMass, get_task, pointmass_dynamics
+from rl2s_jax.model import dynamics as dyn
+from rl2s_jax.model.dynamics import Normalizer
+from rl2s_jax.model.generator import init_generator
+from rl2s_jax.model.simulator import Simulator, simulated_returns
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.policy.sac import FINE_TUNING, Buffer, SACConfig, gaussian_kl, make_sac, q_values
 
 TASK = get_task("pointmass")
 
@@ -269,7 +270,7 @@ def test_unchanged_policies_keep_their_start_episodes_when_lanes_round_apart(mon
     """Where two lanes of one batch round differently (the CPU, Ant on the GPU), an unchanged
     policy still measures I = 0 exactly, in the improvement and in the validation; a changed
     one keeps its own episodes. The lanes' rounding is imitated by a lane-dependent offset."""
-    import rl2s_jax.improve as imp
+    import rl2s_jax.improve.finetune as imp
 
     real = imp.measure_values
 

@@ -9,11 +9,12 @@ import numpy as np
 import pytest
 
 from rl2s_jax import cli
-from rl2s_jax import policies as pol
-from rl2s_jax.collect import measure_values
-from rl2s_jax.data import load_dataset, save_dataset
-from rl2s_jax.fit import policies_for
-from rl2s_jax.tasks import PointMass
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.data.dataset import load_dataset, save_dataset
+from rl2s_jax.envs.tasks import PointMass
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.zoo import zoo as zoo_mod
+from rl2s_jax.zoo.zoo import policies_for
 
 SMALL = ["--set", "n_envs=4", "--set", "hidden=[32,32]", "--set", "batch_size=32",
          "--set", "warmup_steps=8", "--set", "buffer_size=2000"]
@@ -28,7 +29,7 @@ def test_improve_end_to_end(pointmass_checkpoint, tmp_path, capsys):
     assert rc == 0
     printed = capsys.readouterr().out
     assert "pointmass-000" in printed and "pointmass-002" in printed and "MPI" in printed
-    zoo = pol.load_zoo(str(out))
+    zoo = zoo_mod.load_zoo(str(out))
     assert zoo.task == "pointmass" and zoo.size == 2 and zoo.test_ids == [0, 1]
     before = pol.index_params(policies_for(load_dataset(run["data"])), np.array([0, 2]))
     assert jax.tree_util.tree_structure(zoo.params) == jax.tree_util.tree_structure(before)
@@ -73,7 +74,7 @@ def test_improve_branched_with_penalty_runs(pointmass_checkpoint, tmp_path):
     assert s["env_options"] == {"rollout_length": 5, "uncertainty_penalty": 0.5,
                                 "uncertainty_threshold": 4.0, "halt_penalty": 0.0}
     assert s["mpi"] is None and not list(out.glob("*.png"))
-    zoo = pol.load_zoo(str(out))
+    zoo = zoo_mod.load_zoo(str(out))
     assert zoo.size == 1 and np.isnan(zoo.returns[0])
 
 
@@ -100,7 +101,7 @@ def test_improve_guard_keeps_the_start_where_the_simulator_sees_no_gain(pointmas
         assert g["I"] == pytest.approx(np.where(g["accepted"], i_all, 0.0).tolist())
         assert g["mpi"] == pytest.approx(min(g["I"])) and g["api"] == pytest.approx(
             np.mean(g["I"]))
-        zoo = pol.load_zoo(str(out))
+        zoo = zoo_mod.load_zoo(str(out))
         for j, keep in enumerate(g["accepted"]):
             assert zoo.origins[j]["deployed"].startswith("fine-tuned" if keep else "start")
             r = s["policies"][j]

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from rl2s_jax.cli import main
-from rl2s_jax.data import TRANSITION_FIELDS, VALUE_FIELDS, DatasetError, load_dataset
-from rl2s_jax.minari_io import from_minari, to_minari
+from rl2s_jax.data.dataset import TRANSITION_FIELDS, VALUE_FIELDS, DatasetError, load_dataset
+from rl2s_jax.data.minari import from_minari, to_minari
 
 minari = pytest.importorskip("minari")
 

@@ -4,8 +4,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rl2s_jax import models
-from rl2s_jax.train import TrainConfig
+from rl2s_jax.model import generator as models
+from rl2s_jax.train.config import TrainConfig
 
 
 def test_ignored_position_dims_do_not_change_predictions():

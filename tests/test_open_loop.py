@@ -6,8 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rl2s_jax.simulate import logged_window_returns, open_loop_returns, open_loop_windows
-from rl2s_jax.tasks import get_task, pointmass_dynamics
+from rl2s_jax.envs.tasks import get_task, pointmass_dynamics
+from rl2s_jax.model.simulator import logged_window_returns, open_loop_returns, open_loop_windows
 
 K = 12
 
@@ -98,7 +98,7 @@ def test_visited_step_errors_of_a_known_offset(pm_falls):
     """A simulator that is the true pointmass plus a constant offset (c_p, c_v): on every
     visited state its error is exactly that offset in units of the scale, and under the
     reward p' the reward difference is c_p; the reference against itself errs by nothing."""
-    from rl2s_jax.simulate import (
+    from rl2s_jax.model.simulator import (
         mean_square,
         simulated_returns,
         start_pool,

@@ -5,11 +5,12 @@ import numpy as np
 import pytest
 from test_train import _policies as _pm_policies  # biased pointmass policies
 
-from rl2s_jax import policies as pol
-from rl2s_jax.assess import evaluate_oracle
-from rl2s_jax.collect import collect
-from rl2s_jax.oracle import oracle_dynamics
-from rl2s_jax.tasks import get_task, pointmass_dynamics
+from rl2s_jax.data.collect import collect
+from rl2s_jax.envs.tasks import get_task, pointmass_dynamics
+from rl2s_jax.evaluate.oracle import oracle_dynamics
+from rl2s_jax.evaluate.simulator import evaluate_oracle
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.zoo import zoo as zoo_mod
 
 
 def test_pointmass_oracle_is_the_true_dynamics():
@@ -47,7 +48,7 @@ def test_hopper_oracle_steps_like_the_env_and_ranks_a_short_horizon(env_cache):
     pair of zoo policies whose true values the data resolves, with VD within noise."""
     task = get_task("hopper")
     env = env_cache("hopper")
-    zoo = pol.load_zoo("hopper")
+    zoo = zoo_mod.load_zoo("hopper")
     order = np.argsort(zoo.returns)
     ids = [int(order[round(q * (len(order) - 1))]) for q in (0.0, 0.33, 0.66, 1.0)]
     pols = pol.index_params(zoo.params, ids)
@@ -74,7 +75,7 @@ def test_hopper_oracle_steps_like_the_env_and_ranks_a_short_horizon(env_cache):
 
 
 def test_oracle_refuses_a_task_it_cannot_step():
-    from rl2s_jax.tasks import Task
+    from rl2s_jax.envs.tasks import Task
 
     bogus = Task("bogus", 2, 1, 10, make_env=None, reward_fn=None, done_fn=None, dt=0.1)
     with pytest.raises(ValueError, match="no oracle for 'bogus'"):

@@ -107,20 +107,20 @@ def test_paper_tables(tmp_path):
 def test_paper_tables_mvd_paired_by_seed():
     """The MVD bar as paired differences: per seed RL2S - other, mean, 95% t-interval over
     seeds (t quantile 4.303 for 3 seeds), seeds where RL2S is lower; n/a without 2 seeds."""
-    pt = _load("paper_tables")
+    rt = _load("results_tables")
     r = {"per_seed": {"rl2s": {"mvd": [100.0, 120.0, 90.0]},
                       "gail": {"mvd": [110.0, 100.0, 95.0]},
                       "bc": {"mvd": [None, 130.0, None]}}}
     d = np.array([-10.0, 20.0, -5.0])
     half = 4.302653 * d.std(ddof=1) / np.sqrt(3)
-    mid, lo, hi, lower, n = pt.paired_mvd(r, "gail")
+    mid, lo, hi, lower, n = rt.paired_mvd(r, "gail")
     assert (mid, lower, n) == (pytest.approx(d.mean()), 2, 3)
     assert (lo, hi) == (pytest.approx(d.mean() - half, abs=1e-4),
                         pytest.approx(d.mean() + half, abs=1e-4))
-    assert pt.paired_mvd(r, "bc") is None  # one seed with both
-    assert pt.paired_mvd({"per_seed": {"rl2s": {"mvd": [1.0, 2.0]},
+    assert rt.paired_mvd(r, "bc") is None  # one seed with both
+    assert rt.paired_mvd({"per_seed": {"rl2s": {"mvd": [1.0, 2.0]},
                                        "gail": {"mvd": [1.0, 2.0, 3.0]}}}, "gail") is None
-    rows = pt.paired_mvd_rows({"hopper": r})
+    rows = rt.paired_mvd_rows({"hopper": r})
     assert rows[-1] == (f"| hopper | {d.mean():+.1f} [{d.mean() - half:+.1f}, "
                         f"{d.mean() + half:+.1f}], lower on 2 of 3 seeds | n/a |")
 
@@ -147,10 +147,73 @@ def test_paper_tables_control_and_ablation(tmp_path):
     assert "| hopper | full | rl2s | 0.200 | 0.100 |" in ablation
     assert "| hopper | branched+penalty | rl2s | 0.250 | n/a |" in ablation
     assert "| hopper | full | gail | n/a | n/a |" in ablation
-    b = pt.bars(r)
+    b = _load("results_tables").bars(r)
     assert b["control"] == (True, "0.050") and b["oracle"] == (True, "0.970 / 1.000")
     del r["ablation"]["full"]  # one variant: no ablation table
     assert "### Improvement by simulated-env variant" not in pt.render({"hopper": r}, "res")
+
+
+def test_paper_tables_provenance():
+    """Each task's command and hardware, and those of its oracle and control rows (runs of
+    their own, merged in); a path into the untracked run logs is marked as in git history."""
+    pt = _load("paper_tables")
+    r = _synthetic("walker2d", 0.85, 0.97, {"rl2s": 50, "gail": 80, "bc": 90, "rl2s-bc": 60},
+                   0.2)
+    r["oracle"] = {"source": "python experiments/oracle_check.py --out "
+                   "experiments/cpu_runs/2026-11-26/oracle_walker2d_64", "hardware": "cpu",
+                   "n_episodes": 64}
+    r["control"] = {"seeds": 2, "mpi": 0.0, "api": 0.5, "device": "cuda:0",
+                    "command": "python experiments/improve_control.py --tasks walker2d",
+                    "source": "experiments/gpu_runs/2026-11-25c/control_walker2d.json"}
+    lines = pt.provenance("walker2d", r)
+    assert lines[0] == ("- walker2d: `python experiments/paper.py --task walker2d` on NVIDIA "
+                        "H100 80GB HBM3 (3 seeds, jax 0.11.2, 412 s)")
+    assert lines[1] == ("  - oracle row: `python experiments/oracle_check.py --out experiments/"
+                        "cpu_runs/2026-11-26/oracle_walker2d_64` on cpu (64 episodes) (its "
+                        "output: in git history at bf0c7b2)")
+    assert lines[2] == ("  - control row: `python experiments/improve_control.py --tasks "
+                        "walker2d` on device cuda:0 (2 seeds; `experiments/gpu_runs/2026-11-25c/"
+                        "control_walker2d.json`, in git history at bf0c7b2)")
+    assert "\n".join(lines) in pt.render({"walker2d": r}, "res")
+    r["complete"] = False
+    del r["oracle"], r["control"]
+    assert pt.provenance("walker2d", r) == [
+        "- walker2d: `python experiments/paper.py --task walker2d` on NVIDIA H100 80GB HBM3 "
+        "(3 seeds, jax 0.11.2, 412 s, INCOMPLETE run)"]
+
+
+def test_results_md_regenerates_from_the_json(tmp_path, capsys):
+    """docs/RESULTS.md is its hand-written text plus the block that docs/results/*.json give,
+    byte for byte, and at most 400 lines; --check fails on a stale block, not on hand edits."""
+    pt = _load("paper_tables")
+    path = os.path.join(ROOT, "docs", "RESULTS.md")
+    with open(path, encoding="utf-8") as f:
+        text = f.read()
+    assert len(text.splitlines()) <= 400
+    assert text.count(pt.BEGIN) == 1 and text.count(pt.END) == 1
+    assert pt.main(["--check"]) == 0  # the repository's defaults
+    results = os.path.join(ROOT, "docs", "results")
+    assert pt.render(pt.load_results(results), "docs/results") in text
+    copy = tmp_path / "RESULTS.md"
+    copy.write_text(text, encoding="utf-8")
+    args = ["--results", results, "--out", str(copy)]
+    assert pt.main([*args, "--check"]) == 0
+    # a stale cell inside the block: --check fails and writes nothing; a run restores it
+    block = text[text.index(pt.BEGIN):text.index(pt.END)]
+    cell = block.split("| hopper | rl2s | ")[1].split(" |")[0]
+    copy.write_text(text.replace(f"| hopper | rl2s | {cell} |", "| hopper | rl2s | 0.123 |"),
+                    encoding="utf-8")
+    assert pt.main([*args, "--check"]) == 1
+    assert "the generated block is not what" in capsys.readouterr().err
+    assert copy.read_text(encoding="utf-8") != text
+    assert pt.main(args) == 0
+    assert copy.read_text(encoding="utf-8") == text
+    # the hand-written text is free: an edit outside the markers is kept and passes
+    edited = text.replace("## Method and caveats", "## Method and caveats (edited)")
+    assert edited != text
+    copy.write_text(edited, encoding="utf-8")
+    assert pt.main([*args, "--check"]) == 0
+    assert pt.main(args) == 0 and copy.read_text(encoding="utf-8") == edited
 
 
 def test_paper_tables_model_selection_rows():
@@ -228,14 +291,14 @@ def test_paper_tables_guard_rows(tmp_path, capsys):
 
 
 def test_paper_tables_fallbacks():
-    pt = _load("paper_tables")
+    pt, rt = _load("paper_tables"), _load("results_tables")
     # no per_seed: methods / std / n are used; unknown numbers print n/a
     r = {"methods": {"rl2s": {"kendall_tau": 0.4}}, "std": {"rl2s": {"kendall_tau": 0.1}},
          "n": {"rl2s": {"kendall_tau": 2}}, "seeds": 3}
-    assert pt.stats(r, "rl2s", "kendall_tau") == (0.4, 0.1, 2)
-    assert pt.stats(r, "gail", "kendall_tau") == (None, None, 0)
-    assert pt.fmt_cell(None, None, 0) == "n/a"
-    b = pt.bars(r)
+    assert rt.stats(r, "rl2s", "kendall_tau") == (0.4, 0.1, 2)
+    assert rt.stats(r, "gail", "kendall_tau") == (None, None, 0)
+    assert rt.fmt_cell(None, None, 0) == "n/a"
+    b = rt.bars(r)
     assert b["tau"] == (False, "0.400") and b["mvd"] == (None, "n/a") and b["mpi"][0] is None
     assert "No results" in pt.render({}, "nowhere")
 
@@ -473,7 +536,7 @@ def test_paper_smoke_hopper(tmp_path, capsys):
                   "improve_measure"):
         assert f"[paper] {phase}: " in printed
     r = json.loads((out / "hopper.json").read_text())
-    from rl2s_jax.policies import load_zoo
+    from rl2s_jax.zoo.zoo import load_zoo
     zoo = load_zoo("hopper")  # the split's sizes come from the shipped zoo
     n_train, n_test = len(zoo.train_ids), len(zoo.test_ids)
     assert r["complete"] and r["seeds"] == 2 and r["hardware"] == "cpu"

@@ -6,7 +6,7 @@ import os
 import numpy as np
 
 from rl2s_jax.cli import main
-from rl2s_jax.policies import load_zoo
+from rl2s_jax.zoo.zoo import load_zoo
 
 
 def test_hopper_pipeline_smoke(tmp_path, capsys):

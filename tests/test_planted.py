@@ -9,8 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rl2s_jax.collect import check_env
-from rl2s_jax.data import validate_dataset
+from rl2s_jax.data.dataset import validate_dataset
 from rl2s_jax.diagnose.planted import EFFECTS, TWOMASS, make_planted, twomass_dynamics
 from rl2s_jax.diagnose.planted_mjx import (
     DelayedActions,
@@ -19,7 +18,8 @@ from rl2s_jax.diagnose.planted_mjx import (
     make_planted_env,
     planted_truth,
 )
-from rl2s_jax.tasks import PointMass, pointmass_dynamics
+from rl2s_jax.envs.checks import check_env
+from rl2s_jax.envs.tasks import PointMass, pointmass_dynamics
 
 DT, DECAY, GAIN = TWOMASS["dt"], TWOMASS["decay"], TWOMASS["gain"]
 
@@ -242,8 +242,8 @@ def test_process_noise_on_pointmass_only_on_chosen_dims():
 
 
 def test_delayed_actions_on_pointmass_through_collect():
-    from rl2s_jax import policies as pol
-    from rl2s_jax.collect import collect
+    from rl2s_jax.data.collect import collect
+    from rl2s_jax.policy import policy as pol
 
     env = DelayedActions(PointMass(), lag=2, actuators=(0,))
     check_env(env)
@@ -291,7 +291,7 @@ def test_episode_mass_on_mjx_hopper(env_cache):
 def test_hopper_unobserved_truth_names_the_hidden_joints_positions():
     # Hopper's obs is q (6) ++ qd (6): hiding qvel 3-5 (obs 9-11) leaves their joints'
     # angles qpos 3-5, obs 3-5, as the dims that need the lost velocities.
-    from rl2s_jax.tasks import _LOCO
+    from rl2s_jax.envs.tasks import _LOCO
 
     assert _LOCO["hopper"].x_idx == 0 and _LOCO["hopper"].vx_idx == 6
     truth = planted_truth("unobserved", task_name="hopper")
@@ -301,8 +301,8 @@ def test_hopper_unobserved_truth_names_the_hidden_joints_positions():
 def test_collect_planted_unobserved_and_drift_on_pointmass():
     """The two recorded effects: a hidden velocity leaves only the position in the data; the
     drift records chunks whose applied action is scaled by a falling gain, in order."""
-    from rl2s_jax import policies as pol
     from rl2s_jax.diagnose.planted_mjx import collect_planted
+    from rl2s_jax.policy import policy as pol
 
     params = pol.stack_params([pol.init_policy(jax.random.PRNGKey(i), 2, 1, hidden=(4,))
                                for i in range(2)])

@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rl2s_jax import policies as pol
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.zoo import zoo as zoo_mod
 
 
 def _np_forward(params, obs):
@@ -73,11 +74,11 @@ def test_vmap_over_stacked_zoo_equals_loop():
 def test_zoo_round_trip(tmp_path):
     params = pol.stack_params([_random_policy(k) for k in jax.random.split(
         jax.random.PRNGKey(5), 3)])
-    zoo = pol.Zoo(task="pointmass", params=params, returns=np.array([1.0, 2.0, 3.0]),
+    zoo = zoo_mod.Zoo(task="pointmass", params=params, returns=np.array([1.0, 2.0, 3.0]),
                   return_se=np.array([0.1, 0.2, 0.3]), origins=[{"seed": 0}] * 3,
                   train_ids=[0], test_ids=[1, 2])
-    pol.save_zoo(zoo, str(tmp_path / "z"))
-    back = pol.load_zoo(str(tmp_path / "z"))
+    zoo_mod.save_zoo(zoo, str(tmp_path / "z"))
+    back = zoo_mod.load_zoo(str(tmp_path / "z"))
     assert back.size == 3 and back.train_ids == [0] and back.test_ids == [1, 2]
     for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(back.params),
                     strict=True):
@@ -86,6 +87,6 @@ def test_zoo_round_trip(tmp_path):
     with pytest.raises(ValueError, match="split"):
         back.split_ids("validation")
     with pytest.raises(ValueError, match="disjoint"):
-        pol.save_zoo(pol.Zoo(**{**zoo.__dict__, "test_ids": [0, 1]}), str(tmp_path / "bad"))
+        zoo_mod.save_zoo(zoo_mod.Zoo(**{**zoo.__dict__, "test_ids": [0, 1]}), str(tmp_path / "bad"))
     with pytest.raises(FileNotFoundError, match="rl2s zoo"):
-        pol.load_zoo(str(tmp_path / "missing"))
+        zoo_mod.load_zoo(str(tmp_path / "missing"))

@@ -5,11 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rl2s_jax import policies as pol
-from rl2s_jax.collect import measure_values
-from rl2s_jax.ppo import compute_gae
-from rl2s_jax.tasks import get_task
-from rl2s_jax.zoo import (
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.policy.ppo import compute_gae
+from rl2s_jax.zoo import zoo as zoo_mod
+from rl2s_jax.zoo.build import (
     MIN_TEST,
     SPLIT_SIZES,
     build_zoo,
@@ -66,7 +67,7 @@ def test_ppo_learns_pointmass_and_zoo_spreads():
 
 @pytest.mark.parametrize("task", ["hopper", "walker2d", "halfcheetah", "ant"])
 def test_shipped_zoo(task):
-    zoo = pol.load_zoo(task)
+    zoo = zoo_mod.load_zoo(task)
     t = get_task(task)
     n_train, min_test = SPLIT_SIZES.get(task, 17), MIN_TEST.get(task, 8)
     assert zoo.task == task and zoo.size >= n_train + min_test

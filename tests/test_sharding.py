@@ -23,10 +23,10 @@ SHARDED_VS_PLAIN = textwrap.dedent("""
     from test_train import _policies
     from paper import _lane_returns, train_lanes
     from rl2s_jax import train as T
-    from rl2s_jax.collect import collect
+    from rl2s_jax.data.collect import collect
     from rl2s_jax.sharding import lane_mesh, replicate, shard_lanes
-    from rl2s_jax.simulate import start_pool
-    from rl2s_jax.tasks import get_task
+    from rl2s_jax.model.simulator import start_pool
+    from rl2s_jax.envs.tasks import get_task
 
     task = get_task("pointmass")
     policies = _policies([-2.0, 0.0, 1.0, 2.0])
@@ -34,7 +34,7 @@ SHARDED_VS_PLAIN = textwrap.dedent("""
                  envs_per_policy=2, episode_length=task.episode_length, task="pointmass",
                  value_episodes=2, progress=False)
     # collection: the policy axis split over the 4 devices gives the one-device data
-    from rl2s_jax.collect import _policy_mesh, _shard_batch
+    from rl2s_jax.data.collect import _policy_mesh, _shard_batch
     assert _policy_mesh(4, True).size == 4 and _policy_mesh(6, True).size == 3
     assert _policy_mesh(4, False).size == 1
     split = _shard_batch({{"x": jnp.zeros((8, 3)), "key": jax.random.PRNGKey(0)}},

@@ -1,4 +1,4 @@
-"""Tests for rl2s_jax.tasks: reward_fn/done_fn reproduce the envs' own reward and done."""
+"""Tests for rl2s_jax.envs.tasks: reward_fn/done_fn reproduce the envs' own reward and done."""
 
 import dataclasses
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from rl2s_jax import tasks
+from rl2s_jax.envs import tasks
 
 MUJOCO = ("hopper", "walker2d", "halfcheetah", "ant")
 N_ENVS = 8

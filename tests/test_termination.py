@@ -1,4 +1,4 @@
-"""The learned termination hazard and the "predictive" termination (rl2s_jax.termination):
+"""The learned termination hazard and the "predictive" termination (rl2s_jax.model.termination):
 its loss against NumPy, that it learns a known hazard, that rollouts end episodes with the
 chances it gives, and that it travels through training, checkpoints and the simulator env."""
 import dataclasses
@@ -10,13 +10,15 @@ import pytest
 from scipy.stats import norm as gauss
 from test_train import _policies as _pm_policies
 
-from rl2s_jax.checkpoint import Checkpointer, load_simulator
-from rl2s_jax.dynamics import Normalizer
-from rl2s_jax.sim_env import SimulatorEnv
-from rl2s_jax.simulate import advance_values, ends_episode, simulated_returns, start_values
-from rl2s_jax.tasks import get_task, pointmass_dynamics
-from rl2s_jax.termination import bce, fit_hazard, hazard_prob, init_hazard
-from rl2s_jax.train import TrainConfig, init, make_train_data, simulator
+from rl2s_jax.envs.tasks import get_task, pointmass_dynamics
+from rl2s_jax.improve.sim_env import SimulatorEnv
+from rl2s_jax.model.dynamics import Normalizer
+from rl2s_jax.model.simulator import advance_values, ends_episode, simulated_returns, start_values
+from rl2s_jax.model.termination import bce, fit_hazard, hazard_prob, init_hazard
+from rl2s_jax.train.checkpoint import Checkpointer, load_simulator
+from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.step import init, simulator
 
 CFG = TrainConfig.small(task="pointmass", method="bc", vd_horizon=50, vd_every=3,
                         termination="both", hazard_steps=1500, hazard_hidden=(64, 64))
@@ -119,7 +121,7 @@ def test_termination_settings_are_checked(pm):
 def test_training_fits_the_hazard_and_a_checkpoint_keeps_it(pm, tmp_path):
     """init fits h on the data's done flags (high where the mass left, ~0 well inside), the value
     measurement uses it, and a saved checkpoint loads it back in a fresh Simulator."""
-    from rl2s_jax.fit import fit
+    from rl2s_jax.train.loop import fit
 
     ds, params = pm
     data = make_train_data(ds, params, CFG)
@@ -196,8 +198,8 @@ def test_sim_env_ends_episodes_by_the_hazard(pm):
 
 def test_window_labels_and_the_per_step_hazard_match_numpy():
     """Episodes of lengths 5 (terminated), 4 (truncated), 3 (terminated), rows in order."""
-    from rl2s_jax.termination import window_labels
-    from rl2s_jax.train import episode_steps_left
+    from rl2s_jax.model.termination import window_labels
+    from rl2s_jax.train.data import episode_steps_left
 
     ep = np.repeat([0, 1, 2], [5, 4, 3])
     t = np.concatenate([np.arange(5), np.arange(4), np.arange(3)])
@@ -211,7 +213,7 @@ def test_window_labels_and_the_per_step_hazard_match_numpy():
                 ref[start + max(n - k, 0):start + n] = 1
         got = window_labels(jnp.asarray(done), jnp.asarray(left), k)
         np.testing.assert_array_equal(np.asarray(got), ref, err_msg=f"window {k}")
-    from rl2s_jax.termination import hazard_logit
+    from rl2s_jax.model.termination import hazard_logit
 
     params = init_hazard(jax.random.PRNGKey(0), 2, 1, (8,))
     norm = _identity_norm(2, 1)
@@ -229,7 +231,7 @@ def test_the_adversarial_phase_simulated_envs_end_by_the_hazard(pm):
     """WGAIL's simulated envs (the buffer of fake (s, a)) end as the value rollouts do: a
     hazard of ~1 restarts every env at every step, one of ~0 (and no rule) lets them all run
     sim_steps steps."""
-    from rl2s_jax.train import _advance_sim
+    from rl2s_jax.train.step import _advance_sim
 
     ds, params = pm
     cfg = dataclasses.replace(CFG, method="rl2s", termination="hazard", hazard_steps=1,

@@ -14,12 +14,14 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from rl2s_jax import models, simulate
-from rl2s_jax import policies as pol
 from rl2s_jax import train as T
-from rl2s_jax.collect import collect
-from rl2s_jax.losses import discriminator_loss, generator_adversarial_loss
-from rl2s_jax.tasks import get_task, pointmass_dynamics
+from rl2s_jax.data.collect import collect
+from rl2s_jax.data.values import data_values
+from rl2s_jax.envs.tasks import get_task, pointmass_dynamics
+from rl2s_jax.model import generator as models
+from rl2s_jax.model import simulator as simulate
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.train.losses import discriminator_loss, generator_adversarial_loss
 
 BIASES = [-2.0, -1.0, 0.0, 0.5, 1.0, 2.0]
 P = len(BIASES)
@@ -409,7 +411,7 @@ def test_data_values_hand_built():
     episode(6, 2, [3, 3, 3], False)                # only a cut-off episode: unknown
     episode(7, 1, [8], True)                       # a one-step terminated episode: counts
     ep, pid, t, r, ended = (np.array(c) for c in zip(*rows, strict=True))
-    vals, counts = simulate.data_values(r.astype(np.float32), ended, pid, ep, t, 3,
+    vals, counts = data_values(r.astype(np.float32), ended, pid, ep, t, 3,
                                         horizon=H, gamma=g)
 
     # plain Python reference
@@ -434,7 +436,7 @@ def test_data_values_hand_built():
         return [s / n if n else np.nan for s, n in zip(sums, ns, strict=True)], ns
 
     for horizon in (1, 2, 3, 4, 6, 10):
-        v, c = simulate.data_values(r, ended, pid, ep, t, 3, horizon=horizon, gamma=g)
+        v, c = data_values(r, ended, pid, ep, t, 3, horizon=horizon, gamma=g)
         want_v, want_c = loop(horizon)
         np.testing.assert_array_equal(c, want_c, err_msg=f"horizon {horizon}")
         np.testing.assert_allclose(v, want_v, rtol=1e-12, err_msg=f"horizon {horizon}")
@@ -448,7 +450,7 @@ def test_make_train_data_true_values(pm):
     # a shorter horizon: the logged episodes' discounted return over its first 20 steps
     part = T.make_train_data(ds, policies, T.TrainConfig.small(task="pointmass",
                                                                vd_horizon=20, gamma=0.99))
-    want, counts = simulate.data_values(ds.reward, ds.done | ds.truncated, ds.policy_id,
+    want, counts = data_values(ds.reward, ds.done | ds.truncated, ds.policy_id,
                                         ds.episode_id, ds.t, P, horizon=20, gamma=0.99)
     assert np.all(counts > 0)
     np.testing.assert_allclose(np.asarray(part.true_value), want, rtol=1e-6)
@@ -758,7 +760,7 @@ def test_make_config_profiles():
     overrides win; bad profiles and unknown fields are refused by name."""
     from types import SimpleNamespace
 
-    from rl2s_jax.fit import CPU_MODEL, make_config
+    from rl2s_jax.app.train import CPU_MODEL, make_config
 
     ds = SimpleNamespace(meta={"task": "hopper", "episode_length": 1000, "gamma": 0.99})
     gpu = make_config(ds, "rl2s", "gpu")

@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 
 from rl2s_jax import cli
-from rl2s_jax import policies as pol
-from rl2s_jax.collect import measure_values
-from rl2s_jax.sac import make_sac
-from rl2s_jax.tasks import get_task
-from rl2s_jax.zoo import (
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.policy import policy as pol
+from rl2s_jax.policy.sac import make_sac
+from rl2s_jax.zoo import zoo as zoo_mod
+from rl2s_jax.zoo.build import (
     ZOO_SAC,
     build_zoo,
     choose_split,
@@ -27,7 +28,7 @@ from rl2s_jax.zoo import (
     spread_check,
     spread_subset,
 )
-from rl2s_jax.zoo_store import load_runs, read_export, write_export
+from rl2s_jax.zoo.store import load_runs, read_export, write_export
 
 TINY = {"sac": {"hidden": [16], "n_envs": 8, "batch_size": 32, "warmup_steps": 4,
                 "buffer_size": 2000},
@@ -259,7 +260,7 @@ def test_cli_zoo_end_to_end(tmp_path, capsys):
     assert "spread train" in text and "spread test" in text and "-> " in text
     assert {"zoo.npz", "zoo.json", "train_log.jsonl", "curves.png",
             "returns_hist.png"} <= set(os.listdir(out))
-    zoo = pol.load_zoo(str(out))
+    zoo = zoo_mod.load_zoo(str(out))
     assert zoo.size == 2 * 2 * (TINY_SNAPSHOTS + 1) and len(zoo.train_ids) == 17
     assert {o["learner"] for o in zoo.origins} == {"sac", "ppo"}
     assert set(zoo.info["spread"]) == {"train", "test"}

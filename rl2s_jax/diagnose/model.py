@@ -1,4 +1,4 @@
-"""Fitting the dynamics-model family (``rl2s_jax.dynamics``) for diagnosis: the base model and
+"""Fitting the dynamics-model family (``rl2s_jax.model.dynamics``) for diagnosis: the base model and
 its extensions, S seeds as one vmapped program (an ensemble of S members).
 
 A model is a member of the family that training uses: p(delta_n | inputs) = N(mean,
@@ -43,13 +43,14 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 from flax import struct
+from tqdm.auto import tqdm
 
-from rl2s_jax import dynamics as dyn
-from rl2s_jax.diagnose.episodes import Episodes, half_split
-from rl2s_jax.dynamics import NOISE_KINDS, TIME_INPUTS, DynamicsSpec, Normalizer
-from rl2s_jax.models import spectral_normalize
-from rl2s_jax.policies import init_mlp, num_policies, sample_action
-from rl2s_jax.train import n_worst, select_worst
+from rl2s_jax.data.episodes import Episodes, half_split
+from rl2s_jax.model import dynamics as dyn
+from rl2s_jax.model.dynamics import NOISE_KINDS, TIME_INPUTS, DynamicsSpec, Normalizer
+from rl2s_jax.model.generator import spectral_normalize
+from rl2s_jax.policy.policy import init_mlp, num_policies, sample_action
+from rl2s_jax.train.cvar import n_worst, select_worst
 
 __all__ = ["NOISE_KINDS", "TIME_INPUTS", "FittedModels", "ModelDiverged", "ModelSpec",
            "delta_scale", "fit_models", "heldout_metrics", "history", "kstep_errors",
@@ -294,7 +295,7 @@ def _check_context_episodes(eps: Episodes, episodes: np.ndarray, what: str) -> N
 
 
 # ---------------------------------------------------------------- networks (device)
-# The family's functions (rl2s_jax.dynamics), under the names this module has always used.
+# The family's functions (rl2s_jax.model.dynamics), under the names this module has always used.
 
 _obs_inputs = dyn.obs_inputs
 _other_inputs = dyn.other_inputs
@@ -768,7 +769,6 @@ def fit_models(eps: Episodes, fit_episodes: np.ndarray, spec: ModelSpec,
     plan = _chunk_plan(spec.steps, block_len, progress)
     bar = None
     if progress:
-        from tqdm.auto import tqdm
         bar = tqdm(total=spec.steps + spec.adversarial_steps, unit="step", dynamic_ncols=True,
                    desc="fit " + ",".join(spec.extensions))
     losses, done = [], 0
@@ -1095,7 +1095,7 @@ _rollout_values_jit = jax.jit(_rollout_values, static_argnames=(
 def rollout_values(fm: FittedModels, seed_index: int, policies, start_obs: np.ndarray, *,
                    reward_fn: Callable, done_fn: Callable, horizon: int, n_episodes: int,
                    gamma: float, key: jax.Array) -> np.ndarray:
-    """Mean discounted return [P] of each policy (stacked params, ``rl2s_jax.policies``) over
+    """Mean discounted return [P] of each policy (stacked params, ``rl2s_jax.policy.policy``) over
     n_episodes episodes of at most ``horizon`` steps simulated in model ``seed_index``.
 
     Episodes start from rows of start_obs [N0, o] drawn at random and end when done_fn(s')

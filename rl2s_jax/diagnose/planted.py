@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from rl2s_jax.data import Dataset
+from rl2s_jax.data.dataset import Dataset
 
 __all__ = ["EFFECTS", "TWOMASS", "make_planted", "twomass_dynamics"]
 

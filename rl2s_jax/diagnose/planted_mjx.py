@@ -30,7 +30,9 @@ import jax.numpy as jnp
 import numpy as np
 from brax.envs.base import Env, PipelineEnv, State, Wrapper
 
-from rl2s_jax.tasks import PointMass, get_task
+from rl2s_jax.data.collect import EPISODE_LENGTH, collect, default_envs_per_policy
+from rl2s_jax.data.dataset import Dataset, concat_datasets
+from rl2s_jax.envs.tasks import _LOCO, PointMass, get_task
 
 __all__ = [
     "EFFECTS",
@@ -317,7 +319,6 @@ def hide_obs_dims(ds: Any, dims: Sequence[int]) -> Any:
     cleared (the task is kept as ``meta["source"]["task"]``) and the hidden columns are
     recorded as ``meta["source"]["hidden_obs_dims"]``.
     """
-    from rl2s_jax.data import Dataset
 
     hidden = _index_tuple("dims", dims, ds.obs_size)
     if len(hidden) == ds.obs_size:
@@ -452,8 +453,6 @@ def collect_planted(task_name: str, effect: str, params: Any, *, key: jax.Array,
     :func:`rl2s_jax.collect.collect` (``task`` is set here); ``meta["source"]["planted"]``
     holds :func:`planted_truth`. -> Dataset
     """
-    from rl2s_jax.collect import EPISODE_LENGTH, collect, default_envs_per_policy
-    from rl2s_jax.data import concat_datasets
 
     effect_kwargs = dict(effect_kwargs or {})
     truth = planted_truth(effect, task_name=task_name, **effect_kwargs)  # checks arguments
@@ -491,7 +490,6 @@ def collect_planted(task_name: str, effect: str, params: Any, *, key: jax.Array,
 def _registered_velocity_obs_dims(task_name: str) -> tuple[int, ...]:
     """Obs indices of qvel for a registered task's default env, without building it: the
     MuJoCo tasks keep every q in the observation, then qvel (tasks._LOCO.vx_idx = len(q))."""
-    from rl2s_jax.tasks import _LOCO
 
     task = get_task(task_name)
     if task_name in _LOCO:

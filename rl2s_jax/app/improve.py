@@ -1,0 +1,305 @@
+"""`rl2s improve`: fine-tune chosen policies of a Dataset inside a saved simulator, write them
+as a zoo, and measure the real gain.
+
+``run_improve(ckpt, data, out, ...)`` checks every input first (checkpoint, data of the same
+task, policy indices, SAC fields), then fine-tunes the chosen policies with SAC inside the
+checkpoint's simulator as one vmapped program (``improve.improve_policies``), writes them to
+``out`` in the zoo format (``policies.save_zoo``: ``load_zoo(out)``, ``rl2s collect --zoo out``
+and ``measure_values`` take them), and, unless ``measure=False``, measures their real return
+before and after (``improve.measure_improvement``) with one PNG per policy and a summary
+(``summary.json``, ``summary.md``).
+
+``guard_margin`` (default off) turns on the deployment guard (``improve.deployment_guard``):
+a fine-tuned policy is kept only where every elite member of the simulator predicts a gain
+larger than that fraction of the start's simulated value; elsewhere the start policy is
+written to the zoo. The real returns then also give the deployed policies' MPI / API
+(``summary["guard"]``): a kept start policy has improvement 0 by definition.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+import time
+
+import jax
+import numpy as np
+
+from rl2s_jax.data.dataset import load_dataset
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.improve.finetune import (
+    deployment_guard,
+    guarded,
+    improve_policies,
+    improvement_metrics,
+    measure_improvement,
+    member_values,
+    training_return_curve,
+)
+from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
+from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.policy.policy import index_params
+from rl2s_jax.policy.sac import SACConfig
+from rl2s_jax.train.checkpoint import load_meta, load_simulator
+from rl2s_jax.zoo.zoo import Zoo, policies_for, save_zoo
+
+
+def sac_config(overrides: dict | None, episode_length: int, iterations: int) -> SACConfig:
+    """SACConfig with the fine-tuning defaults, ``episode_length``, a critic warm-up of a
+    quarter of the ``iterations``' updates, and ``overrides`` (field -> value; unknown fields
+    refused, naming the known ones)."""
+    fields = {f.name for f in dataclasses.fields(SACConfig)}
+    overrides = dict(overrides or {})
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise ValueError(f"set: unknown SACConfig field(s) {unknown}; known: {sorted(fields)}")
+    if overrides.get("normalize_observations"):
+        raise ValueError("set: normalize_observations is for training from scratch; a fine-tuned "
+                         "policy keeps its own observation normaliser")
+    for k in ("hidden", "actor_hidden", "ignore_obs_dims"):
+        if k in overrides:
+            overrides[k] = tuple(overrides[k])
+    ups = int(overrides.get("updates_per_step", SACConfig.updates_per_step))
+    cfg = SACConfig.fine_tuning(**{"episode_length": episode_length,
+                                   "critic_warmup_updates": iterations * ups // 4, **overrides})
+    cfg.validate()
+    return cfg
+
+
+def check_inputs(ckpt: str, data_path: str, policy_ids: list[int] | None):
+    """Everything `rl2s improve` needs, checked before any work.
+    -> (checkpoint meta, Dataset, policy indices)."""
+
+    if not os.path.isdir(ckpt):
+        raise FileNotFoundError(f"ckpt: no checkpoint directory {ckpt}")
+    meta = load_meta(ckpt)
+    ck_task = meta.get("config", {}).get("task")
+    if not os.path.exists(data_path):
+        raise FileNotFoundError(f"data: no such file {data_path}")
+    ds = load_dataset(data_path)
+    if ds.meta.get("task") != ck_task:
+        raise ValueError(f"data: {data_path} is data of task {ds.meta.get('task')!r}, but the "
+                         f"checkpoint's simulator models task {ck_task!r}")
+    sizes = meta.get("data", {})
+    if (sizes.get("obs_size"), sizes.get("action_size")) != (ds.obs_size, ds.action_size):
+        raise ValueError(f"data: obs/action sizes ({ds.obs_size}, {ds.action_size}) differ from "
+                         f"the checkpoint's ({sizes.get('obs_size')}, "
+                         f"{sizes.get('action_size')})")
+    P = ds.n_policies
+    ids = list(range(P)) if policy_ids is None else [int(i) for i in policy_ids]
+    if not ids:
+        raise ValueError("policies: expected at least one policy index")
+    bad = [i for i in ids if not 0 <= i < P]
+    if bad:
+        raise ValueError(f"policies: index {bad[0]} out of range: {data_path} holds {P} "
+                         f"policies (0..{P - 1})")
+    if len(set(ids)) != len(ids):
+        raise ValueError(f"policies: expected distinct indices, got {ids}")
+    return meta, ds, ids
+
+
+def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | None = None,
+                iterations: int = 1000, overrides: dict | None = None, seed: int = 0,
+                n_episodes: int = 16, zoo: str | None = None, step: int | None = None,
+                measure: bool = True, chunk: int | None = None,
+                branch_length: int | None = None, uncertainty_penalty: float = 0.0,
+                uncertainty_threshold: float | None = None, halt_penalty: float = 0.0,
+                guard_margin: float | None = None, guard_episodes: int = 16,
+                progress: bool = True, log=print) -> dict:
+    """Fine-tune policies ``policy_ids`` (indices into the Dataset's policies; default all)
+    inside the simulator of checkpoint ``ckpt`` and write the zoo, plots and summary into
+    ``out`` (module docstring). -> the summary dict (also out/summary.json)."""
+
+    if not isinstance(iterations, int) or iterations < 1:
+        raise ValueError(f"iterations: expected an int >= 1, got {iterations!r}")
+    if n_episodes < 2 and measure:
+        raise ValueError(f"episodes: expected >= 2 (for standard errors), got {n_episodes}")
+    if guard_margin is not None and not (np.isfinite(guard_margin) and guard_margin >= 0):
+        raise ValueError(f"guard-margin: expected a finite float >= 0, got {guard_margin!r}")
+    if not isinstance(guard_episodes, int) or guard_episodes < 1:
+        raise ValueError(f"guard-episodes: expected an int >= 1, got {guard_episodes!r}")
+    meta, ds, ids = check_inputs(ckpt, data_path, policy_ids)
+    task = get_task(ds.meta["task"])
+    episode_length = int(ds.meta.get("episode_length") or task.episode_length)
+    cfg = sac_config(overrides, episode_length, iterations)
+    policies = index_params(policies_for(ds, zoo), np.asarray(ids))
+    names_all = ds.meta.get("policy_names") or [f"policy-{i}" for i in range(ds.n_policies)]
+    names = [names_all[i] for i in ids]
+    sim = load_simulator(ckpt, step)
+    pool = (start_pool(ds) if branch_length is None
+            else branch_pool(ds, max_states=100_000, seed=seed))
+    env_options = scaled_env_options(sim, *real_rows(ds, seed=seed),
+                                     rollout_length=branch_length,
+                                     uncertainty_penalty=uncertainty_penalty,
+                                     uncertainty_threshold=uncertainty_threshold,
+                                     halt_penalty=halt_penalty)
+    os.makedirs(out, exist_ok=True)
+
+    log(f"[improve] {len(ids)} policies of {data_path} (task {task.name}) x {iterations} SAC "
+        f"iterations inside {ckpt}")
+    t0 = time.perf_counter()
+    k_sac, k_measure = jax.random.split(jax.random.PRNGKey(seed))
+    after, metrics = improve_policies(sim, task, pool, policies, k_sac, cfg,
+                                      n_iterations=iterations,
+                                      chunk_iterations=chunk or max(1, iterations // 10),
+                                      env_options=env_options, progress=progress)
+    sac_seconds = time.perf_counter() - t0
+    curve_x, curve = training_return_curve(metrics)
+    gamma = float(ds.meta.get("gamma") or 0.999)
+
+    guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
+    if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
+        both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]), policies,
+                                      after)
+        values = member_values(sim, task, both, start_pool(ds),
+                               jax.random.fold_in(k_measure, 1), n_episodes=guard_episodes,
+                               horizon=episode_length, gamma=gamma)
+        P = len(ids)
+        v0, v1 = values[:, :P], values[:, P:]
+        accept = deployment_guard(v0, v1, guard_margin)
+        deployed = guarded(policies, after, accept)
+        guard = {"margin": guard_margin, "episodes": guard_episodes,
+                 "accepted": accept.tolist(), "sim_value_start": v0.tolist(),
+                 "sim_value_tuned": v1.tolist()}
+        log(f"[improve] guard (margin {guard_margin}): {int(accept.sum())} of {P} fine-tuned "
+            f"policies kept, every elite member predicting a gain")
+
+    measured = None
+    if measure:
+        t0 = time.perf_counter()
+        measured = measure_improvement(task.make_env(), policies, after, k_measure,
+                                       n_episodes=n_episodes, episode_length=episode_length,
+                                       gamma=gamma)
+        log(f"[improve] real returns measured in {time.perf_counter() - t0:.0f}s")
+
+    source = ds.meta.get("source") or {}
+    zoo_ids = source.get("zoo_ids")
+    origins = [{"name": n, "data_index": i,
+                "zoo": zoo or source.get("zoo"),
+                "zoo_id": None if zoo_ids is None else int(zoo_ids[i]),
+                "finetuned_in": os.path.abspath(ckpt), "sac_iterations": iterations,
+                "return_before": None if measured is None else float(measured["c0"][j]),
+                **({} if guard is None else {"deployed": "fine-tuned" if guard["accepted"][j]
+                                             else "start (the guard kept it)"})}
+               for j, (n, i) in enumerate(zip(names, ids, strict=True))]
+    P = len(ids)
+    returns = np.full(P, np.nan) if measured is None else np.asarray(measured["c1"])
+    return_se = np.full(P, np.nan) if measured is None else np.asarray(measured["c1_se"])
+    if guard is not None and measured is not None:  # the zoo holds the deployed policies
+        keep = np.asarray(guard["accepted"])
+        returns = np.where(keep, returns, np.asarray(measured["c0"]))
+        return_se = np.where(keep, return_se, np.asarray(measured["c0_se"]))
+        dep = improvement_metrics(measured["c0"], returns)  # a kept start: C1 = C0, I = 0
+        guard.update(I=dep["I"].tolist(), mpi=dep["mpi"], api=dep["api"])
+        log(f"[improve] deployed: MPI {guard['mpi']:.3f}  API {guard['api']:.3f} (fine-tuned "
+            f"everywhere: MPI {measured['mpi']:.3f}  API {measured['api']:.3f})")
+    save_zoo(Zoo(task=task.name, params=jax.device_get(deployed), returns=returns,
+                 return_se=return_se, origins=origins, train_ids=[], test_ids=list(range(P)),
+                 info={"made_by": "rl2s improve", "checkpoint": os.path.abspath(ckpt),
+                       "data": os.path.abspath(data_path), "sac": _jsonable(cfg),
+                       "env_options": {k: v for k, v in env_options.items()
+                                       if k != "uncertainty_fn"}}), out)
+
+    rows = []
+    for j, (n, i) in enumerate(zip(names, ids, strict=True)):
+        row = {"policy": n, "data_index": i,
+               "data_value": None if ds.value is None else float(np.asarray(ds.value)[i]),
+               "sim_return_curve": [_nan_none(x) for x in curve[j]]}
+        if measured is not None:
+            row.update({k: float(measured[k][j]) for k in ("c0", "c0_se", "c1", "c1_se", "I")})
+        if guard is not None:
+            row["deployed_fine_tuned"] = bool(guard["accepted"][j])
+        rows.append(row)
+    summary = {"task": task.name, "checkpoint": os.path.abspath(ckpt),
+               "data": os.path.abspath(data_path), "iterations": iterations,
+               "sac": _jsonable(cfg), "env_options": {k: v for k, v in env_options.items()
+                                                      if k != "uncertainty_fn"},
+               "sac_seconds": round(sac_seconds, 1), "backend": jax.default_backend(),
+               "n_episodes": n_episodes if measured is not None else None,
+               "curve_iterations": curve_x.tolist(), "policies": rows,
+               "mpi": None if measured is None else measured["mpi"],
+               "api": None if measured is None else measured["api"], "zoo": out,
+               "guard": guard}
+    with open(os.path.join(out, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    with open(os.path.join(out, "summary.md"), "w") as f:
+        f.write(summary_markdown(summary) + "\n")
+    summary["plots"] = plot_policies(out, summary) if measured is not None else []
+    return summary
+
+
+def summary_markdown(s: dict) -> str:
+    """The summary as a markdown table: real return before / after ± SE, I, simulated return."""
+    lines = [f"# rl2s improve: {s['task']}, {s['iterations']} SAC iterations",
+             "", f"checkpoint `{s['checkpoint']}`, data `{s['data']}`", ""]
+    measured = s["mpi"] is not None
+    if measured:
+        lines += [f"MPI {s['mpi']:.3f}, API {s['api']:.3f} (real returns over "
+                  f"{s['n_episodes']} episodes each)", ""]
+    g = s.get("guard")
+    if g:
+        kept = sum(g["accepted"])
+        lines += [f"Deployment guard (margin {g['margin']}): {kept} of {len(g['accepted'])} "
+                  "fine-tuned policies deployed, the others kept as they were"
+                  + (f"; deployed MPI {g['mpi']:.3f}, API {g['api']:.3f}" if "mpi" in g
+                     else ""), ""]
+    head = "| policy | real C0 | real C1 | I | simulated return (start -> end) |"
+    lines += [head, "|---|---:|---:|---:|---|"]
+    for r in s["policies"]:
+        c = [x for x in r["sim_return_curve"] if x is not None]
+        sim = f"{c[0]:.1f} -> {c[-1]:.1f}" if c else "n/a"
+        if measured:
+            lines.append(f"| {r['policy']} | {r['c0']:.1f} ± {r['c0_se']:.1f} | "
+                         f"{r['c1']:.1f} ± {r['c1_se']:.1f} | {r['I']:+.3f} | {sim} |")
+        else:
+            lines.append(f"| {r['policy']} | n/a | n/a | n/a | {sim} |")
+    return "\n".join(lines)
+
+
+def plot_policies(out: str, s: dict) -> list[str]:
+    """One PNG per policy: real return before / after with standard-error bars, and SAC's
+    simulated training return over the iterations. -> file names."""
+    # Imported here to keep start-up fast: matplotlib loads in about a second, and only
+    # the plots need it.
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    for r in s["policies"]:
+        fig, (ax0, ax1) = plt.subplots(1, 2, figsize=(9, 3.4),
+                                       gridspec_kw={"width_ratios": [1, 2]})
+        ax0.bar([0, 1], [r["c0"], r["c1"]], yerr=[r["c0_se"], r["c1_se"]], capsize=6,
+                color=["tab:gray", "tab:blue"])
+        ax0.set_xticks([0, 1], ["before", "after"])
+        ax0.set_ylabel("real return")
+        ax0.set_title(f"I = {r['I']:+.3f}")
+        y = np.array([np.nan if v is None else v for v in r["sim_return_curve"]], float)
+        ax1.plot(s["curve_iterations"], y, marker=".")
+        ax1.set_xlabel("SAC iteration")
+        ax1.set_ylabel("simulated training return")
+        ax1.grid(alpha=0.3)
+        fig.suptitle(r["policy"])
+        fig.tight_layout()
+        name = f"policy_{_safe(r['policy'])}.png"
+        fig.savefig(os.path.join(out, name), dpi=100)
+        plt.close(fig)
+        files.append(name)
+    return files
+
+
+def _safe(name: str) -> str:
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name))
+
+
+def _nan_none(x):
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def _jsonable(cfg: SACConfig) -> dict:
+    return {k: (list(v) if isinstance(v, tuple) else v)
+            for k, v in dataclasses.asdict(cfg).items()}
+
+
+__all__ = ["check_inputs", "run_improve", "sac_config", "summary_markdown"]

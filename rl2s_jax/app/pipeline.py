@@ -1,0 +1,182 @@
+"""`rl2s pipeline` and `rl2s collect`: a task's zoo -> data -> the four simulators -> evaluation,
+improvement, report (what `make hopper` runs)."""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+
+import jax
+
+from rl2s_jax.app.evaluate import evaluate_checkpoint
+from rl2s_jax.app.report import load_curve, write_report
+from rl2s_jax.app.train import run_training
+from rl2s_jax.data.collect import collect, measure_values
+from rl2s_jax.data.dataset import load_dataset, save_dataset
+from rl2s_jax.data.summary import dataset_summary
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.improve.finetune import improve_policies, improvement_metrics
+from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.policy.policy import index_params
+from rl2s_jax.policy.sac import SACConfig
+from rl2s_jax.train.checkpoint import load_simulator
+from rl2s_jax.zoo.zoo import load_zoo, policies_for
+
+
+def collect_dataset(task_name: str, split: str, transitions_per_policy: int, *, seed: int = 0,
+                    envs_per_policy: int | None = None, gamma: float = 0.999,
+                    value_episodes: int = 16, episode_length: int | None = None,
+                    zoo_path: str | None = None, progress: bool = True):
+    """Collect a Dataset from a registered task's zoo split (what `rl2s collect` runs)."""
+
+
+    task = get_task(task_name)
+    zoo = load_zoo(zoo_path or task_name)
+    if zoo.task != task_name:
+        raise ValueError(f"zoo: built for task {zoo.task!r}, not {task_name!r}")
+    ids = zoo.split_ids(split)
+    return collect(task.make_env(), index_params(zoo.params, ids), key=jax.random.PRNGKey(seed),
+                   transitions_per_policy=transitions_per_policy,
+                   envs_per_policy=envs_per_policy,
+                   episode_length=episode_length or task.episode_length, task=task_name,
+                   policy_names=zoo.policy_names(ids), gamma=gamma,
+                   value_episodes=value_episodes, progress=progress,
+                   source={"zoo": zoo_path or task_name, "split": split,
+                           "zoo_ids": ids, "seed": seed})
+
+
+PROFILES = {
+    "cpu": dict(transitions_per_policy=2000, value_episodes=4, steps=300, eval_every=50,
+                eval_episodes=8, improve_iterations=300,
+                sac=dict(n_envs=4, hidden=(64, 64), batch_size=128, critic_warmup_updates=200,
+                         buffer_size=20_000)),
+    "gpu": dict(transitions_per_policy=100_000, value_episodes=32, steps=3000, eval_every=250,
+                eval_episodes=16, improve_iterations=5000,
+                sac=dict(n_envs=16, critic_warmup_updates=2000)),
+}
+
+
+def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
+                          horizon: int, seed: int = 0, log=print) -> dict[str, dict]:
+    """Fine-tune every test policy with SAC inside each method's simulator, then measure its
+    real return (MJX) with the same protocol as the test data's true values:
+    C0 = the data's ``value``, C1 = mean return over ``value_episodes`` episodes.
+    -> {method: {"c0", "c1", "c1_se", "I" (lists [P]), "mpi", "api"}}."""
+
+
+    ds = load_dataset(test_path)
+    if not ds.has_values:
+        raise ValueError(f"data: {test_path} has no true values, so C0 is unknown")
+    task = get_task(task_name)
+    policies, pool = policies_for(ds), start_pool(ds)
+    episode_length = int(ds.meta.get("episode_length") or task.episode_length)
+    cfg = SACConfig.fine_tuning(episode_length=horizon, **sizes["sac"])
+    env = task.make_env()
+    c0 = [float(v) for v in ds.value]
+    improved = []
+    for i, (method, ckpt) in enumerate(ckpts.items()):
+        t0 = time.perf_counter()
+        params, _ = improve_policies(load_simulator(ckpt), task, pool, policies,
+                                     jax.random.PRNGKey(seed + 10 + i), cfg,
+                                     n_iterations=sizes["improve_iterations"],
+                                     chunk_iterations=min(1000, sizes["improve_iterations"]))
+        improved.append(params)
+        log(f"[pipeline] SAC in {method}'s simulator: {time.perf_counter() - t0:.0f}s")
+    # One real measurement of every method's improved policies (one MJX compile).
+    t0 = time.perf_counter()
+    both = jax.tree_util.tree_map(lambda *xs: jax.numpy.concatenate(xs), *improved)
+    real = measure_values(env, both, key=jax.random.PRNGKey(seed + 20),
+                          n_episodes=sizes["value_episodes"], episode_length=episode_length,
+                          gamma=float(ds.meta.get("gamma") or 0.999))
+    P, out = len(c0), {}
+    for i, method in enumerate(ckpts):
+        c1, se = real["value"][i * P:(i + 1) * P], real["value_se"][i * P:(i + 1) * P]
+        m = improvement_metrics(c0, c1)
+        out[method] = {"c0": c0, "c1": c1.tolist(), "c1_se": se.tolist(), "I": m["I"].tolist(),
+                       "mpi": m["mpi"], "api": m["api"]}
+        log(f"[pipeline] improvement in {method}'s simulator: MPI {m['mpi']:.3f}  API "
+            f"{m['api']:.3f}")
+    log(f"[pipeline] real returns of the improved policies measured in "
+        f"{time.perf_counter() - t0:.0f}s")
+    return out
+
+
+def run_pipeline(args) -> int:
+    """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
+
+
+    t_start = time.perf_counter()
+    backend = jax.default_backend()
+    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    sizes = dict(PROFILES[profile])
+    for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every",
+              "improve_iterations"):
+        if getattr(args, k) is not None:
+            sizes[k] = getattr(args, k)
+    methods = args.methods.split(",")
+    bad = [m for m in methods if m not in ("rl2s", "gail", "bc", "rl2s-bc")]
+    if bad:
+        raise ValueError(f"methods: expected a comma list of rl2s, gail, bc, rl2s-bc; got {bad}")
+    out = args.out or os.path.join("results", args.task)
+    os.makedirs(out, exist_ok=True)
+    print(f"[pipeline] task {args.task}, backend {backend}, profile {profile} -> {out}\n"
+          f"[pipeline] {sizes}")
+    data_key = {k: sizes[k] for k in ("transitions_per_policy", "value_episodes")}
+    data_key.update(seed=args.seed, task=args.task)
+    if args.episode_length is not None:
+        data_key["episode_length"] = args.episode_length
+    summary = {"task": args.task, "profile": profile, "backend": backend, "sizes": sizes,
+               "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
+               "datasets": {}}
+    state_path = os.path.join(out, "pipeline.json")
+    previous = {}
+    if os.path.exists(state_path):
+        with open(state_path) as f:
+            previous = json.load(f)
+    for split in ("train", "test"):
+        path = os.path.join(out, f"{split}.npz")
+        if os.path.exists(path) and previous.get("data_key") == data_key:
+            ds = load_dataset(path)
+            print(f"[pipeline] {split} data: reusing {path}")
+        else:
+            ds = collect_dataset(args.task, split, sizes["transitions_per_policy"],
+                                 seed=args.seed, value_episodes=sizes["value_episodes"],
+                                 episode_length=args.episode_length, progress=not args.quiet)
+            save_dataset(path, ds)
+            print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
+        summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,
+                                      "policies": ds.n_policies}
+    summary["data_key"] = data_key
+    with open(state_path, "w") as f:
+        json.dump(summary, f, indent=1)
+    evals, curves, runs = {}, {}, {}
+    for method in methods:
+        run_dir = os.path.join(out, method)
+        print(f"\n[pipeline] training {method} -> {run_dir}")
+        runs[method] = run_training(
+            summary["datasets"]["train"]["path"], method, sizes["steps"], run_dir,
+            profile=profile, seed=args.seed, save_every=sizes["eval_every"],
+            eval_data=summary["datasets"]["test"]["path"], eval_every=sizes["eval_every"],
+            eval_episodes=sizes["eval_episodes"], progress=not args.quiet)
+        evals[method] = evaluate_checkpoint(os.path.join(run_dir, "checkpoints"),
+                                            summary["datasets"]["test"]["path"],
+                                            seed=args.seed, n_episodes=sizes["eval_episodes"],
+                                            horizon=runs[method]["config"]["vd_horizon"])
+        curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
+    summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
+                                                   "mvd_train")} for m, r in runs.items()}
+    if sizes["improve_iterations"]:
+        improvement = improve_in_simulators(
+            args.task, summary["datasets"]["test"]["path"],
+            {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
+            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed)
+        for m, imp in improvement.items():
+            evals[m]["metrics"].update(mpi=imp["mpi"], api=imp["api"])
+            evals[m]["improvement"] = imp
+    summary["seconds"] = round(time.perf_counter() - t_start, 1)
+    text = write_report(out, summary, evals, curves)
+    print(f"\n[pipeline] test policies ({profile} profile, {backend}), "
+          f"{summary['seconds']:.0f}s:\n{text}\n-> {out}/report.md, report.json, *.png")
+    return 0

@@ -1,0 +1,139 @@
+"""The pipeline's report: report.json, report.md, PNG plots and a one-screen terminal table."""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+
+TABLE_KEYS = ("avd", "mvd", "kendall_tau", "spearman", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10",
+              "regret@1", "mpi", "api")
+
+
+def load_curve(path: str) -> list[dict]:
+    """Rows of a run's eval.jsonl (test-policy metrics over training), or [] if absent."""
+    if not os.path.exists(path):
+        return []
+    with open(path) as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def table(methods: dict[str, dict], keys=TABLE_KEYS) -> str:
+    """Fixed-width table: one row per method, one column per metric."""
+    head = f"{'method':<9}" + "".join(f"{k:>12}" for k in keys)
+    rows = [head]
+    for name, m in methods.items():
+        rows.append(f"{name:<9}" + "".join(
+            f"{m[k]:>12.3f}" if isinstance(m.get(k), (int, float)) else f"{'-':>12}"
+            for k in keys))
+    return "\n".join(rows)
+
+
+def markdown_table(methods: dict[str, dict], keys=TABLE_KEYS) -> str:
+    lines = ["| method | " + " | ".join(keys) + " |", "|---|" + "---:|" * len(keys)]
+    for name, m in methods.items():
+        cells = [f"{m[k]:.3f}" if isinstance(m.get(k), (int, float)) else "-" for k in keys]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) -> list[str]:
+    """Write the PNG plots into ``out``; returns their file names."""
+    # Imported here to keep start-up fast: matplotlib loads in about a second, and only
+    # the plots need it.
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    files = []
+    if any(curves.values()):
+        fig, axes = plt.subplots(1, 2, figsize=(10, 3.6))
+        for name, rows in curves.items():
+            if rows:
+                steps = [r["step"] for r in rows]
+                axes[0].plot(steps, [r["avd"] for r in rows], marker=".", label=name)
+                axes[1].plot(steps, [r["mvd"] for r in rows], marker=".", label=name)
+        for ax, what in zip(axes, ("AVD", "MVD"), strict=True):
+            ax.set_xlabel("train_step")
+            ax.set_ylabel(f"{what} on test policies")
+            ax.grid(alpha=0.3)
+        axes[0].legend()
+        fig.tight_layout()
+        fig.savefig(os.path.join(out, "vd_curves.png"), dpi=110)
+        plt.close(fig)
+        files.append("vd_curves.png")
+
+    if evals:
+        first = next(iter(evals.values()))
+        order = np.argsort(first["true_value"])
+        names = [str(first["policy_names"][i]) for i in order]
+        fig, ax = plt.subplots(figsize=(max(6, 0.22 * len(names) + 2), 3.6))
+        width = 0.8 / len(evals)
+        for j, (name, r) in enumerate(evals.items()):
+            ax.bar(np.arange(len(names)) + j * width, np.asarray(r["vd"])[order], width,
+                   label=name)
+        ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=90, fontsize=6)
+        ax.set_ylabel("VD (test policies, by true value)")
+        ax.legend()
+        fig.tight_layout()
+        fig.savefig(os.path.join(out, "vd_per_policy.png"), dpi=110)
+        plt.close(fig)
+        files.append("vd_per_policy.png")
+
+        fig, axes = plt.subplots(1, len(evals), figsize=(3.2 * len(evals), 3.2), squeeze=False)
+        for ax, (name, r) in zip(axes[0], evals.items(), strict=True):
+            t, s = np.asarray(r["true_value"]), np.asarray(r["sim_value"])
+            lo, hi = min(t.min(), s.min()), max(t.max(), s.max())
+            ax.plot([lo, hi], [lo, hi], color="grey", lw=0.8)
+            ax.scatter(t, s, s=10)
+            ax.set_title(f"{name}: tau {r['metrics'].get('kendall_tau', float('nan')):.2f}")
+            ax.set_xlabel("true value")
+        axes[0][0].set_ylabel("simulated value")
+        fig.tight_layout()
+        fig.savefig(os.path.join(out, "true_vs_sim.png"), dpi=110)
+        plt.close(fig)
+        files.append("true_vs_sim.png")
+
+        imps = {name: r["improvement"] for name, r in evals.items() if "improvement" in r}
+        if imps:
+            fig, ax = plt.subplots(figsize=(max(6, 0.22 * len(names) + 2), 3.6))
+            width = 0.8 / len(imps)
+            for j, (name, imp) in enumerate(imps.items()):
+                ax.bar(np.arange(len(names)) + j * width, np.asarray(imp["I"])[order], width,
+                       label=f"{name} (MPI {imp['mpi']:.2f}, API {imp['api']:.2f})")
+            ax.axhline(0, color="grey", lw=0.8)
+            ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=90,
+                          fontsize=6)
+            ax.set_ylabel("improvement I = (C1 - C0) / |C0|")
+            ax.legend(fontsize=7)
+            fig.tight_layout()
+            fig.savefig(os.path.join(out, "improvement.png"), dpi=110)
+            plt.close(fig)
+            files.append("improvement.png")
+    return files
+
+
+def write_report(out: str, summary: dict, evals: dict[str, dict],
+                 curves: dict[str, list[dict]]) -> str:
+    """report.json + report.md + plots in ``out``. -> the terminal table."""
+    methods = {name: r["metrics"] for name, r in evals.items()}
+    plots = plot_all(out, evals, curves)
+    report = {**summary, "methods": methods, "curves": curves, "evaluations": evals,
+              "plots": plots}
+    with open(os.path.join(out, "report.json"), "w") as f:
+        json.dump(report, f, indent=1)
+    first = next(iter(evals.values()), None)
+    lines = [f"# {summary.get('task', '')} pipeline report", "",
+             f"Profile `{summary.get('profile')}` on `{summary.get('backend')}`; "
+             f"command: `{summary.get('command', '')}`.", ""]
+    if first is not None:
+        lines += [f"Test policies: {len(first['vd'])}; each simulated for "
+                  f"{first['n_episodes']} episodes of {first['horizon']} steps (gamma "
+                  f"{first['gamma']}); true values from the test data.", "",
+                  markdown_table(methods), ""]
+    for k, v in summary.get("notes", {}).items():
+        lines.append(f"- **{k}**: {v}")
+    lines += [""] + [f"![{p}]({p})" for p in plots]
+    with open(os.path.join(out, "report.md"), "w") as f:
+        f.write("\n".join(lines) + "\n")
+    return table(methods)

@@ -1,0 +1,211 @@
+"""`rl2s train`: from a Dataset file to a trained, checkpointed simulator (files in, files out)."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+
+import jax
+import numpy as np
+
+from rl2s_jax.data.dataset import load_dataset
+from rl2s_jax.evaluate.simulator import evaluate_simulator
+from rl2s_jax.train.checkpoint import Checkpointer
+from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.loop import fit
+from rl2s_jax.train.step import init, simulator
+from rl2s_jax.zoo.zoo import policies_for
+
+# The cpu profile's members: TrainConfig.small's 2x64 at 5 updates per step had not fitted
+# Hopper (held-out error 0.385 change stds; these: 0.140, experiments/model_fit.py on the CPU).
+CPU_MODEL = dict(gen_hidden=(128, 128, 128), gen_activation="silu", batch_size=256,
+                 updates_per_step=25, early_stop_patience=0, gen_weight_decay=0.0)
+
+
+def make_config(ds, method: str, profile: str, eps: float | None = None,
+                overrides: dict | None = None):
+    """The TrainConfig for ``ds``: 'gpu' = the paper's sizes with the ensemble model family
+    (7 members of 4x512 SiLU, 5 elites, batch 1024, 1000 pre-training steps; TrainConfig's
+    defaults), 'cpu' = ``TrainConfig.small`` with the members fitted as the gpu profile fits
+    them (3 of 3x128 SiLU, batch 256, 25 updates per step, no early stopping or weight decay:
+    docs/RESULTS.md, "make hopper"), 100 pre-training steps and 5 critic warm-up steps.
+    ``overrides``: field -> value (``--set``)."""
+
+    ep_len = ds.meta.get("episode_length") or 1000
+    base = dict(task=ds.meta["task"], method=method, eps=eps,
+                gamma=float(ds.meta.get("gamma") or 0.999))
+    if profile == "cpu":
+        cfg = TrainConfig.small(vd_horizon=min(100, ep_len), pretrain_steps=100,
+                                disc_warmup_steps=5, **CPU_MODEL, **base)
+    elif profile == "gpu":
+        cfg = TrainConfig(vd_horizon=ep_len, **base)
+    else:
+        raise ValueError(f"profile: expected 'cpu' or 'gpu', got {profile!r}")
+    if overrides:
+        d = cfg.to_dict()
+        unknown = sorted(set(overrides) - set(d))
+        if unknown:
+            raise ValueError(f"set: unknown config field(s) {unknown}; known: {sorted(d)}")
+        d.update(overrides)
+        cfg = TrainConfig.from_dict(d)
+    return cfg.validate()
+
+
+def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str | None = None,
+                 profile: str = "auto", seed: int = 0, eps: float | None = None,
+                 save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
+                 progress: bool = True, log=print, eval_data: str | None = None,
+                 eval_every: int | None = None, eval_episodes: int = 8,
+                 resume_step: int | None = None) -> dict:
+    """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
+    holds one), and return a summary dict (also written to out/summary.json).
+
+    A resumed run starts from ``resume_step``, or by default from the newest intact
+    checkpoint (broken newer ones are skipped with a CheckpointWarning). Saved steps after the
+    one resumed from are moved to checkpoints/corrupt/ (broken) or checkpoints/superseded/
+    (intact), since the run saves those steps anew.
+
+    ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
+    with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve).
+    """
+
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
+    ds = load_dataset(data_path)
+    if ds.meta.get("task") is None:
+        raise ValueError(f"data: {data_path} names no task (meta.task), so there is no "
+                         f"reward_fn/done_fn to simulate its policies with")
+    if profile == "auto":
+        profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
+    cfg = make_config(ds, method, profile, eps, overrides)
+    policies = policies_for(ds, zoo)
+    data = make_train_data(ds, policies, cfg)
+    os.makedirs(out, exist_ok=True)
+    ck = Checkpointer(os.path.join(out, "checkpoints"))
+    meta = {"data": {"path": os.path.abspath(data_path), "task": ds.meta["task"],
+                     "obs_size": ds.obs_size, "action_size": ds.action_size,
+                     "n_policies": ds.n_policies, "policy_names": ds.meta.get("policy_names"),
+                     "gamma": ds.meta.get("gamma"),
+                     "true_value": np.asarray(data.true_value).tolist()},
+            "seed": seed, "profile": profile}
+    metrics_path = os.path.join(out, "metrics.jsonl")
+    eval_path = os.path.join(out, "eval.jsonl")
+    on_eval = None
+    if eval_data is not None:
+        on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo)
+        eval_every = eval_every or save_every or max(1, steps // 10)
+    key = jax.random.PRNGKey(seed)
+    if resume_step is not None and ck.latest_step() is None:
+        ck.close()
+        raise FileNotFoundError(f"resume_step: {out}/checkpoints holds no saved step to resume "
+                                f"step {resume_step} from")
+    if ck.latest_step() is not None:
+        template = jax.eval_shape(lambda: init(key, cfg, data))
+        try:
+            state = ck.restore(template, resume_step)
+        except BaseException:
+            ck.close()
+            raise
+        moved = ck.set_aside_after(int(state.step))
+        _truncate_metrics(metrics_path, int(state.step))
+        _truncate_metrics(eval_path, int(state.step))
+        log(f"[train] resuming {out} from step {int(state.step)}")
+        for kind, steps_moved in moved.items():
+            if steps_moved:
+                log(f"[train] moved {kind} step(s) {steps_moved} to {ck.directory}/{kind}/")
+    else:
+        for path in (metrics_path, eval_path):
+            if os.path.exists(path):
+                os.remove(path)
+        t0 = time.perf_counter()
+        state = jax.jit(init, static_argnums=1)(key, cfg, data)
+        log(f"[train] {method} (eps {cfg.initial_eps}, profile {profile}) on {data_path}: "
+            f"{ds.n_transitions} transitions, {ds.n_policies} policies; init "
+            f"{time.perf_counter() - t0:.1f}s")
+    t0 = time.perf_counter()
+    start = int(state.step)
+    try:
+        state, metrics = fit(state, data, steps, chunk=chunk, checkpointer=ck,
+                             save_every=save_every, meta=meta, metrics_path=metrics_path,
+                             progress=progress, eval_every=eval_every, on_eval=on_eval)
+    finally:
+        ck.close()
+    seconds = time.perf_counter() - t0
+    names = ds.meta.get("policy_names") or [str(i) for i in range(ds.n_policies)]
+    vd = np.asarray(state.vd)
+    summary = {
+        "method": method, "eps": float(state.eps), "profile": profile, "steps": int(state.step),
+        "steps_run": int(state.step) - start, "seconds": round(seconds, 2),
+        "backend": jax.default_backend(), "avd_train": float(np.mean(vd)),
+        "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(out, "checkpoints"),
+        "selected": [n for n, s in zip(names, np.asarray(state.selected), strict=True) if s],
+        "policies": {n: {"true_value": float(t), "sim_value": float(s), "vd": float(v)}
+                     for n, t, s, v in zip(names, np.asarray(data.true_value),
+                                           np.asarray(state.sim_value), vd, strict=True)},
+        "config": state.config.to_dict()}
+    with open(os.path.join(out, "summary.json"), "w") as f:
+        json.dump(summary, f, indent=1)
+    return summary
+
+
+def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
+                    zoo: str | None):
+    """on_eval callback: VD and ranking of the eval Dataset's policies, appended to ``path``."""
+
+    ds = load_dataset(eval_data)
+    if ds.meta.get("task") != cfg.task:
+        raise ValueError(f"eval_data: {eval_data} is task {ds.meta.get('task')!r}, training is "
+                         f"{cfg.task!r}")
+    pols = policies_for(ds, zoo)
+    key = jax.random.PRNGKey(seed + 1)
+
+    def on_eval(state):
+        r = evaluate_simulator(simulator(state), ds, pols, key=key, n_episodes=n_episodes,
+                               horizon=cfg.vd_horizon, gamma=cfg.gamma)
+        row = {"step": int(state.step), **r["metrics"], "vd": r["vd"]}
+        with open(path, "a") as f:
+            f.write(json.dumps(row) + "\n")
+
+    return on_eval
+
+
+def _truncate_metrics(path: str, step: int) -> None:
+    """Drop logged rows after ``step`` (they belong to a run that went past its checkpoint)."""
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        rows = [line for line in f if line.strip() and json.loads(line)["step"] <= step]
+    with open(path, "w") as f:
+        f.writelines(rows)
+
+
+def format_summary(s: dict) -> str:
+    """A one-screen table of a run_training summary."""
+    lines = [f"method {s['method']} (eps {s['eps']:g}), {s['steps']} steps "
+             f"({s['steps_run']} here in {s['seconds']:.1f}s on {s['backend']}), profile "
+             f"{s['profile']}",
+             f"train policies: AVD {s['avd_train']:.3g}  MVD {s['mvd_train']:.3g}  "
+             f"(VD at the last completed measurement)",
+             f"{'policy':<14}{'true value':>12}{'sim value':>12}{'VD':>10}  selected"]
+    for name, p in s["policies"].items():
+        mark = "*" if name in s["selected"] else ""
+        lines.append(f"{name:<14}{p['true_value']:>12.2f}{p['sim_value']:>12.2f}"
+                     f"{p['vd']:>10.2f}  {mark}")
+    lines.append(f"checkpoint: {s['checkpoint']}")
+    return "\n".join(lines)
+
+
+def parse_overrides(items: list[str] | None) -> dict:
+    """--set key=value pairs -> dict; values parsed as JSON where they parse (3, 1e-4, [64,64])."""
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise ValueError(f"set: expected key=value, got {item!r}")
+        k, v = item.split("=", 1)
+        try:
+            out[k.strip()] = json.loads(v)
+        except json.JSONDecodeError:
+            out[k.strip()] = v
+    return out

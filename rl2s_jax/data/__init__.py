@@ -1,0 +1,1 @@
+"""Data: the Dataset (schema, file, validation), MJX collection, Minari, episodes, true values."""

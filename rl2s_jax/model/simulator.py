@@ -1,0 +1,472 @@
+"""Roll policies inside a simulator and measure their values.
+
+A simulator here is any ``dynamics(obs [..., o], action [..., a], key) -> next_obs [..., o]``
+(the learned generator, or a task's true dynamics in tests); rewards and terminations come from
+the task's ``reward_fn(obs, action, next_obs)`` and ``done_fn(next_obs)``.
+
+Value rollouts run P policies x n episodes as one batch. They can be advanced piecewise
+(``advance_values`` a few steps at a time), which is how ``train_step`` spreads one value
+measurement over K calls instead of spiking every K-th call.
+"""
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from rl2s_jax.model import dynamics as dyn
+from rl2s_jax.model.dynamics import Normalizer
+from rl2s_jax.model.generator import sample_next
+from rl2s_jax.model.termination import TERMINATIONS, hazard_prob
+from rl2s_jax.policy.policy import Params, sample_action
+
+Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
+
+
+@struct.dataclass
+class Simulator:
+    """A learned simulator p_phi: an ensemble of Markov family members, its normaliser, the
+    task it models (docs/SIMULATOR.md).
+
+    gen: member parameters stacked [E, ...] (``dynamics.init_ensemble``); a bare list of MLP
+      layers (one generator, ``models.init_generator``) is taken as E = 1.
+    rank: [E] int32 members by held-out NLL (0 = best), or None (all equal, member 0 first);
+      the ``n_elites`` best are the elites (None: every member).
+    member_mode: how a step picks its Gaussian: "random" (an elite drawn per sample), "mean"
+      (the elites' average), "fixed" (the best member). ``uncertainty``: the disagreement
+      measure ("std" or "max_pairwise", ``dynamics.disagreement``).
+
+    hazard: a learned termination classifier (``termination.init_hazard``) or None, of
+    P(end within ``hazard_window`` steps);
+    termination: what ends a simulated episode, "rule" (the task's done_fn on the simulated
+    next state), "hazard" (a draw below h(s, a)), "both", or "predictive" (the rule, or the
+    rule on one noise-scale-1 draw of the next state; ``terminations``).
+
+    ``dynamics`` is the ``Dynamics`` function the rollouts here take; ``task`` names the
+    registered task whose reward_fn / done_fn apply (None for data without a task).
+    ``uncertainty_fn(obs, action)`` and ``step(obs, action, key) -> (next_obs, u)`` give the
+    ensemble's disagreement at every step (0 for one member).
+    """
+
+    gen: Params
+    norm: Normalizer
+    rank: jax.Array | None = None
+    hazard: Params | None = None
+    task: str | None = struct.field(pytree_node=False, default=None)
+    obs_clip: float = struct.field(pytree_node=False, default=10.0)
+    noise_scale: float = struct.field(pytree_node=False, default=1.0)
+    n_elites: int | None = struct.field(pytree_node=False, default=None)
+    member_mode: str = struct.field(pytree_node=False, default="random")
+    uncertainty: str = struct.field(pytree_node=False, default="std")
+    termination: str = struct.field(pytree_node=False, default="rule")
+    hazard_window: int = struct.field(pytree_node=False, default=1)
+
+    def __post_init__(self):
+        if isinstance(self.gen, list | tuple):  # one generator: an ensemble of one
+            layers = [{k: jnp.asarray(v)[None] for k, v in layer.items()} for layer in self.gen]
+            object.__setattr__(self, "gen", {"layers": layers})
+
+    @property
+    def n_members(self) -> int:
+        return dyn.n_members(self.gen)
+
+    def member_dists(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Every member's Gaussian over the normalised delta: (mean, log_std) [E, ..., o]."""
+        return dyn.ensemble_dist(self.gen, dyn.markov_inputs(self.norm, obs, action))
+
+    def _moments(self, means, log_stds, key):
+        return dyn.ensemble_moments(means, log_stds, key, rank=self.rank,
+                                    n_elites=self.n_elites, mode=self.member_mode)
+
+    def sample(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
+        """s' ~ p_phi(.|s, a) (member by member_mode) with the std times noise_scale, clipped
+        to +-obs_clip data stds. [..., o], [..., a] -> [..., o]"""
+        return self.step(obs, action, key)[0]
+
+    def step(self, obs: jax.Array, action: jax.Array, key: jax.Array
+             ) -> tuple[jax.Array, jax.Array]:
+        """One simulated step and the ensemble's disagreement at (obs, action), from one pass
+        over the members. -> (next_obs [..., o], u [...])"""
+        means, log_stds = self.member_dists(obs, action)
+        mean, log_std, k_noise = self._moments(means, log_stds, key)
+        nxt = sample_next(self.norm, obs, mean, log_std, k_noise, self.obs_clip,
+                          self.noise_scale)
+        return nxt, self._disagreement(means)
+
+    def transition(self, obs: jax.Array, action: jax.Array, key: jax.Array
+                   ) -> tuple[jax.Array, jax.Array, jax.Array]:
+        """Everything a consumer of one step needs, from one pass over the members (e.g. an
+        uncertainty-penalised reward r - lambda * u for policy improvement):
+        -> (mean next state [..., o] as ``mean``, a sample [..., o] as ``sample`` with this
+        key, the elites' disagreement u [...] as ``disagreement``; 0 for one member)."""
+        means, log_stds = self.member_dists(obs, action)
+        mode = "fixed" if self.member_mode == "fixed" else "mean"
+        avg, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
+                                         n_elites=self.n_elites, mode=mode)
+        mean, log_std, k_noise = self._moments(means, log_stds, key)
+        nxt = sample_next(self.norm, obs, mean, log_std, k_noise, self.obs_clip,
+                          self.noise_scale)
+        return self.norm.next_from_delta(obs, avg), nxt, self._disagreement(means)
+
+    def mean(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """The mean next state: of the best member ("fixed") or the elites' average. -> [..., o]"""
+        means, log_stds = self.member_dists(obs, action)
+        mode = "fixed" if self.member_mode == "fixed" else "mean"
+        mean, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
+                                          n_elites=self.n_elites, mode=mode)
+        return self.norm.next_from_delta(obs, mean)
+
+    def log_prob(self, obs: jax.Array, action: jax.Array, next_obs: jax.Array) -> jax.Array:
+        """log density of the normalised delta under what ``sample`` draws from (for
+        "random": the uniform mixture of the elites). -> [...]"""
+        means, log_stds = self.member_dists(obs, action)
+        return dyn.mixture_log_prob(means, log_stds, self.norm.norm_delta(obs, next_obs),
+                                    rank=self.rank, n_elites=self.n_elites,
+                                    mode=self.member_mode)
+
+    def predictive(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """Mean and std [..., o] of the normalised delta that ``sample`` draws (noise_scale 1):
+        for "random", the elite mixture's (std includes the spread of the elites' means)."""
+        means, log_stds = self.member_dists(obs, action)
+        mode = "mean" if self.member_mode == "random" else self.member_mode
+        mean, log_std, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
+                                                n_elites=self.n_elites, mode=mode)
+        var = jnp.exp(2.0 * log_std)
+        if self.member_mode == "random" and means.shape[0] > 1:
+            elite = dyn.elite_mask(self.rank, self.n_elites, means.shape[0])
+            w = (elite / elite.sum()).reshape((-1,) + (1,) * (means.ndim - 1))
+            var = var + jnp.sum(w * (means - mean) ** 2, 0)
+        return mean, jnp.sqrt(var)
+
+    def _disagreement(self, means):
+        return dyn.disagreement(means, rank=self.rank, n_elites=self.n_elites,
+                                kind=self.uncertainty)
+
+    def disagreement(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """The elites' disagreement at (obs, action) in normalised delta units (0 for one
+        member). [..., o], [..., a] -> [...]"""
+        return self._disagreement(self.member_dists(obs, action)[0])
+
+    def uncertainty_fn(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """``uncertainty_fn(obs, action) -> [...]``: the disagreement, for a penalised reward
+        r - lambda * u (policy improvement) or to flag untrusted regions (diagnosis)."""
+        return self.disagreement(obs, action)
+
+    def dynamics(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
+        return self.sample(obs, action, key)
+
+    def hazard_prob(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """The learned chance that the step from (obs, action) ends the episode.
+        [..., o], [..., a] -> [...]"""
+        if self.hazard is None:
+            raise ValueError("hazard: this simulator has no learned termination (train with "
+                             "termination='hazard' or 'both')")
+        return hazard_prob(self.hazard, self.norm, obs, action, self.hazard_window)
+
+    def terminations(self, done_fn: Callable | None) -> tuple[Callable | None, Callable | None]:
+        """(done_fn, hazard_fn) for ``advance_values`` under this simulator's ``termination``:
+        the task's rule ``done_fn`` unless "hazard"; the learned h(s, a) for "hazard" and
+        "both"; for "predictive", 1 where ``done_fn`` holds for a draw of the next state at
+        noise scale 1 (a Bernoulli of the model's own P(end))."""
+        if self.termination not in TERMINATIONS:
+            raise ValueError(f"termination: expected one of {', '.join(TERMINATIONS)}, got "
+                             f"{self.termination!r}")
+        if self.termination == "rule":
+            return done_fn, None
+        if self.termination == "predictive":
+            if done_fn is None:
+                raise ValueError("termination: 'predictive' applies the task's done_fn to a "
+                                 "draw of the next state; got done_fn=None")
+            noisy = self.replace(noise_scale=1.0)
+            return done_fn, lambda obs, action, key: (
+                done_fn(noisy.sample(obs, action, key)) > 0.5).astype(jnp.float32)
+        if self.hazard is None:
+            raise ValueError(f"termination: {self.termination!r} needs a learned hazard, and "
+                             f"this simulator has none (hazard=None)")
+        learned = lambda obs, action, key: self.hazard_prob(obs, action)
+        return (None if self.termination == "hazard" else done_fn), learned
+
+
+@struct.dataclass
+class ValueRollout:
+    """P x n simulated episodes in progress.
+
+    obs [P, n, o]; alive [P, n] (not yet terminated); ret [P, n] discounted return so far;
+    length [P, n] steps survived; t [] steps taken.
+    """
+
+    obs: jax.Array
+    alive: jax.Array
+    ret: jax.Array
+    length: jax.Array
+    t: jax.Array
+
+
+def start_pool(ds) -> jax.Array:
+    """Real episode start states of a Dataset [S, o] (its rows with t == 0)."""
+    pool = np.asarray(ds.obs)[np.asarray(ds.t) == 0]
+    if pool.shape[0] == 0:
+        raise ValueError("t: expected some episode start rows (t == 0) for the start states")
+    return jnp.asarray(pool, jnp.float32)
+
+
+def start_values(start_pool: jax.Array, n_policies: int, n_episodes: int, key: jax.Array
+                 ) -> ValueRollout:
+    """Fresh episodes from start states drawn (with replacement) from start_pool [S, o]."""
+    idx = jax.random.randint(key, (n_policies, n_episodes), 0, start_pool.shape[0])
+    shape = (n_policies, n_episodes)
+    return ValueRollout(obs=start_pool[idx], alive=jnp.ones(shape, bool),
+                        ret=jnp.zeros(shape, jnp.float32), length=jnp.zeros(shape, jnp.int32),
+                        t=jnp.zeros((), jnp.int32))
+
+
+def end_key(key: jax.Array, hazard_fn: Callable | None) -> tuple[jax.Array, jax.Array | None]:
+    """(key for the dynamics, key for ``ends_episode``'s hazard draw): split only where there
+    is a hazard, so that without one the dynamics' draws stay those of the rule-only code."""
+    if hazard_fn is None:
+        return key, None
+    k_dyn, k_end = jax.random.split(key)
+    return k_dyn, k_end
+
+
+def ends_episode(obs: jax.Array, action: jax.Array, next_obs: jax.Array, key: jax.Array,
+                 done_fn: Callable | None, hazard_fn: Callable | None) -> jax.Array:
+    """Whether a step ends its episode: the task's rule ``done_fn(next_obs)`` (None: never) or
+    a draw below the hazard ``hazard_fn(obs, action, key) -> P(end) [...]`` (None: none).
+    -> bool [...]"""
+    done = (jnp.zeros(next_obs.shape[:-1], bool) if done_fn is None
+            else done_fn(next_obs) > 0.5)
+    if hazard_fn is not None:
+        k_prob, k_draw = jax.random.split(key)
+        done = done | (jax.random.uniform(k_draw, done.shape) < hazard_fn(obs, action, k_prob))
+    return done
+
+
+def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics,
+                   reward_fn: Callable, done_fn: Callable | None, key: jax.Array, *,
+                   n_steps: int, horizon: int, gamma: float | jax.Array,
+                   hazard_fn: Callable | None = None) -> ValueRollout:
+    """Run ``n_steps`` more steps (steps past ``horizon`` change nothing).
+
+    policy_params: stacked [P, ...]; each policy acts stochastically in its own episodes.
+    An episode ends as ``ends_episode`` says (``Simulator.terminations`` gives a simulator's
+    done_fn / hazard_fn).
+    """
+    n_pol = roll.obs.shape[0]
+    act = jax.vmap(sample_action)  # over policies; each call batches its n episodes
+
+    def step(roll: ValueRollout, key):
+        k_act, k_dyn = jax.random.split(key)
+        action, _, _ = act(policy_params, roll.obs, jax.random.split(k_act, n_pol))
+        k_dyn, k_end = end_key(k_dyn, hazard_fn)
+        next_obs = dynamics(roll.obs, action, k_dyn)
+        live = roll.alive & (roll.t < horizon)
+        reward = reward_fn(roll.obs, action, next_obs)
+        done = ends_episode(roll.obs, action, next_obs, k_end, done_fn, hazard_fn)
+        discount = jnp.asarray(gamma, jnp.float32) ** roll.t.astype(jnp.float32)
+        return ValueRollout(
+            obs=jnp.where(live[..., None], next_obs, roll.obs),
+            alive=roll.alive & ~(live & done),
+            ret=roll.ret + jnp.where(live, discount * reward, 0.0),
+            length=roll.length + live.astype(jnp.int32),
+            t=jnp.minimum(roll.t + 1, horizon)), None
+
+    roll, _ = jax.lax.scan(step, roll, jax.random.split(key, n_steps))
+    return roll
+
+
+def simulated_returns(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
+                      done_fn: Callable | None, start_pool: jax.Array, key: jax.Array, *,
+                      n_episodes: int, horizon: int, gamma: float,
+                      hazard_fn: Callable | None = None) -> tuple[jax.Array, jax.Array]:
+    """Each simulated episode's discounted return and length: n_episodes episodes of at most
+    ``horizon`` steps per policy, ended as ``ends_episode`` says.
+    -> (returns [P, n], lengths [P, n] int32)."""
+    k_start, k_run = jax.random.split(key)
+    n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
+    roll = start_values(start_pool, n_pol, n_episodes, k_start)
+    roll = advance_values(roll, policy_params, dynamics, reward_fn, done_fn, k_run,
+                          n_steps=horizon, horizon=horizon, gamma=gamma, hazard_fn=hazard_fn)
+    return roll.ret, roll.length
+
+
+def simulator_returns(sim: Simulator, task, policy_params: Params, start_pool: jax.Array,
+                      key: jax.Array, *, n_episodes: int, horizon: int, gamma: float
+                      ) -> tuple[jax.Array, jax.Array]:
+    """``simulated_returns`` of a Simulator under a task's ``reward_fn`` / ``done_fn``, its
+    episodes ended as the simulator's ``termination`` says (``Simulator.terminations``).
+    -> (returns [P, n], lengths [P, n] int32)"""
+    done_fn, hazard_fn = sim.terminations(task.done_fn)
+    return simulated_returns(policy_params, sim.dynamics, task.reward_fn, done_fn, start_pool,
+                             key, n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                             hazard_fn=hazard_fn)
+
+
+def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
+                     done_fn: Callable | None, start_pool: jax.Array, key: jax.Array, *,
+                     n_episodes: int, horizon: int, gamma: float,
+                     hazard_fn: Callable | None = None) -> tuple[jax.Array, jax.Array]:
+    """Discounted value of each policy in ``dynamics``: mean over n_episodes episodes of at
+    most ``horizon`` steps (``simulated_returns`` averaged).
+    -> (values [P], mean episode lengths [P])."""
+    ret, length = simulated_returns(policy_params, dynamics, reward_fn, done_fn, start_pool,
+                                    key, n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                                    hazard_fn=hazard_fn)
+    return ret.mean(1), length.mean(1).astype(jnp.float32)
+
+
+def value_difference(sim_values: jax.Array, true_values: jax.Array) -> jax.Array:
+    """VD(pi) = |V(p*, pi) - V(p_phi, pi)|, elementwise [P]."""
+    return jnp.abs(true_values - sim_values)
+
+
+# ------------------------------------------------------------------ open loop
+
+
+def open_loop_windows(ds, k: int, n_windows: int, seed: int = 0
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Windows of at most ``k`` logged steps per policy of a Dataset, for ``open_loop_returns``.
+
+    Start rows are drawn uniformly (with replacement, ``seed``) among a policy's rows whose
+    episode either goes on for k more steps in the data or ends by termination before that; a
+    window cut by the time limit or the end of collection has no known outcome and is never
+    drawn. -> (rows [P, n_windows] int64 start rows, steps [P, n_windows] int64: the logged
+    steps of each window, k unless the episode terminates first)."""
+    if not (isinstance(k, int | np.integer) and k >= 1):
+        raise ValueError(f"k: expected an int >= 1, got {k!r}")
+    if not (isinstance(n_windows, int | np.integer) and n_windows >= 1):
+        raise ValueError(f"n_windows: expected an int >= 1, got {n_windows!r}")
+    pid, eid = np.asarray(ds.policy_id), np.asarray(ds.episode_id)
+    done = np.asarray(ds.done, bool)
+    n = pid.shape[0]
+    new = np.r_[True, (np.diff(eid) != 0) | (np.diff(pid) != 0)]
+    last = np.r_[np.flatnonzero(new)[1:] - 1, n - 1][np.cumsum(new) - 1]  # each row's episode end
+    left = last - np.arange(n) + 1  # logged steps from this row to its episode's end
+    ok = (left >= k) | done[last]
+    rng = np.random.default_rng(seed)
+    rows = np.empty((ds.n_policies, n_windows), np.int64)
+    for p in range(ds.n_policies):
+        mine = np.flatnonzero(ok & (pid == p))
+        if mine.size == 0:
+            raise ValueError(f"policy_id: policy {p} has no window of {k} logged steps that "
+                             f"ends by the data's own termination or goes on k steps")
+        rows[p] = rng.choice(mine, n_windows)
+    return rows, np.minimum(left[rows], k)
+
+
+def open_loop_returns(dynamics: Dynamics, reward_fn: Callable, done_fn: Callable | None,
+                      obs: jax.Array, actions: jax.Array, steps: jax.Array, key: jax.Array, *,
+                      hazard_fn: Callable | None = None
+                      ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """``dynamics`` rolled from real states under LOGGED actions (no policy in the loop): the
+    model's error on a fixed action sequence, which a closed-loop episode mixes with the
+    policy's reaction to it.
+
+    obs [N, o] start states; actions [N, k, a] (entries past ``steps`` are never used);
+    steps [N] logged steps of each window. The simulated episode ends as ``ends_episode``
+    says. -> (reward [N, k]: each simulated step's reward, 0 once the simulated episode has
+    ended or past ``steps``; live [N, k]: step j was taken; ended [N, k]: step j ended it)."""
+    n_steps = actions.shape[1]
+
+    def step(carry, xs):
+        s, alive = carry
+        a, j, k_step = xs
+        k_dyn, k_end = jax.random.split(k_step)
+        nxt = dynamics(s, a, k_dyn)
+        live = alive & (j < steps)
+        reward = jnp.where(live, reward_fn(s, a, nxt), 0.0)
+        done = ends_episode(s, a, nxt, k_end, done_fn, hazard_fn)
+        return (nxt, alive & ~(live & done)), (reward, live, live & done)
+
+    alive0 = jnp.ones(obs.shape[:-1], bool)
+    xs = (jnp.swapaxes(actions, 0, 1), jnp.arange(n_steps), jax.random.split(key, n_steps))
+    _, out = jax.lax.scan(step, (obs, alive0), xs)
+    return tuple(jnp.swapaxes(x, 0, 1) for x in out)
+
+
+def logged_window_returns(ds, rows: np.ndarray, steps: np.ndarray, k: int,
+                          reward_fn: Callable) -> tuple[np.ndarray, np.ndarray]:
+    """What the real system did in the windows of ``open_loop_windows``: the per-step reward
+    ``reward_fn`` gives the logged transitions (as the simulator's rewards are computed) and
+    whether the window ends by termination. rows, steps [...] -> (reward [..., k] (0 past
+    ``steps``), ended [...] bool)."""
+    j = np.arange(k)
+    idx = np.asarray(rows)[..., None] + np.minimum(j, np.asarray(steps)[..., None] - 1)
+    valid = j < np.asarray(steps)[..., None]
+    reward = np.asarray(reward_fn(jnp.asarray(np.asarray(ds.obs)[idx]),
+                                  jnp.asarray(np.asarray(ds.action)[idx]),
+                                  jnp.asarray(np.asarray(ds.next_obs)[idx])), np.float64)
+    ended = np.asarray(ds.done, bool)[idx[..., -1]]
+    return np.where(valid, reward, 0.0), ended
+
+
+# ------------------------------------------------------------------ error on the visited states
+
+
+def step_errors(model_next: jax.Array, reference_next: jax.Array, obs: jax.Array,
+                action: jax.Array, reward_fn: Callable, scale: jax.Array
+                ) -> tuple[jax.Array, jax.Array]:
+    """One step's error of a simulator against a reference from the same (obs, action): the
+    next states' difference per dim in units of ``scale`` [o] (0 where the scale is 0: the dim
+    is left out), and the reward difference r(s, a, model) - r(s, a, reference).
+    [..., o] -> (scaled error [..., o], reward difference [...]); ``mean_square`` of the first
+    is the step's squared error over the dims used."""
+    scale = jnp.asarray(scale, jnp.float32)
+    used = scale > 0
+    z = jnp.where(used, (model_next - reference_next) / jnp.where(used, scale, 1.0), 0.0)
+    return z, reward_fn(obs, action, model_next) - reward_fn(obs, action, reference_next)
+
+
+def mean_square(z: jax.Array, scale: jax.Array) -> jax.Array:
+    """The mean of z ** 2 over the dims with ``scale`` > 0. [..., o] -> [...]"""
+    return jnp.sum(z ** 2, -1) / jnp.maximum(jnp.sum(jnp.asarray(scale) > 0), 1)
+
+
+def visited_step_errors(policy_params: Params, dynamics: Dynamics, reference: Dynamics,
+                        reward_fn: Callable, done_fn: Callable | None, start_pool: jax.Array,
+                        key: jax.Array, *, n_episodes: int, horizon: int, scale: jax.Array,
+                        hazard_fn: Callable | None = None) -> dict:
+    """A simulator's one-step error on the states ITS OWN closed-loop episodes visit: the
+    policies' episodes run in ``dynamics`` as ``simulated_returns`` runs them (start states,
+    termination), and at every live step ``reference`` (the real dynamics, e.g.
+    ``oracle.oracle_dynamics``) is stepped from the same state and action (``step_errors``).
+    Beside the same error on logged states it shows whether the model errs more where it
+    takes the policies than where the data is.
+
+    policy_params [P, ...]; scale [o]. -> {"rmse", "reward_bias" (mean reward difference per
+    step), "reward_abs" (its mean absolute value), "steps" (live steps)}: each [P]; and
+    "rmse_per_dim" [P, o]."""
+    n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
+    k_start, k_run = jax.random.split(key)
+    roll = start_values(start_pool, n_pol, n_episodes, k_start)
+    act = jax.vmap(sample_action)
+    zeros = jnp.zeros(roll.alive.shape, jnp.float32)
+
+    def step(carry, key):
+        obs, alive, t, dim_sum, bias_sum, abs_sum, count = carry
+        k_act, k_dyn = jax.random.split(key)  # advance_values' draws: the same episodes
+        action, _, _ = act(policy_params, obs, jax.random.split(k_act, n_pol))
+        k_ref = jax.random.fold_in(k_dyn, 1)
+        k_dyn, k_end = end_key(k_dyn, hazard_fn)
+        nxt = dynamics(obs, action, k_dyn)
+        ref = reference(obs, action, k_ref)
+        z, dr = step_errors(nxt, ref, obs, action, reward_fn, scale)
+        live = alive & (t < horizon)
+        w = live.astype(jnp.float32)
+        done = ends_episode(obs, action, nxt, k_end, done_fn, hazard_fn)
+        return (jnp.where(live[..., None], nxt, obs), alive & ~(live & done), t + 1,
+                dim_sum + w[..., None] * z ** 2, bias_sum + w * dr, abs_sum + w * jnp.abs(dr),
+                count + w), None
+
+    carry = (roll.obs, roll.alive, jnp.zeros((), jnp.int32), jnp.zeros_like(roll.obs), zeros,
+             zeros, zeros)
+    carry, _ = jax.lax.scan(step, carry, jax.random.split(k_run, horizon))
+    dim_sum = carry[3].sum(1)  # [P, o], over episodes
+    bias_sum, abs_sum, count = (jnp.sum(x, -1) for x in carry[4:])
+    n = jnp.maximum(count, 1.0)
+    per_dim = jnp.sqrt(dim_sum / n[:, None])
+    return {"rmse": jnp.sqrt(mean_square(per_dim, scale)), "reward_bias": bias_sum / n,
+            "reward_abs": abs_sum / n, "steps": count, "rmse_per_dim": per_dim}

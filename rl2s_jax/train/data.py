@@ -1,0 +1,166 @@
+"""``TrainData``: a Dataset and its policies on the device, with held-out episodes for scoring."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from rl2s_jax.data.episodes import from_dataset, split_episodes
+from rl2s_jax.data.values import true_values
+from rl2s_jax.model.dynamics import Normalizer
+from rl2s_jax.model.simulator import (
+    start_pool,
+)
+from rl2s_jax.policy.policy import Params, num_policies
+from rl2s_jax.train.config import TrainConfig
+
+
+@struct.dataclass
+class TrainData:
+    """The training data on the device, training rows grouped by policy.
+
+    obs [N, o], action [N, a], next_obs [N, o]; policy_start, policy_count [P] (policy p owns
+    rows policy_start[p] : policy_start[p] + policy_count[p]); start_pool [S, o] real episode
+    start states; true_value [P] discounted value over vd_horizon steps (NaN = unknown);
+    policies: the P training policies, stacked; norm: the training rows' Normalizer;
+    val_obs, val_action, val_next_obs [V, ...]: rows of the held-out episodes the members are
+    scored on (V = 0 without held-out episodes); those episodes are not among the N rows.
+    steps_left [N] int32: how many rows of the same episode follow row i, in order (row i + j
+    continues row i for j <= steps_left[i]); the multi-step loss needs it (None: unknown).
+    done [N] float32: 1 where the row's next state is terminal (the learned termination hazard
+    is fitted to it; None: unknown).
+    """
+
+    obs: jax.Array
+    action: jax.Array
+    next_obs: jax.Array
+    policy_start: jax.Array
+    policy_count: jax.Array
+    start_pool: jax.Array
+    true_value: jax.Array
+    policies: Params
+    norm: Normalizer
+    val_obs: jax.Array
+    val_action: jax.Array
+    val_next_obs: jax.Array
+    steps_left: jax.Array | None = None
+    done: jax.Array | None = None
+
+    @property
+    def n_policies(self) -> int:
+        return int(self.policy_start.shape[0])
+
+    @property
+    def n_heldout(self) -> int:
+        return int(self.val_obs.shape[0])
+
+
+def heldout_mask(ds, holdout_frac: float, seed: int = 0) -> np.ndarray:
+    """[N] bool: the rows of whole held-out episodes, ``holdout_frac`` of each policy's
+    episodes (at least one of every policy with two or more; ``diagnose.episodes
+    .split_episodes``). All False for holdout_frac = 0."""
+    if not holdout_frac:
+        return np.zeros(ds.n_transitions, bool)
+
+    eps = from_dataset(ds, position_dims=())
+    try:
+        _, held = split_episodes(eps, holdout_frac, seed)
+    except ValueError:
+        raise ValueError("holdout_frac: no training policy has 2 or more episodes, so none can "
+                         "be held out to score the members; collect longer or set "
+                         "holdout_frac=0 (with n_elites = ensemble_size and "
+                         "early_stop_patience = 0)") from None
+    return np.isin(eps.episode, held)
+
+
+def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
+    """TrainData from a Dataset and its P stacked policies (policy i of ``policies`` collected
+    the rows with policy_id i).
+
+    ``holdout_frac`` of every policy's episodes are held out whole (``heldout_mask``); up to
+    ``holdout_rows`` of their rows, evenly spread, score the members. The true values: the
+    Dataset's measured discounted values when vd_horizon covers the whole episode and gamma
+    matches; otherwise the logged episodes' discounted return over the first vd_horizon steps
+    (all episodes, held-out ones included).
+    """
+    P = ds.n_policies
+    if num_policies(policies) != P:
+        raise ValueError(f"policies: expected {P} stacked policies (the Dataset's n_policies), "
+                         f"got {num_policies(policies)}")
+    pid = np.asarray(ds.policy_id)
+    counts = np.bincount(pid, minlength=P)
+    if (counts == 0).any():
+        raise ValueError(f"policy_id: expected rows for every policy, none for policy "
+                         f"{int(np.flatnonzero(counts == 0)[0])}")
+    held = heldout_mask(ds, config.holdout_frac)
+    keep = np.flatnonzero(~held)
+    counts = np.bincount(pid[keep], minlength=P)
+    order = keep[np.argsort(pid[keep], kind="stable")]
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    val = np.flatnonzero(held)
+    if val.size > config.holdout_rows:
+        val = val[np.round(np.linspace(0, val.size - 1, config.holdout_rows)).astype(int)]
+    true_value = true_values(ds, config.vd_horizon, config.gamma, strict=bool(config.vd_every))
+    f32 = lambda x, rows: jnp.asarray(np.asarray(x)[rows], jnp.float32)
+    obs, action, next_obs = (np.asarray(x)[keep] for x in (ds.obs, ds.action, ds.next_obs))
+    steps_left = episode_steps_left(np.asarray(ds.policy_id)[order],
+                                    np.asarray(ds.episode_id)[order], np.asarray(ds.t)[order])
+    return TrainData(obs=f32(ds.obs, order), action=f32(ds.action, order),
+                     next_obs=f32(ds.next_obs, order),
+                     policy_start=jnp.asarray(starts, jnp.int32),
+                     policy_count=jnp.asarray(counts, jnp.int32),
+                     start_pool=start_pool(ds),
+                     true_value=jnp.asarray(true_value, jnp.float32),
+                     policies=jax.tree_util.tree_map(jnp.asarray, policies),
+                     norm=Normalizer.from_data(obs, action, next_obs,
+                                               ignore_dims=config.ignore_dims),
+                     val_obs=f32(ds.obs, val), val_action=f32(ds.action, val),
+                     val_next_obs=f32(ds.next_obs, val),
+                     steps_left=jnp.asarray(steps_left, jnp.int32),
+                     done=f32(ds.done, order))
+
+
+def episode_steps_left(policy_id: np.ndarray, episode_id: np.ndarray, t: np.ndarray
+                       ) -> np.ndarray:
+    """[N] int: for each row, how many following rows continue its episode without a gap (same
+    policy and episode, t one higher each row). Rows are in storage order."""
+    n = len(t)
+    cont = np.zeros(n, bool)  # cont[i]: row i + 1 continues row i
+    if n > 1:
+        cont[:-1] = ((policy_id[1:] == policy_id[:-1]) & (episode_id[1:] == episode_id[:-1])
+                     & (t[1:] == t[:-1] + 1))
+    run = np.cumsum(np.r_[0, ~cont[:-1]]) if n else np.zeros(0, int)  # run id of each row
+    last = np.zeros(run.max() + 1 if n else 0, int)
+    np.maximum.at(last, run, np.arange(n))
+    return last[run] - np.arange(n)
+
+
+def _sample_rows(key: jax.Array, data: TrainData, selected: jax.Array, n: int) -> jax.Array:
+    """Row indices [n]: a policy uniformly among the selected, then one of its rows uniformly."""
+    k_pol, k_row = jax.random.split(key)
+    logits = jnp.where(selected, 0.0, -jnp.inf)
+    pol = jax.random.categorical(k_pol, logits, shape=(n,))
+    count = data.policy_count[pol]
+    off = jnp.floor(jax.random.uniform(k_row, (n,)) * count).astype(jnp.int32)
+    return data.policy_start[pol] + jnp.minimum(off, count - 1), pol
+
+
+def _real_batch(key, data: TrainData, selected, n):
+    rows, _ = _sample_rows(key, data, selected, n)
+    return data.obs[rows], data.action[rows], data.next_obs[rows]
+
+
+def _real_windows(key, data: TrainData, selected, n: int, k: int):
+    """n windows of k consecutive rows of one episode, starting at rows drawn as _real_batch's.
+    -> (obs [n, o] the first state, action [n, k, a], next_obs [n, k, o], valid [n, k]: step
+    j exists (the episode goes on that long; invalid steps repeat the last valid row))."""
+    if data.steps_left is None:
+        raise ValueError("multistep_steps: the multi-step loss needs TrainData.steps_left "
+                         "(make_train_data sets it); set multistep_steps=1")
+    rows, _ = _sample_rows(key, data, selected, n)
+    j = jnp.arange(k)[None, :]
+    left = data.steps_left[rows][:, None]
+    idx = rows[:, None] + jnp.minimum(j, left)
+    return data.obs[rows], data.action[idx], data.next_obs[idx], j <= left

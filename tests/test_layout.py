@@ -1,0 +1,160 @@
+"""The package's shape (issue 37's bars): no import cycle among modules or subpackages
+(module-level and function-local imports both count), no module over 600 lines, diagnosis
+trains nothing of its own (no optax under diagnose/), lower layers never import upper ones."""
+
+import ast
+import pathlib
+
+import pytest
+
+PKG = pathlib.Path(__file__).resolve().parents[1] / "rl2s_jax"
+MAX_LINES = 600
+# Known misses of the bars, each with what removes it; strict xfails, so the entry must go
+# when the miss is fixed. diagnose/model.py is diagnosis's own trainer (its optimiser, critic
+# and loop): issue 37 item 1 replaces it with train_step lanes.
+KNOWN_MISSES = {"diagnose/model.py": "issue 37 item 1: diagnosis fits through train_step"}
+# Lower layers first; a module may import only from its own layer or lower ones.
+LAYERS = [
+    {"_quiet", "compile_cache", "sharding", "envs", "policy"},
+    {"data"},
+    {"zoo", "model"},
+    {"evaluate"},
+    {"train"},
+    {"improve", "diagnose"},
+    {"app"},
+    {"cli", "__init__"},
+]
+
+
+def _modules() -> dict[str, pathlib.Path]:
+    mods = {}
+    for p in PKG.rglob("*.py"):
+        parts = ("rl2s_jax",) + p.relative_to(PKG).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        mods[name] = p
+    return mods
+
+
+def import_graph() -> dict[str, set[str]]:
+    """module -> the rl2s_jax modules it imports anywhere in its body (a package import counts
+    as an import of its __init__; ``from pkg import mod`` as an import of pkg.mod)."""
+    mods = _modules()
+    graph = {}
+    for name, path in mods.items():
+        is_pkg = path.name == "__init__.py"
+        here = name if is_pkg else name.rsplit(".", 1)[0]
+        targets = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                targets |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = here.split(".")[: len(here.split(".")) - node.level + 1]
+                    mod = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    mod = node.module
+                sub = [f"{mod}.{a.name}" for a in node.names if f"{mod}.{a.name}" in mods]
+                targets |= set(sub) if sub and len(sub) == len(node.names) else {mod, *sub}
+        graph[name] = {t for t in targets if t in mods and t != name}
+    return graph
+
+
+def _cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    state, stack = {}, []
+
+    def visit(n):
+        state[n] = 1
+        stack.append(n)
+        for m in sorted(graph.get(n, ())):
+            if state.get(m) == 1:
+                return stack[stack.index(m):] + [m]
+            if m not in state and (c := visit(m)):
+                return c
+        state[n] = 2
+        stack.pop()
+        return None
+
+    for n in sorted(graph):
+        if n not in state and (c := visit(n)):
+            return c
+    return None
+
+
+def _top(name: str) -> str:
+    parts = name.split(".")
+    return parts[1] if len(parts) > 1 else "__init__"
+
+
+def _package_graph(graph):
+    pg = {}
+    for a, bs in graph.items():
+        pg.setdefault(_top(a), set()).update(_top(b) for b in bs if _top(b) != _top(a))
+    return pg
+
+
+def test_cycle_finder_finds_a_planted_cycle():
+    assert _cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}}) == ["a", "b", "c", "a"]
+    assert _cycle({"a": {"b"}, "b": set()}) is None
+
+
+def test_no_import_cycle_among_modules():
+    graph = import_graph()
+    # The package __init__ re-exports the public API from below; only it may import upward.
+    graph = {k: {m for m in v if m != "rl2s_jax"} for k, v in graph.items()}
+    assert _cycle(graph) is None, f"import cycle: {' -> '.join(_cycle(graph))}"
+
+
+def test_no_import_cycle_among_subpackages():
+    pg = _package_graph({k: {m for m in v if m != "rl2s_jax"} for k, v in import_graph().items()
+                         if k != "rl2s_jax"})
+    assert _cycle(pg) is None, f"subpackage cycle: {' -> '.join(_cycle(pg))}"
+
+
+def test_layers_point_down():
+    level = {name: i for i, layer in enumerate(LAYERS) for name in layer}
+    up = [(a, b) for a, bs in import_graph().items() for b in bs
+          if b != "rl2s_jax" and level[_top(b)] > level[_top(a)]]
+    assert not up, f"imports that point up the layers: {up}"
+
+
+def _size_case(p):
+    rel = str(p.relative_to(PKG))
+    known = rel in KNOWN_MISSES
+    marks = [pytest.mark.xfail(strict=True, reason=KNOWN_MISSES[rel])] if known else []
+    return pytest.param(p, id=rel, marks=marks)
+
+
+@pytest.mark.parametrize("path", [_size_case(p) for p in sorted(PKG.rglob("*.py"))])
+def test_module_size(path):
+    n = len(path.read_text().splitlines())
+    assert n <= MAX_LINES, f"{path.relative_to(PKG)}: {n} lines (at most {MAX_LINES})"
+
+
+@pytest.mark.xfail(strict=True, reason=KNOWN_MISSES["diagnose/model.py"])
+def test_diagnose_trains_nothing_of_its_own():
+    users = [str(p.relative_to(PKG)) for p in (PKG / "diagnose").rglob("*.py")
+             if any(isinstance(n, (ast.Import, ast.ImportFrom))
+                    and any("optax" in (getattr(n, "module", None) or a.name)
+                            for a in n.names)
+                    for n in ast.walk(ast.parse(p.read_text())))]
+    assert not users, f"diagnose/ modules that import optax: {users}"
+
+
+def test_function_local_imports_say_why():
+    """A function-local import only to keep start-up fast, with a comment that says so (the
+    command line's are explained in cli.py's docstring; the package's lazy Gymnasium envs in
+    its __getattr__'s)."""
+    unexplained = []
+    for p in sorted(PKG.rglob("*.py")):
+        rel = str(p.relative_to(PKG))
+        if rel in ("cli.py", "__init__.py"):
+            continue
+        lines = p.read_text().splitlines()
+        for f in ast.walk(ast.parse("\n".join(lines))):
+            if isinstance(f, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for s in ast.walk(f):
+                    if isinstance(s, (ast.Import, ast.ImportFrom)):
+                        near = " ".join(lines[max(0, s.lineno - 6):s.lineno])
+                        if "Imported here" not in near and "# local:" not in near:
+                            unexplained.append(f"{rel}:{s.lineno}")
+    assert not unexplained, f"function-local imports without a reason: {unexplained}"

@@ -3,7 +3,8 @@ improve | pipeline | diagnose.
 
 Argument parsing only; each command's work is in ``rl2s_jax.app``. The app modules are
 imported inside the command functions, on purpose: importing them loads JAX, brax and MuJoCo
-(seconds), which ``rl2s --help`` and a bad argument should not wait for.
+(seconds), which ``rl2s --help`` and a bad argument should not wait for. The outputs a
+command names are checked right after parsing, before any work (``OUTPUTS``, app/paths.py).
 """
 
 from __future__ import annotations
@@ -238,6 +239,7 @@ def cmd_diagnose(args) -> int:
 
     from rl2s_jax.app.diagnose import diagnose
     from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.diagnose.extension import train_command
     from rl2s_jax.diagnose.model import ModelSpec
 
     if not 0.0 < args.heldout < 1.0:
@@ -274,6 +276,12 @@ def cmd_diagnose(args) -> int:
             d = g["difference"][k]
             print(f"  {k:<16} {g['before'][k]:9.4f} -> {g['after'][k]:9.4f}  "
                   f"({d['mean']:+.4f} +- {d['std']:.4f} over {len(g['seeds'])} seeds)")
+    ext = report["extension"]
+    command = train_command(report, args.data, os.path.join(args.out, "extended"))
+    if command:
+        print(f"build the extended simulator (extension.train_set in report.json):\n  {command}")
+    for n in ext.get("not_trainable", []):
+        print(f"  not built by rl2s train yet: {n['change']} ({n['why']})")
     print(f"-> {args.out}/report.md, report.json")
     return 0
 
@@ -505,7 +513,47 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# The files and directories each command writes, as (option, "file" | "dir"); main checks
+# them right after parsing, before any work (rl2s_jax/app/paths.py).
+OUTPUTS = {
+    "zoo": (("--out", "dir"), ("--work", "dir"), ("--export", "file")),
+    "collect": (("--out", "file"),),
+    "import": (("--out", "file"),),
+    "export": (("--out", "dir"),),
+    "train": (("--out", "dir"),),
+    "evaluate": (("--json", "file"),),
+    "improve": (("--out", "dir"),),
+    "pipeline": (("--out", "dir"),),
+    "diagnose": (("--out", "dir"),),
+}
+
+
+def check_outputs(parser: argparse.ArgumentParser, args) -> None:
+    """Exit with one line and argparse's usage-error status 2 when an output the command
+    names cannot be written (before it loads data, compiles or collects anything)."""
+    from rl2s_jax.app.paths import output_error
+
+    for option, kind in OUTPUTS.get(args.command, ()):
+        path = getattr(args, option.lstrip("-").replace("-", "_"))
+        error = None if path is None else output_error(option, path, kind)
+        if error:
+            parser.exit(2, f"rl2s {args.command}: error: {error}\n")
+
+
 def main(argv: list[str] | None = None) -> int:
+    try:
+        rc = _main(argv)
+        sys.stdout.flush()  # a closed pipe shows here, not in the flush at exit
+    except BrokenPipeError:
+        # stdout closed early (`rl2s inspect ... | head -1`): quiet, as Python's docs advise
+        # (library/signal.html, note on SIGPIPE): devnull takes stdout, so the flush at exit
+        # finds no closed pipe either.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        sys.exit(1)
+    return rc
+
+
+def _main(argv: list[str] | None) -> int:
     import warnings
 
     # brax warns on every env it builds that it is unmaintained; we use only its envs.
@@ -513,7 +561,9 @@ def main(argv: list[str] | None = None) -> int:
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
     from rl2s_jax.train.checkpoint import CheckpointWarning
 
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    check_outputs(parser, args)
     from rl2s_jax import compile_cache
 
     compile_cache.enable()

@@ -12,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-from rl2s_jax.app.diagnose import diagnose, extension_for
+from rl2s_jax.app.diagnose import diagnose
 from rl2s_jax.data.episodes import from_dataset, half_split, pool_episodes, split_episodes
 from rl2s_jax.diagnose.causes import (
     CAUSES,
@@ -25,6 +25,7 @@ from rl2s_jax.diagnose.causes import (
     sign_flip_p,
     variance_from_log,
 )
+from rl2s_jax.diagnose.extension import extension_for
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.diagnose.planted import make_planted
 

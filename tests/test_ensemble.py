@@ -292,7 +292,7 @@ def test_one_member_training_reproduces_the_single_generator(pm):
     def updates(gen, opt, k_upd):
         def one(carry, k):
             gen, opt = carry
-            batch = T.step._real_batch(k, data, everyone, cfg.batch_size)
+            batch = T.data._real_batch(k, data, everyone, cfg.batch_size)
             loss, g = jax.value_and_grad(
                 lambda p: -jnp.mean(models.generator_log_prob(p, data.norm, *batch)))(gen)
             u, opt = tx.update(g, opt, gen)
@@ -535,7 +535,7 @@ def test_multistep_error_matches_numpy(pm):
     data = T.make_train_data(ds, policies, cfg)
     norm = data.norm
     member = dyn.init_member(jax.random.PRNGKey(7), cfg.dynamics_spec, 2, 1)
-    obs, act, nxt, valid = T.step._real_windows(jax.random.PRNGKey(2), data,
+    obs, act, nxt, valid = T.data._real_windows(jax.random.PRNGKey(2), data,
                                            jnp.ones(data.n_policies, bool), 64, 4)
     assert (~np.asarray(valid)).any() and np.asarray(valid)[:, 0].all()
     got = T.multistep_error(member, norm, obs, act, nxt, valid, cfg.obs_clip)
@@ -563,7 +563,7 @@ def test_multistep_training_lowers_the_k_step_error(pm):
                               multistep_steps=5, multistep_weight=1.0)
     data = T.make_train_data(ds, policies, cfg)
     state = T.init(jax.random.PRNGKey(0), cfg, data)
-    windows = T.step._real_windows(jax.random.PRNGKey(5), data, jnp.ones(data.n_policies, bool),
+    windows = T.data._real_windows(jax.random.PRNGKey(5), data, jnp.ones(data.n_policies, bool),
                               256, 5)
 
     def k_step_error(st):
@@ -583,7 +583,7 @@ def test_multistep_training_lowers_the_k_step_error(pm):
     key = jax.random.PRNGKey(11)
     _, _, got = T.member_mle_updates(member, T.step._gen_tx(one, one.bc_lr).init(member), key, data,
                                      everyone, state.norm, one)
-    obs, act, nxt, valid = T.step._real_windows(jax.random.split(key, 1)[0], data, everyone,
+    obs, act, nxt, valid = T.data._real_windows(jax.random.split(key, 1)[0], data, everyone,
                                            one.batch_size, 5)
     want = (-jnp.mean(models.generator_log_prob(member, state.norm, obs, act[:, 0], nxt[:, 0]))
             + 2.5 * T.multistep_error(member, state.norm, obs, act, nxt, valid, one.obs_clip)
@@ -613,7 +613,7 @@ def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm):
     anchored = state.replace(config=dataclasses.replace(cfg, adv_nll_weight=w))
     _, mw = T.step._adversarial_updates(anchored, data, key)
     k_real = jax.random.split(jax.random.split(key, 1)[0], 4)[1]
-    r_obs, r_act, r_next = T.step._real_batch(k_real, data, state.selected, cfg.batch_size)
+    r_obs, r_act, r_next = T.data._real_batch(k_real, data, state.selected, cfg.batch_size)
     nll = [float(-jnp.mean(models.generator_log_prob(_member(state.gen, i), state.norm, r_obs,
                                                        r_act, r_next)))
            for i in range(cfg.ensemble_size)]

@@ -18,7 +18,8 @@ import numpy as np
 from rl2s_jax.data.dataset import Dataset
 from rl2s_jax.data.episodes import Episodes, from_dataset, pool_episodes, split_episodes
 from rl2s_jax.data.values import true_values
-from rl2s_jax.diagnose.causes import diagnose_causes, rivals
+from rl2s_jax.diagnose.causes import diagnose_causes
+from rl2s_jax.diagnose.extension import extension_for, train_set
 from rl2s_jax.diagnose.gap_views import gaps_markdown, plot_gaps
 from rl2s_jax.diagnose.gaps import error_breakdown, jsonable
 from rl2s_jax.diagnose.model import (
@@ -26,6 +27,7 @@ from rl2s_jax.diagnose.model import (
     ModelSpec,
     fit_models,
     heldout_metrics,
+    history,
     kstep_errors,
     normalized_delta,
     predict,
@@ -33,69 +35,31 @@ from rl2s_jax.diagnose.model import (
 )
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.metrics import kendall_tau
+from rl2s_jax.model.history import History
 from rl2s_jax.train.checkpoint import load_meta, load_simulator
 from rl2s_jax.train.config import TrainConfig
 from rl2s_jax.zoo.zoo import policies_for
-
-EXTENSION_SHARE = 0.25  # secondary causes join the extension above this share of the top score
-NOISE_NLL_BETA = 0.5  # the noise extension's beta-NLL exponent. On the CPU Hopper noise
-# recording (85k, held-out episodes, 2 seeds), NLL / MSE: base -9.4 / 0.045; state noise with
-# beta 0: -15.3 / 0.099, beta 0.5: -17.0 / 0.036, beta 1: -11.5 / 0.034.
-
-
-def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]:
-    """The extended spec for the diagnosed causes: the top cause's extension, plus that of
-    every other significant cause scoring at least EXTENSION_SHARE of the top one; an
-    extension the base model already has is skipped. -> (spec, [{"cause", "change"}]); the
-    base spec and [] when the top cause is none (or nothing would change)."""
-    if causes["top_cause"] == "none":
-        return base, []
-    ranked = [c for c in causes["causes"] if c["significant"] and c["name"] != "none"]
-    ranked = [c for c in ranked if c["name"] in rivals(ranked[0]["name"])]
-    top_score = ranked[0]["score"]
-    spec, changes = base, []
-    for c in ranked:
-        if c["score"] < EXTENSION_SHARE * top_score:
-            continue
-        d = c["details"]
-        if c["name"] == "actuation_delay":
-            change = {"action_history": max(spec.action_history, int(d["lag"]))}
-        elif c["name"] == "unobserved_state":
-            change = {"obs_history": max(spec.obs_history, max(d["lags"] or [2]))}
-        elif c["name"] == "hidden_episode_parameter":
-            change = {"context_dim": max(spec.context_dim, 2)}
-        elif c["name"] == "stochastic_noise":
-            # beta-NLL keeps the state-dependent std from buying likelihood with the mean
-            # (plain NLL raised held-out MSE 2.3x on the Hopper noise variant; RESULTS.md)
-            change = {"noise": "state", "nll_beta": max(spec.nll_beta, NOISE_NLL_BETA)}
-        elif c["name"] == "time_drift":
-            over = "order" if d["over"] == "episode_order" else "step"
-            change = {"time_inputs": tuple(sorted(set(spec.time_inputs) | {over}))}
-        elif c["name"] == "coverage_gap":
-            change = {"policy_cvar_eps": 0.25}
-        else:  # pragma: no cover - a cause without an extension
-            continue
-        if all(getattr(spec, k) == v for k, v in change.items()):
-            continue  # the model already has it
-        spec = dataclasses.replace(spec, **change)
-        changes.append({"cause": c["name"],
-                        "change": {k: list(v) if isinstance(v, tuple) else v
-                                   for k, v in change.items()}})
-    return spec.validate(), changes
 
 
 def _checkpoint_residuals(ckpt: str, base: FittedModels, eps: Episodes, rows: np.ndarray):
     """Residuals of a saved simulator, in the base model's normalised delta units: its
     predictive mean and std (for an ensemble stepping a random elite: the elites' mixture, so
-    the std includes their disagreement; ``Simulator.predictive``)."""
-
-
+    the std includes their disagreement; ``Simulator.predictive``); a simulator with history
+    inputs sees each row's logged past."""
     sim = load_simulator(ckpt)
     if np.asarray(sim.norm.obs_mean).shape[0] != eps.obs_size:
         raise ValueError(f"ckpt: the simulator's obs size {np.asarray(sim.norm.obs_mean).shape[0]}"
                          f" differs from the data's {eps.obs_size}")
-    mean, std_n = jax.jit(lambda s, o, a: s.predictive(o, a))(
-        sim, eps.obs[rows].astype(np.float32), eps.action[rows].astype(np.float32))
+    hist = None
+    if not sim.markov:
+        past_obs, obs_valid = history(eps, eps.obs.astype(np.float32), sim.obs_history, rows)
+        past_act, act_valid = history(eps, eps.action.astype(np.float32), sim.action_history,
+                                      rows)
+        hist = History(past_obs=past_obs, past_obs_valid=obs_valid, past_act=past_act,
+                       past_act_valid=act_valid, t=eps.t[rows].astype(np.int32),
+                       time_inputs=sim.time_inputs, episode_length=sim.episode_length)
+    mean, std_n = jax.jit(lambda s, o, a, h: s.predictive(o, a, h))(
+        sim, eps.obs[rows].astype(np.float32), eps.action[rows].astype(np.float32), hist)
     d_std = np.asarray(base.norm.delta_std, np.float64)
     s_std, s_mean = (np.asarray(x, np.float64) for x in (sim.norm.delta_std, sim.norm.delta_mean))
     pred = s_mean + s_std * np.asarray(mean, np.float64)
@@ -163,6 +127,16 @@ def _method_spec(spec: ModelSpec, ckpt: str | None) -> tuple[ModelSpec, str]:
         change["policy_cvar_eps"] = eps
         words += f", CVaR over the worst {eps:g} of policies (ranked by NLL)"
     return dataclasses.replace(spec, **change).validate(), words
+
+
+def _saved_method(ckpt: str | None) -> str:
+    """The method the diagnosed checkpoint was trained with (rl2s without one)."""
+    if ckpt is None:
+        return "rl2s"
+    try:
+        return str(load_meta(ckpt)["config"]["method"])
+    except (OSError, KeyError, ValueError):
+        return "rl2s"
 
 
 def _value_setup(ds: Dataset, zoo: str | None, horizon: int | None, gamma: float | None):
@@ -359,6 +333,8 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
         gain["saved"] = {"heldout_nll": float(_gaussian_nll(resid, std)),
                          "heldout_mse": float((resid ** 2).mean())}
     report["extension"]["trained_by"] = trained_by
+    report["extension"]["train_set"], report["extension"]["not_trainable"] = train_set(changes)
+    report["extension"]["method"] = _saved_method(ckpt)
     if changes:
         t0 = time.perf_counter()
         ext = fit_models(eps, fit_eps, spec, seeds, progress=progress)
@@ -547,6 +523,14 @@ def report_markdown(report: dict, gaps_md: str) -> str:
     if ext["changes"]:
         lines += [f"- {c['cause']}: {c['change']}" for c in ext["changes"]]
         lines += ["", f"Extended model: {', '.join(ext['extended']['extensions'])}.", ""]
+        if ext.get("train_set"):
+            lines += ["To train it as the simulator: `rl2s train ... "
+                      + " ".join(f"--set '{i}'" for i in ext["train_set"]) + "` "
+                      "(`extension.train_set` in report.json).", ""]
+        lines += [f"Not built by `rl2s train` yet: {n['change']} ({n['why']})."
+                  for n in ext.get("not_trainable", [])]
+        if ext.get("not_trainable"):
+            lines.append("")
     elif report["top_cause"] == "none":
         lines += ["None: no cause is significant, the base model is adequate.", ""]
     else:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 
 from rl2s_jax.data.dataset import load_dataset
-from rl2s_jax.evaluate.simulator import evaluate_simulator
+from rl2s_jax.evaluate.simulator import evaluate_simulator, one_step_errors
 from rl2s_jax.train.checkpoint import load_checkpoint
 from rl2s_jax.zoo.zoo import policies_for
 
@@ -23,6 +23,7 @@ def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None, se
                          f"checkpoint models {sim.task!r}")
     report = evaluate_simulator(sim, ds, policies_for(ds, zoo), key=jax.random.PRNGKey(seed),
                                 n_episodes=n_episodes, horizon=horizon, n_boot=n_boot)
+    report.update(one_step_errors(sim, ds))
     report.update(checkpoint=ckpt, step=meta["step"], method=meta["config"]["method"],
                   data=data_path, seed=seed, backend=jax.default_backend())
     return report
@@ -34,6 +35,10 @@ def format_report(r: dict) -> str:
     head = [f"{r.get('method', '?')} checkpoint step {r.get('step', '?')} on {r.get('data', '')}"
             f" ({len(r['vd'])} policies, {r['n_episodes']} episodes x {r['horizon']} steps)",
             "  ".join(f"{k} {v:.3f}" for k, v in m.items())]
+    if "heldout_nll" in r:
+        head.append(f"one-step error on these {r['one_step_rows']} transitions: heldout_nll "
+                    f"{r['heldout_nll']:.3f} nats (s' - s, data units), heldout_mse "
+                    f"{r['heldout_mse']:.4f} (per dim, in this data's std of s' - s)")
     if "intervals" in r:
         iv = r["intervals"]
         head.append(f"{iv['level']:.0%} bootstrap intervals over {iv['n_episodes']} episodes: "

@@ -126,6 +126,10 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     names_all = ds.meta.get("policy_names") or [f"policy-{i}" for i in range(ds.n_policies)]
     names = [names_all[i] for i in ids]
     sim = load_simulator(ckpt, step)
+    if branch_length is not None and not sim.markov:
+        raise ValueError("branch-length: branched rollouts start from logged mid-episode "
+                         "states without their past, and this simulator's members see the "
+                         "episode's past (history inputs); fine-tune from episode starts")
     pool = (start_pool(ds) if branch_length is None
             else branch_pool(ds, max_states=100_000, seed=seed))
     env_options = scaled_env_options(sim, *real_rows(ds, seed=seed),

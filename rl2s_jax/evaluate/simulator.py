@@ -9,12 +9,15 @@ from __future__ import annotations
 from functools import partial
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from rl2s_jax.data.values import true_values, true_values_se
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import bootstrap_intervals, ranking_metrics
 from rl2s_jax.evaluate.oracle import oracle_dynamics
+from rl2s_jax.model import dynamics as dyn
+from rl2s_jax.model.history import logged_history
 from rl2s_jax.model.simulator import Simulator, simulated_returns, simulator_returns, start_pool
 from rl2s_jax.policy.policy import Params, num_policies
 
@@ -74,7 +77,7 @@ def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
     horizon: steps per simulated episode (default: the data's episode_length); gamma: default
     the data's. -> {"true_value", "sim_value", "sim_length", "vd" (lists [P]), "metrics": {avd,
     mvd, kendall_tau, spearman, ndcg@k, regret@k}, "horizon", "gamma", "n_episodes"} and, with
-    n_boot > 0, "intervals" (``value_report``).
+    n_boot > 0, "intervals" (``value_report``). The one-step errors are ``one_step_errors``.
     """
     if sim.task is None:
         raise ValueError("ckpt: the simulator names no task, so there is no reward_fn/done_fn")
@@ -83,6 +86,52 @@ def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
                                     horizon=horizon, gamma=gamma)
     return value_report(ds, returns, lengths, horizon=horizon, gamma=gamma, ks=ks,
                         n_boot=n_boot)
+
+
+ONE_STEP_ROWS = 20_000  # rows that one-step errors are measured on (evenly spread)
+
+
+@jax.jit
+def _one_step(sim: Simulator, obs, action, next_obs, hist, scale):
+    means, log_stds = sim.member_dists(obs, action, hist)                  # [E, n, o]
+    y = sim.norm.norm_delta(obs, next_obs)
+    nll = jnp.mean(dyn.gaussian_nll(means, log_stds, y[None]), 1)          # [E]
+    nll = nll + jnp.sum(jnp.log(sim.norm.delta_std))  # nats of s' - s in the data's units
+    mean_next = sim.mean(obs, action, hist)
+    mse = jnp.mean(((mean_next - next_obs) / scale) ** 2)
+    return nll, mse
+
+
+def one_step_errors(sim: Simulator, ds, max_rows: int = ONE_STEP_ROWS) -> dict:
+    """The simulator's one-step error on the transitions of ``ds`` (for a fair score, data the
+    simulator never trained on: held-out episodes of the same system). Up to ``max_rows``
+    rows, evenly spread; a simulator with history inputs sees each row's logged past.
+
+    -> {"heldout_nll": mean over the elites of each member's Gaussian NLL of s' - s, in nats
+    per transition of the data's raw units (comparable across simulators and normalisers, the
+    quantity training's ``heldout_nll`` reports up to the constant sum(log delta_std)),
+    "heldout_mse": the mean squared error of the mean next state (``Simulator.mean``), per dim
+    in units of this data's own std of s' - s, averaged over dims; "one_step_rows": n}."""
+    n = ds.n_transitions
+    rows = (np.arange(n) if n <= max_rows
+            else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
+    obs, action, next_obs = (jnp.asarray(np.asarray(x, np.float32)[rows])
+                             for x in (ds.obs, ds.action, ds.next_obs))
+    if obs.shape[-1] != sim.norm.obs_mean.shape[-1] or (
+            action.shape[-1] != sim.norm.act_mean.shape[-1]):
+        raise ValueError(f"data: obs / action sizes {obs.shape[-1]} / {action.shape[-1]} do "
+                         f"not match the simulator's {sim.norm.obs_mean.shape[-1]} / "
+                         f"{sim.norm.act_mean.shape[-1]}")
+    hist = None if sim.markov else logged_history(
+        ds, rows, obs_history=sim.obs_history, action_history=sim.action_history,
+        time_inputs=sim.time_inputs, episode_length=sim.episode_length)
+    delta = np.asarray(ds.next_obs, np.float64) - np.asarray(ds.obs, np.float64)
+    scale = jnp.asarray(np.maximum(delta.std(0), 1e-6), jnp.float32)
+    nll, mse = _one_step(sim, obs, action, next_obs, hist, scale)
+    E = nll.shape[0]
+    elite = np.asarray(dyn.elite_mask(sim.rank, sim.n_elites, E))
+    return {"heldout_nll": float(np.asarray(nll)[elite].mean()), "heldout_mse": float(mse),
+            "one_step_rows": int(rows.size)}
 
 
 def oracle_returns(task: str, env=None):

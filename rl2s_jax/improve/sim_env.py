@@ -42,7 +42,7 @@ import numpy as np
 from brax.envs.base import Env, State
 
 from rl2s_jax.envs.tasks import Task, get_task
-from rl2s_jax.model.simulator import Simulator, end_key, ends_episode
+from rl2s_jax.model.simulator import Simulator, end_key, ends_episode, step_dynamics
 
 Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 Uncertainty = Callable[[jax.Array, jax.Array], jax.Array]
@@ -71,6 +71,10 @@ def simulator_uncertainty(sim) -> Uncertainty:
         raise ValueError("uncertainty_fn: the uncertainty penalty / stop rule needs "
                          "u(obs, action); pass uncertainty_fn= (only a Simulator has its own "
                          f"u, got {type(sim).__name__})")
+    if not sim.markov:
+        raise ValueError("uncertainty_penalty / uncertainty_threshold: the disagreement of a "
+                         "simulator with history inputs needs each step's past, which the "
+                         "penalty does not carry yet; leave them off for this simulator")
     members = sim.n_members
     elites = members if sim.rank is None or sim.n_elites is None else min(sim.n_elites, members)
     if elites < 2:
@@ -133,7 +137,8 @@ class SimulatorEnv(Env):
       uncertainty_threshold: terminate when u > this (None: never); may be a traced scalar.
       halt_penalty: subtracted from the reward of a step the stop rule ends (>= 0).
 
-    State: ``obs`` and ``pipeline_state`` are the observation [o]; ``reward``, ``done`` are
+    State: ``obs`` is the observation [o] and so is ``pipeline_state``, except for a Simulator
+    with history inputs, where it is (obs, the episode's ``History``); ``reward``, ``done`` are
     float32 scalars; ``info["rng"]`` the key of the next stochastic step,
     ``info["rollout_step"]`` the steps taken, ``info["truncation"]`` 1 at the rollout length;
     ``metrics["uncertainty"]``, ``metrics["halted"]`` of the last step.
@@ -150,7 +155,7 @@ class SimulatorEnv(Env):
                     raise ValueError("task: the Simulator names no task; pass task=")
                 task = sim.task
             if deterministic:
-                self._dynamics = lambda obs, action, key: sim.mean(obs, action)
+                self._dynamics = lambda obs, action, key, hist=None: sim.mean(obs, action, hist)
             else:
                 self._dynamics = sim.sample
         elif callable(sim):
@@ -203,7 +208,9 @@ class SimulatorEnv(Env):
         idx = jax.random.randint(k_idx, (), 0, self.start_pool.shape[0])
         obs = self.start_pool[idx]
         zero = jnp.zeros((), jnp.float32)
-        return State(pipeline_state=obs, obs=obs, reward=zero, done=zero,
+        hist = self.sim.new_history(()) if isinstance(self.sim, Simulator) else None
+        return State(pipeline_state=obs if hist is None else (obs, hist), obs=obs,
+                     reward=zero, done=zero,
                      metrics={"uncertainty": zero, "halted": zero},
                      info={"rng": k_step, "rollout_step": jnp.zeros((), jnp.int32),
                            "truncation": zero})
@@ -213,7 +220,9 @@ class SimulatorEnv(Env):
         k_dyn, k_next = jax.random.split(state.info["rng"])
         obs = state.obs
         k_dyn, k_end = end_key(k_dyn, self._hazard_fn)
-        next_obs = self._dynamics(obs, action, k_dyn).astype(jnp.float32)
+        hist = state.pipeline_state[1] if isinstance(state.pipeline_state, tuple) else None
+        next_obs, hist = step_dynamics(self._dynamics, obs, action, k_dyn, hist)
+        next_obs = next_obs.astype(jnp.float32)
         reward = self.task.reward_fn(obs, action, next_obs).astype(jnp.float32)
         done = ends_episode(obs, action, next_obs, k_end, self._done_fn,
                             self._hazard_fn).astype(jnp.float32)
@@ -231,8 +240,9 @@ class SimulatorEnv(Env):
             truncation = ((steps >= self.rollout_length) & (done < 0.5)).astype(jnp.float32)
         info = {**state.info, "rng": k_next, "rollout_step": steps, "truncation": truncation}
         metrics = {**state.metrics, "uncertainty": u, "halted": halted}
-        return state.replace(pipeline_state=next_obs, obs=next_obs, reward=reward, done=done,
-                             info=info, metrics=metrics)
+        return state.replace(pipeline_state=next_obs if hist is None else (next_obs, hist),
+                             obs=next_obs, reward=reward, done=done, info=info,
+                             metrics=metrics)
 
     @property
     def observation_size(self) -> int:

@@ -30,10 +30,10 @@ from rl2s_jax.model.dynamics import (
     Normalizer,
     bounded_log_std,
     gaussian_nll,
-    markov_inputs,
     member_dist,
     relu_mlp,
 )
+from rl2s_jax.model.history import History, step_inputs
 from rl2s_jax.policy.policy import init_mlp
 
 __all__ = ["LOG_STD_MAX", "LOG_STD_MIN", "Normalizer", "count_params", "discriminator",
@@ -58,25 +58,26 @@ def _member(gen) -> dict:
     return {"layers": gen} if isinstance(gen, list | tuple) else gen
 
 
-def generator_dist(gen, norm: Normalizer, obs: jax.Array, action: jax.Array
-                   ) -> tuple[jax.Array, jax.Array]:
+def generator_dist(gen, norm: Normalizer, obs: jax.Array, action: jax.Array,
+                   hist: History | None = None) -> tuple[jax.Array, jax.Array]:
     """Gaussian over the normalised delta.
 
-    obs [..., o], action [..., a] -> (mean, log_std), each [..., o].
+    obs [..., o], action [..., a], hist: the steps' past for a member with history inputs
+    (``rl2s_jax.model.history``; None: Markov) -> (mean, log_std), each [..., o].
     """
-    return member_dist(_member(gen), markov_inputs(norm, obs, action))
+    return member_dist(_member(gen), step_inputs(norm, obs, action, hist))
 
 
 def generator_sample(gen, norm: Normalizer, obs: jax.Array, action: jax.Array,
                      key: jax.Array, obs_clip: float | None = None,
-                     noise_scale: float = 1.0) -> jax.Array:
+                     noise_scale: float = 1.0, hist: History | None = None) -> jax.Array:
     """A reparameterised next-state sample s' ~ p_phi(.|s, a). -> [..., o]
 
     ``obs_clip`` bounds the normalised next state to [-obs_clip, obs_clip] so long simulated
     rollouts stay finite; leave it None where gradients must flow (the generator loss).
     ``noise_scale`` multiplies the std (0: the mean, for deterministic real systems).
     """
-    mean, log_std = generator_dist(gen, norm, obs, action)
+    mean, log_std = generator_dist(gen, norm, obs, action, hist)
     return sample_next(norm, obs, mean, log_std, key, obs_clip, noise_scale)
 
 
@@ -89,20 +90,20 @@ def sample_next(norm: Normalizer, obs, mean, log_std, key, obs_clip: float | Non
     return norm.clip_obs(norm.next_from_delta(obs, delta_n), obs_clip)
 
 
-def generator_mean(gen, norm: Normalizer, obs: jax.Array, action: jax.Array
-                   ) -> jax.Array:
+def generator_mean(gen, norm: Normalizer, obs: jax.Array, action: jax.Array,
+                   hist: History | None = None) -> jax.Array:
     """The generator's mean next state (no noise). -> [..., o]"""
-    mean, _ = generator_dist(gen, norm, obs, action)
+    mean, _ = generator_dist(gen, norm, obs, action, hist)
     return norm.next_from_delta(obs, mean)
 
 
 def generator_log_prob(gen, norm: Normalizer, obs: jax.Array, action: jax.Array,
-                       next_obs: jax.Array) -> jax.Array:
+                       next_obs: jax.Array, hist: History | None = None) -> jax.Array:
     """log p_phi(s'|s,a) of the normalised delta, summed over dims. -> [...]
 
     It is the density of delta_n, not of s' (they differ by the constant sum(log delta_std)).
     """
-    mean, log_std = generator_dist(gen, norm, obs, action)
+    mean, log_std = generator_dist(gen, norm, obs, action, hist)
     return -gaussian_nll(mean, log_std, norm.norm_delta(obs, next_obs))
 
 

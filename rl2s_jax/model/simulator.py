@@ -20,6 +20,7 @@ from flax import struct
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.model.generator import sample_next
+from rl2s_jax.model.history import History, empty_history, push_history, step_inputs
 from rl2s_jax.model.termination import TERMINATIONS, hazard_prob
 from rl2s_jax.policy.policy import Params, sample_action
 
@@ -28,8 +29,8 @@ Dynamics = Callable[[jax.Array, jax.Array, jax.Array], jax.Array]
 
 @struct.dataclass
 class Simulator:
-    """A learned simulator p_phi: an ensemble of Markov family members, its normaliser, the
-    task it models (docs/SIMULATOR.md).
+    """A learned simulator p_phi: an ensemble of family members, its normaliser, the task it
+    models (docs/SIMULATOR.md).
 
     gen: member parameters stacked [E, ...] (``dynamics.init_ensemble``); a bare list of MLP
       layers (one generator, ``models.init_generator``) is taken as E = 1.
@@ -49,6 +50,12 @@ class Simulator:
     registered task whose reward_fn / done_fn apply (None for data without a task).
     ``uncertainty_fn(obs, action)`` and ``step(obs, action, key) -> (next_obs, u)`` give the
     ensemble's disagreement at every step (0 for one member).
+
+    History inputs (``obs_history``, ``action_history``, ``time_inputs``, with t scaled by
+    ``episode_length``): the members also see the episode's past, so every method here then
+    takes ``hist`` (``rl2s_jax.model.history.History``; ``new_history`` at an episode start,
+    ``push_history`` after each step) and ``dynamics`` is ``(obs, action, key, hist)``. The
+    rollouts of this module carry it for any Simulator (``new_history=sim.new_history``).
     """
 
     gen: Params
@@ -63,6 +70,10 @@ class Simulator:
     uncertainty: str = struct.field(pytree_node=False, default="std")
     termination: str = struct.field(pytree_node=False, default="rule")
     hazard_window: int = struct.field(pytree_node=False, default=1)
+    obs_history: int = struct.field(pytree_node=False, default=0)
+    action_history: int = struct.field(pytree_node=False, default=0)
+    time_inputs: tuple[str, ...] = struct.field(pytree_node=False, default=())
+    episode_length: int = struct.field(pytree_node=False, default=1000)
 
     def __post_init__(self):
         if isinstance(self.gen, list | tuple):  # one generator: an ensemble of one
@@ -73,36 +84,63 @@ class Simulator:
     def n_members(self) -> int:
         return dyn.n_members(self.gen)
 
-    def member_dists(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+    @property
+    def markov(self) -> bool:
+        """True when the members see the current (s, a) only (no ``hist`` needed)."""
+        return not (self.obs_history or self.action_history or self.time_inputs)
+
+    def new_history(self, batch_shape: tuple[int, ...]) -> History | None:
+        """The history of episodes starting now, batch_shape of them (None when Markov)."""
+        if self.markov:
+            return None
+        return empty_history(tuple(batch_shape), self.norm.obs_mean.shape[-1],
+                             self.norm.act_mean.shape[-1], obs_history=self.obs_history,
+                             action_history=self.action_history,
+                             time_inputs=self.time_inputs, episode_length=self.episode_length)
+
+    def inputs(self, obs: jax.Array, action: jax.Array, hist: History | None = None
+               ) -> jax.Array:
+        """The members' inputs at (obs [..., o], action [..., a]) with this past."""
+        if hist is None and not self.markov:
+            raise ValueError(
+                f"hist: this simulator's members see the episode's past (obs_history "
+                f"{self.obs_history}, action_history {self.action_history}, time_inputs "
+                f"{self.time_inputs}); pass hist= (Simulator.new_history at the episode start, "
+                f"history.push_history after each step)")
+        return step_inputs(self.norm, obs, action, hist)
+
+    def member_dists(self, obs: jax.Array, action: jax.Array, hist: History | None = None
+                     ) -> tuple[jax.Array, jax.Array]:
         """Every member's Gaussian over the normalised delta: (mean, log_std) [E, ..., o]."""
-        return dyn.ensemble_dist(self.gen, dyn.markov_inputs(self.norm, obs, action))
+        return dyn.ensemble_dist(self.gen, self.inputs(obs, action, hist))
 
     def _moments(self, means, log_stds, key):
         return dyn.ensemble_moments(means, log_stds, key, rank=self.rank,
                                     n_elites=self.n_elites, mode=self.member_mode)
 
-    def sample(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
+    def sample(self, obs: jax.Array, action: jax.Array, key: jax.Array,
+               hist: History | None = None) -> jax.Array:
         """s' ~ p_phi(.|s, a) (member by member_mode) with the std times noise_scale, clipped
         to +-obs_clip data stds. [..., o], [..., a] -> [..., o]"""
-        return self.step(obs, action, key)[0]
+        return self.step(obs, action, key, hist)[0]
 
-    def step(self, obs: jax.Array, action: jax.Array, key: jax.Array
-             ) -> tuple[jax.Array, jax.Array]:
+    def step(self, obs: jax.Array, action: jax.Array, key: jax.Array,
+             hist: History | None = None) -> tuple[jax.Array, jax.Array]:
         """One simulated step and the ensemble's disagreement at (obs, action), from one pass
         over the members. -> (next_obs [..., o], u [...])"""
-        means, log_stds = self.member_dists(obs, action)
+        means, log_stds = self.member_dists(obs, action, hist)
         mean, log_std, k_noise = self._moments(means, log_stds, key)
         nxt = sample_next(self.norm, obs, mean, log_std, k_noise, self.obs_clip,
                           self.noise_scale)
         return nxt, self._disagreement(means)
 
-    def transition(self, obs: jax.Array, action: jax.Array, key: jax.Array
-                   ) -> tuple[jax.Array, jax.Array, jax.Array]:
+    def transition(self, obs: jax.Array, action: jax.Array, key: jax.Array,
+                   hist: History | None = None) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Everything a consumer of one step needs, from one pass over the members (e.g. an
         uncertainty-penalised reward r - lambda * u for policy improvement):
         -> (mean next state [..., o] as ``mean``, a sample [..., o] as ``sample`` with this
         key, the elites' disagreement u [...] as ``disagreement``; 0 for one member)."""
-        means, log_stds = self.member_dists(obs, action)
+        means, log_stds = self.member_dists(obs, action, hist)
         mode = "fixed" if self.member_mode == "fixed" else "mean"
         avg, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
                                          n_elites=self.n_elites, mode=mode)
@@ -111,26 +149,29 @@ class Simulator:
                           self.noise_scale)
         return self.norm.next_from_delta(obs, avg), nxt, self._disagreement(means)
 
-    def mean(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+    def mean(self, obs: jax.Array, action: jax.Array, hist: History | None = None
+             ) -> jax.Array:
         """The mean next state: of the best member ("fixed") or the elites' average. -> [..., o]"""
-        means, log_stds = self.member_dists(obs, action)
+        means, log_stds = self.member_dists(obs, action, hist)
         mode = "fixed" if self.member_mode == "fixed" else "mean"
         mean, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
                                           n_elites=self.n_elites, mode=mode)
         return self.norm.next_from_delta(obs, mean)
 
-    def log_prob(self, obs: jax.Array, action: jax.Array, next_obs: jax.Array) -> jax.Array:
+    def log_prob(self, obs: jax.Array, action: jax.Array, next_obs: jax.Array,
+                 hist: History | None = None) -> jax.Array:
         """log density of the normalised delta under what ``sample`` draws from (for
         "random": the uniform mixture of the elites). -> [...]"""
-        means, log_stds = self.member_dists(obs, action)
+        means, log_stds = self.member_dists(obs, action, hist)
         return dyn.mixture_log_prob(means, log_stds, self.norm.norm_delta(obs, next_obs),
                                     rank=self.rank, n_elites=self.n_elites,
                                     mode=self.member_mode)
 
-    def predictive(self, obs: jax.Array, action: jax.Array) -> tuple[jax.Array, jax.Array]:
+    def predictive(self, obs: jax.Array, action: jax.Array, hist: History | None = None
+                   ) -> tuple[jax.Array, jax.Array]:
         """Mean and std [..., o] of the normalised delta that ``sample`` draws (noise_scale 1):
         for "random", the elite mixture's (std includes the spread of the elites' means)."""
-        means, log_stds = self.member_dists(obs, action)
+        means, log_stds = self.member_dists(obs, action, hist)
         mode = "mean" if self.member_mode == "random" else self.member_mode
         mean, log_std, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
                                                 n_elites=self.n_elites, mode=mode)
@@ -145,18 +186,21 @@ class Simulator:
         return dyn.disagreement(means, rank=self.rank, n_elites=self.n_elites,
                                 kind=self.uncertainty)
 
-    def disagreement(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+    def disagreement(self, obs: jax.Array, action: jax.Array, hist: History | None = None
+                     ) -> jax.Array:
         """The elites' disagreement at (obs, action) in normalised delta units (0 for one
         member). [..., o], [..., a] -> [...]"""
-        return self._disagreement(self.member_dists(obs, action)[0])
+        return self._disagreement(self.member_dists(obs, action, hist)[0])
 
-    def uncertainty_fn(self, obs: jax.Array, action: jax.Array) -> jax.Array:
+    def uncertainty_fn(self, obs: jax.Array, action: jax.Array, hist: History | None = None
+                       ) -> jax.Array:
         """``uncertainty_fn(obs, action) -> [...]``: the disagreement, for a penalised reward
         r - lambda * u (policy improvement) or to flag untrusted regions (diagnosis)."""
-        return self.disagreement(obs, action)
+        return self.disagreement(obs, action, hist)
 
-    def dynamics(self, obs: jax.Array, action: jax.Array, key: jax.Array) -> jax.Array:
-        return self.sample(obs, action, key)
+    def dynamics(self, obs: jax.Array, action: jax.Array, key: jax.Array,
+                 hist: History | None = None) -> jax.Array:
+        return self.sample(obs, action, key, hist)
 
     def hazard_prob(self, obs: jax.Array, action: jax.Array) -> jax.Array:
         """The learned chance that the step from (obs, action) ends the episode.
@@ -177,6 +221,10 @@ class Simulator:
         if self.termination == "rule":
             return done_fn, None
         if self.termination == "predictive":
+            if not self.markov:
+                raise ValueError("termination: 'predictive' draws a next state from (obs, "
+                                 "action) alone; a simulator with history inputs uses 'rule', "
+                                 "'hazard' or 'both'")
             if done_fn is None:
                 raise ValueError("termination: 'predictive' applies the task's done_fn to a "
                                  "draw of the next state; got done_fn=None")
@@ -195,7 +243,8 @@ class ValueRollout:
     """P x n simulated episodes in progress.
 
     obs [P, n, o]; alive [P, n] (not yet terminated); ret [P, n] discounted return so far;
-    length [P, n] steps survived; t [] steps taken.
+    length [P, n] steps survived; t [] steps taken; hist: the episodes' past [P, n, ...] for a
+    simulator with history inputs (None: Markov dynamics).
     """
 
     obs: jax.Array
@@ -203,6 +252,7 @@ class ValueRollout:
     ret: jax.Array
     length: jax.Array
     t: jax.Array
+    hist: History | None = None
 
 
 def start_pool(ds) -> jax.Array:
@@ -213,14 +263,25 @@ def start_pool(ds) -> jax.Array:
     return jnp.asarray(pool, jnp.float32)
 
 
-def start_values(start_pool: jax.Array, n_policies: int, n_episodes: int, key: jax.Array
-                 ) -> ValueRollout:
-    """Fresh episodes from start states drawn (with replacement) from start_pool [S, o]."""
+def start_values(start_pool: jax.Array, n_policies: int, n_episodes: int, key: jax.Array,
+                 new_history: Callable | None = None) -> ValueRollout:
+    """Fresh episodes from start states drawn (with replacement) from start_pool [S, o].
+    ``new_history(batch_shape)``: their empty past (``Simulator.new_history``; None: none)."""
     idx = jax.random.randint(key, (n_policies, n_episodes), 0, start_pool.shape[0])
     shape = (n_policies, n_episodes)
     return ValueRollout(obs=start_pool[idx], alive=jnp.ones(shape, bool),
                         ret=jnp.zeros(shape, jnp.float32), length=jnp.zeros(shape, jnp.int32),
-                        t=jnp.zeros((), jnp.int32))
+                        t=jnp.zeros((), jnp.int32),
+                        hist=None if new_history is None else new_history(shape))
+
+
+def step_dynamics(dynamics: Dynamics, obs, action, key, hist: History | None
+                  ) -> tuple[jax.Array, History | None]:
+    """One step of ``dynamics`` and the past after it: ``dynamics(obs, action, key)`` without a
+    history, ``dynamics(obs, action, key, hist)`` (a Simulator's) with one."""
+    if hist is None:
+        return dynamics(obs, action, key), None
+    return dynamics(obs, action, key, hist), push_history(hist, obs, action)
 
 
 def end_key(key: jax.Array, hazard_fn: Callable | None) -> tuple[jax.Array, jax.Array | None]:
@@ -262,7 +323,7 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
         k_act, k_dyn = jax.random.split(key)
         action, _, _ = act(policy_params, roll.obs, jax.random.split(k_act, n_pol))
         k_dyn, k_end = end_key(k_dyn, hazard_fn)
-        next_obs = dynamics(roll.obs, action, k_dyn)
+        next_obs, hist = step_dynamics(dynamics, roll.obs, action, k_dyn, roll.hist)
         live = roll.alive & (roll.t < horizon)
         reward = reward_fn(roll.obs, action, next_obs)
         done = ends_episode(roll.obs, action, next_obs, k_end, done_fn, hazard_fn)
@@ -272,7 +333,7 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
             alive=roll.alive & ~(live & done),
             ret=roll.ret + jnp.where(live, discount * reward, 0.0),
             length=roll.length + live.astype(jnp.int32),
-            t=jnp.minimum(roll.t + 1, horizon)), None
+            t=jnp.minimum(roll.t + 1, horizon), hist=hist), None
 
     roll, _ = jax.lax.scan(step, roll, jax.random.split(key, n_steps))
     return roll
@@ -281,13 +342,14 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
 def simulated_returns(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
                       done_fn: Callable | None, start_pool: jax.Array, key: jax.Array, *,
                       n_episodes: int, horizon: int, gamma: float,
-                      hazard_fn: Callable | None = None) -> tuple[jax.Array, jax.Array]:
+                      hazard_fn: Callable | None = None, new_history: Callable | None = None
+                      ) -> tuple[jax.Array, jax.Array]:
     """Each simulated episode's discounted return and length: n_episodes episodes of at most
-    ``horizon`` steps per policy, ended as ``ends_episode`` says.
-    -> (returns [P, n], lengths [P, n] int32)."""
+    ``horizon`` steps per policy, ended as ``ends_episode`` says (``new_history``: as
+    ``start_values``). -> (returns [P, n], lengths [P, n] int32)."""
     k_start, k_run = jax.random.split(key)
     n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
-    roll = start_values(start_pool, n_pol, n_episodes, k_start)
+    roll = start_values(start_pool, n_pol, n_episodes, k_start, new_history)
     roll = advance_values(roll, policy_params, dynamics, reward_fn, done_fn, k_run,
                           n_steps=horizon, horizon=horizon, gamma=gamma, hazard_fn=hazard_fn)
     return roll.ret, roll.length
@@ -302,19 +364,20 @@ def simulator_returns(sim: Simulator, task, policy_params: Params, start_pool: j
     done_fn, hazard_fn = sim.terminations(task.done_fn)
     return simulated_returns(policy_params, sim.dynamics, task.reward_fn, done_fn, start_pool,
                              key, n_episodes=n_episodes, horizon=horizon, gamma=gamma,
-                             hazard_fn=hazard_fn)
+                             hazard_fn=hazard_fn, new_history=sim.new_history)
 
 
 def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
                      done_fn: Callable | None, start_pool: jax.Array, key: jax.Array, *,
                      n_episodes: int, horizon: int, gamma: float,
-                     hazard_fn: Callable | None = None) -> tuple[jax.Array, jax.Array]:
+                     hazard_fn: Callable | None = None, new_history: Callable | None = None
+                     ) -> tuple[jax.Array, jax.Array]:
     """Discounted value of each policy in ``dynamics``: mean over n_episodes episodes of at
     most ``horizon`` steps (``simulated_returns`` averaged).
     -> (values [P], mean episode lengths [P])."""
     ret, length = simulated_returns(policy_params, dynamics, reward_fn, done_fn, start_pool,
                                     key, n_episodes=n_episodes, horizon=horizon, gamma=gamma,
-                                    hazard_fn=hazard_fn)
+                                    hazard_fn=hazard_fn, new_history=new_history)
     return ret.mean(1), length.mean(1).astype(jnp.float32)
 
 
@@ -428,7 +491,8 @@ def mean_square(z: jax.Array, scale: jax.Array) -> jax.Array:
 def visited_step_errors(policy_params: Params, dynamics: Dynamics, reference: Dynamics,
                         reward_fn: Callable, done_fn: Callable | None, start_pool: jax.Array,
                         key: jax.Array, *, n_episodes: int, horizon: int, scale: jax.Array,
-                        hazard_fn: Callable | None = None) -> dict:
+                        hazard_fn: Callable | None = None,
+                        new_history: Callable | None = None) -> dict:
     """A simulator's one-step error on the states ITS OWN closed-loop episodes visit: the
     policies' episodes run in ``dynamics`` as ``simulated_returns`` runs them (start states,
     termination), and at every live step ``reference`` (the real dynamics, e.g.
@@ -441,28 +505,28 @@ def visited_step_errors(policy_params: Params, dynamics: Dynamics, reference: Dy
     "rmse_per_dim" [P, o]."""
     n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
     k_start, k_run = jax.random.split(key)
-    roll = start_values(start_pool, n_pol, n_episodes, k_start)
+    roll = start_values(start_pool, n_pol, n_episodes, k_start, new_history)
     act = jax.vmap(sample_action)
     zeros = jnp.zeros(roll.alive.shape, jnp.float32)
 
     def step(carry, key):
-        obs, alive, t, dim_sum, bias_sum, abs_sum, count = carry
+        (obs, hist), alive, t, dim_sum, bias_sum, abs_sum, count = carry
         k_act, k_dyn = jax.random.split(key)  # advance_values' draws: the same episodes
         action, _, _ = act(policy_params, obs, jax.random.split(k_act, n_pol))
         k_ref = jax.random.fold_in(k_dyn, 1)
         k_dyn, k_end = end_key(k_dyn, hazard_fn)
-        nxt = dynamics(obs, action, k_dyn)
+        nxt, hist = step_dynamics(dynamics, obs, action, k_dyn, hist)
         ref = reference(obs, action, k_ref)
         z, dr = step_errors(nxt, ref, obs, action, reward_fn, scale)
         live = alive & (t < horizon)
         w = live.astype(jnp.float32)
         done = ends_episode(obs, action, nxt, k_end, done_fn, hazard_fn)
-        return (jnp.where(live[..., None], nxt, obs), alive & ~(live & done), t + 1,
+        return ((jnp.where(live[..., None], nxt, obs), hist), alive & ~(live & done), t + 1,
                 dim_sum + w[..., None] * z ** 2, bias_sum + w * dr, abs_sum + w * jnp.abs(dr),
                 count + w), None
 
-    carry = (roll.obs, roll.alive, jnp.zeros((), jnp.int32), jnp.zeros_like(roll.obs), zeros,
-             zeros, zeros)
+    carry = ((roll.obs, roll.hist), roll.alive, jnp.zeros((), jnp.int32),
+             jnp.zeros_like(roll.obs), zeros, zeros, zeros)
     carry, _ = jax.lax.scan(step, carry, jax.random.split(k_run, horizon))
     dim_sum = carry[3].sum(1)  # [P, o], over episodes
     bias_sum, abs_sum, count = (jnp.sum(x, -1) for x in carry[4:])

@@ -343,10 +343,7 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None
                    if cfg.termination in LEARNED else {})})
         sim = ck._restore_item(s, "simulator", ocp.args.StandardRestore(template))
         return Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"),
-                         hazard=sim.get("hazard"), task=cfg.task, obs_clip=cfg.obs_clip,
-                         noise_scale=cfg.sim_noise, n_elites=cfg.n_elites,
-                         member_mode=cfg.member_mode, uncertainty=cfg.uncertainty,
-                         termination=cfg.termination, hazard_window=cfg.hazard_window), meta
+                         hazard=sim.get("hazard"), **cfg.simulator_settings()), meta
 
     try:
         return ck.load_intact(step, ("meta", "simulator"), load)[1]

@@ -20,6 +20,7 @@ from rl2s_jax.model.dynamics import (
     UNCERTAINTY_KINDS,
     DynamicsSpec,
 )
+from rl2s_jax.model.history import SIM_TIME_INPUTS
 from rl2s_jax.model.termination import LEARNED, TERMINATIONS
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -90,6 +91,10 @@ class TrainConfig:
     pretrain_steps: int = 1000     # rl2s / gail: MLE steps (all policies) before WGAIL
     disc_warmup_steps: int = 10    # rl2s / gail: critic-only steps after pre-training
     ema_decay: float = 0.0         # EMA of the generator for evaluation (0: off)
+    # -- history inputs (docs/SIMULATOR.md, "History inputs"; what `rl2s diagnose` proposes)
+    action_history: int = 0        # k previous actions of the episode fed to every member
+    obs_history: int = 0           # k previous observations of the episode
+    time_inputs: tuple[str, ...] = ()  # ("step",): t / episode_length, the place in the episode
     multistep_steps: int = 1       # k: MLE loss adds the mean's k-step error (1: one-step only)
     multistep_weight: float = 1.0  # weight of that k-step error (squared, in data stds)
     nll_beta: float = 1.0          # beta-NLL exponent of the likelihood loss (0: plain NLL;
@@ -124,7 +129,31 @@ class TrainConfig:
         """The generator as a member of the dynamics-model family."""
         return DynamicsSpec(hidden=self.gen_hidden, noise=self.gen_noise,
                             activation=self.gen_activation,
-                            log_std_bounds=self.gen_log_std_bounds)
+                            log_std_bounds=self.gen_log_std_bounds,
+                            action_history=self.action_history, obs_history=self.obs_history,
+                            time_inputs=tuple(self.time_inputs))
+
+    def simulator_settings(self, noise_scale: float | None = None) -> dict:
+        """The static ``Simulator`` fields this run's simulator steps with (noise_scale:
+        default sim_noise)."""
+        return dict(task=self.task, obs_clip=self.obs_clip,
+                    noise_scale=self.sim_noise if noise_scale is None else noise_scale,
+                    n_elites=self.n_elites, member_mode=self.member_mode,
+                    uncertainty=self.uncertainty, termination=self.termination,
+                    hazard_window=self.hazard_window, obs_history=self.obs_history,
+                    action_history=self.action_history, time_inputs=tuple(self.time_inputs),
+                    episode_length=self.episode_length)
+
+    @property
+    def markov(self) -> bool:
+        """True when the members see the current (s, a) only (no history inputs)."""
+        return self.dynamics_spec.markov
+
+    @property
+    def episode_length(self) -> int:
+        """What scales the "step" time input: the task's time limit (vd_horizon without a
+        registered task)."""
+        return get_task(self.task).episode_length if self.task in TASKS else self.vd_horizon
 
     @property
     def early_stopping(self) -> bool:
@@ -208,6 +237,19 @@ class TrainConfig:
             if getattr(self, name) not in kinds:
                 raise ValueError(f"{name}: expected one of {', '.join(map(repr, kinds))}, got "
                                  f"{getattr(self, name)!r}")
+        for name in ("action_history", "obs_history"):
+            v = getattr(self, name)
+            if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+                raise ValueError(f"{name}: expected an int >= 0 (0 = off), got {v!r}")
+        t = self.time_inputs
+        if (not isinstance(t, tuple) or any(x not in SIM_TIME_INPUTS for x in t)
+                or len(set(t)) != len(t)):
+            raise ValueError(f"time_inputs: expected a tuple of distinct names from "
+                             f"{SIM_TIME_INPUTS} (diagnosis's 'order', the place in a "
+                             f"recording, has no value in a simulated episode), got {t!r}")
+        if self.termination == "predictive" and not self.markov:
+            raise ValueError("termination: 'predictive' draws a next state from (s, a) alone; "
+                             "with history inputs use 'rule', 'hazard' or 'both'")
         if self.termination in LEARNED and self.hazard_steps == 0:
             raise ValueError(f"hazard_steps: termination {self.termination!r} learns a hazard; "
                              f"expected an int >= 1, got 0")

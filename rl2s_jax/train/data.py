@@ -10,6 +10,7 @@ from flax import struct
 from rl2s_jax.data.episodes import from_dataset, split_episodes
 from rl2s_jax.data.values import true_values
 from rl2s_jax.model.dynamics import Normalizer
+from rl2s_jax.model.history import History, dataset_steps_back, logged_history
 from rl2s_jax.model.simulator import (
     start_pool,
 )
@@ -31,6 +32,10 @@ class TrainData:
     continues row i for j <= steps_left[i]); the multi-step loss needs it (None: unknown).
     done [N] float32: 1 where the row's next state is terminal (the learned termination hazard
     is fitted to it; None: unknown).
+    History inputs (static ``obs_history``, ``action_history``, ``time_inputs``,
+    ``episode_length``, as the config's): steps_back [N] int32, how many rows of the same
+    episode precede row i, in order; t [N] int32, the row's step in its episode; val_hist,
+    the held-out rows' past (``row_history`` gives the training rows').
     """
 
     obs: jax.Array
@@ -47,6 +52,30 @@ class TrainData:
     val_next_obs: jax.Array
     steps_left: jax.Array | None = None
     done: jax.Array | None = None
+    steps_back: jax.Array | None = None
+    t: jax.Array | None = None
+    val_hist: History | None = None
+    obs_history: int = struct.field(pytree_node=False, default=0)
+    action_history: int = struct.field(pytree_node=False, default=0)
+    time_inputs: tuple[str, ...] = struct.field(pytree_node=False, default=())
+    episode_length: int = struct.field(pytree_node=False, default=1000)
+
+    @property
+    def markov(self) -> bool:
+        return not (self.obs_history or self.action_history or self.time_inputs)
+
+    def row_history(self, rows: jax.Array) -> History | None:
+        """The logged past of training rows [n] (None without history inputs)."""
+        if self.markov:
+            return None
+        if self.steps_back is None or self.t is None:
+            raise ValueError("history inputs need TrainData.steps_back and t "
+                             "(make_train_data sets them)")
+        past_obs, obs_valid = _past(self.obs, self.steps_back, rows, self.obs_history)
+        past_act, act_valid = _past(self.action, self.steps_back, rows, self.action_history)
+        return History(past_obs=past_obs, past_obs_valid=obs_valid, past_act=past_act,
+                       past_act_valid=act_valid, t=self.t[rows],
+                       time_inputs=self.time_inputs, episode_length=self.episode_length)
 
     @property
     def n_policies(self) -> int:
@@ -107,7 +136,15 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
     obs, action, next_obs = (np.asarray(x)[keep] for x in (ds.obs, ds.action, ds.next_obs))
     steps_left = episode_steps_left(np.asarray(ds.policy_id)[order],
                                     np.asarray(ds.episode_id)[order], np.asarray(ds.t)[order])
-    return TrainData(obs=f32(ds.obs, order), action=f32(ds.action, order),
+    hist = dict(obs_history=config.obs_history, action_history=config.action_history,
+                time_inputs=tuple(config.time_inputs), episode_length=config.episode_length)
+    extra = {}
+    if not config.markov:
+        back_all = dataset_steps_back(ds)
+        extra = dict(steps_back=jnp.asarray(back_all[order], jnp.int32),
+                     t=jnp.asarray(np.asarray(ds.t)[order], jnp.int32),
+                     val_hist=logged_history(ds, val, steps_back=back_all, **hist))
+    return TrainData(**hist, **extra, obs=f32(ds.obs, order), action=f32(ds.action, order),
                      next_obs=f32(ds.next_obs, order),
                      policy_start=jnp.asarray(starts, jnp.int32),
                      policy_count=jnp.asarray(counts, jnp.int32),
@@ -137,6 +174,17 @@ def episode_steps_left(policy_id: np.ndarray, episode_id: np.ndarray, t: np.ndar
     return last[run] - np.arange(n)
 
 
+def _past(x: jax.Array, steps_back: jax.Array, rows: jax.Array, k: int):
+    """The k previous values of x [N, d] for rows [n], newest first, zero before the episode
+    start. -> (past [n, k, d], valid [n, k] bool); (None, None) for k = 0."""
+    if k == 0:
+        return None, None
+    lags = jnp.arange(1, k + 1)
+    valid = steps_back[rows][:, None] >= lags
+    src = jnp.where(valid, rows[:, None] - lags, rows[:, None])
+    return jnp.where(valid[..., None], x[src], 0.0), valid
+
+
 def _sample_rows(key: jax.Array, data: TrainData, selected: jax.Array, n: int) -> jax.Array:
     """Row indices [n]: a policy uniformly among the selected, then one of its rows uniformly."""
     k_pol, k_row = jax.random.split(key)
@@ -152,6 +200,13 @@ def _real_batch(key, data: TrainData, selected, n):
     return data.obs[rows], data.action[rows], data.next_obs[rows]
 
 
+def _real_batch_history(key, data: TrainData, selected, n):
+    """``_real_batch`` and the rows' past (None without history inputs): the same draws.
+    -> (obs, action, next_obs, hist)"""
+    rows, _ = _sample_rows(key, data, selected, n)
+    return data.obs[rows], data.action[rows], data.next_obs[rows], data.row_history(rows)
+
+
 def _real_windows(key, data: TrainData, selected, n: int, k: int):
     """n windows of k consecutive rows of one episode, starting at rows drawn as _real_batch's.
     -> (obs [n, o] the first state, action [n, k, a], next_obs [n, k, o], valid [n, k]: step
@@ -164,3 +219,9 @@ def _real_windows(key, data: TrainData, selected, n: int, k: int):
     left = data.steps_left[rows][:, None]
     idx = rows[:, None] + jnp.minimum(j, left)
     return data.obs[rows], data.action[idx], data.next_obs[idx], j <= left
+
+
+def _real_windows_history(key, data: TrainData, selected, n: int, k: int):
+    """``_real_windows`` and the start rows' past (None without history inputs)."""
+    rows, _ = _sample_rows(key, data, selected, n)
+    return (*_real_windows(key, data, selected, n, k), data.row_history(rows))

@@ -58,6 +58,7 @@ from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.model.generator import init_discriminator
+from rl2s_jax.model.history import History, push_history, step_inputs, take_history
 from rl2s_jax.model.simulator import (
     Simulator,
     ValueRollout,
@@ -73,7 +74,12 @@ from rl2s_jax.policy.policy import Params, index_params, sample_action
 from rl2s_jax.train import losses
 from rl2s_jax.train.config import TrainConfig
 from rl2s_jax.train.cvar import n_worst, select_worst
-from rl2s_jax.train.data import TrainData, _real_batch, _real_windows, _sample_rows
+from rl2s_jax.train.data import (
+    TrainData,
+    _real_batch_history,
+    _real_windows_history,
+    _sample_rows,
+)
 from rl2s_jax.train.losses import multistep_error
 
 __all__ = ["TrainState", "init", "member_mle_updates", "simulator",
@@ -83,11 +89,13 @@ ADVERSARIAL_METRICS = ("gen_loss", "disc_loss", "d_real", "d_fake", "sim_reset_r
 
 @struct.dataclass
 class SimEnvs:
-    """E simulated envs: obs [E, o], policy [E] int32, t [E] int32 steps since reset."""
+    """E simulated envs: obs [E, o], policy [E] int32, t [E] int32 steps since reset; hist
+    [E, ...] their past (None without history inputs)."""
 
     obs: jax.Array
     policy: jax.Array
     t: jax.Array
+    hist: History | None = None
 
 
 @struct.dataclass
@@ -119,12 +127,7 @@ class TrainState:
     ema_gen: Params | None        # [E, ...] moving average of gen (None: ema_decay = 0)
     hazard: Params | None         # learned termination classifier (None: termination "rule")
     config: TrainConfig = struct.field(pytree_node=False)
-
-
-# ------------------------------------------------------------------ CVaR selection
-
-
-# ------------------------------------------------------------------ sampling
+    buffer_hist: History | None = None  # [B, ...] the buffered states' past (history inputs)
 
 
 # ------------------------------------------------------------------ models and optimisers
@@ -134,10 +137,7 @@ def _sampler(gen, state: TrainState, noise_scale: float) -> Simulator:
     """The members as rollouts use them (no gradient into the generator)."""
     cfg = state.config
     return Simulator(gen=jax.lax.stop_gradient(gen), norm=state.norm, rank=state.rank,
-                     hazard=state.hazard, task=cfg.task, obs_clip=cfg.obs_clip,
-                     noise_scale=noise_scale, n_elites=cfg.n_elites,
-                     member_mode=cfg.member_mode, uncertainty=cfg.uncertainty,
-                     termination=cfg.termination, hazard_window=cfg.hazard_window)
+                     hazard=state.hazard, **cfg.simulator_settings(noise_scale))
 
 
 def _gen_tx(cfg: TrainConfig, lr: float) -> optax.GradientTransformation:
@@ -153,7 +153,7 @@ def _disc_tx(cfg: TrainConfig) -> optax.GradientTransformation:
 
 
 def _tree_where(cond, new, old):
-    """Per-member choice: cond [E] (or []) selects new over old leaf by leaf."""
+    """Per-row choice: cond [E] (or [], or [E] envs) selects new over old leaf by leaf."""
     def pick(n, o):
         c = jnp.reshape(cond, jnp.shape(cond) + (1,) * (jnp.ndim(n) - jnp.ndim(cond)))
         return jnp.where(c, n, o)
@@ -164,7 +164,7 @@ def _heldout_nll(gen, norm: Normalizer, data: TrainData) -> jax.Array:
     """Every member's mean NLL [E] on the held-out rows (NaN without any)."""
     if data.n_heldout == 0:
         return jnp.full((dyn.n_members(gen),), jnp.nan, jnp.float32)
-    x = dyn.markov_inputs(norm, data.val_obs, data.val_action)
+    x = step_inputs(norm, data.val_obs, data.val_action, data.val_hist)
     y = norm.norm_delta(data.val_obs, data.val_next_obs)
     return dyn.map_members(lambda p: jnp.mean(dyn.gaussian_nll(*dyn.member_dist(p, x), y)),
                            gen)
@@ -223,24 +223,27 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
         sim_value, sim_length = simulated_values(
             data.policies, sim.dynamics, task.reward_fn, done_fn, data.start_pool, k_vd,
             n_episodes=cfg.vd_episodes, horizon=cfg.vd_horizon, gamma=cfg.gamma,
-            hazard_fn=hazard_fn)
+            hazard_fn=hazard_fn, new_history=sim.new_history)
         vd = value_difference(sim_value, data.true_value)
         selected = select_worst(vd, n_worst(eps, P))
-        vd_roll = start_values(data.start_pool, P, cfg.vd_episodes, k_roll)
+        vd_roll = start_values(data.start_pool, P, cfg.vd_episodes, k_roll, sim.new_history)
     state = state.replace(vd=vd, sim_value=sim_value, sim_length=sim_length, selected=selected,
                           vd_roll=vd_roll)
     if cfg.adversarial:
         disc, disc_us = init_discriminator(k_disc, obs_size, act_size, cfg.disc_hidden)
+        sampler = _sampler(gen, state, cfg.sim_noise)
         sim = _reset_sim(SimEnvs(obs=jnp.zeros((cfg.sim_envs, obs_size)),
                                  policy=jnp.zeros((cfg.sim_envs,), jnp.int32),
-                                 t=jnp.zeros((cfg.sim_envs,), jnp.int32)),
+                                 t=jnp.zeros((cfg.sim_envs,), jnp.int32),
+                                 hist=sampler.new_history((cfg.sim_envs,))),
                          jnp.ones((cfg.sim_envs,), bool), data, selected, k_sim)
         # The buffer starts with real (s, a) of the selected policies; simulated ones replace
         # them within buffer_size / (sim_envs * sim_steps) steps.
         rows, _ = _sample_rows(k_buf, data, selected, cfg.buffer_size)
         state = state.replace(disc=disc, disc_us=disc_us, disc_opt=_disc_tx(cfg).init(disc),
                               sim=sim, buffer_obs=data.obs[rows], buffer_act=data.action[rows],
-                              buffer_pos=jnp.zeros((), jnp.int32))
+                              buffer_pos=jnp.zeros((), jnp.int32),
+                              buffer_hist=data.row_history(rows))
     return state
 
 
@@ -261,19 +264,21 @@ def member_mle_updates(gen, opt, key: jax.Array, data: TrainData, selected: jax.
 
     def loss_fn(g, batch):
         if k > 1:
-            obs, action, next_obs, valid = batch
+            obs, action, next_obs, valid, hist = batch
             loss = losses.generator_beta_nll_loss(g, norm, obs, action[:, 0], next_obs[:, 0],
-                                                  cfg.nll_beta)[0]
+                                                  cfg.nll_beta, hist)[0]
             loss = loss + cfg.multistep_weight * multistep_error(
-                g, norm, obs, action, next_obs, valid, cfg.obs_clip)
+                g, norm, obs, action, next_obs, valid, cfg.obs_clip, hist)
         else:
-            loss = losses.generator_beta_nll_loss(g, norm, *batch, cfg.nll_beta)[0]
+            obs, action, next_obs, hist = batch
+            loss = losses.generator_beta_nll_loss(g, norm, obs, action, next_obs,
+                                                  cfg.nll_beta, hist)[0]
         return loss + cfg.log_std_bound_weight * dyn.bound_penalty(g) if learned else loss
 
     def update(carry, key):
         gen, opt = carry
-        batch = (_real_windows(key, data, selected, cfg.batch_size, k) if k > 1
-                 else _real_batch(key, data, selected, cfg.batch_size))
+        batch = (_real_windows_history(key, data, selected, cfg.batch_size, k) if k > 1
+                 else _real_batch_history(key, data, selected, cfg.batch_size))
         loss, grads = jax.value_and_grad(loss_fn)(gen, batch)
         updates, opt = tx.update(grads, opt, gen)
         return (optax.apply_updates(gen, updates), opt), loss
@@ -345,10 +350,13 @@ def _mle_step(state: TrainState, data: TrainData, key, selected):
 
 
 def _reset_sim(sim: SimEnvs, reset: jax.Array, data: TrainData, selected, key) -> SimEnvs:
+    """Restart the envs where ``reset`` [E] from real states of the selected policies; with
+    history inputs an env restarts with the logged past of its real state's row."""
     rows, pol = _sample_rows(key, data, selected, sim.obs.shape[0])
+    hist = None if sim.hist is None else _tree_where(reset, data.row_history(rows), sim.hist)
     return SimEnvs(obs=jnp.where(reset[:, None], data.obs[rows], sim.obs),
                    policy=jnp.where(reset, pol.astype(jnp.int32), sim.policy),
-                   t=jnp.where(reset, 0, sim.t))
+                   t=jnp.where(reset, 0, sim.t), hist=hist)
 
 
 def _advance_sim(state: TrainState, data: TrainData, key):
@@ -363,27 +371,33 @@ def _advance_sim(state: TrainState, data: TrainData, key):
     act = jax.vmap(sample_action)
 
     def step(carry, key):
-        sim, buf_obs, buf_act, pos = carry
+        sim, buf_obs, buf_act, buf_hist, pos = carry
         k_act, k_dyn, k_reset = jax.random.split(key, 3)
         action, _, _ = act(index_params(data.policies, sim.policy), sim.obs,
                            jax.random.split(k_act, E))
         k_dyn, k_end = end_key(k_dyn, hazard_fn)
-        next_obs, u = sim_step(sim.obs, action, k_dyn)
+        next_obs, u = sim_step(sim.obs, action, k_dyn, sim.hist)
+        hist = None if sim.hist is None else push_history(sim.hist, sim.obs, action)
         rows = (pos + jnp.arange(E)) % B
         buf_obs, buf_act = buf_obs.at[rows].set(sim.obs), buf_act.at[rows].set(action)
+        if buf_hist is not None:
+            buf_hist = jax.tree_util.tree_map(lambda b, x: b.at[rows].set(x), buf_hist,
+                                              sim.hist)
         t = sim.t + 1
         ended = ends_episode(sim.obs, action, next_obs, k_end, done_fn, hazard_fn)
         reset = ended | (t >= cfg.sim_horizon)
-        sim = _reset_sim(SimEnvs(next_obs, sim.policy, t), reset, data, state.selected, k_reset)
-        return (sim, buf_obs, buf_act, (pos + E) % B), (reset.mean(), u.mean())
+        sim = _reset_sim(SimEnvs(next_obs, sim.policy, t, hist), reset, data, state.selected,
+                         k_reset)
+        return (sim, buf_obs, buf_act, buf_hist, (pos + E) % B), (reset.mean(), u.mean())
 
-    carry = (state.sim, state.buffer_obs, state.buffer_act, state.buffer_pos)
+    carry = (state.sim, state.buffer_obs, state.buffer_act, state.buffer_hist, state.buffer_pos)
     carry, (reset_rate, u) = jax.lax.scan(step, carry, jax.random.split(key, cfg.sim_steps))
-    sim, buf_obs, buf_act, pos = carry
+    sim, buf_obs, buf_act, buf_hist, pos = carry
     metrics = {"sim_reset_rate": reset_rate.mean()}
     if cfg.ensemble_size > 1:
         metrics["sim_disagreement"] = u.mean()
-    return state.replace(sim=sim, buffer_obs=buf_obs, buffer_act=buf_act, buffer_pos=pos), metrics
+    return state.replace(sim=sim, buffer_obs=buf_obs, buffer_act=buf_act, buffer_hist=buf_hist,
+                         buffer_pos=pos), metrics
 
 
 def _adversarial_updates(state: TrainState, data: TrainData, key):
@@ -395,14 +409,15 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
 
     def fake_sa(key):
         rows = jax.random.randint(key, (n,), 0, cfg.buffer_size)
-        return state.buffer_obs[rows], state.buffer_act[rows]
+        return (state.buffer_obs[rows], state.buffer_act[rows],
+                take_history(state.buffer_hist, rows))
 
     def disc_update(carry, key):
         gen, disc, us, opt = carry
         k_real, k_fake, k_gen = jax.random.split(key, 3)
-        real = _real_batch(k_real, data, state.selected, n)
-        f_obs, f_act = fake_sa(k_fake)
-        f_next = _sampler(gen, state, 1.0).sample(f_obs, f_act, k_gen)
+        real = _real_batch_history(k_real, data, state.selected, n)[:3]
+        f_obs, f_act, f_hist = fake_sa(k_fake)
+        f_next = _sampler(gen, state, 1.0).sample(f_obs, f_act, k_gen, f_hist)
         (loss, (us, aux)), grads = jax.value_and_grad(losses.discriminator_loss, has_aux=True)(
             disc, us, state.norm, real, (f_obs, f_act, f_next))
         updates, opt = disc_tx.update(grads, opt, disc)
@@ -413,16 +428,19 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         k_disc, k_real, k_fake, k_gen = jax.random.split(key, 4)
         (_, disc, us, disc_opt), d_metrics = jax.lax.scan(
             disc_update, (gen, disc, us, disc_opt), jax.random.split(k_disc, cfg.disc_updates))
-        r_obs, r_act, r_next = _real_batch(k_real, data, state.selected, n)
-        f_obs, f_act = fake_sa(k_fake)
+        r_obs, r_act, r_next, r_hist = _real_batch_history(k_real, data, state.selected, n)
+        f_obs, f_act, f_hist = fake_sa(k_fake)
         obs, act = jnp.concatenate([r_obs, f_obs]), jnp.concatenate([r_act, f_act])
+        hist = (None if r_hist is None else
+                jax.tree_util.tree_map(lambda r, f: jnp.concatenate([r, f]), r_hist, f_hist))
         keys = dyn.member_keys(k_gen, cfg.ensemble_size)
 
         def member_loss(g, k):
-            loss = losses.generator_adversarial_loss(g, disc, us, state.norm, obs, act, k)[0]
+            loss = losses.generator_adversarial_loss(g, disc, us, state.norm, obs, act, k,
+                                                     hist)[0]
             if cfg.adv_nll_weight:  # the likelihood anchor (static: off costs nothing)
                 loss = loss + cfg.adv_nll_weight * losses.generator_nll_loss(
-                    g, state.norm, r_obs, r_act, r_next)[0]
+                    g, state.norm, r_obs, r_act, r_next, r_hist)[0]
             return loss
 
         def total(g_all):  # each member's loss on the same (s, a), its own noise: sum
@@ -486,7 +504,8 @@ def _advance_vd(state: TrainState, data: TrainData, key):
     done = roll.t >= H
     sim_value = roll.ret.mean(1)
     vd = value_difference(sim_value, data.true_value)
-    fresh = start_values(data.start_pool, data.n_policies, cfg.vd_episodes, k_restart)
+    fresh = start_values(data.start_pool, data.n_policies, cfg.vd_episodes, k_restart,
+                         sim.new_history)
     pick = lambda new, old: jnp.where(done, new, old)
     return state.replace(
         vd=pick(vd, state.vd), sim_value=pick(sim_value, state.sim_value),

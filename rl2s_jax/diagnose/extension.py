@@ -1,0 +1,106 @@
+"""From a diagnosed cause to the model extension: the diagnosis model's spec (``ModelSpec``)
+that diagnosis fits, and the ``rl2s train --set`` items that build the same extension into the
+simulator users train (``train_set``; docs/DIAGNOSIS.md)."""
+from __future__ import annotations
+
+import dataclasses
+import json
+
+from rl2s_jax.diagnose.causes import rivals
+from rl2s_jax.diagnose.model import ModelSpec
+
+__all__ = ["EXTENSION_SHARE", "NOISE_NLL_BETA", "NOT_TRAINABLE", "extension_for",
+           "train_command", "train_set"]
+
+EXTENSION_SHARE = 0.25  # secondary causes join the extension above this share of the top score
+NOISE_NLL_BETA = 0.5  # the noise extension's beta-NLL exponent. On the CPU Hopper noise
+# recording (85k, held-out episodes, 2 seeds), NLL / MSE: base -9.4 / 0.045; state noise with
+# beta 0: -15.3 / 0.099, beta 0.5: -17.0 / 0.036, beta 1: -11.5 / 0.034.
+
+
+def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]:
+    """The extended spec for the diagnosed causes: the top cause's extension, plus that of
+    every other significant cause scoring at least EXTENSION_SHARE of the top one; an
+    extension the base model already has is skipped. -> (spec, [{"cause", "change"}]); the
+    base spec and [] when the top cause is none (or nothing would change)."""
+    if causes["top_cause"] == "none":
+        return base, []
+    ranked = [c for c in causes["causes"] if c["significant"] and c["name"] != "none"]
+    ranked = [c for c in ranked if c["name"] in rivals(ranked[0]["name"])]
+    top_score = ranked[0]["score"]
+    spec, changes = base, []
+    for c in ranked:
+        if c["score"] < EXTENSION_SHARE * top_score:
+            continue
+        d = c["details"]
+        if c["name"] == "actuation_delay":
+            change = {"action_history": max(spec.action_history, int(d["lag"]))}
+        elif c["name"] == "unobserved_state":
+            change = {"obs_history": max(spec.obs_history, max(d["lags"] or [2]))}
+        elif c["name"] == "hidden_episode_parameter":
+            change = {"context_dim": max(spec.context_dim, 2)}
+        elif c["name"] == "stochastic_noise":
+            # beta-NLL keeps the state-dependent std from buying likelihood with the mean
+            # (plain NLL raised held-out MSE 2.3x on the Hopper noise variant; RESULTS.md)
+            change = {"noise": "state", "nll_beta": max(spec.nll_beta, NOISE_NLL_BETA)}
+        elif c["name"] == "time_drift":
+            over = "order" if d["over"] == "episode_order" else "step"
+            change = {"time_inputs": tuple(sorted(set(spec.time_inputs) | {over}))}
+        elif c["name"] == "coverage_gap":
+            change = {"policy_cvar_eps": 0.25}
+        else:  # pragma: no cover - a cause without an extension
+            continue
+        if all(getattr(spec, k) == v for k, v in change.items()):
+            continue  # the model already has it
+        spec = dataclasses.replace(spec, **change)
+        changes.append({"cause": c["name"],
+                        "change": {k: list(v) if isinstance(v, tuple) else v
+                                   for k, v in change.items()}})
+    return spec.validate(), changes
+
+
+# What `rl2s train --set` cannot build yet, and why (the report says so beside train_set).
+NOT_TRAINABLE = {
+    "context_dim": "a per-episode context is fitted by diagnosis only; the simulator does not "
+                   "infer one in its rollouts yet",
+    "time_inputs:order": "the place in the recording order has no value in a simulated "
+                         "episode; retrain on the recent part of the data instead",
+    "policy_cvar_eps": "weighting the worst policies is what --method rl2s / rl2s-bc do "
+                       "(their eps); no --set needed",
+}
+
+
+def train_set(changes: list[dict]) -> tuple[list[str], list[dict]]:
+    """The extension as ``rl2s train --set`` items (``KEY=VALUE``, TrainConfig fields, values
+    in JSON) and the changes that training cannot build, each with the reason.
+    -> (train_set, not_trainable [{"change", "why"}])."""
+    items: list[str] = []
+    skipped: list[dict] = []
+    for c in changes:
+        for k, v in c["change"].items():
+            if k in ("action_history", "obs_history"):
+                items.append(f"{k}={int(v)}")
+            elif k == "noise":
+                items.append(f"gen_noise={v}")
+            elif k == "nll_beta":
+                items.append(f"nll_beta={float(v)}")
+            elif k == "time_inputs":
+                if "step" in v:
+                    items.append('time_inputs=["step"]')
+                if "order" in v:
+                    skipped.append({"change": "time_inputs=order",
+                                    "why": NOT_TRAINABLE["time_inputs:order"]})
+            else:
+                skipped.append({"change": f"{k}={json.dumps(v)}",
+                                "why": NOT_TRAINABLE.get(k, "no training field yet")})
+    return items, skipped
+
+
+def train_command(report: dict, data_path: str, out: str) -> str | None:
+    """The `rl2s train` command that builds the extended simulator (None: nothing to build)."""
+    items = report["extension"].get("train_set") or []
+    if not items:
+        return None
+    method = report["extension"].get("method", "rl2s")
+    sets = " ".join(f"--set '{i}'" for i in items)
+    return f"rl2s train --data {data_path} --method {method} --out {out} {sets}"

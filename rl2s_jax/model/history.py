@@ -1,0 +1,159 @@
+"""The past that a simulator with history inputs steps on, carried through rollouts.
+
+A member of the dynamics family (``rl2s_jax.model.dynamics``) may see, beside (s, a), the k
+previous actions and observations of its episode (each with a validity flag, 0 before the
+episode start) and the step's place in the episode (``time_inputs=("step",)``: t /
+episode_length, clipped to [0, 1]). ``History`` is that past for a batch of episodes; a
+rollout starts it empty (``empty_history``), pushes every step (``push_history``) and empties
+it where an episode restarts (``reset_history``). The training rows get theirs from the logged
+episode (``rl2s_jax.train.data``), so what training sees and what a rollout feeds are the same
+inputs. A Markov member has no History (None), and its inputs are ``markov_inputs``.
+
+Newest first: ``past_act[..., 0, :]`` is the action of the previous step.
+Shapes: Ko = obs_history, Ka = action_history, o = obs size, a = action size.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from rl2s_jax.model.dynamics import Normalizer, markov_inputs, model_inputs
+
+SIM_TIME_INPUTS = ("step",)  # "order" (the place in a recording) has no value in a rollout
+
+
+@struct.dataclass
+class History:
+    """past_obs [..., Ko, o], past_obs_valid [..., Ko] bool, past_act [..., Ka, a],
+    past_act_valid [..., Ka] bool, t [...] int32 steps since the episode began; the static
+    ``time_inputs`` and ``episode_length`` say how t is fed. A past of length 0 is None (a
+    checkpoint cannot hold zero-size arrays)."""
+
+    past_obs: jax.Array | None
+    past_obs_valid: jax.Array | None
+    past_act: jax.Array | None
+    past_act_valid: jax.Array | None
+    t: jax.Array
+    time_inputs: tuple[str, ...] = struct.field(pytree_node=False, default=())
+    episode_length: int = struct.field(pytree_node=False, default=1000)
+
+    @property
+    def times(self) -> jax.Array:
+        """The time inputs [..., T] in [0, 1]."""
+        frac = jnp.clip(self.t.astype(jnp.float32) / self.episode_length, 0.0, 1.0)
+        return jnp.stack([frac for _ in self.time_inputs], -1) if self.time_inputs else (
+            jnp.zeros(self.t.shape + (0,), jnp.float32))
+
+
+def empty_history(batch_shape: tuple[int, ...], obs_size: int, action_size: int, *,
+                  obs_history: int, action_history: int, time_inputs: tuple[str, ...] = (),
+                  episode_length: int = 1000) -> History:
+    """The history of episodes that start now: nothing valid, t = 0."""
+    b = tuple(batch_shape)
+    past = lambda k, d: (None, None) if k == 0 else (jnp.zeros(b + (k, d), jnp.float32),
+                                                     jnp.zeros(b + (k,), bool))
+    past_obs, obs_valid = past(obs_history, obs_size)
+    past_act, act_valid = past(action_history, action_size)
+    return History(past_obs=past_obs, past_obs_valid=obs_valid, past_act=past_act,
+                   past_act_valid=act_valid, t=jnp.zeros(b, jnp.int32),
+                   time_inputs=tuple(time_inputs), episode_length=int(episode_length))
+
+
+def _shift(past, valid, new):
+    """past [..., K, d], valid [..., K] with ``new`` [..., d] put first; None stays None."""
+    if past is None:
+        return past, valid
+    past = jnp.concatenate([new[..., None, :].astype(past.dtype), past[..., :-1, :]], -2)
+    valid = jnp.concatenate([jnp.ones(valid.shape[:-1] + (1,), bool), valid[..., :-1]], -1)
+    return past, valid
+
+
+def push_history(hist: History, obs: jax.Array, action: jax.Array) -> History:
+    """The history after a step from ``obs`` [..., o] with ``action`` [..., a]."""
+    past_obs, obs_valid = _shift(hist.past_obs, hist.past_obs_valid, obs)
+    past_act, act_valid = _shift(hist.past_act, hist.past_act_valid, action)
+    return hist.replace(past_obs=past_obs, past_obs_valid=obs_valid, past_act=past_act,
+                        past_act_valid=act_valid, t=hist.t + 1)
+
+
+def reset_history(hist: History, reset: jax.Array) -> History:
+    """Empty where ``reset`` [...] (bool) holds, unchanged elsewhere."""
+    def pick(x):
+        r = jnp.reshape(reset, reset.shape + (1,) * (x.ndim - reset.ndim))
+        return jnp.where(r, jnp.zeros_like(x), x)
+    return jax.tree_util.tree_map(pick, hist)
+
+
+def step_inputs(norm: Normalizer, obs: jax.Array, action: jax.Array,
+                hist: History | None) -> jax.Array:
+    """A member's inputs at (obs [..., o], action [..., a]) with this past (None: Markov)."""
+    if hist is None:
+        return markov_inputs(norm, obs, action)
+
+    def past(x, valid, ref):
+        if x is None:
+            return (jnp.zeros(ref.shape[:-1] + (0, ref.shape[-1]), ref.dtype),
+                    jnp.zeros(ref.shape[:-1] + (0,), bool))
+        return x, valid
+    past_obs, obs_valid = past(hist.past_obs, hist.past_obs_valid, obs)
+    past_act, act_valid = past(hist.past_act, hist.past_act_valid, action)
+    return model_inputs(norm, {"obs": obs, "past_obs": past_obs, "past_obs_valid": obs_valid,
+                               "action": action, "past_act": past_act,
+                               "past_act_valid": act_valid, "times": hist.times})
+
+
+def take_history(hist: History | None, idx) -> History | None:
+    """Rows ``idx`` of a batch of histories (None stays None)."""
+    if hist is None:
+        return None
+    return jax.tree_util.tree_map(lambda x: x[idx], hist)
+
+
+# ------------------------------------------------------------------ logged episodes (host)
+
+
+def episode_steps_back(policy_id: np.ndarray, episode_id: np.ndarray, t: np.ndarray
+                       ) -> np.ndarray:
+    """[N] int: for each row, how many preceding rows its episode has without a gap (same
+    policy and episode, t one lower each row). Rows are in storage order."""
+    n = len(t)
+    cont = np.zeros(n, bool)  # cont[i]: row i continues row i - 1
+    if n > 1:
+        cont[1:] = ((policy_id[1:] == policy_id[:-1]) & (episode_id[1:] == episode_id[:-1])
+                    & (t[1:] == t[:-1] + 1))
+    first = np.maximum.accumulate(np.where(cont, 0, np.arange(n))) if n else np.zeros(0, int)
+    return np.arange(n) - first
+
+
+def dataset_steps_back(ds) -> np.ndarray:
+    """``episode_steps_back`` of a Dataset's rows (storage order)."""
+    return episode_steps_back(np.asarray(ds.policy_id), np.asarray(ds.episode_id),
+                              np.asarray(ds.t))
+
+
+def logged_history(ds, rows, *, obs_history: int, action_history: int,
+                   time_inputs: tuple[str, ...] = (), episode_length: int = 1000,
+                   steps_back: np.ndarray | None = None) -> History:
+    """The logged past of Dataset rows [n] (storage order; ``steps_back``: the Dataset's
+    ``dataset_steps_back``, computed when None), built on the host: what a member with history
+    inputs sees at those rows."""
+    rows = np.asarray(rows, np.int64)
+    back = dataset_steps_back(ds) if steps_back is None else np.asarray(steps_back)
+
+    def past(x, k):
+        if k == 0:
+            return None, None
+        lags = np.arange(1, k + 1)
+        valid = back[rows][:, None] >= lags
+        src = np.where(valid, rows[:, None] - lags, rows[:, None])
+        x = np.asarray(x, np.float32)
+        return (jnp.asarray(np.where(valid[..., None], x[src], 0.0), jnp.float32),
+                jnp.asarray(valid))
+
+    past_obs, obs_valid = past(ds.obs, obs_history)
+    past_act, act_valid = past(ds.action, action_history)
+    return History(past_obs=past_obs, past_obs_valid=obs_valid, past_act=past_act,
+                   past_act_valid=act_valid, t=jnp.asarray(np.asarray(ds.t)[rows], jnp.int32),
+                   time_inputs=tuple(time_inputs), episode_length=int(episode_length))

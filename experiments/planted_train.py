@@ -28,6 +28,7 @@ import numpy as np
 
 from rl2s_jax.app.diagnose import diagnose
 from rl2s_jax.data.dataset import save_dataset
+from rl2s_jax.diagnose.extension import train_set
 from rl2s_jax.diagnose.planted_mjx import collect_planted
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.policy.policy import index_params
@@ -55,6 +56,16 @@ def rl2s(*args: str) -> None:
     subprocess.run(cmd, check=True)
 
 
+def train_and_evaluate(args, train_path: str, held_path: str, out: str, seed: int,
+                       sets: list[str]) -> None:
+    """`rl2s train` (resumes a cut-off run) then `rl2s evaluate --json` on the held-out data."""
+    rl2s("train", "--data", train_path, "--method", args.method, "--steps", str(args.steps),
+         "--out", out, "--seed", str(seed), "--quiet", "--profile", args.profile,
+         *[x for s in sets for x in ("--set", s)])
+    rl2s("evaluate", "--ckpt", os.path.join(out, "checkpoints"), "--data", held_path,
+         "--episodes", str(args.sim_episodes), "--json", os.path.join(out, "evaluate.json"))
+
+
 def paired(a: list[float], b: list[float]) -> dict:
     d = np.asarray(b, float) - np.asarray(a, float)
     sd = float(d.std(ddof=1)) if d.size > 1 else 0.0
@@ -75,10 +86,18 @@ def run_effect(effect: str, args, clean_reference) -> dict:
     t_collect = time.perf_counter() - t0
     from rl2s_jax.data.dataset import load_dataset  # local: after the recordings exist
     ds = load_dataset(train_path)
-    report = diagnose(ds, os.path.join(edir, "diagnosis"), seeds=tuple(range(2)),
-                      reference=None if effect == "clean" else clean_reference, plots=False,
-                      log=lambda s: print(f"[{effect}] {s}", flush=True))
+    done = os.path.join(edir, "diagnosis", "report.json")
+    if os.path.isfile(done):  # a resumed run: the diagnosis is made
+        with open(done) as f:
+            report = json.load(f)
+    else:
+        report = diagnose(ds, os.path.join(edir, "diagnosis"), seeds=tuple(range(2)),
+                          reference=None if effect == "clean" else clean_reference,
+                          plots=False, log=lambda s: print(f"[{effect}] {s}", flush=True))
     ext = report["extension"]
+    # today's translation (a cached report may predate it)
+    ext["train_set"], ext["not_trainable"], ext["already_in_simulator"] = train_set(
+        ext["changes"])
     variants = {"plain": []}
     if ext["train_set"]:
         variants["extended"] = list(ext["train_set"])
@@ -87,12 +106,9 @@ def run_effect(effect: str, args, clean_reference) -> dict:
         scores[variant] = {m: [] for m in METRICS}
         for seed in range(args.seeds):
             out = os.path.join(edir, variant, f"seed{seed}")
-            rl2s("train", "--data", train_path, "--method", args.method, "--steps",
-                 str(args.steps), "--out", out, "--seed", str(seed), "--quiet",
-                 "--profile", args.profile, *[x for s in sets for x in ("--set", s)])
             ev = os.path.join(out, "evaluate.json")
-            rl2s("evaluate", "--ckpt", os.path.join(out, "checkpoints"), "--data", held_path,
-                 "--episodes", str(args.sim_episodes), "--json", ev)
+            if not os.path.isfile(ev):  # else made by an earlier, cut-off run
+                train_and_evaluate(args, train_path, held_path, out, seed, sets)
             with open(ev) as f:
                 r = json.load(f)
             for m in METRICS:
@@ -100,6 +116,7 @@ def run_effect(effect: str, args, clean_reference) -> dict:
     row = {"effect": effect, "truth": ds.meta["source"]["planted"],
            "top_cause": report["top_cause"], "confidence": report["confidence"],
            "train_set": ext["train_set"], "not_trainable": ext["not_trainable"],
+           "already_in_simulator": ext["already_in_simulator"],
            "scores": scores, "collect_seconds": round(t_collect, 1),
            "diagnose_seconds": report["seconds"]}
     if "extended" in scores:
@@ -149,6 +166,8 @@ def write(args, argv, rows) -> None:
 
     for r in rows:
         sets = " ".join(r["train_set"]) or "-"
+        if r.get("already_in_simulator"):
+            sets += " (default already: " + " ".join(r["already_in_simulator"]) + ")"
         if r["not_trainable"]:
             sets += " (not trainable: " + ", ".join(n["change"] for n in r["not_trainable"]) + ")"
         lines.append(f"| {r['effect']} | {r['top_cause']} ({r['confidence']:.2f}) | {sets} | "
@@ -179,11 +198,15 @@ def main(argv=None) -> int:
     rows = []
     effects = ["clean"] + [e for e in args.effects if e != "clean"]
     for effect in effects:
-        row = run_effect(effect, args, clean)
+        if effect not in args.effects and os.path.isfile(
+                os.path.join(args.out, "clean", "train.npz")):
+            row = None  # the clean recording is the reference only
+        else:
+            row = run_effect(effect, args, clean)
         if effect == "clean":
             from rl2s_jax.data.dataset import load_dataset  # local: as in run_effect
             clean = load_dataset(os.path.join(args.out, "clean", "train.npz"))
-        if effect in args.effects:
+        if row is not None:
             rows.append(row)
             write(args, argv, rows)
     return 0

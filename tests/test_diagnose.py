@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 from rl2s_jax.app.diagnose import diagnose
+from rl2s_jax.app.train import parse_overrides
 from rl2s_jax.data.episodes import from_dataset, half_split, pool_episodes, split_episodes
 from rl2s_jax.diagnose.causes import (
     CAUSES,
@@ -25,9 +26,10 @@ from rl2s_jax.diagnose.causes import (
     sign_flip_p,
     variance_from_log,
 )
-from rl2s_jax.diagnose.extension import extension_for
+from rl2s_jax.diagnose.extension import extension_for, train_command, train_set
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.diagnose.planted import make_planted
+from rl2s_jax.train.config import TrainConfig
 
 # Small enough for CI, large enough that every planted effect is found with a wide margin.
 N_EPISODES, MODEL_STEPS, SEEDS = 160, 1000, (0, 1, 2)
@@ -211,6 +213,33 @@ def test_extension_for_maps_every_cause():
     assert extension_for(causes("time_drift", {"over": "step"}), base)[0].time_inputs == ("step",)
     assert extension_for(causes("coverage_gap", {}), base)[0].policy_cvar_eps == 0.25
     assert extension_for({"top_cause": "none", "causes": []}, base) == (base, [])
+
+
+def test_train_set_builds_what_the_trained_simulator_lacks():
+    """The extension as `rl2s train --set` items: the history inputs as TrainConfig fields,
+    nothing the trained simulator already has (its noise head and beta 1), nll_beta raised
+    only over a config below diagnosis's 0.5, and the context / recording order named as not
+    trainable. Every item parses through --set into a valid TrainConfig."""
+    change = lambda name, **c: {"cause": name, "change": c}
+    items, skipped, already = train_set([
+        change("actuation_delay", action_history=2),
+        change("stochastic_noise", noise="state", nll_beta=0.5),
+        change("hidden_episode_parameter", context_dim=2),
+        change("time_drift", time_inputs=["order", "step"])])
+    assert items == ["action_history=2", 'time_inputs=["step"]'], items
+    assert already == ['gen_noise="state"', "nll_beta=1.0"], already
+    assert [s["change"] for s in skipped] == ["context_dim=2", "time_inputs=order"]
+    assert all(s["why"] for s in skipped)
+    cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), **parse_overrides(items)})
+    assert (cfg.validate().action_history, cfg.time_inputs) == (2, ("step",))
+    legacy = TrainConfig(nll_beta=0.0, gen_noise="global", action_history=3)
+    items, _, _ = train_set([change("stochastic_noise", noise="state", nll_beta=0.5),
+                             change("actuation_delay", action_history=2)], legacy)
+    assert items == ['gen_noise="state"', "nll_beta=0.5"], items  # history 3 already >= 2
+    report = {"extension": {"train_set": ["action_history=2"], "method": "bc"}}
+    assert train_command(report, "d.npz", "out") == (
+        "rl2s train --data d.npz --method bc --out out --set 'action_history=2'")
+    assert train_command({"extension": {"train_set": []}}, "d.npz", "out") is None
 
 
 def test_extension_joins_mechanisms_before_symptoms():

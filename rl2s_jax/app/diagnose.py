@@ -129,16 +129,6 @@ def _method_spec(spec: ModelSpec, ckpt: str | None) -> tuple[ModelSpec, str]:
     return dataclasses.replace(spec, **change).validate(), words
 
 
-def _saved_method(ckpt: str | None) -> str:
-    """The method the diagnosed checkpoint was trained with (rl2s without one)."""
-    if ckpt is None:
-        return "rl2s"
-    try:
-        return str(load_meta(ckpt)["config"]["method"])
-    except (OSError, KeyError, ValueError):
-        return "rl2s"
-
-
 def _value_setup(ds: Dataset, zoo: str | None, horizon: int | None, gamma: float | None):
     """Policies, task functions and true values for the value views, or (None, reason)."""
     task_name = ds.meta.get("task")
@@ -333,8 +323,11 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
         gain["saved"] = {"heldout_nll": float(_gaussian_nll(resid, std)),
                          "heldout_mse": float((resid ** 2).mean())}
     report["extension"]["trained_by"] = trained_by
-    report["extension"]["train_set"], report["extension"]["not_trainable"] = train_set(changes)
-    report["extension"]["method"] = _saved_method(ckpt)
+    saved = None if ckpt is None else TrainConfig.from_saved(load_meta(ckpt)["config"])
+    proposal = report["extension"]
+    proposal["train_set"], proposal["not_trainable"], proposal["already_in_simulator"] = (
+        train_set(changes, saved))
+    proposal["method"] = "rl2s" if saved is None else saved.method
     if changes:
         t0 = time.perf_counter()
         ext = fit_models(eps, fit_eps, spec, seeds, progress=progress)
@@ -527,6 +520,9 @@ def report_markdown(report: dict, gaps_md: str) -> str:
             lines += ["To train it as the simulator: `rl2s train ... "
                       + " ".join(f"--set '{i}'" for i in ext["train_set"]) + "` "
                       "(`extension.train_set` in report.json).", ""]
+        if ext.get("already_in_simulator"):
+            lines += ["Already in the simulator `rl2s train` builds: "
+                      + ", ".join(f"`{i}`" for i in ext["already_in_simulator"]) + ".", ""]
         lines += [f"Not built by `rl2s train` yet: {n['change']} ({n['why']})."
                   for n in ext.get("not_trainable", [])]
         if ext.get("not_trainable"):

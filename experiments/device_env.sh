@@ -8,7 +8,7 @@ SITE=${RL2S_SITE:-/tmp/site}
   && touch "$SITE/.rl2s_wheels"; } || exit 1
 export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1
 # Repeatable GPU numbers: without this flag identical policies from identical starts earn
-# different returns on walker2d, halfcheetah and ant (docs/RESULTS.md, "Why pairing did not
+# different returns on walker2d, halfcheetah and ant (RESULTS@bf0c7b2, "Why pairing did not
 # help"); it cost 0-40% of wall time there, but large-batch collection may slow far more
 # (unmeasured: docs/BENCHMARKS.md). RL2S_NONDETERMINISTIC=1 leaves XLA's default.
 if [ "${RL2S_NONDETERMINISTIC:-0}" != 1 ]; then

@@ -118,9 +118,9 @@ METRICS = EVAL_METRICS + IMPROVE_METRICS
 VARIANT_PARTS = ("full", "branched", "penalty", "stop")
 
 # Sizes per profile. gpu: 3 seeds, 1200 steps (the 1000 pre-training steps of the fitted
-# model family, then 200 WGAIL; docs/RESULTS.md, "Ant and Hopper: the likelihood model was
+# model family, then 200 WGAIL; RESULTS@bf0c7b2, "Ant and Hopper: the likelihood model was
 # underfit"), every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1.
-# Measured on one H100 (docs/RESULTS.md, "The protocol on the new model family"), per task,
+# Measured on one H100 (RESULTS@bf0c7b2, "The protocol on the new model family"), per task,
 # each family alone: data 83-97 s, the adversarial program (6 lanes) 355-375 s, the
 # likelihood program 190-210 s, SAC 18-22 s, the real measurement of the fine-tuned policies
 # 38 s (Hopper; more with 43 test policies), Hopper's oracle at 128 / 128 episodes 261 s.

@@ -78,7 +78,7 @@ def train_set(changes: list[dict], base: TrainConfig | None = None
     defaults, what `rl2s train` builds). An item ``base`` already satisfies is not repeated:
     training's default members already have a state-dependent noise head and beta-NLL at
     beta 1, and lowering beta to diagnosis's 0.5 raised the held-out MSE of Hopper's noise
-    variant by a quarter (RESULTS, "Planted effects through rl2s train").
+    variant by a quarter (RESULTS, "Planted effects through `rl2s train`").
     -> (train_set, not_trainable [{"change", "why"}], already ["KEY=VALUE" of base])."""
     base = base or TrainConfig()
     want: dict = {}

@@ -50,8 +50,8 @@ class TrainConfig:
     eps: float | None = None
     gen_hidden: tuple[int, ...] = (512, 512, 512, 512)
     disc_hidden: tuple[int, ...] = (512, 512, 512, 512)
-    batch_size: int = 1024         # 256 left the ensemble underfit (RESULTS, "Ant and Hopper:
-    # the likelihood model was underfit")
+    batch_size: int = 1024         # 256 left the ensemble underfit (RESULTS@bf0c7b2, "Ant and
+    # Hopper: the likelihood model was underfit")
     updates_per_step: int = 50     # generator updates per train_step (a "train call")
     disc_updates: int = 5          # critic updates before each generator update
     gen_lr: float = 1e-4

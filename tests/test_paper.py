@@ -737,7 +737,7 @@ def test_paper_all_runs_one_task_per_gpu_at_a_time(tmp_path):
 
 
 def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):
-    """experiments/device_jobs.sh with stub nvidia-smi / python3 (pip a no-op; paper.py logs
+    """`experiments/device.sh jobs` with stub nvidia-smi / python3 (pip a no-op; paper.py logs
     its start, prints its data phase after 0.5 s, ends 3 s later). -> (rc, [events], out)"""
     import subprocess
     import textwrap
@@ -760,14 +760,14 @@ def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):
         f.chmod(0o755)
     env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "OUT": str(out),
            "LIMIT": str(limit), "RL2S_SITE": str(tmp_path / "site")}
-    proc = subprocess.run(["bash", "experiments/device_jobs.sh", *specs], cwd=ROOT, env=env,
+    proc = subprocess.run(["bash", "experiments/device.sh", "jobs", *specs], cwd=ROOT, env=env,
                           capture_output=True, text=True, timeout=60)
     ev = events.read_text().split("\n")[:-1] if events.exists() else []
     return proc.returncode, ev, proc
 
 
 def test_device_jobs_runs_side_by_side_and_waits_for_the_data(tmp_path):
-    """device_jobs.sh: jobs without AFTER start at once on their GPUs; a job with AFTER starts
+    """device.sh jobs: jobs without AFTER start at once on their GPUs; a job with AFTER starts
     only once that job's data phase has ended; out/data dirs and args reach paper.py; a failed
     job fails the script after the others; a bad spec stops it before any job starts."""
     rc, ev, proc = _run_device_jobs(
@@ -787,3 +787,19 @@ def test_device_jobs_runs_side_by_side_and_waits_for_the_data(tmp_path):
     for bad in ("x hop - --task hopper", "0 hop", "0 hop nobody --task hopper"):
         rc, ev, proc = _run_device_jobs(tmp_path / bad.replace(" ", "_"), bad)
         assert rc == 2 and "job spec" in proc.stderr and ev == [], bad
+
+
+def test_device_runner_lists_its_subcommands_on_a_bad_one():
+    """experiments/device.sh with no or an unknown subcommand installs nothing, exits 2 and
+    prints its help, which names every subcommand it dispatches."""
+    import re
+    import subprocess
+    with open(os.path.join(ROOT, "experiments", "device.sh")) as f:
+        text = f.read()
+    dispatched = set(re.search(r"\n  ([a-z_|]+)\) setup_env", text).group(1).split("|"))
+    for args in ([], ["bogus"]):
+        proc = subprocess.run(["bash", "experiments/device.sh", *args], cwd=ROOT,
+                              capture_output=True, text=True, timeout=30)
+        assert proc.returncode == 2
+        for sub in dispatched | {"jobs"}:
+            assert f"device.sh {sub} " in proc.stderr, sub

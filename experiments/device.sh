@@ -1,0 +1,225 @@
+#!/usr/bin/env bash
+# The one runner of the GPU experiments (run through the device tool with the wheels of
+# ../shared/tools/device-wheels carried as .whl). Every subcommand first installs the wheels
+# (once per machine), sets PYTHONPATH, deterministic GPU ops, OUT (default /tmp/out), W (the
+# data dir /tmp/work, kept while the machine is warm, so a later call reuses its data) and
+# writes its log to $OUT line by line with the GPU's name and the time taken.
+#
+#   bash experiments/device.sh paper TASK [paper.py args]        the protocol for one task
+#       ([LIMIT=585]: paper.py stopped after LIMIT s; $OUT/<task>.json, paper_<task>.log)
+#   bash experiments/device.sh tasks "TASK ..." [paper.py args]   tasks round-robin over the
+#       GPUs (experiments/paper_all.sh; LIMIT=560 per process; $OUT/results.tgz)
+#   bash experiments/device.sh jobs "GPU NAME AFTER args" ...     paper.py jobs side by side,
+#       one GPU each, a job waiting for AFTER's data phase ("-": none); LIMIT=570 for all;
+#       $OUT/NAME/<task>.json, $OUT/NAME/paper.log; fails if a job failed
+#   bash experiments/device.sh ablation TASK [ablation_model.py args]
+#   bash experiments/device.sh model_fit TASK [model_fit.py args]
+#   bash experiments/device.sh control [improve_control.py args]  the real-env improvement
+#   bash experiments/device.sh zoo TASK [TASK ...]                `rl2s zoo` side by side
+#       ([ZOO_LIMIT=320] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="..."] [ZOO_EXPORT=1]
+#       [ZOO_IMPORT=DIR] [ZOO_MEM_FRACTION]; $OUT/zoo_<task>.tar, untar into
+#       rl2s_jax/zoo/shipped/; ZOO_EXPORT / ZOO_IMPORT continue a run on a fresh machine)
+#   bash experiments/device.sh smoke [STEPS] [TRANSITIONS]        every method at paper sizes
+#       on Hopper, then a checkpoint loaded in a fresh process ([METHODS="rl2s gail ..."])
+#   bash experiments/device.sh run LOG CMD...                     any command, logged to
+#       $OUT/LOG (e.g. python3 experiments/planted_train.py --out $W/planted)
+#
+# RL2S_NONDETERMINISTIC=1 leaves XLA's default (faster, not repeatable) GPU ops.
+set -uo pipefail
+
+setup_env() {
+  SITE=${RL2S_SITE:-/tmp/site}
+  [ -e "$SITE/.rl2s_wheels" ] || { python3 -m pip install -q --no-index --no-deps --no-compile \
+    --no-cache-dir --upgrade --target "$SITE" .whl/*.whl && mkdir -p "$SITE" \
+    && touch "$SITE/.rl2s_wheels"; } || exit 1
+  export PYTHONPATH=$SITE:$PWD PYTHONUNBUFFERED=1
+  # Repeatable GPU numbers: without this flag identical policies from identical starts earn
+  # different returns on walker2d, halfcheetah and ant (RESULTS@bf0c7b2, "Why pairing did not
+  # help"); it cost 0-40% of wall time there, but large-batch collection may slow far more
+  # (unmeasured: docs/BENCHMARKS.md). RL2S_NONDETERMINISTIC=1 leaves XLA's default.
+  if [ "${RL2S_NONDETERMINISTIC:-0}" != 1 ]; then
+    export XLA_FLAGS="${XLA_FLAGS:+$XLA_FLAGS }--xla_gpu_deterministic_ops=true"
+  fi
+  OUT=${OUT:-/tmp/out}
+  RL2S="python3 -m rl2s_jax.cli"
+  W=/tmp/work && mkdir -p "$W" "$OUT"
+
+  # run_logged LOG CMD...: the GPU's name, then CMD timed with its warnings dropped, to stdout
+  # and appended to $OUT/LOG line by line (another job may be waiting for a line of it).
+  run_logged() {
+    local log=$OUT/$1
+    shift
+    nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$log"
+    { time "$@" ; } 2>&1 | grep --line-buffered -v -i -e warn -e "Failed to import" \
+      | tee -a "$log"
+  }
+}
+
+usage() { sed -n '2,/^set -uo/p' "$0" | sed 's/^# \{0,1\}//' | head -n -1 >&2; exit 2; }
+
+cmd_paper() {
+  local task=${1:?usage: bash experiments/device.sh paper TASK [paper.py args]}
+  shift
+  run_logged paper_$task.log ${LIMIT:+timeout $LIMIT} python3 experiments/paper.py \
+    --task $task --profile gpu --out $OUT --data-dir $W "$@"
+}
+
+cmd_tasks() {
+  export TASKS=${1:?usage: bash experiments/device.sh tasks "TASK ..." [paper.py args]}
+  shift
+  PY="timeout ${LIMIT:-560} python3" DATA_DIR=$W bash experiments/paper_all.sh $OUT/res \
+    --profile gpu "$@"
+  tail -n 30 $OUT/res/paper_*.log
+  tar -C $OUT/res -czf $OUT/results.tgz . && rm -rf $OUT/res
+}
+
+cmd_jobs() {
+  LIMIT=${LIMIT:-570}
+  START=$SECONDS
+  declare -A GPU_OF
+  for spec in "$@"; do  # refuse bad specs before any job starts
+    read -r gpu name after _ <<<"$spec"
+    [[ "$gpu" =~ ^[0-9]+$ && -n "$name" && -n "$after" ]] || {
+      echo "job spec: expected \"GPU NAME AFTER paper.py args\", got \"$spec\"" >&2; return 2; }
+    [ -z "${GPU_OF[$name]:-}" ] || { echo "job spec: NAME $name given twice" >&2; return 2; }
+    GPU_OF[$name]=$gpu
+  done
+  for spec in "$@"; do
+    read -r _ name after _ <<<"$spec"
+    [ "$after" = - ] || [ -n "${GPU_OF[$after]:-}" ] || {
+      echo "job spec: $name waits for $after, which is no job's NAME" >&2; return 2; }
+  done
+
+  run_job() {  # GPU NAME AFTER ARGS...
+    local gpu=$1 name=$2 after=$3
+    shift 3
+    local log=$OUT/$name/paper.log
+    mkdir -p "$OUT/$name"
+    if [ "$after" != - ]; then
+      until grep -q "^\[paper\] data: " "$OUT/$after/paper.log" 2>/dev/null; do
+        if [ $((SECONDS - START)) -ge "$LIMIT" ] || [ -e "$OUT/$after/.done" ]; then
+          echo "[jobs] $name: $after never finished its data phase" | tee -a "$log"
+          touch "$OUT/$name/.done"
+          return 1
+        fi
+        sleep 1
+      done
+    fi
+    local left=$((LIMIT - (SECONDS - START)))
+    echo "[jobs] $name on GPU $gpu at ${SECONDS}s, ${left}s left: paper.py $*" | tee -a "$log"
+    export CUDA_VISIBLE_DEVICES=$gpu  # this job's subshell only
+    run_logged "$name/paper.log" timeout "$left" python3 experiments/paper.py --profile gpu \
+      --data-dir "$W" --out "$OUT/$name" "$@" >/dev/null  # its log, line by line
+    local rc=$?  # paper.py's status (pipefail)
+    echo "[jobs] $name ended with $rc at ${SECONDS}s" | tee -a "$log"
+    touch "$OUT/$name/.done"
+    return "$rc"
+  }
+
+  nvidia-smi --query-gpu=index,name,memory.total --format=csv,noheader
+  pids=()
+  names=()
+  for spec in "$@"; do
+    read -r gpu name after args <<<"$spec"
+    # shellcheck disable=SC2086  # the paper.py arguments are split on purpose
+    run_job "$gpu" "$name" "$after" $args &
+    pids+=($!)
+    names+=("$name")
+  done
+  failed=0
+  for i in "${!pids[@]}"; do
+    wait "${pids[$i]}" || { echo "[jobs] ${names[$i]} FAILED"; failed=1; }
+  done
+  rm -f "$OUT"/*/.done
+  for name in "${names[@]}"; do
+    echo "== $name"
+    tail -n 12 "$OUT/$name/paper.log"
+  done
+  return $failed
+}
+
+cmd_ablation() {
+  local task=${1:?usage: bash experiments/device.sh ablation TASK [ablation_model.py args]}
+  shift
+  run_logged ablation_$task.log python3 experiments/ablation_model.py --task $task \
+    --profile gpu --out $OUT --data-dir $W "$@"
+}
+
+cmd_model_fit() {
+  local task=${1:?usage: bash experiments/device.sh model_fit TASK [model_fit.py args]}
+  shift
+  run_logged model_fit_$task.log python3 experiments/model_fit.py --task $task \
+    --profile gpu --out $OUT --data-dir $W "$@"
+}
+
+cmd_control() {
+  run_logged control.log python3 experiments/improve_control.py --out $OUT "$@"
+}
+
+cmd_zoo() {
+  [ $# -gt 0 ] || { echo "usage: bash experiments/device.sh zoo TASK [TASK ...]" >&2; return 2; }
+  export XLA_PYTHON_CLIENT_MEM_FRACTION=${ZOO_MEM_FRACTION:-$(python3 -c "print(round(0.9 / $#, 2))")}
+  nvidia-smi -L
+  python3 -c "import jax; print('jax', jax.__version__, jax.devices())"
+  for task in "$@"; do
+    extra_var="ZOO_ARGS_$task"
+    args=(zoo --task "$task" --work "$W/zoo_$task" --out "$W/out_$task"
+          --time-limit "${ZOO_LIMIT:-320}" --final ${!extra_var:-})
+    [ "${ZOO_EXPORT:-0}" = 1 ] && args+=(--export "$OUT/zoo_${task}_export.npz")
+    imp="${ZOO_IMPORT:-}/zoo_${task}_export.npz"
+    [ -n "${ZOO_IMPORT:-}" ] && { [ -f "$imp" ] || [ -f "$imp.part00" ]; } && args+=(--import "$imp")
+    mkdir -p "$W/out_$task"
+    echo "== $task: rl2s ${args[*]}"
+    timeout "${ZOO_TIMEOUT:-530}" python3 -m rl2s_jax.cli "${args[@]}" > "$W/out_$task/zoo.log" 2>&1 &
+  done
+  wait
+  for task in "$@"; do
+    echo "== $task"
+    grep -v -i "warn" "$W/out_$task/zoo.log" | tr '\r' '\n' | grep -v "^ *$" | tail -25
+    tar -cf "$OUT/zoo_$task.tar" -C "$W" --transform "s,^out_$task,$task," "out_$task"
+  done
+  ls -la "$OUT"
+}
+
+cmd_smoke() {
+  local STEPS=${1:-200} TPP=${2:-20000}
+  [ -f $W/hopper_train.npz ] || { time $RL2S collect --task hopper --split train --transitions-per-policy $TPP \
+      --value-episodes 16 --out $W/hopper_train.npz ; } 2>&1 | grep -v -i warn | tail -5 \
+    | tee $OUT/train.log
+  METHODS=${METHODS:-rl2s gail bc rl2s-bc}
+  for M in $METHODS; do
+    echo "== $M" | tee -a $OUT/train.log
+    rm -rf $W/run_$M
+    { time $RL2S train --data $W/hopper_train.npz --method $M --steps $STEPS --profile gpu \
+        --out $W/run_$M --quiet --save-every 100 --chunk 50 ; } 2>&1 | grep -v -i warn \
+      | tee -a $OUT/train.log
+    cp $W/run_$M/metrics.jsonl $OUT/metrics_$M.jsonl
+  done
+  python3 - <<PY 2>&1 | grep -v -i warn | tee -a $OUT/train.log
+import json, jax, jax.numpy as jnp
+from rl2s_jax import load_simulator
+sim = load_simulator("$W/run_rl2s/checkpoints")
+o, a = sim.norm.obs_mean.shape[0], sim.norm.act_mean.shape[0]
+print("fresh-process load:", sim.task, sim.n_members, "members",
+      sim.mean(jnp.ones((2, o)), jnp.zeros((2, a))).shape)
+runs = {m: json.load(open(f"$W/run_{m}/summary.json")) for m in "$METHODS".split()}
+json.dump(runs, open("$OUT/summaries.json", "w"), indent=1)
+PY
+}
+
+cmd_run() {
+  local log=${1:?usage: bash experiments/device.sh run LOG CMD...}
+  shift
+  [ $# -gt 0 ] || usage
+  run_logged "$log" "$@"
+}
+
+sub=${1:-}
+shift || true
+case "$sub" in
+  paper|tasks|ablation|model_fit|control|zoo|smoke|run) setup_env; "cmd_$sub" "$@" ;;
+  jobs) [ $# -gt 0 ] || { echo "usage: bash experiments/device.sh jobs \"GPU NAME AFTER args\" ..." >&2
+          exit 2; }
+        setup_env; cmd_jobs "$@" ;;
+  *) usage ;;
+esac

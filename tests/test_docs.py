@@ -35,8 +35,10 @@ def test_results_citations_name_existing_sections():
 def test_a_citation_of_a_missing_section_is_found(tmp_path):
     (tmp_path / "docs").mkdir()
     (tmp_path / "docs" / "RESULTS.md").write_text("## The oracle\n\ntext\n")
-    (tmp_path / "a.py").write_text('# see docs/RESULTS.md, "The oracle" and RESULTS, "Gone\n'
-                                   '# away"; RESULTS@bf0c7b2, "Old" is the diary\n')
+    q = '"'  # written apart, so that this file holds no citation itself
+    (tmp_path / "a.py").write_text(f'# see docs/RESULTS.md, {q}The oracle{q} and RESULTS, '
+                                   f'{q}Gone\n# away{q}; RESULTS@bf0c7b2, {q}Old{q} is the '
+                                   'diary\n')
     subprocess.run(["git", "init", "-q"], cwd=tmp_path, check=True)
     subprocess.run(["git", "add", "."], cwd=tmp_path, check=True)
     assert [b.split(": ", 1)[1] for b in stale_citations(tmp_path)] == ["'Gone\\n# away'"]

@@ -80,6 +80,12 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     if profile == "auto":
         profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
     cfg = make_config(ds, method, profile, eps, overrides)
+    if cfg.pretrains and steps <= cfg.pretrain_steps:
+        log(f"[train] warning: --steps {steps} ends inside the {cfg.pretrain_steps} "
+            f"pre-training steps of {method}: this run is maximum likelihood on every policy "
+            f"(as bc) and never reaches the adversarial phase; "
+            f"{cfg.pretrain_steps - steps + 1} more step(s) reach it (--steps "
+            f"{cfg.pretrain_steps + 1} or more, or --set pretrain_steps=N)")
     policies = policies_for(ds, zoo)
     data = make_train_data(ds, policies, cfg)
     os.makedirs(out, exist_ok=True)
@@ -92,9 +98,10 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
             "seed": seed, "profile": profile}
     metrics_path = os.path.join(out, "metrics.jsonl")
     eval_path = os.path.join(out, "eval.jsonl")
-    on_eval = None
+    on_eval, last_test = None, {}
     if eval_data is not None:
-        on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo)
+        on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo,
+                                  last_test)
         eval_every = eval_every or save_every or max(1, steps // 10)
     key = jax.random.PRNGKey(seed)
     if resume_step is not None and ck.latest_step() is None:
@@ -140,6 +147,12 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
         "steps_run": int(state.step) - start, "seconds": round(seconds, 2),
         "backend": jax.default_backend(), "avd_train": float(np.mean(vd)),
         "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(out, "checkpoints"),
+        "pretrain_steps_left": (max(0, cfg.pretrain_steps + 1 - int(state.step))
+                                if cfg.pretrains else 0),
+        "vd_measured_by": {"source": "simulated, the last completed VD measurement of the "
+                           "training policies", "episodes": cfg.vd_episodes,
+                           "horizon": cfg.vd_horizon, "gamma": cfg.gamma},
+        **last_test,
         "selected": [n for n, s in zip(names, np.asarray(state.selected), strict=True) if s],
         "policies": {n: {"true_value": float(t), "sim_value": float(s), "vd": float(v)}
                      for n, t, s, v in zip(names, np.asarray(data.true_value),
@@ -151,8 +164,10 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
 
 
 def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
-                    zoo: str | None):
-    """on_eval callback: VD and ranking of the eval Dataset's policies, appended to ``path``."""
+                    zoo: str | None, last: dict):
+    """on_eval callback: VD and ranking of the eval Dataset's policies, appended to ``path``;
+    the latest also in ``last`` (keys ending ``_test``, for summary.json) and returned (for
+    the progress bar)."""
 
     ds = load_dataset(eval_data)
     if ds.meta.get("task") != cfg.task:
@@ -167,6 +182,13 @@ def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
         row = {"step": int(state.step), **r["metrics"], "vd": r["vd"]}
         with open(path, "a") as f:
             f.write(json.dumps(row) + "\n")
+        last.clear()
+        last.update({f"{k}_test": v for k, v in r["metrics"].items()})
+        last.update(step_test=int(state.step), eval_data=eval_data, measured_by_test={
+            "source": "simulated vs the eval data's true values", "episodes": n_episodes,
+            "horizon": cfg.vd_horizon, "gamma": cfg.gamma})
+        return {k: r["metrics"][k] for k in ("avd", "mvd", "kendall_tau")
+                if k in r["metrics"]}
 
     return on_eval
 
@@ -187,14 +209,28 @@ def format_summary(s: dict) -> str:
              f"({s['steps_run']} here in {s['seconds']:.1f}s on {s['backend']}), profile "
              f"{s['profile']}",
              f"train policies: AVD {s['avd_train']:.3g}  MVD {s['mvd_train']:.3g}  "
-             f"(VD at the last completed measurement)",
-             f"{'policy':<14}{'true value':>12}{'sim value':>12}{'VD':>10}  selected"]
+             f"(VD at the last completed measurement: {_by(s.get('vd_measured_by'))})"]
+    if "avd_test" in s:
+        lines.append(f"test policies ({s['eval_data']}, step {s['step_test']}): AVD "
+                     f"{s['avd_test']:.3g}  MVD {s['mvd_test']:.3g}  Kendall tau "
+                     f"{s['kendall_tau_test']:.3f}  ({_by(s['measured_by_test'])})")
+    if s.get("pretrain_steps_left"):
+        lines.append(f"note: still pre-training (maximum likelihood): "
+                     f"{s['pretrain_steps_left']} more step(s) reach the adversarial phase")
+    lines.append(f"{'policy':<14}{'true value':>12}{'sim value':>12}{'VD':>10}  selected")
     for name, p in s["policies"].items():
         mark = "*" if name in s["selected"] else ""
         lines.append(f"{name:<14}{p['true_value']:>12.2f}{p['sim_value']:>12.2f}"
                      f"{p['vd']:>10.2f}  {mark}")
     lines.append(f"checkpoint: {s['checkpoint']}")
     return "\n".join(lines)
+
+
+def _by(m: dict | None) -> str:
+    """How a number was measured, in words: episodes x horizon, discount, source."""
+    if not m:
+        return "settings unknown"
+    return f"{m['episodes']} episodes x {m['horizon']} steps, gamma {m['gamma']:g}"
 
 
 def parse_overrides(items: list[str] | None) -> dict:

@@ -48,22 +48,37 @@ def dataset_summary(ds: Dataset) -> str:
         f"episodes: {len(returns)} ({int(complete.sum())} complete: {n_done} done, "
         f"{n_trunc} truncated; {int((~complete).sum())} open)",
         f"transitions per policy: min {int(per_pol.min())}, max {int(per_pol.max())}",
-        f"true values: {'present' if ds.has_values else 'absent'}",
+        f"true values: {'present' if ds.has_values else 'absent'}"
+        + (f" (measured on {(m.get('source') or {}).get('value_episodes', '?')} real "
+           f"episodes per policy: undiscounted return and discounted value at gamma "
+           f"{m.get('gamma')})" if ds.has_values else ""),
         f"source: {json.dumps(m.get('source'))}",
         "",
     ]
     names = list(m.get("policy_names") or [str(i) for i in range(p)])
     w = max([len("policy")] + [len(s) for s in names])
+    disc = ds.has_values and ds.value_discounted is not None
     head = (f"{'id':>4}  {'policy':<{w}}  {'transitions':>11}  {'episodes':>8}  {'complete':>8}"
-            f"  {'mean return':>12}")
+            f"  {'logged return':>13}")
     if ds.has_values:
-        head += f"  {'true value ± se':>22}"
+        head += f"  {'true return ± se':>22}"
+    if disc:
+        head += f"  {'true disc. value ± se':>22}"
     lines.append(head)
     for i in range(p):
-        mean = f"{ret_sum[i] / comp[i]:12.3f}" if comp[i] else f"{'-':>12}"
+        mean = f"{ret_sum[i] / comp[i]:13.3f}" if comp[i] else f"{'-':>13}"
         row = (f"{i:>4}  {names[i]:<{w}}  {per_pol[i]:>11}  {eps[i]:>8}  {comp[i]:>8}  {mean}")
         if ds.has_values:
             v, se = float(np.asarray(ds.value)[i]), float(np.asarray(ds.value_se)[i])
             row += f"  {f'{v:.3f} ± {se:.3f}':>22}"
+        if disc:
+            v, se = (float(np.asarray(x)[i]) for x in (ds.value_discounted,
+                                                         ds.value_discounted_se))
+            row += f"  {f'{v:.3f} ± {se:.3f}':>22}"
         lines.append(row)
+    lines += ["", "logged return: undiscounted, mean over the data's complete episodes; "
+              "true return / disc. value: of the real episodes measured for the values "
+              "(undiscounted / discounted at gamma over the whole episode)"
+              if ds.has_values else
+              "logged return: undiscounted, mean over the data's complete episodes"]
     return "\n".join(lines)

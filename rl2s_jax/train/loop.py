@@ -47,7 +47,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
         checkpointer: Checkpointer | None = None, save_every: int | None = None,
         meta: dict | None = None, metrics_path: str | os.PathLike | None = None,
         progress: bool = True, on_chunk: Callable[[TrainState, dict], None] | None = None,
-        eval_every: int | None = None, on_eval: Callable[[TrainState], None] | None = None
+        eval_every: int | None = None,
+        on_eval: Callable[[TrainState], dict | None] | None = None
         ) -> tuple[TrainState, dict[str, np.ndarray]]:
     """Train until ``state.step == n_steps`` (a resumed state continues where it stopped).
 
@@ -55,7 +56,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     ``save_every`` and at the end; with pre-training a chunk never straddles
     ``pretrain_steps`` (each runs one phase only). Metrics of every step are appended to
     ``metrics_path``. ``on_eval(state)`` runs at every multiple of ``eval_every`` (chunks end
-    there too). Raises TrainingDiverged (after saving the last good state) on NaN/Inf.
+    there too); the scalars of a dict it returns join the progress bar. Raises
+    TrainingDiverged (after saving the last good state) on NaN/Inf.
     -> (final state, metrics stacked over the steps run here).
     """
     if not isinstance(n_steps, int) or n_steps < 0:
@@ -66,6 +68,7 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     meta = meta or {}
     start = int(state.step)
     history: list[dict[str, np.ndarray]] = []
+    shown: dict[str, str] = {}  # the last evaluation's numbers on the progress bar
     bar = None
     if progress:
         bar = tqdm(total=n_steps, initial=min(start, n_steps), unit="step",
@@ -108,11 +111,15 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
                 bar.update(n)
                 bar.set_postfix(steps_s=f"{n / seconds:.2f}",
                                 avd=f"{float(metrics['avd_train'][-1]):.3g}",
-                                mvd=f"{float(metrics['mvd_train'][-1]):.3g}", refresh=False)
+                                mvd=f"{float(metrics['mvd_train'][-1]):.3g}", **shown,
+                                refresh=False)
             if on_chunk is not None:
                 on_chunk(state, metrics)
             if on_eval is not None and eval_every and int(state.step) % eval_every == 0:
-                on_eval(state)
+                row = on_eval(state)
+                if isinstance(row, dict):
+                    shown = {k: f"{v:.3g}" for k, v in row.items()
+                             if isinstance(v, int | float) and k != "step"}
     finally:
         if bar is not None:
             bar.close()

@@ -63,7 +63,8 @@ def train_and_evaluate(args, train_path: str, held_path: str, out: str, seed: in
          "--out", out, "--seed", str(seed), "--quiet", "--profile", args.profile,
          *[x for s in sets for x in ("--set", s)])
     rl2s("evaluate", "--ckpt", os.path.join(out, "checkpoints"), "--data", held_path,
-         "--episodes", str(args.sim_episodes), "--json", os.path.join(out, "evaluate.json"))
+         "--episodes", str(args.sim_episodes), "--horizon", str(get_task("hopper").episode_length),
+         "--json", os.path.join(out, "evaluate.json"))
 
 
 def paired(a: list[float], b: list[float]) -> dict:

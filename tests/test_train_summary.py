@@ -47,3 +47,55 @@ def test_inspect_names_return_and_discounted_value_apart(pm_files):
     assert "logged return" in text and "true disc. value" in text and "true return" in text
     assert "undiscounted" in text and "discounted at gamma" in text
     assert "measured on 8 real episodes per policy" in text
+
+
+def test_worst_vd_jumps_against_a_loop():
+    import numpy as np
+
+    from rl2s_jax.train.loop import worst_vd_jumps
+    mvd = np.array([5.0, 5.0, 9.0, 9.0, 30.0, 30.0, np.nan, 70.0])
+    refreshed = np.array([True, False, True, False, True, False, True, True])
+    jumps, last = worst_vd_jumps(mvd, refreshed, previous=2.0)
+    want, prev = [], 2.0  # the plain loop: each measurement against the last finite one
+    for i in range(len(mvd)):
+        if refreshed[i] and np.isfinite(mvd[i]):
+            if mvd[i] > 2.0 * prev:
+                want.append((i, prev, mvd[i]))
+            prev = mvd[i]
+    assert jumps == want == [(0, 2.0, 5.0), (4, 9.0, 30.0), (7, 30.0, 70.0)]
+    assert last == 70.0
+    assert worst_vd_jumps(mvd, refreshed, None, factor=10.0) == ([], 70.0)
+
+
+def test_fit_warns_when_the_worst_training_vd_jumps(pm_files, monkeypatch):
+    """fit names the step and the rise through on_warning (the chunk's metrics are faked: a
+    real jump needs a long run)."""
+    import jax
+    import numpy as np
+
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.train import loop
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.step import init
+    from rl2s_jax.zoo.zoo import policies_for
+
+    ds = load_dataset(pm_files["train"])
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=20, vd_episodes=2)
+    data = make_train_data(ds, policies_for(ds), cfg)
+    state = init(jax.random.PRNGKey(0), cfg, data)
+    first = float(np.max(np.asarray(state.vd)))
+    series = iter([first * 1.5, first * 4.0])  # one mild rise, then a 2.7x jump
+
+    def fake_chunk(st, d, n_steps, phase):
+        mvd = np.full(n_steps, next(series))
+        refreshed = np.zeros(n_steps, bool)
+        refreshed[-1] = True
+        return st.replace(step=st.step + n_steps), {
+            "finite": np.ones(n_steps, bool), "mvd_train": mvd, "avd_train": mvd,
+            "vd_refreshed": refreshed}
+
+    monkeypatch.setattr(loop, "_train_chunk", fake_chunk)
+    heard = []
+    loop.fit(state, data, 10, chunk=5, progress=False, on_warning=heard.append)
+    assert len(heard) == 1 and "step 10" in heard[0] and "2.7x" in heard[0], heard

@@ -133,10 +133,12 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
             f"{time.perf_counter() - t0:.1f}s")
     t0 = time.perf_counter()
     start = int(state.step)
+    jumps: list[str] = []
     try:
         state, metrics = fit(state, data, steps, chunk=chunk, checkpointer=ck,
                              save_every=save_every, meta=meta, metrics_path=metrics_path,
-                             progress=progress, eval_every=eval_every, on_eval=on_eval)
+                             progress=progress, eval_every=eval_every, on_eval=on_eval,
+                             on_warning=lambda text: (jumps.append(text), log(text)))
     finally:
         ck.close()
     seconds = time.perf_counter() - t0
@@ -152,6 +154,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
         "vd_measured_by": {"source": "simulated, the last completed VD measurement of the "
                            "training policies", "episodes": cfg.vd_episodes,
                            "horizon": cfg.vd_horizon, "gamma": cfg.gamma},
+        "worst_vd_jumps": jumps,
         **last_test,
         "selected": [n for n, s in zip(names, np.asarray(state.selected), strict=True) if s],
         "policies": {n: {"true_value": float(t), "sim_value": float(s), "vd": float(v)}

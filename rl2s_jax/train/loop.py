@@ -32,6 +32,26 @@ class TrainingDiverged(RuntimeError):
 
 _train_chunk = jax.jit(train_steps, static_argnames=("n_steps", "phase"))
 
+WORST_VD_JUMP = 2.0  # a refreshed worst training VD this many times the previous one: a jump
+
+
+def worst_vd_jumps(mvd: np.ndarray, refreshed: np.ndarray, previous: float | None,
+                   factor: float = WORST_VD_JUMP) -> tuple[list[tuple[int, float, float]],
+                                                         float | None]:
+    """Sharp rises of the worst training-policy VD between completed VD measurements.
+
+    mvd [n], refreshed [n] bool: a chunk's ``mvd_train`` / ``vd_refreshed`` metrics;
+    ``previous``: the worst VD of the last measurement before the chunk (None: none yet).
+    -> ([(index in the chunk, before, after)] where after > factor * before, the last
+    measurement's worst VD)."""
+    jumps = []
+    for i in np.flatnonzero(np.asarray(refreshed, bool)):
+        now = float(mvd[i])
+        if previous is not None and np.isfinite(now) and now > factor * previous:
+            jumps.append((int(i), previous, now))
+        previous = now if np.isfinite(now) else previous
+    return jumps, previous
+
 
 def _first_bad(metrics: dict[str, np.ndarray]) -> tuple[int, list[str]] | None:
     ok = np.asarray(metrics["finite"], bool)
@@ -48,7 +68,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
         meta: dict | None = None, metrics_path: str | os.PathLike | None = None,
         progress: bool = True, on_chunk: Callable[[TrainState, dict], None] | None = None,
         eval_every: int | None = None,
-        on_eval: Callable[[TrainState], dict | None] | None = None
+        on_eval: Callable[[TrainState], dict | None] | None = None,
+        on_warning: Callable[[str], None] | None = None
         ) -> tuple[TrainState, dict[str, np.ndarray]]:
     """Train until ``state.step == n_steps`` (a resumed state continues where it stopped).
 
@@ -56,7 +77,9 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     ``save_every`` and at the end; with pre-training a chunk never straddles
     ``pretrain_steps`` (each runs one phase only). Metrics of every step are appended to
     ``metrics_path``. ``on_eval(state)`` runs at every multiple of ``eval_every`` (chunks end
-    there too); the scalars of a dict it returns join the progress bar. Raises
+    there too); the scalars of a dict it returns join the progress bar. ``on_warning(text)``
+    hears of every sharp rise of the worst training-policy VD between measurements
+    (``worst_vd_jumps``; default: printed above the progress bar). Raises
     TrainingDiverged (after saving the last good state) on NaN/Inf.
     -> (final state, metrics stacked over the steps run here).
     """
@@ -69,6 +92,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     start = int(state.step)
     history: list[dict[str, np.ndarray]] = []
     shown: dict[str, str] = {}  # the last evaluation's numbers on the progress bar
+    worst = float(np.max(np.asarray(state.vd))) if np.isfinite(state.vd).all() else None
+    warn = on_warning or (lambda text: tqdm.write(text))
     bar = None
     if progress:
         bar = tqdm(total=n_steps, initial=min(start, n_steps), unit="step",
@@ -107,6 +132,12 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
             if checkpointer is not None and (int(state.step) % save_every == 0
                                              or int(state.step) == n_steps):
                 checkpointer.save(state, meta)
+            jumps, worst = worst_vd_jumps(metrics["mvd_train"], metrics["vd_refreshed"], worst)
+            for i, before, after in jumps:
+                warn(f"[train] warning: the worst training-policy VD rose from {before:.4g} to "
+                     f"{after:.4g} at step {step + i + 1} ({after / before:.1f}x): the "
+                     f"simulator got much worse on some training policy; a checkpoint "
+                     f"before it may be the better simulator")
             if bar is not None:
                 bar.update(n)
                 bar.set_postfix(steps_s=f"{n / seconds:.2f}",

@@ -51,6 +51,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs import base as brax_base
 from etils import epath
 
@@ -60,6 +61,7 @@ __all__ = [
     "PointMass",
     "Task",
     "get_task",
+    "register",
     "pointmass_done",
     "pointmass_dynamics",
     "pointmass_reward",
@@ -382,6 +384,69 @@ TASKS: dict[str, Task] = {
         dt=POINTMASS_DT,
     ),
 }
+
+
+BUILT_IN = tuple(TASKS)
+
+
+def _no_env(name: str) -> Callable[..., brax_base.Env]:
+    def make_env(**_):
+        raise NotImplementedError(f"task {name!r} was registered from Python without make_env, "
+                                  f"so it has no real env: learn and evaluate from its data")
+    return make_env
+
+
+def register(name: str, *, reward_fn: RewardFn, done_fn: DoneFn, obs_size: int,
+             action_size: int, episode_length: int, dt: float = 1.0,
+             position_dims: tuple[int, ...] = (), make_env: Callable | None = None,
+             replace: bool = False) -> Task:
+    """Register your own system's task, so its Datasets (``meta.task = name``) train, evaluate
+    and fine-tune with its known reward and termination rules.
+
+    reward_fn(obs [..., o], action [..., a], next_obs [..., o]) -> [...] and
+    done_fn(next_obs [..., o]) -> bool [...] must be JAX-traceable (they run inside the
+    compiled rollouts); both are checked on zeros here. make_env: a brax Env factory, if the
+    real system can be simulated (None: learning and evaluation from data only). Built-in
+    tasks cannot be replaced; a task you registered can with ``replace=True``. Registration
+    lasts for the Python process (the ``rl2s`` command knows only the built-in tasks).
+    -> the Task."""
+    if not isinstance(name, str) or not name:
+        raise ValueError(f"name: expected a non-empty str, got {name!r}")
+    if name in BUILT_IN:
+        raise ValueError(f"name: {name!r} is a built-in task and cannot be replaced")
+    if name in TASKS and not replace:
+        raise ValueError(f"name: task {name!r} is registered already; pass replace=True")
+    for field, v in (("obs_size", obs_size), ("action_size", action_size),
+                     ("episode_length", episode_length)):
+        if not isinstance(v, int | np.integer) or isinstance(v, bool) or v < 1:
+            raise ValueError(f"{field}: expected an int >= 1, got {v!r}")
+    if not (isinstance(dt, int | float) and dt > 0):
+        raise ValueError(f"dt: expected a positive float, got {dt!r}")
+    if any(not 0 <= d < obs_size for d in position_dims):
+        raise ValueError(f"position_dims: expected obs dims in [0, {obs_size}), got "
+                         f"{position_dims!r}")
+    for field, fn in (("reward_fn", reward_fn), ("done_fn", done_fn)):
+        if not callable(fn):
+            raise ValueError(f"{field}: expected a function, got {type(fn).__name__}")
+    obs = jax.ShapeDtypeStruct((4, obs_size), jnp.float32)
+    act = jax.ShapeDtypeStruct((4, action_size), jnp.float32)
+    for field, fn, args in (("reward_fn", reward_fn, (obs, act, obs)), ("done_fn", done_fn,
+                                                                       (obs,))):
+        try:
+            out = jax.eval_shape(fn, *args)
+        except Exception as err:  # the user's function: any failure is reported as theirs
+            raise ValueError(f"{field}: calling it on a batch of 4 zero rows (obs "
+                             f"[4, {obs_size}], action [4, {action_size}]) failed: "
+                             f"{type(err).__name__}: {err}") from err
+        if getattr(out, "shape", None) != (4,):
+            raise ValueError(f"{field}: on a batch of 4 rows expected shape (4,), got "
+                             f"{getattr(out, 'shape', type(out).__name__)}")
+    task = Task(name=name, obs_size=int(obs_size), action_size=int(action_size),
+                episode_length=int(episode_length), make_env=make_env or _no_env(name),
+                reward_fn=reward_fn, done_fn=done_fn, dt=float(dt),
+                position_dims=tuple(int(d) for d in position_dims))
+    TASKS[name] = task
+    return task
 
 
 def task_names() -> tuple[str, ...]:

@@ -1,7 +1,9 @@
 """Minari in and out: a Minari dataset written by minari's own DataCollector on a tiny Gymnasium
 env round-trips through our Dataset (every transition, episode boundary and policy), ours
 round-trips through Minari, bad input is refused by name, and `rl2s import` / `rl2s export`.
-No network: everything is built under tmp_path."""
+No network: everything is built under tmp_path. An export of a registered task's data names
+the task's real env (a Gymnasium EnvSpec) in its metadata; other exports have none."""
+import json
 import warnings
 
 import gymnasium as gym
@@ -10,7 +12,9 @@ import pytest
 
 from rl2s_jax.cli import main
 from rl2s_jax.data.dataset import TRANSITION_FIELDS, VALUE_FIELDS, DatasetError, load_dataset
-from rl2s_jax.data.minari import from_minari, to_minari
+from rl2s_jax.data.minari import from_minari, task_env_spec, to_minari
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.improve.gym_env import TaskGymEnv, task_env_id
 
 minari = pytest.importorskip("minari")
 
@@ -137,6 +141,28 @@ def test_dataset_to_minari_to_dataset_is_identical(pm_dataset, tmp_path):
     src = back.meta["source"]  # keeps what `rl2s train` needs to find the policies
     assert src["zoo"] == ds.meta["source"]["zoo"] and src["zoo_ids"] == [3, 4, 5]
     assert src["minari"]["dataset_id"] == "pm-v3"
+    assert src["minari"]["env_id"] == task_env_id("pointmass")
+
+
+def test_export_of_a_registered_task_names_its_env(pm_dataset, tmp_path):
+    """The metadata's env_spec parses back (gymnasium's EnvSpec.from_json) to the task's real
+    env at the data's episode length, and Minari's recover_environment makes that env."""
+    ds = pm_dataset
+    mds = to_minari(ds, tmp_path / "pm-v0")
+    raw = json.loads((tmp_path / "pm-v0" / "data" / "metadata.json").read_text())["env_spec"]
+    spec = gym.envs.registration.EnvSpec.from_json(raw)
+    task = get_task("pointmass")
+    assert spec.id == task_env_id("pointmass") and spec.kwargs == {"task": "pointmass"}
+    assert spec.max_episode_steps == ds.meta["episode_length"] == task.episode_length
+    env = mds.recover_environment()  # gymnasium.make(env_spec)
+    assert env.spec.max_episode_steps == ds.meta["episode_length"]
+    assert isinstance(env.unwrapped, TaskGymEnv) and env.unwrapped.task is task
+    assert env.observation_space.shape == (ds.obs_size,)
+    assert env.action_space.shape == (ds.action_size,)
+    # The data's own time limit where it has one, else the task's; none without a task.
+    assert task_env_spec({"task": "pointmass", "episode_length": 20}).max_episode_steps == 20
+    assert task_env_spec({"task": "pointmass"}).max_episode_steps == task.episode_length
+    assert task_env_spec({"task": None}) is None and task_env_spec({"task": "drift"}) is None
 
 
 def _write_minari(data_dir, action_space, episode_metadata=None, steps=(3, 2)):
@@ -211,6 +237,7 @@ def test_cli_import_then_export(minari_root, tmp_path, capsys):
     assert rc == 0, capsys.readouterr().err
     again = minari.MinariDataset(tmp_path / "again" / "data")
     assert again.id == "again-v0" and again.total_steps == ds.n_transitions
+    assert ds.meta["task"] is None and again.env_spec is None  # no registered task: no env
     np.testing.assert_array_equal(from_minari(again).obs, ds.obs)
 
     rc = main(["import", "--minari", str(tmp_path / "missing"), "--out", str(tmp_path / "m.npz")])

@@ -8,7 +8,8 @@ terminations and truncations [T]; ours holds the same transitions as T rows of
 episode comes from its episode metadata (``policy_id`` or ``policy_name``, or the key given)
 and is one policy when there is none. What Minari has no field for (task, gamma, true values,
 policy names, episode ids) travels in the dataset metadata key ``rl2s_jax`` and per-episode
-metadata, so Dataset -> Minari -> Dataset gives back the same Dataset.
+metadata, so Dataset -> Minari -> Dataset gives back the same Dataset. An export of a registered
+task's data names its real env as the dataset's ``env_spec`` (:func:`task_env_spec`).
 
 Python-side NumPy with one loop over episodes (file I/O, not a hot path).
 """
@@ -30,14 +31,18 @@ from rl2s_jax.data.dataset import (
     TaskSizes,
     validate_dataset,
 )
+from rl2s_jax.envs.tasks import BUILT_IN, TASKS
 
-__all__ = ["from_minari", "to_minari", "POLICY_KEYS"]
+__all__ = ["from_minari", "to_minari", "task_env_spec", "POLICY_KEYS"]
 
 #: Episode-metadata keys read for the policy of an episode, in this order (first one present).
 POLICY_KEYS = ("policy_id", "policy_name", "policy")
 _RL2S_KEY = "rl2s_jax"  # dataset metadata written by to_minari
 _EPISODE_ID_KEY = "rl2s_episode_id"  # our episode label (Minari numbers episodes 0, 1, ...)
 _DATASET_ID = re.compile(r"^(?:[-_\w][-_\w/]*[-_\w]+/)?[-_\w]+?-v\d+$")
+# The real env of a registered task as Gymnasium makes it: the entry point that
+# rl2s_jax.improve.gym_env registers as "rl2s/<task>-v0" (named, not imported: a layer above).
+_TASK_ENTRY_POINT = "rl2s_jax.improve.gym_env:TaskGymEnv"
 
 
 def _minari():
@@ -213,6 +218,23 @@ def _episode_policies(ep_meta: list[dict], ep_ids: list[int], policy_key: str | 
 # --------------------------------------------------------------------------- ours -> Minari
 
 
+def task_env_spec(meta: dict):
+    """The Gymnasium ``EnvSpec`` of the env a Dataset of a registered task was collected in,
+    from its ``meta``: id ``"rl2s/<task>-v0"`` (registered by ``rl2s_jax.improve.gym_env``),
+    entry point ``TaskGymEnv`` with ``kwargs={"task": <task>}``, ``max_episode_steps`` the
+    data's ``episode_length`` (the task's when meta has none). None for data of no built-in
+    task (one registered from Python exists only in its process). ``gymnasium.make(spec)``
+    builds it (``minari``'s ``recover_environment`` too)."""
+    from gymnasium.envs.registration import EnvSpec  # local: start-up (interop only)
+
+    task = meta.get("task")
+    if task not in BUILT_IN:  # a task registered from Python exists in its process only
+        return None
+    limit = meta.get("episode_length") or TASKS[task].episode_length
+    return EnvSpec(id=f"rl2s/{task}-v0", entry_point=_TASK_ENTRY_POINT,
+                   max_episode_steps=int(limit), kwargs={"task": task})
+
+
 def to_minari(ds: Dataset, path: str | os.PathLike, *, dataset_id: str | None = None,
               author: str | None = None, description: str | None = None):
     """Write ``ds`` as a Minari dataset (hdf5) into the new directory ``path`` (its
@@ -223,6 +245,8 @@ def to_minari(ds: Dataset, path: str | os.PathLike, *, dataset_id: str | None = 
     ``minari.load_dataset(dataset_id)`` to find it. Minari keeps each episode's observations
     once, so ``next_obs`` of a row must equal ``obs`` of the episode's next row (true for data
     from ``rl2s collect``); otherwise DatasetError names the first row where they differ.
+    Data of a registered task (``meta.task``) gets the dataset metadata ``env_spec`` of
+    :func:`task_env_spec`; other data has none.
     """
     import gymnasium as gym  # local: start-up (interop only)
 
@@ -275,7 +299,8 @@ def to_minari(ds: Dataset, path: str | os.PathLike, *, dataset_id: str | None = 
     try:
         os.makedirs(os.path.join(tmp, "data"))
         storage = MinariStorage.new(os.path.join(tmp, "data"), observation_space=obs_space,
-                                    action_space=act_space, data_format="hdf5")
+                                    action_space=act_space, env_spec=task_env_spec(ds.meta),
+                                    data_format="hdf5")
         storage.update_metadata(info)
         storage.update_episodes(buffers)
         storage.update_episode_metadata(ep_meta)

@@ -175,28 +175,16 @@ def cmd_train(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from rl2s_jax.app.evaluate import evaluate_checkpoint, format_report
+    from rl2s_jax.app.evaluate import evaluate_checkpoint, evaluate_oracle_data, format_report
 
     if not os.path.exists(args.data):
         raise FileNotFoundError(f"data: no such file {args.data}")
     if (args.ckpt is None) == (not args.oracle):
         raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
-    if args.oracle:
-        import jax
-
-        from rl2s_jax.data.dataset import load_dataset
-        from rl2s_jax.evaluate.simulator import evaluate_oracle
-        from rl2s_jax.zoo.zoo import policies_for
-
-        ds = load_dataset(args.data)
-        report = evaluate_oracle(ds.meta.get("task"), ds, policies_for(ds, args.zoo),
-                                 key=jax.random.PRNGKey(args.seed), n_episodes=args.episodes,
-                                 horizon=args.horizon, n_boot=args.bootstrap)
-        report.update(method="oracle", data=args.data, seed=args.seed)
-    else:
-        report = evaluate_checkpoint(args.ckpt, args.data, zoo=args.zoo, seed=args.seed,
-                                     n_episodes=args.episodes, horizon=args.horizon,
-                                     step=args.step, n_boot=args.bootstrap)
+    kw = dict(zoo=args.zoo, policy_file=args.policy_file, seed=args.seed,
+              n_episodes=args.episodes, horizon=args.horizon, n_boot=args.bootstrap)
+    report = (evaluate_oracle_data(args.data, **kw) if args.oracle
+              else evaluate_checkpoint(args.ckpt, args.data, step=args.step, **kw))
     print(format_report(report))
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
@@ -219,7 +207,8 @@ def cmd_improve(args) -> int:
 
     s = run_improve(args.ckpt, args.data, args.out, policy_ids=args.policies,
                     iterations=args.iterations, overrides=_set(args.set), seed=args.seed,
-                    n_episodes=args.episodes, zoo=args.zoo, step=args.step,
+                    n_episodes=args.episodes, zoo=args.zoo, policy_file=args.policy_file,
+                    step=args.step, guard_snapshots=args.guard_snapshots,
                     measure=not args.no_measure, branch_length=args.branch_length,
                     uncertainty_penalty=args.uncertainty_penalty,
                     uncertainty_threshold=args.uncertainty_threshold,
@@ -297,6 +286,12 @@ def _set(items):
     from rl2s_jax.app.train import parse_overrides
 
     return parse_overrides(items)
+
+
+def _policy_source(p) -> None:
+    p.add_argument("--zoo", help="zoo of the data's policies (default: what meta.source names)")
+    p.add_argument("--policy-file", metavar="FILE", help="the data's policies in its policy_id "
+                   "order, a save_policies file (docs/DATA.md), instead of a zoo")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -422,11 +417,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="Dataset of the policies to evaluate")
     p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
                    "95%% intervals over episodes (0: none)")
-    p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
-    p.add_argument("--episodes", type=_positive("episodes"), default=16,
-                   help="simulated episodes per policy")
-    p.add_argument("--horizon", type=_positive("horizon"),
-                   help="steps per simulated episode (default: the data's episode_length)")
+    _policy_source(p)
+    p.add_argument("--episodes", type=_positive("episodes"), help="simulated episodes per "
+                   "policy (default: the checkpoint's vd_episodes; --oracle: 16)")
+    p.add_argument("--horizon", type=_positive("horizon"), help="steps per simulated episode "
+                   "(default: the checkpoint's vd_horizon, at most the data's episode_length; "
+                   "--oracle: the data's episode_length)")
     p.add_argument("--step", type=int, help="checkpoint step (default: the newest intact one; "
                    "broken newer steps are skipped with a warning)")
     p.add_argument("--seed", type=int, default=0)
@@ -437,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
                        "saved simulator; write them as a zoo, measure the real gain")
     p.add_argument("--ckpt", required=True, help="checkpoint directory (DIR/checkpoints)")
     p.add_argument("--data", required=True, help="Dataset whose policies are fine-tuned (its "
-                   "zoo gives the policies, its states the simulated starts)")
+                   "zoo or policy file gives the policies, its states the simulated starts)")
     p.add_argument("--policies", type=_policy_ids, help="indices into the data's policies, "
                    "e.g. 0,3,5 (default: all)")
     p.add_argument("--out", required=True, help="directory: zoo.npz/zoo.json, summary.json, "
@@ -464,7 +460,10 @@ def build_parser() -> argparse.ArgumentParser:
                    "start policy (default: deploy every fine-tuned policy)")
     p.add_argument("--guard-episodes", type=_positive("guard-episodes"), default=16,
                    help="simulated episodes per policy and member for the guard")
-    p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
+    p.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: keep "
+                   "the actor after every tenth of the iterations; of the snapshots that pass "
+                   "the guard, deploy the one whose smallest predicted gain is largest")
+    _policy_source(p)
     p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-measure", action="store_true", help="skip the real returns")

@@ -114,6 +114,60 @@ def test_improve_guard_keeps_the_start_where_the_simulator_sees_no_gain(pointmas
             assert "0 of 2 fine-tuned policies deployed" in (out / "summary.md").read_text()
 
 
+def test_improve_guard_over_snapshots_deploys_the_members_choice(pointmass_checkpoint,
+                                                                 tmp_path):
+    """--guard-snapshots: the actor is kept every tenth of the iterations; per policy the
+    snapshot choose_by_members picks from the recorded member values deploys (the start
+    where none is eligible), and the zoo holds it with its own paired real return."""
+    from rl2s_jax.improve.finetune import choose_by_members, member_values
+    from rl2s_jax.model.simulator import start_pool
+    from rl2s_jax.train.checkpoint import load_simulator
+
+    run = pointmass_checkpoint
+    before = pol.index_params(policies_for(load_dataset(run["data"])), np.array([0, 1, 2, 3]))
+    out = tmp_path / "snapshots"
+    margin = 0.0
+    assert cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--out",
+                     str(out), "--iterations", "20", "--episodes", "2", "--quiet",
+                     "--guard-margin", str(margin), "--guard-snapshots", "--guard-episodes",
+                     "2", *SMALL]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    g = s["guard"]
+    values = np.asarray(g["sim_value_snapshots"])
+    assert values.shape[0] == 11 and values.shape[2] == 4 and g["snapshot_every"] == 2
+    index = np.asarray(g["snapshot"])
+    assert index.tolist() == choose_by_members(values, margin).tolist()
+    assert 0 < index.max() and index.min() < 10, "expected a mix of snapshots and starts"
+    assert g["accepted"] == (index > 0).tolist()
+    assert g["snapshot_iteration"] == (2 * index).tolist()
+    zoo = zoo_mod.load_zoo(str(out))
+    for j, k in enumerate(index):
+        same = [np.array_equal(a[j], b[j]) for a, b in zip(
+            jax.tree_util.tree_leaves(zoo.params), jax.tree_util.tree_leaves(before),
+            strict=True)]
+        assert all(same) == (k == 0)  # the start kept, or a fine-tuned snapshot
+        r = s["policies"][j]
+        assert zoo.returns[j] == pytest.approx(g["c1"][j], rel=1e-6)
+        if k == 0:
+            assert g["c1"][j] == r["c0"] and g["I"][j] == 0.0
+        if k == 10:  # the final actor: the same paired episodes as the final's C1
+            assert g["c1"][j] == pytest.approx(r["c1"], rel=1e-4)
+        assert zoo.origins[j]["deployed"] == (
+            "start (the guard kept it)" if k == 0
+            else f"fine-tuned (snapshot after {2 * k} iterations)")
+    assert g["mpi"] == pytest.approx(min(g["I"]))
+    assert "over snapshots every 2 iterations" in (out / "summary.md").read_text()
+    # the zoo holds the chosen snapshots: valued again as the guard valued them (each policy
+    # as if alone, the guard's key: run_improve's measurement key folded with 1), each gives
+    # the members' values recorded for its chosen snapshot
+    ds = load_dataset(run["data"])
+    key = jax.random.fold_in(jax.random.split(jax.random.PRNGKey(0))[1], 1)
+    again = member_values(load_simulator(run["ckpt"]), "pointmass", zoo.params, start_pool(ds),
+                          key, n_episodes=2, horizon=ds.meta["episode_length"],
+                          gamma=ds.meta["gamma"])
+    np.testing.assert_allclose(again, values[index, :, np.arange(4)].T, rtol=1e-4, atol=1e-4)
+
+
 def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, capsys):
     run = pointmass_checkpoint
     out = tmp_path / "never"
@@ -137,6 +191,8 @@ def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, c
     assert rc == 2 and "kl_weight" in err
     rc, err = refused("--guard-margin", "-0.5")
     assert rc == 2 and "guard-margin" in err
+    rc, err = refused("--guard-snapshots")
+    assert rc == 2 and "guard-snapshots: needs --guard-margin" in err
     # data of another task
     ds = load_dataset(run["data"])
     other = ds.replace(meta={**ds.meta, "task": "twomass"})

@@ -2,18 +2,22 @@
 as a zoo, and measure the real gain.
 
 ``run_improve(ckpt, data, out, ...)`` checks every input first (checkpoint, data of the same
-task, policy indices, SAC fields), then fine-tunes the chosen policies with SAC inside the
-checkpoint's simulator as one vmapped program (``improve.improve_policies``), writes them to
-``out`` in the zoo format (``policies.save_zoo``: ``load_zoo(out)``, ``rl2s collect --zoo out``
-and ``measure_values`` take them), and, unless ``measure=False``, measures their real return
-before and after (``improve.measure_improvement``) with one PNG per policy and a summary
-(``summary.json``, ``summary.md``).
+task, policy indices, SAC fields, the policies: a zoo or a policy file), then fine-tunes the
+chosen policies with SAC inside the checkpoint's simulator as one vmapped program
+(``improve.improve_policies``), writes them to ``out`` in the zoo format
+(``zoo.save_zoo``: ``load_zoo(out)``, ``rl2s collect --zoo out`` and ``measure_values``
+take them), and, unless ``measure=False``, measures their real return before and after
+(``improve.paired_episode_returns``) with one PNG per policy and a summary (``summary.json``,
+``summary.md``).
 
 ``guard_margin`` (default off) turns on the deployment guard (``improve.deployment_guard``):
 a fine-tuned policy is kept only where every elite member of the simulator predicts a gain
 larger than that fraction of the start's simulated value; elsewhere the start policy is
 written to the zoo. The real returns then also give the deployed policies' MPI / API
 (``summary["guard"]``): a kept start policy has improvement 0 by definition.
+``guard_snapshots`` applies the guard to the actor kept after every chunk of iterations
+(``improve.select_by_members``): the snapshot whose smallest predicted gain over the members
+is largest deploys, if any is eligible; its real return is measured paired with the start's.
 """
 from __future__ import annotations
 
@@ -32,8 +36,10 @@ from rl2s_jax.improve.finetune import (
     guarded,
     improve_policies,
     improvement_metrics,
-    measure_improvement,
     member_values,
+    paired_episode_returns,
+    paired_returns,
+    select_by_members,
     training_return_curve,
 )
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
@@ -41,7 +47,7 @@ from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_meta, load_simulator
-from rl2s_jax.zoo.zoo import Zoo, policies_for, save_zoo
+from rl2s_jax.zoo.zoo import Zoo, policies_for, policy_source, save_zoo
 
 
 def sac_config(overrides: dict | None, episode_length: int, iterations: int) -> SACConfig:
@@ -100,15 +106,17 @@ def check_inputs(ckpt: str, data_path: str, policy_ids: list[int] | None):
 
 def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | None = None,
                 iterations: int = 1000, overrides: dict | None = None, seed: int = 0,
-                n_episodes: int = 16, zoo: str | None = None, step: int | None = None,
-                measure: bool = True, chunk: int | None = None,
+                n_episodes: int = 16, zoo: str | None = None, policy_file: str | None = None,
+                step: int | None = None, measure: bool = True, chunk: int | None = None,
                 branch_length: int | None = None, uncertainty_penalty: float = 0.0,
                 uncertainty_threshold: float | None = None, halt_penalty: float = 0.0,
                 guard_margin: float | None = None, guard_episodes: int = 16,
-                progress: bool = True, log=print) -> dict:
+                guard_snapshots: bool = False, progress: bool = True, log=print) -> dict:
     """Fine-tune policies ``policy_ids`` (indices into the Dataset's policies; default all)
     inside the simulator of checkpoint ``ckpt`` and write the zoo, plots and summary into
-    ``out`` (module docstring). -> the summary dict (also out/summary.json)."""
+    ``out`` (module docstring). The policies come from ``zoo``, ``policy_file`` or what the
+    data's meta.source names (``zoo.policies_for``). -> the summary dict (also
+    out/summary.json)."""
 
     if not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: expected an int >= 1, got {iterations!r}")
@@ -118,11 +126,16 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         raise ValueError(f"guard-margin: expected a finite float >= 0, got {guard_margin!r}")
     if not isinstance(guard_episodes, int) or guard_episodes < 1:
         raise ValueError(f"guard-episodes: expected an int >= 1, got {guard_episodes!r}")
+    if guard_snapshots and guard_margin is None:
+        raise ValueError("guard-snapshots: needs --guard-margin M (the guard's margin, e.g. "
+                         "0.02)")
     meta, ds, ids = check_inputs(ckpt, data_path, policy_ids)
     task = get_task(ds.meta["task"])
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
     cfg = sac_config(overrides, episode_length, iterations)
-    policies = index_params(policies_for(ds, zoo), np.asarray(ids))
+    where = policy_source(ds, zoo, policy_file=policy_file, data_path=data_path)
+    policies = index_params(policies_for(ds, zoo, policy_file=policy_file,
+                                         data_path=data_path), np.asarray(ids))
     names_all = ds.meta.get("policy_names") or [f"policy-{i}" for i in range(ds.n_policies)]
     names = [names_all[i] for i in ids]
     sim = load_simulator(ckpt, step)
@@ -143,56 +156,60 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         f"iterations inside {ckpt}")
     t0 = time.perf_counter()
     k_sac, k_measure = jax.random.split(jax.random.PRNGKey(seed))
+    chunk = chunk or max(1, iterations // 10)
     after, metrics = improve_policies(sim, task, pool, policies, k_sac, cfg,
-                                      n_iterations=iterations,
-                                      chunk_iterations=chunk or max(1, iterations // 10),
-                                      env_options=env_options, progress=progress)
+                                      n_iterations=iterations, chunk_iterations=chunk,
+                                      env_options=env_options, progress=progress,
+                                      snapshots=guard_snapshots)
+    snapshots = None  # [C + 1, P, ...]: the start, then the actor after every chunk
+    if guard_snapshots:
+        snapshots, after = after, jax.tree_util.tree_map(lambda x: x[-1], after)
     sac_seconds = time.perf_counter() - t0
     curve_x, curve = training_return_curve(metrics)
     gamma = float(ds.meta.get("gamma") or 0.999)
 
     guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
     if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
-        both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]), policies,
-                                      after)
-        values = member_values(sim, task, both, start_pool(ds),
-                               jax.random.fold_in(k_measure, 1), n_episodes=guard_episodes,
-                               horizon=episode_length, gamma=gamma)
-        P = len(ids)
-        v0, v1 = values[:, :P], values[:, P:]
-        accept = deployment_guard(v0, v1, guard_margin)
-        deployed = guarded(policies, after, accept)
-        guard = {"margin": guard_margin, "episodes": guard_episodes,
-                 "accepted": accept.tolist(), "sim_value_start": v0.tolist(),
-                 "sim_value_tuned": v1.tolist()}
-        log(f"[improve] guard (margin {guard_margin}): {int(accept.sum())} of {P} fine-tuned "
-            f"policies kept, every elite member predicting a gain")
+        guard, deployed = _guard(sim, task, start_pool(ds), policies, after, snapshots,
+                                 jax.random.fold_in(k_measure, 1), margin=guard_margin,
+                                 n_episodes=guard_episodes, horizon=episode_length,
+                                 gamma=gamma, chunk=chunk, iterations=iterations)
+        log(f"[improve] guard (margin {guard_margin}"
+            + (f", over snapshots every {chunk} iterations" if snapshots is not None else "")
+            + f"): {int(np.sum(guard['accepted']))} of {len(ids)} fine-tuned policies kept, "
+            "every elite member predicting a gain")
 
-    measured = None
+    measured = deployed_measured = None
     if measure:
         t0 = time.perf_counter()
-        measured = measure_improvement(task.make_env(), policies, after, k_measure,
-                                       n_episodes=n_episodes, episode_length=episode_length,
-                                       gamma=gamma)
+        # paired: the start, the final and (the snapshot guard's) deployed policies share
+        # start states and noise draws; the key of measure_improvement
+        r0, rs = paired_episode_returns(task.make_env(), policies,
+                                        [after] + ([deployed] if snapshots is not None else []),
+                                        k_measure, n_episodes=n_episodes,
+                                        episode_length=episode_length, gamma=gamma)
+        measured = paired_returns(r0, rs[0])
+        deployed_measured = paired_returns(r0, rs[-1]) if snapshots is not None else None
         log(f"[improve] real returns measured in {time.perf_counter() - t0:.0f}s")
 
-    source = ds.meta.get("source") or {}
-    zoo_ids = source.get("zoo_ids")
-    origins = [{"name": n, "data_index": i,
-                "zoo": zoo or source.get("zoo"),
-                "zoo_id": None if zoo_ids is None else int(zoo_ids[i]),
+    origins = [{"name": n, "data_index": i, "zoo": where.get("zoo"),
+                "zoo_id": where["zoo_ids"][i] if "zoo_ids" in where else None,
+                "policy_file": (os.path.abspath(where["policy_file"])
+                                if "policy_file" in where else None),
                 "finetuned_in": os.path.abspath(ckpt), "sac_iterations": iterations,
                 "return_before": None if measured is None else float(measured["c0"][j]),
-                **({} if guard is None else {"deployed": "fine-tuned" if guard["accepted"][j]
-                                             else "start (the guard kept it)"})}
+                **({} if guard is None else {"deployed": _deployed_text(guard, j)})}
                for j, (n, i) in enumerate(zip(names, ids, strict=True))]
     P = len(ids)
     returns = np.full(P, np.nan) if measured is None else np.asarray(measured["c1"])
     return_se = np.full(P, np.nan) if measured is None else np.asarray(measured["c1_se"])
+    if deployed_measured is not None:  # a snapshot: its own paired measurement
+        returns, return_se = deployed_measured["c1"], deployed_measured["c1_se"]
     if guard is not None and measured is not None:  # the zoo holds the deployed policies
         keep = np.asarray(guard["accepted"])
         returns = np.where(keep, returns, np.asarray(measured["c0"]))
         return_se = np.where(keep, return_se, np.asarray(measured["c0_se"]))
+        guard.update(c1=returns.tolist(), c1_se=return_se.tolist())
         dep = improvement_metrics(measured["c0"], returns)  # a kept start: C1 = C0, I = 0
         guard.update(I=dep["I"].tolist(), mpi=dep["mpi"], api=dep["api"])
         log(f"[improve] deployed: MPI {guard['mpi']:.3f}  API {guard['api']:.3f} (fine-tuned "
@@ -232,6 +249,45 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     return summary
 
 
+def _guard(sim, task, starts, policies, after, snapshots, key, *, margin: float,
+           n_episodes: int, horizon: int, gamma: float, chunk: int, iterations: int
+           ) -> tuple[dict, dict]:
+    """The deployment guard: the start or the fine-tuned policy (``snapshots`` None:
+    ``deployment_guard``), or the start or one of the ``snapshots`` [C + 1, P, ...] (index 0
+    the start; ``select_by_members``), by every elite member's simulated values.
+    -> (the summary's guard block, the deployed policies [P, ...])."""
+    kw = dict(n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    guard = {"margin": margin, "episodes": n_episodes}
+    if snapshots is None:
+        both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]), policies,
+                                      after)
+        values = member_values(sim, task, both, starts, key, **kw)
+        P = values.shape[1] // 2
+        v0, v1 = values[:, :P], values[:, P:]
+        accept = deployment_guard(v0, v1, margin)
+        deployed = guarded(policies, after, accept)
+    else:
+        deployed, info = select_by_members(sim, task, snapshots, starts, key, margin=margin,
+                                           **kw)
+        values, index = info["values"], info["index"]          # [C + 1, M, P], [P]
+        v0, v1, accept = values[0], values[-1], index > 0
+        guard.update(snapshot_every=chunk, snapshot=index.tolist(),
+                     snapshot_iteration=[min(int(k) * chunk, iterations) for k in index],
+                     sim_value_snapshots=values.tolist())
+    guard.update(accepted=accept.tolist(), sim_value_start=v0.tolist(),
+                 sim_value_tuned=v1.tolist())
+    return guard, deployed
+
+
+def _deployed_text(guard: dict, j: int) -> str:
+    """What the zoo holds for policy j under the guard (zoo.json origins)."""
+    if not guard["accepted"][j]:
+        return "start (the guard kept it)"
+    if "snapshot" in guard:
+        return f"fine-tuned (snapshot after {guard['snapshot_iteration'][j]} iterations)"
+    return "fine-tuned"
+
+
 def summary_markdown(s: dict) -> str:
     """The summary as a markdown table: real return before / after ± SE, I, simulated return."""
     lines = [f"# rl2s improve: {s['task']}, {s['iterations']} SAC iterations",
@@ -243,7 +299,10 @@ def summary_markdown(s: dict) -> str:
     g = s.get("guard")
     if g:
         kept = sum(g["accepted"])
-        lines += [f"Deployment guard (margin {g['margin']}): {kept} of {len(g['accepted'])} "
+        lines += [f"Deployment guard (margin {g['margin']}"
+                  + (f", over snapshots every {g['snapshot_every']} iterations: deployed "
+                     f"after {g['snapshot_iteration']}" if "snapshot" in g else "")
+                  + f"): {kept} of {len(g['accepted'])} "
                   "fine-tuned policies deployed, the others kept as they were"
                   + (f"; deployed MPI {g['mpi']:.3f}, API {g['api']:.3f}" if "mpi" in g
                      else ""), ""]

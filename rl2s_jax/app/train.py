@@ -86,7 +86,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
             f"(as bc) and never reaches the adversarial phase; "
             f"{cfg.pretrain_steps - steps + 1} more step(s) reach it (--steps "
             f"{cfg.pretrain_steps + 1} or more, or --set pretrain_steps=N)")
-    policies = policies_for(ds, zoo)
+    policies = policies_for(ds, zoo, data_path=data_path)
     data = make_train_data(ds, policies, cfg)
     os.makedirs(out, exist_ok=True)
     ck = Checkpointer(os.path.join(out, "checkpoints"))
@@ -176,7 +176,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
     if ds.meta.get("task") != cfg.task:
         raise ValueError(f"eval_data: {eval_data} is task {ds.meta.get('task')!r}, training is "
                          f"{cfg.task!r}")
-    pols = policies_for(ds, zoo)
+    pols = policies_for(ds, zoo, data_path=eval_data)
     key = jax.random.PRNGKey(seed + 1)
 
     def on_eval(state):

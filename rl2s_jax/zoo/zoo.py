@@ -11,11 +11,16 @@ import json
 import os
 from collections.abc import Sequence
 
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.policy.policy import Params, index_params, num_policies
+from rl2s_jax.policy.policy import (
+    Params,
+    flatten_params,
+    index_params,
+    load_policies,
+    num_policies,
+    unflatten_params,
+)
 
 ZOO_ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "shipped")
 # Datasets collected before the zoos became package data name them by this repository path.
@@ -57,21 +62,6 @@ class Zoo:
         return [f"{self.task}-{i:03d}" for i in ids]
 
 
-def _flatten(params: Params) -> dict[str, np.ndarray]:
-    flat = {}
-    for path, leaf in jax.tree_util.tree_flatten_with_path(params)[0]:
-        name = "/".join(str(getattr(p, "key", getattr(p, "idx", p))) for p in path)
-        flat[name] = np.asarray(leaf)
-    return flat
-
-
-def _unflatten(flat: dict[str, np.ndarray]) -> Params:
-    n_layers = 1 + max(int(k.split("/")[1]) for k in flat if k.startswith("layers/"))
-    return {"obs_mean": jnp.asarray(flat["obs_mean"]), "obs_std": jnp.asarray(flat["obs_std"]),
-            "layers": [{"w": jnp.asarray(flat[f"layers/{i}/w"]),
-                        "b": jnp.asarray(flat[f"layers/{i}/b"])} for i in range(n_layers)]}
-
-
 def zoo_dir(task: str, root: str | None = None) -> str:
     return os.path.join(root or ZOO_ROOT, task)
 
@@ -81,7 +71,7 @@ def save_zoo(zoo: Zoo, directory: str) -> None:
     if set(zoo.train_ids) & set(zoo.test_ids):
         raise ValueError("train_ids and test_ids must be disjoint")
     os.makedirs(directory, exist_ok=True)
-    np.savez_compressed(os.path.join(directory, "zoo.npz"), **_flatten(zoo.params))
+    np.savez_compressed(os.path.join(directory, "zoo.npz"), **flatten_params(zoo.params))
     meta = {"task": zoo.task, "size": zoo.size,
             "returns": [float(r) for r in zoo.returns],
             "return_se": [float(r) for r in zoo.return_se],
@@ -108,7 +98,7 @@ def load_zoo(task_or_dir: str) -> Zoo:
     with open(js) as f:
         meta = json.load(f)
     with np.load(npz) as data:
-        params = _unflatten({k: data[k] for k in data.files})
+        params = unflatten_params({k: data[k] for k in data.files})
     zoo = Zoo(task=meta["task"], params=params, returns=np.asarray(meta["returns"], np.float32),
               return_se=np.asarray(meta["return_se"], np.float32), origins=meta["origins"],
               train_ids=meta["train_ids"], test_ids=meta["test_ids"], info=meta.get("info", {}))
@@ -117,16 +107,50 @@ def load_zoo(task_or_dir: str) -> Zoo:
     return zoo
 
 
-def policies_for(ds, zoo: str | None = None):
-    """The stacked policies that collected ``ds``: from ``zoo`` (a directory or task name) or
-    from the zoo the Dataset's meta.source names, with the source's zoo_ids."""
-
+def policy_source(ds, zoo: str | None = None, *, policy_file: str | None = None,
+                  data_path: str | None = None) -> dict:
+    """Where ``policies_for`` takes the policies that collected ``ds`` from (arguments as
+    there). -> {"policy_file": path, "label": the flag or field that named it} or {"zoo":
+    directory or task name, "zoo_ids": the data's policies in it}."""
+    if zoo is not None and policy_file is not None:
+        raise ValueError("policy-file: give the data's policies by --zoo DIR or by "
+                         "--policy-file FILE, not both")
     source = ds.meta.get("source") or {}
-    ids = source.get("zoo_ids")
-    zoo = zoo or source.get("zoo")
+    if policy_file is not None:
+        return {"policy_file": os.fspath(policy_file), "label": "policy-file"}
+    if zoo is None and source.get("policy_file") is not None:
+        path = source["policy_file"]
+        if not isinstance(path, str) or not path:
+            raise ValueError(f"meta.source.policy_file: expected a path (str), got {path!r}")
+        if not os.path.isabs(path):
+            if data_path is None:
+                raise ValueError(f"meta.source.policy_file: {path!r} is relative to the data "
+                                 f"file's directory, but the data file is not known here "
+                                 f"(pass data_path=)")
+            path = os.path.join(os.path.dirname(os.path.abspath(data_path)), path)
+        return {"policy_file": path, "label": "meta.source.policy_file"}
+    ids, zoo = source.get("zoo_ids"), zoo or source.get("zoo")
     if zoo is None or ids is None:
-        raise ValueError("zoo: the Dataset's meta.source names no zoo and zoo_ids, so the "
-                         "policies that collected it are unknown; pass --zoo DIR")
+        raise ValueError("zoo: the Dataset's meta.source names no zoo and zoo_ids (nor a "
+                         "policy_file), so the policies that collected it are unknown; pass "
+                         "--zoo DIR or --policy-file FILE")
+    return {"zoo": zoo, "zoo_ids": [int(i) for i in ids]}
+
+
+def policies_for(ds, zoo: str | None = None, *, policy_file: str | None = None,
+                 data_path: str | None = None) -> Params:
+    """The stacked policies [P, ...] that collected ``ds``, in its policy_id order.
+
+    From ``zoo`` (a directory or task name; the Dataset's meta.source.zoo_ids pick its
+    policies) or ``policy_file`` (a ``save_policies`` file holding exactly the data's P
+    policies), at most one of them; else from what meta.source names: a ``policy_file``
+    (a relative path is resolved against the directory of ``data_path``, the file ``ds`` was
+    loaded from) or a ``zoo`` with ``zoo_ids`` (``policy_source``).
+    """
+    where = policy_source(ds, zoo, policy_file=policy_file, data_path=data_path)
+    if "policy_file" in where:
+        return _file_policies(ds, where["policy_file"], where["label"])
+    zoo, ids = where["zoo"], where["zoo_ids"]
     z = load_zoo(zoo)
     if max(ids) >= z.size:
         raise ValueError(f"zoo: meta.source.zoo_ids go up to {max(ids)} but {zoo} has "
@@ -136,3 +160,29 @@ def policies_for(ds, zoo: str | None = None):
         raise ValueError(f"zoo: policy names {z.policy_names(ids)[:3]}... of {zoo} do not "
                          f"match the Dataset's {list(names)[:3]}...")
     return index_params(z.params, np.asarray(ids))
+
+
+def _file_policies(ds, path: str, label: str) -> Params:
+    """The policies of policy file ``path`` for ``ds``: as many as the data's, of its sizes,
+    not its own names in another order. ``label`` (the flag or field) starts every error."""
+    try:
+        params, names = load_policies(path)
+    except FileNotFoundError as err:
+        raise FileNotFoundError(f"{label}: {err}") from None
+    except ValueError as err:
+        raise ValueError(f"{label}: {err}") from None
+    if num_policies(params) != ds.n_policies:
+        raise ValueError(f"{label}: {path} holds {num_policies(params)} policies, but the "
+                         f"Dataset holds {ds.n_policies} (its n_policies): the file must hold "
+                         f"the policies that collected the data, in its policy_id order")
+    obs, act = params["obs_mean"].shape[1], params["layers"][-1]["b"].shape[1] // 2
+    if (obs, act) != (ds.obs_size, ds.action_size):
+        raise ValueError(f"{label}: the policies of {path} take observations of size {obs} "
+                         f"and act in {act} dims, the Dataset's obs_size / action_size are "
+                         f"{ds.obs_size} / {ds.action_size}")
+    data_names = list(ds.meta.get("policy_names") or [])
+    if names != data_names and sorted(names) == sorted(data_names):
+        raise ValueError(f"{label}: {path} names the Dataset's policies in another order "
+                         f"({names[:3]}... against its policy_names {data_names[:3]}...): "
+                         f"the file must list them in the data's policy_id order")
+    return params

@@ -103,6 +103,7 @@ from rl2s_jax.policy.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, replicate, shard_lanes
 from rl2s_jax.train.config import DEFAULT_EPS, LEGACY_MODEL, TrainConfig
 from rl2s_jax.train.data import heldout_mask, make_train_data
+from rl2s_jax.train.loop import WORST_VD_JUMP, worst_vd_jumps
 from rl2s_jax.train.step import init, simulator, train_steps
 from rl2s_jax.zoo.zoo import policies_for
 
@@ -281,10 +282,17 @@ def select_point(points: list[dict]) -> dict | None:
     """Model selection without the test policies: of a lane's evaluation points
     ({"step", "select": metrics of the TRAINING policies started from their held-out episodes,
     "test": the test metrics}), the one with the highest selection tau (ties: the lower
-    selection AVD; non-finite last). None when no point has both."""
+    selection AVD; non-finite last). A point whose selection MVD exploded (above
+    WORST_VD_JUMP times the lane's lowest) is rejected, unless every point would be (issue
+    41: a catastrophic RL2S seed ranked well while its worst training VD had blown up). None
+    when no point has both."""
     ok = [p for p in points if p["select"] is not None and p["test"] is not None]
     if not ok:
         return None
+    mvd = [p["select"].get("mvd", np.nan) for p in ok]
+    if np.isfinite(mvd).any():
+        bound = WORST_VD_JUMP * np.nanmin(np.where(np.isfinite(mvd), mvd, np.nan))
+        ok = [p for p, m in zip(ok, mvd, strict=True) if np.isfinite(m) and m <= bound] or ok
     finite = lambda x: x if np.isfinite(x) else -np.inf
     return max(ok, key=lambda p: (finite(p["select"]["kendall_tau"]),
                                   finite(-p["select"]["avd"])))
@@ -942,6 +950,7 @@ def main(argv=None) -> int:
         compiled = {}
         evals = None
         t_eval = 0.0
+        worst = [None] * len(lanes)  # each lane's worst training VD at its last evaluation
         for _ in range(sizes["steps"] // n):
             t1 = time.perf_counter()
             states, m = jax.block_until_ready(train_lanes(states, data, n, cfg, compiled))
@@ -956,8 +965,15 @@ def main(argv=None) -> int:
                                      key_base=2000, **roll)[0]
             t_eval += time.perf_counter() - t1
             step = int(states.step[0])
-            for i in range(len(lanes)):
+            for i, (meth, s) in enumerate(lanes):
                 points[i].append({"step": step, "select": selects[i], "test": evals[i]})
+                jumps, worst[i] = worst_vd_jumps(np.asarray(m["mvd_train"])[i:i + 1],
+                                                 np.ones(1, bool), worst[i])
+                for _, before, after in jumps:  # per lane, between evaluations
+                    log(f"[paper] warning: {meth} seed {s}: the worst training-policy VD rose "
+                        f"from {before:.4g} to {after:.4g} by step {step}")
+                    result.setdefault("worst_vd_jumps", {}).setdefault(meth, []).append(
+                        {"seed": s, "step": step, "before": before, "after": after})
             log(f"[paper] {family} step {step}: {n} steps of {len(lanes)} lanes in "
                 f"{seconds:.1f}s; test evaluation {time.perf_counter() - t1:.1f}s")
             for i, (meth, s) in enumerate(lanes):

@@ -803,3 +803,16 @@ def test_device_runner_lists_its_subcommands_on_a_bad_one():
         assert proc.returncode == 2
         for sub in dispatched | {"jobs"}:
             assert f"device.sh {sub} " in proc.stderr, sub
+
+
+def test_select_point_rejects_a_point_whose_worst_training_vd_exploded():
+    """The best selection tau wins, except at a point whose selection MVD is above twice the
+    lane's lowest; when every point is that bad, none is rejected."""
+    paper = _load("paper")
+    pt = lambda step, tau, mvd: {"step": step, "select": {"kendall_tau": tau, "avd": 1.0,
+                                                          "mvd": mvd}, "test": {"step": step}}
+    points = [pt(100, 0.70, 50.0), pt(200, 0.90, 400.0), pt(300, 0.80, 90.0)]
+    assert paper.select_point(points)["step"] == 300
+    assert paper.select_point([pt(100, 0.7, 50.0), pt(200, 0.9, 60.0)])["step"] == 200
+    assert paper.select_point([pt(100, 0.7, np.nan), pt(200, 0.9, np.inf)])["step"] == 200
+    assert paper.select_point([{"step": 1, "select": None, "test": None}]) is None

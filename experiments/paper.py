@@ -289,9 +289,11 @@ def select_point(points: list[dict]) -> dict | None:
     ok = [p for p in points if p["select"] is not None and p["test"] is not None]
     if not ok:
         return None
-    mvd = [p["select"].get("mvd", np.nan) for p in ok]
-    if np.isfinite(mvd).any():
-        bound = WORST_VD_JUMP * np.nanmin(np.where(np.isfinite(mvd), mvd, np.nan))
+    mvd = np.asarray([p["select"].get("mvd", np.nan) for p in ok], np.float64)
+    tau = np.asarray([p["select"]["kendall_tau"] for p in ok], np.float64)
+    healthy = np.isfinite(mvd) & np.isfinite(tau)  # a diverged point sets no bound
+    if healthy.any():
+        bound = WORST_VD_JUMP * mvd[healthy].min()
         ok = [p for p, m in zip(ok, mvd, strict=True) if np.isfinite(m) and m <= bound] or ok
     finite = lambda x: x if np.isfinite(x) else -np.inf
     return max(ok, key=lambda p: (finite(p["select"]["kendall_tau"]),

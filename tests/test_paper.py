@@ -815,4 +815,6 @@ def test_select_point_rejects_a_point_whose_worst_training_vd_exploded():
     assert paper.select_point(points)["step"] == 300
     assert paper.select_point([pt(100, 0.7, 50.0), pt(200, 0.9, 60.0)])["step"] == 200
     assert paper.select_point([pt(100, 0.7, np.nan), pt(200, 0.9, np.inf)])["step"] == 200
+    # a diverged point (non-finite tau) with a tiny MVD sets no bound for the others
+    assert paper.select_point([pt(100, np.nan, 1.0), pt(200, 0.9, 10.0)])["step"] == 200
     assert paper.select_point([{"step": 1, "select": None, "test": None}]) is None

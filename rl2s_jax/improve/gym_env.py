@@ -135,6 +135,16 @@ def _check_render_mode(render_mode, task: Task) -> None:
         _model_xml(task)
 
 
+def _episode_key(env, seed: int | None) -> jax.Array:
+    """The key of the next episode: from ``seed``; else, the first time, a draw of the env's
+    ``np_random``; else the last episode's key folded with 1."""
+    if seed is not None:
+        return jax.random.PRNGKey(seed)
+    if env._key is None:
+        return jax.random.PRNGKey(int(env.np_random.integers(2**31 - 1)))
+    return jax.random.fold_in(env._key, 1)
+
+
 class _Picture:
     """Draws observations of an MJX task: qpos from the observation [o] (qpos ++ qvel; the
     lagged torso height of hopper / walker2d turned back into qpos[1] as the oracle does),
@@ -209,12 +219,7 @@ class _BraxGymEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
-        if seed is not None:
-            self._key = jax.random.PRNGKey(seed)
-        elif self._key is None:
-            self._key = jax.random.PRNGKey(int(self.np_random.integers(2**31 - 1)))
-        else:
-            self._key = jax.random.fold_in(self._key, 1)
+        self._key = _episode_key(self, seed)
         self._state = self._reset_fn(self._key)
         self._t = 0
         return np.array(self._state.obs, np.float32), {}
@@ -393,12 +398,7 @@ class SimulatorVectorEnv(VectorEnv):
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
-        if seed is not None:
-            self._key = jax.random.PRNGKey(seed)
-        elif self._key is None:
-            self._key = jax.random.PRNGKey(int(self.np_random.integers(2**31 - 1)))
-        else:
-            self._key = jax.random.fold_in(self._key, 1)
+        self._key = _episode_key(self, seed)
         self._state = self._reset_fn(self._key)
         return np.array(self._state.env.obs, np.float32), {}
 

@@ -127,6 +127,18 @@ def episode_steps_back(policy_id: np.ndarray, episode_id: np.ndarray, t: np.ndar
     return np.arange(n) - first
 
 
+def past_rows(x, steps_back, rows, k: int, xp=jnp):
+    """The k previous values of x [N, d] for rows [n], newest first, zero before the episode
+    start (``steps_back`` [N]: rows of the same episode before each row, in order); jnp or
+    NumPy (``xp``). -> (past [n, k, d], valid [n, k] bool); (None, None) for k = 0."""
+    if k == 0:
+        return None, None
+    lags = xp.arange(1, k + 1)
+    valid = steps_back[rows][:, None] >= lags
+    src = xp.where(valid, rows[:, None] - lags, rows[:, None])
+    return xp.where(valid[..., None], x[src], 0.0).astype(x.dtype), valid
+
+
 def dataset_steps_back(ds) -> np.ndarray:
     """``episode_steps_back`` of a Dataset's rows (storage order)."""
     return episode_steps_back(np.asarray(ds.policy_id), np.asarray(ds.episode_id),
@@ -143,14 +155,9 @@ def logged_history(ds, rows, *, obs_history: int, action_history: int,
     back = dataset_steps_back(ds) if steps_back is None else np.asarray(steps_back)
 
     def past(x, k):
-        if k == 0:
-            return None, None
-        lags = np.arange(1, k + 1)
-        valid = back[rows][:, None] >= lags
-        src = np.where(valid, rows[:, None] - lags, rows[:, None])
-        x = np.asarray(x, np.float32)
-        return (jnp.asarray(np.where(valid[..., None], x[src], 0.0), jnp.float32),
-                jnp.asarray(valid))
+        out = past_rows(np.asarray(x, np.float32), back, rows, k, xp=np)
+        return (None, None) if k == 0 else (jnp.asarray(out[0], jnp.float32),
+                                            jnp.asarray(out[1]))
 
     past_obs, obs_valid = past(ds.obs, obs_history)
     past_act, act_valid = past(ds.action, action_history)

@@ -10,7 +10,7 @@ from flax import struct
 from rl2s_jax.data.episodes import from_dataset, split_episodes
 from rl2s_jax.data.values import true_values
 from rl2s_jax.model.dynamics import Normalizer
-from rl2s_jax.model.history import History, dataset_steps_back, logged_history
+from rl2s_jax.model.history import History, dataset_steps_back, logged_history, past_rows
 from rl2s_jax.model.simulator import (
     start_pool,
 )
@@ -71,8 +71,9 @@ class TrainData:
         if self.steps_back is None or self.t is None:
             raise ValueError("history inputs need TrainData.steps_back and t "
                              "(make_train_data sets them)")
-        past_obs, obs_valid = _past(self.obs, self.steps_back, rows, self.obs_history)
-        past_act, act_valid = _past(self.action, self.steps_back, rows, self.action_history)
+        past_obs, obs_valid = past_rows(self.obs, self.steps_back, rows, self.obs_history)
+        past_act, act_valid = past_rows(self.action, self.steps_back, rows,
+                                       self.action_history)
         return History(past_obs=past_obs, past_obs_valid=obs_valid, past_act=past_act,
                        past_act_valid=act_valid, t=self.t[rows],
                        time_inputs=self.time_inputs, episode_length=self.episode_length)
@@ -174,17 +175,6 @@ def episode_steps_left(policy_id: np.ndarray, episode_id: np.ndarray, t: np.ndar
     return last[run] - np.arange(n)
 
 
-def _past(x: jax.Array, steps_back: jax.Array, rows: jax.Array, k: int):
-    """The k previous values of x [N, d] for rows [n], newest first, zero before the episode
-    start. -> (past [n, k, d], valid [n, k] bool); (None, None) for k = 0."""
-    if k == 0:
-        return None, None
-    lags = jnp.arange(1, k + 1)
-    valid = steps_back[rows][:, None] >= lags
-    src = jnp.where(valid, rows[:, None] - lags, rows[:, None])
-    return jnp.where(valid[..., None], x[src], 0.0), valid
-
-
 def _sample_rows(key: jax.Array, data: TrainData, selected: jax.Array, n: int) -> jax.Array:
     """Row indices [n]: a policy uniformly among the selected, then one of its rows uniformly."""
     k_pol, k_row = jax.random.split(key)
@@ -211,10 +201,15 @@ def _real_windows(key, data: TrainData, selected, n: int, k: int):
     """n windows of k consecutive rows of one episode, starting at rows drawn as _real_batch's.
     -> (obs [n, o] the first state, action [n, k, a], next_obs [n, k, o], valid [n, k]: step
     j exists (the episode goes on that long; invalid steps repeat the last valid row))."""
+    rows, _ = _sample_rows(key, data, selected, n)
+    return _windows_at(data, rows, k)
+
+
+def _windows_at(data: TrainData, rows: jax.Array, k: int):
+    """The windows of k rows that start at ``rows`` [n] (``_real_windows``)."""
     if data.steps_left is None:
         raise ValueError("multistep_steps: the multi-step loss needs TrainData.steps_left "
                          "(make_train_data sets it); set multistep_steps=1")
-    rows, _ = _sample_rows(key, data, selected, n)
     j = jnp.arange(k)[None, :]
     left = data.steps_left[rows][:, None]
     idx = rows[:, None] + jnp.minimum(j, left)
@@ -222,6 +217,6 @@ def _real_windows(key, data: TrainData, selected, n: int, k: int):
 
 
 def _real_windows_history(key, data: TrainData, selected, n: int, k: int):
-    """``_real_windows`` and the start rows' past (None without history inputs)."""
+    """``_real_windows`` and the start rows' past (None without history inputs): one draw."""
     rows, _ = _sample_rows(key, data, selected, n)
-    return (*_real_windows(key, data, selected, n, k), data.row_history(rows))
+    return (*_windows_at(data, rows, k), data.row_history(rows))

@@ -97,7 +97,7 @@ def _one_step(sim: Simulator, obs, action, next_obs, hist, scale):
     y = sim.norm.norm_delta(obs, next_obs)
     nll = jnp.mean(dyn.gaussian_nll(means, log_stds, y[None]), 1)          # [E]
     nll = nll + jnp.sum(jnp.log(sim.norm.delta_std))  # nats of s' - s in the data's units
-    mean_next = sim.mean(obs, action, hist)
+    mean_next = sim.mean_of(obs, means, log_stds)  # the same pass as the NLL's
     mse = jnp.mean(((mean_next - next_obs) / scale) ** 2)
     return nll, mse
 

@@ -141,22 +141,22 @@ class Simulator:
         -> (mean next state [..., o] as ``mean``, a sample [..., o] as ``sample`` with this
         key, the elites' disagreement u [...] as ``disagreement``; 0 for one member)."""
         means, log_stds = self.member_dists(obs, action, hist)
-        mode = "fixed" if self.member_mode == "fixed" else "mean"
-        avg, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
-                                         n_elites=self.n_elites, mode=mode)
         mean, log_std, k_noise = self._moments(means, log_stds, key)
         nxt = sample_next(self.norm, obs, mean, log_std, k_noise, self.obs_clip,
                           self.noise_scale)
-        return self.norm.next_from_delta(obs, avg), nxt, self._disagreement(means)
+        return self.mean_of(obs, means, log_stds), nxt, self._disagreement(means)
 
     def mean(self, obs: jax.Array, action: jax.Array, hist: History | None = None
              ) -> jax.Array:
         """The mean next state: of the best member ("fixed") or the elites' average. -> [..., o]"""
-        means, log_stds = self.member_dists(obs, action, hist)
+        return self.mean_of(obs, *self.member_dists(obs, action, hist))
+
+    def mean_of(self, obs: jax.Array, means: jax.Array, log_stds: jax.Array) -> jax.Array:
+        """``mean`` from the members' Gaussians [E, ..., o] already computed at obs [..., o]."""
         mode = "fixed" if self.member_mode == "fixed" else "mean"
-        mean, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
-                                          n_elites=self.n_elites, mode=mode)
-        return self.norm.next_from_delta(obs, mean)
+        avg, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
+                                         n_elites=self.n_elites, mode=mode)
+        return self.norm.next_from_delta(obs, avg)
 
     def log_prob(self, obs: jax.Array, action: jax.Array, next_obs: jax.Array,
                  hist: History | None = None) -> jax.Array:

@@ -145,6 +145,17 @@ def _episode_key(env, seed: int | None) -> jax.Array:
     return jax.random.fold_in(env._key, 1)
 
 
+def _checked_action(env, action, name: str) -> np.ndarray:
+    """A step's action as float32, after checking the env was reset and the shape matches its
+    action space (``name``: the argument's name in the error)."""
+    if env._state is None:
+        raise gym.error.ResetNeeded("step: call reset() before the first step")
+    action = np.asarray(action, np.float32)
+    if action.shape != env.action_space.shape:
+        raise ValueError(f"{name}: expected shape {env.action_space.shape}, got {action.shape}")
+    return action
+
+
 class _Picture:
     """Draws observations of an MJX task: qpos from the observation [o] (qpos ++ qvel; the
     lagged torso height of hopper / walker2d turned back into qpos[1] as the oracle does),
@@ -225,12 +236,7 @@ class _BraxGymEnv(gym.Env):
         return np.array(self._state.obs, np.float32), {}
 
     def step(self, action):
-        if self._state is None:
-            raise gym.error.ResetNeeded("step: call reset() before the first step")
-        action = np.asarray(action, np.float32)
-        if action.shape != self.action_space.shape:
-            raise ValueError(f"action: expected shape {self.action_space.shape}, got "
-                             f"{action.shape}")
+        action = _checked_action(self, action, "action")
         self._state, out = self._step_fn(self._state, jnp.asarray(action))
         obs, reward, done, *u = jax.device_get(out)
         self._t += 1
@@ -403,12 +409,7 @@ class SimulatorVectorEnv(VectorEnv):
         return np.array(self._state.env.obs, np.float32), {}
 
     def step(self, actions):
-        if self._state is None:
-            raise gym.error.ResetNeeded("step: call reset() before the first step")
-        actions = np.asarray(actions, np.float32)
-        if actions.shape != self.action_space.shape:
-            raise ValueError(f"actions: expected shape {self.action_space.shape}, got "
-                             f"{actions.shape}")
+        actions = _checked_action(self, actions, "actions")
         self._state, out = self._step_fn(self._state, jnp.asarray(actions))
         obs, reward, terminated, truncated, last, *u = (np.array(x) for x in
                                                          jax.device_get(out))

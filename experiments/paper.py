@@ -81,6 +81,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax.app.improve import fine_tuning_overrides
 from rl2s_jax.app.pipeline import collect_dataset
 from rl2s_jax.app.train import make_config, parse_overrides
 from rl2s_jax.data.collect import measure_values
@@ -773,18 +774,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _sac_overrides(items) -> dict:
     """--sac-set KEY=VALUE pairs, checked against SACConfig's fields before any work."""
-    fields = {f.name for f in dataclasses.fields(SACConfig)}
-    out = parse_overrides(items)
-    unknown = sorted(set(out) - fields)
-    if unknown:
-        raise SystemExit(f"sac-set: unknown SACConfig field(s) {unknown}; known: "
-                         f"{sorted(fields)}")
-    if out.get("normalize_observations"):
-        raise SystemExit("sac-set: normalize_observations is for training from scratch; a "
-                         "fine-tuned policy keeps its own observation normaliser")
-    for k in ("hidden", "actor_hidden", "ignore_obs_dims"):
-        if k in out:
-            out[k] = tuple(out[k])
+    try:
+        out = fine_tuning_overrides(parse_overrides(items), flag="sac-set")
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
     try:
         SACConfig.fine_tuning(**out).validate()
     except (TypeError, ValueError) as err:

@@ -50,21 +50,29 @@ from rl2s_jax.train.checkpoint import load_meta, load_simulator
 from rl2s_jax.zoo.zoo import Zoo, policies_for, policy_source, save_zoo
 
 
-def sac_config(overrides: dict | None, episode_length: int, iterations: int) -> SACConfig:
-    """SACConfig with the fine-tuning defaults, ``episode_length``, a critic warm-up of a
-    quarter of the ``iterations``' updates, and ``overrides`` (field -> value; unknown fields
-    refused, naming the known ones)."""
+def fine_tuning_overrides(overrides: dict | None, flag: str = "set") -> dict:
+    """SACConfig overrides for fine-tuning, checked: unknown fields refused (naming the known
+    ones), ``normalize_observations`` refused, tuple fields made tuples. Errors start with
+    ``flag``. -> a new dict."""
     fields = {f.name for f in dataclasses.fields(SACConfig)}
     overrides = dict(overrides or {})
     unknown = sorted(set(overrides) - fields)
     if unknown:
-        raise ValueError(f"set: unknown SACConfig field(s) {unknown}; known: {sorted(fields)}")
+        raise ValueError(f"{flag}: unknown SACConfig field(s) {unknown}; known: "
+                         f"{sorted(fields)}")
     if overrides.get("normalize_observations"):
-        raise ValueError("set: normalize_observations is for training from scratch; a fine-tuned "
-                         "policy keeps its own observation normaliser")
+        raise ValueError(f"{flag}: normalize_observations is for training from scratch; a "
+                         "fine-tuned policy keeps its own observation normaliser")
     for k in ("hidden", "actor_hidden", "ignore_obs_dims"):
         if k in overrides:
             overrides[k] = tuple(overrides[k])
+    return overrides
+
+
+def sac_config(overrides: dict | None, episode_length: int, iterations: int) -> SACConfig:
+    """SACConfig with the fine-tuning defaults, ``episode_length``, a critic warm-up of a
+    quarter of the ``iterations``' updates, and ``overrides`` (``fine_tuning_overrides``)."""
+    overrides = fine_tuning_overrides(overrides)
     ups = int(overrides.get("updates_per_step", SACConfig.updates_per_step))
     cfg = SACConfig.fine_tuning(**{"episode_length": episode_length,
                                    "critic_warmup_updates": iterations * ups // 4, **overrides})
@@ -365,4 +373,5 @@ def _jsonable(cfg: SACConfig) -> dict:
             for k, v in dataclasses.asdict(cfg).items()}
 
 
-__all__ = ["check_inputs", "run_improve", "sac_config", "summary_markdown"]
+__all__ = ["check_inputs", "fine_tuning_overrides", "run_improve", "sac_config",
+           "summary_markdown"]

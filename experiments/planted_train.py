@@ -27,7 +27,7 @@ import jax
 import numpy as np
 
 from rl2s_jax.app.diagnose import diagnose
-from rl2s_jax.data.dataset import save_dataset
+from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.diagnose.extension import train_set
 from rl2s_jax.diagnose.planted_mjx import collect_planted
 from rl2s_jax.envs.tasks import get_task
@@ -85,7 +85,6 @@ def run_effect(effect: str, args, clean_reference) -> dict:
         save_dataset(held_path, record(effect, args.transitions_per_policy,
                                        args.value_episodes, args.seed + 500))
     t_collect = time.perf_counter() - t0
-    from rl2s_jax.data.dataset import load_dataset  # local: after the recordings exist
     ds = load_dataset(train_path)
     done = os.path.join(edir, "diagnosis", "report.json")
     if os.path.isfile(done):  # a resumed run: the diagnosis is made
@@ -205,7 +204,6 @@ def main(argv=None) -> int:
         else:
             row = run_effect(effect, args, clean)
         if effect == "clean":
-            from rl2s_jax.data.dataset import load_dataset  # local: as in run_effect
             clean = load_dataset(os.path.join(args.out, "clean", "train.npz"))
         if row is not None:
             rows.append(row)

@@ -104,8 +104,9 @@ from rl2s_jax.policy.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, replicate, shard_lanes
 from rl2s_jax.train.config import DEFAULT_EPS, LEGACY_MODEL, TrainConfig
 from rl2s_jax.train.data import heldout_mask, make_train_data
+from rl2s_jax.train.lanes import train_lanes  # noqa: F401 (model_fit, tests import it here)
 from rl2s_jax.train.loop import WORST_VD_JUMP, worst_vd_jumps
-from rl2s_jax.train.step import init, simulator, train_steps
+from rl2s_jax.train.step import init, simulator
 from rl2s_jax.zoo.zoo import policies_for
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -356,33 +357,6 @@ def oracle_noise_ceiling(test_ds, truth, sim_return_sd, *, n_sim: int, horizon: 
                        truth_episode_sd=truth_sd)
     return {"n_truth": n_truth, "n_sim": n_sim, "kendall_tau": nc["kendall_tau"],
             "ndcg@1": nc["ndcg@1"]}
-
-
-# ------------------------------------------------------------------ training of lanes
-
-
-def _lane_chunk(st, d, n, phase):
-    st, m = train_steps(st, d, n, phase)
-    return st, {"finite": jnp.all(m["finite"]), "avd_train": m["avd_train"][-1],
-                "mvd_train": m["mvd_train"][-1], "n_selected": m["n_selected"][-1]}
-
-
-def train_lanes(states, data, n: int, cfg, compiled: dict):
-    """n train_steps of every lane (states vmapped over lanes) -> (states, metrics of the last
-    step; "finite" over all n). Pieces end at the pre-training boundary, so each compiled
-    program (cached in ``compiled`` by (steps, phase)) runs one phase: its static ``phase``."""
-    done, m = 0, None
-    while done < n:
-        step = int(states.step[0])
-        ph = cfg.phase(step)
-        k = min(n - done, cfg.pretrain_steps - step) if ph == "pretrain" else n - done
-        if (k, ph) not in compiled:
-            compiled[k, ph] = jax.jit(jax.vmap(partial(_lane_chunk, n=k, phase=ph),
-                                               in_axes=(0, None)))
-        states, mk = compiled[k, ph](states, data)
-        m = mk if m is None else {**mk, "finite": jnp.logical_and(m["finite"], mk["finite"])}
-        done += k
-    return states, m
 
 
 # ------------------------------------------------------------------ improvement

@@ -10,10 +10,11 @@ from rl2s_jax.diagnose.causes import rivals
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.train.config import TrainConfig
 
-__all__ = ["EXTENSION_SHARE", "NOISE_NLL_BETA", "NOT_TRAINABLE", "extension_for",
+__all__ = ["CONTEXT_WINDOW", "EXTENSION_SHARE", "NOISE_NLL_BETA", "NOT_TRAINABLE", "extension_for",
            "train_command", "train_set"]
 
 EXTENSION_SHARE = 0.25  # secondary causes join the extension above this share of the top score
+CONTEXT_WINDOW = 4  # transitions the trained simulator's context is inferred from (at least)
 NOISE_NLL_BETA = 0.5  # the noise extension's beta-NLL exponent. On the CPU Hopper noise
 # recording (85k, held-out episodes, 2 seeds), NLL / MSE: base -9.4 / 0.045; state noise with
 # beta 0: -15.3 / 0.099, beta 0.5: -17.0 / 0.036, beta 1: -11.5 / 0.034.
@@ -62,8 +63,6 @@ def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]
 
 # What `rl2s train --set` cannot build yet, and why (the report says so beside train_set).
 NOT_TRAINABLE = {
-    "context_dim": "a per-episode context is fitted by diagnosis only; the simulator does not "
-                   "infer one in its rollouts yet",
     "time_inputs:order": "the place in the recording order has no value in a simulated "
                          "episode; retrain on the recent part of the data instead",
     "policy_cvar_eps": "weighting the worst policies is what --method rl2s / rl2s-bc do "
@@ -87,6 +86,10 @@ def train_set(changes: list[dict], base: TrainConfig | None = None
         for k, v in c["change"].items():
             if k in ("action_history", "obs_history"):
                 want[k] = max(int(v), getattr(base, k), want.get(k, 0))
+            elif k == "context_dim":  # inferred online from the recent transitions
+                want[k] = max(int(v), base.context_dim)
+                for h in ("obs_history", "action_history"):
+                    want[h] = max(CONTEXT_WINDOW, getattr(base, h), want.get(h, 0))
             elif k == "noise":
                 want["gen_noise"] = v
             elif k == "nll_beta":  # at least v

@@ -30,10 +30,9 @@ from rl2s_jax.model.dynamics import (
     Normalizer,
     bounded_log_std,
     gaussian_nll,
-    member_dist,
     relu_mlp,
 )
-from rl2s_jax.model.history import History, step_inputs
+from rl2s_jax.model.history import History, member_step_dist
 from rl2s_jax.policy.policy import init_mlp
 
 __all__ = ["LOG_STD_MAX", "LOG_STD_MIN", "Normalizer", "count_params", "discriminator",
@@ -65,7 +64,7 @@ def generator_dist(gen, norm: Normalizer, obs: jax.Array, action: jax.Array,
     obs [..., o], action [..., a], hist: the steps' past for a member with history inputs
     (``rl2s_jax.model.history``; None: Markov) -> (mean, log_std), each [..., o].
     """
-    return member_dist(_member(gen), step_inputs(norm, obs, action, hist))
+    return member_step_dist(_member(gen), norm, obs, action, hist)
 
 
 def generator_sample(gen, norm: Normalizer, obs: jax.Array, action: jax.Array,

@@ -19,7 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from rl2s_jax.model.dynamics import Normalizer, markov_inputs, model_inputs
+from rl2s_jax.model.dynamics import (
+    Normalizer,
+    encoder_inputs,
+    markov_inputs,
+    member_dist,
+    model_inputs,
+    pool_context,
+)
 
 SIM_TIME_INPUTS = ("step",)  # "order" (the place in a recording) has no value in a rollout
 
@@ -102,6 +109,33 @@ def step_inputs(norm: Normalizer, obs: jax.Array, action: jax.Array,
     return model_inputs(norm, {"obs": obs, "past_obs": past_obs, "past_obs_valid": obs_valid,
                                "action": action, "past_act": past_act,
                                "past_act_valid": act_valid, "times": hist.times})
+
+
+def history_context(params: dict, norm: Normalizer, obs: jax.Array,
+                    hist: History | None) -> jax.Array | None:
+    """A member's per-episode context inferred from the episode's recent transitions (None
+    for a member without a context encoder, ``params["enc"]``).
+
+    The K = min(obs_history, action_history) newest transitions (s_{t-1-k}, a_{t-1-k},
+    s_{t-k}), k < K, the newest ending at ``obs`` [..., o], are embedded by the encoder and
+    mean-pooled over the valid ones (zeros before any). A hidden parameter that is fixed for
+    an episode (a mass, a friction) shows in how its past states answered its past actions,
+    so the context identifies it online, in training rows and rollouts alike. -> [..., C]"""
+    if "enc" not in params:
+        return None
+    k = min(hist.past_obs.shape[-2], hist.past_act.shape[-2])
+    s, a = hist.past_obs[..., :k, :], hist.past_act[..., :k, :]
+    nxt = jnp.concatenate([obs[..., None, :].astype(s.dtype), s[..., :k - 1, :]], -2)
+    valid = hist.past_obs_valid[..., :k] & hist.past_act_valid[..., :k]
+    return pool_context(params, encoder_inputs(norm, s, a, nxt), valid)
+
+
+def member_step_dist(params: dict, norm: Normalizer, obs: jax.Array, action: jax.Array,
+                     hist: History | None) -> tuple[jax.Array, jax.Array]:
+    """One member's Gaussian over the normalised delta at (obs [..., o], action [..., a])
+    with this past, its context included. -> (mean, log_std), each [..., o]."""
+    ctx = None if hist is None else history_context(params, norm, obs, hist)
+    return member_dist(params, step_inputs(norm, obs, action, hist), ctx)
 
 
 def take_history(hist: History | None, idx) -> History | None:

@@ -20,7 +20,13 @@ from flax import struct
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.model.generator import sample_next
-from rl2s_jax.model.history import History, empty_history, push_history, step_inputs
+from rl2s_jax.model.history import (
+    History,
+    empty_history,
+    member_step_dist,
+    push_history,
+    step_inputs,
+)
 from rl2s_jax.model.termination import TERMINATIONS, hazard_prob
 from rl2s_jax.policy.policy import Params, sample_action
 
@@ -112,7 +118,11 @@ class Simulator:
     def member_dists(self, obs: jax.Array, action: jax.Array, hist: History | None = None
                      ) -> tuple[jax.Array, jax.Array]:
         """Every member's Gaussian over the normalised delta: (mean, log_std) [E, ..., o]."""
-        return dyn.ensemble_dist(self.gen, self.inputs(obs, action, hist))
+        x = self.inputs(obs, action, hist)
+        if "enc" not in self.gen:
+            return dyn.ensemble_dist(self.gen, x)
+        return dyn.map_members(lambda p: member_step_dist(p, self.norm, obs, action, hist),
+                               self.gen)
 
     def _moments(self, means, log_stds, key):
         return dyn.ensemble_moments(means, log_stds, key, rank=self.rank,

@@ -95,6 +95,9 @@ class TrainConfig:
     action_history: int = 0        # k previous actions of the episode fed to every member
     obs_history: int = 0           # k previous observations of the episode
     time_inputs: tuple[str, ...] = ()  # ("step",): t / episode_length, the place in the episode
+    context_dim: int = 0           # C: a per-episode context inferred online from the episode's
+    # min(obs_history, action_history) newest transitions (history.history_context; 0: off)
+    context_hidden: tuple[int, ...] = (64, 64)  # the context encoder's hidden sizes
     multistep_steps: int = 1       # k: MLE loss adds the mean's k-step error (1: one-step only)
     multistep_weight: float = 1.0  # weight of that k-step error (squared, in data stds)
     nll_beta: float = 1.0          # beta-NLL exponent of the likelihood loss (0: plain NLL;
@@ -131,7 +134,9 @@ class TrainConfig:
                             activation=self.gen_activation,
                             log_std_bounds=self.gen_log_std_bounds,
                             action_history=self.action_history, obs_history=self.obs_history,
-                            time_inputs=tuple(self.time_inputs))
+                            time_inputs=tuple(self.time_inputs),
+                            context_dim=self.context_dim,
+                            context_hidden=tuple(self.context_hidden))
 
     def simulator_settings(self, noise_scale: float | None = None) -> dict:
         """The static ``Simulator`` fields this run's simulator steps with (noise_scale:
@@ -241,6 +246,18 @@ class TrainConfig:
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 0:
                 raise ValueError(f"{name}: expected an int >= 0 (0 = off), got {v!r}")
+        v = self.context_dim
+        if not isinstance(v, int) or isinstance(v, bool) or v < 0:
+            raise ValueError(f"context_dim: expected an int >= 0 (0 = off), got {v!r}")
+        if v and not (self.obs_history and self.action_history):
+            raise ValueError(f"context_dim: the context is inferred from the episode's recent "
+                             f"transitions; set obs_history and action_history >= 1 (the "
+                             f"window is their minimum), got obs_history {self.obs_history}, "
+                             f"action_history {self.action_history}")
+        h = self.context_hidden
+        if not (isinstance(h, tuple) and h and all(isinstance(x, int) and x > 0 for x in h)):
+            raise ValueError(f"context_hidden: expected a non-empty tuple of positive ints, "
+                             f"got {h!r}")
         t = self.time_inputs
         if (not isinstance(t, tuple) or any(x not in SIM_TIME_INPUTS for x in t)
                 or len(set(t)) != len(t)):

@@ -7,7 +7,6 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.dynamics import Normalizer, beta_nll
 from rl2s_jax.model.generator import (
     discriminator,
@@ -15,7 +14,7 @@ from rl2s_jax.model.generator import (
     generator_log_prob,
     generator_sample,
 )
-from rl2s_jax.model.history import push_history, step_inputs
+from rl2s_jax.model.history import member_step_dist, push_history
 
 
 def discriminator_loss(disc, us, norm: Normalizer, real: tuple, fake: tuple):
@@ -78,7 +77,7 @@ def multistep_error(gen, norm: Normalizer, obs, action, next_obs, valid, obs_cli
     def step(carry, xs):
         s, h = carry
         a, target = xs
-        mean, _ = dyn.member_dist(gen, step_inputs(norm, s, a, h))
+        mean, _ = member_step_dist(gen, norm, s, a, h)
         nxt = norm.clip_obs(norm.next_from_delta(s, mean), obs_clip)
         err = jnp.sum(mask * ((nxt - target) / norm.obs_std) ** 2, -1) / jnp.sum(mask)
         return (nxt, None if h is None else push_history(h, s, a)), err

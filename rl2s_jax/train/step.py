@@ -58,7 +58,7 @@ from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.model.generator import init_discriminator
-from rl2s_jax.model.history import History, push_history, step_inputs, take_history
+from rl2s_jax.model.history import History, member_step_dist, push_history, take_history
 from rl2s_jax.model.simulator import (
     Simulator,
     ValueRollout,
@@ -164,10 +164,9 @@ def _heldout_nll(gen, norm: Normalizer, data: TrainData) -> jax.Array:
     """Every member's mean NLL [E] on the held-out rows (NaN without any)."""
     if data.n_heldout == 0:
         return jnp.full((dyn.n_members(gen),), jnp.nan, jnp.float32)
-    x = step_inputs(norm, data.val_obs, data.val_action, data.val_hist)
     y = norm.norm_delta(data.val_obs, data.val_next_obs)
-    return dyn.map_members(lambda p: jnp.mean(dyn.gaussian_nll(*dyn.member_dist(p, x), y)),
-                           gen)
+    return dyn.map_members(lambda p: jnp.mean(dyn.gaussian_nll(*member_step_dist(
+        p, norm, data.val_obs, data.val_action, data.val_hist), y)), gen)
 
 
 # ------------------------------------------------------------------ init

@@ -43,29 +43,27 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from paper import (  # noqa: E402
     TASK_SIZES,
-    _lane_returns,
-    episode_lengths,
-    heldout_start_pool,
     load_or_collect,
     log,
     positive_int,
     profile_sizes,
-    select_point,
-    train_lanes,
 )
 
 from rl2s_jax.app.train import (
     make_config,
     parse_overrides,  # noqa: E402
 )
+from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.data.values import true_values
 from rl2s_jax.envs.tasks import _LOCO, get_task, task_names  # noqa: E402
+from rl2s_jax.evaluate.lanes import lane_returns
 from rl2s_jax.evaluate.metrics import ranking_metrics  # noqa: E402
 from rl2s_jax.model.dynamics import MEMBER_MODES  # noqa: E402
 from rl2s_jax.model.simulator import advance_values, start_pool, start_values  # noqa: E402
 from rl2s_jax.model.termination import LEARNED, TERMINATIONS  # noqa: E402
 from rl2s_jax.train.config import LEGACY_MODEL, TrainConfig
 from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.lanes import heldout_start_pool, select_point, train_lanes
 from rl2s_jax.train.step import init, simulator
 from rl2s_jax.zoo.zoo import policies_for  # noqa: E402
 
@@ -131,8 +129,8 @@ def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
         sets.append(("validation", validation, 3000))
     for name, (pols, pool, truth), base in sets:
         keys = jnp.stack([jax.random.PRNGKey(base + s) for s in seeds])
-        returns, lengths = _lane_returns(sims, pols, pool, keys, n_episodes=n_episodes,
-                                         horizon=cfg.vd_horizon, gamma=cfg.gamma)
+        returns, lengths = lane_returns(sims, pols, pool, keys, n_episodes=n_episodes,
+                                        horizon=cfg.vd_horizon, gamma=cfg.gamma)
         lengths = np.asarray(lengths, np.float64).mean(-1)
         for i, v in enumerate(np.asarray(returns, np.float64).mean(-1)):
             out[i][name] = _metrics(truth, v)
@@ -163,7 +161,7 @@ def _ant_z(o):
 
 
 def terminal_states(sims, policies, pool, keys, *, task, n_episodes, horizon):
-    """Each lane's simulated episodes, run as ``_lane_returns`` runs them
+    """Each lane's simulated episodes, run as ``evaluate.lanes.lane_returns`` runs them
     (``simulate.start_values`` + ``advance_values``, whose frozen state of an ended episode is
     the one it terminated in). -> (terminal obs [L, P, n, o] (the last state where none),
     ended [L, P, n])"""
@@ -353,7 +351,7 @@ def termination_causes(task_name: str, terminal, ended) -> dict | None:
     return {"ended": float(ended.mean()), **out}
 
 
-_select = select_point  # the rule lives in paper.py; tests call it by this name
+_select = select_point  # the rule lives in train/lanes.py; tests call it by this name
 
 
 def tau_swing(points: list[dict], from_step: int = 0) -> float | None:

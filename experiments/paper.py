@@ -75,7 +75,6 @@ import json
 import os
 import sys
 import time
-from functools import partial
 
 import jax
 import jax.numpy as jnp
@@ -86,9 +85,17 @@ from rl2s_jax.app.pipeline import collect_dataset
 from rl2s_jax.app.train import make_config, parse_overrides
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.data.dataset import load_dataset, save_dataset
+from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.data.values import true_values, true_values_se
 from rl2s_jax.envs.tasks import get_task, task_names
-from rl2s_jax.evaluate.metrics import bootstrap_intervals, noise_ceiling, ranking_metrics
+from rl2s_jax.evaluate.lanes import (
+    EVAL_METRICS,
+    evaluate_lanes,
+    intervals_over_seeds,
+    oracle_noise_ceiling,
+    oracle_rows,
+)
+from rl2s_jax.evaluate.metrics import bootstrap_intervals
 from rl2s_jax.improve.finetune import (
     deployment_guard,
     improve_in_real_env,
@@ -98,22 +105,20 @@ from rl2s_jax.improve.finetune import (
     select_by_members,
 )
 from rl2s_jax.improve.sim_env import SimulatorEnv, branch_pool, real_rows, scaled_env_options
-from rl2s_jax.model.simulator import Simulator, simulator_returns, start_pool
+from rl2s_jax.model.simulator import Simulator, start_pool
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig, episode_returns, make_sac
 from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, replicate, shard_lanes
-from rl2s_jax.train.config import DEFAULT_EPS, LEGACY_MODEL, TrainConfig
-from rl2s_jax.train.data import heldout_mask, make_train_data
-from rl2s_jax.train.lanes import train_lanes  # noqa: F401 (model_fit, tests import it here)
-from rl2s_jax.train.loop import WORST_VD_JUMP, worst_vd_jumps
+from rl2s_jax.train.config import DEFAULT_EPS, LEGACY_MODEL
+from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.lanes import heldout_start_pool, select_point, train_lanes
+from rl2s_jax.train.loop import worst_vd_jumps
 from rl2s_jax.train.step import init, simulator
 from rl2s_jax.zoo.zoo import policies_for
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 # (family, config method, its lanes' methods): one vmapped program per family.
 FAMILIES = (("adversarial", "rl2s", ("rl2s", "gail")), ("mle", "rl2s-bc", ("rl2s-bc", "bc")))
-EVAL_METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearman",
-                "regret@1", "avd", "mvd")
 # mpi/api: C0 from the data's true values, C1 measured apart; *_paired: C0 and C1 measured
 # paired (the same starts and noise draws, --improve-episodes each)
 IMPROVE_METRICS = ("mpi", "api", "mpi_paired", "api_paired")
@@ -218,145 +223,6 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
     with open(key_path, "w") as f:
         json.dump(data_key, f)
     return out, False
-
-
-# ------------------------------------------------------------------ evaluation of lanes
-
-
-@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
-def _lane_returns(sims: Simulator, policies, pool, keys, *, n_episodes, horizon, gamma):
-    """assess._sim_returns vmapped over lanes: sims and keys carry a leading lane axis.
-    -> (returns, lengths) [L, P, n]"""
-    task = get_task(sims.task)
-    return jax.vmap(lambda sim, key: simulator_returns(
-        sim, task, policies, pool, key, n_episodes=n_episodes, horizon=horizon,
-        gamma=gamma))(sims, keys)
-
-
-def evaluate_lanes(states, seeds, policies, pool, truth, *, key_base: int, n_episodes, horizon,
-                   gamma):
-    """evaluate_simulator's metrics for every lane of a vmapped TrainState: the stacked
-    ``policies`` started from ``pool`` against their true values ``truth`` [P], keys
-    PRNGKey(key_base + seed) (1000: the test policies, 2000: the training policies' held-out
-    episodes, for model selection).
-    -> (list of metric dicts (None where the simulated values are not finite), values [L, P],
-    per-episode returns [L, P, n], mean simulated episode lengths [L, P])"""
-    keys = jnp.stack([jax.random.PRNGKey(key_base + s) for s in seeds])
-    returns, lengths = _lane_returns(simulator(states), policies, pool, keys,
-                                     n_episodes=n_episodes, horizon=horizon, gamma=gamma)
-    returns = np.asarray(returns, np.float64)
-    values = returns.mean(-1)
-    out = []
-    for v in values:
-        try:
-            out.append(ranking_metrics(truth, v, ks=(1, 3, 5, 10)))
-        except ValueError:  # non-finite simulated values: the lane diverged
-            out.append(None)
-    return out, values, returns, np.asarray(lengths, np.float64).mean(-1)
-
-
-def episode_lengths(ds) -> np.ndarray:
-    """[P] mean length of each policy's logged episodes (a terminated or truncated one counts
-    its steps; the last, cut-off episode of a policy is left out when others exist)."""
-    pid, ep = np.asarray(ds.policy_id), np.asarray(ds.episode_id)
-    ended = np.asarray(ds.done) | np.asarray(ds.truncated)
-    out = np.zeros(ds.n_policies)
-    for p in range(ds.n_policies):
-        mine = pid == p
-        ids, counts = np.unique(ep[mine], return_counts=True)
-        whole = np.isin(ids, ep[mine & ended])
-        out[p] = counts[whole].mean() if whole.any() else counts.mean()
-    return out
-
-
-def heldout_start_pool(train_ds) -> jax.Array:
-    """Start states [S, o] of the training policies' held-out episodes (the split
-    ``make_train_data`` makes with the default holdout_frac, whatever the variant's), the
-    whole data's start pool if none of them starts at t = 0."""
-    held = heldout_mask(train_ds, TrainConfig().holdout_frac)
-    starts = held & (np.asarray(train_ds.t) == 0)
-    if not starts.any():
-        return start_pool(train_ds)
-    return jnp.asarray(np.asarray(train_ds.obs)[starts], jnp.float32)
-
-
-def select_point(points: list[dict]) -> dict | None:
-    """Model selection without the test policies: of a lane's evaluation points
-    ({"step", "select": metrics of the TRAINING policies started from their held-out episodes,
-    "test": the test metrics}), the one with the highest selection tau (ties: the lower
-    selection AVD; non-finite last). A point whose selection MVD exploded (above
-    WORST_VD_JUMP times the lane's lowest) is rejected, unless every point would be (issue
-    41: a catastrophic RL2S seed ranked well while its worst training VD had blown up). None
-    when no point has both."""
-    ok = [p for p in points if p["select"] is not None and p["test"] is not None]
-    if not ok:
-        return None
-    mvd = np.asarray([p["select"].get("mvd", np.nan) for p in ok], np.float64)
-    tau = np.asarray([p["select"]["kendall_tau"] for p in ok], np.float64)
-    healthy = np.isfinite(mvd) & np.isfinite(tau)  # a diverged point sets no bound
-    if healthy.any():
-        bound = WORST_VD_JUMP * mvd[healthy].min()
-        ok = [p for p, m in zip(ok, mvd, strict=True) if np.isfinite(m) and m <= bound] or ok
-    finite = lambda x: x if np.isfinite(x) else -np.inf
-    return max(ok, key=lambda p: (finite(p["select"]["kendall_tau"]),
-                                  finite(-p["select"]["avd"])))
-
-
-def intervals_over_seeds(per_seed: list[dict | None]) -> dict:
-    """Each metric's mean over seeds of the per-seed bootstrap interval ends and std:
-    {metric: {"lo", "hi", "std"}} (an episode-noise interval; the spread over seeds is the
-    result's "std")."""
-    rows = [r for r in per_seed if r is not None]
-    if not rows:
-        return {}
-    return {k: {q: float(np.mean([r[k][q] for r in rows])) for q in ("lo", "hi", "std")}
-            for k in rows[0]}
-
-
-def oracle_rows(task: str, test_ds, test_pols, seeds, *, n_episodes, horizon, gamma,
-                n_boot: int) -> dict:
-    """The control: ``assess.evaluate_oracle`` (the real dynamics through the lanes' evaluation
-    path: same start states, horizon, gamma, episodes) once per seed with the lanes' key
-    PRNGKey(1000 + seed). -> {"per_seed": {metric: [S]}, "intervals": [S], "sim_value",
-    "sim_length", "sim_return_sd": [S][P] each}"""
-    from rl2s_jax.evaluate.simulator import evaluate_oracle
-
-    env = get_task(task).make_env()
-    out = {"per_seed": {k: [] for k in EVAL_METRICS}, "intervals": [], "sim_value": [],
-           "sim_length": [], "sim_return_sd": []}
-    for s in seeds:
-        r = evaluate_oracle(task, test_ds, test_pols, key=jax.random.PRNGKey(1000 + s),
-                            n_episodes=n_episodes, horizon=horizon, gamma=gamma,
-                            n_boot=n_boot, env=env)
-        for k in EVAL_METRICS:
-            out["per_seed"][k].append(r["metrics"][k])
-        out["intervals"].append(r.get("intervals", {}).get("metrics"))
-        out["sim_value"].append(r["sim_value"])
-        out["sim_length"].append(np.round(r["sim_length"], 1).tolist())
-        out["sim_return_sd"].append(r["sim_return_sd"])
-    return out
-
-
-def oracle_noise_ceiling(test_ds, truth, sim_return_sd, *, n_sim: int, horizon: int,
-                         gamma: float, n_rep: int = 1000) -> dict:
-    """What evaluation noise alone lets an exact simulator reach on these test policies
-    (``evaluate.noise_ceiling``): the simulator's per-episode spread from the oracle's episodes
-    ([S, P], averaged over seeds), the truth's from the data's value SE x sqrt(its episodes)
-    where it was measured (else the oracle's spread). -> {"n_truth", "n_sim", "kendall_tau",
-    "ndcg@1"}: each {"mean", "lo", "hi"}."""
-    sd = np.mean(np.asarray(sim_return_sd, np.float64), axis=0)
-    n_truth = int((test_ds.meta.get("source") or {}).get("value_episodes") or 0)
-    se = true_values_se(test_ds, horizon, gamma)
-    if se is None or n_truth < 1:   # true values from the logged episodes: their count
-        n_truth = max(int(np.unique(np.asarray(test_ds.episode_id)).size
-                          // max(test_ds.n_policies, 1)), 1)
-        truth_sd = None
-    else:
-        truth_sd = np.asarray(se, np.float64) * np.sqrt(n_truth)
-    nc = noise_ceiling(truth, sd, n_truth=n_truth, n_sim=n_sim, n_rep=n_rep,
-                       truth_episode_sd=truth_sd)
-    return {"n_truth": n_truth, "n_sim": n_sim, "kendall_tau": nc["kendall_tau"],
-            "ndcg@1": nc["ndcg@1"]}
 
 
 # ------------------------------------------------------------------ improvement
@@ -928,9 +794,10 @@ def main(argv=None) -> int:
             roll = dict(n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
                         gamma=cfg.gamma)
             seeds = [s for _, s in lanes]
+            sims = simulator(states)
             evals, _values, _returns, _lengths = evaluate_lanes(
-                states, seeds, test_pols, test_pool, truth, key_base=1000, **roll)
-            selects = evaluate_lanes(states, seeds, data.policies, select_pool, select_truth,
+                sims, seeds, test_pols, test_pool, truth, key_base=1000, **roll)
+            selects = evaluate_lanes(sims, seeds, data.policies, select_pool, select_truth,
                                      key_base=2000, **roll)[0]
             t_eval += time.perf_counter() - t1
             step = int(states.step[0])

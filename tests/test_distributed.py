@@ -28,14 +28,15 @@ LAUNCH_VARS = (sharding.COORDINATOR_VAR, sharding.NUM_PROCESSES_VAR, sharding.PR
 # <out>/<run>.<process index>.
 LANES_PROGRAM = textwrap.dedent("""
     import os, pickle, sys
-    sys.path[:0] = [{root!r} + "/tests", {root!r} + "/experiments"]
+    sys.path[:0] = [{root!r} + "/tests"]
     import jax
     jax.config.update("jax_cpu_collectives_implementation", "gloo")  # CPU collectives
     from rl2s_jax import sharding
     distributed = sharding.initialize_distributed()  # before any other JAX work
     import jax.numpy as jnp
     from test_train import _policies
-    from paper import _lane_returns, train_lanes
+    from rl2s_jax.evaluate.lanes import lane_returns
+    from rl2s_jax.train.lanes import train_lanes
     from rl2s_jax import train as T
 
     out, run = sys.argv[1:3]
@@ -86,8 +87,8 @@ LANES_PROGRAM = textwrap.dedent("""
         assert len(leaf.sharding.device_set) == 4 and not leaf.is_fully_addressable
         assert sorted(s.index[0].start for s in leaf.addressable_shards) == [2 * me, 2 * me + 1]
     ekeys = jnp.stack([jax.random.PRNGKey(9 + s) for s in range(4)])
-    returns, _ = _lane_returns(T.simulator(trained), policies, lanes["pool"], ekeys,
-                               n_episodes=4, horizon=20, gamma=0.99)
+    returns, _ = lane_returns(T.simulator(trained), policies, lanes["pool"], ekeys,
+                              n_episodes=4, horizon=20, gamma=0.99)
     host = sharding.to_host({{"params": trained, "returns": returns}})
     flat = {{jax.tree_util.keystr(p): x
              for p, x in jax.tree_util.tree_leaves_with_path(host)}}

@@ -808,13 +808,14 @@ def test_device_runner_lists_its_subcommands_on_a_bad_one():
 def test_select_point_rejects_a_point_whose_worst_training_vd_exploded():
     """The best selection tau wins, except at a point whose selection MVD is above twice the
     lane's lowest; when every point is that bad, none is rejected."""
-    paper = _load("paper")
+    from rl2s_jax.train.lanes import select_point
+
     pt = lambda step, tau, mvd: {"step": step, "select": {"kendall_tau": tau, "avd": 1.0,
                                                           "mvd": mvd}, "test": {"step": step}}
     points = [pt(100, 0.70, 50.0), pt(200, 0.90, 400.0), pt(300, 0.80, 90.0)]
-    assert paper.select_point(points)["step"] == 300
-    assert paper.select_point([pt(100, 0.7, 50.0), pt(200, 0.9, 60.0)])["step"] == 200
-    assert paper.select_point([pt(100, 0.7, np.nan), pt(200, 0.9, np.inf)])["step"] == 200
+    assert select_point(points)["step"] == 300
+    assert select_point([pt(100, 0.7, 50.0), pt(200, 0.9, 60.0)])["step"] == 200
+    assert select_point([pt(100, 0.7, np.nan), pt(200, 0.9, np.inf)])["step"] == 200
     # a diverged point (non-finite tau) with a tiny MVD sets no bound for the others
-    assert paper.select_point([pt(100, np.nan, 1.0), pt(200, 0.9, 10.0)])["step"] == 200
-    assert paper.select_point([{"step": 1, "select": None, "test": None}]) is None
+    assert select_point([pt(100, np.nan, 1.0), pt(200, 0.9, 10.0)])["step"] == 200
+    assert select_point([{"step": 1, "select": None, "test": None}]) is None

@@ -17,11 +17,12 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # Runs in a fresh process: the forced host device count must be set before JAX starts.
 SHARDED_VS_PLAIN = textwrap.dedent("""
     import sys
-    sys.path[:0] = [{root!r} + "/tests", {root!r} + "/experiments"]
+    sys.path[:0] = [{root!r} + "/tests"]
     import jax, jax.numpy as jnp, numpy as np
     assert jax.device_count() == 4, jax.devices()
     from test_train import _policies
-    from paper import _lane_returns, train_lanes
+    from rl2s_jax.evaluate.lanes import lane_returns
+    from rl2s_jax.train.lanes import train_lanes
     from rl2s_jax import train as T
     from rl2s_jax.data.collect import collect
     from rl2s_jax.sharding import lane_mesh, replicate, shard_lanes
@@ -77,8 +78,8 @@ SHARDED_VS_PLAIN = textwrap.dedent("""
     # the evaluation of the lanes, too
     pool, ekeys = start_pool(ds), jnp.stack([jax.random.PRNGKey(9 + s) for s in range(4)])
     roll = dict(n_episodes=4, horizon=20, gamma=0.99)
-    r1, _ = _lane_returns(T.simulator(plain), policies, pool, ekeys, **roll)
-    r2, _ = _lane_returns(T.simulator(sharded), policies, pool, ekeys, **roll)
+    r1, _ = lane_returns(T.simulator(plain), policies, pool, ekeys, **roll)
+    r2, _ = lane_returns(T.simulator(sharded), policies, pool, ekeys, **roll)
     np.testing.assert_allclose(np.asarray(r1), np.asarray(r2), rtol=1e-4, atol=1e-4)
     print("SHARDED == PLAIN")
 """)

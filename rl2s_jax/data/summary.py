@@ -1,4 +1,5 @@
-"""A Dataset in numbers a person reads: per-episode returns and the `rl2s inspect` summary."""
+"""A Dataset in numbers a person reads: per-episode returns, episode lengths and the `rl2s
+inspect` summary."""
 
 from __future__ import annotations
 
@@ -26,6 +27,20 @@ def episode_returns(ds: Dataset, gamma: float | None = None
     returns = np.add.reduceat(reward, starts)
     complete = np.asarray(ds.done)[last] | np.asarray(ds.truncated)[last]
     return returns, np.asarray(ds.policy_id)[starts].astype(np.int32), complete
+
+
+def episode_lengths(ds: Dataset) -> np.ndarray:
+    """[P] mean length of each policy's logged episodes (a terminated or truncated one counts
+    its steps; the last, cut-off episode of a policy is left out when others exist)."""
+    pid, ep = np.asarray(ds.policy_id), np.asarray(ds.episode_id)
+    ended = np.asarray(ds.done) | np.asarray(ds.truncated)
+    out = np.zeros(ds.n_policies)
+    for p in range(ds.n_policies):
+        mine = pid == p
+        ids, counts = np.unique(ep[mine], return_counts=True)
+        whole = np.isin(ids, ep[mine & ended])
+        out[p] = counts[whole].mean() if whole.any() else counts.mean()
+    return out
 
 
 def dataset_summary(ds: Dataset) -> str:

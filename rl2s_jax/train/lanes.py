@@ -2,16 +2,22 @@
 
 Every lane is a ``TrainState`` stacked on a leading axis; one jitted ``vmap(train_steps)``
 advances all of them. ``rl2s diagnose`` (its base and extended fits over seeds), the paper
-protocol and the ablations use these; ``train.loop.fit`` is the single-lane host loop."""
+protocol and the ablations use these; ``train.loop.fit`` is the single-lane host loop. The
+lanes' evaluation is ``evaluate.lanes``; ``select_point`` chooses a lane's evaluation point
+without the test policies, from the training policies' held-out episodes
+(``heldout_start_pool``)."""
 from __future__ import annotations
 
 from functools import partial
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
+from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.train.config import TrainConfig
-from rl2s_jax.train.data import TrainData
+from rl2s_jax.train.data import TrainData, heldout_mask
+from rl2s_jax.train.loop import WORST_VD_JUMP
 from rl2s_jax.train.step import TrainState, init, train_steps
 
 
@@ -48,3 +54,36 @@ def train_lanes(states: TrainState, data: TrainData, n: int, cfg: TrainConfig,
         m = mk if m is None else {**mk, "finite": jnp.logical_and(m["finite"], mk["finite"])}
         done += k
     return states, m
+
+
+def heldout_start_pool(train_ds) -> jax.Array:
+    """Start states [S, o] of the training policies' held-out episodes (the split
+    ``make_train_data`` makes with the default holdout_frac, whatever the variant's), the
+    whole data's start pool if none of them starts at t = 0."""
+    held = heldout_mask(train_ds, TrainConfig().holdout_frac)
+    starts = held & (np.asarray(train_ds.t) == 0)
+    if not starts.any():
+        return start_pool(train_ds)
+    return jnp.asarray(np.asarray(train_ds.obs)[starts], jnp.float32)
+
+
+def select_point(points: list[dict]) -> dict | None:
+    """Model selection without the test policies: of a lane's evaluation points
+    ({"step", "select": metrics of the TRAINING policies started from their held-out episodes,
+    "test": the test metrics}), the one with the highest selection tau (ties: the lower
+    selection AVD; non-finite last). A point whose selection MVD exploded (above
+    WORST_VD_JUMP times the lane's lowest) is rejected, unless every point would be (issue
+    41: a catastrophic RL2S seed ranked well while its worst training VD had blown up). None
+    when no point has both."""
+    ok = [p for p in points if p["select"] is not None and p["test"] is not None]
+    if not ok:
+        return None
+    mvd = np.asarray([p["select"].get("mvd", np.nan) for p in ok], np.float64)
+    tau = np.asarray([p["select"]["kendall_tau"] for p in ok], np.float64)
+    healthy = np.isfinite(mvd) & np.isfinite(tau)  # a diverged point sets no bound
+    if healthy.any():
+        bound = WORST_VD_JUMP * mvd[healthy].min()
+        ok = [p for p, m in zip(ok, mvd, strict=True) if np.isfinite(m) and m <= bound] or ok
+    finite = lambda x: x if np.isfinite(x) else -np.inf
+    return max(ok, key=lambda p: (finite(p["select"]["kendall_tau"]),
+                                  finite(-p["select"]["avd"])))

@@ -198,9 +198,13 @@ def main(argv=None) -> int:
     rows = []
     effects = ["clean"] + [e for e in args.effects if e != "clean"]
     for effect in effects:
-        if effect not in args.effects and os.path.isfile(
-                os.path.join(args.out, "clean", "train.npz")):
-            row = None  # the clean recording is the reference only
+        if effect not in args.effects:  # the clean recording is the reference only
+            path = os.path.join(args.out, "clean", "train.npz")
+            if not os.path.isfile(path):
+                os.makedirs(os.path.dirname(path), exist_ok=True)
+                save_dataset(path, record("clean", args.transitions_per_policy,
+                                          args.value_episodes, args.seed))
+            row = None
         else:
             row = run_effect(effect, args, clean)
         if effect == "clean":

@@ -13,7 +13,7 @@ episodes, against their true values; ties to the lower training AVD).
         [--rollouts random:1,mean:0,...]
     python experiments/ablation_model.py --summarize DIR [DIR ...]
 
-Every variant is one vmapped program over the seeds (``paper.train_lanes``: the MLE
+Every variant is one vmapped program over the seeds (``train.lanes.train_lanes``: the MLE
 pre-training and the adversarial phase are separate compiled pieces) and writes
 OUT/ablation_<task>_<variant>.json after every evaluation (a run cut off by a time limit keeps
 what it finished); ``--rollouts MODE:NOISE[:TERMINATION],...`` also evaluates each variant's
@@ -24,7 +24,10 @@ own settings, "bc:multistep_steps=5+multistep_weight=0.5" (its row is that whole
 last variant also writes OUT/ablation_<task>.json and .md, the table of
 every variant's JSON found in OUT. ``--summarize`` rebuilds that table from the JSONs of
 several directories (variants run in separate device calls). Data: the zoo's train / test split
-as experiments/paper.py collects it (``paper.load_or_collect``, reused from --data-dir).
+as experiments/paper.py collects it (``app.protocol.load_or_collect``, reused from
+--data-dir). The variants, the rollout settings and the table are ``rl2s_jax.app.ablation``;
+the diagnostics (--open-loop, --visited-error, the hazard and termination checks)
+``rl2s_jax.evaluate.errors``.
 """
 from __future__ import annotations
 
@@ -40,42 +43,44 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from paper import (  # noqa: E402
+from rl2s_jax.app.ablation import (
+    METRICS,
+    VARIANTS,
+    check_variants,
+    parse_rollouts,
+    parse_variant,
+    rollout_row,
+    split_validation,
+    write_summary,
+)
+from rl2s_jax.app.protocol import (
     TASK_SIZES,
     load_or_collect,
     log,
     positive_int,
     profile_sizes,
 )
-
-from rl2s_jax.app.train import (
-    make_config,
-    parse_overrides,  # noqa: E402
-)
+from rl2s_jax.app.train import make_config, parse_overrides
 from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.data.values import true_values
-from rl2s_jax.envs.tasks import _LOCO, get_task, task_names  # noqa: E402
+from rl2s_jax.envs.tasks import get_task, task_names
+from rl2s_jax.evaluate.errors import (
+    TERMINATION_RULES,
+    hazard_check,
+    open_loop_check,
+    terminal_states,
+    termination_causes,
+    visited_error_check,
+)
 from rl2s_jax.evaluate.lanes import lane_returns
-from rl2s_jax.evaluate.metrics import ranking_metrics  # noqa: E402
-from rl2s_jax.model.dynamics import MEMBER_MODES  # noqa: E402
-from rl2s_jax.model.simulator import advance_values, start_pool, start_values  # noqa: E402
-from rl2s_jax.model.termination import LEARNED, TERMINATIONS  # noqa: E402
-from rl2s_jax.train.config import LEGACY_MODEL, TrainConfig
+from rl2s_jax.evaluate.metrics import ranking_metrics
+from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.model.termination import LEARNED
 from rl2s_jax.train.data import make_train_data
-from rl2s_jax.train.lanes import heldout_start_pool, select_point, train_lanes
-from rl2s_jax.train.step import init, simulator
-from rl2s_jax.zoo.zoo import policies_for  # noqa: E402
+from rl2s_jax.train.lanes import heldout_start_pool, init_lanes, train_lanes
+from rl2s_jax.train.step import simulator
+from rl2s_jax.zoo.zoo import policies_for
 
-# variant -> (config method, config overrides); "rl2s" keeps the EMA and is evaluated twice.
-VARIANTS = {
-    "legacy": ("rl2s", dict(LEGACY_MODEL)),
-    "legacy-bc": ("bc", dict(LEGACY_MODEL)),
-    "bc": ("bc", {}),
-    "rl2s": ("rl2s", {}),
-}
-ROWS = ("legacy", "legacy-bc", "bc", "rl2s", "rl2s+ema")
-METRICS = ("kendall_tau", "ndcg@1", "avd", "mvd", "spearman")
 SIZES = {"gpu": dict(seeds=3, steps=1200, eval_every=200, eval_episodes=16),
          "cpu": dict(seeds=2, steps=40, eval_every=20, eval_episodes=4)}
 
@@ -87,31 +92,6 @@ def _metrics(truth, values) -> dict | None:
     except ValueError:  # non-finite simulated values: the lane diverged
         return None
     return {k: float(r[k]) for k in METRICS}
-
-
-def parse_rollouts(text: str | None) -> list[tuple]:
-    """--rollouts 'random:1,mean:0,random:0:both' -> [("random", 1.0), ("mean", 0.0),
-    ("random", 0.0, "both")]: member mode, noise scale and optionally the termination."""
-    out = []
-    for item in (x.strip() for x in (text or "").split(",") if x.strip()):
-        mode, _, rest = item.partition(":")
-        noise, _, term = rest.partition(":")
-        try:
-            scale = float(noise)
-        except ValueError:
-            scale = -1.0
-        if (mode not in MEMBER_MODES or not (np.isfinite(scale) and scale >= 0)
-                or (term and term not in TERMINATIONS)):
-            raise SystemExit(f"rollouts: expected MODE:NOISE[:TERMINATION] items with MODE in "
-                             f"{', '.join(MEMBER_MODES)}, NOISE >= 0 and TERMINATION in "
-                             f"{', '.join(TERMINATIONS)}, got {item!r}")
-        out.append((mode, scale, term) if term else (mode, scale))
-    return out
-
-
-def rollout_row(variant: str, rollout: tuple) -> str:
-    return f"{variant}@{rollout[0]}:{rollout[1]:g}" + (f":{rollout[2]}" if len(rollout) > 2
-                                                         else "")
 
 
 def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
@@ -138,362 +118,6 @@ def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
                 out[i]["test_values"] = [round(float(x), 2) for x in v]
                 out[i]["test_lengths"] = [round(float(x), 1) for x in lengths[i]]
     return out
-
-
-# What ends an episode, per task: (name, test on the terminal observation [..., o]); the
-# conditions of tasks.<task>_done, split up (docs/EVALUATION.md).
-TERMINATION_RULES = {
-    "hopper": (("z <= 0.7", lambda o: o[..., 1] <= 0.7),
-               ("|angle| >= 0.2", lambda o: jnp.abs(o[..., 2]) >= 0.2),
-               ("|q[2:], qd| >= 100", lambda o: jnp.any(jnp.abs(o[..., 2:]) >= 100.0, -1))),
-    "walker2d": (("z <= 0.8", lambda o: o[..., 1] <= 0.8),
-                 ("z >= 2", lambda o: o[..., 1] >= 2.0),
-                 ("|angle| >= 1", lambda o: jnp.abs(o[..., 2]) >= 1.0)),
-    "ant": (("z < 0.2", lambda o: _ant_z(o) < 0.2),
-            ("z > 1", lambda o: _ant_z(o) > 1.0)),
-}  # an ended episode that breaks none was ended by a learned hazard (termination "hazard")
-
-
-def _ant_z(o):
-    """The torso height ``tasks.ant_done`` tests (one physics substep behind)."""
-    spec = _LOCO["ant"]
-    return o[..., 2] - spec.substep * o[..., spec.vx_idx + 2]
-
-
-def terminal_states(sims, policies, pool, keys, *, task, n_episodes, horizon):
-    """Each lane's simulated episodes, run as ``evaluate.lanes.lane_returns`` runs them
-    (``simulate.start_values`` + ``advance_values``, whose frozen state of an ended episode is
-    the one it terminated in). -> (terminal obs [L, P, n, o] (the last state where none),
-    ended [L, P, n])"""
-    n_pol = jax.tree_util.tree_leaves(policies)[0].shape[0]
-
-    def one(sim, key):
-        k_start, k_run = jax.random.split(key)
-        done_fn, hazard_fn = sim.terminations(task.done_fn)
-        roll = advance_values(start_values(pool, n_pol, n_episodes, k_start), policies,
-                              sim.dynamics, task.reward_fn, done_fn, k_run,
-                              n_steps=horizon, horizon=horizon, gamma=1.0, hazard_fn=hazard_fn)
-        return roll.obs, ~roll.alive
-
-    return jax.jit(jax.vmap(one))(sims, keys)
-
-
-def hazard_check(states, ds) -> dict:
-    """How the learned per-step hazard of each lane predicts the logged terminations of a
-    Dataset's rows: the summed h(s, a) against the count of done rows, and its mean
-    cross-entropy against the base rate's. A diagnosis of the test policies' data (never used
-    to select)."""
-    from rl2s_jax.model.termination import hazard_prob
-
-    obs, act = jnp.asarray(ds.obs), jnp.asarray(ds.action)
-    done = np.asarray(ds.done, np.float64)
-    window = states.config.hazard_window
-    h = np.asarray(jax.jit(jax.vmap(lambda p, n: hazard_prob(p, n, obs, act, window)))(
-        states.hazard, states.norm), np.float64)
-
-    def xent(p):
-        p = np.clip(p, 1e-7, 1 - 1e-7)
-        return float(-np.mean(done * np.log(p) + (1 - done) * np.log1p(-p)))
-
-    return {"rows": int(done.size), "done": int(done.sum()),
-            "predicted": [round(float(x), 1) for x in h.sum(-1)],
-            "bce": [round(xent(x), 5) for x in h],
-            "base_rate_bce": round(xent(np.full(done.shape, done.mean())), 5)}
-
-
-def open_loop_check(states, ds, task, *, ks=(1, 10, 50), n_windows: int = 256) -> dict:
-    """Each lane's simulator rolled from the test policies' logged states under their LOGGED
-    actions for k steps (``simulate.open_loop_returns``), against what the logged episodes
-    earned in the same windows: per k, the Kendall tau of the policies' mean k-step returns,
-    the spread ratio (std over policies, model / real: below 1 the model compresses the
-    policies), the mean relative error, the fraction of windows that end, and the per-policy
-    means at the largest k. A diagnosis of the test data (never used to select): if the
-    model ranks the policies' windows well here but not in closed loop, the error is in how
-    the policies react to the model's states, not in the dynamics under their actions."""
-    from rl2s_jax.model.simulator import open_loop_returns
-
-    k_max = max(ks)
-    rows, steps, real_r, real_end, obs, act, n_steps = open_loop_inputs(ds, task, k_max,
-                                                                        n_windows, seed=7)
-    sims = simulator(states, average=False)
-
-    def one(sim, key):
-        done_fn, hazard_fn = sim.terminations(task.done_fn)
-        r, _, ended = open_loop_returns(sim.dynamics, task.reward_fn, done_fn, obs, act,
-                                        n_steps, key, hazard_fn=hazard_fn)
-        return r, ended
-
-    n_lanes = int(states.step.shape[0])
-    keys = jnp.stack([jax.random.PRNGKey(4000 + i) for i in range(n_lanes)])
-    sim_r, sim_end = (np.asarray(x) for x in jax.jit(jax.vmap(one))(sims, keys))
-    sim_r = sim_r.reshape(n_lanes, *rows.shape, k_max).astype(np.float64)
-    sim_end = sim_end.reshape(n_lanes, *rows.shape, k_max)
-    return {"windows_per_policy": n_windows,
-            **open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks)}
-
-
-def open_loop_inputs(ds, task, k_max: int, n_windows: int, seed: int):
-    """The logged windows of every policy (``simulate.open_loop_windows``), what the logged
-    episodes earned in them (``logged_window_returns``), and the flat inputs of
-    ``open_loop_returns``. -> (rows, steps [P, n], real reward [P, n, k_max], real end [P, n],
-    start obs [P * n, o], actions [P * n, k_max, a], steps [P * n])"""
-    from rl2s_jax.model.simulator import logged_window_returns, open_loop_windows
-
-    rows, steps = open_loop_windows(ds, k_max, n_windows, seed=seed)
-    real_r, real_end = logged_window_returns(ds, rows, steps, k_max, task.reward_fn)
-    idx = rows[..., None] + np.minimum(np.arange(k_max), steps[..., None] - 1)
-    obs = jnp.asarray(np.asarray(ds.obs)[rows.ravel()])
-    act = jnp.asarray(np.asarray(ds.action)[idx.reshape(-1, k_max)])
-    return rows, steps, real_r, real_end, obs, act, jnp.asarray(steps.ravel())
-
-
-def open_loop_summary(real_r, real_end, steps, sim_r, sim_end, ks) -> dict:
-    """Per k of ``ks``: the simulators' mean k-step returns per policy against the logged ones.
-    real_r [P, n, K] logged rewards, real_end [P, n], steps [P, n] (``logged_window_returns``,
-    ``open_loop_windows``); sim_r [L, P, n, K], sim_end [L, P, n, K] of L simulators. -> {k:
-    {tau, spread_ratio (std over policies, model / real), relative_error, real_end, model_end:
-    lists over L; at the largest k also real_per_policy, model_per_policy}}"""
-    from rl2s_jax.evaluate.metrics import kendall_tau
-
-    out = {}
-    for k in ks:
-        real = real_r[..., :k].sum(-1).mean(-1)  # [P]
-        model = sim_r[..., :k].sum(-1).mean(-1)  # [L, P]
-        out[str(k)] = {
-            "tau": [round(kendall_tau(real, m), 3) for m in model],
-            "spread_ratio": [round(float(np.std(m) / np.std(real)), 3) for m in model],
-            "relative_error": [round(float(np.mean(np.abs(m - real)) / np.mean(np.abs(real))),
-                                     3) for m in model],
-            "real_end": round(float((real_end & (steps <= k)).mean()), 4),
-            "model_end": [round(float(e[..., :k].any(-1).mean()), 4) for e in sim_end]}
-        if k == max(ks):
-            out[str(k)]["real_per_policy"] = [round(float(x), 2) for x in real]
-            out[str(k)]["model_per_policy"] = [[round(float(x), 2) for x in m] for m in model]
-    return out
-
-
-def visited_error_check(states, test_ds, test, task, *, n_episodes: int, horizon: int,
-                        rows_per_policy: int = 2048, train_ds=None) -> dict:
-    """Each lane's one-step error against the real dynamics (``oracle.oracle_dynamics``) on the
-    states its own closed-loop episodes of the test policies visit
-    (``simulate.visited_step_errors``), on logged states of the same policies (a random
-    ``rows_per_policy`` of each) and, with ``train_ds``, on logged states of the training
-    policies (the model's own data: an error as large there is underfitting, not a shift), in
-    units of the data's one-step change std per dim, with the reward difference per step. A
-    diagnosis of the test policies (never used to select): an error that grows from the logged
-    states to the visited ones is the model taking the policies where it was not fitted; a
-    reward bias per step times the episode length is the value error it makes.
-    -> {"visited" | "logged" [| "train_logged"]: {"rmse" | "reward_bias" | "reward_abs": [L][P],
-    "rmse_per_dim": [L][o] (mean over the policies' squared errors)}, "visited_steps": [L][P]}"""
-    from rl2s_jax.evaluate.oracle import oracle_dynamics
-    from rl2s_jax.model.simulator import mean_square, step_errors, visited_step_errors
-
-    reference = oracle_dynamics(task)
-    policies, pool = test[0], test[1]
-    rng = np.random.default_rng(11)
-
-    def rows_of(ds):  # [P, R] obs and actions
-        pid = np.asarray(ds.policy_id)
-        idx = np.stack([rng.choice(np.flatnonzero(pid == p), rows_per_policy)
-                        for p in range(ds.n_policies)])
-        return jnp.asarray(np.asarray(ds.obs)[idx]), jnp.asarray(np.asarray(ds.action)[idx])
-
-    logged_sets = {"logged": rows_of(test_ds)}
-    if train_ds is not None:
-        logged_sets["train_logged"] = rows_of(train_ds)
-
-    def on_rows(sim, obs, act, key):
-        k_model, k_ref = jax.random.split(key)
-        nxt, ref = sim.dynamics(obs, act, k_model), reference(obs, act, k_ref)
-        z, dr = step_errors(nxt, ref, obs, act, task.reward_fn, sim.norm.delta_std)  # [P, R]
-        return {"rmse": jnp.sqrt(mean_square(z, sim.norm.delta_std).mean(-1)),
-                "reward_bias": dr.mean(-1), "reward_abs": jnp.abs(dr).mean(-1),
-                "rmse_per_dim": jnp.sqrt((z ** 2).mean((0, 1)))}
-
-    def visited_of(sim, key):
-        done_fn, hazard_fn = sim.terminations(task.done_fn)
-        visited = visited_step_errors(policies, sim.dynamics, reference, task.reward_fn,
-                                      done_fn, pool, key, n_episodes=n_episodes,
-                                      horizon=horizon, scale=sim.norm.delta_std,
-                                      hazard_fn=hazard_fn)
-        steps = visited["steps"]
-        per_dim = jnp.sqrt(jnp.sum(visited["rmse_per_dim"] ** 2 * steps[:, None], 0)
-                           / jnp.maximum(steps.sum(), 1.0))  # over every visited step
-        return {**visited, "rmse_per_dim": per_dim}
-
-    # one compiled program per piece: XLA's CPU runtime hung (every thread in a futex wait)
-    # running the visited rollout and both logged sets as one program
-    sims = simulator(states, average=False)
-    n_lanes = int(states.step.shape[0])
-    keys = jnp.stack([jax.random.PRNGKey(5000 + i) for i in range(n_lanes)])
-    res = {"visited": jax.block_until_ready(jax.jit(jax.vmap(visited_of))(sims, keys))}
-    for i, (name, (obs, act)) in enumerate(logged_sets.items()):
-        lane_keys = jax.vmap(lambda k, i=i: jax.random.fold_in(k, i + 1))(keys)
-        res[name] = jax.block_until_ready(jax.jit(jax.vmap(
-            lambda sim, k, o=obs, a=act: on_rows(sim, o, a, k)))(sims, lane_keys))
-    rnd = lambda x: np.round(np.asarray(x, np.float64), 4).tolist()
-    keep = ("rmse", "reward_bias", "reward_abs", "rmse_per_dim")
-    return {**{side: {k: rnd(v[k]) for k in keep} for side, v in res.items()},
-            "visited_steps": rnd(res["visited"]["steps"]), "rows_per_policy": rows_per_policy,
-            "episodes_per_policy": n_episodes}
-
-
-def termination_causes(task_name: str, terminal, ended) -> dict | None:
-    """{rule: share of the ended episodes whose terminal state breaks it (rules can overlap)},
-    plus "ended": share of episodes that ended; None for a task without rules."""
-    rules = TERMINATION_RULES.get(task_name)
-    if rules is None:
-        return None
-    ended = np.asarray(ended, bool)
-    n = max(int(ended.sum()), 1)
-    out = {name: float(np.asarray(rule(jnp.asarray(terminal)))[ended].sum() / n)
-           for name, rule in rules}
-    return {"ended": float(ended.mean()), **out}
-
-
-_select = select_point  # the rule lives in train/lanes.py; tests call it by this name
-
-
-def tau_swing(points: list[dict], from_step: int = 0) -> float | None:
-    """Mean |change of test Kendall tau| between consecutive evaluations of one lane, over the
-    evaluations at steps >= from_step (the adversarial phase of a pre-trained run); None with
-    fewer than two finite points. How much a lane's ranking moves from one checkpoint to the
-    next: what a moving average of the weights should damp."""
-    taus = [p["test"]["kendall_tau"] for p in points
-            if p["step"] >= from_step and p["test"] is not None]
-    taus = np.asarray(taus, np.float64)
-    taus = taus[np.isfinite(taus)]
-    return float(np.mean(np.abs(np.diff(taus)))) if taus.size > 1 else None
-
-
-def summarize_rows(results: list[dict]) -> dict:
-    """{row: {"final" | "selected": {metric: (mean, std, n)}, "selected_steps": [...],
-    "tau_swing": (mean, std, n)}} over the seeds of every variant result; the swing is taken
-    from the first evaluation at or after the pre-training steps (config.pretrain_steps of an
-    adversarial variant, else from the start)."""
-    table = {}
-    for res in results:
-        cfg = res.get("config") or {}
-        adversarial = cfg.get("method") in ("rl2s", "gail")
-        from_step = int(cfg.get("pretrain_steps") or 0) if adversarial else 0
-        for row, lanes in res["curves"].items():
-            finals, chosen, steps, swings, valids = [], [], [], [], []
-            for points in lanes.values():
-                sw = tau_swing(points, from_step)
-                if sw is not None:
-                    swings.append(sw)
-                if points and points[-1]["test"] is not None:
-                    finals.append(points[-1]["test"])
-                if points and points[-1].get("validation") is not None:
-                    valids.append(points[-1]["validation"])
-                sel = _select(points)
-                if sel is not None:
-                    chosen.append(sel["test"])
-                    steps.append(sel["step"])
-            entry = {}
-            for what, rs in (("final", finals), ("selected", chosen), ("validation", valids)):
-                entry[what] = {}
-                for k in METRICS:
-                    v = np.asarray([r[k] for r in rs], np.float64)
-                    entry[what][k] = (float(v.mean()) if v.size else None,
-                                      float(v.std(ddof=1)) if v.size > 1 else None, int(v.size))
-            entry["selected_steps"] = steps
-            v = np.asarray(swings, np.float64)
-            entry["tau_swing"] = (float(v.mean()) if v.size else None,
-                                  float(v.std(ddof=1)) if v.size > 1 else None, int(v.size))
-            entry["seeds"] = len(lanes)
-            table[row] = entry
-    return table
-
-
-def markdown(table: dict, task: str) -> str:
-    cols = ("kendall_tau", "ndcg@1", "avd", "mvd")
-    vcols = ("kendall_tau", "avd") if any(e.get("validation", {}).get("avd", (None,))[0]
-                                          is not None for e in table.values()) else ()
-    head = (f"| {task} | " + " | ".join(f"{c} final" for c in cols) + " | "
-            + " | ".join(f"{c} selected" for c in cols) + " | tau swing | selected steps |"
-            + "".join(f" validation {c} |" for c in vcols))
-    lines = [head, "|" + "---|" * (2 * len(cols) + 3 + len(vcols))]
-    fmt = lambda c: "n/a" if c[0] is None else (f"{c[0]:.3g}" + ("" if c[1] is None
-                                                                  else f" ± {c[1]:.2g}"))
-    for row in [r for r in ROWS if r in table] + sorted(set(table) - set(ROWS)):
-        e = table[row]
-        cells = ([fmt(e["final"][c]) for c in cols] + [fmt(e["selected"][c]) for c in cols]
-                 + [fmt(e.get("tau_swing", (None, None, 0)))])
-        lines.append(f"| {row} | " + " | ".join(cells) + f" | {e['selected_steps']} |"
-                     + "".join(f" {fmt(e['validation'][c])} |" for c in vcols))
-    return "\n".join(lines)
-
-
-def write_summary(out: str, task: str, paths: list[str]) -> str:
-    results = []
-    for p in paths:
-        with open(p) as f:
-            results.append(json.load(f))
-    table = summarize_rows(results)
-    md = markdown(table, task)
-    with open(os.path.join(out, f"ablation_{task}.json"), "w") as f:
-        json.dump({"task": task, "rows": table, "sources": paths,
-                   "runs": [{k: r[k] for k in ("variant", "hardware", "jax_version", "command",
-                                               "timings", "complete")} for r in results]},
-                  f, indent=1)
-    with open(os.path.join(out, f"ablation_{task}.md"), "w") as f:
-        f.write(md + "\n")
-    return md
-
-
-def split_validation(train_ds, n: int):
-    """Leave-policies-out validation inside the training zoo: ``n`` training policies spread
-    over its value ranking (the middle of n equal slices) are held out whole, the model is
-    fitted on the rest, and the held-out ones are ranked like test policies. A choice made on
-    them (e.g. the termination) never sees the test policies, and unlike the training
-    policies' held-out episodes it measures generalisation to policies the model has not seen.
-    -> (fit Dataset, validation Dataset)"""
-    p = train_ds.n_policies
-    if not 2 <= n <= p - 2:
-        raise SystemExit(f"validation-policies: expected 2 ... {p - 2} (the training split "
-                         f"has {p} policies), got {n}")
-    order = np.argsort(np.asarray(train_ds.value_discounted, np.float64))
-    held = sorted(int(order[int((i + 0.5) * p / n)]) for i in range(n))
-    rest = [i for i in range(p) if i not in held]
-    zoo_ids = list(train_ds.meta["source"]["zoo_ids"])
-    out = []
-    for ids in (rest, held):
-        part = train_ds.select_policies(ids)
-        part.meta["source"] = {**part.meta["source"], "zoo_ids": [int(zoo_ids[i]) for i in ids]}
-        out.append(part)
-    return tuple(out)
-
-
-def parse_variant(spec: str) -> tuple[str, dict]:
-    """'bc' or 'bc:multistep_steps=5+multistep_weight=0.5' -> (base variant, its own config
-    overrides); the row is named by the whole spec."""
-    base, _, extra = spec.partition(":")
-    if base not in VARIANTS:
-        raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)} (optionally "
-                         f"':key=value+key=value'), got {spec!r}")
-    try:
-        own = parse_overrides([kv for kv in extra.split("+") if kv]) if extra else {}
-    except (ValueError, SystemExit) as e:
-        raise SystemExit(f"variants: {spec!r}: {e}") from None
-    return base, own
-
-
-def check_variants(task: str, text: str, parse=parse_variant) -> list[str]:
-    """The comma-separated variant specs of ``text``, each parsed by ``parse`` and its config
-    validated for ``task``: bad input stops here (SystemExit naming the spec), before any
-    work."""
-    variants = [v for v in text.split(",") if v]
-    if not variants:
-        raise SystemExit(f"variants: expected names from {', '.join(VARIANTS)}")
-    for v in variants:
-        base, own = parse(v)
-        try:
-            TrainConfig.from_dict({"task": task, "method": VARIANTS[base][0],
-                                   **VARIANTS[base][1], **own}).validate()
-        except (ValueError, TypeError) as e:
-            raise SystemExit(f"variants: {v!r}: {e}") from None
-    return variants
 
 
 def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds,
@@ -533,8 +157,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
            "test_true_lengths": [round(float(x), 1) for x in episode_lengths(test_ds)]}
     t0 = time.perf_counter()
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
-    states = jax.block_until_ready(jax.jit(jax.vmap(lambda k, d: init(k, cfg, d),
-                                                    in_axes=(0, None)))(keys, data))
+    states = jax.block_until_ready(init_lanes(keys, cfg, data))
     res["timings"]["init"] = round(time.perf_counter() - t0, 1)
     log(f"[ablation] {variant}: method {method}, {len(seeds)} seeds, E={cfg.ensemble_size}, "
         f"pretrain {cfg.pretrain_steps if cfg.adversarial else '-'}, ema {cfg.ema_decay}; "
@@ -571,11 +194,12 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
         res["timings"].update(train=round(t_train, 1), eval=round(t_eval, 1))
         log(f"[ablation] {variant} step {step}: train {t_train:.1f}s, eval {t_eval:.1f}s")
         _write(path, res)
+    sims = simulator(states, average=False)  # the trained weights, for the diagnostics
     if cfg.termination in LEARNED:  # the hazard's calibration on the test policies' rows
-        res["hazard_check"] = hazard_check(states, test_ds)
+        res["hazard_check"] = hazard_check(sims, test_ds)
         log(f"[ablation] {variant}: hazard on the test rows {res['hazard_check']}")
     if args.open_loop:
-        res["open_loop"] = open_loop_check(states, test_ds, get_task(args.task),
+        res["open_loop"] = open_loop_check(sims, test_ds, get_task(args.task),
                                            ks=args.open_loop, n_windows=256)
         log(f"[ablation] {variant}: open loop on the test policies' logged actions "
             + "; ".join(f"k={k}: tau {v['tau']} spread {v['spread_ratio']} end "
@@ -583,7 +207,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
                         for k, v in res["open_loop"].items() if k != "windows_per_policy"))
     if args.visited_error:
         res["visited_error"] = v = visited_error_check(
-            states, test_ds, test, get_task(args.task), n_episodes=args.visited_error,
+            sims, test_ds, test, get_task(args.task), n_episodes=args.visited_error,
             horizon=cfg.vd_horizon, train_ds=train_ds)
         mean = lambda d, k: [round(float(np.mean(x)), 4) for x in d[k]]
         log(f"[ablation] {variant}: one-step error against the real dynamics (per seed, mean "
@@ -594,8 +218,8 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     if args.task in TERMINATION_RULES:  # why the simulated episodes end, vs the logged ones
         task = get_task(args.task)
         keys = jnp.stack([jax.random.PRNGKey(3000 + s) for s in seeds])
-        terminal, ended = terminal_states(simulator(states, average=False), test[0], test[1],
-                                          keys, task=task, n_episodes=sizes["eval_episodes"],
+        terminal, ended = terminal_states(sims, test[0], test[1], keys, task=task,
+                                          n_episodes=sizes["eval_episodes"],
                                           horizon=cfg.vd_horizon)
         done_rows = np.asarray(test_ds.done, bool)
         res["termination"] = {

@@ -1,6 +1,6 @@
 """How much an unbiased step error alone moves a task's closed-loop values and ranking: the
 REAL dynamics (``oracle.oracle_dynamics``) with sigma x N(0, 1) x the data's one-step change std
-added to every next state (``open_loop_control.noisy``), the test policies acting on the states
+added to every next state (``evaluate.errors.noisy``), the test policies acting on the states
 they see, through the evaluation path of every simulator (``simulate.simulated_returns``:
 start states from the data, 1000 steps, gamma, the task's reward and termination).
 
@@ -28,13 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from open_loop_control import noisy, one_step_std, parse_noise, test_split  # noqa: E402
-
-from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
-from rl2s_jax.evaluate.metrics import kendall_tau  # noqa: E402
-from rl2s_jax.evaluate.oracle import oracle_dynamics  # noqa: E402
-from rl2s_jax.model.simulator import simulated_returns, start_pool  # noqa: E402
+from rl2s_jax.app.ablation import load_test_split, parse_noise
+from rl2s_jax.envs.tasks import get_task, task_names
+from rl2s_jax.evaluate.errors import noisy, one_step_std
+from rl2s_jax.evaluate.metrics import kendall_tau
+from rl2s_jax.evaluate.oracle import oracle_dynamics
+from rl2s_jax.model.simulator import simulated_returns, start_pool
 
 
 def run(ds, task, policies, *, scales, n_episodes: int, horizon: int, gamma: float,
@@ -118,7 +117,7 @@ def main(argv=None) -> int:
     zoo = load_zoo(args.task)
     policies = index_params(zoo.params, zoo.test_ids)
     t0 = time.perf_counter()
-    ds = test_split(args.task, args.data, args.transitions_per_policy)
+    ds = load_test_split(args.task, args.data, args.transitions_per_policy)
     if ds.n_policies != len(zoo.test_ids):
         raise SystemExit(f"data: expected the {len(zoo.test_ids)} test policies of the "
                          f"{args.task} zoo, got {ds.n_policies}")

@@ -7,7 +7,7 @@ control (experiments/improve_control.py), each optional.
 
 Several --paper files are runs of one protocol split over calls or GPUs on the same data:
 other families (paper.py --families adversarial / mle) or other seeds (--first-seed K, e.g.
-seeds 3-4 beside a run of seeds 0-2). paper.merge_runs joins them (a method's seeds in seed
+seeds 3-4 beside a run of seeds 0-2). merge_runs joins them (a method's seeds in seed
 order) and refuses runs of different sizes, zoo, data or training settings, a method's seed
 in two runs, and methods left with different seeds.
 
@@ -27,6 +27,11 @@ import json
 import os
 import sys
 
+import numpy as np
+
+from rl2s_jax.app.protocol import summarise
+from rl2s_jax.evaluate.lanes import intervals_over_seeds
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -36,6 +41,123 @@ def zoo_sha256(task: str) -> str:
 
 
 ORACLE_SIZES = ("test_policies", "eval_episodes", "value_episodes", "episode_length")
+
+
+# entries keyed by method, lane or family: a part adds its own keys (the first part's oracle
+# stays when both ran one)
+MERGED_BY_METHOD = ("per_seed", "selected", "lane_intervals", "intervals", "lanes",
+                    "train_config", "improvement")
+SAME_IN_PARTS = ("task", "model", "profile", "zoo_sha256", "true_value")
+
+
+def seed_ids_of(result: dict) -> list[int]:
+    """The seeds a paper.py result ran (``seed_ids``; results older than --first-seed ran
+    0 .. seeds - 1)."""
+    return [int(s) for s in result.get("seed_ids") or range(int(result["seeds"]))]
+
+
+def _join_seeds(merged: dict, part: dict, methods: set, has: dict, ids: list[int]) -> None:
+    """Append ``part``'s seeds of ``methods`` (run by ``merged`` on other seeds) to merged's
+    per-seed lists, in place; ``has`` maps each method to the seeds merged holds."""
+    twice = {m: sorted(set(has[m]) & set(ids)) for m in sorted(methods)}
+    twice = {m: v for m, v in twice.items() if v}
+    if twice:
+        raise ValueError(f"per_seed: method(s) and seed(s) {twice} in more than one run")
+    for m in sorted(methods):
+        if merged["per_seed"][m].get("mpi") and part["per_seed"][m].get("mpi"):
+            raise ValueError(f"improvement: method {m!r} was fine-tuned in two seed-split "
+                             f"runs; fine-tune in one of them only")
+        for k, vals in part["per_seed"][m].items():
+            merged["per_seed"][m].setdefault(k, []).extend(vals)
+        for k, vals in part.get("selected", {}).get(m, {}).items():
+            merged.setdefault("selected", {}).setdefault(m, {}).setdefault(k, []).extend(vals)
+        merged.setdefault("lane_intervals", {}).setdefault(m, []).extend(
+            part.get("lane_intervals", {}).get(m, []))
+        has[m] = has[m] + ids
+    for family, cfg in part.get("train_config", {}).items():
+        if merged.get("train_config", {}).get(family, cfg) != cfg:
+            raise ValueError(f"train_config.{family}: the runs trained with different "
+                             f"settings")
+
+
+def _order_by_seed(merged: dict, has: dict) -> None:
+    """Sort each method's per-seed lists by seed (in place)."""
+    for m, ids in has.items():
+        order = np.argsort(ids, kind="stable")
+        take = lambda v, order=order: [v[i] for i in order] if len(v) == len(order) else v
+        merged["per_seed"][m] = {k: take(v) for k, v in merged["per_seed"][m].items()}
+        if m in merged.get("selected", {}):
+            merged["selected"][m] = {k: take(v) for k, v in merged["selected"][m].items()}
+        if m in merged.get("lane_intervals", {}):
+            merged["lane_intervals"][m] = take(merged["lane_intervals"][m])
+            merged.setdefault("intervals", {})[m] = intervals_over_seeds(
+                merged["lane_intervals"][m])
+
+
+def merge_runs(parts: list[dict]) -> dict:
+    """One result from runs of the same protocol split over calls: runs that trained
+    different families (``--families``) and runs of other seeds (``--first-seed``) on the
+    same data. The per-method entries joined (a method's seeds in seed order, its intervals
+    over seeds recomputed), curves concatenated, timings summed, complete when every part is.
+    Raises ValueError naming the field where the runs differ (task, sizes of the data, zoo,
+    training settings, ...), when two of them ran the same method and seed, or when the
+    methods do not end up with the same seeds."""
+    if not parts:
+        raise ValueError("parts: expected at least one result")
+    merged = json.loads(json.dumps(parts[0]))
+    has = {m: seed_ids_of(merged) for m in merged["per_seed"] if m != "oracle"}
+    for part in parts[1:]:
+        for k in SAME_IN_PARTS:
+            if part.get(k) != merged.get(k):
+                raise ValueError(f"{k}: the runs differ ({merged.get(k)!r} vs {part.get(k)!r})")
+        for k in ("train_policies", "test_policies", "transitions_per_policy", "steps",
+                  "eval_every", "eval_episodes", "episode_length"):
+            if part["sizes"].get(k) != merged["sizes"].get(k):
+                raise ValueError(f"sizes.{k}: the runs differ ({merged['sizes'].get(k)!r} vs "
+                                 f"{part['sizes'].get(k)!r})")
+        part = json.loads(json.dumps(part))
+        ids = seed_ids_of(part)
+        methods = set(part["per_seed"]) - {"oracle"}
+        _join_seeds(merged, part, methods & set(has), has, ids)
+        for m in methods - set(has):
+            has[m] = ids
+        for k in MERGED_BY_METHOD:
+            into = merged.setdefault(k, {})
+            into.update({m: v for m, v in part.get(k, {}).items() if m not in into})
+        for variant, entry in part.get("ablation", {}).items():  # {variant: {settings,
+            into = merged.setdefault("ablation", {}).setdefault(variant, {})  # lanes, methods}}
+            if "settings" in into and into["settings"] != entry.get("settings"):
+                raise ValueError(f"ablation.{variant}.settings: the runs differ "
+                                 f"({into['settings']!r} vs {entry.get('settings')!r})")
+            for k, v in entry.items():
+                if isinstance(v, dict) and k != "settings":
+                    into.setdefault(k, {}).update({m: x for m, x in v.items()
+                                                   if m not in into[k]})
+                else:
+                    into.setdefault(k, v)
+        if part.get("sac_config") and merged.get("sac_config") not in (None,
+                                                                         part["sac_config"]):
+            raise ValueError("sac_config: the runs fine-tuned with different SAC settings")
+        merged.setdefault("sac_config", part.get("sac_config"))
+        merged["curves"] = merged.get("curves", []) + part.get("curves", [])
+        merged["families"] = merged.get("families", []) + [
+            f for f in part.get("families", []) if f not in merged.get("families", [])]
+        t = merged["timings"]
+        for k, v in part.get("timings", {}).items():
+            t[k] = round(t.get(k, 0.0) + v, 1)
+        merged["complete"] = bool(merged.get("complete")) and bool(part.get("complete"))
+        merged["command"] = f"{merged['command']} && {part['command']}"
+    seed_sets = {m: sorted(ids) for m, ids in has.items()}
+    if len({tuple(v) for v in seed_sets.values()}) > 1:
+        raise ValueError(f"seeds: the methods ran different seeds {seed_sets}")
+    _order_by_seed(merged, has)
+    ids = next(iter(seed_sets.values()), seed_ids_of(merged))
+    merged["seeds"], merged["seed_ids"] = len(ids), ids
+    merged.setdefault("sizes", {})["seeds"] = len(ids)
+    merged["methods"], merged["std"], merged["n"] = {}, {}, {}
+    merged.pop("methods_selected", None)
+    summarise(merged)
+    return merged
 
 
 def attach_paper_oracle(result: dict, path: str, sha: str) -> None:
@@ -92,8 +214,6 @@ def main(argv=None) -> int:
         if len(parts) == 1:
             result = parts[0]
         else:
-            sys.path.insert(0, os.path.join(ROOT, "experiments"))
-            from paper import merge_runs
             try:
                 result = merge_runs(parts)
             except ValueError as err:

@@ -32,16 +32,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from ablation_model import VARIANTS, check_variants, parse_variant  # noqa: E402
-from paper import load_or_collect, log, profile_sizes, train_lanes  # noqa: E402
-
+from rl2s_jax.app.ablation import VARIANTS, check_variants, parse_variant
+from rl2s_jax.app.protocol import load_or_collect, log, profile_sizes
 from rl2s_jax.app.train import make_config
-from rl2s_jax.envs.tasks import task_names  # noqa: E402
-from rl2s_jax.model import dynamics as dyn  # noqa: E402
-from rl2s_jax.train.data import make_train_data  # noqa: E402
+from rl2s_jax.envs.tasks import task_names
+from rl2s_jax.model import dynamics as dyn
+from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.lanes import train_lanes
 from rl2s_jax.train.step import init
-from rl2s_jax.zoo.zoo import policies_for  # noqa: E402
+from rl2s_jax.zoo.zoo import policies_for
 
 MLE_BASES = ("bc", "legacy-bc")
 SIZES = {"gpu": dict(seeds=2, steps=600, eval_every=200, rows=65536),

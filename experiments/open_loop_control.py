@@ -32,50 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from ablation_model import open_loop_inputs, open_loop_summary  # noqa: E402
-
-from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
-from rl2s_jax.evaluate.oracle import oracle_dynamics  # noqa: E402
-from rl2s_jax.model.simulator import open_loop_returns  # noqa: E402
-
-
-def noisy(dynamics, scale: jax.Array, noise_std: jax.Array):
-    """``dynamics`` with scale x N(0, 1) x noise_std [o] added to every next state."""
-    def step(obs, action, key):
-        nxt = dynamics(obs, action, key)
-        return nxt + scale * noise_std * jax.random.normal(key, nxt.shape, nxt.dtype)
-    return step
-
-
-def one_step_std(ds, position_dims) -> np.ndarray:
-    """The std of the logged one-step change per obs dim [o], 0 on the absolute positions."""
-    std = np.std(np.asarray(ds.next_obs, np.float64) - np.asarray(ds.obs, np.float64), 0)
-    std[list(position_dims)] = 0.0
-    return std.astype(np.float32)
-
-
-def parse_noise(text: str, *, zero_ok: bool) -> list[float]:
-    """--noise '0,0.01' -> [0.0, 0.01]; SystemExit naming the field on bad input."""
-    bad = f"noise: expected comma-separated floats {'>=' if zero_ok else '>'} 0, got {text!r}"
-    try:
-        scales = [float(x) for x in text.split(",") if x]
-    except ValueError:
-        raise SystemExit(bad) from None
-    if not scales or any(not np.isfinite(x) or x < 0 or (x == 0 and not zero_ok)
-                         for x in scales):
-        raise SystemExit(bad)
-    return scales
-
-
-def test_split(task_name: str, path: str | None, transitions_per_policy: int):
-    """The Dataset at ``path``, else the zoo's test split collected (no value episodes)."""
-    if path:
-        from rl2s_jax.data.dataset import load_dataset
-        return load_dataset(path)
-    from rl2s_jax.app.pipeline import collect_dataset
-    return collect_dataset(task_name, "test", transitions_per_policy, value_episodes=0,
-                           progress=False)
+from rl2s_jax.app.ablation import load_test_split, parse_noise
+from rl2s_jax.envs.tasks import get_task, task_names
+from rl2s_jax.evaluate.errors import noisy, one_step_std, open_loop_inputs, open_loop_summary
+from rl2s_jax.evaluate.oracle import oracle_dynamics
+from rl2s_jax.model.simulator import mean_square, open_loop_returns, step_errors
 
 
 def oracle_step_check(ds, task, n_rows: int = 4096, seed: int = 0) -> dict:
@@ -83,8 +44,6 @@ def oracle_step_check(ds, task, n_rows: int = 4096, seed: int = 0) -> dict:
     logged next states, in stds of the logged one-step change per dim): how exact the real
     dynamics rebuilt from an observation are, the control of every error measured against
     them. -> {"rows", "rmse", "reward_bias", "reward_abs", "rmse_per_dim"}"""
-    from rl2s_jax.model.simulator import mean_square, step_errors
-
     obs, act, nxt = (np.asarray(x) for x in (ds.obs, ds.action, ds.next_obs))
     idx = np.random.default_rng(seed).choice(len(obs), min(n_rows, len(obs)), replace=False)
     o, a, n = (jnp.asarray(x[idx]) for x in (obs, act, nxt))
@@ -163,7 +122,7 @@ def main(argv=None) -> int:
     os.makedirs(args.out, exist_ok=True)
     task = get_task(args.task)
     t0 = time.perf_counter()
-    ds = test_split(args.task, args.data, args.transitions_per_policy)
+    ds = load_test_split(args.task, args.data, args.transitions_per_policy)
     print(f"[open-loop control] {args.task}: {ds.n_policies} policies, {ds.n_transitions} "
           f"rows ({time.perf_counter() - t0:.1f}s) on {jax.devices()[0].device_kind} (jax "
           f"{jax.__version__})", flush=True)

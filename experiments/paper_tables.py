@@ -22,8 +22,9 @@ several --improve-variants), the fine-tuned policies, an AVD / MVD table (each c
 (n seeds) [95% interval]" beside the paper's published number, ../shared/PAPER.md Tables 1-2),
 the model selection on the training policies, and the quality bars per task (met / MISSED) with
 the MVD bar as paired differences over seeds. The row builders are in
-experiments/results_tables.py. Run logs (experiments/gpu_runs, experiments/cpu_runs, docs/logs)
-are not tracked: a path into them is printed with "in git history at bf0c7b2". Needs no JAX.
+rl2s_jax/app/results_tables.py. Run logs (experiments/gpu_runs, experiments/cpu_runs, docs/logs)
+are not tracked: a path into them is printed with "in git history at bf0c7b2". Runs no JAX
+program (importing the package loads JAX, nothing more).
 """
 from __future__ import annotations
 
@@ -31,12 +32,7 @@ import argparse
 import os
 import sys
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
-if HERE not in sys.path:  # also when loaded by path (tests/test_paper.py)
-    sys.path.insert(0, HERE)
-
-from results_tables import (  # noqa: E402
+from rl2s_jax.app.results_tables import (
     PAPER_NOTE,
     TABLE1,
     TABLE2,
@@ -53,6 +49,8 @@ from results_tables import (  # noqa: E402
     selected_rows,
 )
 
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
 BEGIN, END = "<!-- paper-tables:begin -->", "<!-- paper-tables:end -->"
 RESULTS, OUT = os.path.join(ROOT, "docs", "results"), os.path.join(ROOT, "docs", "RESULTS.md")
 HISTORY = "bf0c7b2"  # the last commit that tracked the run logs below

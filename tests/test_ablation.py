@@ -1,12 +1,20 @@
-"""experiments/ablation_model.py: the evaluation point is chosen on the training policies only
-(highest selection tau, ties to the lower selection AVD, non-finite last), and the table
-reports the TEST metrics at that point and at the last one, averaged over seeds."""
+"""experiments/ablation_model.py and its package parts (rl2s_jax.app.ablation,
+rl2s_jax.evaluate.errors): the evaluation point is chosen on the training policies only
+(highest selection tau, ties to the lower selection AVD, non-finite last), the table reports
+the TEST metrics at that point and at the last one, averaged over seeds; the diagnostics and
+their control scripts."""
 import importlib.util
 import json
 import os
 
 import numpy as np
 import pytest
+
+from rl2s_jax.app import ablation as abl
+from rl2s_jax.data.summary import episode_lengths
+from rl2s_jax.evaluate import errors
+from rl2s_jax.train.lanes import select_point
+from rl2s_jax.train.step import simulator
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -29,7 +37,7 @@ def _m(tau, avd, ndcg=1.0):
     return {"kendall_tau": tau, "ndcg@1": ndcg, "avd": avd, "mvd": 2 * avd, "spearman": tau}
 
 
-def test_selection_uses_training_policies_only(ab, tmp_path):
+def test_selection_uses_training_policies_only(tmp_path):
     seed0 = [  # test tau would favour step 100; the training policies pick step 200
         {"step": 100, "test": _m(0.9, 10.0), "select": _m(0.2, 5.0)},
         {"step": 200, "test": _m(0.4, 30.0), "select": _m(0.6, 9.0)},
@@ -41,11 +49,11 @@ def test_selection_uses_training_policies_only(ab, tmp_path):
         {"step": 200, "test": None, "select": _m(0.9, 1.0)},            # diverged: skipped
         {"step": 300, "test": _m(0.2, 60.0, ndcg=0.5), "select": _m(0.1, 2.0)},
     ]
-    assert ab._select(seed0)["step"] == 300 and ab._select(seed1)["step"] == 100
+    assert select_point(seed0)["step"] == 300 and select_point(seed1)["step"] == 100
     res = {"task": "hopper", "variant": "rl2s", "hardware": "cpu", "jax_version": "x",
            "command": "c", "timings": {}, "complete": True,
            "curves": {"rl2s": {"0": seed0, "1": seed1}}}
-    table = ab.summarize_rows([res])["rl2s"]
+    table = abl.summarize_rows([res])["rl2s"]
     assert table["selected_steps"] == [300, 100]
     mean, std, n = table["selected"]["kendall_tau"]
     assert n == 2 and mean == pytest.approx(0.4) and std == pytest.approx(np.std([0.5, 0.3],
@@ -54,13 +62,13 @@ def test_selection_uses_training_policies_only(ab, tmp_path):
     assert table["final"]["ndcg@1"][0] == pytest.approx(0.75)
     path = tmp_path / "ablation_hopper_rl2s.json"
     path.write_text(json.dumps(res))
-    md = ab.write_summary(str(tmp_path), "hopper", [str(path)])
+    md = abl.write_summary(str(tmp_path), "hopper", [str(path)])
     assert md.splitlines()[2].startswith("| rl2s | 0.15")
     assert json.loads((tmp_path / "ablation_hopper.json").read_text())["rows"]["rl2s"][
         "selected_steps"] == [300, 100]
 
 
-def test_tau_swing_from_the_adversarial_phase(ab, tmp_path):
+def test_tau_swing_from_the_adversarial_phase(tmp_path):
     """The swing is the mean |change| of test tau between consecutive evaluations, taken from
     the end of pre-training (a pre-trained run's first points are the MLE start), skipping
     diverged points; per lane, then mean and std over lanes."""
@@ -73,45 +81,45 @@ def test_tau_swing_from_the_adversarial_phase(ab, tmp_path):
            "config": {"method": "rl2s", "pretrain_steps": 200}, "curves": {"rl2s": lanes}}
     # from step 200: lane 0 [0.6, 0.5, 0.8, 0.7]; lane 1 [0.7, (None), 0.4, (nan)]
     ref = [np.mean(np.abs(np.diff([0.6, 0.5, 0.8, 0.7]))), abs(0.4 - 0.7)]
-    mean, std, n = ab.summarize_rows([res])["rl2s"]["tau_swing"]
+    mean, std, n = abl.summarize_rows([res])["rl2s"]["tau_swing"]
     assert n == 2 and mean == pytest.approx(np.mean(ref))
     assert std == pytest.approx(np.std(ref, ddof=1))
     # an MLE variant (no pre-training phase) counts every evaluation
     res["config"] = {"method": "bc", "pretrain_steps": 200}
-    assert ab.summarize_rows([res])["rl2s"]["tau_swing"][0] == pytest.approx(np.mean(
+    assert abl.summarize_rows([res])["rl2s"]["tau_swing"][0] == pytest.approx(np.mean(
         [np.mean(np.abs(np.diff(taus["0"]))), np.mean(np.abs(np.diff([0.9, 0.7, 0.4])))]))
-    assert ab.tau_swing(lanes["0"][:1]) is None                    # one point: no swing
+    assert abl.tau_swing(lanes["0"][:1]) is None                    # one point: no swing
     path = tmp_path / "ablation_hopper_rl2s.json"
     path.write_text(json.dumps(res))
-    assert "tau swing" in ab.write_summary(str(tmp_path), "hopper", [str(path)]).splitlines()[0]
+    assert "tau swing" in abl.write_summary(str(tmp_path), "hopper", [str(path)]).splitlines()[0]
 
 
-def test_rollout_settings_parse_and_reject_bad_input(ab):
-    assert ab.parse_rollouts("random:1, mean:0,fixed:0.5") == [
+def test_rollout_settings_parse_and_reject_bad_input():
+    assert abl.parse_rollouts("random:1, mean:0,fixed:0.5") == [
         ("random", 1.0), ("mean", 0.0), ("fixed", 0.5)]
-    assert ab.parse_rollouts(None) == [] and ab.parse_rollouts("") == []
-    assert ab.parse_rollouts("random:0:predictive,mean:1:rule") == [
+    assert abl.parse_rollouts(None) == [] and abl.parse_rollouts("") == []
+    assert abl.parse_rollouts("random:0:predictive,mean:1:rule") == [
         ("random", 0.0, "predictive"), ("mean", 1.0, "rule")]
-    assert ab.rollout_row("rl2s", ("random", 0.0, "both")) == "rl2s@random:0:both"
-    assert ab.rollout_row("rl2s", ("mean", 1.5)) == "rl2s@mean:1.5"
+    assert abl.rollout_row("rl2s", ("random", 0.0, "both")) == "rl2s@random:0:both"
+    assert abl.rollout_row("rl2s", ("mean", 1.5)) == "rl2s@mean:1.5"
     for bad in ("average:0", "mean", "mean:-1", "mean:x", "random:nan", "random:0:often"):
         with pytest.raises(SystemExit, match="rollouts"):
-            ab.parse_rollouts(bad)
+            abl.parse_rollouts(bad)
 
 
 def test_variant_specs_carry_their_own_settings(ab):
-    assert ab.parse_variant("bc") == ("bc", {})
-    assert ab.parse_variant("bc:multistep_steps=5+multistep_weight=0.5") == (
+    assert abl.parse_variant("bc") == ("bc", {})
+    assert abl.parse_variant("bc:multistep_steps=5+multistep_weight=0.5") == (
         "bc", {"multistep_steps": 5, "multistep_weight": 0.5})
     with pytest.raises(SystemExit, match="variants"):
-        ab.parse_variant("mle:multistep_steps=5")
+        abl.parse_variant("mle:multistep_steps=5")
     with pytest.raises(SystemExit, match="multistep_steps"):   # checked before any work
         ab.main(["--task", "hopper", "--variants", "bc:multistep_steps=0", "--out", "/tmp/x"])
     with pytest.raises(SystemExit, match="no_such_key"):
         ab.main(["--task", "hopper", "--variants", "bc:no_such_key=1", "--out", "/tmp/x"])
 
 
-def test_episode_lengths_count_whole_episodes(ab):
+def test_episode_lengths_count_whole_episodes():
     from types import SimpleNamespace
     # policy 0: episodes of 3 (done) and 5 (truncated), then 2 cut-off rows; policy 1: one
     # cut-off episode of 4 rows (no whole one: its rows count)
@@ -121,10 +129,10 @@ def test_episode_lengths_count_whole_episodes(ab):
     trunc = np.zeros(14, bool)
     done[2], trunc[7] = True, True
     ds = SimpleNamespace(policy_id=pid, episode_id=ep, done=done, truncated=trunc, n_policies=2)
-    np.testing.assert_allclose(ab.episode_lengths(ds), [4.0, 4.0])
+    np.testing.assert_allclose(episode_lengths(ds), [4.0, 4.0])
 
 
-def test_termination_causes_split_the_done_rule(ab):
+def test_termination_causes_split_the_done_rule():
     from rl2s_jax.envs.tasks import get_task
     o = np.zeros((5, 12), np.float32)
     o[:, 1] = 1.2
@@ -133,16 +141,16 @@ def test_termination_causes_split_the_done_rule(ab):
     o[2, 1], o[2, 2] = 0.6, -0.25   # both
     o[3, 7] = 150.0          # a velocity blew up
     ended = np.array([True, True, True, True, False])   # the last one ran to the horizon
-    causes = ab.termination_causes("hopper", o, ended)
+    causes = errors.termination_causes("hopper", o, ended)
     assert causes == {"ended": 0.8, "z <= 0.7": 0.5, "|angle| >= 0.2": 0.5,
                       "|q[2:], qd| >= 100": 0.25}
     # every ended state breaks some rule, exactly as the task's done_fn says
     done = np.asarray(get_task("hopper").done_fn(o))
     assert done[:4].all() and not done[4]
-    assert ab.termination_causes("halfcheetah", o, ended) is None
+    assert errors.termination_causes("halfcheetah", o, ended) is None
 
 
-def test_terminal_states_are_where_the_value_rollouts_stop(ab):
+def test_terminal_states_are_where_the_value_rollouts_stop():
     """terminal_states runs the episodes of simulate.simulated_returns (same keys, same
     draws): an episode ended there iff its rollout stopped before the horizon, and its
     terminal state is one the task's done_fn ends on."""
@@ -165,7 +173,7 @@ def test_terminal_states_are_where_the_value_rollouts_stop(ab):
     sim = T.simulator(T.train_steps(T.init(jax.random.PRNGKey(1), cfg, data), data, 5)[0])
     pool, key, horizon = start_pool(ds), jax.random.PRNGKey(9), 40
     lanes = jax.tree_util.tree_map(lambda x: x[None], sim)
-    terminal, ended = ab.terminal_states(lanes, policies, pool, key[None], task=task,
+    terminal, ended = errors.terminal_states(lanes, policies, pool, key[None], task=task,
                                          n_episodes=6, horizon=horizon)
     terminal, ended = np.asarray(terminal[0]), np.asarray(ended[0])
     _, length = simulated_returns(policies, sim.dynamics, task.reward_fn, task.done_fn, pool,
@@ -177,7 +185,7 @@ def test_terminal_states_are_where_the_value_rollouts_stop(ab):
     np.testing.assert_array_equal(done[ended], True)
 
 
-def test_open_loop_check_compares_each_lane_with_the_logged_windows(ab, pm_falls):
+def test_open_loop_check_compares_each_lane_with_the_logged_windows(pm_falls):
     """Two lanes of an (untrained) pointmass BC model: the real side is the logged windows'
     reward sums (NumPy), the model side each lane's own open-loop rollout, and the summaries
     are what their definitions say."""
@@ -196,7 +204,8 @@ def test_open_loop_check_compares_each_lane_with_the_logged_windows(ab, pm_falls
     data = make_train_data(ds, params, cfg)
     states = jax.vmap(lambda k: init(k, cfg, data))(jnp.stack(
         [jax.random.PRNGKey(0), jax.random.PRNGKey(1)]))
-    res = ab.open_loop_check(states, ds, task, ks=(1, 5), n_windows=64)
+    res = errors.open_loop_check(simulator(states, average=False), ds, task, ks=(1, 5),
+                                 n_windows=64)
     rows, steps = open_loop_windows(ds, 5, 64, seed=7)
     real, real_end = logged_window_returns(ds, rows, steps, 5, task.reward_fn)
     np.testing.assert_allclose(res["5"]["real_per_policy"], real.sum(-1).mean(-1), atol=0.01)
@@ -209,11 +218,11 @@ def test_open_loop_check_compares_each_lane_with_the_logged_windows(ab, pm_falls
     assert res["1"]["real_end"] <= res["5"]["real_end"]  # windows end more often when longer
 
 
-def test_validation_policies_are_spread_over_the_values_and_held_out_whole(ab, pm_falls):
+def test_validation_policies_are_spread_over_the_values_and_held_out_whole(pm_falls):
     ds, _ = pm_falls
     ds = ds.replace(meta={**ds.meta, "source": {"zoo": "z", "zoo_ids": [10, 11, 12, 13]}})
     order = np.argsort(np.asarray(ds.value_discounted))
-    fit, valid = ab.split_validation(ds, 2)
+    fit, valid = abl.split_validation(ds, 2)
     held = sorted([int(order[1]), int(order[3])])  # the middle of each half of the ranking
     assert valid.meta["source"]["zoo_ids"] == [10 + i for i in held]
     assert fit.meta["source"]["zoo_ids"] == [10 + i for i in range(4) if i not in held]
@@ -221,7 +230,7 @@ def test_validation_policies_are_spread_over_the_values_and_held_out_whole(ab, p
     np.testing.assert_allclose(np.asarray(valid.value_discounted),
                                np.asarray(ds.value_discounted)[held])
     with pytest.raises(SystemExit, match="validation-policies: expected 2 ... 2"):
-        ab.split_validation(ds, 3)
+        abl.split_validation(ds, 3)
 
 
 @pytest.fixture(scope="module")
@@ -250,7 +259,7 @@ def test_open_loop_control_reproduces_the_logged_windows_without_noise(olc, pm_f
 def test_open_loop_control_noise_scale_and_bad_input(olc, pm_falls):
     ds, _ = pm_falls
     delta = np.asarray(ds.next_obs, np.float64) - np.asarray(ds.obs, np.float64)
-    std = olc.one_step_std(ds, (0,))
+    std = errors.one_step_std(ds, (0,))
     assert std[0] == 0.0  # a position dim gets no noise
     np.testing.assert_allclose(std[1:], delta.std(0)[1:], rtol=1e-5)
     for argv, field in ((["--noise", "a"], "noise"), (["--noise", "-1"], "noise"),
@@ -285,7 +294,7 @@ def test_closed_loop_control_pairs_every_scale_with_the_exact_dynamics(pm_falls)
         clc.main(["--noise", "0", "--out", "/tmp/clc_bad_input"])
 
 
-def test_visited_error_check_measures_each_lane_against_the_real_dynamics(ab, pm_falls):
+def test_visited_error_check_measures_each_lane_against_the_real_dynamics(pm_falls):
     """Two lanes of an untrained pointmass BC model: per lane and test policy, the one-step
     error on visited and on logged states (pointmass's oracle is its exact dynamics), in the
     shapes the JSON keeps; the logged error against a NumPy computation at member mode
@@ -307,8 +316,8 @@ def test_visited_error_check_measures_each_lane_against_the_real_dynamics(ab, pm
     states = jax.vmap(lambda k: init(k, cfg, data))(jnp.stack(
         [jax.random.PRNGKey(0), jax.random.PRNGKey(1)]))
     test = (params, start_pool(ds), None)
-    res = ab.visited_error_check(states, ds, test, task, n_episodes=3, horizon=20,
-                                 rows_per_policy=64, train_ds=ds)
+    res = errors.visited_error_check(simulator(states, average=False), ds, test, task,
+                                     n_episodes=3, horizon=20, rows_per_policy=64, train_ds=ds)
     P = ds.n_policies
     for side in ("visited", "logged", "train_logged"):
         for k in ("rmse", "reward_bias", "reward_abs"):

@@ -7,6 +7,8 @@ import os
 import numpy as np
 import pytest
 
+from rl2s_jax.app import results_tables
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearman", "regret@1",
            "avd", "mvd", "mpi", "api")
@@ -107,7 +109,7 @@ def test_paper_tables(tmp_path):
 def test_paper_tables_mvd_paired_by_seed():
     """The MVD bar as paired differences: per seed RL2S - other, mean, 95% t-interval over
     seeds (t quantile 4.303 for 3 seeds), seeds where RL2S is lower; n/a without 2 seeds."""
-    rt = _load("results_tables")
+    rt = results_tables
     r = {"per_seed": {"rl2s": {"mvd": [100.0, 120.0, 90.0]},
                       "gail": {"mvd": [110.0, 100.0, 95.0]},
                       "bc": {"mvd": [None, 130.0, None]}}}
@@ -147,7 +149,7 @@ def test_paper_tables_control_and_ablation(tmp_path):
     assert "| hopper | full | rl2s | 0.200 | 0.100 |" in ablation
     assert "| hopper | branched+penalty | rl2s | 0.250 | n/a |" in ablation
     assert "| hopper | full | gail | n/a | n/a |" in ablation
-    b = _load("results_tables").bars(r)
+    b = results_tables.bars(r)
     assert b["control"] == (True, "0.050") and b["oracle"] == (True, "0.970 / 1.000")
     del r["ablation"]["full"]  # one variant: no ablation table
     assert "### Improvement by simulated-env variant" not in pt.render({"hopper": r}, "res")
@@ -291,7 +293,7 @@ def test_paper_tables_guard_rows(tmp_path, capsys):
 
 
 def test_paper_tables_fallbacks():
-    pt, rt = _load("paper_tables"), _load("results_tables")
+    pt, rt = _load("paper_tables"), results_tables
     # no per_seed: methods / std / n are used; unknown numbers print n/a
     r = {"methods": {"rl2s": {"kendall_tau": 0.4}}, "std": {"rl2s": {"kendall_tau": 0.1}},
          "n": {"rl2s": {"kendall_tau": 2}}, "seeds": 3}
@@ -329,10 +331,10 @@ def _family_run(methods, families, offset, complete=True, seeds=range(3)):
 def test_merge_runs_joins_the_two_families():
     """Runs of one protocol that trained different families (two device calls) make one
     result: every method's entries, curves and timings; runs that differ are refused."""
-    paper = _load("paper")
+    mr = _load("merge_results")
     adv = _family_run(("rl2s", "gail"), ["adversarial"], 0.5)
     mle = _family_run(("rl2s-bc", "bc"), ["mle"], 0.2, complete=False)
-    merged = paper.merge_runs([adv, mle])
+    merged = mr.merge_runs([adv, mle])
     assert set(merged["methods"]) == {"rl2s", "gail", "rl2s-bc", "bc"}
     assert merged["methods"]["bc"]["kendall_tau"] == pytest.approx(0.3)
     assert merged["methods"]["rl2s"]["kendall_tau"] == pytest.approx(0.6)
@@ -348,17 +350,17 @@ def test_merge_runs_joins_the_two_families():
     assert "methods" not in adv["per_seed"] and adv["methods"] == {}  # inputs untouched
     for field, change in (("zoo_sha256", "cd" * 32), ("true_value", [1.0])):
         with pytest.raises(ValueError, match=field):
-            paper.merge_runs([adv, {**mle, field: change}])
+            mr.merge_runs([adv, {**mle, field: change}])
     with pytest.raises(ValueError, match="seeds"):
-        paper.merge_runs([adv, _family_run(("rl2s-bc", "bc"), ["mle"], 0.2, seeds=range(2))])
+        mr.merge_runs([adv, _family_run(("rl2s-bc", "bc"), ["mle"], 0.2, seeds=range(2))])
     old = {k: v for k, v in mle.items() if k != "seed_ids"}  # results before --first-seed
-    assert paper.merge_runs([adv, {**old, "seeds": 3}])["seed_ids"] == [0, 1, 2]
+    assert mr.merge_runs([adv, {**old, "seeds": 3}])["seed_ids"] == [0, 1, 2]
     with pytest.raises(ValueError, match="seeds"):
-        paper.merge_runs([adv, {**old, "seeds": 2}])
+        mr.merge_runs([adv, {**old, "seeds": 2}])
     with pytest.raises(ValueError, match="sizes.steps"):
-        paper.merge_runs([adv, {**mle, "sizes": {**mle["sizes"], "steps": 400}}])
+        mr.merge_runs([adv, {**mle, "sizes": {**mle["sizes"], "steps": 400}}])
     with pytest.raises(ValueError, match="rl2s"):
-        paper.merge_runs([adv, adv])
+        mr.merge_runs([adv, adv])
 
 
 def test_merge_runs_joins_seeds_of_other_runs():
@@ -366,11 +368,11 @@ def test_merge_runs_joins_seeds_of_other_runs():
     per-seed list in seed order whatever the parts' order, means, std and intervals over all
     seeds; a seed twice, methods left with different seeds, other training settings or a
     method fine-tuned in two seed-split runs are refused."""
-    paper = _load("paper")
+    mr = _load("merge_results")
     adv = _family_run(("rl2s", "gail"), ["adversarial"], 0.5)
     more = _family_run(("rl2s", "gail"), ["adversarial"], 0.5, seeds=(3, 4))
     mle = _family_run(("rl2s-bc", "bc"), ["mle"], 0.2, seeds=range(5))
-    merged = paper.merge_runs([more, mle, adv])
+    merged = mr.merge_runs([more, mle, adv])
     assert merged["seeds"] == 5 and merged["seed_ids"] == [0, 1, 2, 3, 4]
     assert merged["sizes"]["seeds"] == 5
     expect = [0.5 + 0.1 * s for s in range(5)]
@@ -386,21 +388,21 @@ def test_merge_runs_joins_seeds_of_other_runs():
     assert len(merged["lanes"]) == 20 and merged["families"] == ["adversarial", "mle"]
     assert more["per_seed"]["rl2s"]["avd"] == pytest.approx([0.8, 0.9])  # inputs untouched
     with pytest.raises(ValueError, match=r"\{'gail': \[2\], 'rl2s': \[2\]\} in more than one"):
-        paper.merge_runs([adv, _family_run(("rl2s", "gail"), ["adversarial"], 0.5,
+        mr.merge_runs([adv, _family_run(("rl2s", "gail"), ["adversarial"], 0.5,
                                            seeds=(2, 3))])
     with pytest.raises(ValueError, match="seeds: the methods ran different seeds"):
-        paper.merge_runs([adv, mle])
+        mr.merge_runs([adv, mle])
     other = {**more, "train_config": {"adversarial": {"method": "gail"}}}
     with pytest.raises(ValueError, match="train_config.adversarial"):
-        paper.merge_runs([adv, other, mle])
+        mr.merge_runs([adv, other, mle])
     tuned = json.loads(json.dumps(more))
     tuned["per_seed"]["rl2s"]["mpi"] = [0.1]
     adv_tuned = json.loads(json.dumps(adv))
     adv_tuned["per_seed"]["rl2s"]["mpi"] = [0.2]
     with pytest.raises(ValueError, match="improvement: method 'rl2s'"):
-        paper.merge_runs([adv_tuned, tuned, mle])
+        mr.merge_runs([adv_tuned, tuned, mle])
     # one part fine-tuned: its values are kept as they are (not reordered by seed)
-    one = paper.merge_runs([adv_tuned, more, mle])
+    one = mr.merge_runs([adv_tuned, more, mle])
     assert one["per_seed"]["rl2s"]["mpi"] == [0.2]
 
 
@@ -442,7 +444,7 @@ def test_merge_results_takes_the_oracle_of_another_run(tmp_path):
 def test_merge_runs_joins_the_improvement_variants():
     """Each family's run fine-tuned its own lanes: the merged 'ablation' holds every method of
     every variant; runs fine-tuned with other settings are refused."""
-    paper = _load("paper")
+    mr = _load("merge_results")
 
     def with_ablation(run, methods):
         settings = {"rollout_length": None}
@@ -457,7 +459,7 @@ def test_merge_runs_joins_the_improvement_variants():
 
     adv = with_ablation(_family_run(("rl2s", "gail"), ["adversarial"], 0.5), ("rl2s", "gail"))
     mle = with_ablation(_family_run(("rl2s-bc", "bc"), ["mle"], 0.2), ("rl2s-bc", "bc"))
-    merged = paper.merge_runs([adv, mle])
+    merged = mr.merge_runs([adv, mle])
     for variant in ("full", "full+guard"):
         assert set(merged["ablation"][variant]["methods"]) == {"rl2s", "gail", "rl2s-bc", "bc"}
     assert set(merged["ablation"]["full"]["lanes"]) == {"rl2s/0", "gail/0", "rl2s-bc/0", "bc/0"}
@@ -465,9 +467,9 @@ def test_merge_runs_joins_the_improvement_variants():
     other = json.loads(json.dumps(mle))
     other["ablation"]["full"]["settings"] = {"rollout_length": 10}
     with pytest.raises(ValueError, match="ablation.full.settings"):
-        paper.merge_runs([adv, other])
+        mr.merge_runs([adv, other])
     with pytest.raises(ValueError, match="sac_config"):
-        paper.merge_runs([adv, {**mle, "sac_config": {"kl_weight": 0.01}}])
+        mr.merge_runs([adv, {**mle, "sac_config": {"kl_weight": 0.01}}])
 
 
 def test_paper_refuses_bad_seed_arguments(tmp_path, capsys):

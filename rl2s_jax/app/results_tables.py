@@ -1,6 +1,6 @@
 """The row builders of experiments/paper_tables.py: the paper's published numbers and, from
 experiments/paper.py's result JSON (one dict per task), the markdown rows of each table of the
-generated block of docs/RESULTS.md. Pure Python (scipy for one t quantile); no JAX.
+generated block of docs/RESULTS.md. Pure Python (scipy for one t quantile); uses no JAX itself.
 """
 from __future__ import annotations
 
@@ -8,6 +8,8 @@ import json
 import math
 import os
 import statistics
+
+from scipy.stats import t as student_t
 
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -182,8 +184,6 @@ def paired_mvd(result: dict, other: str) -> tuple[float, float, float, int, int]
     """RL2S's MVD minus ``other``'s, seed by seed (the lanes of one seed share the key and the
     data): (mean, lo, hi, seeds where RL2S is lower, seeds) with a 95% t-interval over the
     seeds; None without two seeds that both methods ran."""
-    from scipy.stats import t as student_t
-
     per = result.get("per_seed") or {}
     a, b = (per.get(m, {}).get("mvd") or [] for m in ("rl2s", other))
     if len(a) != len(b):

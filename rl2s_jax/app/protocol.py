@@ -1,0 +1,382 @@
+"""The paper's protocol (``experiments/paper.py``): its sizes per profile and task, the zoo's
+train / test data, the oracle row, one vmapped training program per model family with its
+evaluation curves, model selection and bootstrap intervals, and the result JSON (the summary
+over seeds, the printed table, the atomic write). The improvement phases are
+``app.protocol_improve``; the lanes themselves (vmapped runs: training, evaluation,
+fine-tuning) ``train.lanes``, ``evaluate.lanes`` and ``improve.lanes``."""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rl2s_jax.app.pipeline import collect_dataset
+from rl2s_jax.data.dataset import load_dataset, save_dataset
+from rl2s_jax.data.values import true_values, true_values_se
+from rl2s_jax.evaluate.lanes import (
+    EVAL_METRICS,
+    evaluate_lanes,
+    intervals_over_seeds,
+    oracle_noise_ceiling,
+    oracle_rows,
+)
+from rl2s_jax.evaluate.metrics import bootstrap_intervals
+from rl2s_jax.evaluate.simulator import evaluate_simulator
+from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.sharding import is_writer, lane_mesh, replicate, shard_lanes
+from rl2s_jax.train.config import DEFAULT_EPS, TrainConfig
+from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.lanes import heldout_start_pool, init_lanes, select_point, train_lanes
+from rl2s_jax.train.loop import worst_vd_jumps
+from rl2s_jax.train.step import simulator
+from rl2s_jax.zoo.zoo import load_zoo, zoo_dir
+
+METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
+# (family, config method, its lanes' methods): one vmapped program per family.
+FAMILIES = (("adversarial", "rl2s", ("rl2s", "gail")), ("mle", "rl2s-bc", ("rl2s-bc", "bc")))
+# mpi/api: C0 from the data's true values, C1 measured apart; *_paired: C0 and C1 measured
+# paired (the same starts and noise draws, --improve-episodes each)
+IMPROVE_METRICS = ("mpi", "api", "mpi_paired", "api_paired")
+METRICS = EVAL_METRICS + IMPROVE_METRICS
+
+# Sizes per profile. gpu: 3 seeds, 1200 steps (the 1000 pre-training steps of the fitted
+# model family, then 200 WGAIL; RESULTS@bf0c7b2, "Ant and Hopper: the likelihood model was
+# underfit"), every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1.
+# Measured on one H100 (RESULTS@bf0c7b2, "The protocol on the new model family"), per task,
+# each family alone: data 83-97 s, the adversarial program (6 lanes) 355-375 s, the
+# likelihood program 190-210 s, SAC 18-22 s, the real measurement of the fine-tuned policies
+# 38 s (Hopper; more with 43 test policies), Hopper's oracle at 128 / 128 episodes 261 s.
+# Two processes sharing the GPU run no faster than one after the other. cpu: small, for a
+# 2-core machine.
+PROFILES = {
+    "gpu": dict(seeds=3, transitions_per_policy=20_000, value_episodes=16, steps=1200,
+                eval_every=600, eval_episodes=32, improve_policies=0, improve_seeds=2,
+                improve_episodes=32,
+                improve_iterations=2000, sac_envs=16, sac=dict(kl_weight=0.1)),
+    "cpu": dict(seeds=3, transitions_per_policy=2000, value_episodes=4, steps=300,
+                eval_every=100, eval_episodes=8, improve_policies=10, improve_seeds=1,
+                improve_episodes=4,
+                improve_iterations=300, sac_envs=4, sac=dict(hidden=(64, 64), batch_size=128)),
+}
+
+# Per-task changes to a profile. Ant's returns spread so widely between episodes (per-episode
+# sd ~830 against ~90 between neighbouring test policies) that with 16 truth / 32 simulated
+# episodes even the real dynamics rank at tau 0.78; with 256 / 256 the oracle reaches 0.88
+# (docs/RESULTS.md, "Many episodes on Ant and Hopper"); Hopper's oracle reaches 0.99 at
+# 128 / 128 (0.96 at 32), and 16 episodes leave Walker2d an evaluation-noise tau std of 0.038
+# ("The oracle"), so it gets 64 / 64.
+TASK_SIZES = {"gpu": {"ant": dict(value_episodes=256, eval_episodes=256),
+                      "hopper": dict(value_episodes=128, eval_episodes=128),
+                      "walker2d": dict(value_episodes=64, eval_episodes=64)}}
+
+
+def profile_sizes(profile: str, task: str) -> dict:
+    """A profile's sizes with the task's changes (TASK_SIZES) applied."""
+    return {**PROFILES[profile], **TASK_SIZES.get(profile, {}).get(task, {})}
+
+
+def log(msg: str) -> None:
+    print(msg, flush=True)
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an int >= 1, else an error naming what was expected."""
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an int >= 1, got {text}")
+    return value
+
+
+def none_if_nan(x):
+    """float(x), None when it is not finite (JSON has no NaN)."""
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def take_lanes(tree, idx):
+    """The lanes ``idx`` [K] of a pytree with a leading lane axis -> [K, ...] leaves."""
+    idx = jnp.asarray(idx)
+    return jax.tree_util.tree_map(lambda x: x[idx], tree)
+
+
+# ------------------------------------------------------------------ data
+
+
+def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
+                    episode_length: int | None, progress: bool):
+    """The train and test Datasets of the zoo's split: reused from data_dir when collected with
+    the same sizes (``transitions_per_policy``, ``value_episodes`` of ``sizes``), else
+    collected as ONE ``collect_dataset(task, "all", ...)`` run (one MJX program for all the
+    zoo's policies) and split with ``Dataset.select_policies``.
+    -> ({"train": Dataset, "test": Dataset}, reused)"""
+    paths = {split: os.path.join(data_dir, f"{task}_{split}.npz") for split in ("train", "test")}
+    key_path = os.path.join(data_dir, f"{task}_data.json")
+    data_key = {"task": task, "seed": seed, "episode_length": episode_length,
+                "transitions_per_policy": sizes["transitions_per_policy"],
+                "value_episodes": sizes["value_episodes"]}
+    if all(os.path.exists(p) for p in paths.values()) and os.path.exists(key_path):
+        with open(key_path) as f:
+            if json.load(f) == data_key:
+                return {split: load_dataset(p) for split, p in paths.items()}, True
+    everything = collect_dataset(task, "all", sizes["transitions_per_policy"], seed=seed,
+                                 value_episodes=sizes["value_episodes"],
+                                 episode_length=episode_length, progress=progress)
+    zoo = load_zoo(task)
+    all_ids = list(everything.meta["source"]["zoo_ids"])
+    os.makedirs(data_dir, exist_ok=True)
+    out = {}
+    for split, path in paths.items():
+        ids = zoo.split_ids(split)
+        part = everything.select_policies([all_ids.index(i) for i in ids])
+        # policies_for() finds a Dataset's policies through meta.source.zoo_ids.
+        part.meta["source"] = {**part.meta["source"], "split": split,
+                               "zoo_ids": [int(i) for i in ids]}
+        save_dataset(path, part)
+        out[split] = part
+    with open(key_path, "w") as f:
+        json.dump(data_key, f)
+    return out, False
+
+
+def zoo_sha256(task: str) -> str | None:
+    """sha256 of rl2s_jax/zoo/shipped/<task>/zoo.npz, the zoo the result was measured on."""
+    path = os.path.join(zoo_dir(task), "zoo.npz")
+    if not os.path.exists(path):
+        return None
+    with open(path, "rb") as f:
+        return hashlib.sha256(f.read()).hexdigest()
+
+
+# ------------------------------------------------------------------ the oracle row
+
+
+def run_oracle(result: dict, task: str, test_ds, test_pols, seeds, cfg: TrainConfig,
+               sizes: dict, *, phase: Callable[[str, float], None],
+               save: Callable[[], None]) -> None:
+    """The control row (``evaluate.lanes.oracle_rows``: the real dynamics through the lanes'
+    evaluation path, per seed, at cfg's horizon and gamma) and the noise ceiling of these
+    sizes, into ``result``; ``phase("oracle", t0)`` records its time, ``save()`` writes."""
+    t0 = time.perf_counter()
+    orc = oracle_rows(task, test_ds, test_pols, seeds, n_episodes=sizes["eval_episodes"],
+                      horizon=cfg.vd_horizon, gamma=cfg.gamma, n_boot=sizes["bootstrap"])
+    result["per_seed"]["oracle"] = {**orc["per_seed"], "mpi": [], "api": []}
+    result["lane_intervals"] = {"oracle": orc["intervals"]}
+    result["intervals"] = {"oracle": intervals_over_seeds(orc["intervals"])}
+    result["oracle_sim_value"] = orc["sim_value"]
+    result["oracle_sim_length"] = orc["sim_length"]
+    result["noise_ceiling"] = oracle_noise_ceiling(
+        test_ds, true_values(test_ds, cfg.vd_horizon, cfg.gamma), orc["sim_return_sd"],
+        n_sim=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
+    phase("oracle", t0)
+    save()
+    log(f"[paper] oracle (real dynamics, horizon {cfg.vd_horizon}): "
+        + "  ".join(f"{k} {np.mean(v):.3f}" for k, v in orc["per_seed"].items()
+                    if k in ("kendall_tau", "ndcg@1", "spearman", "avd", "mvd")))
+    nc = result["noise_ceiling"]
+    log(f"[paper] noise ceiling (an exact simulator, {nc['n_truth']} truth / "
+        f"{nc['n_sim']} simulated episodes): kendall_tau {nc['kendall_tau']['mean']:.3f} "
+        f"[{nc['kendall_tau']['lo']:.2f}, {nc['kendall_tau']['hi']:.2f}]  ndcg@1 "
+        f"{nc['ndcg@1']['mean']:.3f}")
+
+
+# ------------------------------------------------------------------ training
+
+
+def _fmt(x, f):
+    return "n/a" if x is None else format(x, f)
+
+
+def _evaluation_point(result, lanes, step, m, evals, selects, points, worst, header):
+    """One evaluation of every lane: its model-selection point, the worst-VD warnings, the
+    ``header`` line, its curve row (printed)."""
+    for i, (meth, s) in enumerate(lanes):
+        points[i].append({"step": step, "select": selects[i], "test": evals[i]})
+        jumps, worst[i] = worst_vd_jumps(np.asarray(m["mvd_train"])[i:i + 1],
+                                         np.ones(1, bool), worst[i])
+        for _, before, after in jumps:  # per lane, between evaluations
+            log(f"[paper] warning: {meth} seed {s}: the worst training-policy VD rose "
+                f"from {before:.4g} to {after:.4g} by step {step}")
+            result.setdefault("worst_vd_jumps", {}).setdefault(meth, []).append(
+                {"seed": s, "step": step, "before": before, "after": after})
+    log(header)
+    for i, (meth, s) in enumerate(lanes):
+        r = evals[i] or {}
+        row = {"step": step, "lane": f"{meth}/{s}", "method": meth, "seed": s,
+               "avd": r.get("avd"), "mvd": r.get("mvd"), "tau": r.get("kendall_tau"),
+               "ndcg@1": r.get("ndcg@1"),
+               "select_tau": (selects[i] or {}).get("kendall_tau"),
+               "select_avd": (selects[i] or {}).get("avd"),
+               "avd_train": none_if_nan(m["avd_train"][i]),
+               "mvd_train": none_if_nan(m["mvd_train"][i]),
+               "finite": bool(m["finite"][i])}
+        result["curves"].append(row)
+        log(f"  {meth:<8} seed {s}  AVD {_fmt(row['avd'], '8.1f')}  MVD "
+            f"{_fmt(row['mvd'], '8.1f')}  tau {_fmt(row['tau'], '6.3f')}  nDCG@1 "
+            f"{_fmt(row['ndcg@1'], '.3f')}  train AVD {_fmt(row['avd_train'], '.1f')}"
+            f"  selected {int(m['n_selected'][i])}"
+            f"{'' if row['finite'] else '  NON-FINITE'}")
+
+
+def _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
+                truth_se, n_boot):
+    """Per lane: the selected point's test metrics, the final ones, their bootstrap intervals
+    over episodes (``n_boot`` replicates, seed = the lane's), the simulated values."""
+    for i, (meth, s) in enumerate(lanes):
+        chosen = select_point(points[i])
+        sel = result.setdefault("selected", {}).setdefault(
+            meth, {"step": [], **{k: [] for k in EVAL_METRICS}})
+        sel["step"].append(None if chosen is None else chosen["step"])
+        for k in EVAL_METRICS:
+            sel[k].append(None if chosen is None else chosen["test"][k])
+        r = evals[i]
+        for k in EVAL_METRICS:
+            result["per_seed"][meth][k].append(None if r is None else r[k])
+        iv = None
+        if r is not None and n_boot and np.all(np.isfinite(returns[i])):
+            iv = bootstrap_intervals(truth, returns[i], truth_se, n_boot=n_boot, seed=s,
+                                     ks=(1, 3, 5, 10))["metrics"]
+        result.setdefault("lane_intervals", {}).setdefault(meth, []).append(iv)
+        result.setdefault("intervals", {})[meth] = intervals_over_seeds(
+            result["lane_intervals"][meth])
+        result["lanes"][f"{meth}/{s}"] = {
+            "family": family, "eps": eps[i], "seed": s,
+            "sim_value": np.asarray(values[i]).tolist(),
+            "sim_length": np.round(lengths[i], 1).tolist(),
+            "finite": all(row["finite"] for row in result["curves"]
+                          if row["lane"] == f"{meth}/{s}")}
+
+
+def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_ds, test_ds,
+                 train_pols, test_pols, seeds, sizes: dict, robust_eps=None,
+                 check_eval: bool = False):
+    """One family's lanes (its ``methods`` x ``seeds``, key PRNGKey(seed), eps the method's
+    default or ``robust_eps`` for the robust ones) trained as one vmapped program over the
+    local devices, evaluated on the test policies and the training policies' held-out
+    episodes every ``sizes["eval_every"]`` steps, into ``result`` (curves, per-seed final
+    metrics, model selection, intervals, lanes, train_config, timings["eval_<family>"]).
+    ``check_eval``: also ``evaluate_simulator`` on the first lane (result["eval_check"]).
+    -> (lanes [(method, seed)] * L, their final TrainState, leading lane axis L)"""
+    t0 = time.perf_counter()
+    data = make_train_data(train_ds, train_pols, cfg)
+    truth = true_values(test_ds, cfg.vd_horizon, cfg.gamma)
+    test_pool = start_pool(test_ds)
+    select_pool, select_truth = heldout_start_pool(train_ds), np.asarray(data.true_value)
+    lanes = [(m, s) for m in methods for s in seeds]
+    points = [[] for _ in lanes]  # per lane: {"step", "select", "test"} (model selection)
+    eps = [float(robust_eps) if robust_eps is not None and DEFAULT_EPS[m] < 1
+           else DEFAULT_EPS[m] for m, _ in lanes]
+    keys = jnp.stack([jax.random.PRNGKey(s) for _, s in lanes])
+    states = init_lanes(keys, cfg, data, eps=jnp.asarray(eps, jnp.float32))
+    mesh = lane_mesh(len(lanes))  # lanes over the local devices (one: unchanged)
+    states = jax.block_until_ready(shard_lanes(states, mesh))
+    data = replicate(data, mesh)
+    log(f"[paper] {family}: {len(lanes)} lanes over {mesh.size} device(s) "
+        f"{', '.join(f'{m}/{s} (eps {e:g})' for (m, s), e in zip(lanes, eps, strict=True))}"
+        f", config method {cfg.method}; init {time.perf_counter() - t0:.1f}s")
+    n = sizes["eval_every"]
+    compiled, evals, t_eval = {}, None, 0.0
+    worst = [None] * len(lanes)  # each lane's worst training VD at its last evaluation
+    roll = dict(n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
+    lane_seeds = [s for _, s in lanes]
+    for _ in range(sizes["steps"] // n):
+        t1 = time.perf_counter()
+        states, m = jax.block_until_ready(train_lanes(states, data, n, cfg, compiled))
+        seconds = time.perf_counter() - t1
+        t1 = time.perf_counter()
+        sims = simulator(states)
+        evals, values, returns, lengths = evaluate_lanes(
+            sims, lane_seeds, test_pols, test_pool, truth, key_base=1000, **roll)
+        selects = evaluate_lanes(sims, lane_seeds, data.policies, select_pool, select_truth,
+                                 key_base=2000, **roll)[0]
+        t_eval += time.perf_counter() - t1
+        step = int(states.step[0])
+        header = (f"[paper] {family} step {step}: {n} steps of {len(lanes)} lanes in "
+                  f"{seconds:.1f}s; test evaluation {time.perf_counter() - t1:.1f}s")
+        _evaluation_point(result, lanes, step, m, evals, selects, points, worst, header)
+    _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
+                true_values_se(test_ds, cfg.vd_horizon, cfg.gamma), sizes["bootstrap"])
+    result["true_value"] = np.asarray(truth).tolist()
+    result.setdefault("train_config", {})[family] = cfg.to_dict()
+    result["timings"][f"eval_{family}"] = round(t_eval, 1)
+    if check_eval:
+        r = evaluate_simulator(simulator(take_lanes(states, 0)), test_ds, test_pols,
+                               key=jax.random.PRNGKey(1000 + lanes[0][1]),
+                               n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
+                               gamma=cfg.gamma)
+        diff = float(np.max(np.abs(np.asarray(r["sim_value"]) - values[0])))
+        result.setdefault("eval_check", {})[family] = {
+            "lane": f"{lanes[0][0]}/{lanes[0][1]}", "max_abs_diff": diff,
+            "metrics": r["metrics"]}
+        log(f"[paper] check: evaluate_simulator on lane {lanes[0]} differs from the "
+            f"vmapped evaluation by at most {diff:.3g}")
+    return lanes, states
+
+
+# ------------------------------------------------------------------ results
+
+
+def _mean_or_none(vals):
+    vals = [v for v in vals if v is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def method_means(per_method: dict) -> dict:
+    """{method: {"mpi": [per lane], "api": [...], ...}} -> their means (None where no lane
+    has one), for the methods that have any "mpi"."""
+    return {m: {k: _mean_or_none(vals) for k, vals in v.items()}
+            for m, v in per_method.items() if v["mpi"]}
+
+
+def fmt_ms(mean, std) -> str:
+    """'mean ±std' for a log line ('n/a' without a mean)."""
+    return "n/a" if mean is None else f"{mean:.3f}" + ("" if std is None else f" ±{std:.2g}")
+
+
+def summarise(result: dict) -> None:
+    """Fill result["methods"] (mean over seeds), ["std"] (sample std, None for one value) and
+    ["n"] (values averaged) from result["per_seed"]."""
+    for m, per in result["per_seed"].items():  # the methods and "oracle"
+        mean, std, n = {}, {}, {}
+        for k in METRICS:
+            vals = [v for v in per.get(k, []) if v is not None]
+            n[k] = len(vals)
+            mean[k] = float(np.mean(vals)) if vals else None
+            std[k] = float(np.std(vals, ddof=1)) if len(vals) > 1 else None
+        result["methods"][m], result["std"][m], result["n"][m] = mean, std, n
+    for m, per in result.get("selected", {}).items():  # the test metrics at the chosen steps
+        result.setdefault("methods_selected", {})[m] = {
+            k: (float(np.mean([v for v in vals if v is not None]))
+                if any(v is not None for v in vals) else None)
+            for k, vals in per.items() if k != "step"}
+
+
+def write_result(path: str, result: dict) -> None:
+    """Summarise ``result`` and write it atomically (on the writing process only)."""
+    summarise(result)
+    if not is_writer():
+        return
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(result, f, indent=1)
+    os.replace(tmp, path)
+
+
+def table(result: dict) -> str:
+    """The summary printed at the end: per method (and the oracle) mean ± std over seeds."""
+    cols = ("kendall_tau", "ndcg@1", "ndcg@5", "spearman", "avd", "mvd", "mpi", "api")
+    lines = [f"{'method':<9}" + "".join(f"{c:>16}" for c in cols)]
+    for m in [m for m in METHODS + ("oracle",) if m in result["methods"]]:
+        cells = []
+        for c in cols:
+            v, s = result["methods"][m].get(c), result["std"][m].get(c)
+            cells.append("n/a" if v is None else f"{v:.3g}" + ("" if s is None else
+                                                                f" ±{s:.2g}"))
+        lines.append(f"{m:<9}" + "".join(f"{c:>16}" for c in cells))
+    return "\n".join(lines)

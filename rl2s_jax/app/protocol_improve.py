@@ -1,0 +1,301 @@
+"""The paper protocol's improvement phases (``experiments/paper.py``, phase 3): SAC fine-tunes
+test policies inside every lane's simulator (``improve.lanes``: all methods x seeds x policies
+as one vmapped program), once per variant of the simulated env, the fine-tuned policies' real
+returns are measured paired with the start policies', and the same fine-tuning in the real
+env is the control. Everything lands in the result dict of ``app.protocol``."""
+from __future__ import annotations
+
+import dataclasses
+import time
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rl2s_jax.app.protocol import (
+    IMPROVE_METRICS,
+    METHODS,
+    fmt_ms,
+    log,
+    method_means,
+    none_if_nan,
+    take_lanes,
+)
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.envs.tasks import Task, get_task
+from rl2s_jax.improve.finetune import improve_in_real_env, improvement_metrics, paired_returns
+from rl2s_jax.improve.lanes import finite_mean, guard_lanes, improve_in_lanes, pick_policies
+from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
+from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.policy.policy import Params, index_params
+from rl2s_jax.policy.sac import SACConfig, episode_returns
+from rl2s_jax.train.step import simulator
+
+
+@dataclasses.dataclass
+class FineTuning:
+    """What every fine-tuning of one protocol run shares: the test policies fine-tuned
+    (``ids`` [P] into the test data, their true returns ``c0`` [P], their stacked params
+    ``policies``), the SAC settings and budget, and the real measurement's protocol."""
+
+    task: Task
+    ids: list[int]
+    c0: np.ndarray
+    policies: Params
+    horizon: int
+    sac: SACConfig
+    iterations: int
+    chunk: int
+    episodes: int
+    episode_length: int
+    gamma: float
+
+
+def setup_fine_tuning(result: dict, task_name: str, test_ds, test_pols, sizes: dict,
+                      horizon: int, sac_settings: dict) -> FineTuning:
+    """The test policies to fine-tune (``sizes["improve_policies"]`` spread over their true
+    returns, none with C0 = 0) and ``SACConfig.fine_tuning`` for episodes of ``horizon``
+    steps with ``sac_settings`` (the profile's, then --sac-set) on top; its fields go to
+    result["sac_config"]."""
+    task = get_task(task_name)
+    it = sizes["improve_iterations"]
+    c0_all = np.asarray(test_ds.value, np.float64)
+    ids = [i for i in pick_policies(c0_all, sizes["improve_policies"]) if c0_all[i] != 0]
+    n_envs = sizes["sac_envs"]
+    sac = SACConfig.fine_tuning(**{**dict(episode_length=horizon, n_envs=n_envs,
+                                          critic_warmup_updates=sizes["sac_critic_warmup"],
+                                          updates_per_step=sizes["sac_updates_per_step"],
+                                          buffer_size=min(100_000, n_envs * (64 + it))),
+                                   **sac_settings})
+    result["sac_config"] = {k: (list(v) if isinstance(v, tuple) else v)
+                            for k, v in dataclasses.asdict(sac).items()}
+    if sac.critic_warmup_updates >= it * sac.updates_per_step:
+        log("[paper] note: the critic warm-up covers every SAC update, so the actors stay "
+            "as they were")
+    return FineTuning(
+        task=task, ids=ids, c0=c0_all[ids], policies=index_params(test_pols, np.asarray(ids)),
+        horizon=horizon, sac=sac, iterations=it, chunk=min(sizes["sac_chunk"], it),
+        episodes=sizes["improve_episodes"],
+        episode_length=int(test_ds.meta.get("episode_length") or task.episode_length),
+        gamma=float(test_ds.meta.get("gamma") or 0.999))
+
+
+def lane_simulators(finals: dict, last_seed: int):
+    """The simulators of every family's lanes of seeds < ``last_seed``, concatenated.
+    finals: {family: (lanes [(method, seed)], TrainState with a lane axis)}.
+    -> (lanes, Simulator with a leading lane axis); SystemExit when the families'
+    simulators differ in a static setting (they must run in one program)."""
+    lanes, sims = [], []
+    for fam_lanes, states in finals.values():
+        idx = [i for i, (_, s) in enumerate(fam_lanes) if s < last_seed]
+        lanes += [fam_lanes[i] for i in idx]
+        sims.append(take_lanes(simulator(states), idx))
+    statics = {(s.task, s.obs_clip, s.noise_scale, s.n_elites, s.member_mode, s.uncertainty)
+               for s in sims}
+    if len(statics) != 1:
+        raise SystemExit(f"set: the families' simulators differ in {statics}; they must "
+                         f"share task, obs_clip, sim_noise and the ensemble's rollout settings "
+                         f"to be fine-tuned together")
+    return lanes, jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *sims)
+
+
+def _measure(ft: FineTuning, actors, chosen):
+    """The start policies, every lane's fine-tuned ones (actors [L, P, ...]) and the
+    snapshots the guard chose (L stacked [P]) measured in the real env from common starts and
+    noise draws (``measure_values``' common_groups), C0 alongside.
+    -> (returns [G, P, n], per lane ``paired_returns``)"""
+    L, P = jax.tree_util.tree_leaves(actors)[0].shape[:2]
+    flat = jax.tree_util.tree_map(lambda x: x.reshape((L * P,) + x.shape[2:]), actors)
+    groups = [ft.policies, flat, *chosen]
+    with_start = jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *groups)
+    G = 1 + L + len(chosen)
+    real = measure_values(ft.task.make_env(), with_start, key=jax.random.PRNGKey(20),
+                          n_episodes=ft.episodes, episode_length=ft.episode_length,
+                          gamma=ft.gamma, common_groups=G, per_episode=True)
+    r = np.asarray(real["returns"], np.float64).reshape(G, P, -1)
+    return r, [paired_returns(r[0], r[1 + i]) for i in range(L)]
+
+
+def _lane_entries(ft: FineTuning, lanes, methods, r, paired, sim_return, accepted,
+                  chosen_index):
+    """Per lane its improvement entry (I, MPI / API, paired, guarded and snapshot versions);
+    per method the lanes' MPI / API lists. -> (entries by "method/seed", per_method,
+    guarded per method, snapshots per method)"""
+    c0, L = ft.c0, len(lanes)
+    c1 = np.stack([pr["c1"] for pr in paired])
+    se = np.stack([pr["c1_se"] for pr in paired])
+    improvement = {}
+    per_method = {m: {k: [] for k in IMPROVE_METRICS} for m in methods}
+    guarded_method = {m: {"mpi": [], "api": []} for m in per_method}
+    snapshot_method = {m: {"mpi": [], "api": [], "mpi_paired": [], "api_paired": []}
+                       for m in per_method}
+    for i, (m, s) in enumerate(lanes):
+        try:
+            imp = improvement_metrics(c0, c1[i])
+        except ValueError as err:  # a non-finite real return
+            log(f"  {m:<8} seed {s}  no MPI/API: {err}")
+            imp = {"I": np.full(len(ft.ids), np.nan), "mpi": None, "api": None}
+        per_method[m]["mpi"].append(imp["mpi"])
+        per_method[m]["api"].append(imp["api"])
+        pr = paired[i]
+        entry = improvement[f"{m}/{s}"] = {
+            "method": m, "seed": s, "policy_ids": ft.ids, "c0": c0.tolist(),
+            "c1": [none_if_nan(x) for x in c1[i]], "c1_se": se[i].tolist(),
+            "I": [none_if_nan(x) for x in imp["I"]],
+            "sim_return": [none_if_nan(x) for x in sim_return[i]],
+            "mpi": imp["mpi"], "api": imp["api"],
+            # C0 re-measured on the episodes of C1 (paired), I from the pair
+            "paired_episodes": int(r.shape[-1]),
+            "c0_paired": pr["c0"].tolist(), "c0_paired_se": pr["c0_se"].tolist(),
+            "diff_se": pr["diff_se"].tolist(), "I_paired": pr["I"].tolist(),
+            "mpi_paired": pr["mpi"], "api_paired": pr["api"]}
+        per_method[m]["mpi_paired"].append(pr["mpi"])
+        per_method[m]["api_paired"].append(pr["api"])
+        if accepted is not None and imp["mpi"] is not None:
+            # a kept start policy earns its C0: I = 0
+            dep = improvement_metrics(c0, np.where(accepted[i], c1[i], c0))
+            entry.update(guard_accepted=accepted[i].tolist(), I_deployed=dep["I"].tolist(),
+                         mpi_deployed=dep["mpi"], api_deployed=dep["api"])
+            guarded_method[m]["mpi"].append(dep["mpi"])
+            guarded_method[m]["api"].append(dep["api"])
+        if chosen_index is not None and imp["mpi"] is not None:
+            idx = chosen_index[i]
+            c1_snap = paired_returns(r[0], r[1 + L + i])
+            dep = improvement_metrics(c0, np.where(idx > 0, c1_snap["c1"], c0))
+            i_paired = np.where(idx > 0, c1_snap["I"], 0.0)  # a kept start: I = 0
+            entry.update(guard_snapshot=idx.tolist(), I_snapshot=dep["I"].tolist(),
+                         mpi_snapshot=dep["mpi"], api_snapshot=dep["api"],
+                         I_snapshot_paired=i_paired.tolist())
+            snapshot_method[m]["mpi"].append(dep["mpi"])
+            snapshot_method[m]["api"].append(dep["api"])
+            snapshot_method[m]["mpi_paired"].append(float(i_paired.min()))
+            snapshot_method[m]["api_paired"].append(float(i_paired.mean()))
+        if imp["mpi"] is not None:
+            log(f"  {m:<8} seed {s}  MPI {imp['mpi']:8.3f}  API {imp['api']:8.3f}  "
+                f"(C1 - C0 mean {np.mean(c1[i] - c0):.1f}, simulated training return "
+                f"{finite_mean(sim_return[i])})")
+    return improvement, per_method, guarded_method, snapshot_method
+
+
+def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants, *,
+                    settings_of: Callable[[str], dict], ablation_methods,
+                    guard_margin: float | None, guard_snapshots: bool,
+                    phase: Callable[[str, float], None], save: Callable[[], None]) -> None:
+    """Every variant's fine-tuning in the lanes ``lanes`` / ``sims`` (``lane_simulators``):
+    the first variant in every lane (MPI / API of Table 2: result["per_seed"],
+    ["improvement"]), the others in the lanes of ``ablation_methods`` only; each into
+    result["ablation"][variant] (with ``guard_margin``: also "<variant>+guard", with
+    ``guard_snapshots`` "<variant>+guard-snapshots"). settings_of(variant): its
+    ``scaled_env_options`` settings. ``phase(name, t0)`` records a timing, ``save()`` writes
+    the result after each variant."""
+    keys = jnp.stack([jax.random.split(jax.random.fold_in(jax.random.PRNGKey(10 + s),
+                                                          METHODS.index(m)), len(ft.ids))
+                      for m, s in lanes])
+    u_rows = real_rows(test_ds)
+    methods = [m for m in result["per_seed"] if m in METHODS]
+    result["ablation"] = {}
+    for vi, variant in enumerate(variants):
+        t0 = time.perf_counter()
+        # the first variant runs in every lane (Table 2), the others in the lanes of
+        # --ablation-methods only
+        v_idx = [i for i, (m, _) in enumerate(lanes) if vi == 0 or m in ablation_methods]
+        if not v_idx:
+            continue
+        v_lanes, v_sims = [lanes[i] for i in v_idx], take_lanes(sims, v_idx)
+        settings = settings_of(variant)
+        pool = (branch_pool(test_ds, max_states=100_000) if settings["rollout_length"]
+                else start_pool(test_ds))
+
+        def env_options(sim, settings=settings):
+            return scaled_env_options(sim, *u_rows, **settings)
+
+        log(f"[paper] improvement ({variant}: {settings}): SAC x {ft.iterations} iterations "
+            f"({ft.sac.n_envs} envs, {ft.sac.updates_per_step} update(s) per iteration, critic "
+            f"warm-up {ft.sac.critic_warmup_updates} updates, episodes of {ft.horizon} "
+            f"steps) for {len(ft.ids)} test policies in {len(v_lanes)} simulators "
+            f"({', '.join(f'{m}/{s}' for m, s in v_lanes)}) as one program")
+        actors, sim_return = improve_in_lanes(
+            v_sims, ft.task, pool, ft.policies, keys[jnp.asarray(v_idx)], ft.sac,
+            n_iterations=ft.iterations, chunk=ft.chunk, env_options=env_options,
+            snapshots=guard_snapshots, log=lambda m: log(f"[paper]   {m}"))
+        snaps = None
+        if guard_snapshots:  # [C, L, P, ...]; the final actors are the last
+            snaps, actors = actors, jax.tree_util.tree_map(lambda x: x[-1], actors)
+        tag = "" if vi == 0 else f"[{variant}]"
+        phase(f"improve_sac{tag}", t0)
+        accepted, chosen_index, chosen = None, None, []
+        if guard_margin is not None:  # each simulator's own verdict per policy
+            t0 = time.perf_counter()
+            accepted, chosen_index, chosen = guard_lanes(
+                v_sims, ft.policies, actors, snaps, ft.task, start_pool(test_ds),
+                margin=guard_margin, horizon=ft.horizon, gamma=ft.gamma)
+            phase(f"improve_guard{tag}", t0)
+        t0 = time.perf_counter()
+        r, paired = _measure(ft, actors, chosen)
+        phase(f"improve_measure{tag}", t0)
+        improvement, per_method, guarded, snapshot = _lane_entries(
+            ft, v_lanes, methods, r, paired, sim_return, accepted, chosen_index)
+        if vi == 0:
+            for m in per_method:
+                for k in IMPROVE_METRICS:
+                    result["per_seed"][m].setdefault(k, [])
+                    result["per_seed"][m][k] += per_method[m][k]
+            result["improvement"] = improvement
+            result["improve_variant"] = variant
+        result["ablation"][variant] = {"settings": settings, "lanes": improvement,
+                                       "methods": method_means(per_method)}
+        if accepted is not None:
+            result["ablation"][f"{variant}+guard"] = {
+                "settings": {**settings, "guard_margin": guard_margin},
+                "methods": method_means(guarded)}
+        if chosen_index is not None:
+            result["ablation"][f"{variant}+guard-snapshots"] = {
+                "settings": {**settings, "guard_margin": guard_margin,
+                             "snapshot_every": ft.chunk},
+                "methods": method_means(snapshot)}
+        save()
+
+
+def control_entry(res: dict, ids: list[int], c0_data: np.ndarray, n_seeds: int,
+                  train_return: np.ndarray) -> dict:
+    """The JSON 'control' entry from ``measure_improvement``'s dict over R seeds x P policies
+    (seed-major [R * P] lists c0, c0_se, c1, c1_se, diff_se): per seed MPI/API and per-policy
+    C0/C1 with standard errors ([R][P]); their mean and sample std over seeds. c0_data [P]:
+    the data's true returns; train_return [R * P, ...]: SAC's training returns."""
+    P = len(ids)
+    shape = lambda k: np.asarray(res[k], np.float64).reshape(n_seeds, P)
+    c0, c0_se, c1, c1_se = shape("c0"), shape("c0_se"), shape("c1"), shape("c1_se")
+    diff_se = shape("diff_se")  # measure_improvement measures C0 and C1 paired
+    per = [improvement_metrics(c0[r], c1[r]) for r in range(n_seeds)]
+    mpi, api = [p["mpi"] for p in per], [p["api"] for p in per]
+    std = lambda x: float(np.std(x, ddof=1)) if len(x) > 1 else None
+    return {"policy_ids": ids, "seeds": n_seeds, "c0_data": np.asarray(c0_data).tolist(),
+            "c0": c0.tolist(), "c0_se": c0_se.tolist(), "c1": c1.tolist(),
+            "c1_se": c1_se.tolist(), "diff_se": diff_se.tolist(), "paired": True,
+            "I": [p["I"].tolist() for p in per],
+            "train_return": [none_if_nan(x) for x in np.asarray(train_return).reshape(-1)],
+            "mpi_per_seed": mpi, "api_per_seed": api, "mpi": float(np.mean(mpi)),
+            "api": float(np.mean(api)), "mpi_std": std(mpi), "api_std": std(api)}
+
+
+def run_control(result: dict, ft: FineTuning, n_seeds: int,
+                phase: Callable[[str, float], None]) -> None:
+    """The same fine-tuning (policies, budget, SAC settings) in the real env, ``n_seeds``
+    times, with real returns before and after (``improve_in_real_env``): result["control"],
+    the ceiling of improvement for that budget; ``phase("control", t0)`` its timing."""
+    t0 = time.perf_counter()
+    log(f"[paper] control: the same SAC x {ft.iterations} iterations in the real env for "
+        f"{len(ft.ids)} test policies x {n_seeds} seed(s)")
+    tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * n_seeds), ft.policies)
+    _, ctrl_metrics, ctrl = improve_in_real_env(
+        ft.task, tiled, jax.random.PRNGKey(30), ft.sac, n_iterations=ft.iterations,
+        n_episodes=ft.episodes, episode_length=ft.episode_length, gamma=ft.gamma,
+        chunk_iterations=ft.chunk)
+    # the training return of the last chunk
+    result["control"] = control_entry(ctrl, ft.ids, ft.c0, n_seeds, np.asarray(episode_returns(
+        jax.tree_util.tree_map(lambda x: x[:, -ft.chunk:], ctrl_metrics))))
+    phase("control", t0)
+    cc = result["control"]
+    log(f"[paper] control (real env): MPI {fmt_ms(cc['mpi'], cc['mpi_std'])}  API "
+        f"{fmt_ms(cc['api'], cc['api_std'])} over {n_seeds} seed(s)")

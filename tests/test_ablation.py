@@ -132,6 +132,36 @@ def test_episode_lengths_count_whole_episodes():
     np.testing.assert_allclose(episode_lengths(ds), [4.0, 4.0])
 
 
+def test_hazard_check_reads_each_lanes_learned_hazard(pm_falls):
+    """hazard_check on two lanes' simulators: per lane the summed h(s, a) over the data's rows
+    and its cross-entropy, against the hazard each lane learned (model.termination)."""
+    import jax
+    import jax.numpy as jnp
+
+    from rl2s_jax.model.termination import hazard_prob
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.lanes import init_lanes
+
+    ds, params = pm_falls
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_every=0, termination="both",
+                            hazard_hidden=(16,), hazard_steps=20)
+    states = init_lanes(jnp.stack([jax.random.PRNGKey(0), jax.random.PRNGKey(1)]), cfg,
+                        make_train_data(ds, params, cfg))
+    res = errors.hazard_check(simulator(states, average=False), ds)
+    done = np.asarray(ds.done)
+    assert res["rows"] == done.size and res["done"] == int(done.sum())
+    for lane in range(2):
+        lane_state = jax.tree_util.tree_map(lambda x, i=lane: x[i], states)
+        h = np.asarray(hazard_prob(lane_state.hazard, lane_state.norm, jnp.asarray(ds.obs),
+                                   jnp.asarray(ds.action), cfg.hazard_window), np.float64)
+        assert res["predicted"][lane] == pytest.approx(h.sum(), abs=0.1)
+        p = np.clip(h, 1e-7, 1 - 1e-7)
+        bce = -np.mean(done * np.log(p) + (1 - done) * np.log1p(-p))
+        assert res["bce"][lane] == pytest.approx(bce, abs=1e-4)
+    assert res["predicted"][0] != res["predicted"][1]  # each lane its own hazard
+
+
 def test_termination_causes_split_the_done_rule():
     from rl2s_jax.envs.tasks import get_task
     o = np.zeros((5, 12), np.float32)

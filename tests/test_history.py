@@ -6,26 +6,29 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from brax.envs import base as brax_base
 from test_train import BIASES, GAMMA
 from test_train import _policies as _pm_policies
 
 from rl2s_jax.data.collect import collect
+from rl2s_jax.data.dataset import concat_datasets
 from rl2s_jax.data.episodes import from_dataset
-from rl2s_jax.diagnose.model import history as diagnosis_history
 from rl2s_jax.diagnose.planted_mjx import make_planted_env
-from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.envs.tasks import POINTMASS_DT, PointMass, get_task
 from rl2s_jax.evaluate.simulator import one_step_errors
 from rl2s_jax.improve.sim_env import SimulatorEnv
 from rl2s_jax.model import history as H
 from rl2s_jax.model.simulator import simulator_returns, start_pool
 from rl2s_jax.train.checkpoint import Checkpointer, load_simulator
 from rl2s_jax.train.config import TrainConfig
-from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.data import heldout_mask, make_train_data
 from rl2s_jax.train.step import init, simulator, train_steps
 
 TASK = get_task("pointmass")
 MARKOV = TrainConfig.small(task="pointmass", method="bc", vd_horizon=50, vd_every=5)
 DELAYED = dataclasses.replace(MARKOV, action_history=1, time_inputs=("step",))
+ORDERED = dataclasses.replace(MARKOV, time_inputs=("order",))
+DRIFT_GAINS = (0.5, 2.0)  # the actuator gain of the first and the second half of the recording
 _init = jax.jit(init, static_argnums=1)
 _steps = jax.jit(train_steps, static_argnums=2)
 
@@ -56,18 +59,52 @@ def trained(delayed):
     return out
 
 
+class GainPointMass(PointMass):
+    """Pointmass whose actuator gain is ``gain`` (the task's is 1): v' gets
+    (gain - 1) dt 2 clip(a) more than the task's."""
+
+    def __init__(self, gain: float):
+        super().__init__()
+        self.gain = float(gain)
+
+    def step(self, state: brax_base.State, action: jax.Array) -> brax_base.State:
+        nxt = super().step(state, action)
+        dv = (self.gain - 1.0) * POINTMASS_DT * 2.0 * jnp.clip(action[0], -1, 1)
+        x = nxt.obs + jnp.stack([POINTMASS_DT * dv, dv])
+        return nxt.replace(pipeline_state=x, obs=x)
+
+
+@pytest.fixture(scope="module")
+def drift():
+    """A Pointmass recording whose actuator drifts: the six policies recorded at gain 0.5,
+    then again at gain 2.0, one Dataset in recording order (``concat_datasets``), and
+    (Markov state, order state, data of each) after 40 BC steps from the same seed."""
+    policies = _pm_policies(BIASES)
+    kw = dict(transitions_per_policy=300, envs_per_policy=2,
+              episode_length=TASK.episode_length, task="pointmass", gamma=GAMMA,
+              progress=False, value_episodes=4)
+    ds = concat_datasets([collect(GainPointMass(g), policies, key=jax.random.PRNGKey(i), **kw)
+                          for i, g in enumerate(DRIFT_GAINS)])
+    out = {}
+    for name, cfg in (("markov", MARKOV), ("order", ORDERED)):
+        data = make_train_data(ds, policies, cfg)
+        state, _ = _steps(_init(jax.random.PRNGKey(0), cfg, data), data, 40)
+        out[name] = (state, data)
+    return ds, policies, out
+
+
 def test_logged_history_matches_diagnosis_and_numpy(delayed):
     """Training's logged past (``logged_history``, ``TrainData.row_history``) is the input
-    diagnosis fits: the same arrays as ``diagnose.model.history`` and a plain loop."""
+    diagnosis fits: the same arrays as ``Episodes.past`` and a plain loop."""
     ds, _, policies = delayed
     rows = np.r_[0, 1, 2, 57, 300, ds.n_transitions - 1]
     h = H.logged_history(ds, rows, obs_history=2, action_history=3)
     eps = from_dataset(ds, position_dims=())
     for x, k, past, valid in ((ds.action, 3, h.past_act, h.past_act_valid),
                               (ds.obs, 2, h.past_obs, h.past_obs_valid)):
-        ref, ref_valid = diagnosis_history(eps, np.asarray(x, np.float32), k, rows)
-        np.testing.assert_array_equal(np.asarray(past), ref)
-        np.testing.assert_array_equal(np.asarray(valid), ref_valid)
+        ref, ref_valid = eps.past(np.asarray(x, np.float32), k)
+        np.testing.assert_array_equal(np.asarray(past), ref[rows])
+        np.testing.assert_array_equal(np.asarray(valid), ref_valid[rows])
     t, pid, eid = (np.asarray(v) for v in (ds.t, ds.policy_id, ds.episode_id))
     for i, r in enumerate(rows):  # the loop: walk back while the episode goes on
         for j in range(3):
@@ -87,6 +124,71 @@ def test_logged_history_matches_diagnosis_and_numpy(delayed):
     ref = H.logged_history(ds, order[idx], obs_history=0, action_history=3)
     np.testing.assert_array_equal(np.asarray(mine.past_act), np.asarray(ref.past_act))
     np.testing.assert_array_equal(np.asarray(mine.t), np.asarray(ref.t))
+
+
+def test_logged_order_is_the_episodes_place_in_the_recording(drift):
+    """Training's recording-order input (``dataset_episode_order``, ``logged_history``, the
+    training rows' ``TrainData.order`` and the held-out rows' ``val_hist``) is diagnosis's
+    ``Episodes.order``: episode index in order of appearance / (E - 1)."""
+    ds, policies, _ = drift
+    eps = from_dataset(ds, position_dims=())
+    order = H.dataset_episode_order(ds)
+    np.testing.assert_array_equal(order, eps.order)
+    assert order[0] == 0.0 and order[-1] == 1.0 and eps.n_episodes > 2
+    # the second half of the recording (gain 2.0) is the later half of the order
+    half = ds.n_transitions // 2
+    assert order[:half].max() < order[half:].min()
+    rows = np.r_[0, 1, 299, 300, 1799, 1800, ds.n_transitions - 1]
+    h = H.logged_history(ds, rows, obs_history=0, action_history=0, time_inputs=("order",))
+    np.testing.assert_array_equal(np.asarray(h.order), eps.order[rows].astype(np.float32))
+    np.testing.assert_array_equal(np.asarray(h.times[:, 0]), np.asarray(h.order))
+    assert H.logged_history(ds, rows, obs_history=0, action_history=1).order is None
+    # both inputs stack in the order named: "step" is t / episode_length, "order" the place
+    h2 = H.logged_history(ds, rows, obs_history=0, action_history=0,
+                          time_inputs=("step", "order"), episode_length=TASK.episode_length)
+    np.testing.assert_allclose(np.asarray(h2.times), np.stack(
+        [np.minimum(np.asarray(ds.t)[rows] / TASK.episode_length, 1.0), eps.order[rows]], -1),
+        rtol=1e-6)
+    # the training rows (grouped by policy) and the held-out rows carry their episode's
+    cfg = ORDERED
+    data = make_train_data(ds, policies, cfg)
+    held = heldout_mask(ds, cfg.holdout_frac)
+    keep = np.flatnonzero(~held)
+    train_rows = keep[np.argsort(np.asarray(ds.policy_id)[keep], kind="stable")]
+    np.testing.assert_array_equal(np.asarray(data.order),
+                                  eps.order[train_rows].astype(np.float32))
+    idx = np.asarray([0, 7, 1000, len(train_rows) - 1])
+    np.testing.assert_array_equal(np.asarray(data.row_history(jnp.asarray(idx)).order),
+                                  eps.order[train_rows[idx]].astype(np.float32))
+    val = np.flatnonzero(held)
+    assert val.size <= cfg.holdout_rows  # all held-out rows score
+    np.testing.assert_array_equal(np.asarray(data.val_hist.order),
+                                  eps.order[val].astype(np.float32))
+    assert make_train_data(ds, policies, DELAYED).order is None
+
+
+def test_rollouts_run_at_the_end_of_the_recording():
+    """A simulated episode's order is 1.0: from the start, after pushes, and again where an
+    episode restarts (the other fields empty there, as before)."""
+    h = H.empty_history((3,), 2, 1, obs_history=1, action_history=1,
+                        time_inputs=("step", "order"), episode_length=10)
+    np.testing.assert_array_equal(np.asarray(h.order), [1.0, 1.0, 1.0])
+    h = H.push_history(h, jnp.ones((3, 2)), jnp.ones((3, 1)))
+    h = H.push_history(h, jnp.ones((3, 2)), jnp.ones((3, 1)))
+    np.testing.assert_array_equal(np.asarray(h.order), [1.0, 1.0, 1.0])
+    np.testing.assert_allclose(np.asarray(h.times), [[0.2, 1.0]] * 3)
+    # a logged past (order 0.25) resets to the end of the recording, not to 0
+    h = h.replace(order=jnp.full((3,), 0.25))
+    r = H.reset_history(h, jnp.asarray([True, False, True]))
+    np.testing.assert_array_equal(np.asarray(r.order), [1.0, 0.25, 1.0])
+    np.testing.assert_array_equal(np.asarray(r.t), [0, 2, 0])
+    np.testing.assert_array_equal(np.asarray(r.past_act_valid[:, 0]), [False, True, False])
+    assert H.empty_history((3,), 2, 1, obs_history=1, action_history=0,
+                           time_inputs=("step",)).order is None
+    assert H.reset_history(H.empty_history((2,), 2, 1, obs_history=1, action_history=0),
+                           jnp.asarray([True, False])).order is None
+    with pytest.raises(ValueError, match="order"):
+        _ = h.replace(order=None).times
 
 
 def test_push_and_reset_keep_newest_first():
@@ -152,6 +254,44 @@ def test_history_simulator_needs_its_past_and_carries_it(trained, delayed):
     assert np.abs(np.asarray(ret) - np.asarray(ret_blind)).max() > 1e-3
 
 
+def test_recording_order_input_learns_a_drifting_actuator(drift):
+    """On a recording whose actuator gain went from 0.5 (first half) to 2.0 (second half),
+    members that see the episode's place in the recording fit the held-out episodes far
+    better than Markov ones (both 40 BC steps from the same seed), the late ones above all;
+    a rollout of that simulator runs at order 1 throughout, on the late dynamics."""
+    ds, _, out = drift
+    nll = {k: float(np.mean(np.asarray(s.heldout_nll))) for k, (s, _) in out.items()}
+    data = out["order"][1]
+    late = np.asarray(data.val_hist.order) >= 0.5
+    assert 0 < late.sum() < late.size
+    obs, act, nxt = (np.asarray(x)[late] for x in (data.val_obs, data.val_action,
+                                                    data.val_next_obs))
+    hist = H.take_history(data.val_hist, jnp.asarray(np.flatnonzero(late)))
+    std = np.asarray(data.norm.delta_std)
+    mse = {}
+    for k, (state, _) in out.items():
+        mean = simulator(state).mean(jnp.asarray(obs), jnp.asarray(act),
+                                     hist if k == "order" else None)
+        mse[k] = float(np.mean(((np.asarray(mean) - nxt) / std) ** 2))
+    print("drift: held-out NLL", nll, "late held-out MSE (delta stds)", mse)
+    assert nll["order"] < nll["markov"] - 1.0, nll
+    assert mse["order"] < 0.25 * mse["markov"], mse
+    # a rollout runs at order 1 throughout; a full push at v = 0 moves as gain 2.0 does
+    sim = simulator(out["order"][0])
+    env = SimulatorEnv(sim, start_pool(ds))
+    s = env.reset(jax.random.PRNGKey(3))
+    for a in (0.7, -0.4, 0.2):
+        s = env.step(s, jnp.asarray([a]))
+        assert float(s.pipeline_state[1].order) == 1.0
+    assert int(s.pipeline_state[1].t) == 3
+    h0 = sim.new_history(())
+    x0 = jnp.asarray([0.0, 0.0])
+    dv = float(sim.mean(x0, jnp.asarray([1.0]), h0)[1])
+    want = {g: POINTMASS_DT * 2.0 * g for g in DRIFT_GAINS}  # 0.05 at gain 0.5, 0.2 at 2.0
+    print("drift: one step from rest at full action, dv", dv, "true", want)
+    assert abs(dv - want[2.0]) < abs(dv - want[0.5]), (dv, want)
+
+
 def test_history_checkpoint_loads_with_its_inputs(trained, delayed, tmp_path):
     state, _ = trained["history"]
     ck = Checkpointer(tmp_path / "ck")
@@ -163,23 +303,42 @@ def test_history_checkpoint_loads_with_its_inputs(trained, delayed, tmp_path):
     assert one_step_errors(loaded, held) == one_step_errors(simulator(state), held)
 
 
-def test_adversarial_step_trains_a_history_simulator(delayed):
+def test_adversarial_step_trains_a_history_simulator(delayed, tmp_path):
     """WGAIL with history inputs: the simulated envs, the buffer and both losses carry the
     past; a few steps stay finite and the buffer's past is a pushed one (gail, no VD: the
     CVaR measurement's rollouts carry the past as rl2s's do, tested above)."""
     ds, _, policies = delayed
     cfg = dataclasses.replace(DELAYED, method="gail", vd_every=0, updates_per_step=1,
-                              disc_updates=1, sim_envs=8, sim_steps=2, buffer_size=256)
+                              disc_updates=1, sim_envs=8, sim_steps=2, buffer_size=256,
+                              time_inputs=("step", "order"))
     data = make_train_data(ds, policies, cfg)
     state, m = _steps(_init(jax.random.PRNGKey(0), cfg, data), data, 4)
     assert bool(np.all(np.asarray(m["finite"])))
     assert state.buffer_hist.past_act.shape == (cfg.buffer_size, 1, 1)
     assert int(state.sim.hist.t.max()) >= 1
+    # the recording order rides along: the buffer's and the simulated envs' (restarted from
+    # real rows, with their logged past) are logged episodes' places in [0, 1]
+    for h in (state.buffer_hist, state.sim.hist):
+        o = np.asarray(h.order)
+        assert o.shape == h.t.shape and o.min() >= 0.0 and o.max() <= 1.0
+    assert np.unique(np.asarray(state.buffer_hist.order)).size > 1
+    # a checkpoint holds the state with those histories and restores it exactly
+    ck = Checkpointer(tmp_path / "ck")
+    ck.save(state, {"data": {"obs_size": 2, "action_size": 1}})
+    back = ck.restore(state)
+    ck.close()
+    for a, b in zip(jax.tree_util.tree_leaves((state.buffer_hist, state.sim.hist)),
+                    jax.tree_util.tree_leaves((back.buffer_hist, back.sim.hist)), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    assert load_simulator(tmp_path / "ck").time_inputs == ("step", "order")
 
 
 def test_bad_history_settings_are_refused_by_name():
-    with pytest.raises(ValueError, match="time_inputs"):
-        TrainConfig.small(time_inputs=("order",)).validate()
+    for ok in (("order",), ("step",), ("order", "step"), ("step", "order")):
+        assert TrainConfig.small(time_inputs=ok).validate().time_inputs == ok
+    for bad in (("hour",), ("order", "order"), ["order"]):
+        with pytest.raises(ValueError, match="time_inputs"):
+            TrainConfig.small(time_inputs=bad).validate()
     with pytest.raises(ValueError, match="action_history"):
         TrainConfig.small(action_history=-1).validate()
     with pytest.raises(ValueError, match="termination"):

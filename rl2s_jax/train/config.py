@@ -17,10 +17,10 @@ from rl2s_jax.model.dynamics import (
     BOUND_KINDS,
     MEMBER_MODES,
     NOISE_KINDS,
+    TIME_INPUTS,
     UNCERTAINTY_KINDS,
     DynamicsSpec,
 )
-from rl2s_jax.model.history import SIM_TIME_INPUTS
 from rl2s_jax.model.termination import LEARNED, TERMINATIONS
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -94,7 +94,9 @@ class TrainConfig:
     # -- history inputs (docs/SIMULATOR.md, "History inputs"; what `rl2s diagnose` proposes)
     action_history: int = 0        # k previous actions of the episode fed to every member
     obs_history: int = 0           # k previous observations of the episode
-    time_inputs: tuple[str, ...] = ()  # ("step",): t / episode_length, the place in the episode
+    time_inputs: tuple[str, ...] = ()  # of ("order", "step"): "step", t / episode_length, the
+    # place in the episode; "order", the episode's place in the recording (0 first, 1 last;
+    # rollouts run at 1, the newest dynamics)
     context_dim: int = 0           # C: a per-episode context inferred online from the episode's
     # min(obs_history, action_history) newest transitions (history.history_context; 0: off)
     context_hidden: tuple[int, ...] = (64, 64)  # the context encoder's hidden sizes
@@ -259,11 +261,10 @@ class TrainConfig:
             raise ValueError(f"context_hidden: expected a non-empty tuple of positive ints, "
                              f"got {h!r}")
         t = self.time_inputs
-        if (not isinstance(t, tuple) or any(x not in SIM_TIME_INPUTS for x in t)
+        if (not isinstance(t, tuple) or any(x not in TIME_INPUTS for x in t)
                 or len(set(t)) != len(t)):
             raise ValueError(f"time_inputs: expected a tuple of distinct names from "
-                             f"{SIM_TIME_INPUTS} (diagnosis's 'order', the place in a "
-                             f"recording, has no value in a simulated episode), got {t!r}")
+                             f"{TIME_INPUTS}, got {t!r}")
         if self.termination == "predictive" and not self.markov:
             raise ValueError("termination: 'predictive' draws a next state from (s, a) alone; "
                              "with history inputs use 'rule', 'hazard' or 'both'")

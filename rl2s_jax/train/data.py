@@ -10,7 +10,13 @@ from flax import struct
 from rl2s_jax.data.episodes import from_dataset, split_episodes
 from rl2s_jax.data.values import true_values
 from rl2s_jax.model.dynamics import Normalizer
-from rl2s_jax.model.history import History, dataset_steps_back, logged_history, past_rows
+from rl2s_jax.model.history import (
+    History,
+    dataset_episode_order,
+    dataset_steps_back,
+    logged_history,
+    past_rows,
+)
 from rl2s_jax.model.simulator import (
     start_pool,
 )
@@ -34,8 +40,10 @@ class TrainData:
     is fitted to it; None: unknown).
     History inputs (static ``obs_history``, ``action_history``, ``time_inputs``,
     ``episode_length``, as the config's): steps_back [N] int32, how many rows of the same
-    episode precede row i, in order; t [N] int32, the row's step in its episode; val_hist,
-    the held-out rows' past (``row_history`` gives the training rows').
+    episode precede row i, in order; t [N] int32, the row's step in its episode; order [N]
+    float32, its episode's place in the recording order (``dataset_episode_order``; None
+    unless "order" is among the time inputs); val_hist, the held-out rows' past
+    (``row_history`` gives the training rows').
     """
 
     obs: jax.Array
@@ -54,6 +62,7 @@ class TrainData:
     done: jax.Array | None = None
     steps_back: jax.Array | None = None
     t: jax.Array | None = None
+    order: jax.Array | None = None
     val_hist: History | None = None
     obs_history: int = struct.field(pytree_node=False, default=0)
     action_history: int = struct.field(pytree_node=False, default=0)
@@ -71,11 +80,15 @@ class TrainData:
         if self.steps_back is None or self.t is None:
             raise ValueError("history inputs need TrainData.steps_back and t "
                              "(make_train_data sets them)")
+        if "order" in self.time_inputs and self.order is None:
+            raise ValueError("time_inputs: 'order' needs TrainData.order, each row's episode's "
+                             "place in the recording (make_train_data sets it)")
         past_obs, obs_valid = past_rows(self.obs, self.steps_back, rows, self.obs_history)
         past_act, act_valid = past_rows(self.action, self.steps_back, rows,
                                        self.action_history)
         return History(past_obs=past_obs, past_obs_valid=obs_valid, past_act=past_act,
                        past_act_valid=act_valid, t=self.t[rows],
+                       order=None if self.order is None else self.order[rows],
                        time_inputs=self.time_inputs, episode_length=self.episode_length)
 
     @property
@@ -142,9 +155,13 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
     extra = {}
     if not config.markov:
         back_all = dataset_steps_back(ds)
+        ep_order = dataset_episode_order(ds) if "order" in config.time_inputs else None
         extra = dict(steps_back=jnp.asarray(back_all[order], jnp.int32),
                      t=jnp.asarray(np.asarray(ds.t)[order], jnp.int32),
-                     val_hist=logged_history(ds, val, steps_back=back_all, **hist))
+                     order=None if ep_order is None else jnp.asarray(ep_order[order],
+                                                                     jnp.float32),
+                     val_hist=logged_history(ds, val, steps_back=back_all,
+                                             episode_order=ep_order, **hist))
     return TrainData(**hist, **extra, obs=f32(ds.obs, order), action=f32(ds.action, order),
                      next_obs=f32(ds.next_obs, order),
                      policy_start=jnp.asarray(starts, jnp.int32),

@@ -219,8 +219,8 @@ def test_train_set_builds_what_the_trained_simulator_lacks():
     """The extension as `rl2s train --set` items: the history inputs as TrainConfig fields,
     nothing the trained simulator already has (its noise head and beta 1), nll_beta raised
     only over a config below diagnosis's 0.5, the context with the past it is inferred from,
-    and the recording order named as not trainable. Every item parses through --set into a
-    valid TrainConfig."""
+    and both time inputs (the recording order too: rollouts run at its end). Every item parses
+    through --set into a valid TrainConfig."""
     change = lambda name, **c: {"cause": name, "change": c}
     items, skipped, already = train_set([
         change("actuation_delay", action_history=2),
@@ -228,13 +228,17 @@ def test_train_set_builds_what_the_trained_simulator_lacks():
         change("hidden_episode_parameter", context_dim=2),
         change("time_drift", time_inputs=["order", "step"])])
     assert items == ["action_history=4", "context_dim=2", "obs_history=4",
-                     'time_inputs=["step"]'], items
+                     'time_inputs=["order", "step"]'], items
     assert already == ['gen_noise="state"', "nll_beta=1.0"], already
-    assert [s["change"] for s in skipped] == ["time_inputs=order"]
-    assert all(s["why"] for s in skipped)
+    assert skipped == []
     cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), **parse_overrides(items)})
     assert (cfg.validate().action_history, cfg.context_dim, cfg.time_inputs) == (
-        4, 2, ("step",))
+        4, 2, ("order", "step"))
+    items, skipped, _ = train_set([change("time_drift", time_inputs=["order"])])
+    assert (items, skipped) == (['time_inputs=["order"]'], []), items
+    _, _, already = train_set([change("time_drift", time_inputs=["order"])],
+                              TrainConfig(time_inputs=("step", "order")))
+    assert already == ['time_inputs=["order", "step"]'], already
     legacy = TrainConfig(nll_beta=0.0, gen_noise="global", action_history=3)
     items, _, _ = train_set([change("stochastic_noise", noise="state", nll_beta=0.5),
                              change("actuation_delay", action_history=2)], legacy)

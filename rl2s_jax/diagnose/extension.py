@@ -63,8 +63,6 @@ def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]
 
 # What `rl2s train --set` cannot build yet, and why (the report says so beside train_set).
 NOT_TRAINABLE = {
-    "time_inputs:order": "the place in the recording order has no value in a simulated "
-                         "episode; retrain on the recent part of the data instead",
     "policy_cvar_eps": "weighting the worst policies is what --method rl2s / rl2s-bc do "
                        "(their eps); no --set needed",
 }
@@ -94,16 +92,12 @@ def train_set(changes: list[dict], base: TrainConfig | None = None
                 want["gen_noise"] = v
             elif k == "nll_beta":  # at least v
                 want["nll_beta"] = max(float(v), base.nll_beta)
-            elif k == "time_inputs":
-                if "step" in v:
-                    want["time_inputs"] = sorted(set(base.time_inputs) | {"step"})
-                if "order" in v:
-                    skipped.append({"change": "time_inputs=order",
-                                    "why": NOT_TRAINABLE["time_inputs:order"]})
+            elif k == "time_inputs":  # "order": rollouts run at the end of the recording
+                want[k] = sorted(set(base.time_inputs) | set(want.get(k, ())) | set(v))
             else:
                 skipped.append({"change": f"{k}={json.dumps(v)}",
                                 "why": NOT_TRAINABLE.get(k, "no training field yet")})
-    has = lambda k, v: (list(getattr(base, k)) if k == "time_inputs" else getattr(base, k)) == v
+    has = lambda k, v: (sorted(getattr(base, k)) if k == "time_inputs" else getattr(base, k)) == v
     items = [f"{k}={json.dumps(v)}" for k, v in want.items() if not has(k, v)]
     already = [f"{k}={json.dumps(v)}" for k, v in want.items() if has(k, v)]
     return items, skipped, already

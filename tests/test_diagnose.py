@@ -207,11 +207,15 @@ def test_extension_for_maps_every_cause():
     base = ModelSpec()
     assert extension_for(causes("actuation_delay", {"lag": 3}), base)[0].action_history == 3
     assert extension_for(causes("unobserved_state", {"lags": [1, 4]}), base)[0].obs_history == 4
-    assert extension_for(causes("hidden_episode_parameter", {}), base)[0].context_dim == 2
+    ctx = extension_for(causes("hidden_episode_parameter", {}), base)[0]
+    assert (ctx.context_dim, ctx.obs_history, ctx.action_history) == (2, 4, 4)
     noisy = extension_for(causes("stochastic_noise", {}), base)[0]
     assert noisy.noise == "state" and noisy.nll_beta == 0.5
     assert extension_for(causes("time_drift", {"over": "step"}), base)[0].time_inputs == ("step",)
-    assert extension_for(causes("coverage_gap", {}), base)[0].policy_cvar_eps == 0.25
+    # weighting the worst policies is how `rl2s train --method rl2s-bc` trains, not a model
+    # input: recorded, the fitted spec unchanged
+    assert extension_for(causes("coverage_gap", {}), base) == (
+        base, [{"cause": "coverage_gap", "change": {"policy_cvar_eps": 0.25}}])
     assert extension_for({"top_cause": "none", "causes": []}, base) == (base, [])
 
 

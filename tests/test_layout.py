@@ -9,10 +9,6 @@ import pytest
 
 PKG = pathlib.Path(__file__).resolve().parents[1] / "rl2s_jax"
 MAX_LINES = 600
-# Known misses of the bars, each with what removes it; strict xfails, so the entry must go
-# when the miss is fixed. diagnose/model.py is diagnosis's own trainer (its optimiser, critic
-# and loop): issue 37 item 1 replaces it with train_step lanes.
-KNOWN_MISSES = {"diagnose/model.py": "issue 37 item 1: diagnosis fits through train_step"}
 # Lower layers first; a module may import only from its own layer or lower ones.
 LAYERS = [
     {"_quiet", "compile_cache", "sharding", "envs", "policy"},
@@ -117,20 +113,13 @@ def test_layers_point_down():
     assert not up, f"imports that point up the layers: {up}"
 
 
-def _size_case(p):
-    rel = str(p.relative_to(PKG))
-    known = rel in KNOWN_MISSES
-    marks = [pytest.mark.xfail(strict=True, reason=KNOWN_MISSES[rel])] if known else []
-    return pytest.param(p, id=rel, marks=marks)
-
-
-@pytest.mark.parametrize("path", [_size_case(p) for p in sorted(PKG.rglob("*.py"))])
+@pytest.mark.parametrize("path", sorted(PKG.rglob("*.py")),
+                         ids=lambda p: str(p.relative_to(PKG)))
 def test_module_size(path):
     n = len(path.read_text().splitlines())
     assert n <= MAX_LINES, f"{path.relative_to(PKG)}: {n} lines (at most {MAX_LINES})"
 
 
-@pytest.mark.xfail(strict=True, reason=KNOWN_MISSES["diagnose/model.py"])
 def test_diagnose_trains_nothing_of_its_own():
     users = [str(p.relative_to(PKG)) for p in (PKG / "diagnose").rglob("*.py")
              if any(isinstance(n, (ast.Import, ast.ImportFrom))

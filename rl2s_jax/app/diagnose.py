@@ -6,7 +6,6 @@ measured gain, written as report.json, report.md and plots.
 """
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 import time
@@ -25,9 +24,9 @@ from rl2s_jax.diagnose.gaps import error_breakdown, jsonable
 from rl2s_jax.diagnose.model import (
     FittedModels,
     ModelSpec,
+    episode_history,
     fit_models,
     heldout_metrics,
-    history,
     kstep_errors,
     normalized_delta,
     predict,
@@ -35,7 +34,6 @@ from rl2s_jax.diagnose.model import (
 )
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.metrics import kendall_tau
-from rl2s_jax.model.history import History
 from rl2s_jax.train.checkpoint import load_meta, load_simulator
 from rl2s_jax.train.config import TrainConfig
 from rl2s_jax.zoo.zoo import policies_for
@@ -50,14 +48,9 @@ def _checkpoint_residuals(ckpt: str, base: FittedModels, eps: Episodes, rows: np
     if np.asarray(sim.norm.obs_mean).shape[0] != eps.obs_size:
         raise ValueError(f"ckpt: the simulator's obs size {np.asarray(sim.norm.obs_mean).shape[0]}"
                          f" differs from the data's {eps.obs_size}")
-    hist = None
-    if not sim.markov:
-        past_obs, obs_valid = history(eps, eps.obs.astype(np.float32), sim.obs_history, rows)
-        past_act, act_valid = history(eps, eps.action.astype(np.float32), sim.action_history,
-                                      rows)
-        hist = History(past_obs=past_obs, past_obs_valid=obs_valid, past_act=past_act,
-                       past_act_valid=act_valid, t=eps.t[rows].astype(np.int32),
-                       time_inputs=sim.time_inputs, episode_length=sim.episode_length)
+    hist = episode_history(eps, rows, obs_history=sim.obs_history,
+                           action_history=sim.action_history, time_inputs=sim.time_inputs,
+                           episode_length=sim.episode_length)
     mean, std_n = jax.jit(lambda s, o, a, h: s.predictive(o, a, h))(
         sim, eps.obs[rows].astype(np.float32), eps.action[rows].astype(np.float32), hist)
     d_std = np.asarray(base.norm.delta_std, np.float64)
@@ -102,31 +95,15 @@ ADVERSARIAL_SHARE = 0.2  # adversarial updates per likelihood update for rl2s / 
 
 
 def _method_spec(spec: ModelSpec, ckpt: str | None) -> tuple[ModelSpec, str]:
-    """The training of the models fitted here, from the saved simulator's method where there
-    is one, so that the extension is retrained as the simulator was trained.
-
-    bc: maximum likelihood. rl2s-bc: maximum likelihood with CVaR over the worst eps of the
-    policies (``policy_cvar_eps``; ranked by NLL here, by simulated values in ``train.py``).
-    gail / rl2s: the likelihood fit as pre-training, then ADVERSARIAL_SHARE x steps WGAIL
-    updates (``ModelSpec.adversarial_steps``), with the CVaR selection for rl2s.
-    -> (spec, how it is trained, in words)."""
-    if ckpt is None:
-        return spec, "maximum likelihood"
-
-    cfg = TrainConfig.from_saved(load_meta(ckpt)["config"])
-    eps = float(cfg.initial_eps)
-    change, words = {}, f"the checkpoint's method, {cfg.method}: "
-    if cfg.method in ("rl2s", "gail"):
-        change["adversarial_steps"] = spec.adversarial_steps or max(
-            1, int(ADVERSARIAL_SHARE * spec.steps))
-        words += (f"maximum likelihood, then {change['adversarial_steps']} one-step WGAIL "
-                  "updates with a likelihood anchor")
-    else:
-        words += "maximum likelihood"
-    if cfg.method in ("rl2s", "rl2s-bc") and eps < 1.0:
-        change["policy_cvar_eps"] = eps
-        words += f", CVaR over the worst {eps:g} of policies (ranked by NLL)"
-    return dataclasses.replace(spec, **change).validate(), words
+    """How the models fitted here are trained, in words: maximum likelihood through
+    ``train_step`` (method "bc", one member per seed). The saved simulator's own method
+    (adversarial, or CVaR over policies) is what the printed ``rl2s train`` command reruns
+    with the extension; diagnosis compares model inputs, on the same footing."""
+    words = "maximum likelihood through train_step (method bc, one member per seed)"
+    if ckpt is not None:
+        cfg = TrainConfig.from_saved(load_meta(ckpt)["config"])
+        words += f"; the checkpoint's method, {cfg.method}, is what `rl2s train` reruns"
+    return spec, words
 
 
 def _value_setup(ds: Dataset, zoo: str | None, horizon: int | None, gamma: float | None):
@@ -155,11 +132,9 @@ def _values(fm: FittedModels, setup: dict, starts: np.ndarray, n_episodes: int, 
             ) -> np.ndarray:
     """Simulated discounted values [S, P] of every policy in every seed's model."""
 
-    task = setup["task"]
-    return np.stack([rollout_values(fm, s, setup["policies"], starts, reward_fn=task.reward_fn,
-                                    done_fn=task.done_fn, horizon=setup["horizon"],
-                                    n_episodes=n_episodes, gamma=setup["gamma"],
-                                    key=jax.random.PRNGKey(seed + s))
+    return np.stack([rollout_values(fm, s, setup["policies"], starts, task=setup["task"],
+                                    horizon=setup["horizon"], n_episodes=n_episodes,
+                                    gamma=setup["gamma"], key=jax.random.PRNGKey(seed + s))
                      for s in range(fm.n_seeds)])
 
 
@@ -328,7 +303,7 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
     proposal["train_set"], proposal["not_trainable"], proposal["already_in_simulator"] = (
         train_set(changes, saved))
     proposal["method"] = "rl2s" if saved is None else saved.method
-    if changes:
+    if spec != base_spec:
         t0 = time.perf_counter()
         ext = fit_models(eps, fit_eps, spec, seeds, progress=progress)
         ext_values = _values(ext, setup, starts, value_episodes, 100) if setup else None

@@ -20,6 +20,9 @@ NOISE_NLL_BETA = 0.5  # the noise extension's beta-NLL exponent. On the CPU Hopp
 # beta 0: -15.3 / 0.099, beta 0.5: -17.0 / 0.036, beta 1: -11.5 / 0.034.
 
 
+_SPEC_FIELDS = frozenset(f.name for f in dataclasses.fields(ModelSpec))
+
+
 def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]:
     """The extended spec for the diagnosed causes: the top cause's extension, plus that of
     every other significant cause scoring at least EXTENSION_SHARE of the top one; an
@@ -40,7 +43,10 @@ def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]
         elif c["name"] == "unobserved_state":
             change = {"obs_history": max(spec.obs_history, max(d["lags"] or [2]))}
         elif c["name"] == "hidden_episode_parameter":
-            change = {"context_dim": max(spec.context_dim, 2)}
+            # inferred from the episode's recent transitions, as the trained simulator does
+            change = {"context_dim": max(spec.context_dim, 2),
+                      "obs_history": max(spec.obs_history, CONTEXT_WINDOW),
+                      "action_history": max(spec.action_history, CONTEXT_WINDOW)}
         elif c["name"] == "stochastic_noise":
             # beta-NLL keeps the state-dependent std from buying likelihood with the mean
             # (plain NLL raised held-out MSE 2.3x on the Hopper noise variant; RESULTS.md)
@@ -52,9 +58,14 @@ def extension_for(causes: dict, base: ModelSpec) -> tuple[ModelSpec, list[dict]]
             change = {"policy_cvar_eps": 0.25}
         else:  # pragma: no cover - a cause without an extension
             continue
-        if all(getattr(spec, k) == v for k, v in change.items()):
+        # a change of how training weighs policies (coverage) is no input of the model:
+        # recorded for `rl2s train`, not fitted here
+        inputs = {k: v for k, v in change.items() if k in _SPEC_FIELDS}
+        if inputs and all(getattr(spec, k) == v for k, v in inputs.items()):
             continue  # the model already has it
-        spec = dataclasses.replace(spec, **change)
+        if any(c2["change"] == change for c2 in changes):
+            continue
+        spec = dataclasses.replace(spec, **inputs)
         changes.append({"cause": c["name"],
                         "change": {k: list(v) if isinstance(v, tuple) else v
                                    for k, v in change.items()}})

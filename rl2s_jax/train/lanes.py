@@ -21,14 +21,18 @@ from rl2s_jax.train.loop import WORST_VD_JUMP
 from rl2s_jax.train.step import TrainState, init, train_steps
 
 
+@partial(jax.jit, static_argnums=1)
+def _init_lanes(keys, cfg: TrainConfig, data: TrainData, eps):
+    if eps is None:
+        return jax.vmap(lambda k: init(k, cfg, data))(keys)
+    return jax.vmap(lambda k, e: init(k, cfg, data, eps=e))(keys, eps)
+
+
 def init_lanes(keys: jax.Array, cfg: TrainConfig, data: TrainData,
                eps: jax.Array | None = None) -> TrainState:
     """keys [L, 2] (one PRNG key per lane), eps [L] or None (the method's default) ->
-    TrainState with a leading lane axis of size L."""
-    if eps is None:
-        return jax.jit(jax.vmap(lambda k, d: init(k, cfg, d), in_axes=(0, None)))(keys, data)
-    return jax.jit(jax.vmap(lambda k, e, d: init(k, cfg, d, eps=e), in_axes=(0, 0, None)))(
-        keys, jnp.asarray(eps, jnp.float32), data)
+    TrainState with a leading lane axis of size L. Compiled once per (cfg, shapes)."""
+    return _init_lanes(keys, cfg, data, None if eps is None else jnp.asarray(eps, jnp.float32))
 
 
 def _lane_chunk(st, d, n, phase):

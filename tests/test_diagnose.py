@@ -208,7 +208,8 @@ def test_extension_for_maps_every_cause():
     assert extension_for(causes("actuation_delay", {"lag": 3}), base)[0].action_history == 3
     assert extension_for(causes("unobserved_state", {"lags": [1, 4]}), base)[0].obs_history == 4
     ctx = extension_for(causes("hidden_episode_parameter", {}), base)[0]
-    assert (ctx.context_dim, ctx.obs_history, ctx.action_history) == (2, 4, 4)
+    assert (ctx.context_dim, ctx.obs_history, ctx.action_history, ctx.noise) == (
+        2, 4, 4, "state")
     noisy = extension_for(causes("stochastic_noise", {}), base)[0]
     assert noisy.noise == "state" and noisy.nll_beta == 0.5
     assert extension_for(causes("time_drift", {"over": "step"}), base)[0].time_inputs == ("step",)

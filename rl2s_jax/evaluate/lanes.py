@@ -28,9 +28,8 @@ def lane_returns(sims: Simulator, policies, pool, keys, *, n_episodes, horizon, 
     """``evaluate_simulator``'s rollouts vmapped over lanes: sims (a Simulator with a leading
     lane axis L) and keys [L, 2]; the stacked ``policies`` [P] started from ``pool`` [S, o].
     -> (discounted returns [L, P, n], episode lengths [L, P, n])"""
-    task = get_task(sims.task)
-    return jax.vmap(lambda sim, key: simulator_returns(
-        sim, task, policies, pool, key, n_episodes=n_episodes, horizon=horizon,
+    return jax.vmap(lambda sim, key: simulator_returns(  # each lane's own task_fns
+        sim, None, policies, pool, key, n_episodes=n_episodes, horizon=horizon,
         gamma=gamma))(sims, keys)
 
 

@@ -24,7 +24,7 @@ from rl2s_jax.policy.policy import Params, num_policies
 
 @partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
 def _sim_returns(sim: Simulator, policies, pool, key, *, n_episodes, horizon, gamma):
-    return simulator_returns(sim, get_task(sim.task), policies, pool, key,
+    return simulator_returns(sim, None, policies, pool, key,  # the simulator's task_fns
                              n_episodes=n_episodes, horizon=horizon, gamma=gamma)
 
 
@@ -78,9 +78,10 @@ def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
     the data's. -> {"true_value", "sim_value", "sim_length", "vd" (lists [P]), "metrics": {avd,
     mvd, kendall_tau, spearman, ndcg@k, regret@k}, "horizon", "gamma", "n_episodes"} and, with
     n_boot > 0, "intervals" (``value_report``). The one-step errors are ``one_step_errors``.
+    Rewards and terminations: the simulator's ``task_fns`` (its registered task's, or its
+    learned reward and hazard).
     """
-    if sim.task is None:
-        raise ValueError("ckpt: the simulator names no task, so there is no reward_fn/done_fn")
+    sim.task_fns()  # a simulator of no registered task without a learned reward: refused here
     horizon, gamma = _protocol(ds, policies, n_episodes, horizon, gamma)
     returns, lengths = _sim_returns(sim, policies, start_pool(ds), key, n_episodes=n_episodes,
                                     horizon=horizon, gamma=gamma)

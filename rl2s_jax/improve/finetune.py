@@ -194,14 +194,15 @@ def _member_returns(sim: Simulator, members, policies, pool, key, *, task: Task,
     return jax.vmap(lambda m: jax.vmap(lambda p: one(m, p))(policies))(members)
 
 
-def member_values(sim: Simulator, task: Task | str, policies: Params, start_pool,
+def member_values(sim: Simulator, task: Task | str | None, policies: Params, start_pool,
                   key: jax.Array, *, n_episodes: int, horizon: int, gamma: float
                   ) -> np.ndarray:
     """Each elite member's simulated discounted value of each policy, the member alone (its
     mean step when the simulator's noise_scale is 0): [M elites, P], best elite first. Every
     member and policy runs from the same start states with the same keys (each policy as if
     valued alone, so a value does not depend on the other policies valued with it), and
-    differences between two policies are paired comparisons."""
+    differences between two policies are paired comparisons. ``task`` None: the simulator's
+    own ``task_fns`` (a learned reward is then a traced argument, not a constant)."""
     task = get_task(task) if isinstance(task, str) else task
     E = sim.n_members
     rank = np.arange(E) if sim.rank is None else np.asarray(sim.rank)
@@ -246,9 +247,9 @@ def choose_by_members(values, margin: float = 0.0) -> np.ndarray:
     return np.where(eligible.any(0), score.argmax(0) + 1, 0).astype(np.int32)
 
 
-def select_by_members(sim: Simulator, task: Task | str, candidates: Params, start_pool,
-                      key: jax.Array, *, n_episodes: int, horizon: int, gamma: float,
-                      margin: float = 0.0) -> tuple[Params, dict]:
+def select_by_members(sim: Simulator, task: Task | str | None, candidates: Params,
+                      start_pool, key: jax.Array, *, n_episodes: int, horizon: int,
+                      gamma: float, margin: float = 0.0) -> tuple[Params, dict]:
     """Per policy, the snapshot the simulator's elite members all rank above the start.
 
     candidates: [K + 1, P, ...] (``improve_policies(snapshots=True)``; index 0 the start

@@ -269,7 +269,7 @@ class SimulatorGymEnv(_BraxGymEnv):
     Args:
       sim: a ``Simulator`` or any ``dynamics(obs [..., o], action [..., a], key) -> [..., o]``.
       starts: real episode start observations [S, o], or a Dataset (its rows with t == 0).
-      task: a ``Task`` or its name (reward_fn, done_fn, sizes); default ``sim.task``.
+      task: a ``Task`` or its name (reward_fn, done_fn, sizes); default ``sim.task_fns()``.
       deterministic: step with the simulator's mean instead of a sample.
       max_episode_steps: truncate after this many steps (None: never); default the task's
         ``episode_length``.

@@ -3,8 +3,9 @@
 ``SimulatorEnv(sim, start_pool)`` starts each episode from a real start state drawn from the
 pool [S, o] and steps with the simulator: ``sim.sample`` (stochastic, default) or ``sim.mean``
 (``deterministic=True``). Rewards and terminations come from the task's ``reward_fn`` /
-``done_fn``. The PRNG key of the stochastic step rides in ``state.info["rng"]`` and is split at
-every step, so ``step`` stays a pure function of (state, action).
+``done_fn`` (a Simulator's ``task_fns``: for data of no task, its learned reward and hazard).
+The PRNG key of the stochastic step rides in ``state.info["rng"]`` and is split at every
+step, so ``step`` stays a pure function of (state, action).
 
 Like brax's own envs it never resets by itself; wrap it for a time limit, e.g.
 ``brax.envs.training.wrap(env, episode_length=L, action_repeat=1)`` (note brax's
@@ -126,7 +127,8 @@ class SimulatorEnv(Env):
       sim: a ``Simulator`` or any ``dynamics(obs [..., o], action [..., a], key) -> [..., o]``.
       start_pool: real episode start observations [S, o]; ``reset`` draws one uniformly.
       task: a ``Task`` or its registry name, giving ``reward_fn`` / ``done_fn`` and sizes.
-        Defaults to ``sim.task`` for a Simulator; required for a plain dynamics function.
+        Defaults to ``sim.task_fns()`` for a Simulator (its registered task's, or its learned
+        reward and termination); required for a plain dynamics function.
       deterministic: step with ``sim.mean`` instead of ``sim.sample`` (Simulator only).
 
       rollout_length: cut rollouts after this many steps (``info["truncation"]``; None: no
@@ -150,10 +152,8 @@ class SimulatorEnv(Env):
                  uncertainty_threshold: float | jax.Array | None = None,
                  halt_penalty: float = 0.0):
         if isinstance(sim, Simulator):
-            if task is None:
-                if sim.task is None:
-                    raise ValueError("task: the Simulator names no task; pass task=")
-                task = sim.task
+            if task is None:  # the registered task's rules, or the learned reward / hazard
+                task = sim.task_fns()
             if deterministic:
                 self._dynamics = lambda obs, action, key, hist=None: sim.mean(obs, action, hist)
             else:

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from rl2s_jax.envs.tasks import Task
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.model.generator import sample_next
@@ -27,6 +28,7 @@ from rl2s_jax.model.history import (
     push_history,
     step_inputs,
 )
+from rl2s_jax.model.reward import predict_reward, simulator_task
 from rl2s_jax.model.termination import TERMINATIONS, hazard_prob
 from rl2s_jax.policy.policy import Params, sample_action
 
@@ -52,8 +54,11 @@ class Simulator:
     next state), "hazard" (a draw below h(s, a)), "both", or "predictive" (the rule, or the
     rule on one noise-scale-1 draw of the next state; ``terminations``).
 
+    reward: a learned reward head r(s, a, s') (``reward.init_reward``) or None.
     ``dynamics`` is the ``Dynamics`` function the rollouts here take; ``task`` names the
-    registered task whose reward_fn / done_fn apply (None for data without a task).
+    registered task whose reward_fn / done_fn apply (None for data without a task);
+    ``task_fns()`` gives the reward_fn / done_fn every rollout steps with (the learned reward
+    where there is one, the learned termination where no task is registered).
     ``uncertainty_fn(obs, action)`` and ``step(obs, action, key) -> (next_obs, u)`` give the
     ensemble's disagreement at every step (0 for one member).
 
@@ -68,6 +73,7 @@ class Simulator:
     norm: Normalizer
     rank: jax.Array | None = None
     hazard: Params | None = None
+    reward: Params | None = None
     task: str | None = struct.field(pytree_node=False, default=None)
     obs_clip: float = struct.field(pytree_node=False, default=10.0)
     noise_scale: float = struct.field(pytree_node=False, default=1.0)
@@ -247,6 +253,19 @@ class Simulator:
         learned = lambda obs, action, key: self.hazard_prob(obs, action)
         return (None if self.termination == "hazard" else done_fn), learned
 
+    def predict_reward(self, obs: jax.Array, action: jax.Array, next_obs: jax.Array
+                       ) -> jax.Array:
+        """The learned reward of the step (obs, action) -> next_obs. -> [...]"""
+        if self.reward is None:
+            raise ValueError("reward: this simulator has no learned reward (train with "
+                             "reward='learned')")
+        return predict_reward(self.reward, self.norm, obs, action, next_obs)
+
+    def task_fns(self) -> Task:
+        """The ``Task`` (reward_fn, done_fn, sizes) that this simulator's rollouts step with:
+        the one place every rollout takes them from (``reward.simulator_task``)."""
+        return simulator_task(self)
+
 
 @struct.dataclass
 class ValueRollout:
@@ -368,9 +387,10 @@ def simulated_returns(policy_params: Params, dynamics: Dynamics, reward_fn: Call
 def simulator_returns(sim: Simulator, task, policy_params: Params, start_pool: jax.Array,
                       key: jax.Array, *, n_episodes: int, horizon: int, gamma: float
                       ) -> tuple[jax.Array, jax.Array]:
-    """``simulated_returns`` of a Simulator under a task's ``reward_fn`` / ``done_fn``, its
-    episodes ended as the simulator's ``termination`` says (``Simulator.terminations``).
-    -> (returns [P, n], lengths [P, n] int32)"""
+    """``simulated_returns`` of a Simulator under a task's ``reward_fn`` / ``done_fn`` (None:
+    the simulator's own, ``Simulator.task_fns``), its episodes ended as the simulator's
+    ``termination`` says (``Simulator.terminations``). -> (returns [P, n], lengths [P, n])"""
+    task = sim.task_fns() if task is None else task
     done_fn, hazard_fn = sim.terminations(task.done_fn)
     return simulated_returns(policy_params, sim.dynamics, task.reward_fn, done_fn, start_pool,
                              key, n_episodes=n_episodes, horizon=horizon, gamma=gamma,

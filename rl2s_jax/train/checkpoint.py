@@ -2,8 +2,9 @@
 
 - ``state``: the whole TrainState (exact resume: keys, optimisers, buffers, selection);
 - ``simulator``: what evaluation needs: the generator ensemble (the moving average when the
-  config has ``ema_decay``), its members' ranks and the normaliser, and the learned
-  termination hazard where the config's ``termination`` uses one;
+  config has ``ema_decay``), its members' ranks and the normaliser, the learned
+  termination hazard where the config's ``termination`` uses one and the learned reward head
+  where its ``reward`` is "learned";
 - ``meta``: JSON with the TrainConfig and what the data looked like (task, sizes, policy names).
 
 ``load_simulator(dir)`` rebuilds a ``Simulator`` from ``simulator`` + ``meta`` alone, in a fresh
@@ -19,6 +20,8 @@ intact step, raises :class:`CheckpointError`.
 """
 from __future__ import annotations
 
+import ast
+import dataclasses
 import json
 import os
 import re
@@ -35,6 +38,7 @@ import orbax.checkpoint as ocp
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.model.generator import init_generator
+from rl2s_jax.model.reward import init_reward
 from rl2s_jax.model.simulator import Simulator
 from rl2s_jax.model.termination import LEARNED, init_hazard
 from rl2s_jax.train.config import LEGACY_MODEL, TrainConfig
@@ -98,6 +102,8 @@ class Checkpointer:
         sim = {"gen": sim_.gen, "norm": sim_.norm, "rank": sim_.rank}
         if sim_.hazard is not None:
             sim["hazard"] = sim_.hazard
+        if sim_.reward is not None:
+            sim["reward"] = sim_.reward
         self._mgr.save(step, args=ocp.args.Composite(
             state=ocp.args.StandardSave(state), simulator=ocp.args.StandardSave(sim),
             meta=ocp.args.JsonSave(meta)), force=True)
@@ -129,9 +135,34 @@ class Checkpointer:
                     f"config: the checkpoint in {self.directory} was trained with a different "
                     f"config (saved vs requested: {diff}); use another --out directory or the "
                     f"same settings")
-            return self._restore_item(s, "state", ocp.args.StandardRestore(_abstract(template)))
+            absent = self._fields_saved_without(s, template)
+            if not absent:
+                return self._restore_item(s, "state",
+                                          ocp.args.StandardRestore(_abstract(template)))
+            # a state saved before these fields existed (each None in the template): restore
+            # the saved fields by name, keep the template's None for the others
+            fields = {f.name: getattr(template, f.name) for f in dataclasses.fields(template)
+                      if f.metadata.get("pytree_node", True) and f.name not in absent}
+            restored = self._restore_item(s, "state", ocp.args.StandardRestore(
+                _abstract(fields)))
+            return template.replace(**restored)
 
         return self.load_intact(step, ("meta", "state"), load)[1]
+
+    def _fields_saved_without(self, step: int, template: TrainState) -> set[str]:
+        """The TrainState fields that the saved state of ``step`` lacks (it was saved before
+        they were added) and that are None in ``template``, so that restoring without them
+        loses nothing. Empty when the state's tree metadata cannot be read (the restore then
+        names the damage)."""
+        try:
+            with open(os.path.join(self.directory, str(step), "state", "_METADATA")) as f:
+                keys = json.load(f)["tree_metadata"]
+            saved = {ast.literal_eval(k)[0] for k in keys}  # keys: "('gen', 'layers', ...)"
+        except (OSError, ValueError, KeyError, TypeError, IndexError, SyntaxError):
+            return set()
+        return {f.name for f in dataclasses.fields(template)
+                if f.metadata.get("pytree_node", True) and f.name not in saved
+                and getattr(template, f.name) is None}
 
     def load_intact(self, step: int | None, items: Sequence[str], load: Callable[[int], T]
                     ) -> tuple[int, T]:
@@ -340,10 +371,13 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None
                                          cfg.ensemble_size),
                 "norm": norm, "rank": jax.numpy.zeros((cfg.ensemble_size,), jax.numpy.int32),
                 **({"hazard": init_hazard(jax.random.PRNGKey(0), o, a, cfg.hazard_hidden)}
-                   if cfg.termination in LEARNED else {})})
+                   if cfg.termination in LEARNED else {}),
+                **({"reward": init_reward(jax.random.PRNGKey(0), o, a, cfg.reward_hidden)}
+                   if cfg.reward == "learned" else {})})
         sim = ck._restore_item(s, "simulator", ocp.args.StandardRestore(template))
         return Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"),
-                         hazard=sim.get("hazard"), **cfg.simulator_settings()), meta
+                         hazard=sim.get("hazard"), reward=sim.get("reward"),
+                         **cfg.simulator_settings()), meta
 
     try:
         return ck.load_intact(step, ("meta", "simulator"), load)[1]

@@ -21,6 +21,7 @@ from rl2s_jax.model.dynamics import (
     UNCERTAINTY_KINDS,
     DynamicsSpec,
 )
+from rl2s_jax.model.reward import REWARDS
 from rl2s_jax.model.termination import LEARNED, TERMINATIONS
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -114,6 +115,15 @@ class TrainConfig:
     hazard_steps: int = 3000       # its Adam updates (in ``init``, on every training row)
     hazard_window: int = 1         # K: it learns P(end within K steps), steps end with
     # 1 - (1 - P)^(1/K) (1: the one-step hazard itself)
+    reward: str = "task"           # a simulated step's reward: the registered task's
+    # reward_fn | "learned", a head r(s, a, s') fitted on the data's rewards in ``init``
+    # (rl2s_jax.model.reward; `rl2s train` picks it, and termination "hazard", for data of no
+    # registered task)
+    reward_hidden: tuple[int, ...] = (256, 256)  # the reward head's hidden sizes
+    reward_steps: int = 3000       # its Adam updates (in ``init``, on every training row)
+    data_episode_length: int | None = None  # the data's time limit (meta.episode_length),
+    # what the "step" time input and simulated envs use where no registered task gives one
+    # (None: vd_horizon)
 
     @property
     def adversarial(self) -> bool:
@@ -158,9 +168,16 @@ class TrainConfig:
 
     @property
     def episode_length(self) -> int:
-        """What scales the "step" time input: the task's time limit (vd_horizon without a
-        registered task)."""
-        return get_task(self.task).episode_length if self.task in TASKS else self.vd_horizon
+        """What scales the "step" time input: the task's time limit (without a registered task
+        the data's, data_episode_length, or else vd_horizon)."""
+        if self.task in TASKS:
+            return get_task(self.task).episode_length
+        return self.data_episode_length or self.vd_horizon
+
+    @property
+    def registered(self) -> bool:
+        """True when ``task`` names a task registered in this process."""
+        return self.task in TASKS
 
     @property
     def early_stopping(self) -> bool:
@@ -203,7 +220,7 @@ class TrainConfig:
         for name in ("batch_size", "updates_per_step", "disc_updates", "sim_envs", "sim_steps",
                      "sim_horizon", "buffer_size", "vd_episodes", "vd_horizon",
                      "ensemble_size", "n_elites", "holdout_rows", "multistep_steps",
-                     "hazard_window"):
+                     "hazard_window", "reward_steps"):
             v = getattr(self, name)
             if not isinstance(v, int) or isinstance(v, bool) or v < 1:
                 raise ValueError(f"{name}: expected an int >= 1, got {v!r}")
@@ -215,7 +232,7 @@ class TrainConfig:
         if self.vd_every == 0 and self.initial_eps < 1.0:
             raise ValueError(f"vd_every: 0 turns off VD, which method {self.method!r} with eps "
                              f"{self.initial_eps} needs to choose its worst policies")
-        for name in ("gen_hidden", "disc_hidden", "hazard_hidden"):
+        for name in ("gen_hidden", "disc_hidden", "hazard_hidden", "reward_hidden"):
             v = getattr(self, name)
             if not (isinstance(v, tuple) and v and all(isinstance(h, int) and h > 0 for h in v)):
                 raise ValueError(f"{name}: expected a non-empty tuple of positive ints, got {v!r}")
@@ -240,7 +257,7 @@ class TrainConfig:
         for name, kinds in (("member_mode", MEMBER_MODES), ("uncertainty", UNCERTAINTY_KINDS),
                             ("gen_noise", NOISE_KINDS), ("gen_log_std_bounds", BOUND_KINDS),
                             ("gen_activation", ACTIVATIONS),
-                            ("termination", TERMINATIONS)):
+                            ("termination", TERMINATIONS), ("reward", REWARDS)):
             if getattr(self, name) not in kinds:
                 raise ValueError(f"{name}: expected one of {', '.join(map(repr, kinds))}, got "
                                  f"{getattr(self, name)!r}")
@@ -271,6 +288,10 @@ class TrainConfig:
         if self.termination in LEARNED and self.hazard_steps == 0:
             raise ValueError(f"hazard_steps: termination {self.termination!r} learns a hazard; "
                              f"expected an int >= 1, got 0")
+        v = self.data_episode_length
+        if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):
+            raise ValueError(f"data_episode_length: expected an int >= 1 or None, got {v!r}")
+        self._check_task_rules()
         if self.n_elites > self.ensemble_size:
             raise ValueError(f"n_elites: expected at most ensemble_size ({self.ensemble_size}), "
                              f"got {self.n_elites}")
@@ -285,6 +306,25 @@ class TrainConfig:
             raise ValueError(f"buffer_size: expected >= batch_size ({self.batch_size}), "
                              f"got {self.buffer_size}")
         return self
+
+    def _check_task_rules(self) -> None:
+        """Without a registered task nothing gives simulated steps a reward or a termination
+        rule: where rollouts run (vd_every > 0, or the adversarial methods' simulated envs),
+        the reward must be learned and the termination the learned hazard."""
+        if self.registered or not (self.vd_every or self.adversarial):
+            return
+        what = (f"task {self.task!r} is not registered" if self.task is not None
+                else "the data names no task (meta.task null)")
+        if self.reward != "learned":
+            raise ValueError(f"reward: {self.reward!r} takes rewards from the registered "
+                             f"task's reward_fn, and {what}; set reward='learned' (a head "
+                             f"fitted on the data's rewards) or register the task "
+                             f"(rl2s_jax.envs.tasks.register)")
+        if self.termination not in LEARNED:
+            raise ValueError(f"termination: {self.termination!r} ends episodes by the "
+                             f"registered task's done_fn, and {what}; set "
+                             f"termination='hazard' (learned from the data's done flags) or "
+                             f"register the task")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)

@@ -37,7 +37,9 @@ class TrainData:
     steps_left [N] int32: how many rows of the same episode follow row i, in order (row i + j
     continues row i for j <= steps_left[i]); the multi-step loss needs it (None: unknown).
     done [N] float32: 1 where the row's next state is terminal (the learned termination hazard
-    is fitted to it; None: unknown).
+    is fitted to it; None: unknown); reward [N] float32: the rows' logged rewards (the learned
+    reward head is fitted to them; None: unknown); val_reward, val_done [V]: the held-out
+    rows' (their held-out errors).
     History inputs (static ``obs_history``, ``action_history``, ``time_inputs``,
     ``episode_length``, as the config's): steps_back [N] int32, how many rows of the same
     episode precede row i, in order; t [N] int32, the row's step in its episode; order [N]
@@ -60,6 +62,9 @@ class TrainData:
     val_next_obs: jax.Array
     steps_left: jax.Array | None = None
     done: jax.Array | None = None
+    reward: jax.Array | None = None
+    val_reward: jax.Array | None = None
+    val_done: jax.Array | None = None
     steps_back: jax.Array | None = None
     t: jax.Array | None = None
     order: jax.Array | None = None
@@ -174,7 +179,8 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
                      val_obs=f32(ds.obs, val), val_action=f32(ds.action, val),
                      val_next_obs=f32(ds.next_obs, val),
                      steps_left=jnp.asarray(steps_left, jnp.int32),
-                     done=f32(ds.done, order))
+                     done=f32(ds.done, order), reward=f32(ds.reward, order),
+                     val_reward=f32(ds.reward, val), val_done=f32(ds.done, val))
 
 
 def episode_steps_left(policy_id: np.ndarray, episode_id: np.ndarray, t: np.ndarray

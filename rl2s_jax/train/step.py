@@ -54,7 +54,6 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.model.generator import init_discriminator
@@ -69,7 +68,6 @@ from rl2s_jax.model.simulator import (
     start_values,
     value_difference,
 )
-from rl2s_jax.model.termination import LEARNED, fit_hazard, init_hazard, window_labels
 from rl2s_jax.policy.policy import Params, index_params, sample_action
 from rl2s_jax.train import losses
 from rl2s_jax.train.config import TrainConfig
@@ -80,6 +78,7 @@ from rl2s_jax.train.data import (
     _real_windows_history,
     _sample_rows,
 )
+from rl2s_jax.train.learned import fit_learned
 from rl2s_jax.train.losses import multistep_error
 
 __all__ = ["TrainState", "init", "member_mle_updates", "simulator",
@@ -128,6 +127,7 @@ class TrainState:
     hazard: Params | None         # learned termination classifier (None: termination "rule")
     config: TrainConfig = struct.field(pytree_node=False)
     buffer_hist: History | None = None  # [B, ...] the buffered states' past (history inputs)
+    reward: Params | None = None  # learned reward head (None: the task's reward_fn)
 
 
 # ------------------------------------------------------------------ models and optimisers
@@ -137,7 +137,8 @@ def _sampler(gen, state: TrainState, noise_scale: float) -> Simulator:
     """The members as rollouts use them (no gradient into the generator)."""
     cfg = state.config
     return Simulator(gen=jax.lax.stop_gradient(gen), norm=state.norm, rank=state.rank,
-                     hazard=state.hazard, **cfg.simulator_settings(noise_scale))
+                     hazard=state.hazard, reward=state.reward,
+                     **cfg.simulator_settings(noise_scale))
 
 
 def _gen_tx(cfg: TrainConfig, lr: float) -> optax.GradientTransformation:
@@ -183,22 +184,10 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
     P = data.n_policies
     E = cfg.ensemble_size
     obs_size, act_size = data.obs.shape[1], data.action.shape[1]
-    k_hazard = jax.random.fold_in(key, 7)  # apart from the split: other draws stay as they were
+    # keys folded from the key apart from the split: other draws stay as they were
+    hazard, reward = fit_learned(key, cfg, data, norm)
     k_gen, k_disc, k_sim, k_buf, k_vd, k_roll, key = jax.random.split(key, 7)
     gen = dyn.init_ensemble(k_gen, cfg.dynamics_spec, obs_size, act_size, E)
-    hazard = None
-    if cfg.termination in LEARNED:
-        if data.done is None:
-            raise ValueError(f"termination: {cfg.termination!r} learns from the data's done "
-                             f"flags, and TrainData.done is None (make_train_data sets it)")
-        k_init, k_fit = jax.random.split(k_hazard)
-        if cfg.hazard_window > 1 and data.steps_left is None:
-            raise ValueError("hazard_window: a window > 1 needs TrainData.steps_left "
-                             "(make_train_data sets it); set hazard_window=1")
-        labels = (data.done if cfg.hazard_window == 1
-                  else window_labels(data.done, data.steps_left, cfg.hazard_window))
-        hazard, _ = fit_hazard(k_fit, init_hazard(k_init, obs_size, act_size, cfg.hazard_hidden),
-                               norm, data.obs, data.action, labels, steps=cfg.hazard_steps)
     heldout = _heldout_nll(gen, norm, data)
     rank = dyn.rank_members(heldout)
     eps = jnp.asarray(cfg.initial_eps if eps is None else eps, jnp.float32)
@@ -214,10 +203,10 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
         heldout_nll=heldout, rank=rank, best_nll=jnp.full((E,), jnp.inf, jnp.float32),
         since_best=jnp.zeros((E,), jnp.int32), stopped=jnp.zeros((E,), bool),
         best_gen=gen if cfg.early_stopping else None,
-        ema_gen=gen if cfg.ema_decay else None, hazard=hazard, config=cfg)
+        ema_gen=gen if cfg.ema_decay else None, hazard=hazard, reward=reward, config=cfg)
     if cfg.vd_every:
-        task = get_task(cfg.task)
         sim = _sampler(gen, state, cfg.sim_noise)
+        task = sim.task_fns()
         done_fn, hazard_fn = sim.terminations(task.done_fn)
         sim_value, sim_length = simulated_values(
             data.policies, sim.dynamics, task.reward_fn, done_fn, data.start_pool, k_vd,
@@ -361,11 +350,10 @@ def _reset_sim(sim: SimEnvs, reset: jax.Array, data: TrainData, selected, key) -
 def _advance_sim(state: TrainState, data: TrainData, key):
     """Step the simulated envs sim_steps times in p_phi; write their (s, a) to the buffer."""
     cfg = state.config
-    task = get_task(cfg.task)
     sampler = _sampler(state.gen, state, cfg.sim_noise)
     sim_step = sampler.step
     # the simulated envs end as the value rollouts do (rule, learned hazard or both)
-    done_fn, hazard_fn = sampler.terminations(task.done_fn)
+    done_fn, hazard_fn = sampler.terminations(sampler.task_fns().done_fn)
     E, B = cfg.sim_envs, cfg.buffer_size
     act = jax.vmap(sample_action)
 
@@ -492,10 +480,10 @@ def _adversarial_step(state: TrainState, data: TrainData, k_sim, k_upd):
 def _advance_vd(state: TrainState, data: TrainData, key):
     """Advance the spread-out value measurement; on completion refresh VD and the selection."""
     cfg = state.config
-    task = get_task(cfg.task)
     H, K = cfg.vd_horizon, cfg.vd_every
     k_run, k_restart = jax.random.split(key)
     sim = _sampler(state.gen, state, cfg.sim_noise)
+    task = sim.task_fns()
     done_fn, hazard_fn = sim.terminations(task.done_fn)
     roll = advance_values(state.vd_roll, data.policies, sim.dynamics, task.reward_fn, done_fn,
                           k_run, n_steps=-(-H // K), horizon=H, gamma=cfg.gamma,

@@ -166,7 +166,7 @@ def cmd_train(args) -> int:
                                save_every=args.save_every, chunk=args.chunk,
                                overrides=_set(args.set), progress=not args.quiet,
                                eval_data=args.eval_data, eval_every=args.eval_every,
-                               resume_step=args.resume_step)
+                               resume_step=args.resume_step, policy_file=args.policy_file)
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1
@@ -391,7 +391,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "summary.json; resumes if it holds a checkpoint")
     p.add_argument("--eps", type=float, help="CVaR fraction (default: 0.25 rl2s/rl2s-bc, 1 "
                    "gail/bc)")
-    p.add_argument("--zoo", help="zoo of the data's policies (default: the one meta names)")
+    _policy_source(p)
     p.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto",
                    help="network and batch sizes: gpu = paper sizes, cpu = small")
     p.add_argument("--seed", type=int, default=0)

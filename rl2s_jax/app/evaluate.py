@@ -9,6 +9,7 @@ from __future__ import annotations
 import jax
 
 from rl2s_jax.data.dataset import load_dataset
+from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.simulator import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.train.checkpoint import load_checkpoint
 from rl2s_jax.zoo.zoo import policies_for
@@ -86,6 +87,11 @@ def evaluate_oracle_data(data_path: str, *, zoo: str | None = None,
     Defaults: the data's episode_length and ``DEFAULT_EPISODES`` episodes."""
     _check_settings(n_episodes, horizon)
     ds = load_dataset(data_path)
+    if ds.meta.get("task") not in TASKS:
+        raise ValueError(f"oracle: {data_path} is data of no registered task (meta.task "
+                         f"{ds.meta.get('task')!r}), so there are no real dynamics to run; "
+                         f"its true values are in the data (rl2s evaluate --ckpt scores a "
+                         f"simulator against them)")
     policies = policies_for(ds, zoo, policy_file=policy_file, data_path=data_path)
     report = evaluate_oracle(ds.meta.get("task"), ds, policies, key=jax.random.PRNGKey(seed),
                              n_episodes=n_episodes or DEFAULT_EPISODES, horizon=horizon,

@@ -30,7 +30,7 @@ import jax
 import numpy as np
 
 from rl2s_jax.data.dataset import load_dataset
-from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.improve.finetune import (
     deployment_guard,
     guarded,
@@ -138,7 +138,13 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         raise ValueError("guard-snapshots: needs --guard-margin M (the guard's margin, e.g. "
                          "0.02)")
     meta, ds, ids = check_inputs(ckpt, data_path, policy_ids)
-    task = get_task(ds.meta["task"])
+    sim = load_simulator(ckpt, step)
+    task = sim.task_fns()  # the registered task's rules, or the learned reward and hazard
+    if measure and sim.task not in TASKS:
+        log(f"[improve] {data_path} is data of no registered task (meta.task "
+            f"{ds.meta.get('task')!r}): no real system to measure the fine-tuned policies in, "
+            f"so the real returns are skipped (as --no-measure)")
+        measure = False
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
     cfg = sac_config(overrides, episode_length, iterations)
     where = policy_source(ds, zoo, policy_file=policy_file, data_path=data_path)
@@ -146,7 +152,6 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                                          data_path=data_path), np.asarray(ids))
     names_all = ds.meta.get("policy_names") or [f"policy-{i}" for i in range(ds.n_policies)]
     names = [names_all[i] for i in ids]
-    sim = load_simulator(ckpt, step)
     if branch_length is not None and not sim.markov:
         raise ValueError("branch-length: branched rollouts start from logged mid-episode "
                          "states without their past, and this simulator's members see the "
@@ -178,7 +183,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
 
     guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
     if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
-        guard, deployed = _guard(sim, task, start_pool(ds), policies, after, snapshots,
+        guard, deployed = _guard(sim, None, start_pool(ds), policies, after, snapshots,
                                  jax.random.fold_in(k_measure, 1), margin=guard_margin,
                                  n_episodes=guard_episodes, horizon=episode_length,
                                  gamma=gamma, chunk=chunk, iterations=iterations)

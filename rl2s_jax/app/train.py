@@ -10,10 +10,12 @@ import jax
 import numpy as np
 
 from rl2s_jax.data.dataset import load_dataset
+from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.train.checkpoint import Checkpointer
 from rl2s_jax.train.config import TrainConfig
 from rl2s_jax.train.data import make_train_data
+from rl2s_jax.train.learned import heldout_errors, learned_lines
 from rl2s_jax.train.loop import fit
 from rl2s_jax.train.step import init, simulator
 from rl2s_jax.zoo.zoo import policies_for
@@ -31,11 +33,19 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
     defaults), 'cpu' = ``TrainConfig.small`` with the members fitted as the gpu profile fits
     them (3 of 3x128 SiLU, batch 256, 25 updates per step, no early stopping or weight decay:
     docs/RESULTS.md, "make hopper"), 100 pre-training steps and 5 critic warm-up steps.
-    ``overrides``: field -> value (``--set``)."""
+    ``overrides``: field -> value (``--set``).
+
+    Data of no registered task (``meta.task`` null, or a name this process has not
+    registered): the reward is learned from the data's rewards (``reward`` "learned") and
+    episodes end by the hazard learned from its done flags (``termination`` "hazard"), unless
+    ``overrides`` say otherwise; its time limit is ``data_episode_length``."""
 
     ep_len = ds.meta.get("episode_length") or 1000
     base = dict(task=ds.meta["task"], method=method, eps=eps,
                 gamma=float(ds.meta.get("gamma") or 0.999))
+    if ds.meta["task"] not in TASKS:
+        base.update(reward="learned", termination="hazard",
+                    data_episode_length=ds.meta.get("episode_length"))
     if profile == "cpu":
         cfg = TrainConfig.small(vd_horizon=min(100, ep_len), pretrain_steps=100,
                                 disc_warmup_steps=5, **CPU_MODEL, **base)
@@ -58,7 +68,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                  save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
                  progress: bool = True, log=print, eval_data: str | None = None,
                  eval_every: int | None = None, eval_episodes: int = 8,
-                 resume_step: int | None = None) -> dict:
+                 resume_step: int | None = None, policy_file: str | None = None) -> dict:
     """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
     holds one), and return a summary dict (also written to out/summary.json).
 
@@ -69,24 +79,29 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
 
     ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
     with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve).
+    The policies: from ``zoo``, ``policy_file`` or what the data's meta.source names
+    (``zoo.policies_for``). The summary's ``learned`` block holds the simulator's reward and
+    termination errors on the held-out episodes (``train.learned.heldout_errors``).
     """
 
     if not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
     ds = load_dataset(data_path)
-    if ds.meta.get("task") is None:
-        raise ValueError(f"data: {data_path} names no task (meta.task), so there is no "
-                         f"reward_fn/done_fn to simulate its policies with")
     if profile == "auto":
         profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
     cfg = make_config(ds, method, profile, eps, overrides)
+    if not cfg.registered:
+        log(f"[train] {data_path} is data of no registered task (meta.task "
+            f"{ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
+            f"{cfg.termination!r} (a reward head r(s, a, s') fitted on its rewards, the hazard "
+            f"h(s, a) on its done flags; their held-out errors are in the summary)")
     if cfg.pretrains and steps <= cfg.pretrain_steps:
         log(f"[train] warning: --steps {steps} ends inside the {cfg.pretrain_steps} "
             f"pre-training steps of {method}: this run is maximum likelihood on every policy "
             f"(as bc) and never reaches the adversarial phase; "
             f"{cfg.pretrain_steps - steps + 1} more step(s) reach it (--steps "
             f"{cfg.pretrain_steps + 1} or more, or --set pretrain_steps=N)")
-    policies = policies_for(ds, zoo, data_path=data_path)
+    policies = policies_for(ds, zoo, policy_file=policy_file, data_path=data_path)
     data = make_train_data(ds, policies, cfg)
     os.makedirs(out, exist_ok=True)
     ck = Checkpointer(os.path.join(out, "checkpoints"))
@@ -155,6 +170,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                            "training policies", "episodes": cfg.vd_episodes,
                            "horizon": cfg.vd_horizon, "gamma": cfg.gamma},
         "worst_vd_jumps": jumps,
+        "learned": heldout_errors(simulator(state), data),
         **last_test,
         "selected": [n for n, s in zip(names, np.asarray(state.selected), strict=True) if s],
         "policies": {n: {"true_value": float(t), "sim_value": float(s), "vd": float(v)}
@@ -217,6 +233,8 @@ def format_summary(s: dict) -> str:
         lines.append(f"test policies ({s['eval_data']}, step {s['step_test']}): AVD "
                      f"{s['avd_test']:.3g}  MVD {s['mvd_test']:.3g}  Kendall tau "
                      f"{s['kendall_tau_test']:.3f}  ({_by(s['measured_by_test'])})")
+    if s.get("learned"):
+        lines.extend(learned_lines(s["learned"]))
     if s.get("pretrain_steps_left"):
         lines.append(f"note: still pre-training (maximum likelihood): "
                      f"{s['pretrain_steps_left']} more step(s) reach the adversarial phase")

@@ -202,3 +202,25 @@ def test_a_state_saved_before_the_reward_field_resumes(pm_falls, tmp_path):
     for a, b in zip(jax.tree_util.tree_leaves(back.gen), jax.tree_util.tree_leaves(state.gen),
                     strict=True):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_the_unregistered_system_example_learns_and_ranks(monkeypatch, tmp_path):
+    """examples/own_system_unregistered.py --quick (about 30 s on the CPU): no task is
+    registered, and the simulator learns reward and termination and ranks unseen policies."""
+    import sys
+
+    from rl2s_jax.envs.tasks import task_names
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    monkeypatch.syspath_prepend(os.path.join(root, "examples"))
+    before = task_names()
+    import own_system_unregistered as example
+    out = example.main(["--quick", "--out", str(tmp_path)])
+    sys.modules.pop("own_system_unregistered", None)
+    assert task_names() == before  # nothing registered
+    s, r = out["summary"], out["report"]
+    assert s["config"]["task"] is None and s["config"]["reward"] == "learned"
+    assert s["learned"]["reward"]["heldout_r2"] > 0.95
+    assert s["learned"]["termination"]["heldout_ends"] > 0
+    assert r["horizon"] == example.EPISODE and len(r["true_value"]) == 6
+    assert r["metrics"]["kendall_tau"] > 0.3, r["metrics"]

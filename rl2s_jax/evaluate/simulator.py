@@ -6,6 +6,7 @@ simulate each policy's value in p_phi, compare with its true value, rank.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 
 import jax
@@ -22,10 +23,12 @@ from rl2s_jax.model.simulator import Simulator, simulated_returns, simulator_ret
 from rl2s_jax.policy.policy import Params, num_policies
 
 
-@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
-def _sim_returns(sim: Simulator, policies, pool, key, *, n_episodes, horizon, gamma):
+@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma", "policy_fn"))
+def _sim_returns(sim: Simulator, policies, pool, key, *, n_episodes, horizon, gamma,
+                 policy_fn=None):
     return simulator_returns(sim, None, policies, pool, key,  # the simulator's task_fns
-                             n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+                             n_episodes=n_episodes, horizon=horizon, gamma=gamma,
+                             policy_fn=policy_fn)
 
 
 def _protocol(ds, policies, n_episodes, horizon, gamma) -> tuple[int, float]:
@@ -71,8 +74,11 @@ def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 
 
 def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
                        n_episodes: int = 16, horizon: int | None = None,
-                       gamma: float | None = None, ks=(1, 3, 5, 10), n_boot: int = 0) -> dict:
-    """Simulated vs true discounted value of every policy of ``ds`` (stacked ``policies``).
+                       gamma: float | None = None, ks=(1, 3, 5, 10), n_boot: int = 0,
+                       policy_fn: Callable | None = None) -> dict:
+    """Simulated vs true discounted value of every policy of ``ds`` (stacked ``policies``;
+    ``policy_fn(params, obs [n, o], key) -> action [n, a]`` applies one policy's params when
+    they are not the project's policy format: any JAX function, e.g. your own network).
 
     horizon: steps per simulated episode (default: the data's episode_length); gamma: default
     the data's. -> {"true_value", "sim_value", "sim_length", "vd" (lists [P]), "metrics": {avd,
@@ -84,7 +90,7 @@ def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
     sim.task_fns()  # a simulator of no registered task without a learned reward: refused here
     horizon, gamma = _protocol(ds, policies, n_episodes, horizon, gamma)
     returns, lengths = _sim_returns(sim, policies, start_pool(ds), key, n_episodes=n_episodes,
-                                    horizon=horizon, gamma=gamma)
+                                    horizon=horizon, gamma=gamma, policy_fn=policy_fn)
     return value_report(ds, returns, lengths, horizon=horizon, gamma=gamma, ks=ks,
                         n_boot=n_boot)
 

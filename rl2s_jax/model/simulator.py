@@ -335,22 +335,28 @@ def ends_episode(obs: jax.Array, action: jax.Array, next_obs: jax.Array, key: ja
     return done
 
 
+def _sampled_action(params: Params, obs: jax.Array, key: jax.Array) -> jax.Array:
+    return sample_action(params, obs, key)[0]
+
+
 def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics,
                    reward_fn: Callable, done_fn: Callable | None, key: jax.Array, *,
                    n_steps: int, horizon: int, gamma: float | jax.Array,
-                   hazard_fn: Callable | None = None) -> ValueRollout:
+                   hazard_fn: Callable | None = None,
+                   policy_fn: Callable | None = None) -> ValueRollout:
     """Run ``n_steps`` more steps (steps past ``horizon`` change nothing).
 
-    policy_params: stacked [P, ...]; each policy acts stochastically in its own episodes.
-    An episode ends as ``ends_episode`` says (``Simulator.terminations`` gives a simulator's
-    done_fn / hazard_fn).
+    policy_params: stacked [P, ...]; each policy acts in its own episodes. policy_fn(params,
+    obs [n, o], key) -> action [n, a] applies ONE policy's params (any JAX function; None:
+    the project's tanh-Gaussian policy, sampled). An episode ends as ``ends_episode`` says
+    (``Simulator.terminations`` gives a simulator's done_fn / hazard_fn).
     """
     n_pol = roll.obs.shape[0]
-    act = jax.vmap(sample_action)  # over policies; each call batches its n episodes
+    act = jax.vmap(policy_fn or _sampled_action)  # over policies; each batches its n episodes
 
     def step(roll: ValueRollout, key):
         k_act, k_dyn = jax.random.split(key)
-        action, _, _ = act(policy_params, roll.obs, jax.random.split(k_act, n_pol))
+        action = act(policy_params, roll.obs, jax.random.split(k_act, n_pol))
         k_dyn, k_end = end_key(k_dyn, hazard_fn)
         next_obs, hist = step_dynamics(dynamics, roll.obs, action, k_dyn, roll.hist)
         live = roll.alive & (roll.t < horizon)
@@ -371,30 +377,34 @@ def advance_values(roll: ValueRollout, policy_params: Params, dynamics: Dynamics
 def simulated_returns(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,
                       done_fn: Callable | None, start_pool: jax.Array, key: jax.Array, *,
                       n_episodes: int, horizon: int, gamma: float,
-                      hazard_fn: Callable | None = None, new_history: Callable | None = None
-                      ) -> tuple[jax.Array, jax.Array]:
+                      hazard_fn: Callable | None = None, new_history: Callable | None = None,
+                      policy_fn: Callable | None = None) -> tuple[jax.Array, jax.Array]:
     """Each simulated episode's discounted return and length: n_episodes episodes of at most
     ``horizon`` steps per policy, ended as ``ends_episode`` says (``new_history``: as
-    ``start_values``). -> (returns [P, n], lengths [P, n] int32)."""
+    ``start_values``; ``policy_fn``: as ``advance_values``).
+    -> (returns [P, n], lengths [P, n] int32)."""
     k_start, k_run = jax.random.split(key)
     n_pol = jax.tree_util.tree_leaves(policy_params)[0].shape[0]
     roll = start_values(start_pool, n_pol, n_episodes, k_start, new_history)
     roll = advance_values(roll, policy_params, dynamics, reward_fn, done_fn, k_run,
-                          n_steps=horizon, horizon=horizon, gamma=gamma, hazard_fn=hazard_fn)
+                          n_steps=horizon, horizon=horizon, gamma=gamma, hazard_fn=hazard_fn,
+                          policy_fn=policy_fn)
     return roll.ret, roll.length
 
 
 def simulator_returns(sim: Simulator, task, policy_params: Params, start_pool: jax.Array,
-                      key: jax.Array, *, n_episodes: int, horizon: int, gamma: float
-                      ) -> tuple[jax.Array, jax.Array]:
+                      key: jax.Array, *, n_episodes: int, horizon: int, gamma: float,
+                      policy_fn: Callable | None = None) -> tuple[jax.Array, jax.Array]:
     """``simulated_returns`` of a Simulator under a task's ``reward_fn`` / ``done_fn`` (None:
     the simulator's own, ``Simulator.task_fns``), its episodes ended as the simulator's
-    ``termination`` says (``Simulator.terminations``). -> (returns [P, n], lengths [P, n])"""
+    ``termination`` says (``Simulator.terminations``); ``policy_fn``: your own policies'
+    function (``advance_values``). -> (returns [P, n], lengths [P, n])"""
     task = sim.task_fns() if task is None else task
     done_fn, hazard_fn = sim.terminations(task.done_fn)
     return simulated_returns(policy_params, sim.dynamics, task.reward_fn, done_fn, start_pool,
                              key, n_episodes=n_episodes, horizon=horizon, gamma=gamma,
-                             hazard_fn=hazard_fn, new_history=sim.new_history)
+                             hazard_fn=hazard_fn, new_history=sim.new_history,
+                             policy_fn=policy_fn)
 
 
 def simulated_values(policy_params: Params, dynamics: Dynamics, reward_fn: Callable,

@@ -27,8 +27,13 @@ def env_cache():
 
 @pytest.fixture(scope="session")
 def hopper_train_ds(env_cache):
-    """A small Hopper Dataset of the shipped zoo's 17 training policies (40-step episodes,
-    2 true-value episodes each); meta.source names the zoo so `rl2s train` finds the policies."""
+    """A small Hopper Dataset of the shipped zoo's 17 training policies (80 transitions and
+    16 true-value episodes each, 40-step episodes); meta.source names the zoo so `rl2s train`
+    finds the policies. Its MJX programs (collection and value measurement) are the
+    costliest of the suite to compile, so the tests that need Hopper data share it
+    (test_oracle needs the 16 value episodes: true values it can resolve), and
+    test_pipeline collects its train split with exactly these sizes (a persistent-cache
+    hit)."""
     import jax
 
     from rl2s_jax.data.collect import collect
@@ -39,7 +44,7 @@ def hopper_train_ds(env_cache):
     ids = list(zoo.train_ids)
     return collect(env_cache("hopper"), pol.index_params(zoo.params, ids),
                    key=jax.random.PRNGKey(0), transitions_per_policy=80, envs_per_policy=2,
-                   episode_length=40, task="hopper", value_episodes=2, progress=False,
+                   episode_length=40, task="hopper", value_episodes=16, progress=False,
                    policy_names=zoo.policy_names(ids),
                    source={"zoo": "hopper", "zoo_ids": ids})
 

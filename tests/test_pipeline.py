@@ -1,5 +1,9 @@
 """`make hopper`'s pipeline end to end, in a smoke variant (few transitions, 2 train_steps,
-one adversarial and one likelihood method; tests/test_checkpoint.py trains all four)."""
+one adversarial and one likelihood method; tests/test_checkpoint.py trains all four).
+
+The data sizes are conftest's hopper_train_ds (80 transitions per policy, 40-step episodes,
+16 value episodes): the train split's MJX collection is then the same program as that
+fixture's, which the persistent compilation cache holds once the fixture has run."""
 import json
 import os
 
@@ -12,9 +16,9 @@ from rl2s_jax.zoo.zoo import load_zoo
 def test_hopper_pipeline_smoke(tmp_path, capsys):
     out = tmp_path / "hopper"
     args = ["pipeline", "--task", "hopper", "--profile", "cpu", "--out", str(out), "--steps",
-            "2", "--eval-every", "1", "--transitions-per-policy", "40", "--value-episodes", "1",
+            "2", "--eval-every", "1", "--transitions-per-policy", "80", "--value-episodes", "16",
             "--improve-iterations", "2", "--methods", "rl2s,bc",
-            "--episode-length", "20", "--quiet"]
+            "--episode-length", "40", "--quiet"]
     assert main(args) == 0, capsys.readouterr().err
     text = capsys.readouterr().out
     for method in ("rl2s", "bc"):

@@ -18,6 +18,8 @@ $(STAMP): pyproject.toml
 # compilation), files kept whole on a worker so module fixtures are built once; each worker
 # also compiles only about half of the suite, which keeps it clear of the kernel's memory-map
 # limit that a single process compiling everything hit (XLA crashed late in such a run).
+# tests/conftest.py makes loadfile's units of work its UNITS (a file, or the files sharing
+# Hopper data) and hands them out costliest first.
 test: setup
 	$(PY) -m pytest -q -n 2 --dist loadfile -m "not heavy" --durations=25 tests
 

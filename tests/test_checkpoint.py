@@ -320,7 +320,10 @@ def _truncate(path, size=10):
 
 
 def _array_files(step_dir, item):
-    """The data files of one item's arrays (orbax OCDBT layout), largest first."""
+    """The data files of one item's arrays (orbax OCDBT layout), largest first.
+
+    Damage all of them, never one: which files the merged manifest still references varies
+    from save to save (a per-process B-tree node superseded by the merge can be the largest)."""
     files = [os.path.join(d, f) for d, _, fs in os.walk(step_dir / item) for f in fs
              if os.path.basename(d) == "d"]
     assert files, f"no array data files under {step_dir / item}"
@@ -331,10 +334,12 @@ CORRUPTIONS = {
     # name: (damage(step_dir), what the message must say)
     "meta JSON truncated": (lambda d: _truncate(d / "meta" / "metadata"),
                             "meta/metadata is not valid JSON"),
-    "simulator array file deleted": (lambda d: os.remove(_array_files(d, "simulator")[0]),
-                                     "simulator cannot be read"),
-    "simulator array file truncated": (lambda d: _truncate(_array_files(d, "simulator")[0], 7),
-                                       "simulator cannot be read"),
+    "simulator array files deleted": (lambda d: [os.remove(f)
+                                                 for f in _array_files(d, "simulator")],
+                                      "simulator cannot be read"),
+    "simulator array files truncated": (lambda d: [_truncate(f, 7)
+                                                   for f in _array_files(d, "simulator")],
+                                        "simulator cannot be read"),
     "simulator _METADATA truncated": (lambda d: _truncate(d / "simulator" / "_METADATA"),
                                       "simulator/_METADATA is not valid JSON"),
     "simulator item deleted": (lambda d: shutil.rmtree(d / "simulator"), "simulator/ is missing"),
@@ -368,7 +373,8 @@ def test_no_intact_step_is_a_clear_error(saved_steps, tmp_path):
     src, _ = saved_steps
     shutil.copytree(src, tmp_path / "ck")
     _truncate(tmp_path / "ck" / "4" / "meta" / "metadata")
-    os.remove(_array_files(tmp_path / "ck" / "2", "simulator")[0])
+    for f in _array_files(tmp_path / "ck" / "2", "simulator"):
+        os.remove(f)
     with pytest.raises(CheckpointError) as err:
         load_simulator(tmp_path / "ck")
     msg = str(err.value)
@@ -384,7 +390,8 @@ def test_resume_skips_a_broken_state_and_replays_it(pm, saved_steps, tmp_path):
     src, states = saved_steps
     ck_dir = tmp_path / "ck"
     shutil.copytree(src, ck_dir)
-    os.remove(_array_files(ck_dir / "4", "state")[0])
+    for f in _array_files(ck_dir / "4", "state"):
+        os.remove(f)
     with warnings.catch_warnings():
         warnings.simplefilter("error", CheckpointWarning)
         assert load_meta(ck_dir)["step"] == 4  # the simulator of step 4 is intact

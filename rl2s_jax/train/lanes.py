@@ -5,7 +5,8 @@ advances all of them. ``rl2s diagnose`` (its base and extended fits over seeds),
 protocol and the ablations use these; ``train.loop.fit`` is the single-lane host loop. The
 lanes' evaluation is ``evaluate.lanes``; ``select_point`` chooses a lane's evaluation point
 without the test policies, from the training policies' held-out episodes
-(``heldout_start_pool``)."""
+(``heldout_start_pool``). ``fork`` / ``fork_lanes`` continue one pre-trained lane as several
+adversarial lanes (issue 40: RL2S and GAIL of a seed pre-train once)."""
 from __future__ import annotations
 
 from functools import partial
@@ -16,6 +17,7 @@ import numpy as np
 
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.cvar import n_worst, select_worst
 from rl2s_jax.train.data import TrainData, heldout_mask
 from rl2s_jax.train.loop import WORST_VD_JUMP
 from rl2s_jax.train.step import TrainState, init, train_steps
@@ -58,6 +60,72 @@ def train_lanes(states: TrainState, data: TrainData, n: int, cfg: TrainConfig,
         m = mk if m is None else {**mk, "finite": jnp.logical_and(m["finite"], mk["finite"])}
         done += k
     return states, m
+
+
+# What init draws for the adversarial phase alone, which pre-training never reads or writes.
+FORK_REDRAWN = ("eps", "disc", "disc_us", "disc_opt", "sim", "buffer_obs", "buffer_act",
+                "buffer_hist", "buffer_pos")
+
+
+def fork(trunk: TrainState, start: TrainState) -> TrainState:
+    """The lane ``start`` continued from ``trunk``'s pre-training (issue 40, item 3).
+
+    An adversarial method's pre-training (its first ``pretrain_steps`` steps) is likelihood
+    steps on every training policy and the value measurement; neither reads eps, the CVaR
+    selection, the critic, the simulated envs or their buffer. So a lane of another eps (GAIL
+    beside RL2S) need not pre-train again: ``trunk`` is a lane pre-trained for at most
+    ``pretrain_steps`` steps, ``start`` the fresh ``init`` (step 0, the same static config) of
+    the lane to continue. The result:
+
+    - shared with ``trunk`` (what pre-training computed): ``step``, ``key`` (the rest of the
+      run draws from the trunk's key stream), the normaliser, the members (``gen``,
+      ``gen_opt``, ``best_gen``, ``ema_gen``), their held-out scores and early-stopping
+      bookkeeping (``heldout_nll``, ``rank``, ``best_nll``, ``since_best``, ``stopped``), the
+      value measurement (``vd``, ``sim_value``, ``sim_length``, ``vd_roll``) and the learned
+      termination and reward heads (``hazard``, ``reward``);
+    - taken from ``start`` (``FORK_REDRAWN``: drawn by ``init`` with start's key, untouched
+      by pre-training): ``eps``, the critic (``disc``, ``disc_us``, ``disc_opt``), the
+      simulated envs (``sim``) and the buffer (``buffer_obs``, ``buffer_act``,
+      ``buffer_hist``, ``buffer_pos``);
+    - recomputed: ``selected``, the worst n_worst(start's eps, P) of the trunk's last
+      measured VD (everyone without a value measurement), which is what the lane's own run
+      would hold, since every measurement recomputes the selection from the stored VD.
+
+    With ``start = init(k, cfg, data, eps)`` and ``trunk`` pre-trained from ``init(k, cfg,
+    data, eps')``, the fork is leaf for leaf the state that ``init(k, cfg, data, eps)``
+    pre-trained for the trunk's steps would be (tests/test_fork.py checks it bit for bit); the
+    paper protocol gives every method of a seed the key PRNGKey(seed), so its forked lanes are
+    its separate lanes. With another key for ``start``, the critic, envs and buffer are fresh
+    draws and the adversarial phase still draws from the trunk's key. Pure and jittable; the
+    caller checks the steps (``fork_lanes`` does)."""
+    if trunk.config != start.config:
+        raise ValueError("fork: the trunk and the start have different configs")
+    if not start.config.pretrains:
+        raise ValueError("fork: needs an adversarial method with pretrain_steps > 0 (the "
+                         "state the lanes share)")
+    cfg = start.config
+    state = trunk.replace(**{name: getattr(start, name) for name in FORK_REDRAWN})
+    if cfg.vd_every:
+        state = state.replace(selected=select_worst(trunk.vd,
+                                                    n_worst(start.eps, trunk.vd.shape[0])))
+    return state
+
+
+_fork_lanes = jax.jit(jax.vmap(fork))
+
+
+def fork_lanes(trunk: TrainState, starts: TrainState) -> TrainState:
+    """``fork`` of every lane: trunk [L] pre-trained lanes (``protocol.take_lanes`` repeats a
+    trunk lane for each lane forked from it), starts [L] their fresh ``init_lanes`` -> [L].
+    ValueError when a start is not at step 0 or the trunk is past its pre-training."""
+    cfg = starts.config
+    steps = np.asarray(trunk.step)
+    if np.any(np.asarray(starts.step) != 0):
+        raise ValueError("fork_lanes: the starts must be fresh lanes (step 0)")
+    if not cfg.pretrains or np.any(steps > cfg.pretrain_steps):
+        raise ValueError(f"fork_lanes: the trunk must be within its pre-training (steps <= "
+                         f"pretrain_steps {cfg.pretrain_steps}), got steps {steps.tolist()}")
+    return _fork_lanes(trunk, starts)
 
 
 def heldout_start_pool(train_ds) -> jax.Array:

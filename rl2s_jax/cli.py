@@ -202,6 +202,20 @@ def _policy_ids(text):
             f"policies: expected comma-separated indices such as 0,3,5, got {text!r}") from None
 
 
+def _guard_margin(args) -> float | None:
+    """The guard's margin from --guard-margin / --no-guard (None: no guard); refuses both."""
+    from rl2s_jax.app.improve import GUARD_MARGIN
+
+    if args.no_guard:
+        given = [o for o, on in (("--guard-margin", args.guard_margin is not None),
+                                 ("--guard-snapshots", getattr(args, "guard_snapshots", False)))
+                 if on]
+        if given:
+            raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
+        return None
+    return GUARD_MARGIN if args.guard_margin is None else args.guard_margin
+
+
 def cmd_improve(args) -> int:
     from rl2s_jax.app.improve import run_improve
 
@@ -212,7 +226,7 @@ def cmd_improve(args) -> int:
                     measure=not args.no_measure, branch_length=args.branch_length,
                     uncertainty_penalty=args.uncertainty_penalty,
                     uncertainty_threshold=args.uncertainty_threshold,
-                    halt_penalty=args.halt_penalty, guard_margin=args.guard_margin,
+                    halt_penalty=args.halt_penalty, guard_margin=_guard_margin(args),
                     guard_episodes=args.guard_episodes, progress=not args.quiet)
     from rl2s_jax.app.improve import summary_markdown
 
@@ -279,7 +293,7 @@ def cmd_pipeline(args) -> int:
     """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
     from rl2s_jax.app.pipeline import run_pipeline
 
-    return run_pipeline(args)
+    return run_pipeline(args, guard_margin=_guard_margin(args))
 
 
 def _set(items):
@@ -292,6 +306,19 @@ def _policy_source(p) -> None:
     p.add_argument("--zoo", help="zoo of the data's policies (default: what meta.source names)")
     p.add_argument("--policy-file", metavar="FILE", help="the data's policies in its policy_id "
                    "order, a save_policies file (docs/DATA.md), instead of a zoo")
+
+
+def _guard_options(p) -> None:
+    """--guard-margin, --guard-episodes, --no-guard: the deployment guard of the fine-tuned
+    policies (on by default; rl2s_jax/app/improve.py says why its margin)."""
+    p.add_argument("--guard-margin", type=float, metavar="M",
+                   help="deploy a fine-tuned policy only where every elite member of the "
+                   "simulator predicts a gain above M x |start value| (simulated); elsewhere "
+                   "keep the start policy (default: 0.02)")
+    p.add_argument("--guard-episodes", type=_positive("guard-episodes"), default=16,
+                   help="simulated episodes per policy and member for the guard")
+    p.add_argument("--no-guard", action="store_true", help="no deployment guard: deploy "
+                   "every fine-tuned policy (raw fine-tuning)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -454,15 +481,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="MOReL: end a rollout when u(s, a) exceeds this (same units)")
     p.add_argument("--halt-penalty", type=float, default=0.0,
                    help="reward subtracted when the threshold ends a rollout")
-    p.add_argument("--guard-margin", type=float, metavar="M",
-                   help="deploy a fine-tuned policy only where every elite member predicts a "
-                   "gain above M x |start value| (simulated; e.g. 0.02); elsewhere keep the "
-                   "start policy (default: deploy every fine-tuned policy)")
-    p.add_argument("--guard-episodes", type=_positive("guard-episodes"), default=16,
-                   help="simulated episodes per policy and member for the guard")
-    p.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: keep "
-                   "the actor after every tenth of the iterations; of the snapshots that pass "
-                   "the guard, deploy the one whose smallest predicted gain is largest")
+    _guard_options(p)
+    p.add_argument("--guard-snapshots", action="store_true", help="keep the actor after "
+                   "every tenth of the iterations; of the snapshots that pass the guard, "
+                   "deploy the one whose smallest predicted gain is largest (default: the "
+                   "final actor or the start)")
     _policy_source(p)
     p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
     p.add_argument("--seed", type=int, default=0)
@@ -482,6 +505,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--value-episodes", type=_positive("value-episodes"))
     p.add_argument("--improve-iterations", type=int,
                    help="SAC iterations per test policy in each simulator (0: skip)")
+    _guard_options(p)
     p.add_argument("--episode-length", type=_positive("episode-length"),
                    help="shorter episodes than the task's (smoke runs)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -21,14 +21,16 @@ SMALL = ["--set", "n_envs=4", "--set", "hidden=[32,32]", "--set", "batch_size=32
 
 
 def test_improve_end_to_end(pointmass_checkpoint, tmp_path, capsys):
+    """--no-guard: raw fine-tuning, every fine-tuned policy deployed."""
     run = pointmass_checkpoint
     out = tmp_path / "improved"
     rc = cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--policies",
                    "0,2", "--out", str(out), "--iterations", "40", "--episodes", "4",
-                   "--quiet", *SMALL, "--set", "kl_weight=0.02"])
+                   "--quiet", "--no-guard", *SMALL, "--set", "kl_weight=0.02"])
     assert rc == 0
     printed = capsys.readouterr().out
     assert "pointmass-000" in printed and "pointmass-002" in printed and "MPI" in printed
+    assert "No deployment guard (--no-guard)" in printed
     zoo = zoo_mod.load_zoo(str(out))
     assert zoo.task == "pointmass" and zoo.size == 2 and zoo.test_ids == [0, 1]
     before = pol.index_params(policies_for(load_dataset(run["data"])), np.array([0, 2]))
@@ -41,11 +43,12 @@ def test_improve_end_to_end(pointmass_checkpoint, tmp_path, capsys):
     assert zoo.info["sac"]["kl_weight"] == 0.02 and zoo.info["sac"]["n_envs"] == 4
     assert zoo.info["sac"]["critic_warmup_updates"] == 10  # a quarter of 40 x 1 updates
     s = json.loads((out / "summary.json").read_text())
+    assert s["guard"] is None and "deployed" not in zoo.origins[0]
     assert [r["policy"] for r in s["policies"]] == ["pointmass-000", "pointmass-002"]
     for r, c1 in zip(s["policies"], zoo.returns, strict=True):
         assert r["c1"] == pytest.approx(float(c1), rel=1e-5)  # the zoo records C1
         assert r["I"] == pytest.approx((r["c1"] - r["c0"]) / abs(r["c0"]), rel=1e-5)
-        assert r["c0_se"] >= 0 and r["c1_se"] >= 0
+        assert r["c0_se"] >= 0 and r["c1_se"] >= 0 and r["real_gain"] == r["I"]
         assert len(r["sim_return_curve"]) == len(s["curve_iterations"]) > 1
     assert s["mpi"] == pytest.approx(min(r["I"] for r in s["policies"]))
     assert s["api"] == pytest.approx(np.mean([r["I"] for r in s["policies"]]))
@@ -114,6 +117,31 @@ def test_improve_guard_keeps_the_start_where_the_simulator_sees_no_gain(pointmas
             assert "0 of 2 fine-tuned policies deployed" in (out / "summary.md").read_text()
 
 
+def test_improve_uses_the_guard_by_default(pointmass_checkpoint, tmp_path, capsys):
+    """Without guard options `rl2s improve` deploys through the guard at margin 0.02 and
+    prints, per policy, deployed or kept, the members' predicted gain and the real gain."""
+    run = pointmass_checkpoint
+    out = tmp_path / "default"
+    assert cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--policies",
+                     "0,3", "--out", str(out), "--iterations", "20", "--episodes", "2",
+                     "--quiet", "--guard-episodes", "4", *SMALL]) == 0
+    printed = capsys.readouterr().out
+    s = json.loads((out / "summary.json").read_text())
+    g = s["guard"]
+    assert g is not None and g["margin"] == 0.02 and "snapshot" not in g
+    v0, v1 = np.asarray(g["sim_value_start"]), np.asarray(g["sim_value_tuned"])
+    gain = (v1 - v0) / np.abs(v0)
+    assert g["accepted"] == np.all(gain > 0.02, axis=0).tolist()
+    assert "| policy | deployed | predicted gain (every member at least) |" in printed
+    for j, r in enumerate(s["policies"]):
+        assert r["deployed_fine_tuned"] == g["accepted"][j]
+        assert r["predicted_gain"] == pytest.approx(gain[:, j].min())
+        assert r["predicted_gain_mean"] == pytest.approx(gain[:, j].mean())
+        assert r["real_gain"] == (r["I"] if g["accepted"][j] else 0.0)
+        what = "deployed" if g["accepted"][j] else "kept (start)"
+        assert f"| {r['policy']} | {what} | {r['predicted_gain']:+.3f} |" in printed
+
+
 def test_improve_guard_over_snapshots_deploys_the_members_choice(pointmass_checkpoint,
                                                                  tmp_path):
     """--guard-snapshots: the actor is kept every tenth of the iterations; per policy the
@@ -150,6 +178,9 @@ def test_improve_guard_over_snapshots_deploys_the_members_choice(pointmass_check
         assert zoo.returns[j] == pytest.approx(g["c1"][j], rel=1e-6)
         if k == 0:
             assert g["c1"][j] == r["c0"] and g["I"][j] == 0.0
+        shown = values[max(k, 1) if k else 10]  # the deployed snapshot's, else the final's
+        assert r["predicted_gain"] == pytest.approx(
+            np.min((shown[:, j] - values[0, :, j]) / np.abs(values[0, :, j])))
         if k == 10:  # the final actor: the same paired episodes as the final's C1
             assert g["c1"][j] == pytest.approx(r["c1"], rel=1e-4)
         assert zoo.origins[j]["deployed"] == (
@@ -191,8 +222,10 @@ def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, c
     assert rc == 2 and "kl_weight" in err
     rc, err = refused("--guard-margin", "-0.5")
     assert rc == 2 and "guard-margin" in err
-    rc, err = refused("--guard-snapshots")
-    assert rc == 2 and "guard-snapshots: needs --guard-margin" in err
+    rc, err = refused("--no-guard", "--guard-snapshots")
+    assert rc == 2 and "no-guard: turns the deployment guard off; drop --guard-snapshots" in err
+    rc, err = refused("--no-guard", "--guard-margin", "0.1")
+    assert rc == 2 and "drop --guard-margin" in err
     # data of another task
     ds = load_dataset(run["data"])
     other = ds.replace(meta={**ds.meta, "task": "twomass"})

@@ -38,12 +38,23 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
     assert len(imp["I"]) == n_test and imp["mpi"] == min(imp["I"])
     np.testing.assert_allclose(imp["I"], (np.asarray(imp["c1"]) - imp["c0"])
                                / np.abs(imp["c0"]), rtol=1e-6)
+    # the deployment guard by default: a kept start has C1 = C0 (paired), deployed ones
+    # passed the members' margin; the terminal and report.md say which is which
+    assert report["guard_margin"] == imp["guard_margin"] == 0.02
+    for j, dep in enumerate(imp["deployed"]):
+        if dep:
+            assert imp["predicted_gain"][j] > 0.02
+        else:
+            assert imp["c1"][j] == imp["c0"][j] and imp["I"][j] == 0.0
+    assert "Improvement in rl2s's simulator (guard margin 0.02)" in text
     for png in ("vd_curves.png", "vd_per_policy.png", "true_vs_sim.png", "improvement.png"):
         assert os.path.getsize(out / png) > 1000
     md = (out / "report.md").read_text()
     assert "| rl2s |" in md and "kendall_tau" in md
+    assert "| predicted gain (every member at least) |" in md
     # a rerun with the same sizes reuses the data and the finished runs
     rerun = [a if a != "2" or args[i - 1] != "--improve-iterations" else "0"
              for i, a in enumerate(args)]
-    assert main(rerun) == 0
+    assert main([*rerun, "--no-guard"]) == 0
     assert "reusing" in capsys.readouterr().out
+    assert json.loads((out / "report.json").read_text())["guard_margin"] is None

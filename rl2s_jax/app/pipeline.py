@@ -9,15 +9,24 @@ import sys
 import time
 
 import jax
+import numpy as np
 
 from rl2s_jax.app.evaluate import evaluate_checkpoint
-from rl2s_jax.app.report import load_curve, write_report
+from rl2s_jax.app.improve import GUARD_MARGIN, predicted_gains
+from rl2s_jax.app.report import improvement_text, load_curve, write_report
 from rl2s_jax.app.train import run_training
-from rl2s_jax.data.collect import collect, measure_values
+from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
-from rl2s_jax.improve.finetune import improve_policies, improvement_metrics
+from rl2s_jax.improve.finetune import (
+    deployment_guard,
+    guarded,
+    improve_policies,
+    member_values,
+    paired_episode_returns,
+    paired_returns,
+)
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
@@ -59,11 +68,20 @@ PROFILES = {
 
 
 def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
-                          horizon: int, seed: int = 0, log=print) -> dict[str, dict]:
-    """Fine-tune every test policy with SAC inside each method's simulator, then measure its
-    real return (MJX) with the same protocol as the test data's true values:
-    C0 = the data's ``value``, C1 = mean return over ``value_episodes`` episodes.
-    -> {method: {"c0", "c1", "c1_se", "I" (lists [P]), "mpi", "api"}}."""
+                          horizon: int, seed: int = 0, guard_margin: float | None = GUARD_MARGIN,
+                          guard_episodes: int = 16, log=print) -> dict[str, dict]:
+    """Fine-tune every test policy with SAC inside each method's simulator, pass it through
+    the deployment guard (``guard_margin``; None: every fine-tuned policy deploys), then
+    measure the real return (MJX) of what deploys, paired with the start policy's: C0 and C1
+    over the same ``value_episodes`` start states and noise draws (``paired_episode_returns``),
+    so that a kept start has C1 = C0 exactly (I = 0) and a deployed policy's real gain is not
+    drowned by the two measurements' own noise. The guard is ``rl2s improve``'s
+    (``improve.deployment_guard`` on the final actor): every elite member, over
+    ``guard_episodes`` simulated episodes of ``horizon`` steps (the fine-tuning's), must
+    predict a gain above ``guard_margin`` x |start value|.
+    -> {method: {"c0", "c0_se", "c1", "c1_se", "I", "c0_data" (the data's true values),
+    "deployed" (bool), "predicted_gain" / "predicted_gain_mean" (None without the guard)
+    (lists [P]), "mpi", "api", "guard_margin"}}."""
 
 
     ds = load_dataset(test_path)
@@ -72,39 +90,59 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     task = get_task(task_name)
     policies, pool = policies_for(ds), start_pool(ds)
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
+    gamma = float(ds.meta.get("gamma") or 0.999)
     cfg = SACConfig.fine_tuning(episode_length=horizon, **sizes["sac"])
-    env = task.make_env()
-    c0 = [float(v) for v in ds.value]
-    improved = []
+    P = len(ds.value)
+    deployed, guards = [], {}
     for i, (method, ckpt) in enumerate(ckpts.items()):
         t0 = time.perf_counter()
-        params, _ = improve_policies(load_simulator(ckpt), task, pool, policies,
+        sim = load_simulator(ckpt)
+        params, _ = improve_policies(sim, task, pool, policies,
                                      jax.random.PRNGKey(seed + 10 + i), cfg,
                                      n_iterations=sizes["improve_iterations"],
                                      chunk_iterations=min(1000, sizes["improve_iterations"]))
-        improved.append(params)
         log(f"[pipeline] SAC in {method}'s simulator: {time.perf_counter() - t0:.0f}s")
-    # One real measurement of every method's improved policies (one MJX compile).
+        accept, lo, mean = np.ones(P, bool), [None] * P, [None] * P
+        if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
+            both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]),
+                                          policies, params)
+            v = member_values(sim, task, both, pool, jax.random.PRNGKey(seed + 30 + i),
+                              n_episodes=guard_episodes, horizon=horizon, gamma=gamma)
+            accept = deployment_guard(v[:, :P], v[:, P:], guard_margin)
+            lo, mean = predicted_gains(v[:, :P], v[:, P:])
+            params = guarded(policies, params, accept)
+            log(f"[pipeline] guard (margin {guard_margin}) in {method}'s simulator: "
+                f"{int(accept.sum())} of {P} fine-tuned policies deployed")
+        deployed.append(params)
+        guards[method] = (accept, lo, mean)
+    # One real measurement of the start and every method's deployed policies, paired
+    # (one MJX compile).
     t0 = time.perf_counter()
-    both = jax.tree_util.tree_map(lambda *xs: jax.numpy.concatenate(xs), *improved)
-    real = measure_values(env, both, key=jax.random.PRNGKey(seed + 20),
-                          n_episodes=sizes["value_episodes"], episode_length=episode_length,
-                          gamma=float(ds.meta.get("gamma") or 0.999))
-    P, out = len(c0), {}
-    for i, method in enumerate(ckpts):
-        c1, se = real["value"][i * P:(i + 1) * P], real["value_se"][i * P:(i + 1) * P]
-        m = improvement_metrics(c0, c1)
-        out[method] = {"c0": c0, "c1": c1.tolist(), "c1_se": se.tolist(), "I": m["I"].tolist(),
-                       "mpi": m["mpi"], "api": m["api"]}
+    r0, rs = paired_episode_returns(task.make_env(), policies, deployed,
+                                    jax.random.PRNGKey(seed + 20),
+                                    n_episodes=sizes["value_episodes"],
+                                    episode_length=episode_length, gamma=gamma)
+    out = {}
+    for method, r1 in zip(ckpts, rs, strict=True):
+        m = paired_returns(r0, r1)
+        accept, lo, mean = guards[method]
+        out[method] = {"c0": m["c0"].tolist(), "c0_se": m["c0_se"].tolist(),
+                       "c1": m["c1"].tolist(), "c1_se": m["c1_se"].tolist(),
+                       "I": m["I"].tolist(), "mpi": m["mpi"], "api": m["api"],
+                       "c0_data": [float(v) for v in ds.value],
+                       "deployed": accept.tolist(), "predicted_gain": lo,
+                       "predicted_gain_mean": mean, "guard_margin": guard_margin}
         log(f"[pipeline] improvement in {method}'s simulator: MPI {m['mpi']:.3f}  API "
-            f"{m['api']:.3f}")
-    log(f"[pipeline] real returns of the improved policies measured in "
+            f"{m['api']:.3f} ({int(accept.sum())} of {P} deployed)")
+    log(f"[pipeline] real returns of the start and deployed policies measured in "
         f"{time.perf_counter() - t0:.0f}s")
     return out
 
 
-def run_pipeline(args) -> int:
-    """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
+def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
+    """The whole pipeline for one task: collect, train the four methods, evaluate, fine-tune
+    the test policies in each simulator through the deployment guard (``guard_margin``; None:
+    none), report."""
 
 
     t_start = time.perf_counter()
@@ -128,6 +166,7 @@ def run_pipeline(args) -> int:
     if args.episode_length is not None:
         data_key["episode_length"] = args.episode_length
     summary = {"task": args.task, "profile": profile, "backend": backend, "sizes": sizes,
+               "guard_margin": guard_margin,
                "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
                "datasets": {}}
     state_path = os.path.join(out, "pipeline.json")
@@ -171,12 +210,15 @@ def run_pipeline(args) -> int:
         improvement = improve_in_simulators(
             args.task, summary["datasets"]["test"]["path"],
             {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
-            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed)
+            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed,
+            guard_margin=guard_margin, guard_episodes=getattr(args, "guard_episodes", 16))
         for m, imp in improvement.items():
             evals[m]["metrics"].update(mpi=imp["mpi"], api=imp["api"])
             evals[m]["improvement"] = imp
     summary["seconds"] = round(time.perf_counter() - t_start, 1)
     text = write_report(out, summary, evals, curves)
+    imp = improvement_text(evals)
     print(f"\n[pipeline] test policies ({profile} profile, {backend}), "
-          f"{summary['seconds']:.0f}s:\n{text}\n-> {out}/report.md, report.json, *.png")
+          f"{summary['seconds']:.0f}s:\n{text}\n{imp}\n-> {out}/report.md, report.json, "
+          "*.png")
     return 0

@@ -37,6 +37,32 @@ def markdown_table(methods: dict[str, dict], keys=TABLE_KEYS) -> str:
     return "\n".join(lines)
 
 
+def improvement_text(evals: dict[str, dict]) -> str:
+    """Per method and test policy of the improvement (``evals[m]["improvement"]``, the
+    pipeline's ``improve_in_simulators``): deployed or kept, the simulator's predicted gain
+    (the smallest over the elite members; the guard's criterion) and the real gain (paired C1
+    vs C0). Markdown; "" without improvement."""
+    lines = []
+    for method, r in evals.items():
+        imp = r.get("improvement")
+        if imp is None:
+            continue
+        names = [str(n) for n in r["policy_names"]]
+        g = imp.get("guard_margin")
+        lines += ["", f"Improvement in {method}'s simulator ("
+                  + (f"guard margin {g}" if g is not None else "no guard")
+                  + f"): {sum(imp['deployed'])} of {len(imp['I'])} deployed, MPI "
+                  f"{imp['mpi']:.3f}, API {imp['api']:.3f}", "",
+                  "| policy | deployed | predicted gain (every member at least) | real C0 | "
+                  "real C1 | real gain |", "|---|---|---:|---:|---:|---:|"]
+        for j, name in enumerate(names):
+            p = imp["predicted_gain"][j]
+            lines.append(f"| {name} | {'deployed' if imp['deployed'][j] else 'kept (start)'} | "
+                         + ("n/a" if p is None else f"{p:+.3f}") + f" | {imp['c0'][j]:.1f} | "
+                         f"{imp['c1'][j]:.1f} | {imp['I'][j]:+.3f} |")
+    return "\n".join(lines)
+
+
 def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) -> list[str]:
     """Write the PNG plots into ``out``; returns their file names."""
     # Imported here to keep start-up fast: matplotlib loads in about a second, and only
@@ -96,21 +122,50 @@ def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) ->
 
         imps = {name: r["improvement"] for name, r in evals.items() if "improvement" in r}
         if imps:
-            fig, ax = plt.subplots(figsize=(max(6, 0.22 * len(names) + 2), 3.6))
-            width = 0.8 / len(imps)
-            for j, (name, imp) in enumerate(imps.items()):
-                ax.bar(np.arange(len(names)) + j * width, np.asarray(imp["I"])[order], width,
-                       label=f"{name} (MPI {imp['mpi']:.2f}, API {imp['api']:.2f})")
-            ax.axhline(0, color="grey", lw=0.8)
-            ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=90,
-                          fontsize=6)
-            ax.set_ylabel("improvement I = (C1 - C0) / |C0|")
-            ax.legend(fontsize=7)
-            fig.tight_layout()
-            fig.savefig(os.path.join(out, "improvement.png"), dpi=110)
-            plt.close(fig)
-            files.append("improvement.png")
+            files.append(plot_improvement(out, imps, names, order))
     return files
+
+
+def plot_improvement(out: str, imps: dict[str, dict], names: list[str], order) -> str:
+    """improvement.png: each test policy's real improvement I per method, deployed policies
+    as filled bars in the method's colour, policies the guard kept (I = 0 by definition) as a
+    hollow marker on the zero line; the legend tells them apart. -> the file name."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    fig, ax = plt.subplots(figsize=(max(6, 0.22 * len(names) + 2), 3.8))
+    width = 0.8 / len(imps)
+    handles, any_kept = [], False
+    for j, (name, imp) in enumerate(imps.items()):
+        colour = f"C{j}"
+        x = np.arange(len(names)) + j * width
+        i_ = np.asarray(imp["I"], float)[order]
+        dep = np.asarray(imp.get("deployed", [True] * len(imp["I"])), bool)[order]
+        ax.bar(x[dep], i_[dep], width, color=colour)
+        if (~dep).any():
+            any_kept = True
+            ax.scatter(x[~dep], np.zeros((~dep).sum()), marker="o", s=22,
+                       facecolors="none", edgecolors=colour, zorder=3)
+        handles.append(Patch(color=colour, label=f"{name}: {int(dep.sum())} deployed (MPI "
+                             f"{imp['mpi']:.2f}, API {imp['api']:.2f})"))
+    if any_kept:
+        handles.append(Line2D([], [], ls="", marker="o", markerfacecolor="none",
+                              markeredgecolor="black", label="kept by the guard (I = 0)"))
+    ax.axhline(0, color="grey", lw=0.8)
+    ax.set_xticks(np.arange(len(names)) + 0.4 - width / 2, names, rotation=90, fontsize=6)
+    ax.set_ylabel("real improvement I = (C1 - C0) / |C0|")
+    margin = next(iter(imps.values())).get("guard_margin")
+    ax.set_title("deployed (bars) and kept (hollow) policies, guard margin "
+                 f"{margin}" if margin is not None else "no guard: every policy deployed",
+                 fontsize=8)
+    ax.legend(handles=handles, fontsize=7)
+    fig.tight_layout()
+    fig.savefig(os.path.join(out, "improvement.png"), dpi=110)
+    plt.close(fig)
+    return "improvement.png"
 
 
 def write_report(out: str, summary: dict, evals: dict[str, dict],
@@ -131,6 +186,9 @@ def write_report(out: str, summary: dict, evals: dict[str, dict],
                   f"{first['n_episodes']} episodes of {first['horizon']} steps (gamma "
                   f"{first['gamma']}); true values from the test data.", "",
                   markdown_table(methods), ""]
+    imp = improvement_text(evals)
+    if imp:
+        lines += [imp.lstrip("\n"), ""]
     for k, v in summary.get("notes", {}).items():
         lines.append(f"- **{k}**: {v}")
     lines += [""] + [f"![{p}]({p})" for p in plots]

@@ -202,22 +202,8 @@ def _policy_ids(text):
             f"policies: expected comma-separated indices such as 0,3,5, got {text!r}") from None
 
 
-def _guard_margin(args) -> float | None:
-    """The guard's margin from --guard-margin / --no-guard (None: no guard); refuses both."""
-    from rl2s_jax.app.improve import GUARD_MARGIN
-
-    if args.no_guard:
-        given = [o for o, on in (("--guard-margin", args.guard_margin is not None),
-                                 ("--guard-snapshots", getattr(args, "guard_snapshots", False)))
-                 if on]
-        if given:
-            raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
-        return None
-    return GUARD_MARGIN if args.guard_margin is None else args.guard_margin
-
-
 def cmd_improve(args) -> int:
-    from rl2s_jax.app.improve import run_improve
+    from rl2s_jax.app.improve import guard_margin, run_improve
 
     s = run_improve(args.ckpt, args.data, args.out, policy_ids=args.policies,
                     iterations=args.iterations, overrides=_set(args.set), seed=args.seed,
@@ -226,7 +212,7 @@ def cmd_improve(args) -> int:
                     measure=not args.no_measure, branch_length=args.branch_length,
                     uncertainty_penalty=args.uncertainty_penalty,
                     uncertainty_threshold=args.uncertainty_threshold,
-                    halt_penalty=args.halt_penalty, guard_margin=_guard_margin(args),
+                    halt_penalty=args.halt_penalty, guard_margin=guard_margin(args),
                     guard_episodes=args.guard_episodes, progress=not args.quiet)
     from rl2s_jax.app.improve import summary_markdown
 
@@ -291,9 +277,10 @@ def cmd_diagnose(args) -> int:
 
 def cmd_pipeline(args) -> int:
     """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
+    from rl2s_jax.app.improve import guard_margin
     from rl2s_jax.app.pipeline import run_pipeline
 
-    return run_pipeline(args, guard_margin=_guard_margin(args))
+    return run_pipeline(args, guard_margin=guard_margin(args))
 
 
 def _set(items):
@@ -309,8 +296,7 @@ def _policy_source(p) -> None:
 
 
 def _guard_options(p) -> None:
-    """--guard-margin, --guard-episodes, --no-guard: the deployment guard of the fine-tuned
-    policies (on by default; rl2s_jax/app/improve.py says why its margin)."""
+    """The deployment guard's options (on by default: rl2s_jax/app/improve.py says why)."""
     p.add_argument("--guard-margin", type=float, metavar="M",
                    help="deploy a fine-tuned policy only where every elite member of the "
                    "simulator predicts a gain above M x |start value| (simulated); elsewhere "
@@ -482,10 +468,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--halt-penalty", type=float, default=0.0,
                    help="reward subtracted when the threshold ends a rollout")
     _guard_options(p)
-    p.add_argument("--guard-snapshots", action="store_true", help="keep the actor after "
-                   "every tenth of the iterations; of the snapshots that pass the guard, "
-                   "deploy the one whose smallest predicted gain is largest (default: the "
-                   "final actor or the start)")
+    p.add_argument("--guard-snapshots", action="store_true", help="keep the actor every "
+                   "tenth of the iterations; of the snapshots that pass the guard, deploy the "
+                   "one whose smallest predicted gain is largest (default: the final actor)")
     _policy_source(p)
     p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
     p.add_argument("--seed", type=int, default=0)

@@ -67,6 +67,20 @@ from rl2s_jax.zoo.zoo import Zoo, policies_for, policy_source, save_zoo
 GUARD_MARGIN = 0.02
 
 
+def guard_margin(args) -> float | None:
+    """The guard's margin from the command line's --guard-margin (None: the default,
+    ``GUARD_MARGIN``) and --no-guard (-> None: no guard); --no-guard with --guard-margin or
+    --guard-snapshots is refused."""
+    if args.no_guard:
+        given = [o for o, on in (("--guard-margin", args.guard_margin is not None),
+                                 ("--guard-snapshots", getattr(args, "guard_snapshots", False)))
+                 if on]
+        if given:
+            raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
+        return None
+    return GUARD_MARGIN if args.guard_margin is None else args.guard_margin
+
+
 def fine_tuning_overrides(overrides: dict | None, flag: str = "set") -> dict:
     """SACConfig overrides for fine-tuning, checked: unknown fields refused (naming the known
     ones), ``normalize_observations`` refused, tuple fields made tuples. Errors start with
@@ -443,4 +457,4 @@ def _jsonable(cfg: SACConfig) -> dict:
 
 
 __all__ = ["GUARD_MARGIN", "check_inputs", "deployment_table", "fine_tuning_overrides",
-           "predicted_gains", "run_improve", "sac_config", "summary_markdown"]
+           "guard_margin", "predicted_gains", "run_improve", "sac_config", "summary_markdown"]

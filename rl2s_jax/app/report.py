@@ -130,6 +130,7 @@ def plot_improvement(out: str, imps: dict[str, dict], names: list[str], order) -
     """improvement.png: each test policy's real improvement I per method, deployed policies
     as filled bars in the method's colour, policies the guard kept (I = 0 by definition) as a
     hollow marker on the zero line; the legend tells them apart. -> the file name."""
+    # Imported here to keep start-up fast (matplotlib loads in about a second).
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt

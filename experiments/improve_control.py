@@ -5,7 +5,7 @@ improvement phase, and their real returns before and after. No simulator is need
     python experiments/improve_control.py --tasks hopper,walker2d,halfcheetah,ant --out DIR
         [--policies 0] [--seeds 2] [--iterations 2000] [--episodes 16] [--sac-envs 16]
         [--critic-warmup 500] [--updates-per-step 1] [--sac-set KEY=VALUE ...] [--plain]
-        [--select-episodes 0] [--select-every 400] [--select-z 2]
+        [--select-episodes 0] [--select-every 400] [--select-z 2] [--zoo-recipe]
 
 For each task: C0 and C1 of every chosen test policy (``--policies`` N spread over their
 returns, 0 = all) over ``--episodes`` fresh real episodes, for ``--seeds`` SAC seeds (one
@@ -18,6 +18,10 @@ errors). ``--plain`` also runs plain SAC (``SACConfig()``'s from-scratch default
 every ``--select-every`` iterations and each policy deploys the snapshot with a significant
 paired gain over its start on E further real episodes (``improve.select_by_validation``), else
 its start; the JSON then also holds the undeployed final snapshot's MPI / API ("final_*").
+``--zoo-recipe``: the discount, reward scaling and batch size of the SAC that trained the
+task's zoo (``zoo.build.ZOO_SAC``) and a 2^19-row buffer, under the fine-tuning settings
+(``--sac-set`` still wins). Fine-tuning at the zoo's discount and reward scale is what made the
+control gain (docs/RESULTS.md, "Policy improvement: the real-env control").
 Writes OUT/control_<task>.json after each task and prints a table.
 """
 from __future__ import annotations
@@ -44,6 +48,7 @@ from rl2s_jax.improve.finetune import (
 )
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig  # noqa: E402
+from rl2s_jax.zoo.build import ZOO_SAC  # noqa: E402
 from rl2s_jax.zoo.zoo import load_zoo  # noqa: E402
 
 
@@ -60,7 +65,18 @@ def pick(returns: np.ndarray, n: int) -> list[int]:
                   .tolist())
 
 
-def sac_configs(args, episode_length: int) -> dict[str, SACConfig]:
+ZOO_RECIPE_FIELDS = ("gamma", "reward_scaling", "batch_size")
+
+
+def zoo_recipe(task_name: str) -> dict:
+    """The zoo learner's discount, reward scale and batch size for ``task_name``, and a
+    2^19-row buffer (the fields ``--zoo-recipe`` sets)."""
+    plan = ZOO_SAC[task_name].config
+    return {**{k: getattr(plan, k) for k in ZOO_RECIPE_FIELDS}, "buffer_size": 1 << 19}
+
+
+def sac_configs(args, episode_length: int, task_name: str | None = None
+                ) -> dict[str, SACConfig]:
     fields = {f.name for f in dataclasses.fields(SACConfig)}
     over = parse_overrides(args.sac_set)
     unknown = sorted(set(over) - fields)
@@ -73,6 +89,8 @@ def sac_configs(args, episode_length: int) -> dict[str, SACConfig]:
                  critic_warmup_updates=args.critic_warmup,
                  updates_per_step=args.updates_per_step,
                  buffer_size=min(100_000, args.sac_envs * (64 + args.iterations)))
+    if getattr(args, "zoo_recipe", False) and task_name is not None:
+        sizes.update(zoo_recipe(task_name))
     out = {"fine_tuning": SACConfig.fine_tuning(**{**sizes, **over})}
     if args.plain:
         out["plain"] = SACConfig(**{**sizes, "critic_warmup_updates": 0, **over})
@@ -106,7 +124,8 @@ def run_task(task_name: str, args) -> dict:
     result = {"task": task_name, "zoo_ids": chosen, "seeds": R, "iterations": args.iterations,
               "n_episodes": args.episodes, "backend": jax.default_backend(),
               "device": str(jax.devices()[0]), "configs": {}}
-    for name, cfg in sac_configs(args, task.episode_length).items():
+    result["zoo_recipe"] = zoo_recipe(task_name) if args.zoo_recipe else None
+    for name, cfg in sac_configs(args, task.episode_length, task_name).items():
         t0 = time.perf_counter()
         log(f"[control] {task_name} {name}: SAC x {args.iterations} iterations in the real env "
             f"for {P} test policies x {R} seed(s)")
@@ -169,6 +188,8 @@ def main(argv=None) -> int:
                     help="iterations between the snapshots offered to the selection")
     ap.add_argument("--select-z", type=float, default=2.0,
                     help="standard errors of paired gain a snapshot needs to be deployed")
+    ap.add_argument("--zoo-recipe", action="store_true",
+                    help="the zoo learner's discount, reward scale and batch size (docstring)")
     args = ap.parse_args(argv)
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
     bad = [t for t in tasks if t not in task_names()]

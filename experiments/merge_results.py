@@ -46,7 +46,7 @@ ORACLE_SIZES = ("test_policies", "eval_episodes", "value_episodes", "episode_len
 # entries keyed by method, lane or family: a part adds its own keys (the first part's oracle
 # stays when both ran one)
 MERGED_BY_METHOD = ("per_seed", "selected", "lane_intervals", "intervals", "lanes",
-                    "train_config", "improvement")
+                    "train_config", "improvement", "fork")
 SAME_IN_PARTS = ("task", "model", "profile", "zoo_sha256", "true_value")
 
 

@@ -11,7 +11,7 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--ablation-methods rl2s]
         [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
-        [--set field=value ...] [--families adversarial,mle] [--first-seed K]
+        [--set field=value ...] [--families adversarial,mle] [--first-seed K] [--no-fork]
 
 Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
 by a time limit still leaves what it finished, with "complete": false); this script parses and
@@ -32,7 +32,10 @@ checks the flags, the phases are ``rl2s_jax.app.protocol`` (data, oracle, traini
    lanes of one likelihood program (config method "rl2s-bc"). A lane (method m, seed s) is the
    program ``rl2s train --method m --seed s`` runs: gail differs from rl2s, and bc from rl2s-bc,
    only in the initial eps (TrainConfig.initial_eps), and the key is PRNGKey(s) (checked: the
-   final states are bitwise equal unvmapped; a vmapped lane matches to ~3e-8).
+   final states are bitwise equal unvmapped; a vmapped lane matches to ~3e-8). The lanes of
+   a seed are equal through pre-training, so the rl2s lanes pre-train for gail too and
+   ``train.lanes.fork`` continues the gail lanes from them (the same states; --no-fork trains
+   them apart, for checking).
    ``--families adversarial`` (or ``mle``) runs one of the two, so a task's protocol can be
    split over two device calls; experiments/merge_results.py joins the two JSON files.
    ``--first-seed K`` runs seeds K..K+S-1 (keys, evaluation keys and lane names as in one
@@ -181,6 +184,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--families", default="adversarial,mle", help="comma list of the training "
                     "programs to run: adversarial (rl2s, gail) and / or mle (rl2s-bc, bc); one "
                     "of them splits the protocol over two calls (merge_results.py joins them)")
+    ap.add_argument("--no-fork", dest="fork", action="store_false", help="pre-train the "
+                    "gail lanes too, instead of forking them off the rl2s lanes' pre-training")
     ap.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
                     "95%% intervals over evaluation episodes (0: none)")
     ap.add_argument("--no-oracle", dest="oracle", action="store_false", help="skip the control "
@@ -342,7 +347,7 @@ def main(argv=None) -> int:
         finals[family] = train_family(
             result, family, cfg, methods, train_ds=train_ds, test_ds=test_ds,
             train_pols=train_pols, test_pols=test_pols, seeds=seed_ids, sizes=sizes,
-            robust_eps=robust_eps, check_eval=args.check_eval)
+            robust_eps=robust_eps, check_eval=args.check_eval, fork=args.fork)
         phase(f"train_{family}", t0)
         save()
 

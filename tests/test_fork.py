@@ -118,3 +118,68 @@ def test_fork_lanes_checks_and_vmaps(pm_small):
     flat = _cfg(pretrain_steps=0)
     with pytest.raises(ValueError, match="pretrain_steps > 0"):
         fork(both.replace(config=flat), starts.replace(config=flat))
+
+
+def test_bc_lane_runs_the_trunks_pre_training(pm_small):
+    """BC (eps 1, the likelihood family's config) from the same key takes the same likelihood
+    steps as an adversarial lane's pre-training: the members, their optimiser, the value
+    measurement and the key are bitwise equal after PRE steps (docs/SCALING.md: BC could
+    continue from the trunk; the protocol does not do it)."""
+    ds, policies = pm_small
+    cfg = _cfg()
+    data = T.make_train_data(ds, policies, cfg)
+    key = jax.random.PRNGKey(5)
+    trunk, _ = _steps(_init(key, cfg, data, 0.25), data, PRE, "pretrain")
+    bc, _ = _steps(_init(key, _cfg(method="rl2s-bc"), data, 1.0), data, PRE, None)
+    for name in ("gen", "gen_opt", "best_gen", "ema_gen", "heldout_nll", "best_nll", "vd",
+                 "vd_roll", "key", "step"):
+        _assert_equal(getattr(bc, name), getattr(trunk, name))
+
+
+def _shape(x):
+    """A result's structure: dict keys all the way down, list lengths, leaf types."""
+    if isinstance(x, dict):
+        return {k: _shape(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_shape(v) for v in x]
+    return type(x).__name__ if x is not None else None
+
+
+@pytest.mark.heavy
+def test_protocol_forked_family_reports_as_the_separate_one(pm_files):
+    """(c) train_family with the fork (the rl2s lanes pre-train for gail too; fork inside the
+    second evaluation chunk) writes the result of the separate lanes: the same structure and
+    the same numbers to round-off (vmap over 2 vs 4 lanes), "fork" saying where it forked.
+    Heavy: ~25 s with the compilation cache, ~2 min without (five lane programs)."""
+    from rl2s_jax.app.protocol import METRICS, train_family
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.zoo.zoo import policies_for
+
+    train_ds, test_ds = load_dataset(pm_files["train"]), load_dataset(pm_files["test"])
+    cfg = _cfg(vd_horizon=10)
+    sizes = dict(steps=4, eval_every=2, eval_episodes=2, bootstrap=0)
+    out = {}
+    for fork_on in (True, False):
+        methods = ("rl2s", "gail")
+        result = {"per_seed": {m: {k: [] for k in METRICS} for m in methods}, "curves": [],
+                  "lanes": {}, "timings": {}}
+        lanes, states = train_family(
+            result, "adversarial", cfg, methods, train_ds=train_ds, test_ds=test_ds,
+            train_pols=policies_for(train_ds), test_pols=policies_for(test_ds), seeds=[0, 1],
+            sizes=sizes, fork=fork_on)
+        assert lanes == [("rl2s", 0), ("rl2s", 1), ("gail", 0), ("gail", 1)]
+        np.testing.assert_array_equal(np.asarray(states.step), [4] * 4)
+        out[fork_on] = result, states
+    (forked, fs), (separate, ss) = out[True], out[False]
+    assert forked.pop("fork") == {"adversarial": {"trunk": "rl2s", "at_step": PRE,
+                                                  "steps_saved_per_seed": PRE}}
+    assert separate.pop("fork") == {"adversarial": None}
+    for r in (forked, separate):
+        r["timings"].clear()
+    assert _shape(forked) == _shape(separate)
+    np.testing.assert_array_equal(np.asarray(fs.eps), np.asarray(ss.eps))
+    np.testing.assert_array_equal(np.asarray(fs.selected), np.asarray(ss.selected))
+    for a, b in zip(forked["curves"], separate["curves"], strict=True):
+        assert a["lane"] == b["lane"] and a["step"] == b["step"]
+        for k in ("avd", "mvd", "tau", "avd_train", "mvd_train"):
+            assert a[k] == pytest.approx(b[k], rel=1e-3, abs=1e-4), (a["lane"], k)

@@ -1,9 +1,10 @@
 """The paper's protocol (``experiments/paper.py``): its sizes per profile and task, the zoo's
 train / test data, the oracle row, one vmapped training program per model family with its
-evaluation curves, model selection and bootstrap intervals, and the result JSON (the summary
-over seeds, the printed table, the atomic write). The improvement phases are
-``app.protocol_improve``; the lanes themselves (vmapped runs: training, evaluation,
-fine-tuning) ``train.lanes``, ``evaluate.lanes`` and ``improve.lanes``."""
+evaluation curves (the adversarial family pre-trains once per seed and forks its methods'
+lanes from there, ``train.lanes.fork``), model selection and bootstrap intervals, and the
+result JSON (the summary over seeds, the printed table, the atomic write). The improvement
+phases are ``app.protocol_improve``; the lanes themselves (vmapped runs: training,
+evaluation, fine-tuning) ``train.lanes``, ``evaluate.lanes`` and ``improve.lanes``."""
 from __future__ import annotations
 
 import argparse
@@ -32,8 +33,15 @@ from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.sharding import is_writer, lane_mesh, replicate, shard_lanes
 from rl2s_jax.train.config import DEFAULT_EPS, TrainConfig
+from rl2s_jax.train.cvar import n_worst
 from rl2s_jax.train.data import make_train_data
-from rl2s_jax.train.lanes import heldout_start_pool, init_lanes, select_point, train_lanes
+from rl2s_jax.train.lanes import (
+    fork_lanes,
+    heldout_start_pool,
+    init_lanes,
+    select_point,
+    train_lanes,
+)
 from rl2s_jax.train.loop import worst_vd_jumps
 from rl2s_jax.train.step import simulator
 from rl2s_jax.zoo.zoo import load_zoo, zoo_dir
@@ -253,18 +261,62 @@ def _final_rows(result, family, lanes, eps, points, evals, values, returns, leng
                           if row["lane"] == f"{meth}/{s}")}
 
 
+class _Trunk:
+    """A family's lanes while its first method's lanes (the trunk, one per seed) pre-train for
+    all of them (issue 40, item 3): ``train.lanes.fork_lanes`` forks the others off at the end
+    of pre-training, or when training ends before it."""
+
+    def __init__(self, starts, n_trunk: int, n_lanes: int):
+        self.starts = starts                              # every lane's fresh init [L]
+        self.of = [i % n_trunk for i in range(n_lanes)]   # lane -> its trunk lane
+
+    def expand(self, rows: list) -> list:
+        return [rows[j] for j in self.of]
+
+    def fork(self, trunk, mesh):
+        return jax.block_until_ready(fork_lanes(shard_lanes(take_lanes(trunk, self.of), mesh),
+                                                self.starts))
+
+
+def _train_chunk(states, data, n, cfg, compiled, trunk: _Trunk | None, data_host, mesh_all):
+    """n steps of the lanes; with a trunk, the trunk's steps up to the end of pre-training,
+    then the fork and the rest. -> (states, metrics [lanes], data, trunk: None once forked)"""
+    if trunk is None:
+        return (*train_lanes(states, data, n, cfg, compiled), data, None)
+    k = min(n, cfg.pretrain_steps - int(states.step[0]))
+    m = None
+    if k > 0:
+        states, m = train_lanes(states, data, k, cfg, compiled)
+    if k == n:
+        return states, m, data, trunk
+    states = trunk.fork(states, mesh_all)
+    data = replicate(data_host, mesh_all)
+    states, m2 = train_lanes(states, data, n - k, cfg, compiled)
+    if m is not None:
+        m2 = {**m2, "finite": jnp.logical_and(m2["finite"], jnp.asarray(m["finite"])[
+            jnp.asarray(trunk.of)])}
+    return states, m2, data, None
+
+
 def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_ds, test_ds,
                  train_pols, test_pols, seeds, sizes: dict, robust_eps=None,
-                 check_eval: bool = False):
+                 check_eval: bool = False, fork: bool = True):
     """One family's lanes (its ``methods`` x ``seeds``, key PRNGKey(seed), eps the method's
     default or ``robust_eps`` for the robust ones) trained as one vmapped program over the
     local devices, evaluated on the test policies and the training policies' held-out
     episodes every ``sizes["eval_every"]`` steps, into ``result`` (curves, per-seed final
     metrics, model selection, intervals, lanes, train_config, timings["eval_<family>"]).
     ``check_eval``: also ``evaluate_simulator`` on the first lane (result["eval_check"]).
+
+    ``fork`` (an adversarial family with pre-training, one process): the lanes of a seed
+    are identical through pre-training, so only the first method's lanes (the trunk) train
+    and are evaluated until ``cfg.pretrain_steps``; then ``train.lanes.fork`` continues each
+    other lane from its seed's trunk lane with its own eps, critic, simulated envs and buffer
+    (drawn by its own ``init``): the same states as separate lanes, at 1 / len(methods) of
+    the pre-training work. result["fork"][family] says whether and where it forked.
     -> (lanes [(method, seed)] * L, their final TrainState, leading lane axis L)"""
     t0 = time.perf_counter()
-    data = make_train_data(train_ds, train_pols, cfg)
+    data_host = data = make_train_data(train_ds, train_pols, cfg)
     truth = true_values(test_ds, cfg.vd_horizon, cfg.gamma)
     test_pool = start_pool(test_ds)
     select_pool, select_truth = heldout_start_pool(train_ds), np.asarray(data.true_value)
@@ -274,12 +326,26 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
            else DEFAULT_EPS[m] for m, _ in lanes]
     keys = jnp.stack([jax.random.PRNGKey(s) for _, s in lanes])
     states = init_lanes(keys, cfg, data, eps=jnp.asarray(eps, jnp.float32))
-    mesh = lane_mesh(len(lanes))  # lanes over the local devices (one: unchanged)
+    mesh_all = mesh = lane_mesh(len(lanes))  # lanes over the local devices (one: unchanged)
+    trunk = None
+    if fork and cfg.pretrains and len(methods) > 1 and jax.process_count() == 1:
+        trunk = _Trunk(jax.block_until_ready(shard_lanes(states, mesh_all)), len(seeds),
+                       len(lanes))
+        mesh = lane_mesh(len(seeds))
+        states = take_lanes(states, list(range(len(seeds))))
+    result.setdefault("fork", {})[family] = (
+        None if trunk is None else {"trunk": methods[0], "at_step": cfg.pretrain_steps,
+                                    "steps_saved_per_seed": (len(methods) - 1) * min(
+                                        cfg.pretrain_steps, sizes["steps"])})
     states = jax.block_until_ready(shard_lanes(states, mesh))
     data = replicate(data, mesh)
-    log(f"[paper] {family}: {len(lanes)} lanes over {mesh.size} device(s) "
+    log(f"[paper] {family}: {len(lanes)} lanes over {mesh_all.size} device(s) "
         f"{', '.join(f'{m}/{s} (eps {e:g})' for (m, s), e in zip(lanes, eps, strict=True))}"
-        f", config method {cfg.method}; init {time.perf_counter() - t0:.1f}s")
+        f", config method {cfg.method}; init {time.perf_counter() - t0:.1f}s"
+        + ("" if trunk is None else f"; the {methods[0]} lanes pre-train for all "
+           f"(fork at step {cfg.pretrain_steps})"))
+    n_sel = [int(n_worst(e, data_host.n_policies)) if cfg.vd_every else data_host.n_policies
+             for e in eps]
     n = sizes["eval_every"]
     compiled, evals, t_eval = {}, None, 0.0
     worst = [None] * len(lanes)  # each lane's worst training VD at its last evaluation
@@ -287,19 +353,33 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     lane_seeds = [s for _, s in lanes]
     for _ in range(sizes["steps"] // n):
         t1 = time.perf_counter()
-        states, m = jax.block_until_ready(train_lanes(states, data, n, cfg, compiled))
+        what = (f"{len(states.step)} lanes" if trunk is None else
+                f"{len(states.step)} trunk lanes" + (
+                    "" if int(states.step[0]) + n <= cfg.pretrain_steps else
+                    f" forked into {len(lanes)} at step {cfg.pretrain_steps}"))
+        states, m, data, trunk = _train_chunk(states, data, n, cfg, compiled, trunk,
+                                              data_host, mesh_all)
+        states, m = jax.block_until_ready((states, m))
         seconds = time.perf_counter() - t1
         t1 = time.perf_counter()
         sims = simulator(states)
+        seeds_now = lane_seeds[:len(states.step)]  # the trunk: the first method's lanes
         evals, values, returns, lengths = evaluate_lanes(
-            sims, lane_seeds, test_pols, test_pool, truth, key_base=1000, **roll)
-        selects = evaluate_lanes(sims, lane_seeds, data.policies, select_pool, select_truth,
+            sims, seeds_now, test_pols, test_pool, truth, key_base=1000, **roll)
+        selects = evaluate_lanes(sims, seeds_now, data.policies, select_pool, select_truth,
                                  key_base=2000, **roll)[0]
+        if trunk is not None:  # every lane of a seed is its trunk lane until the fork
+            evals, values, returns, lengths, selects = map(
+                trunk.expand, (evals, list(values), list(returns), list(lengths), selects))
+            m = {k: np.asarray(v)[trunk.of] for k, v in m.items()}
+            m["n_selected"] = np.asarray(n_sel)
         t_eval += time.perf_counter() - t1
         step = int(states.step[0])
-        header = (f"[paper] {family} step {step}: {n} steps of {len(lanes)} lanes in "
-                  f"{seconds:.1f}s; test evaluation {time.perf_counter() - t1:.1f}s")
+        header = (f"[paper] {family} step {step}: {n} steps of {what} in {seconds:.1f}s; "
+                  f"test evaluation {time.perf_counter() - t1:.1f}s")
         _evaluation_point(result, lanes, step, m, evals, selects, points, worst, header)
+    if trunk is not None:  # training ended within pre-training: fork the final states
+        states = trunk.fork(states, mesh_all)
     _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
                 true_values_se(test_ds, cfg.vd_horizon, cfg.gamma), sizes["bootstrap"])
     result["true_value"] = np.asarray(truth).tolist()

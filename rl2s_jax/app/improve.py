@@ -20,8 +20,8 @@ API (``summary["guard"]``), and every policy's row says deployed or kept, the me
 predicted gain (``predicted_gain``: the smallest over the members, the guard's criterion, and
 ``predicted_gain_mean``) and the real gain of what was deployed (``real_gain``).
 
-Why these defaults (docs/RESULTS.md, "The guard, paired, and over snapshots"; measured in
-RESULTS@bf0c7b2 on the four MuJoCo tasks, 2 seeds each of RL2S and GAIL): at margin 0.02 the
+Why these defaults (the section "The guard, paired, and over snapshots" of RESULTS@bf0c7b2,
+measured on the four MuJoCo tasks, 2 seeds each of RL2S and GAIL): at margin 0.02 the
 guard on the final actor deployed no policy that lost in reality in any of the 8 lanes (MPI
 0.000 everywhere), where deploying every fine-tuned policy lost on every task (MPI -0.07 to
 -3.5). The guard over snapshots (``guard_snapshots``) deployed a few more policies but passed

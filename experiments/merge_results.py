@@ -4,6 +4,7 @@ control (experiments/improve_control.py), each optional.
 
     python experiments/merge_results.py --task hopper [--paper P.json [--paper Q.json]]
         [--oracle O.json | --oracle-paper R.json] [--control C.json] [--out docs/results]
+        [--keep]
 
 Several --paper files are runs of one protocol split over calls or GPUs on the same data:
 other families (paper.py --families adversarial / mle) or other seeds (--first-seed K, e.g.
@@ -13,7 +14,9 @@ in two runs, and methods left with different seeds.
 
 The oracle's row with the most episodes at the longest horizon becomes the "oracle" method
 (per_seed lists of one value, its bootstrap intervals) unless the paper run has its own; the
-control's MPI/API and their 95% intervals become "control". --oracle-paper takes the oracle
+control's MPI/API, their 95% intervals and issue 39's median gain of the policies below the
+zoo's top quartile (``improve.finetune.median_gain``), the deployed count, the env-step budget
+per policy and the command become "control". --oracle-paper takes the oracle
 row (per seed, intervals, noise ceiling) from another paper.py run that measured it with the
 same test policies and episode counts (its own data collection: the ceiling of the protocol's
 sizes, not of this run's draw), so a protocol split over calls need not measure it again.
@@ -31,6 +34,8 @@ import numpy as np
 
 from rl2s_jax.app.protocol import summarise
 from rl2s_jax.evaluate.lanes import intervals_over_seeds
+from rl2s_jax.improve.finetune import median_gain
+from rl2s_jax.zoo.zoo import load_zoo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -201,6 +206,8 @@ def main(argv=None) -> int:
     ap.add_argument("--oracle-paper", help="paper.py's <task>.json of a run with the oracle, "
                     "same test policies and episode counts: its oracle row")
     ap.add_argument("--control")
+    ap.add_argument("--keep", action="store_true", help="without --paper: start from the "
+                    "existing OUT/<task>.json (e.g. to replace only its control)")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
     args = ap.parse_args(argv)
     if args.oracle and args.oracle_paper:
@@ -221,6 +228,9 @@ def main(argv=None) -> int:
         if result.get("zoo_sha256") not in (None, sha):
             raise SystemExit(f"paper: measured on zoo {result['zoo_sha256']}, the shipped zoo "
                              f"is {sha}")
+    elif args.keep:
+        with open(os.path.join(args.out, f"{args.task}.json")) as f:
+            result = json.load(f)
     else:
         result = {"task": args.task, "methods": {}, "std": {}, "n": {}, "per_seed": {},
                   "note": "the protocol was not re-run on this zoo"}
@@ -246,12 +256,20 @@ def main(argv=None) -> int:
         with open(args.control) as f:
             ctl = json.load(f)
         name, c = next(iter(ctl["configs"].items()))
+        zoo = load_zoo(args.task)
+        zret = np.asarray(zoo.returns)
+        gain = median_gain(c["c0"], c["c1"], zret[ctl["zoo_ids"]], zret)
         result["control"] = {"config": name, "seeds": ctl["seeds"],
                              "iterations": ctl["iterations"], "policies": len(ctl["zoo_ids"]),
                              "mpi": c["mpi"], "api": c["api"], "mpi_ci95": c["mpi_ci95"],
                              "api_ci95": c["api_ci95"], "c0": c["c0"], "c1": c["c1"],
                              "I": c["I"], "device": ctl["device"],
-                             "paired": bool(c.get("paired"))}
+                             "paired": bool(c.get("paired")),
+                             "median_gain": gain["median_gain"], "n_below": gain["n_below"],
+                             "deployed": (int((np.asarray(c["selected"]) > 0).sum())
+                                          if "selected" in c else None),
+                             "budget_env_steps": ctl["iterations"] * c["sac"]["n_envs"],
+                             "command": ctl.get("command"), "hardware": ctl.get("hardware")}
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, f"{args.task}.json")
     with open(path, "w") as f:

@@ -94,7 +94,11 @@ def provenance(task: str, r: dict) -> list[str]:
         src, hw = c.get("source"), c.get("hardware") or f"device {c.get('device', '?')}"
         where = (f"; `{src}`, in git history at {HISTORY}" if in_history(src)
                  else f"; `{src}`" if src else "")
-        lines.append(f"  - control row: `{c['command']}` on {hw} ({c.get('seeds', '?')} seeds"
+        n = c.get("seeds", "?")
+        lines.append(f"  - control row: `{c['command']}` on {hw} ({n} seed{'' if n == 1 else 's'}"
+                     f"{where}; median gain of the policies below the zoo's top quartile "
+                     f"{c['median_gain']:+.2f})" if c.get("median_gain") is not None else
+                     f"  - control row: `{c['command']}` on {hw} ({n} seed{'' if n == 1 else 's'}"
                      f"{where})")
     return lines
 

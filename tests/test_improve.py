@@ -20,6 +20,7 @@ from rl2s_jax.improve.finetune import (
     improvement_intervals,
     improvement_metrics,
     measure_improvement,
+    median_gain,
     member_values,
     select_by_members,
     select_by_validation,
@@ -773,3 +774,17 @@ def test_select_by_members_values_every_snapshot_and_deploys_the_choice():
     with pytest.raises(ValueError, match="candidates"):
         select_by_members(sim, "pointmass", jax.tree_util.tree_map(lambda x: x[:1], cands),
                           pool, key, **roll)
+
+
+def test_median_gain_counts_the_policies_below_the_zoos_top_quartile():
+    zoo = np.arange(1.0, 101.0)  # top quartile from 75.25
+    start = np.array([10.0, 50.0, 80.0, 90.0, 70.0])
+    c0 = np.array([[10.0, 50.0, 80.0, 90.0, 70.0], [12.0, 40.0, 80.0, 90.0, 70.0]])
+    c1 = np.array([[20.0, 50.0, 0.0, 0.0, 77.0], [18.0, 60.0, 0.0, 0.0, 63.0]])
+    out = median_gain(c0, c1, start, zoo)
+    gains = [np.mean([1.0, 0.5]), np.mean([0.0, 0.5]), np.mean([0.1, -0.1])]  # by hand
+    assert out["below"] == [True, True, False, False, True] and out["n_below"] == 3
+    assert out["median_gain"] == pytest.approx(np.median(gains))
+    assert median_gain(c0[0], c1[0], start, zoo)["median_gain"] == pytest.approx(0.1)
+    with pytest.raises(ValueError, match="start_returns"):
+        median_gain(c0, c1, start[:3], zoo)

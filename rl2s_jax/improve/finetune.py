@@ -360,6 +360,28 @@ def improvement_metrics(c0, c1) -> dict[str, np.ndarray | float]:
     return {"I": imp, "mpi": float(imp.min()), "api": float(imp.mean())}
 
 
+def median_gain(c0, c1, start_returns, zoo_returns, quantile: float = 0.75) -> dict:
+    """Issue 39's summary of fine-tuning: the median real gain of the policies that start
+    below the zoo's top quartile.
+
+    c0, c1: [R, P] real returns before / after over R seeds (or [P]); start_returns [P]: the
+    zoo's measured return of each fine-tuned policy; zoo_returns [Z]: every zoo policy's. A
+    policy counts when its start return is below the ``quantile`` of ``zoo_returns``; its gain
+    is I = (C1 - C0) / |C0| averaged over the seeds. -> {"median_gain", "n_below", "below":
+    [P] bool, "gain": [P] seed-mean I}."""
+    c0 = np.atleast_2d(np.asarray(c0, np.float64))
+    c1 = np.atleast_2d(np.asarray(c1, np.float64))
+    start = np.asarray(start_returns, np.float64)
+    if c0.shape != c1.shape or c0.shape[1] != start.shape[0]:
+        raise ValueError(f"c0, c1, start_returns: expected [R, P], [R, P], [P], got {c0.shape}, "
+                         f"{c1.shape}, {start.shape}")
+    gain = np.mean([improvement_metrics(a, b)["I"] for a, b in zip(c0, c1, strict=True)], 0)
+    below = start < np.quantile(np.asarray(zoo_returns, np.float64), quantile)
+    med = float(np.median(gain[below])) if below.any() else float("nan")
+    return {"median_gain": med, "n_below": int(below.sum()), "below": below.tolist(),
+            "gain": gain.tolist()}
+
+
 def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.Array, *,
                         n_episodes: int, episode_length: int, gamma: float = 0.99,
                         discounted: bool = False) -> dict[str, np.ndarray | float]:

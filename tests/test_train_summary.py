@@ -24,11 +24,14 @@ def test_a_run_inside_pretraining_warns_and_says_how_far(pm_files, tmp_path):
     assert saved["vd_measured_by"]["horizon"] == 50 and saved["vd_measured_by"]["episodes"] == 2
 
 
-def test_eval_data_results_reach_the_summary_with_their_settings(pm_files, tmp_path):
+def test_eval_data_results_reach_the_summary_with_their_settings(pm_files, tmp_path, capsys):
     logs = []
+    # with the progress bar: the test results join the training VD there (make hopper crashed
+    # when both named a key "avd"); chunks of 2 put an evaluation before the last bar update
     s = run_training(pm_files["train"], "bc", 4, str(tmp_path / "run"), profile="cpu",
-                     overrides=SMALL, progress=False, log=logs.append,
+                     overrides=SMALL, progress=True, log=logs.append, chunk=2,
                      eval_data=pm_files["test"], eval_every=2, eval_episodes=3)
+    assert "avd_test=" in capsys.readouterr().err
     assert not [line for line in logs if "warning" in line]  # bc: no pre-training
     assert s["pretrain_steps_left"] == 0 and s["step_test"] == 4
     for k in ("avd_test", "mvd_test", "kendall_tau_test"):

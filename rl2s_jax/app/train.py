@@ -186,7 +186,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
                     zoo: str | None, last: dict):
     """on_eval callback: VD and ranking of the eval Dataset's policies, appended to ``path``;
     the latest also in ``last`` (keys ending ``_test``, for summary.json) and returned (for
-    the progress bar)."""
+    the progress bar, beside the training policies' avd / mvd: keys ending ``_test``)."""
 
     ds = load_dataset(eval_data)
     if ds.meta.get("task") != cfg.task:
@@ -206,7 +206,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
         last.update(step_test=int(state.step), eval_data=eval_data, measured_by_test={
             "source": "simulated vs the eval data's true values", "episodes": n_episodes,
             "horizon": cfg.vd_horizon, "gamma": cfg.gamma})
-        return {k: r["metrics"][k] for k in ("avd", "mvd", "kendall_tau")
+        return {f"{k}_test": r["metrics"][k] for k in ("avd", "mvd", "kendall_tau")
                 if k in r["metrics"]}
 
     return on_eval

@@ -140,10 +140,10 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
                      f"before it may be the better simulator")
             if bar is not None:
                 bar.update(n)
-                bar.set_postfix(steps_s=f"{n / seconds:.2f}",
-                                avd=f"{float(metrics['avd_train'][-1]):.3g}",
-                                mvd=f"{float(metrics['mvd_train'][-1]):.3g}", **shown,
-                                refresh=False)
+                bar.set_postfix({"steps_s": f"{n / seconds:.2f}",
+                                 "avd": f"{float(metrics['avd_train'][-1]):.3g}",
+                                 "mvd": f"{float(metrics['mvd_train'][-1]):.3g}", **shown},
+                                refresh=False)  # on_eval's keys may repeat these: last wins
             if on_chunk is not None:
                 on_chunk(state, metrics)
             if on_eval is not None and eval_every and int(state.step) % eval_every == 0:

@@ -214,10 +214,10 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
 
     guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
     if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
-        guard, deployed = _guard(sim, None, start_pool(ds), policies, after, snapshots,
-                                 jax.random.fold_in(k_measure, 1), margin=guard_margin,
-                                 n_episodes=guard_episodes, horizon=episode_length,
-                                 gamma=gamma, chunk=chunk, iterations=iterations)
+        guard, deployed = deploy_through_guard(
+            sim, None, start_pool(ds), policies, after, snapshots,
+            jax.random.fold_in(k_measure, 1), margin=guard_margin, n_episodes=guard_episodes,
+            horizon=episode_length, gamma=gamma, chunk=chunk, iterations=iterations)
         log(f"[improve] guard (margin {guard_margin}"
             + (f", over snapshots every {chunk} iterations" if snapshots is not None else "")
             + f"): {int(np.sum(guard['accepted']))} of {len(ids)} fine-tuned policies kept, "
@@ -299,12 +299,13 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     return summary
 
 
-def _guard(sim, task, starts, policies, after, snapshots, key, *, margin: float,
-           n_episodes: int, horizon: int, gamma: float, chunk: int, iterations: int
-           ) -> tuple[dict, dict]:
-    """The deployment guard: the start or the fine-tuned policy (``snapshots`` None:
-    ``deployment_guard``), or the start or one of the ``snapshots`` [C + 1, P, ...] (index 0
-    the start; ``select_by_members``), by every elite member's simulated values.
+def deploy_through_guard(sim, task, starts, policies, after, snapshots, key, *, margin: float,
+                         n_episodes: int, horizon: int, gamma: float, chunk: int | None = None,
+                         iterations: int | None = None) -> tuple[dict, dict]:
+    """The deployment guard (``rl2s improve`` and the pipeline): the start or the fine-tuned
+    policy (``snapshots`` None: ``deployment_guard``), or the start or one of the
+    ``snapshots`` [C + 1, P, ...] (index 0 the start; ``select_by_members``; ``chunk`` and
+    ``iterations`` then name their iterations), by every elite member's simulated values.
     -> (the summary's guard block, the deployed policies [P, ...])."""
     kw = dict(n_episodes=n_episodes, horizon=horizon, gamma=gamma)
     guard = {"margin": margin, "episodes": n_episodes}
@@ -456,5 +457,6 @@ def _jsonable(cfg: SACConfig) -> dict:
             for k, v in dataclasses.asdict(cfg).items()}
 
 
-__all__ = ["GUARD_MARGIN", "check_inputs", "deployment_table", "fine_tuning_overrides",
+__all__ = ["GUARD_MARGIN", "check_inputs", "deploy_through_guard", "deployment_table",
+           "fine_tuning_overrides",
            "guard_margin", "predicted_gains", "run_improve", "sac_config", "summary_markdown"]

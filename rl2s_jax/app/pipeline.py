@@ -12,21 +12,14 @@ import jax
 import numpy as np
 
 from rl2s_jax.app.evaluate import evaluate_checkpoint
-from rl2s_jax.app.improve import GUARD_MARGIN, predicted_gains
+from rl2s_jax.app.improve import GUARD_MARGIN, deploy_through_guard
 from rl2s_jax.app.report import improvement_text, load_curve, write_report
 from rl2s_jax.app.train import run_training
 from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
-from rl2s_jax.improve.finetune import (
-    deployment_guard,
-    guarded,
-    improve_policies,
-    member_values,
-    paired_episode_returns,
-    paired_returns,
-)
+from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
@@ -104,13 +97,11 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
         log(f"[pipeline] SAC in {method}'s simulator: {time.perf_counter() - t0:.0f}s")
         accept, lo, mean = np.ones(P, bool), [None] * P, [None] * P
         if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
-            both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]),
-                                          policies, params)
-            v = member_values(sim, task, both, pool, jax.random.PRNGKey(seed + 30 + i),
-                              n_episodes=guard_episodes, horizon=horizon, gamma=gamma)
-            accept = deployment_guard(v[:, :P], v[:, P:], guard_margin)
-            lo, mean = predicted_gains(v[:, :P], v[:, P:])
-            params = guarded(policies, params, accept)
+            g, params = deploy_through_guard(
+                sim, task, pool, policies, params, None, jax.random.PRNGKey(seed + 30 + i),
+                margin=guard_margin, n_episodes=guard_episodes, horizon=horizon, gamma=gamma)
+            accept = np.asarray(g["accepted"])
+            lo, mean = g["predicted_gain"], g["predicted_gain_mean"]
             log(f"[pipeline] guard (margin {guard_margin}) in {method}'s simulator: "
                 f"{int(accept.sum())} of {P} fine-tuned policies deployed")
         deployed.append(params)

@@ -95,11 +95,10 @@ def provenance(task: str, r: dict) -> list[str]:
         where = (f"; `{src}`, in git history at {HISTORY}" if in_history(src)
                  else f"; `{src}`" if src else "")
         n = c.get("seeds", "?")
+        gain = ("" if c.get("median_gain") is None else "; median gain of the policies below "
+                f"the zoo's top quartile {c['median_gain']:+.2f}")
         lines.append(f"  - control row: `{c['command']}` on {hw} ({n} seed{'' if n == 1 else 's'}"
-                     f"{where}; median gain of the policies below the zoo's top quartile "
-                     f"{c['median_gain']:+.2f})" if c.get("median_gain") is not None else
-                     f"  - control row: `{c['command']}` on {hw} ({n} seed{'' if n == 1 else 's'}"
-                     f"{where})")
+                     f"{where}{gain})")
     return lines
 
 

@@ -1,4 +1,4 @@
-"""One figure of the step-error controls (docs/RESULTS.md, "The control of the open loop"):
+"""One figure of the step-error controls (RESULTS@bf0c7b2: "The control of the open loop"):
 how an unbiased step error of sigma x the one-step change std moves the REAL dynamics' 50-step
 open-loop return (``open_loop_control.py``) and their closed-loop ranking
 (``closed_loop_control.py``), per task, beside the learned models' own numbers where they were

@@ -77,7 +77,7 @@ PROFILES = {
 # Per-task changes to a profile. Ant's returns spread so widely between episodes (per-episode
 # sd ~830 against ~90 between neighbouring test policies) that with 16 truth / 32 simulated
 # episodes even the real dynamics rank at tau 0.78; with 256 / 256 the oracle reaches 0.88
-# (docs/RESULTS.md, "Many episodes on Ant and Hopper"); Hopper's oracle reaches 0.99 at
+# (RESULTS@bf0c7b2: "Many episodes on Ant and Hopper"); Hopper's oracle reaches 0.99 at
 # 128 / 128 (0.96 at 32), and 16 episodes leave Walker2d an evaluation-noise tau std of 0.038
 # ("The oracle"), so it gets 64 / 64.
 TASK_SIZES = {"gpu": {"ant": dict(value_episodes=256, eval_episodes=256),

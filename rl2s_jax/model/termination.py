@@ -3,7 +3,7 @@
 Why: a learned simulator's states rarely cross a task's termination boundary the way real ones
 do. On Ant the weak policies' real episodes end when the torso jumps above z = 1 (259 of 355
 logged terminations) or drops below 0.2; the dynamics model's mean under-predicts the jump, so
-simulated weak ants never end their episodes and are overvalued 2-3x (docs/RESULTS.md, "Many
+simulated weak ants never end their episodes and are overvalued 2-3x (RESULTS@bf0c7b2: "Many
 episodes on Ant and Hopper"). A classifier of the logged ``done`` flags on (s, a) gives each
 simulated step a calibrated chance to end, learned from where real episodes ended, instead of
 asking the model's predicted state to cross the exact boundary.

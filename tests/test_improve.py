@@ -726,6 +726,39 @@ def test_deployment_guard_matches_a_loop_and_keeps_the_start():
         deployment_guard(v0, np.full_like(v1, np.nan))
 
 
+def test_deployment_guard_floor_needs_every_member_gain_above_the_known_error():
+    """The floor (e.g. the simulator's MVD on the training policies): a predicted gain that
+    clears the relative margin but not the floor, in value units, keeps the start."""
+    rng = np.random.default_rng(2)
+    v0 = rng.normal(100.0, 30.0, (3, 8))
+    v1 = v0 + rng.uniform(0.0, 20.0, (3, 8))
+    for margin, floor in ((0.0, 0.0), (0.02, 5.0), (0.0, 12.0), (0.1, 1.0), (0.0, 50.0)):
+        want = [all(v1[m, p] - v0[m, p] > max(margin * abs(v0[m, p]), floor) for m in range(3))
+                for p in range(8)]
+        assert deployment_guard(v0, v1, margin, floor).tolist() == want
+    assert deployment_guard(v0, v0 + 3.0, 0.0, 2.9).all()
+    assert not deployment_guard(v0, v0 + 3.0, 0.0, 3.0).any()  # a gain must exceed the floor
+    assert not deployment_guard(v0, v1, 0.0, 50.0).any()
+    # over snapshots, the floor keeps the start where no snapshot clears it
+    v = np.stack([v0, v0 + 3.0, v0 + 8.0])
+    assert choose_by_members(v, 0.0, 5.0).tolist() == [2] * 8
+    assert choose_by_members(v, 0.0, 8.0).tolist() == [0] * 8
+    for bad in (-1.0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="floor"):
+            deployment_guard(v0, v1, 0.0, bad)
+
+
+def test_pipeline_guard_floor_is_the_training_mvd_at_the_guards_horizon_and_gamma():
+    from rl2s_jax.app.pipeline import guard_floor, training_error_floor
+    run = {"mvd_train": 15.7, "config": {"vd_horizon": 100, "gamma": 0.999}}
+    f = training_error_floor(run)
+    assert f == {"mvd": 15.7, "horizon": 100, "gamma": 0.999}
+    assert guard_floor(f, 100, 0.999) == 15.7
+    assert guard_floor(f, 1000, 0.999) == 0.0  # measured at another horizon: not comparable
+    assert guard_floor(f, 100, 0.99) == 0.0
+    assert guard_floor(None, 100, 0.999) == 0.0
+
+
 def test_choose_by_members_matches_a_loop_and_is_the_guard_for_one_snapshot():
     rng = np.random.default_rng(1)
     K, M, P = 4, 3, 7

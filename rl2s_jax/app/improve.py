@@ -301,26 +301,28 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
 
 def deploy_through_guard(sim, task, starts, policies, after, snapshots, key, *, margin: float,
                          n_episodes: int, horizon: int, gamma: float, chunk: int | None = None,
-                         iterations: int | None = None) -> tuple[dict, dict]:
+                         iterations: int | None = None, floor: float = 0.0
+                         ) -> tuple[dict, dict]:
     """The deployment guard (``rl2s improve`` and the pipeline): the start or the fine-tuned
     policy (``snapshots`` None: ``deployment_guard``), or the start or one of the
     ``snapshots`` [C + 1, P, ...] (index 0 the start; ``select_by_members``; ``chunk`` and
-    ``iterations`` then name their iterations), by every elite member's simulated values.
+    ``iterations`` then name their iterations), by every elite member's simulated values;
+    ``floor``: the smallest gain in value units that deploys (``deployment_guard``).
     -> (the summary's guard block, the deployed policies [P, ...])."""
     kw = dict(n_episodes=n_episodes, horizon=horizon, gamma=gamma)
-    guard = {"margin": margin, "episodes": n_episodes}
+    guard = {"margin": margin, "floor": floor, "episodes": n_episodes}
     if snapshots is None:
         both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]), policies,
                                       after)
         values = member_values(sim, task, both, starts, key, **kw)
         P = values.shape[1] // 2
         v0, v1 = values[:, :P], values[:, P:]
-        accept = deployment_guard(v0, v1, margin)
+        accept = deployment_guard(v0, v1, margin, floor)
         deployed = guarded(policies, after, accept)
         cand = v1  # the candidate whose predicted gain the summary shows
     else:
         deployed, info = select_by_members(sim, task, snapshots, starts, key, margin=margin,
-                                           **kw)
+                                           floor=floor, **kw)
         values, index = info["values"], info["index"]          # [C + 1, M, P], [P]
         v0, v1, accept = values[0], values[-1], index > 0
         guard.update(snapshot_every=chunk, snapshot=index.tolist(),

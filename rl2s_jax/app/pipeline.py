@@ -60,9 +60,25 @@ PROFILES = {
 }
 
 
+def training_error_floor(run: dict) -> dict:
+    """The guard's floor from a training run's summary (``run_training``): its MVD on the
+    training policies with the horizon and gamma it was measured at."""
+    return {"mvd": float(run["mvd_train"]), "horizon": int(run["config"]["vd_horizon"]),
+            "gamma": float(run["config"]["gamma"])}
+
+
+def guard_floor(floor: dict | None, horizon: int, gamma: float) -> float:
+    """A ``training_error_floor``'s MVD where it was measured at ``horizon`` and ``gamma``
+    (the guard's), else 0: an error at another horizon or discount is not comparable."""
+    if not floor or floor["horizon"] != horizon or not np.isclose(floor["gamma"], gamma):
+        return 0.0
+    return float(floor["mvd"])
+
+
 def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
                           horizon: int, seed: int = 0, guard_margin: float | None = GUARD_MARGIN,
-                          guard_episodes: int = 16, log=print) -> dict[str, dict]:
+                          guard_episodes: int = 16, guard_floors: dict | None = None,
+                          log=print) -> dict[str, dict]:
     """Fine-tune every test policy with SAC inside each method's simulator, pass it through
     the deployment guard (``guard_margin``; None: every fine-tuned policy deploys), then
     measure the real return (MJX) of what deploys, paired with the start policy's: C0 and C1
@@ -71,7 +87,10 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     drowned by the two measurements' own noise. The guard is ``rl2s improve``'s
     (``improve.deployment_guard`` on the final actor): every elite member, over
     ``guard_episodes`` simulated episodes of ``horizon`` steps (the fine-tuning's), must
-    predict a gain above ``guard_margin`` x |start value|.
+    predict a gain above ``guard_margin`` x |start value| and above the method's
+    floor (``guard_floors[method]``, ``training_error_floor``: the simulator's MVD on the
+    training policies, the worst error it is known to make; used only where measured at this
+    horizon and gamma).
     -> {method: {"c0", "c0_se", "c1", "c1_se", "I", "c0_data" (the data's true values),
     "deployed" (bool), "predicted_gain" / "predicted_gain_mean" (None without the guard)
     (lists [P]), "mpi", "api", "guard_margin"}}."""
@@ -86,6 +105,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     gamma = float(ds.meta.get("gamma") or 0.999)
     cfg = SACConfig.fine_tuning(episode_length=horizon, **sizes["sac"])
     P = len(ds.value)
+    floor_of = lambda m: guard_floor((guard_floors or {}).get(m), horizon, gamma)  # noqa: E731
     deployed, guards = [], {}
     for i, (method, ckpt) in enumerate(ckpts.items()):
         t0 = time.perf_counter()
@@ -99,10 +119,12 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
         if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
             g, params = deploy_through_guard(
                 sim, task, pool, policies, params, None, jax.random.PRNGKey(seed + 30 + i),
-                margin=guard_margin, n_episodes=guard_episodes, horizon=horizon, gamma=gamma)
+                margin=guard_margin, n_episodes=guard_episodes, horizon=horizon, gamma=gamma,
+                floor=floor_of(method))
             accept = np.asarray(g["accepted"])
             lo, mean = g["predicted_gain"], g["predicted_gain_mean"]
-            log(f"[pipeline] guard (margin {guard_margin}) in {method}'s simulator: "
+            log(f"[pipeline] guard (margin {guard_margin}, floor {g['floor']:.3g}) in {method}'s "
+                f"simulator: "
                 f"{int(accept.sum())} of {P} fine-tuned policies deployed")
         deployed.append(params)
         guards[method] = (accept, lo, mean)
@@ -122,7 +144,8 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
                        "I": m["I"].tolist(), "mpi": m["mpi"], "api": m["api"],
                        "c0_data": [float(v) for v in ds.value],
                        "deployed": accept.tolist(), "predicted_gain": lo,
-                       "predicted_gain_mean": mean, "guard_margin": guard_margin}
+                       "predicted_gain_mean": mean, "guard_margin": guard_margin,
+                       "guard_floor": floor_of(method) if guard_margin is not None else None}
         log(f"[pipeline] improvement in {method}'s simulator: MPI {m['mpi']:.3f}  API "
             f"{m['api']:.3f} ({int(accept.sum())} of {P} deployed)")
     log(f"[pipeline] real returns of the start and deployed policies measured in "
@@ -202,7 +225,8 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             args.task, summary["datasets"]["test"]["path"],
             {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
             horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed,
-            guard_margin=guard_margin, guard_episodes=getattr(args, "guard_episodes", 16))
+            guard_margin=guard_margin, guard_episodes=getattr(args, "guard_episodes", 16),
+            guard_floors={m: training_error_floor(r) for m, r in runs.items()})
         for m, imp in improvement.items():
             evals[m]["metrics"].update(mpi=imp["mpi"], api=imp["api"])
             evals[m]["improvement"] = imp

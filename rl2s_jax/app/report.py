@@ -48,9 +48,11 @@ def improvement_text(evals: dict[str, dict]) -> str:
         if imp is None:
             continue
         names = [str(n) for n in r["policy_names"]]
-        g = imp.get("guard_margin")
+        g, floor = imp.get("guard_margin"), imp.get("guard_floor")
         lines += ["", f"Improvement in {method}'s simulator ("
                   + (f"guard margin {g}" if g is not None else "no guard")
+                  + (f", floor {floor:.3g}: every member's gain must exceed the simulator's "
+                     "MVD on the training policies" if floor else "")
                   + f"): {sum(imp['deployed'])} of {len(imp['I'])} deployed, MPI "
                   f"{imp['mpi']:.3f}, API {imp['api']:.3f}", "",
                   "| policy | deployed | predicted gain (every member at least) | real C0 | "

@@ -214,42 +214,49 @@ def member_values(sim: Simulator, task: Task | str | None, policies: Params, sta
     return np.asarray(values, np.float64)
 
 
-def deployment_guard(start_values, tuned_values, margin: float = 0.0) -> np.ndarray:
+def deployment_guard(start_values, tuned_values, margin: float = 0.0,
+                     floor: float = 0.0) -> np.ndarray:
     """[P] bool: deploy the fine-tuned policy p only if every member predicts a gain,
-    tuned_values[m, p] - start_values[m, p] > margin * |start_values[m, p]| for all m.
-    start_values, tuned_values: [M, P] (``member_values``)."""
+    tuned_values[m, p] - start_values[m, p] > max(margin * |start_values[m, p]|, floor) for
+    all m. start_values, tuned_values: [M, P] (``member_values``). ``floor``: a gain in value
+    units that a prediction must exceed, e.g. the simulator's worst value error on the
+    training policies (their MVD), whose true values are known: a gain smaller than the
+    error the simulator is known to make is not trusted."""
     v0, v1 = np.asarray(start_values, np.float64), np.asarray(tuned_values, np.float64)
     if v0.ndim != 2 or v0.shape != v1.shape:
         raise ValueError(f"tuned_values: expected the shape of start_values [M, P] "
                          f"{v0.shape}, got {v1.shape}")
     if not (np.isfinite(margin) and margin >= 0):
         raise ValueError(f"margin: expected a finite float >= 0, got {margin!r}")
+    if not (np.isfinite(floor) and floor >= 0):
+        raise ValueError(f"floor: expected a finite float >= 0 (value units), got {floor!r}")
     if not (np.all(np.isfinite(v0)) and np.all(np.isfinite(v1))):
         raise ValueError("start_values, tuned_values: expected finite simulated values")
-    return np.all(v1 - v0 > margin * np.abs(v0), axis=0)
+    return np.all(v1 - v0 > np.maximum(margin * np.abs(v0), floor), axis=0)
 
 
-def choose_by_members(values, margin: float = 0.0) -> np.ndarray:
+def choose_by_members(values, margin: float = 0.0, floor: float = 0.0) -> np.ndarray:
     """The deployment guard over several snapshots: early stopping by the simulator alone.
 
     values: [K + 1, M, P] each elite member's simulated value (``member_values``) of K + 1
     candidates of each of P policies (candidate 0: the start policy). Candidate k > 0 is
     eligible when every member predicts a gain over the start above ``margin`` x |start
-    value| (``deployment_guard``); the eligible candidate with the largest smallest gain over
+    value| and ``floor`` (``deployment_guard``); the eligible candidate with the largest smallest gain over
     the members wins, else the start (0). With K = 1 this is ``deployment_guard``.
     -> [P] int indices.
     """
     v = np.asarray(values, np.float64)
     if v.ndim != 3 or v.shape[0] < 2:
         raise ValueError(f"values: expected [K + 1 >= 2, M, P], got {v.shape}")
-    eligible = np.stack([deployment_guard(v[0], vk, margin) for vk in v[1:]])  # [K, P]
+    eligible = np.stack([deployment_guard(v[0], vk, margin, floor) for vk in v[1:]])  # [K, P]
     score = np.where(eligible, (v[1:] - v[:1]).min(axis=1), -np.inf)
     return np.where(eligible.any(0), score.argmax(0) + 1, 0).astype(np.int32)
 
 
 def select_by_members(sim: Simulator, task: Task | str | None, candidates: Params,
                       start_pool, key: jax.Array, *, n_episodes: int, horizon: int,
-                      gamma: float, margin: float = 0.0) -> tuple[Params, dict]:
+                      gamma: float, margin: float = 0.0, floor: float = 0.0
+                      ) -> tuple[Params, dict]:
     """Per policy, the snapshot the simulator's elite members all rank above the start.
 
     candidates: [K + 1, P, ...] (``improve_policies(snapshots=True)``; index 0 the start
@@ -262,7 +269,7 @@ def select_by_members(sim: Simulator, task: Task | str | None, candidates: Param
     v = member_values(sim, task, flat, start_pool, key, n_episodes=n_episodes,
                       horizon=horizon, gamma=gamma)                # [M, (K + 1) * P]
     values = v.reshape(v.shape[0], K1, P).transpose(1, 0, 2)
-    index = choose_by_members(values, margin)
+    index = choose_by_members(values, margin, floor)
     return _pick_candidates(candidates, index), {"index": index, "values": values}
 
 

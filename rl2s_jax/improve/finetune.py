@@ -241,8 +241,9 @@ def choose_by_members(values, margin: float = 0.0, floor: float = 0.0) -> np.nda
     values: [K + 1, M, P] each elite member's simulated value (``member_values``) of K + 1
     candidates of each of P policies (candidate 0: the start policy). Candidate k > 0 is
     eligible when every member predicts a gain over the start above ``margin`` x |start
-    value| and ``floor`` (``deployment_guard``); the eligible candidate with the largest smallest gain over
-    the members wins, else the start (0). With K = 1 this is ``deployment_guard``.
+    value| and ``floor`` (``deployment_guard``); the eligible candidate with the largest
+    smallest gain over the members wins, else the start (0). With K = 1 this is
+    ``deployment_guard``.
     -> [P] int indices.
     """
     v = np.asarray(values, np.float64)

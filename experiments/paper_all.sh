@@ -1,13 +1,17 @@
 #!/usr/bin/env bash
-# `make paper`: experiments/paper.py for every task, then the tables. With GPUs, each GPU runs
-# its share of the tasks (round-robin) one after another, one process at a time: the tasks are
-# independent, and a process per GPU scales, where splitting one task's lanes over GPUs did not
-# (docs/BENCHMARKS.md, "Lanes over several GPUs"), nor did two processes sharing one GPU at the
-# fitted model family's sizes (no faster than one after the other; "The 4-task protocol on
-# one H100"). Without a GPU they run one after the other. Logs: OUT/paper_<task>.log.
+# `make paper`: experiments/paper.py for every task, then the tables. experiments/
+# paper_schedule.py runs them. With two GPUs or more the units are (task, family) pairs
+# (paper.py --families F): one queue, costliest first, a GPU that comes free takes the next
+# ready unit, one process per GPU at a time (two processes sharing a GPU were no faster than
+# one after the other: docs/BENCHMARKS.md, "The 4-task protocol on one H100"); a task's data
+# is collected once, by its first unit, and its other unit starts only after that unit's data
+# phase; then merge_results.py joins each task's units into OUT/<task>.json. With one GPU or
+# none each task is one paper.py (both families), one after another. The wall time per unit
+# and in all: printed and OUT/schedule.json. Logs: OUT/paper_<task>[_<family>].log. A failed
+# unit fails the run (exit 1, no tables) after the others have run, naming it and its log.
 #   bash experiments/paper_all.sh [OUT] [paper.py args]
 # Environment: PY (the python command, default python3), TASKS (default the four),
-# DATA_DIR (collected data, default OUT/data).
+# DATA_DIR (collected data, default OUT/data), RL2S_GPUS (the GPU count, default nvidia-smi's).
 set -uo pipefail
 OUT=${1:-results/paper}
 shift || true
@@ -15,35 +19,9 @@ PY=${PY:-python3}
 TASKS=${TASKS:-hopper walker2d halfcheetah ant}
 DATA_DIR=${DATA_DIR:-$OUT/data}
 mkdir -p "$OUT"
-N_GPU=$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)
-run_task() {  # run_task TASK [paper.py args]: one task's paper.py run
-  local t=$1
-  shift
-  $PY experiments/paper.py --task "$t" --out "$OUT" --data-dir "$DATA_DIR" "$@"
-}
-failed=0
-if [ "${N_GPU:-0}" -gt 0 ]; then
-  pids=()
-  for ((g = 0; g < N_GPU; g++)); do
-    mine=() i=0
-    for t in $TASKS; do
-      [ $((i % N_GPU)) = $g ] && mine+=("$t")
-      i=$((i + 1))
-    done
-    [ ${#mine[@]} = 0 ] && continue
-    (
-      export CUDA_VISIBLE_DEVICES=$g
-      rc=0
-      for t in "${mine[@]}"; do run_task "$t" "$@" > "$OUT/paper_$t.log" 2>&1 || rc=1; done
-      exit $rc
-    ) &
-    pids+=($!)
-  done
-  for p in "${pids[@]}"; do wait "$p" || failed=1; done
-else
-  for t in $TASKS; do
-    run_task "$t" "$@" 2>&1 | tee "$OUT/paper_$t.log" || failed=1
-  done
-fi
-[ "$failed" = 0 ] || { echo "paper_all: a task failed, see $OUT/paper_*.log" >&2; exit 1; }
+N_GPU=${RL2S_GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c '^GPU' || true)}
+# the scheduler needs only the standard library: python3, not $PY (which may be a prefix such
+# as device.sh's `timeout 560 python3`, meant for each paper.py)
+python3 experiments/paper_schedule.py --out "$OUT" --data-dir "$DATA_DIR" --gpus "${N_GPU:-0}" \
+  --py "$PY" --tasks "$TASKS" -- "$@" || exit 1
 $PY experiments/paper_tables.py --results "$OUT" --out "$OUT/tables.md"

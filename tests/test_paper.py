@@ -681,9 +681,13 @@ def test_noise_ceiling_script_reads_the_oracle_seeds(tmp_path, capsys):
 # ------------------------------------------------------------------ make paper's driver
 
 
-def _run_paper_all(tmp_path, n_gpu: int, fail_task: str = ""):
-    """experiments/paper_all.sh with a stub nvidia-smi (n_gpu GPUs) and a stub python that logs
-    each paper.py run's start and end with its CUDA_VISIBLE_DEVICES. -> (rc, [event lines])"""
+def _run_paper_all(tmp_path, n_gpu: int, fail: str = "", tasks: str = "hopper walker2d "
+                   "halfcheetah ant", args: tuple = (), env_extra: dict | None = None):
+    """experiments/paper_all.sh with a stub nvidia-smi (n_gpu GPUs) and a stub python: paper.py
+    logs its start (task, family or 'both', CUDA_VISIBLE_DEVICES, args), prints its data line
+    after 0.2 s and ends 0.3 s later; the unit ``fail`` ("task/family") fails at once, before
+    its data line; merge_results.py and paper_tables.py log their calls.
+    -> (rc, [event lines], process)"""
     import subprocess
     import textwrap
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -696,46 +700,139 @@ def _run_paper_all(tmp_path, n_gpu: int, fail_task: str = ""):
     py.write_text(textwrap.dedent(f"""\
         #!/usr/bin/env bash
         [ "$1" = experiments/paper_tables.py ] && {{ echo tables >> {events}; exit 0; }}
-        task=$3
-        echo "start $task gpu=${{CUDA_VISIBLE_DEVICES:-none}}" >> {events}
+        [ "$1" = experiments/merge_results.py ] && {{ echo "merge $*" >> {events}; exit 0; }}
+        task=; fam=both; prev=
+        for a in "$@"; do
+          case $prev in --task) task=$a ;; --families) fam=$a ;; esac
+          prev=$a
+        done
+        gpu=gpu=${{CUDA_VISIBLE_DEVICES:-none}}
+        echo "start $task $fam $gpu $*" >> {events}
+        [ "$task/$fam" = "{fail}" ] && {{ echo "end $task $fam $gpu" >> {events}; exit 3; }}
+        sleep 0.2
+        echo "[paper] data: 0.2s"
+        echo "data $task $fam $gpu" >> {events}
         sleep 0.3
-        echo "end $task gpu=${{CUDA_VISIBLE_DEVICES:-none}}" >> {events}
-        [ "$task" != "{fail_task}" ]
+        echo "end $task $fam $gpu" >> {events}
         """))
     for f in (smi, py):
         f.chmod(0o755)
     env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PY": str(py),
-           "TASKS": "hopper walker2d halfcheetah ant"}
-    proc = subprocess.run(["bash", "experiments/paper_all.sh", str(tmp_path / "out")],
-                          cwd=root, env=env, capture_output=True, text=True, timeout=60)
-    return proc.returncode, events.read_text().split("\n")[:-1]
+           "TASKS": tasks}
+    env.pop("RL2S_GPUS", None)
+    env.update(env_extra or {})
+    proc = subprocess.run(["bash", "experiments/paper_all.sh", str(tmp_path / "out"), *args],
+                          cwd=root, env=env, capture_output=True, text=True, timeout=30)
+    ev = events.read_text().split("\n")[:-1] if events.exists() else []
+    return proc.returncode, ev, proc
 
 
-def test_paper_all_runs_one_task_per_gpu_at_a_time(tmp_path):
-    """make paper's driver: the tasks go round-robin to the GPUs, each GPU runs its tasks one
-    after another (never two processes on one GPU), the GPUs in parallel; a failed task fails
-    the run after the others have run, and no tables are written."""
-    rc, ev = _run_paper_all(tmp_path / "a", 2)
-    assert rc == 0 and ev[-1] == "tables"
-    gpu_of = {e.split()[1]: e.split()[2] for e in ev if e.startswith("start")}
-    assert gpu_of == {"hopper": "gpu=0", "halfcheetah": "gpu=0", "walker2d": "gpu=1",
-                      "ant": "gpu=1"}
-    running = {}
-    for e in ev[:-1]:
-        what, task, gpu = e.split()
+def _check_one_process_per_gpu(ev):
+    """-> {(task, family): gpu} of the paper.py runs in the events; fails when a GPU ran two
+    at once or a unit ran twice."""
+    running, ran = {}, {}
+    for e in ev:
+        what, task, fam, gpu = (e.split() + [""] * 4)[:4]
         if what == "start":
-            assert gpu not in running.values(), f"two tasks on {gpu}: {ev}"
-            running[task] = gpu
-        else:
-            del running[task]
-    assert ev[0].startswith("start") and ev[1].startswith("start")  # both GPUs busy at once
-    rc, ev = _run_paper_all(tmp_path / "b", 1, fail_task="walker2d")
+            assert gpu not in running.values(), f"two processes on {gpu}: {ev}"
+            assert (task, fam) not in ran, f"{task} {fam} ran twice: {ev}"
+            running[(task, fam)] = ran[(task, fam)] = gpu
+        elif what == "end":
+            assert running.pop((task, fam)) == gpu
+    assert not running
+    return ran
+
+
+TASKS4 = ("hopper", "walker2d", "halfcheetah", "ant")
+
+
+def test_paper_all_spreads_task_family_units_over_the_gpus(tmp_path):
+    """make paper's driver with 2 GPUs: every (task, family) runs exactly once, never two
+    processes on one GPU, both GPUs busy at once, the costliest units first; a task's second
+    unit starts only after its first unit's data phase (not its end), without the oracle and
+    the control; each task is merged from its units (the collecting one first), then the
+    tables; the wall time per unit is printed and in OUT/schedule.json."""
+    out = tmp_path / "a" / "out"
+    rc, ev, proc = _run_paper_all(tmp_path / "a", 2, args=("--seeds", "2", "--control"))
+    assert rc == 0, proc.stderr
+    ran = _check_one_process_per_gpu(ev)
+    assert ran.keys() == {(t, f) for t in TASKS4 for f in ("adversarial", "mle")}
+    assert set(ran.values()) == {"gpu=0", "gpu=1"}
+    first_end = next(i for i, e in enumerate(ev) if e.startswith("end"))
+    assert [e.split()[0] for e in ev[:first_end]].count("start") == 2  # both GPUs busy
+    order = [line.split()[1:5] for line in proc.stdout.splitlines()
+             if line.startswith("[paper_all] ") and " on GPU " in line]
+    assert order[:2] == [["ant/adversarial", "on", "GPU", "0"],  # the costliest first
+                         ["halfcheetah/adversarial", "on", "GPU", "1"]]
+    starts = {tuple(e.split()[1:3]): e for e in ev if e.startswith("start")}
+    for t in TASKS4:
+        adv, mle = starts[(t, "adversarial")], starts[(t, "mle")]
+        assert ev.index(f"data {t} adversarial {ran[(t, 'adversarial')]}") < ev.index(mle)
+        assert f"--out {out}/units/{t}_adversarial " in adv and "--data-dir" in adv
+        assert "--control" in adv and "--no-oracle" not in adv and "--seeds 2" in adv
+        assert "--control" not in mle and "--no-oracle" in mle and "--seeds 2" in mle
+        assert (f"merge experiments/merge_results.py --task {t} --paper {out}/units/"
+                f"{t}_adversarial/{t}.json --paper {out}/units/{t}_mle/{t}.json --out {out}"
+                in ev)
+    first_merge = min(i for i, e in enumerate(ev) if e.startswith("merge"))
+    assert all(not e.startswith(("start", "end")) for e in ev[first_merge:])
+    assert ev[-1] == "tables"
+    sched = json.loads((out / "schedule.json").read_text())
+    assert sched["gpus"] == 2 and len(sched["units"]) == 8 and len(sched["merges"]) == 4
+    for u in sched["units"]:
+        assert u["rc"] == 0 and f"gpu={u['gpu']}" == ran[(u["task"], u["family"])]
+        assert u["wall_s"] >= 0.4 and u["data_s"] is not None
+        assert f"{u['task']:<12} {u['family']:<12}" in proc.stdout
+    assert sched["busy_s"].keys() == {"0", "1"} and sum(sched["busy_s"].values()) >= 3.6
+    assert sched["total_s"] >= max(u["start_s"] + u["wall_s"] for u in sched["units"])
+    assert "wall time per part, 2 GPU(s)" in proc.stdout and "in all: " in proc.stdout
+    assert "[paper] data: " in (out / "paper_ant_mle.log").read_text()
+    # one task on 2 GPUs: its second unit waits for the first's data line, not its end
+    rc, ev, proc = _run_paper_all(tmp_path / "b", 2, tasks="hopper")
+    assert rc == 0, proc.stderr
+    _check_one_process_per_gpu(ev)
+    mle = next(e for e in ev if e.startswith("start hopper mle"))
+    assert (ev.index("data hopper adversarial gpu=0") < ev.index(mle)
+            < ev.index("end hopper adversarial gpu=0"))
+    assert "gpu=1" in mle
+
+
+def test_paper_all_failures_and_the_paths_without_units(tmp_path):
+    """A unit failing before its data line: the task's other unit then runs after it (it
+    collects the data itself, never beside it), every other unit runs, that task is not
+    merged, no tables, exit 1 naming the unit and its log. RL2S_GPUS overrides nvidia-smi.
+    With one GPU or none: one paper.py per task (both families), one after another, a failed
+    task after the others, no merge."""
+    rc, ev, proc = _run_paper_all(tmp_path / "a", 4, fail="walker2d/adversarial",
+                                  env_extra={"RL2S_GPUS": "2"})
+    out = tmp_path / "a" / "out"
     assert rc == 1 and "tables" not in ev
-    assert sum(e.startswith("end") for e in ev) == 4
-    rc, ev = _run_paper_all(tmp_path / "c", 0, fail_task="ant")  # no GPU: one after another
-    assert rc == 1 and "tables" not in ev
-    assert [e.split()[:2] for e in ev] == [[w, t] for t in ("hopper", "walker2d", "halfcheetah",
-                                                             "ant") for w in ("start", "end")]
+    ran = _check_one_process_per_gpu(ev)
+    assert len(ran) == 8 and set(ran.values()) == {"gpu=0", "gpu=1"}
+    assert (ev.index(f"end walker2d adversarial {ran[('walker2d', 'adversarial')]}")
+            < ev.index(next(e for e in ev if e.startswith("start walker2d mle"))))
+    assert sorted(e.split()[3] for e in ev if e.startswith("merge")) == [
+        "ant", "halfcheetah", "hopper"]
+    assert (f"FAILED walker2d/adversarial (exit 3, log {out}/paper_walker2d_adversarial.log)"
+            in proc.stderr)
+    assert "FAILED" not in proc.stderr.replace("FAILED walker2d/adversarial", "")
+    sched = json.loads((out / "schedule.json").read_text())
+    assert [u["rc"] for u in sched["units"]].count(3) == 1
+    rc, ev, proc = _run_paper_all(tmp_path / "b", 1, fail="walker2d/both")
+    assert rc == 1 and "tables" not in ev and not any(e.startswith("merge") for e in ev)
+    assert [e.split()[:4] for e in ev if e.startswith(("start", "end"))] == [
+        [w, t, "both", "gpu=0"] for t in TASKS4 for w in ("start", "end")]
+    assert "FAILED walker2d/all families" in proc.stderr and "paper_walker2d.log" in proc.stderr
+    rc, ev, proc = _run_paper_all(tmp_path / "c", 0, fail="ant/both")  # no GPU
+    assert rc == 1 and "tables" not in ev and not any(e.startswith("merge") for e in ev)
+    assert [e.split()[:4] for e in ev if e.startswith(("start", "end"))] == [
+        [w, t, "both", "gpu=none"] for t in TASKS4 for w in ("start", "end")]
+    assert "[paper] data: " in proc.stdout  # shown as it runs, and logged
+    assert "[paper] data: " in (tmp_path / "c" / "out" / "paper_hopper.log").read_text()
+    rc, ev, proc = _run_paper_all(tmp_path / "d", 0, tasks="hopper")
+    assert rc == 0 and ev[-1] == "tables"
+    assert json.loads((tmp_path / "d" / "out" / "schedule.json").read_text())["units"][0][
+        "family"] is None
 
 
 def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):

@@ -1,0 +1,244 @@
+"""`make paper`'s scheduler (run by experiments/paper_all.sh): experiments/paper.py's units of
+work over the GPUs of one host, one process per GPU at a time, and the wall time of each.
+
+    python3 experiments/paper_schedule.py --out OUT --data-dir DIR --gpus N --py "PY"
+        --tasks "hopper walker2d halfcheetah ant" [-- paper.py args]
+
+With two GPUs or more a unit is one (task, family) pair (``paper.py --families F``, out dir
+OUT/units/<task>_<family>/, log OUT/paper_<task>_<family>.log). The units wait in one queue,
+costliest first (COST: one H100's measured seconds), and a GPU that comes free takes the first
+unit that is ready. A task's data is collected once: its first unit in the queue (the
+adversarial one) collects it into --data-dir, with the oracle and ``--control`` if asked; its
+other units run with ``--no-oracle`` and without ``--control`` and are ready only once that
+unit has printed ``[paper] data: `` (or has ended, when it failed before that: then the next
+one collects). When every unit has ended, each task whose units all succeeded is merged into
+OUT/<task>.json by experiments/merge_results.py (log OUT/merge_<task>.log), the collecting
+unit's file first so its oracle row is kept.
+
+With one GPU or none, a unit is a whole task (both families in one paper.py, OUT/<task>.json,
+log OUT/paper_<task>.log, also shown here), one after another: splitting would only add a
+process start and the data's reload per task. With one GPU, CUDA_VISIBLE_DEVICES=0.
+
+At the end: every unit's task, family, GPU, start and wall seconds (and when its data phase
+ended, seconds after its start), the merges, each GPU's busy seconds and the total, printed
+and written to OUT/schedule.json. A failed unit does not stop the others; the script
+then exits 1 naming each failed unit and its log. Standard library only (``python3``).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import queue
+import shlex
+import subprocess
+import sys
+import threading
+import time
+
+FAMILIES = ("adversarial", "mle")
+DATA_LINE = "[paper] data: "
+# Seconds of one task's family on one H100 at the gpu profile (3 seeds, no improvement): the
+# per_task "seconds" of docs/results/scaling.json (c08578d); adversarial includes the data
+# collection, mle reused it. Only their order matters here (longest first).
+COST = {"hopper": {"adversarial": 467, "mle": 200},
+        "walker2d": {"adversarial": 487, "mle": 197},
+        "halfcheetah": {"adversarial": 490, "mle": 197},
+        "ant": {"adversarial": 498, "mle": 219}}
+DEFAULT_COST = {"adversarial": 480, "mle": 200}
+
+
+def split_families(args: list[str]) -> tuple[list[str], list[str]]:
+    """paper.py args -> (the families of their --families, default both, in FAMILIES' order;
+    the args without it)."""
+    rest, text, i = [], ",".join(FAMILIES), 0
+    while i < len(args):
+        if args[i] == "--families" and i + 1 < len(args):
+            text, i = args[i + 1], i + 2
+        elif args[i].startswith("--families="):
+            text, i = args[i].split("=", 1)[1], i + 1
+        else:
+            rest.append(args[i])
+            i += 1
+    names = {x.strip() for x in text.split(",") if x.strip()}
+    if not names or names - set(FAMILIES):
+        raise SystemExit(f"families: expected a comma list of {', '.join(FAMILIES)}, got "
+                         f"{text!r}")
+    return [f for f in FAMILIES if f in names], rest
+
+
+def plan(tasks: list[str], n_gpus: int, args: list[str], out: str) -> list[dict]:
+    """The units in queue order, each {task, family (None: every family), args, out, log,
+    collects}; ``collects``: the task's first unit, which collects its data."""
+    if n_gpus <= 1:
+        return [{"task": t, "family": None, "args": list(args), "out": out, "collects": True,
+                 "log": os.path.join(out, f"paper_{t}.log")} for t in tasks]
+    families, rest = split_families(args)
+    pairs = sorted(((t, f) for t in tasks for f in families),
+                   key=lambda p: -COST.get(p[0], DEFAULT_COST)[p[1]])
+    units, seen = [], set()
+    for t, f in pairs:
+        first = t not in seen
+        seen.add(t)
+        extra = rest if first else [a for a in rest if a != "--control"] + ["--no-oracle"]
+        units.append({"task": t, "family": f, "collects": first,
+                      "args": [*extra, "--families", f],
+                      "out": os.path.join(out, "units", f"{t}_{f}"),
+                      "log": os.path.join(out, f"paper_{t}_{f}.log")})
+    return units
+
+
+def name(unit: dict) -> str:
+    return f"{unit['task']}/{unit['family'] or 'all families'}"
+
+
+def _pump(unit: dict, proc, tee: bool, events: queue.Queue) -> None:
+    """Copy the unit's output to its log (and here when ``tee``) line by line, report its data
+    line and its end."""
+    with open(unit["log"], "w") as log:
+        for raw in proc.stdout:
+            line = raw.decode(errors="replace")
+            log.write(line)
+            log.flush()
+            if tee:
+                sys.stdout.write(line)
+                sys.stdout.flush()
+            if line.startswith(DATA_LINE):
+                events.put(("data", unit, None))
+    events.put(("end", unit, proc.wait()))
+
+
+def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: float) -> None:
+    """Run ``units`` over ``slots`` (GPU indices; [None]: no GPU), one process per slot; each
+    unit gets gpu, start_s, data_s, wall_s and rc."""
+    events: queue.Queue = queue.Queue()
+    pending, free, data_done, running = list(units), sorted(slots), set(), 0  # [None] or ints
+    tee = len(slots) == 1
+    while pending or running:
+        while free:
+            unit = next((u for u in pending if u["collects"] or u["task"] in data_done), None)
+            if unit is None:
+                break
+            pending.remove(unit)
+            gpu = unit["gpu"] = free.pop(0)
+            env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+            if gpu is not None:
+                env["CUDA_VISIBLE_DEVICES"] = str(gpu)
+            cmd = [*py, "experiments/paper.py", "--task", unit["task"], "--out", unit["out"],
+                   "--data-dir", data_dir, *unit["args"]]
+            os.makedirs(unit["out"], exist_ok=True)
+            unit["start_s"] = round(time.monotonic() - t0, 1)
+            print(f"[paper_all] {name(unit)} on GPU {gpu if gpu is not None else '-'} at "
+                  f"{unit['start_s']:.0f}s: {shlex.join(cmd)}", flush=True)
+            try:
+                proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
+                                        stderr=subprocess.STDOUT)
+            except OSError as err:
+                with open(unit["log"], "w") as f:
+                    f.write(f"{cmd[0]}: {err}\n")
+                events.put(("end", unit, 127))
+            else:
+                threading.Thread(target=_pump, args=(unit, proc, tee, events),
+                                 daemon=True).start()
+            running += 1
+        kind, unit, rc = events.get()
+        if kind == "data":
+            unit.setdefault("data_s", round(time.monotonic() - t0 - unit["start_s"], 1))
+            data_done.add(unit["task"])
+            continue
+        unit["wall_s"] = round(time.monotonic() - t0 - unit["start_s"], 1)
+        unit["rc"] = rc
+        data_done.add(unit["task"])  # ended: nobody collects its data now
+        free = sorted(free + [unit["gpu"]])
+        running -= 1
+        print(f"[paper_all] {name(unit)} ended with {rc} after {unit['wall_s']:.0f}s",
+              flush=True)
+
+
+def merge(units: list[dict], tasks: list[str], py: list[str], out: str, t0: float) -> list:
+    """merge_results.py for each task whose units all succeeded (collecting unit first)."""
+    merges = []
+    for t in tasks:
+        mine = [u for u in units if u["task"] == t]
+        if not mine or any(u.get("rc") != 0 for u in mine):
+            continue
+        mine.sort(key=lambda u: not u["collects"])
+        cmd = [*py, "experiments/merge_results.py", "--task", t,
+               *[a for u in mine for a in ("--paper", os.path.join(u["out"], f"{t}.json"))],
+               "--out", out]
+        m = {"task": t, "log": os.path.join(out, f"merge_{t}.log"),
+             "start_s": round(time.monotonic() - t0, 1)}
+        with open(m["log"], "w") as log:
+            try:
+                m["rc"] = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
+            except OSError as err:
+                log.write(f"{cmd[0]}: {err}\n")
+                m["rc"] = 127
+        m["wall_s"] = round(time.monotonic() - t0 - m["start_s"], 1)
+        merges.append(m)
+    return merges
+
+
+def report(units: list[dict], merges: list[dict], n_gpus: int, total: float, out: str) -> str:
+    """The wall time per part as text; OUT/schedule.json written."""
+    ran = sorted(units, key=lambda u: (u.get("start_s", float("inf")), u["task"]))
+    lines = [f"[paper_all] wall time per part, {n_gpus} GPU(s):",
+             f"  {'task':<12} {'family':<12} {'gpu':>3} {'start (s)':>9} {'wall (s)':>9}  "
+             f"{'data (s)':>8}  status"]
+    for u in ran:
+        status = "ok" if u.get("rc") == 0 else f"FAILED ({u.get('rc')}): {u['log']}"
+        lines.append(f"  {u['task']:<12} {u['family'] or 'all':<12} "
+                     f"{'-' if u.get('gpu') is None else u['gpu']:>3} "
+                     f"{u.get('start_s', 0):>9.1f} {u.get('wall_s', 0):>9.1f}  "
+                     f"{'-' if u.get('data_s') is None else u['data_s']:>8}  {status}")
+    for m in merges:
+        status = "ok" if m["rc"] == 0 else f"FAILED ({m['rc']}): {m['log']}"
+        lines.append(f"  {m['task']:<12} {'merge':<12} {'-':>3} {m['start_s']:>9.1f} "
+                     f"{m['wall_s']:>9.1f}  {'':>8}  {status}")
+    busy = {}
+    for u in ran:
+        g = "-" if u.get("gpu") is None else str(u["gpu"])
+        busy[g] = round(busy.get(g, 0.0) + u.get("wall_s", 0.0), 1)
+    lines.append(f"[paper_all] busy per GPU (s): "
+                 f"{', '.join(f'{g}: {b:.1f}' for g, b in sorted(busy.items()))}; the units "
+                 f"summed {sum(busy.values()):.1f}s")
+    lines.append(f"[paper_all] in all: {total:.1f}s -> {os.path.join(out, 'schedule.json')}")
+    keys = ("task", "family", "gpu", "start_s", "wall_s", "data_s", "rc", "collects", "log",
+            "out")
+    with open(os.path.join(out, "schedule.json"), "w") as f:
+        json.dump({"gpus": n_gpus, "total_s": round(total, 1), "busy_s": busy,
+                   "units": [{k: u.get(k) for k in keys} for u in ran], "merges": merges},
+                  f, indent=1)
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    argv = argv[:argv.index("--")] if "--" in argv else argv
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--data-dir", required=True)
+    ap.add_argument("--gpus", type=int, default=0, help="GPUs of this host (0: none)")
+    ap.add_argument("--py", default="python3", help="the python command of paper.py and "
+                    "merge_results.py (may carry a prefix, e.g. 'timeout 560 python3')")
+    ap.add_argument("--tasks", default="hopper walker2d halfcheetah ant")
+    args = ap.parse_args(argv)
+    t0 = time.monotonic()
+    tasks, py, n = args.tasks.split(), shlex.split(args.py), max(0, args.gpus)
+    os.makedirs(args.out, exist_ok=True)
+    units = plan(tasks, n, extra, args.out)
+    run_units(units, list(range(n)) if n else [None], py, args.data_dir, t0)
+    merges = merge(units, tasks, py, args.out, t0) if n > 1 else []
+    print(report(units, merges, n, time.monotonic() - t0, args.out), flush=True)
+    failed = [f"{name(u)} (exit {u.get('rc')}, log {u['log']})" for u in units
+              if u.get("rc") != 0]
+    failed += [f"merge of {m['task']} (exit {m['rc']}, log {m['log']})" for m in merges
+               if m["rc"] != 0]
+    for f in failed:
+        print(f"paper_all: FAILED {f}", file=sys.stderr)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -8,7 +8,8 @@
 #   bash experiments/device.sh paper TASK [paper.py args]        the protocol for one task
 #       ([LIMIT=585]: paper.py stopped after LIMIT s; $OUT/<task>.json, paper_<task>.log)
 #   bash experiments/device.sh tasks "TASK ..." [paper.py args]   tasks round-robin over the
-#       GPUs (experiments/paper_all.sh; LIMIT=560 per process; $OUT/results.tgz)
+#       GPUs as (task, family) units (experiments/paper_all.sh; LIMIT=560 per process;
+#       $OUT/results.tgz)
 #   bash experiments/device.sh jobs "GPU NAME AFTER args" ...     paper.py jobs side by side,
 #       one GPU each, a job waiting for AFTER's data phase ("-": none); LIMIT=570 for all;
 #       $OUT/NAME/<task>.json, $OUT/NAME/paper.log; fails if a job failed

@@ -155,23 +155,9 @@ def cmd_export(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from rl2s_jax.app.train import format_summary, run_training
-    from rl2s_jax.train.loop import TrainingDiverged
+    from rl2s_jax.app.train import train_command
 
-    if not os.path.exists(args.data):
-        raise FileNotFoundError(f"data: no such file {args.data}")
-    try:
-        summary = run_training(args.data, args.method, args.steps, args.out, zoo=args.zoo,
-                               profile=args.profile, seed=args.seed, eps=args.eps,
-                               save_every=args.save_every, chunk=args.chunk,
-                               overrides=_set(args.set), progress=not args.quiet,
-                               eval_data=args.eval_data, eval_every=args.eval_every,
-                               resume_step=args.resume_step, policy_file=args.policy_file)
-    except TrainingDiverged as err:
-        print(f"rl2s train: {err}", file=sys.stderr)
-        return 1
-    print(format_summary(summary))
-    return 0
+    return train_command(args)
 
 
 def cmd_evaluate(args) -> int:
@@ -415,6 +401,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a TrainConfig field, e.g. --set vd_horizon=200")
     p.add_argument("--eval-data", help="Dataset of test policies: VD and ranking every "
                    "--eval-every steps -> OUT/eval.jsonl")
+    p.add_argument("--eval-policies", metavar="FILE", help="the --eval-data policies in its "
+                   "policy_id order, a save_policies file (as evaluate's --policy-file)")
     p.add_argument("--eval-every", type=_positive("eval-every"),
                    help="steps between test evaluations (default: --save-every or steps/10)")
     p.add_argument("--resume-step", type=int, help="resume from this saved step (default: "

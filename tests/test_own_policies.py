@@ -1,6 +1,7 @@
 """Your own policies: the policy file (save_policies / load_policies), `rl2s evaluate` and
-`rl2s improve` with --policy-file or with a Dataset whose meta.source names one, and the
-settings `rl2s evaluate` uses by default (the checkpoint's, said in the report)."""
+`rl2s improve` with --policy-file or with a Dataset whose meta.source names one, `rl2s train
+--eval-data TEST --eval-policies FILE`, and the settings `rl2s evaluate` uses by default (the
+checkpoint's, said in the report)."""
 import json
 import os
 import re
@@ -297,3 +298,83 @@ def test_any_jax_policy_function_is_evaluated_from_python(run):
     # reward 1 - p'^2: full throttle either way drives the mass off the origin, costing
     # value (measured 16.5 and 12.0 against 17.8 and 18.1 for no push, listed twice)
     assert max(v[0], v[3]) < min(v[1], v[2]), v
+
+
+# `rl2s train` of pm_files' train data (3 policies), 2 bc steps, tiny networks, one test
+# evaluation at the end (2 episodes of 50 steps per test policy)
+TRAIN_QUICK = ["--method", "bc", "--steps", "2", "--eval-every", "2", "--profile", "cpu",
+               "--quiet", "--set", "vd_horizon=50", "--set", "vd_episodes=2", "--set",
+               "updates_per_step=2", "--set", "gen_hidden=[32]", "--set", "hazard_steps=0"]
+
+
+@pytest.fixture(scope="module")
+def eval_files(pm_files, tmp_path_factory):
+    """pm_files' test data without meta.source ("bare": only a given file supplies its
+    policies), a file of its policies (zoo 3-5, their names) and one of others (zoo 0-2)."""
+    root = tmp_path_factory.mktemp("eval_policies")
+    ds = load_dataset(pm_files["test"])
+    z = zoo_mod.load_zoo(ds.meta["source"]["zoo"])
+    out = {"bare": str(root / "bare.npz"), "mine": str(root / "mine.npz"),
+           "other": str(root / "other.npz")}
+    save_dataset(out["bare"], ds.replace(meta={**ds.meta, "source": {}}))
+    pol.save_policies(out["mine"], pol.index_params(z.params, np.array([3, 4, 5])),
+                      z.policy_names([3, 4, 5]))
+    pol.save_policies(out["other"], pol.index_params(z.params, np.array([0, 1, 2])),
+                      ["x", "y", "z"])
+    return out
+
+
+def _train(pm_files, out, *extra) -> tuple[dict, dict]:
+    """`rl2s train` -> (summary.json, the last row of eval.jsonl)."""
+    assert cli.main(["train", "--data", pm_files["train"], "--out", str(out), *TRAIN_QUICK,
+                     *extra]) == 0
+    with open(out / "eval.jsonl") as f:
+        last = [json.loads(line) for line in f][-1]
+    return json.loads((out / "summary.json").read_text()), last
+
+
+def test_train_evaluates_the_test_policies_of_eval_policies(pm_files, eval_files,
+                                                             tmp_path, capsys):
+    """The same test policies from the data's zoo or from --eval-policies (bare data): the
+    same test VD; other policies in the file (over the zoo the data names): another."""
+    _, by_zoo = _train(pm_files, tmp_path / "zoo", "--eval-data", pm_files["test"])
+    s, by_file = _train(pm_files, tmp_path / "file", "--eval-data", eval_files["bare"],
+                        "--eval-policies", eval_files["mine"])
+    assert f"policies of {eval_files['mine']}" in capsys.readouterr().out
+    assert s["eval_policies"] == eval_files["mine"] and s["step_test"] == 2
+    assert len(by_file["vd"]) == 3 and by_file["step"] == 2
+    assert by_file["vd"] == by_zoo["vd"] and by_file["avd"] == s["avd_test"]
+    _, by_other = _train(pm_files, tmp_path / "other", "--eval-data", pm_files["test"],
+                         "--eval-policies", eval_files["other"])
+    assert len(by_other["vd"]) == 3 and by_other["vd"] != by_zoo["vd"]
+
+
+def test_train_refuses_wrong_eval_policies_before_training(pm_files, eval_files,
+                                                           tmp_path, capsys):
+    """Refused naming --eval-policies (or what is missing), before any training work: the
+    run directory is never made."""
+    z = pol.load_policies(eval_files["mine"])[0]
+    two = str(tmp_path / "two.npz")
+    pol.save_policies(two, pol.index_params(z, np.array([0, 1])), ["a", "b"])
+    wide = str(tmp_path / "wide.npz")
+    pol.save_policies(wide, pol.stack_params([pol.init_policy(jax.random.PRNGKey(i), 3, 1)
+                                              for i in range(3)]), list("abc"))
+    out = tmp_path / "never"
+    bare = ["--eval-data", eval_files["bare"]]
+    for extra, parts in (
+            ([*bare, "--eval-policies", two],
+             [f"eval-policies: {two} holds 2 policies, but the Dataset holds 3"]),
+            ([*bare, "--eval-policies", wide],
+             [f"eval-policies: the policies of {wide} take observations of size 3 and act "
+              "in 1 dims, the Dataset's obs_size / action_size are 2 / 1"]),
+            ([*bare, "--eval-policies", str(tmp_path / "missing.npz")],
+             ["eval-policies: policy file ", "missing.npz: no such file"]),
+            (bare, [f"eval_data: {eval_files['bare']}: zoo: ", "--eval-policies FILE"]),
+            (["--eval-policies", eval_files["mine"]],
+             ["eval-policies: ", "--eval-data TEST"])):
+        rc = cli.main(["train", "--data", pm_files["train"], "--out", str(out), *TRAIN_QUICK,
+                       *extra])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith("rl2s train: error: "), err
+        assert all(part in err for part in parts), (parts, err)
+        assert not out.exists()  # refused before any work

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 import time
 
 import jax
@@ -16,7 +17,7 @@ from rl2s_jax.train.checkpoint import Checkpointer
 from rl2s_jax.train.config import TrainConfig
 from rl2s_jax.train.data import make_train_data
 from rl2s_jax.train.learned import heldout_errors, learned_lines
-from rl2s_jax.train.loop import fit
+from rl2s_jax.train.loop import TrainingDiverged, fit
 from rl2s_jax.train.step import init, simulator
 from rl2s_jax.zoo.zoo import policies_for
 
@@ -68,7 +69,8 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                  save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
                  progress: bool = True, log=print, eval_data: str | None = None,
                  eval_every: int | None = None, eval_episodes: int = 8,
-                 resume_step: int | None = None, policy_file: str | None = None) -> dict:
+                 resume_step: int | None = None, policy_file: str | None = None,
+                 eval_policies: str | None = None) -> dict:
     """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
     holds one), and return a summary dict (also written to out/summary.json).
 
@@ -78,14 +80,19 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     (intact), since the run saves those steps anew.
 
     ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
-    with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve).
-    The policies: from ``zoo``, ``policy_file`` or what the data's meta.source names
+    with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve);
+    its policies from ``eval_policies`` (a policy file, checked as ``policy_file`` is, before
+    any training work), else from ``zoo`` or what its meta.source names. The training
+    policies: from ``zoo``, ``policy_file`` or what the data's meta.source names
     (``zoo.policies_for``). The summary's ``learned`` block holds the simulator's reward and
     termination errors on the held-out episodes (``train.learned.heldout_errors``).
     """
 
     if not isinstance(steps, int) or steps < 1:
         raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
+    if eval_policies is not None and eval_data is None:
+        raise ValueError("eval-policies: these are the policies of a test Dataset; give it "
+                         "with --eval-data TEST")
     ds = load_dataset(data_path)
     if profile == "auto":
         profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
@@ -102,6 +109,12 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
             f"{cfg.pretrain_steps - steps + 1} more step(s) reach it (--steps "
             f"{cfg.pretrain_steps + 1} or more, or --set pretrain_steps=N)")
     policies = policies_for(ds, zoo, policy_file=policy_file, data_path=data_path)
+    eval_path = os.path.join(out, "eval.jsonl")
+    on_eval, last_test = None, {}
+    if eval_data is not None:  # its data and policies checked before any training work
+        on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo,
+                                  last_test, eval_policies)
+        eval_every = eval_every or save_every or max(1, steps // 10)
     data = make_train_data(ds, policies, cfg)
     os.makedirs(out, exist_ok=True)
     ck = Checkpointer(os.path.join(out, "checkpoints"))
@@ -112,12 +125,6 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                      "true_value": np.asarray(data.true_value).tolist()},
             "seed": seed, "profile": profile}
     metrics_path = os.path.join(out, "metrics.jsonl")
-    eval_path = os.path.join(out, "eval.jsonl")
-    on_eval, last_test = None, {}
-    if eval_data is not None:
-        on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo,
-                                  last_test)
-        eval_every = eval_every or save_every or max(1, steps // 10)
     key = jax.random.PRNGKey(seed)
     if resume_step is not None and ck.latest_step() is None:
         ck.close()
@@ -183,16 +190,25 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
 
 
 def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
-                    zoo: str | None, last: dict):
+                    zoo: str | None, last: dict, policy_file: str | None = None):
     """on_eval callback: VD and ranking of the eval Dataset's policies, appended to ``path``;
     the latest also in ``last`` (keys ending ``_test``, for summary.json) and returned (for
-    the progress bar, beside the training policies' avd / mvd: keys ending ``_test``)."""
+    the progress bar, beside the training policies' avd / mvd: keys ending ``_test``).
+    The policies: ``policy_file`` (``--eval-policies``; as ``rl2s evaluate --policy-file``,
+    refused unless it holds the eval data's policies), else ``zoo`` or the data's source."""
 
     ds = load_dataset(eval_data)
     if ds.meta.get("task") != cfg.task:
         raise ValueError(f"eval_data: {eval_data} is task {ds.meta.get('task')!r}, training is "
                          f"{cfg.task!r}")
-    pols = policies_for(ds, zoo, data_path=eval_data)
+    if policy_file is not None:
+        pols = policies_for(ds, policy_file=policy_file, data_path=eval_data,
+                            flag="eval-policies")
+    else:
+        try:
+            pols = policies_for(ds, zoo, data_path=eval_data, flag="eval-policies")
+        except ValueError as err:  # say which Dataset's policies are unknown
+            raise ValueError(f"eval_data: {eval_data}: {err}") from None
     key = jax.random.PRNGKey(seed + 1)
 
     def on_eval(state):
@@ -203,13 +219,34 @@ def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
             f.write(json.dumps(row) + "\n")
         last.clear()
         last.update({f"{k}_test": v for k, v in r["metrics"].items()})
-        last.update(step_test=int(state.step), eval_data=eval_data, measured_by_test={
+        last.update(step_test=int(state.step), eval_data=eval_data,
+                    eval_policies=policy_file, measured_by_test={
             "source": "simulated vs the eval data's true values", "episodes": n_episodes,
             "horizon": cfg.vd_horizon, "gamma": cfg.gamma})
         return {f"{k}_test": r["metrics"][k] for k in ("avd", "mvd", "kendall_tau")
                 if k in r["metrics"]}
 
     return on_eval
+
+
+def train_command(args) -> int:
+    """`rl2s train`'s body (rl2s_jax/cli.py parses its arguments): ``run_training``, then
+    its summary table; 1 where training diverged."""
+    if not os.path.exists(args.data):
+        raise FileNotFoundError(f"data: no such file {args.data}")
+    try:
+        summary = run_training(args.data, args.method, args.steps, args.out, zoo=args.zoo,
+                               profile=args.profile, seed=args.seed, eps=args.eps,
+                               save_every=args.save_every, chunk=args.chunk,
+                               overrides=parse_overrides(args.set), progress=not args.quiet,
+                               eval_data=args.eval_data, eval_every=args.eval_every,
+                               resume_step=args.resume_step, policy_file=args.policy_file,
+                               eval_policies=args.eval_policies)
+    except TrainingDiverged as err:
+        print(f"rl2s train: {err}", file=sys.stderr)
+        return 1
+    print(format_summary(summary))
+    return 0
 
 
 def _truncate_metrics(path: str, step: int) -> None:
@@ -230,7 +267,8 @@ def format_summary(s: dict) -> str:
              f"train policies: AVD {s['avd_train']:.3g}  MVD {s['mvd_train']:.3g}  "
              f"(VD at the last completed measurement: {_by(s.get('vd_measured_by'))})"]
     if "avd_test" in s:
-        lines.append(f"test policies ({s['eval_data']}, step {s['step_test']}): AVD "
+        pf = f", policies of {s['eval_policies']}" if s.get("eval_policies") else ""
+        lines.append(f"test policies ({s['eval_data']}{pf}, step {s['step_test']}): AVD "
                      f"{s['avd_test']:.3g}  MVD {s['mvd_test']:.3g}  Kendall tau "
                      f"{s['kendall_tau_test']:.3f}  ({_by(s['measured_by_test'])})")
     if s.get("learned"):

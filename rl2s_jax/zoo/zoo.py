@@ -108,16 +108,16 @@ def load_zoo(task_or_dir: str) -> Zoo:
 
 
 def policy_source(ds, zoo: str | None = None, *, policy_file: str | None = None,
-                  data_path: str | None = None) -> dict:
+                  data_path: str | None = None, flag: str = "policy-file") -> dict:
     """Where ``policies_for`` takes the policies that collected ``ds`` from (arguments as
     there). -> {"policy_file": path, "label": the flag or field that named it} or {"zoo":
     directory or task name, "zoo_ids": the data's policies in it}."""
     if zoo is not None and policy_file is not None:
-        raise ValueError("policy-file: give the data's policies by --zoo DIR or by "
-                         "--policy-file FILE, not both")
+        raise ValueError(f"{flag}: give the data's policies by --zoo DIR or by "
+                         f"--{flag} FILE, not both")
     source = ds.meta.get("source") or {}
     if policy_file is not None:
-        return {"policy_file": os.fspath(policy_file), "label": "policy-file"}
+        return {"policy_file": os.fspath(policy_file), "label": flag}
     if zoo is None and source.get("policy_file") is not None:
         path = source["policy_file"]
         if not isinstance(path, str) or not path:
@@ -133,21 +133,22 @@ def policy_source(ds, zoo: str | None = None, *, policy_file: str | None = None,
     if zoo is None or ids is None:
         raise ValueError("zoo: the Dataset's meta.source names no zoo and zoo_ids (nor a "
                          "policy_file), so the policies that collected it are unknown; pass "
-                         "--zoo DIR or --policy-file FILE")
+                         f"--zoo DIR or --{flag} FILE")
     return {"zoo": zoo, "zoo_ids": [int(i) for i in ids]}
 
 
 def policies_for(ds, zoo: str | None = None, *, policy_file: str | None = None,
-                 data_path: str | None = None) -> Params:
+                 data_path: str | None = None, flag: str = "policy-file") -> Params:
     """The stacked policies [P, ...] that collected ``ds``, in its policy_id order.
 
     From ``zoo`` (a directory or task name; the Dataset's meta.source.zoo_ids pick its
     policies) or ``policy_file`` (a ``save_policies`` file holding exactly the data's P
     policies), at most one of them; else from what meta.source names: a ``policy_file``
     (a relative path is resolved against the directory of ``data_path``, the file ``ds`` was
-    loaded from) or a ``zoo`` with ``zoo_ids`` (``policy_source``).
+    loaded from) or a ``zoo`` with ``zoo_ids`` (``policy_source``). ``flag``: the command-line
+    option that gave ``policy_file`` (without its dashes), named by the errors.
     """
-    where = policy_source(ds, zoo, policy_file=policy_file, data_path=data_path)
+    where = policy_source(ds, zoo, policy_file=policy_file, data_path=data_path, flag=flag)
     if "policy_file" in where:
         return _file_policies(ds, where["policy_file"], where["label"])
     zoo, ids = where["zoo"], where["zoo_ids"]

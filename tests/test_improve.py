@@ -749,10 +749,13 @@ def test_deployment_guard_floor_needs_every_member_gain_above_the_known_error():
 
 
 def test_pipeline_guard_floor_is_the_training_mvd_at_the_guards_horizon_and_gamma():
-    from rl2s_jax.app.pipeline import guard_floor, training_error_floor
+    from rl2s_jax.app.improve import guard_floor, training_error_floor
     run = {"mvd_train": 15.7, "config": {"vd_horizon": 100, "gamma": 0.999}}
     f = training_error_floor(run)
-    assert f == {"mvd": 15.7, "horizon": 100, "gamma": 0.999}
+    assert f == {"mvd": 15.7, "horizon": 100, "gamma": 0.999, "step": None}
+    assert training_error_floor({"mvd_train": 2.0, "steps": 300, "config": {"vd_horizon": 9},
+                                 "vd_measured_by": {"horizon": 100, "gamma": 0.99}}) == {
+        "mvd": 2.0, "horizon": 100, "gamma": 0.99, "step": 300}
     assert guard_floor(f, 100, 0.999) == 15.7
     assert guard_floor(f, 1000, 0.999) == 0.0  # measured at another horizon: not comparable
     assert guard_floor(f, 100, 0.99) == 0.0

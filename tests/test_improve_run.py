@@ -237,3 +237,53 @@ def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, c
         cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--out", str(out),
                   "--policies", "a,b"])
     assert not os.path.exists(out)
+
+
+def test_improve_guard_floor_comes_from_the_training_summary(pointmass_checkpoint, tmp_path):
+    """`rl2s improve` takes the guard's floor from the summary.json `rl2s train` wrote beside
+    the checkpoint: the training MVD, where measured at the guard's horizon and gamma. A floor
+    no predicted gain can clear keeps every start; one measured at another horizon is not
+    used (floor 0, the margin's decisions)."""
+    import shutil
+
+    run = pointmass_checkpoint
+    ds = load_dataset(run["data"])
+    horizon = int(ds.meta.get("episode_length") or PointMass().episode_length)
+    gamma = float(ds.meta.get("gamma") or 0.999)
+    decisions = {}
+    for name, h in (("comparable", horizon), ("other_horizon", horizon + 7)):
+        run_dir = tmp_path / name
+        shutil.copytree(run["ckpt"], run_dir / "checkpoints")
+        (run_dir / "summary.json").write_text(json.dumps(
+            {"mvd_train": 1e6, "steps": None,
+             "vd_measured_by": {"horizon": h, "gamma": gamma}}))
+        out = tmp_path / f"out_{name}"
+        assert cli.main(["improve", "--ckpt", str(run_dir / "checkpoints"), "--data",
+                         run["data"], "--policies", "0,3", "--out", str(out), "--iterations",
+                         "20", "--episodes", "2", "--quiet", "--guard-episodes", "4",
+                         *SMALL]) == 0
+        g = json.loads((out / "summary.json").read_text())["guard"]
+        v0, v1 = np.asarray(g["sim_value_start"]), np.asarray(g["sim_value_tuned"])
+        decisions[name] = (g, np.all(v1 - v0 > 0.02 * np.abs(v0), axis=0).tolist())
+    g, _ = decisions["comparable"]
+    assert g["floor"] == 1e6 and "summary.json" in g["floor_source"]
+    assert g["accepted"] == [False, False]
+    g, by_margin = decisions["other_horizon"]
+    assert g["floor"] == 0.0 and "horizon" in g["floor_source"]
+    assert g["accepted"] == by_margin
+
+
+def test_checkpoint_floor_reads_the_summary_beside_the_checkpoint(tmp_path):
+    from rl2s_jax.app.improve import checkpoint_floor
+
+    ckpt = tmp_path / "run" / "checkpoints"
+    ckpt.mkdir(parents=True)
+    assert checkpoint_floor(str(ckpt), None, 100, 0.999)[0] == 0.0  # no summary
+    (tmp_path / "run" / "summary.json").write_text(json.dumps(
+        {"mvd_train": 12.5, "steps": 300, "vd_measured_by": {"horizon": 100, "gamma": 0.999}}))
+    assert checkpoint_floor(str(ckpt) + "/", None, 100, 0.999)[0] == 12.5
+    assert checkpoint_floor(str(ckpt), 300, 100, 0.999)[0] == 12.5
+    value, why = checkpoint_floor(str(ckpt), 200, 100, 0.999)  # an earlier step: not its MVD
+    assert value == 0.0 and "step 300" in why
+    assert checkpoint_floor(str(ckpt), None, 1000, 0.999)[0] == 0.0
+    assert checkpoint_floor(str(ckpt), None, 100, 0.99)[0] == 0.0

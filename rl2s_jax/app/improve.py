@@ -150,12 +150,14 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                 branch_length: int | None = None, uncertainty_penalty: float = 0.0,
                 uncertainty_threshold: float | None = None, halt_penalty: float = 0.0,
                 guard_margin: float | None = GUARD_MARGIN, guard_episodes: int = 16,
-                guard_snapshots: bool = False, progress: bool = True, log=print) -> dict:
+                guard_snapshots: bool = False, floor: float | None = None,
+                progress: bool = True, log=print) -> dict:
     """Fine-tune policies ``policy_ids`` (indices into the Dataset's policies; default all)
     inside the simulator of checkpoint ``ckpt`` and write the zoo, plots and summary into
     ``out`` (module docstring). The policies come from ``zoo``, ``policy_file`` or what the
     data's meta.source names (``zoo.policies_for``). -> the summary dict (also
-    out/summary.json)."""
+    out/summary.json). ``floor``: the guard's floor in value units (``deployment_guard``);
+    None: the checkpoint's training MVD where comparable (``checkpoint_floor``), else 0."""
 
     if not isinstance(iterations, int) or iterations < 1:
         raise ValueError(f"iterations: expected an int >= 1, got {iterations!r}")
@@ -163,6 +165,9 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         raise ValueError(f"episodes: expected >= 2 (for standard errors), got {n_episodes}")
     if guard_margin is not None and not (np.isfinite(guard_margin) and guard_margin >= 0):
         raise ValueError(f"guard-margin: expected a finite float >= 0, got {guard_margin!r}")
+    if floor is not None and not (np.isfinite(floor) and floor >= 0):
+        raise ValueError(f"floor: expected a finite float >= 0 (value units) or None, got "
+                         f"{floor!r}")
     if not isinstance(guard_episodes, int) or guard_episodes < 1:
         raise ValueError(f"guard-episodes: expected an int >= 1, got {guard_episodes!r}")
     if guard_snapshots and guard_margin is None:
@@ -214,11 +219,15 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
 
     guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
     if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
+        floor, floor_source = (checkpoint_floor(ckpt, step, episode_length, gamma)
+                               if floor is None else (float(floor), "given"))
         guard, deployed = deploy_through_guard(
             sim, None, start_pool(ds), policies, after, snapshots,
             jax.random.fold_in(k_measure, 1), margin=guard_margin, n_episodes=guard_episodes,
-            horizon=episode_length, gamma=gamma, chunk=chunk, iterations=iterations)
-        log(f"[improve] guard (margin {guard_margin}"
+            horizon=episode_length, gamma=gamma, chunk=chunk, iterations=iterations,
+            floor=floor)
+        guard["floor_source"] = floor_source
+        log(f"[improve] guard (margin {guard_margin}, floor {floor:.3g}: {floor_source}"
             + (f", over snapshots every {chunk} iterations" if snapshots is not None else "")
             + f"): {int(np.sum(guard['accepted']))} of {len(ids)} fine-tuned policies kept, "
             "every elite member predicting a gain")
@@ -335,6 +344,45 @@ def deploy_through_guard(sim, task, starts, policies, after, snapshots, key, *, 
     guard.update(accepted=accept.tolist(), sim_value_start=v0.tolist(),
                  sim_value_tuned=v1.tolist(), predicted_gain=lo, predicted_gain_mean=mean)
     return guard, deployed
+
+
+def training_error_floor(run: dict) -> dict:
+    """The guard's floor from a training run's summary (``run_training``'s, also its
+    summary.json): its MVD on the training policies with the horizon and gamma it was
+    measured at, and the step."""
+    by = run.get("vd_measured_by") or {}
+    cfg = run.get("config") or {}
+    return {"mvd": float(run["mvd_train"]),
+            "horizon": int(by.get("horizon", cfg.get("vd_horizon"))),
+            "gamma": float(by.get("gamma", cfg.get("gamma"))), "step": run.get("steps")}
+
+
+def guard_floor(floor: dict | None, horizon: int, gamma: float) -> float:
+    """A ``training_error_floor``'s MVD where it was measured at ``horizon`` and ``gamma``
+    (the guard's), else 0: an error at another horizon or discount is not comparable."""
+    if not floor or floor["horizon"] != horizon or not np.isclose(floor["gamma"], gamma):
+        return 0.0
+    return float(floor["mvd"])
+
+
+def checkpoint_floor(ckpt: str, step: int | None, horizon: int, gamma: float) -> tuple:
+    """``rl2s improve``'s floor: the MVD on the training policies in the summary.json that
+    ``rl2s train`` wrote beside the checkpoint directory, where it was measured at the
+    guard's horizon and gamma and (with ``step``) at that step. -> (floor, why) where why
+    says where it came from or why it is 0."""
+    path = os.path.join(os.path.dirname(os.path.normpath(ckpt)), "summary.json")
+    try:
+        with open(path) as f:
+            floor = training_error_floor(json.load(f))
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0.0, f"no training summary with mvd_train at {path}"
+    if step is not None and floor["step"] is not None and int(step) != int(floor["step"]):
+        return 0.0, f"the training MVD is of step {floor['step']}, not {step}"
+    value = guard_floor(floor, horizon, gamma)
+    if not value:
+        return 0.0, (f"the training MVD was measured at horizon {floor['horizon']}, gamma "
+                     f"{floor['gamma']}, not the guard's {horizon}, {gamma}")
+    return value, f"the training MVD in {path}"
 
 
 def predicted_gains(v0, v1) -> tuple[list, list]:

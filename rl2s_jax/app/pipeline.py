@@ -12,7 +12,12 @@ import jax
 import numpy as np
 
 from rl2s_jax.app.evaluate import evaluate_checkpoint
-from rl2s_jax.app.improve import GUARD_MARGIN, deploy_through_guard
+from rl2s_jax.app.improve import (
+    GUARD_MARGIN,
+    deploy_through_guard,
+    guard_floor,
+    training_error_floor,
+)
 from rl2s_jax.app.report import improvement_text, load_curve, write_report
 from rl2s_jax.app.train import run_training
 from rl2s_jax.data.collect import collect
@@ -58,21 +63,6 @@ PROFILES = {
                 eval_episodes=16, improve_iterations=5000,
                 sac=dict(n_envs=16, critic_warmup_updates=2000)),
 }
-
-
-def training_error_floor(run: dict) -> dict:
-    """The guard's floor from a training run's summary (``run_training``): its MVD on the
-    training policies with the horizon and gamma it was measured at."""
-    return {"mvd": float(run["mvd_train"]), "horizon": int(run["config"]["vd_horizon"]),
-            "gamma": float(run["config"]["gamma"])}
-
-
-def guard_floor(floor: dict | None, horizon: int, gamma: float) -> float:
-    """A ``training_error_floor``'s MVD where it was measured at ``horizon`` and ``gamma``
-    (the guard's), else 0: an error at another horizon or discount is not comparable."""
-    if not floor or floor["horizon"] != horizon or not np.isclose(floor["gamma"], gamma):
-        return 0.0
-    return float(floor["mvd"])
 
 
 def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,

@@ -48,7 +48,7 @@ from rl2s_jax.improve.finetune import (
 )
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig  # noqa: E402
-from rl2s_jax.zoo.build import ZOO_SAC  # noqa: E402
+from rl2s_jax.zoo.build import fine_tuning_recipe  # noqa: E402
 from rl2s_jax.zoo.zoo import load_zoo  # noqa: E402
 
 
@@ -63,16 +63,6 @@ def pick(returns: np.ndarray, n: int) -> list[int]:
         return sorted(order.tolist())
     return sorted(order[np.unique(np.round(np.linspace(0, len(order) - 1, n)).astype(int))]
                   .tolist())
-
-
-ZOO_RECIPE_FIELDS = ("gamma", "reward_scaling", "batch_size")
-
-
-def zoo_recipe(task_name: str) -> dict:
-    """The zoo learner's discount, reward scale and batch size for ``task_name``, and a
-    2^19-row buffer (the fields ``--zoo-recipe`` sets)."""
-    plan = ZOO_SAC[task_name].config
-    return {**{k: getattr(plan, k) for k in ZOO_RECIPE_FIELDS}, "buffer_size": 1 << 19}
 
 
 def sac_configs(args, episode_length: int, task_name: str | None = None
@@ -90,7 +80,7 @@ def sac_configs(args, episode_length: int, task_name: str | None = None
                  updates_per_step=args.updates_per_step,
                  buffer_size=min(100_000, args.sac_envs * (64 + args.iterations)))
     if getattr(args, "zoo_recipe", False) and task_name is not None:
-        sizes.update(zoo_recipe(task_name))
+        sizes.update(fine_tuning_recipe(task_name))
     out = {"fine_tuning": SACConfig.fine_tuning(**{**sizes, **over})}
     if args.plain:
         out["plain"] = SACConfig(**{**sizes, "critic_warmup_updates": 0, **over})
@@ -124,7 +114,7 @@ def run_task(task_name: str, args) -> dict:
     result = {"task": task_name, "zoo_ids": chosen, "seeds": R, "iterations": args.iterations,
               "n_episodes": args.episodes, "backend": jax.default_backend(),
               "device": str(jax.devices()[0]), "configs": {}}
-    result["zoo_recipe"] = zoo_recipe(task_name) if args.zoo_recipe else None
+    result["zoo_recipe"] = fine_tuning_recipe(task_name) if args.zoo_recipe else None
     for name, cfg in sac_configs(args, task.episode_length, task_name).items():
         t0 = time.perf_counter()
         log(f"[control] {task_name} {name}: SAC x {args.iterations} iterations in the real env "

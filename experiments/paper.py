@@ -6,7 +6,7 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--transitions-per-policy N] [--value-episodes N] [--eval-episodes N]
         [--improve-iterations N] [--improve-policies N] [--improve-seeds 1]
         [--sac-envs N] [--sac-critic-warmup N] [--sac-updates-per-step N]
-        [--sac-set field=value ...] [--control] [--control-seeds N]
+        [--sac-set field=value ...] [--zoo-recipe] [--control] [--control-seeds N]
         [--improve-variants full,branched,full+penalty,branched+penalty,full+stop]
         [--ablation-methods rl2s]
         [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
@@ -67,7 +67,10 @@ checks the flags, the phases are ``rl2s_jax.app.protocol`` (data, oracle, traini
    that budget. ``--guard-margin M`` adds, per variant, the deployed policies' MPI / API
    when each lane keeps a fine-tuned policy only where every elite member of its simulator
    predicts a gain above M x |start value| (``improve.deployment_guard``; a kept start
-   policy has I = 0): ablation entry ``<variant>+guard``. ``--guard-snapshots`` applies
+   policy has I = 0) and above the lane's MVD on the training policies in value units
+   (``--guard-floor mvd``, the default; ``none``: no floor): ablation entry
+   ``<variant>+guard``. ``--zoo-recipe`` fine-tunes at the zoo learner's discount, reward
+   scale and batch (``zoo.build.fine_tuning_recipe``). ``--guard-snapshots`` applies
    that guard to the actor after every ``--sac-chunk`` iterations as well
    (``improve.select_by_members``: early stopping by the simulator alone) and measures the
    chosen snapshots in the real env: ablation entry ``<variant>+guard-snapshots``.
@@ -101,6 +104,7 @@ from rl2s_jax.app.protocol import (
 )
 from rl2s_jax.app.protocol_improve import (
     lane_simulators,
+    lane_training_mvd,
     run_control,
     run_improvement,
     setup_fine_tuning,
@@ -112,6 +116,7 @@ from rl2s_jax.improve.lanes import parse_variants, uses_uncertainty, variant_set
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.sharding import initialize_distributed
 from rl2s_jax.train.config import LEGACY_MODEL
+from rl2s_jax.zoo.build import fine_tuning_recipe
 from rl2s_jax.zoo.zoo import policies_for
 
 
@@ -176,6 +181,14 @@ def build_parser() -> argparse.ArgumentParser:
                     "policies when a fine-tuned policy is kept only where every elite member of "
                     "its simulator predicts a gain above this fraction (improve."
                     "deployment_guard): the ablation entry '<variant>+guard'")
+    ap.add_argument("--guard-floor", choices=("mvd", "none"), default="mvd", help="with "
+                    "--guard-margin: a gain must also exceed, in value units, the lane's MVD on "
+                    "the training policies (mvd, the default; its worst known error) or "
+                    "nothing (none)")
+    ap.add_argument("--zoo-recipe", action="store_true", help="fine-tune at the zoo learner's "
+                    "discount, reward scale and batch with a 2^19-row buffer "
+                    "(zoo.build.fine_tuning_recipe; --sac-set still wins): the recipe under "
+                    "which the real-env control gains")
     ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
                     "also apply the guard to the actor after every --sac-chunk iterations and "
                     "deploy the snapshot with the largest smallest predicted gain "
@@ -255,6 +268,12 @@ def check_arguments(args) -> tuple:
         raise SystemExit(f"ablation-methods: expected a comma list of {', '.join(METHODS)}, "
                          f"got {args.ablation_methods!r}")
     sac_overrides = _sac_overrides(args.sac_set)
+    if args.zoo_recipe:
+        recipe = fine_tuning_recipe(args.task)
+        if not recipe:
+            raise SystemExit(f"zoo-recipe: task {args.task!r} has no zoo SAC learner "
+                             f"(zoo.build.ZOO_SAC) to take the recipe from")
+        sac_overrides = {**recipe, **sac_overrides}
     families = parse_families(args.families)
     if args.guard_margin is not None and not (np.isfinite(args.guard_margin)
                                               and args.guard_margin >= 0):
@@ -363,9 +382,15 @@ def main(argv=None) -> int:
                               uncertainty_penalty=args.uncertainty_penalty,
                               uncertainty_threshold=args.uncertainty_threshold,
                               halt_penalty=args.halt_penalty)
+        floors = None
+        if args.guard_floor == "mvd":  # measured at the fine-tuning horizon (ft's) and gamma
+            gammas = {round(float(c.gamma), 9) for c in configs.values()}
+            floors = (lane_training_mvd(finals, seed_ids[0] + sizes["improve_seeds"])
+                      if gammas == {round(float(ft.gamma), 9)} else None)
         run_improvement(result, ft, lanes, sims, test_ds, variants, settings_of=settings_of,
                         ablation_methods=ablation_methods, guard_margin=args.guard_margin,
-                        guard_snapshots=args.guard_snapshots, phase=phase, save=save)
+                        guard_snapshots=args.guard_snapshots, phase=phase, save=save,
+                        guard_floors=floors)
     if it and args.control:
         run_control(result, ft, args.control_seeds, phase)
     timings["total"] = round(time.perf_counter() - t_start, 1)

@@ -824,3 +824,36 @@ def test_median_gain_counts_the_policies_below_the_zoos_top_quartile():
     assert median_gain(c0[0], c1[0], start, zoo)["median_gain"] == pytest.approx(0.1)
     with pytest.raises(ValueError, match="start_returns"):
         median_gain(c0, c1, start[:3], zoo)
+
+
+def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
+    """The protocol's guard (improve.lanes.guard_lanes) applies each lane's own floor: lane 0
+    at floor 0 decides as deployment_guard on the members' values, lane 1 at a floor no gain
+    clears keeps every start; lane_training_mvd gives each lane's max training VD in
+    lane_simulators' order."""
+    from types import SimpleNamespace
+
+    from rl2s_jax.app.protocol_improve import lane_training_mvd
+    from rl2s_jax.improve.lanes import guard_lanes
+
+    sim = _ensemble_simulator().replace(noise_scale=0.0)
+    sims = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), sim)
+    start, tuned = _policies([-1.0, 0.0, 0.5]), _policies([0.5, 1.5, -0.5])
+    actors = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), tuned)
+    pool = jnp.asarray(_pool(8))
+    roll = dict(horizon=12, gamma=0.9, n_episodes=4)
+    accepted, index, chosen = guard_lanes(sims, start, actors, None, "pointmass", pool,
+                                          margin=0.0, floors=[0.0, 1e9], **roll)
+    assert index is None and chosen == []
+    both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), start, tuned)
+    v = member_values(sim, "pointmass", both, pool, jax.random.PRNGKey(40), **roll)
+    np.testing.assert_array_equal(accepted[0], deployment_guard(v[:, :3], v[:, 3:], 0.0))
+    assert accepted[0].any()  # the test needs a deployment that the floor then blocks
+    assert not accepted[1].any()
+    with pytest.raises(ValueError, match="floors"):
+        guard_lanes(sims, start, actors, None, "pointmass", pool, margin=0.0, floors=[0.0],
+                    **roll)
+    finals = {"adversarial": ([("rl2s", 0), ("rl2s", 1), ("gail", 0)],
+                              SimpleNamespace(vd=np.array([[1.0, 5.0], [9.0, 2.0], [3.0, 4.0]]))),
+              "mle": ([("bc", 0)], SimpleNamespace(vd=np.array([[7.0, 6.0]])))}
+    assert lane_training_mvd(finals, 1) == [5.0, 4.0, 7.0]  # seeds < 1, lane order

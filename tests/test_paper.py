@@ -632,6 +632,9 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         assert v["I_deployed"] == pytest.approx(np.where(v["guard_accepted"], v["I"], 0.0))
         assert v["mpi_deployed"] == pytest.approx(min(v["I_deployed"]))
     assert set(r["ablation"]["full+guard"]["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
+    # the guard's floor (--guard-floor mvd, the default): each lane's training MVD
+    assert all(np.isfinite(v["guard_floor"]) and v["guard_floor"] > 0 for v in imp.values())
+    assert r["ablation"]["full+guard"]["settings"]["guard_floor"] == "training MVD per lane"
     # the guard over snapshots (after iterations 1 and 2): a kept start has I = 0; a final
     # snapshot the guard accepts is eligible, so some snapshot deploys; the final one chosen
     # earns the final policy's return (the same episodes)
@@ -918,3 +921,29 @@ def test_select_point_rejects_a_point_whose_worst_training_vd_exploded():
     # a diverged point (non-finite tau) with a tiny MVD sets no bound for the others
     assert select_point([pt(100, np.nan, 1.0), pt(200, 0.9, 10.0)])["step"] == 200
     assert select_point([{"step": 1, "select": None, "test": None}]) is None
+
+
+def test_paper_zoo_recipe_and_guard_floor_flags():
+    """--zoo-recipe puts the zoo learner's discount, reward scale and batch (and a 2^19-row
+    buffer) under the SAC settings, --sac-set still winning; a task without a SAC zoo plan is
+    refused, naming the flag; --guard-floor defaults to the lanes' training MVD."""
+    from rl2s_jax.zoo.build import ZOO_SAC, fine_tuning_recipe
+
+    paper = _load("paper")
+    plan = ZOO_SAC["hopper"].config
+    recipe = fine_tuning_recipe("hopper")
+    assert recipe == {"gamma": plan.gamma, "reward_scaling": plan.reward_scaling,
+                      "batch_size": plan.batch_size, "buffer_size": 1 << 19}
+    args = paper.build_parser().parse_args(["--task", "hopper", "--zoo-recipe", "--sac-set",
+                                            "batch_size=64"])
+    assert args.guard_floor == "mvd"
+    sac = paper.check_arguments(args)[2]
+    assert sac["gamma"] == plan.gamma and sac["reward_scaling"] == plan.reward_scaling
+    assert sac["buffer_size"] == 1 << 19 and sac["batch_size"] == 64
+    assert "gamma" not in paper.check_arguments(
+        paper.build_parser().parse_args(["--task", "hopper"]))[2]
+    assert fine_tuning_recipe("no-such-task") == {}
+    args = paper.build_parser().parse_args(["--task", "hopper", "--zoo-recipe"])
+    args.task = "no-such-task"
+    with pytest.raises(SystemExit, match="zoo-recipe"):
+        paper.check_arguments(args)

@@ -81,6 +81,17 @@ def setup_fine_tuning(result: dict, task_name: str, test_ds, test_pols, sizes: d
         gamma=float(test_ds.meta.get("gamma") or 0.999))
 
 
+def lane_training_mvd(finals: dict, last_seed: int) -> list[float]:
+    """Each lane's MVD on the training policies at its final state (the last completed VD
+    measurement, ``TrainState.vd``), in ``lane_simulators``' lane order: the guard's floor
+    (``finetune.deployment_guard``)."""
+    out = []
+    for fam_lanes, states in finals.values():
+        vd = np.asarray(states.vd, np.float64)  # [L, P_train]
+        out += [float(vd[i].max()) for i, (_, s) in enumerate(fam_lanes) if s < last_seed]
+    return out
+
+
 def lane_simulators(finals: dict, last_seed: int):
     """The simulators of every family's lanes of seeds < ``last_seed``, concatenated.
     finals: {family: (lanes [(method, seed)], TrainState with a lane axis)}.
@@ -181,14 +192,16 @@ def _lane_entries(ft: FineTuning, lanes, methods, r, paired, sim_return, accepte
 def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants, *,
                     settings_of: Callable[[str], dict], ablation_methods,
                     guard_margin: float | None, guard_snapshots: bool,
-                    phase: Callable[[str, float], None], save: Callable[[], None]) -> None:
+                    phase: Callable[[str, float], None], save: Callable[[], None],
+                    guard_floors: list[float] | None = None) -> None:
     """Every variant's fine-tuning in the lanes ``lanes`` / ``sims`` (``lane_simulators``):
     the first variant in every lane (MPI / API of Table 2: result["per_seed"],
     ["improvement"]), the others in the lanes of ``ablation_methods`` only; each into
     result["ablation"][variant] (with ``guard_margin``: also "<variant>+guard", with
     ``guard_snapshots`` "<variant>+guard-snapshots"). settings_of(variant): its
     ``scaled_env_options`` settings. ``phase(name, t0)`` records a timing, ``save()`` writes
-    the result after each variant."""
+    the result after each variant. ``guard_floors``: per lane the guard's floor in value units
+    (``lane_training_mvd``), None: 0."""
     keys = jnp.stack([jax.random.split(jax.random.fold_in(jax.random.PRNGKey(10 + s),
                                                           METHODS.index(m)), len(ft.ids))
                       for m, s in lanes])
@@ -229,13 +242,17 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
             t0 = time.perf_counter()
             accepted, chosen_index, chosen = guard_lanes(
                 v_sims, ft.policies, actors, snaps, ft.task, start_pool(test_ds),
-                margin=guard_margin, horizon=ft.horizon, gamma=ft.gamma)
+                margin=guard_margin, horizon=ft.horizon, gamma=ft.gamma,
+                floors=None if guard_floors is None else [guard_floors[i] for i in v_idx])
             phase(f"improve_guard{tag}", t0)
         t0 = time.perf_counter()
         r, paired = _measure(ft, actors, chosen)
         phase(f"improve_measure{tag}", t0)
         improvement, per_method, guarded, snapshot = _lane_entries(
             ft, v_lanes, methods, r, paired, sim_return, accepted, chosen_index)
+        if accepted is not None and guard_floors is not None:
+            for i, (m, s) in zip(v_idx, v_lanes, strict=True):
+                improvement[f"{m}/{s}"]["guard_floor"] = guard_floors[i]
         if vi == 0:
             for m in per_method:
                 for k in IMPROVE_METRICS:
@@ -247,7 +264,9 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
                                        "methods": method_means(per_method)}
         if accepted is not None:
             result["ablation"][f"{variant}+guard"] = {
-                "settings": {**settings, "guard_margin": guard_margin},
+                "settings": {**settings, "guard_margin": guard_margin,
+                             "guard_floor": ("training MVD per lane" if guard_floors
+                                             else None)},
                 "methods": method_means(guarded)}
         if chosen_index is not None:
             result["ablation"][f"{variant}+guard-snapshots"] = {

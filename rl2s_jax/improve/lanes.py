@@ -121,11 +121,12 @@ def improve_in_lanes(sims: Simulator, task, pool, policies, keys, cfg: SACConfig
 
 
 def guard_lanes(sims: Simulator, policies, actors, snaps, task, starts, *, margin: float,
-                horizon: int, gamma: float, n_episodes: int = 16):
+                horizon: int, gamma: float, n_episodes: int = 16, floors=None):
     """The deployment guard of every lane, each judged by its own simulator (the elites
     differ per lane, so the lanes run one after another; keys PRNGKey(40 + lane)).
     sims [L]; policies [P] the start policies; actors [L, P, ...] the fine-tuned ones; snaps
-    [C, L, P, ...] the actor after every chunk, or None; starts [S, o].
+    [C, L, P, ...] the actor after every chunk, or None; starts [S, o]; floors: L floats, each
+    lane's floor in value units (``finetune.deployment_guard``), or None (0).
     -> (accepted: L bool arrays [P] (``finetune.deployment_guard`` of the final actors),
     chosen_index: L int arrays [P] (0: the start, c: snapshot c; None without snaps),
     chosen: L stacked policies [P], the snapshots ``select_by_members`` picks ([] without)).
@@ -134,13 +135,16 @@ def guard_lanes(sims: Simulator, policies, actors, snaps, task, starts, *, margi
     n_pol = jax.tree_util.tree_leaves(policies)[0].shape[0]
     accepted, chosen = [], []
     chosen_index = [] if snaps is not None else None
+    floors = [0.0] * n_lanes if floors is None else [float(f) for f in floors]
+    if len(floors) != n_lanes:
+        raise ValueError(f"floors: expected one per lane ({n_lanes}), got {len(floors)}")
     for i in range(n_lanes):
         sim, actor = jax.tree_util.tree_map(lambda x, i=i: x[i], (sims, actors))
         if snaps is None:
             both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), policies, actor)
             v = member_values(sim, task, both, starts, jax.random.PRNGKey(40 + i),
                               n_episodes=n_episodes, horizon=horizon, gamma=gamma)
-            accepted.append(deployment_guard(v[:, :n_pol], v[:, n_pol:], margin))
+            accepted.append(deployment_guard(v[:, :n_pol], v[:, n_pol:], margin, floors[i]))
             continue
         # the start and every snapshot [C + 1, P, ...], valued once: the guard on the final
         # actors reads the first and last rows of the same values
@@ -148,8 +152,9 @@ def guard_lanes(sims: Simulator, policies, actors, snaps, task, starts, *, margi
                                        policies, snaps)
         pick, info = select_by_members(sim, task, cands, starts, jax.random.PRNGKey(40 + i),
                                        n_episodes=n_episodes, horizon=horizon, gamma=gamma,
-                                       margin=margin)
-        accepted.append(deployment_guard(info["values"][0], info["values"][-1], margin))
+                                       margin=margin, floor=floors[i])
+        accepted.append(deployment_guard(info["values"][0], info["values"][-1], margin,
+                                         floors[i]))
         chosen_index.append(info["index"])
         chosen.append(pick)
     return accepted, chosen_index, chosen

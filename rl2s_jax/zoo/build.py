@@ -71,6 +71,19 @@ ZOO_PPO = {
                                  reward_scaling=10.0), env_steps=60_000_000),
 }
 PLANS = {"sac": ZOO_SAC, "ppo": ZOO_PPO}
+
+RECIPE_FIELDS = ("gamma", "reward_scaling", "batch_size")
+
+
+def fine_tuning_recipe(task_name: str) -> dict:
+    """SACConfig fields for fine-tuning a zoo policy of ``task_name`` at its learner's
+    discount, reward scale and batch size (``ZOO_SAC``) with a 2^19-row buffer: the recipe
+    under which the real-env control gains (docs/RESULTS.md, "Policy improvement: the real-env
+    control (issue 39)"). KeyError-free: a task without a SAC plan gets {}."""
+    plan = ZOO_SAC.get(task_name)
+    if plan is None:
+        return {}
+    return {**{k: getattr(plan.config, k) for k in RECIPE_FIELDS}, "buffer_size": 1 << 19}
 # SAC for the tasks where it is known to need far fewer env steps than PPO (expected to matter
 # in a GPU call of minutes; not yet measured here); PPO for Ant, brax's choice there.
 DEFAULT_ALGO = {"pointmass": "sac", "hopper": "sac", "walker2d": "sac",
@@ -427,5 +440,5 @@ def write_zoo_plots(directory: str) -> list[str]:
 
 
 __all__ = ["DEFAULT_ALGO", "EXPERT_BARS", "ZOO_PPO", "ZOO_SAC", "build_zoo", "choose_split",
-           "learner_plans", "spread_check", "spread_subset", "write_zoo_outputs",
-           "write_zoo_plots"]
+           "fine_tuning_recipe", "learner_plans", "spread_check", "spread_subset",
+           "write_zoo_outputs", "write_zoo_plots"]

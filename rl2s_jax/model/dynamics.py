@@ -11,13 +11,17 @@ delta_std, an MLP of the inputs x. ``DynamicsSpec`` says which member:
   mean-pools from (s, a, delta) rows of the same episode (``enc``);
 - noise: ``"state"`` (a log-std head of the inputs) or ``"global"`` (one learned log-std per
   dim);
+- matmul dtype: ``"float32"`` or ``"bfloat16"`` (the hidden layers' matmuls take bf16 inputs
+  and weights and accumulate in float32, forward and backward: ``matmul``; parameters and
+  every output stay float32);
 - log-std bounds: ``"fixed"`` (softly within [LOG_STD_MIN, LOG_STD_MAX]) or ``"learned"`` (per
   dim, as PETS / mbrl-lib: parameters ``max_log_std`` / ``min_log_std`` initialised at those
   constants; the loss adds ``weight * (sum max - sum min)`` to keep them tight).
 
 Parameters of one member are a dict: ``layers`` (the MLP), and ``log_std`` / ``max_log_std``,
-``min_log_std`` / ``enc`` where the spec asks for them; the apply functions read the kind of
-noise and bounds from which keys are present. An ensemble stacks E members on a leading axis
+``min_log_std`` / ``enc`` / the markers ``silu`` and ``bf16`` where the spec asks for them;
+the apply functions read the kind of noise, bounds, activation and matmul dtype from which
+keys are present. An ensemble stacks E members on a leading axis
 (``init_ensemble``); ``map_members`` applies a one-member function to every member (vmap; for
 E = 1 the member itself, so a one-member ensemble computes exactly what a single model does).
 
@@ -49,6 +53,7 @@ ACTIVATIONS = ("relu", "silu")
 TIME_INPUTS = ("order", "step")
 MEMBER_MODES = ("random", "mean", "fixed")
 UNCERTAINTY_KINDS = ("std", "max_pairwise")
+MATMUL_DTYPES = ("float32", "bfloat16")
 
 
 @struct.dataclass
@@ -140,6 +145,7 @@ class DynamicsSpec:
     time_inputs: tuple[str, ...] = ()
     context_dim: int = 0
     context_hidden: tuple[int, ...] = (64, 64)
+    matmul_dtype: str = "float32"
 
     def validate(self, names: dict[str, str] | None = None) -> DynamicsSpec:
         """Raise ValueError naming the first bad field (``names`` maps a field to the name the
@@ -150,7 +156,7 @@ class DynamicsSpec:
             if not _is_int(v) or v < 0:
                 raise ValueError(f"{name(f, f)}: expected an int >= 0, got {v!r}")
         for f, kinds in (("noise", NOISE_KINDS), ("log_std_bounds", BOUND_KINDS),
-                         ("activation", ACTIVATIONS)):
+                         ("activation", ACTIVATIONS), ("matmul_dtype", MATMUL_DTYPES)):
             if getattr(self, f) not in kinds:
                 raise ValueError(f"{name(f, f)}: expected one of "
                                  f"{', '.join(map(repr, kinds))}, got {getattr(self, f)!r}")
@@ -222,6 +228,8 @@ def init_member_numpy(seed: int, spec: DynamicsSpec, obs_size: int, action_size:
 def _add_extras(params: dict, spec: DynamicsSpec, o: int, xp=jnp) -> None:
     if spec.activation == "silu":
         params["silu"] = xp.zeros((), xp.float32)
+    if spec.matmul_dtype == "bfloat16":
+        params["bf16"] = xp.zeros((), xp.float32)
     if spec.noise == "global":
         params["log_std"] = xp.zeros((o,), xp.float32)
     if spec.log_std_bounds == "learned":
@@ -322,10 +330,57 @@ def pool_context(params: dict, enc_in, mask=None):
 # ------------------------------------------------------------------------------ apply
 
 
-def relu_mlp(layers: list[dict], x: jax.Array, activation: Callable = jax.nn.relu
-             ) -> jax.Array:
+@jax.custom_vjp
+def _bf16_matmul(x: jax.Array, w: jax.Array) -> jax.Array:
+    return _bf16_matmul_fwd(x, w)[0]
+
+
+def _dot_f32(a: jax.Array, b: jax.Array, contract: tuple) -> jax.Array:
+    """tensordot of bf16 operands, accumulated in float32. XLA's CPU runtime refuses some
+    bf16 x bf16 -> f32 dots ("Unsupported element type for DotThunk"): there the operands go
+    up to float32 first, which gives the same products (a bf16 product is exact in float32)
+    and accumulation; elsewhere (the GPU) the dot takes bf16 operands."""
+    if jax.default_backend() == "cpu":
+        a, b = a.astype(jnp.float32), b.astype(jnp.float32)
+    return jnp.tensordot(a, b, axes=contract, preferred_element_type=jnp.float32)
+
+
+def _bf16_matmul_fwd(x, w):
+    xb, wb = x.astype(jnp.bfloat16), w.astype(jnp.bfloat16)
+    return _dot_f32(xb, wb, ((xb.ndim - 1,), (0,))), (xb, wb)
+
+
+def _bf16_matmul_bwd(res, g):
+    # the backward matmuls in bf16 as well (JAX's own transpose of a bf16 x bf16 -> f32 dot
+    # multiplies the f32 cotangent by the upcast operand: float32 matmuls)
+    xb, wb = res
+    gb = g.astype(jnp.bfloat16)
+    lead = tuple(range(xb.ndim - 1))
+    dx = _dot_f32(gb, wb, ((gb.ndim - 1,), (1,)))
+    dw = _dot_f32(xb, gb, (lead, lead))
+    return dx, dw
+
+
+_bf16_matmul.defvjp(_bf16_matmul_fwd, _bf16_matmul_bwd)
+
+
+def matmul(x: jax.Array, w: jax.Array, dtype: str = "float32") -> jax.Array:
+    """x [..., i] @ w [i, j] -> [..., j] float32. dtype "bfloat16": x and w rounded to bf16,
+    products accumulated in float32, and the gradient's two matmuls likewise (the cotangent
+    rounded to bf16): mixed precision for the GPU's bf16 tensor cores. "float32": ``x @ w``."""
+    if dtype == "float32":
+        return x @ w
+    if dtype != "bfloat16":
+        raise ValueError(f"matmul_dtype: expected one of {MATMUL_DTYPES}, got {dtype!r}")
+    return _bf16_matmul(x.astype(jnp.float32), w.astype(jnp.float32))
+
+
+def relu_mlp(layers: list[dict], x: jax.Array, activation: Callable = jax.nn.relu,
+             matmul_dtype: str = "float32") -> jax.Array:
+    """The MLP; ``matmul_dtype`` applies to the hidden layers' matmuls (``matmul``), the
+    output layer's stays float32."""
     for layer in layers[:-1]:
-        x = activation(x @ layer["w"] + layer["b"])
+        x = activation(matmul(x, layer["w"], matmul_dtype) + layer["b"])
     return x @ layers[-1]["w"] + layers[-1]["b"]
 
 
@@ -347,7 +402,8 @@ def member_dist(params: dict, x: jax.Array, ctx: jax.Array | None = None
     -> (mean, log_std), each [..., o]."""
     if ctx is not None:
         x = jnp.concatenate([x, ctx], -1)
-    out = relu_mlp(params["layers"], x, jax.nn.silu if "silu" in params else jax.nn.relu)
+    out = relu_mlp(params["layers"], x, jax.nn.silu if "silu" in params else jax.nn.relu,
+                   "bfloat16" if "bf16" in params else "float32")
     if "log_std" in params:
         return out, jnp.broadcast_to(bounded_log_std(params["log_std"], params), out.shape)
     mean, raw = jnp.split(out, 2, axis=-1)

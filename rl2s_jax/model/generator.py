@@ -30,6 +30,7 @@ from rl2s_jax.model.dynamics import (
     Normalizer,
     bounded_log_std,
     gaussian_nll,
+    matmul,
     relu_mlp,
 )
 from rl2s_jax.model.history import History, member_step_dist
@@ -143,18 +144,21 @@ def spectral_normalize(w: jax.Array, u: jax.Array, update: bool = True
 
 
 def discriminator(disc: list[dict], us: list[jax.Array], norm: Normalizer, obs: jax.Array,
-                  action: jax.Array, next_obs: jax.Array, update_us: bool = False
-                  ) -> tuple[jax.Array, list[jax.Array]]:
-    """D_psi(s, a, s'): obs [..., o], action [..., a], next_obs [..., o] -> ([...], new us)."""
+                  action: jax.Array, next_obs: jax.Array, update_us: bool = False,
+                  matmul_dtype: str = "float32") -> tuple[jax.Array, list[jax.Array]]:
+    """D_psi(s, a, s'): obs [..., o], action [..., a], next_obs [..., o] -> ([...], new us).
+    ``matmul_dtype`` "bfloat16": the hidden layers' matmuls in bf16 with float32 accumulation
+    (``dynamics.matmul``; the spectral normalisation and the output layer stay float32)."""
     x = jnp.concatenate([norm.input_obs(obs), norm.norm_act(action),
                          norm.norm_delta(obs, next_obs)], -1)
     new_us = []
     for i, (layer, u) in enumerate(zip(disc, us, strict=True)):
         w, u = spectral_normalize(layer["w"], u, update_us)
         new_us.append(u)
-        x = x @ w + layer["b"]
         if i < len(disc) - 1:
-            x = jax.nn.relu(x)
+            x = jax.nn.relu(matmul(x, w, matmul_dtype) + layer["b"])
+        else:
+            x = x @ w + layer["b"]
     return x[..., 0], new_us
 
 

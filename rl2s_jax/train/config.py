@@ -15,6 +15,7 @@ from rl2s_jax.envs.tasks import TASKS, get_task
 from rl2s_jax.model.dynamics import (
     ACTIVATIONS,
     BOUND_KINDS,
+    MATMUL_DTYPES,
     MEMBER_MODES,
     NOISE_KINDS,
     TIME_INPUTS,
@@ -34,7 +35,7 @@ LEGACY_MODEL = dict(ensemble_size=1, n_elites=1, gen_log_std_bounds="fixed",
 
 # Fields added after checkpoints were saved without them, with the value those runs had (a
 # saved config that lacks one must not take today's default).
-SAVED_BEFORE = {"gen_activation": "relu"}
+SAVED_BEFORE = {"gen_activation": "relu", "matmul_dtype": "float32"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,6 +125,10 @@ class TrainConfig:
     data_episode_length: int | None = None  # the data's time limit (meta.episode_length),
     # what the "step" time input and simulated envs use where no registered task gives one
     # (None: vd_horizon)
+    matmul_dtype: str = "float32"  # the hidden layers' matmuls of the members and the critic:
+    # "bfloat16" rounds their inputs and weights to bf16 and accumulates in float32 (forward
+    # and backward; parameters, optimiser state, losses and outputs stay float32;
+    # dynamics.matmul). Unmeasured on the GPU so far: docs/BENCHMARKS.md
 
     @property
     def adversarial(self) -> bool:
@@ -148,7 +153,8 @@ class TrainConfig:
                             action_history=self.action_history, obs_history=self.obs_history,
                             time_inputs=tuple(self.time_inputs),
                             context_dim=self.context_dim,
-                            context_hidden=tuple(self.context_hidden))
+                            context_hidden=tuple(self.context_hidden),
+                            matmul_dtype=self.matmul_dtype)
 
     def simulator_settings(self, noise_scale: float | None = None) -> dict:
         """The static ``Simulator`` fields this run's simulator steps with (noise_scale:
@@ -256,7 +262,7 @@ class TrainConfig:
                              f"{self.ema_decay!r}")
         for name, kinds in (("member_mode", MEMBER_MODES), ("uncertainty", UNCERTAINTY_KINDS),
                             ("gen_noise", NOISE_KINDS), ("gen_log_std_bounds", BOUND_KINDS),
-                            ("gen_activation", ACTIVATIONS),
+                            ("gen_activation", ACTIVATIONS), ("matmul_dtype", MATMUL_DTYPES),
                             ("termination", TERMINATIONS), ("reward", REWARDS)):
             if getattr(self, name) not in kinds:
                 raise ValueError(f"{name}: expected one of {', '.join(map(repr, kinds))}, got "

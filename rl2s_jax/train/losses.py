@@ -17,25 +17,30 @@ from rl2s_jax.model.generator import (
 from rl2s_jax.model.history import member_step_dist, push_history
 
 
-def discriminator_loss(disc, us, norm: Normalizer, real: tuple, fake: tuple):
+def discriminator_loss(disc, us, norm: Normalizer, real: tuple, fake: tuple,
+                       matmul_dtype: str = "float32"):
     """Wasserstein critic loss  E_fake[D] - E_real[D]  (lower is better for D).
 
     One forward pass over real and fake together updates the spectral-norm vectors once.
+    ``matmul_dtype``: the critic's hidden matmuls (``discriminator``).
     -> (loss, (new us, {"d_real", "d_fake"})).
     """
     n = real[0].shape[0]
     both = [jnp.concatenate([r, f], 0) for r, f in zip(real, fake, strict=True)]
-    d, new_us = discriminator(disc, us, norm, *both, update_us=True)
+    d, new_us = discriminator(disc, us, norm, *both, update_us=True, matmul_dtype=matmul_dtype)
     d_real, d_fake = jnp.mean(d[:n]), jnp.mean(d[n:])
     return d_fake - d_real, (new_us, {"d_real": d_real, "d_fake": d_fake})
 
 
-def generator_adversarial_loss(gen, disc, us, norm: Normalizer, obs, action, key, hist=None):
+def generator_adversarial_loss(gen, disc, us, norm: Normalizer, obs, action, key, hist=None,
+                               matmul_dtype: str = "float32"):
     """-E[D(s, a, s')] with s' ~ p_phi(.|s, a) reparameterised, so the gradient flows through D
     into the generator (the official RL2S one-step update). ``hist``: the rows' past for a
-    member with history inputs (None: Markov). -> (loss, {})."""
+    member with history inputs (None: Markov); ``matmul_dtype``: the critic's hidden matmuls
+    (the member's follow its parameters). -> (loss, {})."""
     next_obs = generator_sample(gen, norm, obs, action, key, hist=hist)
-    d, _ = discriminator(disc, us, norm, obs, action, next_obs, update_us=False)
+    d, _ = discriminator(disc, us, norm, obs, action, next_obs, update_us=False,
+                         matmul_dtype=matmul_dtype)
     return -jnp.mean(d), {}
 
 

@@ -406,7 +406,7 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         f_obs, f_act, f_hist = fake_sa(k_fake)
         f_next = _sampler(gen, state, 1.0).sample(f_obs, f_act, k_gen, f_hist)
         (loss, (us, aux)), grads = jax.value_and_grad(losses.discriminator_loss, has_aux=True)(
-            disc, us, state.norm, real, (f_obs, f_act, f_next))
+            disc, us, state.norm, real, (f_obs, f_act, f_next), cfg.matmul_dtype)
         updates, opt = disc_tx.update(grads, opt, disc)
         return (gen, optax.apply_updates(disc, updates), us, opt), {"disc_loss": loss, **aux}
 
@@ -424,7 +424,7 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
 
         def member_loss(g, k):
             loss = losses.generator_adversarial_loss(g, disc, us, state.norm, obs, act, k,
-                                                     hist)[0]
+                                                     hist, cfg.matmul_dtype)[0]
             if cfg.adv_nll_weight:  # the likelihood anchor (static: off costs nothing)
                 loss = loss + cfg.adv_nll_weight * losses.generator_nll_loss(
                     g, state.norm, r_obs, r_act, r_next, r_hist)[0]

@@ -14,12 +14,16 @@ The data are random rows of the right shapes: the step's cost does not depend on
 (every array shape is fixed; terminations only mask).
 
     python experiments/bench_train.py [--profile auto|cpu|gpu] [--method rl2s|bc]
-        [--policies 4 17 64 256] [--horizons 250 1000 4000] [--sim-steps 16 64] [--json out.json]
+        [--policies 4 17 64 256] [--horizons 250 1000 4000] [--sim-steps 16 64]
+        [--matmul-dtype float32,bfloat16] [--json out.json]
 
 ``--method rl2s`` times the adversarial (WGAIL + CVaR) step: pre-training and the critic
 warm-up are switched off, else the timed steps would be the MLE pre-training ones.
 ``--method bc`` times the ensemble's likelihood step (what BC, RL2S-BC and the pre-training
 run).
+``--matmul-dtype float32,bfloat16`` times every row under each ``TrainConfig.matmul_dtype``,
+one after the other in the same process (issue 40 item 3: bf16 matmuls); the FLOP rate stays
+the float32 matmul's.
 """
 from __future__ import annotations
 
@@ -147,6 +151,9 @@ def main(argv=None) -> int:
     ap.add_argument("--vmap", type=int, nargs="*", help="extra rows: this many seeds vmapped "
                     "as one program, at P=17")
     ap.add_argument("--steps", type=int, help="train_steps per timed call")
+    ap.add_argument("--matmul-dtype", default="float32", help="comma list of "
+                    "TrainConfig.matmul_dtype values: every row is timed under each "
+                    "(float32,bfloat16: the bf16 matmuls beside float32)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     backend = jax.default_backend()
@@ -166,6 +173,9 @@ def main(argv=None) -> int:
     sims = sims if args.sim_steps is None else args.sim_steps
     vmaps = vmaps if args.vmap is None else args.vmap
     steps = args.steps or steps
+    dtypes = [d.strip() for d in args.matmul_dtype.split(",") if d.strip()]
+    for d in dtypes:  # refused by name before any timing
+        dataclasses.replace(cfg, matmul_dtype=d).validate()
     rate = matmul_rate(mm)
     print(f"device {jax.devices()[0].device_kind} ({backend}), jax {jax.__version__}; profile "
           f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen {cfg.gen_hidden}, "
@@ -179,16 +189,20 @@ def main(argv=None) -> int:
     runs += [(dataclasses.replace(cfg, vd_horizon=h), 17, 1) for h in horizons]
     runs += [(dataclasses.replace(cfg, sim_steps=s), 17, 1) for s in sims]
     runs += [(cfg, 17, v) for v in vmaps]
+    runs = [(dataclasses.replace(c, matmul_dtype=d), P, v) for c, P, v in runs for d in dtypes]
     rows = []
-    hdr = (f"{'P':>4} {'vd_H':>5} {'sim':>4} {'runs':>4} {'ms/step':>9} {'gen upd/s':>10} "
+    hdr = (f"{'matmul':>8} {'P':>4} {'vd_H':>5} {'sim':>4} {'runs':>4} {'ms/step':>9} "
+           f"{'gen upd/s':>10} "
            f"{'sim trans/s':>12} {'GFLOP/step':>11} {'TFLOP/s':>8} {'of matmul':>9} {'compile':>8}")
     print(hdr, flush=True)
     for c, P, v in runs:
         r = bench(c, P, steps, v)
         r["fraction_of_matmul"] = r["tflop_s"] * 1e12 / rate
+        r["matmul_dtype"] = c.matmul_dtype
         rows.append(r)
-        print(f"{P:>4} {c.vd_horizon:>5} {c.sim_steps:>4} {v:>4} {r['step_ms']:>9.2f} "
-              f"{r['gen_updates_per_s']:>10.0f} {r['sim_transitions_per_s']:>12.0f} "
+        print(f"{c.matmul_dtype:>8} {P:>4} {c.vd_horizon:>5} {c.sim_steps:>4} {v:>4} "
+              f"{r['step_ms']:>9.2f} {r['gen_updates_per_s']:>10.0f} "
+              f"{r['sim_transitions_per_s']:>12.0f} "
               f"{r['gflop_per_step']:>11.2f} {r['tflop_s']:>8.2f} "
               f"{r['fraction_of_matmul']:>9.3f} {r['compile_s']:>7.1f}s", flush=True)
     if args.json:

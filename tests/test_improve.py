@@ -760,6 +760,7 @@ def test_pipeline_guard_floor_is_the_training_mvd_at_the_guards_horizon_and_gamm
     assert guard_floor(f, 1000, 0.999) == 0.0  # measured at another horizon: not comparable
     assert guard_floor(f, 100, 0.99) == 0.0
     assert guard_floor(None, 100, 0.999) == 0.0
+    assert guard_floor({**f, "mvd": float("nan")}, 100, 0.999) == 0.0  # not yet measured
 
 
 def test_choose_by_members_matches_a_loop_and_is_the_guard_for_one_snapshot():
@@ -857,3 +858,5 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
                               SimpleNamespace(vd=np.array([[1.0, 5.0], [9.0, 2.0], [3.0, 4.0]]))),
               "mle": ([("bc", 0)], SimpleNamespace(vd=np.array([[7.0, 6.0]])))}
     assert lane_training_mvd(finals, 1) == [5.0, 4.0, 7.0]  # seeds < 1, lane order
+    finals["mle"][1].vd[0, 0] = np.nan  # a lane not yet measured: no floor
+    assert lane_training_mvd(finals, 1) == [5.0, 4.0, 0.0]

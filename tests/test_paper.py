@@ -688,7 +688,9 @@ def _run_paper_all(tmp_path, n_gpu: int, fail: str = "", tasks: str = "hopper wa
                    "halfcheetah ant", args: tuple = (), env_extra: dict | None = None):
     """experiments/paper_all.sh with a stub nvidia-smi (n_gpu GPUs) and a stub python: paper.py
     logs its start (task, family or 'both', CUDA_VISIBLE_DEVICES, args), prints its data line
-    after 0.2 s and ends 0.3 s later; the unit ``fail`` ("task/family") fails at once, before
+    after 0.2 s (the event logged first, so that no unit it releases can log its start before
+    it) and ends 1 s later (time for a loaded CI machine to start the released unit); the
+    unit ``fail`` ("task/family") fails at once, before
     its data line; merge_results.py and paper_tables.py log their calls.
     -> (rc, [event lines], process)"""
     import subprocess
@@ -713,9 +715,9 @@ def _run_paper_all(tmp_path, n_gpu: int, fail: str = "", tasks: str = "hopper wa
         echo "start $task $fam $gpu $*" >> {events}
         [ "$task/$fam" = "{fail}" ] && {{ echo "end $task $fam $gpu" >> {events}; exit 3; }}
         sleep 0.2
+        echo "data $task $fam $gpu" >> {events}  # before the line the driver waits for
         echo "[paper] data: 0.2s"
-        echo "data $task $fam $gpu" >> {events}
-        sleep 0.3
+        sleep 1
         echo "end $task $fam $gpu" >> {events}
         """))
     for f in (smi, py):

@@ -8,6 +8,7 @@ import json
 import os
 
 import numpy as np
+import pytest
 
 from rl2s_jax.cli import main
 from rl2s_jax.zoo.zoo import load_zoo
@@ -46,7 +47,10 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
             assert imp["predicted_gain"][j] > 0.02
         else:
             assert imp["c1"][j] == imp["c0"][j] and imp["I"][j] == 0.0
-    assert "Improvement in rl2s's simulator (guard margin 0.02)" in text
+    floor = imp["guard_floor"]  # the simulator's MVD on the training policies
+    assert floor == pytest.approx(report["train_runs"]["rl2s"]["mvd_train"]) and floor > 0
+    assert (f"Improvement in rl2s's simulator (guard margin 0.02, floor {floor:.3g}: every "
+            "member's gain must exceed the simulator's MVD on the training policies)") in text
     for png in ("vd_curves.png", "vd_per_policy.png", "true_vs_sim.png", "improvement.png"):
         assert os.path.getsize(out / png) > 1000
     md = (out / "report.md").read_text()

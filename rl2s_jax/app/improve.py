@@ -359,8 +359,10 @@ def training_error_floor(run: dict) -> dict:
 
 def guard_floor(floor: dict | None, horizon: int, gamma: float) -> float:
     """A ``training_error_floor``'s MVD where it was measured at ``horizon`` and ``gamma``
-    (the guard's), else 0: an error at another horizon or discount is not comparable."""
-    if not floor or floor["horizon"] != horizon or not np.isclose(floor["gamma"], gamma):
+    (the guard's), else 0: an error at another horizon or discount is not comparable (nor
+    one not yet measured: NaN)."""
+    if (not floor or not np.isfinite(floor["mvd"]) or floor["horizon"] != horizon
+            or not np.isclose(floor["gamma"], gamma)):
         return 0.0
     return float(floor["mvd"])
 

@@ -84,11 +84,12 @@ def setup_fine_tuning(result: dict, task_name: str, test_ds, test_pols, sizes: d
 def lane_training_mvd(finals: dict, last_seed: int) -> list[float]:
     """Each lane's MVD on the training policies at its final state (the last completed VD
     measurement, ``TrainState.vd``), in ``lane_simulators``' lane order: the guard's floor
-    (``finetune.deployment_guard``)."""
+    (``finetune.deployment_guard``); 0 where it is not finite (not yet measured)."""
     out = []
     for fam_lanes, states in finals.values():
         vd = np.asarray(states.vd, np.float64)  # [L, P_train]
-        out += [float(vd[i].max()) for i, (_, s) in enumerate(fam_lanes) if s < last_seed]
+        out += [float(np.nan_to_num(vd[i].max(), nan=0.0, posinf=0.0))
+                for i, (_, s) in enumerate(fam_lanes) if s < last_seed]
     return out
 
 

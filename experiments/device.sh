@@ -24,6 +24,14 @@
 #       on Hopper, then a checkpoint loaded in a fresh process ([METHODS="rl2s gail ..."])
 #   bash experiments/device.sh run LOG CMD...                     any command, logged to
 #       $OUT/LOG (e.g. python3 experiments/planted_train.py --out $W/planted)
+#   bash experiments/device.sh streams "SUB args; SUB args" ...    runs that outlast a call:
+#       each argument a stream of device.sh subcommands run one after another, the streams
+#       side by side on the GPU(s) (XLA_PYTHON_CLIENT_MEM_FRACTION 0.9 / streams), detached
+#       (setsid) from a copy of the repo (/tmp/streams_repo); returns at once. Each run's OUT is
+#       $STREAMS/<stream>_<k> (STREAMS=/tmp/streams), progress in $STREAMS/progress.log
+#   bash experiments/device.sh poll [WAIT_S]                       waits until every stream
+#       ended or WAIT_S (default 540) passed, prints the progress, packs $STREAMS into
+#       $OUT/streams.tgz; call it again (within the machine's 30 s idle window) to go on
 #
 # RL2S_NONDETERMINISTIC=1 leaves XLA's default (faster, not repeatable) GPU ops.
 set -uo pipefail
@@ -208,6 +216,58 @@ json.dump(runs, open("$OUT/summaries.json", "w"), indent=1)
 PY
 }
 
+cmd_streams() {
+  local streams=${STREAMS:-/tmp/streams} snap=/tmp/streams_repo
+  [ -e "$streams/progress.log" ] && ! grep -q "^ALLDONE" "$streams/progress.log" && {
+    echo "streams: streams are still running ($streams/progress.log)" >&2; return 2; }
+  rm -rf "$streams" "$snap" && mkdir -p "$streams" "$snap" && cp -r . "$snap"/ || return 1
+  # a new session (setsid): the device tool ends a call's other processes when it returns
+  (cd "$snap" && STREAMS=$streams setsid bash experiments/device.sh _streams_run "$@" \
+    > "$streams/driver.log" 2>&1 < /dev/null &)
+  sleep 2
+  echo "streams: $# stream(s) started from the copy $snap; progress:"
+  cat "$streams/progress.log" 2>/dev/null
+}
+
+cmd__streams_run() {  # the detached driver of cmd_streams (run from the repo's copy)
+  local streams=${STREAMS:-/tmp/streams} i=0
+  XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $#, 2))")
+  export XLA_PYTHON_CLIENT_MEM_FRACTION
+  for spec in "$@"; do
+    (
+      k=0
+      IFS=';' read -ra runs <<<"$spec"
+      for run in "${runs[@]}"; do
+        read -ra words <<<"$run"
+        [ ${#words[@]} -gt 0 ] || continue
+        dir="$streams/s${i}_$k"
+        mkdir -p "$dir"
+        echo "[s$i] $k start $(date +%T): ${words[*]}" >> "$streams/progress.log"
+        OUT=$dir bash experiments/device.sh "${words[@]}" > "$dir/stdout.log" 2>&1
+        echo "[s$i] $k rc $? end $(date +%T)" >> "$streams/progress.log"
+        k=$((k + 1))
+      done
+    ) &
+    i=$((i + 1))
+  done
+  wait
+  echo "ALLDONE $(date +%T)" >> "$streams/progress.log"
+}
+
+cmd_poll() {
+  local streams=${STREAMS:-/tmp/streams} wait_s=${1:-540} t0=$SECONDS
+  [ -d "$streams" ] || { echo "poll: no streams at $streams" >&2; return 2; }
+  until grep -q "^ALLDONE" "$streams/progress.log" 2>/dev/null \
+      || [ $((SECONDS - t0)) -ge "$wait_s" ]; do
+    sleep 5
+  done
+  cat "$streams/progress.log"
+  for f in "$streams"/*/stdout.log; do
+    [ -e "$f" ] && { echo "== $f"; grep -v -i -e warn -e "Failed to import" "$f" | tail -6; }
+  done
+  tar -czf "$OUT/streams.tgz" -C "$(dirname "$streams")" "$(basename "$streams")"
+}
+
 cmd_run() {
   local log=${1:?usage: bash experiments/device.sh run LOG CMD...}
   shift
@@ -218,7 +278,10 @@ cmd_run() {
 sub=${1:-}
 shift || true
 case "$sub" in
-  paper|tasks|ablation|model_fit|control|zoo|smoke|run) setup_env; "cmd_$sub" "$@" ;;
+  paper|tasks|ablation|model_fit|control|zoo|smoke|run|poll) setup_env; "cmd_$sub" "$@" ;;
+  streams) [ $# -gt 0 ] || usage
+           setup_env; cmd_streams "$@" ;;
+  _streams_run) setup_env; cmd__streams_run "$@" ;;
   jobs) [ $# -gt 0 ] || { echo "usage: bash experiments/device.sh jobs \"GPU NAME AFTER args\" ..." >&2
           exit 2; }
         setup_env; cmd_jobs "$@" ;;

@@ -382,11 +382,9 @@ def main(argv=None) -> int:
                               uncertainty_penalty=args.uncertainty_penalty,
                               uncertainty_threshold=args.uncertainty_threshold,
                               halt_penalty=args.halt_penalty)
-        floors = None
-        if args.guard_floor == "mvd":  # measured at the fine-tuning horizon (ft's) and gamma
-            gammas = {round(float(c.gamma), 9) for c in configs.values()}
-            floors = (lane_training_mvd(finals, seed_ids[0] + sizes["improve_seeds"])
-                      if gammas == {round(float(ft.gamma), 9)} else None)
+        floors = (lane_training_mvd(finals, seed_ids[0] + sizes["improve_seeds"],
+                                    ft.horizon, ft.gamma)
+                  if args.guard_floor == "mvd" else None)
         run_improvement(result, ft, lanes, sims, test_ds, variants, settings_of=settings_of,
                         ablation_methods=ablation_methods, guard_margin=args.guard_margin,
                         guard_snapshots=args.guard_snapshots, phase=phase, save=save,

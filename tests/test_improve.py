@@ -854,9 +854,13 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
     with pytest.raises(ValueError, match="floors"):
         guard_lanes(sims, start, actors, None, "pointmass", pool, margin=0.0, floors=[0.0],
                     **roll)
+    at = SimpleNamespace(vd_horizon=12, gamma=0.9)
     finals = {"adversarial": ([("rl2s", 0), ("rl2s", 1), ("gail", 0)],
-                              SimpleNamespace(vd=np.array([[1.0, 5.0], [9.0, 2.0], [3.0, 4.0]]))),
-              "mle": ([("bc", 0)], SimpleNamespace(vd=np.array([[7.0, 6.0]])))}
-    assert lane_training_mvd(finals, 1) == [5.0, 4.0, 7.0]  # seeds < 1, lane order
+                              SimpleNamespace(vd=np.array([[1.0, 5.0], [9.0, 2.0], [3.0, 4.0]]),
+                                              config=at)),
+              "mle": ([("bc", 0)], SimpleNamespace(vd=np.array([[7.0, 6.0]]), config=at))}
+    assert lane_training_mvd(finals, 1, 12, 0.9) == [5.0, 4.0, 7.0]  # seeds < 1, lane order
+    assert lane_training_mvd(finals, 1, 50, 0.9) == [0.0, 0.0, 0.0]  # another horizon
+    assert lane_training_mvd(finals, 1, 12, 0.99) == [0.0, 0.0, 0.0]  # another gamma
     finals["mle"][1].vd[0, 0] = np.nan  # a lane not yet measured: no floor
-    assert lane_training_mvd(finals, 1) == [5.0, 4.0, 0.0]
+    assert lane_training_mvd(finals, 1, 12, 0.9) == [5.0, 4.0, 0.0]

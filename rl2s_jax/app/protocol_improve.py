@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax.app.improve import guard_floor
 from rl2s_jax.app.protocol import (
     IMPROVE_METRICS,
     METHODS,
@@ -81,14 +82,17 @@ def setup_fine_tuning(result: dict, task_name: str, test_ds, test_pols, sizes: d
         gamma=float(test_ds.meta.get("gamma") or 0.999))
 
 
-def lane_training_mvd(finals: dict, last_seed: int) -> list[float]:
+def lane_training_mvd(finals: dict, last_seed: int, horizon: int, gamma: float
+                      ) -> list[float]:
     """Each lane's MVD on the training policies at its final state (the last completed VD
     measurement, ``TrainState.vd``), in ``lane_simulators``' lane order: the guard's floor
-    (``finetune.deployment_guard``); 0 where it is not finite (not yet measured)."""
+    (``finetune.deployment_guard``) where comparable with the guard's ``horizon`` and
+    ``gamma`` (``app.improve.guard_floor``: else 0, and 0 where not yet measured)."""
     out = []
     for fam_lanes, states in finals.values():
         vd = np.asarray(states.vd, np.float64)  # [L, P_train]
-        out += [float(np.nan_to_num(vd[i].max(), nan=0.0, posinf=0.0))
+        at = {"horizon": states.config.vd_horizon, "gamma": states.config.gamma}
+        out += [guard_floor({"mvd": float(vd[i].max()), **at}, horizon, gamma)
                 for i, (_, s) in enumerate(fam_lanes) if s < last_seed]
     return out
 

@@ -7,7 +7,7 @@
 #
 #   bash experiments/device.sh paper TASK [paper.py args]        the protocol for one task
 #       ([LIMIT=585]: paper.py stopped after LIMIT s; $OUT/<task>.json, paper_<task>.log)
-#   bash experiments/device.sh tasks "TASK ..." [paper.py args]   tasks round-robin over the
+#   bash experiments/device.sh tasks "TASK ..."|T1,T2 [paper.py args]  tasks over the
 #       GPUs as (task, family) units (experiments/paper_all.sh; LIMIT=560 per process;
 #       $OUT/results.tgz)
 #   bash experiments/device.sh jobs "GPU NAME AFTER args" ...     paper.py jobs side by side,
@@ -28,7 +28,9 @@
 #       each argument a stream of device.sh subcommands run one after another, the streams
 #       side by side on the GPU(s) (XLA_PYTHON_CLIENT_MEM_FRACTION 0.9 / streams), detached
 #       (setsid) from a copy of the repo (/tmp/streams_repo); returns at once. Each run's OUT is
-#       $STREAMS/<stream>_<k> (STREAMS=/tmp/streams), progress in $STREAMS/progress.log
+#       $STREAMS/<stream>_<k> (STREAMS=/tmp/streams), progress in $STREAMS/progress.log. A
+#       stream that begins with "@N " runs on GPU N alone (CUDA_VISIBLE_DEVICES=N; memory
+#       0.9 / the streams pinned to N); unpinned streams see every GPU
 #   bash experiments/device.sh poll [WAIT_S]                       waits until every stream
 #       ended or WAIT_S (default 540) passed, prints the progress, packs $STREAMS into
 #       $OUT/streams.tgz; call it again (within the machine's 30 s idle window) to go on
@@ -74,7 +76,8 @@ cmd_paper() {
 }
 
 cmd_tasks() {
-  export TASKS=${1:?usage: bash experiments/device.sh tasks "TASK ..." [paper.py args]}
+  local tasks=${1:?usage: bash experiments/device.sh tasks "TASK ..." [paper.py args]}
+  export TASKS=${tasks//,/ }  # "hopper walker2d" or hopper,walker2d (a streams word)
   shift
   PY="timeout ${LIMIT:-560} python3" DATA_DIR=$W bash experiments/paper_all.sh $OUT/res \
     --profile gpu "$@"
@@ -230,11 +233,22 @@ cmd_streams() {
 }
 
 cmd__streams_run() {  # the detached driver of cmd_streams (run from the repo's copy)
-  local streams=${STREAMS:-/tmp/streams} i=0
-  XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $#, 2))")
-  export XLA_PYTHON_CLIENT_MEM_FRACTION
+  local streams=${STREAMS:-/tmp/streams} i=0 spec pin
+  declare -A ON_GPU  # streams pinned to each GPU
+  for spec in "$@"; do
+    [[ "$spec" =~ ^@([0-9]+)\  ]] && ON_GPU[${BASH_REMATCH[1]}]=$((${ON_GPU[${BASH_REMATCH[1]}]:-0} + 1))
+  done
   for spec in "$@"; do
     (
+      pin=
+      [[ "$spec" =~ ^@([0-9]+)\ (.*)$ ]] && pin=${BASH_REMATCH[1]} spec=${BASH_REMATCH[2]}
+      if [ -n "$pin" ]; then
+        export CUDA_VISIBLE_DEVICES=$pin
+        XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / ${ON_GPU[$pin]}, 2))")
+      else
+        XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $#, 2))")
+      fi
+      export XLA_PYTHON_CLIENT_MEM_FRACTION
       k=0
       IFS=';' read -ra runs <<<"$spec"
       for run in "${runs[@]}"; do
@@ -242,7 +256,7 @@ cmd__streams_run() {  # the detached driver of cmd_streams (run from the repo's 
         [ ${#words[@]} -gt 0 ] || continue
         dir="$streams/s${i}_$k"
         mkdir -p "$dir"
-        echo "[s$i] $k start $(date +%T): ${words[*]}" >> "$streams/progress.log"
+        echo "[s$i] $k start $(date +%T)${pin:+ GPU $pin}: ${words[*]}" >> "$streams/progress.log"
         OUT=$dir bash experiments/device.sh "${words[@]}" > "$dir/stdout.log" 2>&1
         echo "[s$i] $k rc $? end $(date +%T)" >> "$streams/progress.log"
         k=$((k + 1))

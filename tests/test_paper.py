@@ -935,13 +935,15 @@ def test_paper_zoo_recipe_and_guard_floor_flags():
     plan = ZOO_SAC["hopper"].config
     recipe = fine_tuning_recipe("hopper")
     assert recipe == {"gamma": plan.gamma, "reward_scaling": plan.reward_scaling,
-                      "batch_size": plan.batch_size, "buffer_size": 1 << 19}
+                      "batch_size": plan.batch_size, "buffer_size": 1 << 19,
+                      "learn_alpha": False}
     args = paper.build_parser().parse_args(["--task", "hopper", "--zoo-recipe", "--sac-set",
                                             "batch_size=64"])
     assert args.guard_floor == "mvd"
     sac = paper.check_arguments(args)[2]
     assert sac["gamma"] == plan.gamma and sac["reward_scaling"] == plan.reward_scaling
     assert sac["buffer_size"] == 1 << 19 and sac["batch_size"] == 64
+    assert sac["learn_alpha"] is False
     assert "gamma" not in paper.check_arguments(
         paper.build_parser().parse_args(["--task", "hopper"]))[2]
     assert fine_tuning_recipe("no-such-task") == {}

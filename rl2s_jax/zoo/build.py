@@ -88,13 +88,16 @@ RECIPE_FIELDS = ("gamma", "reward_scaling", "batch_size")
 
 def fine_tuning_recipe(task_name: str) -> dict:
     """SACConfig fields for fine-tuning a zoo policy of ``task_name`` at its learner's
-    discount, reward scale and batch size (``ZOO_SAC``) with a 2^19-row buffer: the recipe
-    under which the real-env control gains (docs/RESULTS.md, "Policy improvement: the real-env
-    control (issue 39)"). KeyError-free: a task without a SAC plan gets {}."""
+    discount, reward scale and batch size (``ZOO_SAC``) with a 2^19-row buffer and alpha held
+    at its start (``learn_alpha=False``): the recipe under which the real-env control gains
+    (docs/RESULTS.md, "Policy improvement: the real-env control (issue 39)"; a learned alpha
+    ran away from 0.01 to 0.3-98 and lost 0.1-0.2 of median gain on every task).
+    KeyError-free: a task without a SAC plan gets {}."""
     plan = ZOO_SAC.get(task_name)
     if plan is None:
         return {}
-    return {**{k: getattr(plan.config, k) for k in RECIPE_FIELDS}, "buffer_size": 1 << 19}
+    return {**{k: getattr(plan.config, k) for k in RECIPE_FIELDS}, "buffer_size": 1 << 19,
+            "learn_alpha": False}
 
 
 def spread_subset(returns: np.ndarray, size: int) -> list[int]:

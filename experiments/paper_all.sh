@@ -11,7 +11,8 @@
 # unit fails the run (exit 1, no tables) after the others have run, naming it and its log.
 #   bash experiments/paper_all.sh [OUT] [paper.py args]
 # Environment: PY (the python command, default python3), TASKS (default the four),
-# DATA_DIR (collected data, default OUT/data), RL2S_GPUS (the GPU count, default nvidia-smi's).
+# DATA_DIR (collected data, default OUT/data), RL2S_GPUS (the GPU count, default nvidia-smi's),
+# PAPER_UNITS=task (a whole task per unit on any number of GPUs; default family pairs).
 set -uo pipefail
 OUT=${1:-results/paper}
 shift || true

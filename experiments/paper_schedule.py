@@ -11,9 +11,15 @@ unit that is ready. A task's data is collected once: its first unit in the queue
 adversarial one) collects it into --data-dir, with the oracle and ``--control`` if asked; its
 other units run with ``--no-oracle`` and without ``--control`` and are ready only once that
 unit has printed ``[paper] data: `` (or has ended, when it failed before that: then the next
-one collects). When every unit has ended, each task whose units all succeeded is merged into
-OUT/<task>.json by experiments/merge_results.py (log OUT/merge_<task>.log), the collecting
-unit's file first so its oracle row is kept.
+one collects). As soon as all of a task's units have ended, and they all succeeded, the task
+is merged into OUT/<task>.json by experiments/merge_results.py (log OUT/merge_<task>.log; in
+a thread, beside the units still running), the collecting unit's file first so its oracle
+row is kept.
+
+``--units task`` (or PAPER_UNITS=task) makes a whole task the unit on any number of GPUs,
+costliest first: both families in one paper.py, so that the likelihood family's BC lanes
+continue from the adversarial family's pre-training (docs/SCALING.md), with one task per GPU
+when there are as many GPUs as tasks.
 
 With one GPU or none, a unit is a whole task (both families in one paper.py, OUT/<task>.json,
 log OUT/paper_<task>.log, also shown here), one after another: splitting would only add a
@@ -67,10 +73,18 @@ def split_families(args: list[str]) -> tuple[list[str], list[str]]:
     return [f for f in FAMILIES if f in names], rest
 
 
-def plan(tasks: list[str], n_gpus: int, args: list[str], out: str) -> list[dict]:
+def plan(tasks: list[str], n_gpus: int, args: list[str], out: str,
+         units: str = "family") -> list[dict]:
     """The units in queue order, each {task, family (None: every family), args, out, log,
-    collects}; ``collects``: the task's first unit, which collects its data."""
-    if n_gpus <= 1:
+    collects}; ``collects``: the task's first unit, which collects its data. ``units``
+    "family": (task, family) pairs when there are two GPUs or more; "task": a whole task per
+    unit whatever the GPUs (its families in one process, so that the likelihood family's BC
+    lanes can continue from the adversarial pre-training: docs/SCALING.md)."""
+    if units not in ("family", "task"):
+        raise SystemExit(f"units: expected family or task, got {units!r}")
+    if n_gpus <= 1 or units == "task":
+        if n_gpus > 1:  # the costliest tasks first
+            tasks = sorted(tasks, key=lambda t: -sum(COST.get(t, DEFAULT_COST).values()))
         return [{"task": t, "family": None, "args": list(args), "out": out, "collects": True,
                  "log": os.path.join(out, f"paper_{t}.log")} for t in tasks]
     families, rest = split_families(args)
@@ -108,9 +122,11 @@ def _pump(unit: dict, proc, tee: bool, events: queue.Queue) -> None:
     events.put(("end", unit, proc.wait()))
 
 
-def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: float) -> None:
+def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: float,
+              on_task_end=None) -> None:
     """Run ``units`` over ``slots`` (GPU indices; [None]: no GPU), one process per slot; each
-    unit gets gpu, start_s, data_s, wall_s and rc."""
+    unit gets gpu, start_s, data_s, wall_s and rc. ``on_task_end(task)``: called once all of a
+    task's units have ended (e.g. to merge it while the other tasks run)."""
     events: queue.Queue = queue.Queue()
     pending, free, data_done, running = list(units), sorted(slots), set(), 0  # [None] or ints
     tee = len(slots) == 1
@@ -153,30 +169,54 @@ def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: 
         running -= 1
         print(f"[paper_all] {name(unit)} ended with {rc} after {unit['wall_s']:.0f}s",
               flush=True)
+        if on_task_end and all("rc" in u for u in units if u["task"] == unit["task"]):
+            on_task_end(unit["task"])
 
 
-def merge(units: list[dict], tasks: list[str], py: list[str], out: str, t0: float) -> list:
-    """merge_results.py for each task whose units all succeeded (collecting unit first)."""
-    merges = []
-    for t in tasks:
-        mine = [u for u in units if u["task"] == t]
+class Merger:
+    """merge_results.py for a task whose units all succeeded (collecting unit first), each in
+    its own thread as soon as the task's units have ended, so that the merges overlap the
+    units still running (``__call__``: run_units' on_task_end); ``wait`` -> the merges in
+    task order."""
+
+    def __init__(self, units: list[dict], tasks: list[str], py: list[str], out: str,
+                 t0: float):
+        self.units, self.tasks, self.py, self.out, self.t0 = units, tasks, py, out, t0
+        self.threads, self.merges = [], {}
+
+    def __call__(self, task: str) -> None:
+        mine = [u for u in self.units if u["task"] == task]
         if not mine or any(u.get("rc") != 0 for u in mine):
-            continue
-        mine.sort(key=lambda u: not u["collects"])
-        cmd = [*py, "experiments/merge_results.py", "--task", t,
-               *[a for u in mine for a in ("--paper", os.path.join(u["out"], f"{t}.json"))],
-               "--out", out]
-        m = {"task": t, "log": os.path.join(out, f"merge_{t}.log"),
-             "start_s": round(time.monotonic() - t0, 1)}
-        with open(m["log"], "w") as log:
-            try:
-                m["rc"] = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
-            except OSError as err:
-                log.write(f"{cmd[0]}: {err}\n")
-                m["rc"] = 127
-        m["wall_s"] = round(time.monotonic() - t0 - m["start_s"], 1)
-        merges.append(m)
-    return merges
+            return
+        th = threading.Thread(target=self._merge, args=(task, mine), daemon=True)
+        th.start()
+        self.threads.append(th)
+
+    def _merge(self, task: str, mine: list[dict]) -> None:
+        self.merges[task] = merge_task(task, mine, self.py, self.out, self.t0)
+
+    def wait(self) -> list[dict]:
+        for th in self.threads:
+            th.join()
+        return [self.merges[t] for t in self.tasks if t in self.merges]
+
+
+def merge_task(t: str, mine: list[dict], py: list[str], out: str, t0: float) -> dict:
+    """merge_results.py of task ``t`` from its units ``mine`` (the collecting one first)."""
+    mine = sorted(mine, key=lambda u: not u["collects"])
+    cmd = [*py, "experiments/merge_results.py", "--task", t,
+           *[a for u in mine for a in ("--paper", os.path.join(u["out"], f"{t}.json"))],
+           "--out", out]
+    m = {"task": t, "log": os.path.join(out, f"merge_{t}.log"),
+         "start_s": round(time.monotonic() - t0, 1)}
+    with open(m["log"], "w") as log:
+        try:
+            m["rc"] = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT).returncode
+        except OSError as err:
+            log.write(f"{cmd[0]}: {err}\n")
+            m["rc"] = 127
+    m["wall_s"] = round(time.monotonic() - t0 - m["start_s"], 1)
+    return m
 
 
 def report(units: list[dict], merges: list[dict], n_gpus: int, total: float, out: str) -> str:
@@ -223,13 +263,19 @@ def main(argv=None) -> int:
     ap.add_argument("--py", default="python3", help="the python command of paper.py and "
                     "merge_results.py (may carry a prefix, e.g. 'timeout 560 python3')")
     ap.add_argument("--tasks", default="hopper walker2d halfcheetah ant")
+    ap.add_argument("--units", default=os.environ.get("PAPER_UNITS", "family"),
+                    help="family: (task, family) units with two GPUs or more (default); "
+                    "task: one process per task whatever the GPUs (env PAPER_UNITS)")
     args = ap.parse_args(argv)
     t0 = time.monotonic()
     tasks, py, n = args.tasks.split(), shlex.split(args.py), max(0, args.gpus)
     os.makedirs(args.out, exist_ok=True)
-    units = plan(tasks, n, extra, args.out)
-    run_units(units, list(range(n)) if n else [None], py, args.data_dir, t0)
-    merges = merge(units, tasks, py, args.out, t0) if n > 1 else []
+    units = plan(tasks, n, extra, args.out, args.units)
+    merger = Merger(units, tasks, py, args.out, t0)
+    split = any(u["family"] for u in units)
+    run_units(units, list(range(n)) if n else [None], py, args.data_dir, t0,
+              merger if split else None)
+    merges = merger.wait()
     print(report(units, merges, n, time.monotonic() - t0, args.out), flush=True)
     failed = [f"{name(u)} (exit {u.get('rc')}, log {u['log']})" for u in units
               if u.get("rc") != 0]

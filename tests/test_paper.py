@@ -779,8 +779,11 @@ def test_paper_all_spreads_task_family_units_over_the_gpus(tmp_path):
         assert (f"merge experiments/merge_results.py --task {t} --paper {out}/units/"
                 f"{t}_adversarial/{t}.json --paper {out}/units/{t}_mle/{t}.json --out {out}"
                 in ev)
-    first_merge = min(i for i, e in enumerate(ev) if e.startswith("merge"))
-    assert all(not e.startswith(("start", "end")) for e in ev[first_merge:])
+    for t in TASKS4:  # each task merged once its own units ended (beside the others' units)
+        merged = next(i for i, e in enumerate(ev)
+                      if e.startswith(f"merge experiments/merge_results.py --task {t} "))
+        assert all(ev.index(f"end {t} {f} {ran[(t, f)]}") < merged
+                   for f in ("adversarial", "mle"))
     assert ev[-1] == "tables"
     sched = json.loads((out / "schedule.json").read_text())
     assert sched["gpus"] == 2 and len(sched["units"]) == 8 and len(sched["merges"]) == 4
@@ -800,6 +803,27 @@ def test_paper_all_spreads_task_family_units_over_the_gpus(tmp_path):
     assert (ev.index("data hopper adversarial gpu=0") < ev.index(mle)
             < ev.index("end hopper adversarial gpu=0"))
     assert "gpu=1" in mle
+
+
+def test_paper_all_whole_task_units(tmp_path):
+    """PAPER_UNITS=task: with 2 GPUs each task is one paper.py (both families, its data, its
+    OUT/<task>.json), the costliest tasks first, one process per GPU, nothing to merge; an
+    unknown --units value is refused by name before anything runs."""
+    rc, ev, proc = _run_paper_all(tmp_path / "a", 2, env_extra={"PAPER_UNITS": "task"})
+    assert rc == 0, proc.stderr
+    ran = _check_one_process_per_gpu(ev)
+    assert ran.keys() == {(t, "both") for t in TASKS4}
+    assert set(ran.values()) == {"gpu=0", "gpu=1"}
+    order = [e.split()[1] for e in ev if e.startswith("start")]
+    assert order[:2] == ["ant", "halfcheetah"]
+    assert not any(e.startswith("merge") for e in ev) and ev[-1] == "tables"
+    out = tmp_path / "a" / "out"
+    assert all(f"--out {out} " in e for e in ev if e.startswith("start"))
+    sched = json.loads((out / "schedule.json").read_text())
+    assert [u["family"] for u in sched["units"]] == [None] * 4 and sched["merges"] == []
+    rc, ev, proc = _run_paper_all(tmp_path / "b", 2, env_extra={"PAPER_UNITS": "seed"})
+    assert rc != 0 and "units: expected family or task, got 'seed'" in proc.stderr
+    assert not any(e.startswith("start") for e in ev)
 
 
 def test_paper_all_failures_and_the_paths_without_units(tmp_path):

@@ -34,8 +34,12 @@ checks the flags, the phases are ``rl2s_jax.app.protocol`` (data, oracle, traini
    only in the initial eps (TrainConfig.initial_eps), and the key is PRNGKey(s) (checked: the
    final states are bitwise equal unvmapped; a vmapped lane matches to ~3e-8). The lanes of
    a seed are equal through pre-training, so the rl2s lanes pre-train for gail too and
-   ``train.lanes.fork`` continues the gail lanes from them (the same states; --no-fork trains
-   them apart, for checking).
+   ``train.lanes.fork`` continues the gail lanes from them (the same states). BC's likelihood
+   steps from the same key are that pre-training too, so when both families run in this
+   process the bc lanes join the likelihood program at step pretrain_steps, continued from
+   the rl2s lane of their seed (``protocol.join_trunk``; until then the rl2s-bc lanes train
+   alone and the bc lanes report the rl2s lanes' evaluations). --no-fork trains every lane
+   apart, for checking.
    ``--families adversarial`` (or ``mle``) runs one of the two, so a task's protocol can be
    split over two device calls; experiments/merge_results.py joins the two JSON files.
    ``--first-seed K`` runs seeds K..K+S-1 (keys, evaluation keys and lane names as in one
@@ -198,7 +202,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "programs to run: adversarial (rl2s, gail) and / or mle (rl2s-bc, bc); one "
                     "of them splits the protocol over two calls (merge_results.py joins them)")
     ap.add_argument("--no-fork", dest="fork", action="store_false", help="pre-train the "
-                    "gail lanes too, instead of forking them off the rl2s lanes' pre-training")
+                    "gail lanes and train the bc lanes from step 0 too, instead of continuing "
+                    "them from the rl2s lanes' pre-training")
     ap.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
                     "95%% intervals over evaluation episodes (0: none)")
     ap.add_argument("--no-oracle", dest="oracle", action="store_false", help="skip the control "
@@ -359,6 +364,7 @@ def main(argv=None) -> int:
     overrides = {**(LEGACY_MODEL if args.model == "legacy" else {}), **parse_overrides(args.set)}
     robust_eps = overrides.pop("eps", None)
     finals, configs = {}, {}
+    share = {} if args.fork else None  # the adversarial trunk, for the bc lanes to join
     for family, cfg_method, methods in families:
         t0 = time.perf_counter()
         cfg = configs[family] = make_config(train_ds, cfg_method, profile, overrides=overrides)
@@ -366,9 +372,10 @@ def main(argv=None) -> int:
         finals[family] = train_family(
             result, family, cfg, methods, train_ds=train_ds, test_ds=test_ds,
             train_pols=train_pols, test_pols=test_pols, seeds=seed_ids, sizes=sizes,
-            robust_eps=robust_eps, check_eval=args.check_eval, fork=args.fork)
+            robust_eps=robust_eps, check_eval=args.check_eval, fork=args.fork, share=share)
         phase(f"train_{family}", t0)
         save()
+    share = None  # an unused trunk (--families adversarial) need not stay on the device
 
     # ---- 3. improvement
     it = sizes["improve_iterations"]

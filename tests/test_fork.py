@@ -1,6 +1,8 @@
 """Forking adversarial lanes off one pre-trained trunk (issue 40, item 3): ``train.lanes.fork``
 gives the state a separate run of the other eps has at the same step, bit for bit, and the
-protocol's ``train_family`` with the fork reports what it reports without it."""
+protocol's ``train_family`` with the fork reports what it reports without it; the likelihood
+family's BC lanes join from the same pre-training (``protocol.join_trunk``), with the same
+result as BC trained from step 0."""
 
 import jax
 import jax.numpy as jnp
@@ -122,18 +124,30 @@ def test_fork_lanes_checks_and_vmaps(pm_small):
 
 def test_bc_lane_runs_the_trunks_pre_training(pm_small):
     """BC (eps 1, the likelihood family's config) from the same key takes the same likelihood
-    steps as an adversarial lane's pre-training: the members, their optimiser, the value
-    measurement and the key are bitwise equal after PRE steps (docs/SCALING.md: BC could
-    continue from the trunk; the protocol does not do it)."""
+    steps as an adversarial lane's pre-training: every field the pre-training writes
+    (protocol.JOINED: the members, their optimiser, best weights and moving average, held-out
+    scores and early-stopping bookkeeping, the value measurement, the key and step) is bitwise
+    equal after PRE steps, so ``join_trunk`` (the BC init with those fields of the trunk) is
+    leaf for leaf the BC lane's own state, and so are the BC steps after it."""
+    from rl2s_jax.app.protocol import JOINED, join_trunk
+
     ds, policies = pm_small
     cfg = _cfg()
     data = T.make_train_data(ds, policies, cfg)
     key = jax.random.PRNGKey(5)
     trunk, _ = _steps(_init(key, cfg, data, 0.25), data, PRE, "pretrain")
-    bc, _ = _steps(_init(key, _cfg(method="rl2s-bc"), data, 1.0), data, PRE, None)
-    for name in ("gen", "gen_opt", "best_gen", "ema_gen", "heldout_nll", "best_nll", "vd",
-                 "vd_roll", "key", "step"):
+    start = _init(key, _cfg(method="rl2s-bc"), data, 1.0)
+    bc, _ = _steps(start, data, PRE, None)
+    for name in JOINED:
         _assert_equal(getattr(bc, name), getattr(trunk, name))
+    assert bc.best_gen is not None and bc.ema_gen is not None  # early stopping, EMA on
+    joined = jax.jit(join_trunk)({name: getattr(trunk, name) for name in JOINED}, start)
+    _assert_equal(joined, bc)
+    assert int(joined.selected.sum()) == 4 and int(trunk.selected.sum()) == 2
+    a, ma = _steps(joined, data, 2, None)
+    b, mb = _steps(bc, data, 2, None)
+    _assert_equal(a, b)
+    _assert_equal(ma, mb)
 
 
 def _shape(x):
@@ -183,3 +197,136 @@ def test_protocol_forked_family_reports_as_the_separate_one(pm_files):
         assert a["lane"] == b["lane"] and a["step"] == b["step"]
         for k in ("avd", "mvd", "tau", "avd_train", "mvd_train"):
             assert a[k] == pytest.approx(b[k], rel=1e-3, abs=1e-4), (a["lane"], k)
+
+
+def _close(a, b, where="result"):
+    """Two results' values equal, floats to round-off (vmap over other lane counts)."""
+    if isinstance(a, dict):
+        assert a.keys() == b.keys(), where
+        for k in a:
+            _close(a[k], b[k], f"{where}.{k}")
+    elif isinstance(a, list):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
+            _close(x, y, f"{where}[{i}]")
+    elif isinstance(a, float) and not isinstance(b, bool):
+        assert a == pytest.approx(b, rel=1e-3, abs=1e-4, nan_ok=True), where
+    else:
+        assert a == b, where
+
+
+def _mle_run(pm_files, steps=4, eval_every=2):
+    """Inputs of a train_family run on pm_files' data (the same objects for every family, as
+    paper.py passes them) and a fresh result for some methods."""
+    from rl2s_jax.app.protocol import METRICS
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.zoo.zoo import policies_for
+
+    train_ds, test_ds = load_dataset(pm_files["train"]), load_dataset(pm_files["test"])
+    inputs = dict(train_ds=train_ds, test_ds=test_ds, train_pols=policies_for(train_ds),
+                  test_pols=policies_for(test_ds), seeds=[0, 1],
+                  sizes=dict(steps=steps, eval_every=eval_every, eval_episodes=2,
+                             bootstrap=0))
+
+    def fresh(methods):
+        return {"per_seed": {m: {k: [] for k in METRICS} for m in methods}, "curves": [],
+                "lanes": {}, "timings": {}}
+    return inputs, fresh
+
+
+@pytest.mark.heavy
+@pytest.mark.parametrize("steps,every", [(4, 2), (6, 3)], ids=["in-chunk", "at-evaluation"])
+def test_bc_lanes_join_from_the_adversarial_trunk(pm_files, steps, every):
+    """The adversarial family (forked) then the likelihood family with a share: the bc lanes
+    join the rl2s-bc lanes at step PRE (inside the second evaluation chunk as on the gpu
+    profile, or at an evaluation as on the cpu one) from the rl2s lanes' pre-training, their
+    evaluations until then are the trunk's, and the family's result is the one of bc trained
+    from step 0 (no share): the same structure, the same numbers to round-off (vmap over 2 vs
+    4 lanes), "fork" saying where it joined. Heavy: ~15 s each with the compilation cache."""
+    from rl2s_jax.app.protocol import train_family
+
+    inputs, fresh = _mle_run(pm_files, steps=steps, eval_every=every)
+    share = {}
+    adv = fresh(("rl2s", "gail"))
+    train_family(adv, "adversarial", _cfg(vd_horizon=10), ("rl2s", "gail"), share=share,
+                 **inputs)
+    assert share["trunk"]["fields"]["step"].tolist() == [PRE, PRE]
+    before = list(range(every, PRE + 1, every))  # the trunk's evaluations before the fork
+    assert sorted(share["trunk"]["points"]) == before
+    mle_cfg = _cfg(vd_horizon=10, method="rl2s-bc")
+    out = {}
+    for joined in (True, False):
+        result = fresh(("rl2s-bc", "bc"))
+        lanes, states = train_family(result, "mle", mle_cfg, ("rl2s-bc", "bc"),
+                                     share=share if joined else None, **inputs)
+        assert lanes == [("rl2s-bc", 0), ("rl2s-bc", 1), ("bc", 0), ("bc", 1)]
+        np.testing.assert_array_equal(np.asarray(states.step), [steps] * 4)
+        out[joined] = result, states
+    assert "trunk" not in share  # taken by the family that joined
+    (joined, js), (separate, ss) = out[True], out[False]
+    assert joined.pop("fork") == {"mle": {"trunk": "rl2s", "trunk_family": "adversarial",
+                                          "joined": ["bc"], "at_step": PRE,
+                                          "steps_saved_per_seed": PRE}}
+    assert separate.pop("fork") == {"mle": None}
+    for r in (joined, separate):
+        r["timings"].clear()
+    assert _shape(joined) == _shape(separate)
+    _close(joined, separate)
+    # the bc lanes' rows before the join are the rl2s lanes' (the trunk's) of their seed
+    rows = {(r["lane"], r["step"]): r for r in adv["curves"]}
+    bc = [r for r in joined["curves"] if r["method"] == "bc" and r["step"] in before]
+    assert len(bc) == 2 * len(before)
+    for r in bc:
+        t = rows[f"rl2s/{r['seed']}", r["step"]]
+        assert (r["avd"], r["tau"], r["avd_train"]) == (t["avd"], t["tau"], t["avd_train"])
+    np.testing.assert_array_equal(np.asarray(js.eps), np.asarray(ss.eps))
+    np.testing.assert_array_equal(np.asarray(js.selected), np.asarray(ss.selected))
+    for a, b in zip(jax.tree_util.tree_leaves(js.gen), jax.tree_util.tree_leaves(ss.gen),
+                    strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-3, atol=1e-5)
+
+
+def test_incompatible_trunk_is_refused(pm_files, capsys):
+    """A shared trunk that differs from the likelihood family (another config field, other
+    seeds, evaluation sizes or data, training that ended before the fork) is refused with the
+    reason; the family then trains its bc lanes from step 0 and records no join."""
+    import dataclasses
+
+    from rl2s_jax.app.protocol import _join_refusal, train_family
+
+    inputs, fresh = _mle_run(pm_files)
+    cfg = _cfg(vd_horizon=10, method="rl2s-bc")
+    lanes = [(m, s) for m in ("rl2s-bc", "bc") for s in (0, 1)]
+    ins = tuple(inputs[k] for k in ("train_ds", "test_ds", "train_pols", "test_pols"))
+    ok = {"family": "adversarial", "method": "rl2s", "config": dataclasses.replace(
+        cfg, method="rl2s"), "seeds": [0, 1], "at_step": PRE,
+        "sizes": {"eval_every": 2, "eval_episodes": 2}, "inputs": ins, "points": {},
+        "fields": {}, "finite_before": None}
+    eps = [0.25, 0.25, 1.0, 1.0]
+
+    def why(trunk, **kw):
+        args = dict(lanes=lanes, joining=[2, 3], eps=eps, seeds=[0, 1],
+                    sizes=inputs["sizes"], inputs=ins)
+        args.update(kw)
+        return _join_refusal(trunk, cfg, **args)
+
+    assert why(ok) is None
+    assert "no adversarial trunk" in why(None)
+    assert "differs in vd_episodes" in why({**ok, "config": dataclasses.replace(
+        ok["config"], vd_episodes=3)})
+    assert "seeds" in why({**ok, "seeds": [0, 2]})
+    assert "ended before step" in why({**ok, "fields": None})
+    assert "evaluated with" in why({**ok, "sizes": {"eval_every": 1, "eval_episodes": 2}})
+    assert "other data" in why({**ok, "inputs": (*ins[:3], list(ins[3]))})
+    assert "eps < 1" in why(ok, eps=[0.25, 0.25, 0.5, 1.0])
+    assert "no other lanes" in why(ok, lanes=lanes[2:], joining=[0, 1], eps=eps[2:])
+    assert "fewer than" in why(ok, sizes={**inputs["sizes"], "steps": 2})
+    # refused in train_family: bc trains from step 0 beside rl2s-bc, no join recorded
+    share = {"trunk": {**ok, "config": dataclasses.replace(ok["config"], vd_episodes=3)}}
+    result = fresh(("rl2s-bc", "bc"))
+    _, states = train_family(result, "mle", cfg, ("rl2s-bc", "bc"), share=share,
+                             **{**inputs, "sizes": {**inputs["sizes"], "steps": 2}})
+    assert "the bc lanes train from step 0" in capsys.readouterr().out
+    assert result["fork"] == {"mle": None} and "trunk" not in share
+    np.testing.assert_array_equal(np.asarray(states.step), [2] * 4)
+    assert [r["lane"] for r in result["curves"]] == [f"{m}/{s}" for m, s in lanes]

@@ -1,13 +1,15 @@
 """The paper's protocol (``experiments/paper.py``): its sizes per profile and task, the zoo's
 train / test data, the oracle row, one vmapped training program per model family with its
 evaluation curves (the adversarial family pre-trains once per seed and forks its methods'
-lanes from there, ``train.lanes.fork``), model selection and bootstrap intervals, and the
+lanes from there, ``train.lanes.fork``; the likelihood family's BC lanes join from that
+pre-training, ``join_trunk``), model selection and bootstrap intervals, and the
 result JSON (the summary over seeds, the printed table, the atomic write). The improvement
 phases are ``app.protocol_improve``; the lanes themselves (vmapped runs: training,
 evaluation, fine-tuning) ``train.lanes``, ``evaluate.lanes`` and ``improve.lanes``."""
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import os
@@ -33,7 +35,7 @@ from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.sharding import is_writer, lane_mesh, replicate, shard_lanes
 from rl2s_jax.train.config import DEFAULT_EPS, TrainConfig
-from rl2s_jax.train.cvar import n_worst
+from rl2s_jax.train.cvar import n_worst, select_worst
 from rl2s_jax.train.data import make_train_data
 from rl2s_jax.train.lanes import (
     fork_lanes,
@@ -43,7 +45,7 @@ from rl2s_jax.train.lanes import (
     train_lanes,
 )
 from rl2s_jax.train.loop import worst_vd_jumps
-from rl2s_jax.train.step import simulator
+from rl2s_jax.train.step import TrainState, simulator
 from rl2s_jax.zoo.zoo import load_zoo, zoo_dir
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -261,46 +263,185 @@ def _final_rows(result, family, lanes, eps, points, evals, values, returns, leng
                           if row["lane"] == f"{meth}/{s}")}
 
 
+def _on_one_device(tree):
+    """``tree`` on this process's first device (lanes from meshes of different sizes meet
+    there before ``shard_lanes`` spreads them again; one device: where they are)."""
+    return jax.device_put(tree, jax.local_devices()[0])
+
+
 class _Trunk:
     """A family's lanes while its first method's lanes (the trunk, one per seed) pre-train for
     all of them (issue 40, item 3): ``train.lanes.fork_lanes`` forks the others off at the end
-    of pre-training, or when training ends before it."""
+    of pre-training, or when training ends before it. ``record`` (train_family's
+    ``share["trunk"]``): the trunk's evaluation points up to the fork and its pre-trained
+    fields at step ``at``, for the likelihood family's BC lanes (``_Join``)."""
 
-    def __init__(self, starts, n_trunk: int, n_lanes: int):
+    def __init__(self, starts, n_trunk: int, n_lanes: int, at: int, record: dict | None):
         self.starts = starts                              # every lane's fresh init [L]
         self.of = [i % n_trunk for i in range(n_lanes)]   # lane -> its trunk lane
+        self.now = list(range(n_trunk))                   # the lanes that train now
+        self.at, self.record = at, record
 
     def expand(self, rows: list) -> list:
         return [rows[j] for j in self.of]
 
-    def fork(self, trunk, mesh):
+    def rows(self, step, evals, values, returns, lengths, selects, m, n_sel):
+        """The trunk's evaluation at ``step`` as every lane's (a lane is its seed's trunk
+        lane until the fork; its selected count its own eps's, ``n_sel``)."""
+        m = {k: np.asarray(v) for k, v in m.items()}
+        if self.record is not None:
+            self.record["points"][step] = dict(
+                evals=list(evals), values=list(values), returns=list(returns),
+                lengths=list(lengths), selects=list(selects),
+                m={k: m[k] for k in ("avd_train", "mvd_train", "finite")})
+        out = [self.expand(list(x)) for x in (evals, values, returns, lengths, selects)]
+        m = {k: v[self.of] for k, v in m.items()}
+        m["n_selected"] = np.asarray(n_sel)
+        return (*out, m)
+
+    def grow(self, trunk, m, mesh):
+        """The fork of ``trunk`` (its states at the end of pre-training, or of training
+        before it; ``m``: its metrics since the last evaluation, None for none)."""
+        if self.record is not None and int(trunk.step[0]) == self.at:
+            self.record["fields"] = _on_one_device({name: getattr(trunk, name)
+                                                    for name in JOINED})
+            self.record["finite_before"] = (np.ones(len(self.now), bool) if m is None
+                                            else np.asarray(m["finite"]))
         return jax.block_until_ready(fork_lanes(shard_lanes(take_lanes(trunk, self.of), mesh),
                                                 self.starts))
 
+    def finite_before(self, m):
+        return np.asarray(m["finite"])[self.of]
 
-def _train_chunk(states, data, n, cfg, compiled, trunk: _Trunk | None, data_host, mesh_all):
-    """n steps of the lanes; with a trunk, the trunk's steps up to the end of pre-training,
-    then the fork and the rest. -> (states, metrics [lanes], data, trunk: None once forked)"""
+
+# What a BC lane takes from the adversarial trunk lane of its seed when it joins the likelihood
+# family at the end of pre-training (``join_trunk``): everything pre-training writes, which the
+# BC lane's own likelihood steps from the same key write bitwise alike (tests/test_fork.py).
+JOINED = ("step", "key", "gen", "gen_opt", "best_gen", "ema_gen", "heldout_nll", "rank",
+          "best_nll", "since_best", "stopped", "vd", "sim_value", "sim_length", "vd_roll")
+
+
+def join_trunk(trunk: dict, start: TrainState) -> TrainState:
+    """A BC lane continued from an adversarial trunk lane's pre-training (issue 40, item 3):
+    ``start`` (the BC lane's fresh ``init``: step 0, its config and eps) with the trunk's
+    ``JOINED`` fields (``trunk``: {name: leaf}); the rest (eps, normaliser, learned
+    termination and reward heads, config) is start's, and ``selected`` is the worst
+    n_worst(start's eps, P) of the trunk's VD, as the lane's own run holds it (every VD
+    measurement recomputes it). With the same key and a config equal but for the method, the
+    result is the state BC's own first ``step`` steps reach. Pure and jittable."""
+    state = start.replace(**{name: trunk[name] for name in JOINED})
+    if start.config.vd_every:
+        state = state.replace(selected=select_worst(state.vd,
+                                                    n_worst(start.eps, state.vd.shape[0])))
+    return state
+
+
+_join_lanes = jax.jit(jax.vmap(join_trunk))
+
+
+def _join_refusal(trunk: dict | None, cfg: TrainConfig, lanes, joining, eps, *, seeds,
+                  sizes, inputs) -> str | None:
+    """Why the BC lanes (``joining``) of this family cannot continue from the shared trunk
+    record ``trunk`` (None: they can)."""
     if trunk is None:
+        return ("no adversarial trunk shared in this process (the adversarial family did not "
+                "run before it with the fork, or --families / --no-fork left it out)")
+    if jax.process_count() != 1:
+        return f"{jax.process_count()} processes (the join is within one)"
+    if len(joining) == len(lanes):
+        return "no other lanes to train until the join"
+    if any(eps[i] != 1.0 for i in joining):
+        return "a bc lane of eps < 1 trains on its worst policies, not on all as pre-training"
+    if list(trunk["seeds"]) != list(seeds):
+        return f"the trunk ran seeds {trunk['seeds']}, this family {list(seeds)}"
+    other = trunk["config"]
+    if dataclasses.replace(cfg, method=other.method) != other:
+        diff = [f.name for f in dataclasses.fields(cfg) if f.name != "method"
+                and getattr(cfg, f.name) != getattr(other, f.name)]
+        return f"the trunk's config differs in {', '.join(diff)}"
+    if trunk["at_step"] != cfg.pretrain_steps:
+        return (f"the trunk pre-trained {trunk['at_step']} steps, this config's "
+                f"pretrain_steps is {cfg.pretrain_steps}")
+    if trunk["fields"] is None:
+        return f"the trunk's training ended before step {trunk['at_step']}"
+    if sizes["steps"] < trunk["at_step"]:
+        return f"this family trains {sizes['steps']} steps, fewer than {trunk['at_step']}"
+    theirs = trunk["sizes"]
+    ours = {k: sizes[k] for k in theirs}
+    if theirs != ours:
+        return f"the trunk was evaluated with {theirs}, this family with {ours}"
+    if any(a is not b for a, b in zip(trunk["inputs"], inputs, strict=True)):
+        return "the trunk trained or was evaluated on other data or policies"
+    return None
+
+
+class _Join:
+    """A likelihood family's lanes while its BC lanes wait for the adversarial trunk's
+    pre-training (issue 40, item 3; ``train_family``'s ``share``): the other lanes train alone
+    until the trunk's step ``at``, the BC lanes' evaluations until then are the trunk lane's
+    of their seed; at ``at`` each BC lane joins as its fresh init continued from its seed's
+    trunk lane (``join_trunk``) and every lane trains on."""
+
+    def __init__(self, trunk: dict, starts, lanes, joining: list):
+        self.trunk, self.at = trunk, trunk["at_step"]
+        self.now = [i for i in range(len(lanes)) if i not in joining]
+        self.joining = joining
+        self.of = np.asarray([trunk["seeds"].index(lanes[i][1]) for i in joining])
+        self.starts = take_lanes(starts, joining)
+        self.order = np.argsort(self.now + joining)  # [now..., joining...] -> lane order
+
+    def _merge(self, now: list, theirs: list) -> list:
+        both = [*now, *(theirs[j] for j in self.of)]
+        return [both[k] for k in self.order]
+
+    def rows(self, step, evals, values, returns, lengths, selects, m, n_sel):
+        """The evaluation at ``step`` of the lanes training now, with the trunk's at that
+        step for the BC lanes (their selected count their eps's, ``n_sel``)."""
+        p = self.trunk["points"][step]
+        out = [self._merge(list(x), p[k]) for x, k in (
+            (evals, "evals"), (values, "values"), (returns, "returns"),
+            (lengths, "lengths"), (selects, "selects"))]
+        theirs = {k: np.asarray(v)[self.of] for k, v in p["m"].items()}
+        theirs["n_selected"] = np.asarray(n_sel)[self.joining]
+        m = {k: np.concatenate([np.asarray(m[k]), theirs[k]])[self.order] for k in theirs}
+        return (*out, m)
+
+    def grow(self, states, m, mesh):
+        joined = _join_lanes(take_lanes(self.trunk["fields"], self.of), self.starts)
+        both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]),
+                                      _on_one_device(states), joined)
+        return jax.block_until_ready(shard_lanes(take_lanes(both, self.order), mesh))
+
+    def finite_before(self, m):
+        return np.concatenate([np.asarray(m["finite"]),
+                               self.trunk["finite_before"][self.of]])[self.order]
+
+
+def _train_chunk(states, data, n, cfg, compiled, pending: _Trunk | _Join | None, data_host,
+                 mesh_all):
+    """n steps of the lanes; with a pending fork or join, the steps of the lanes training now
+    up to its step, then the fork / join and the rest.
+    -> (states, metrics [lanes], data, pending: None once done)"""
+    if pending is None:
         return (*train_lanes(states, data, n, cfg, compiled), data, None)
-    k = min(n, cfg.pretrain_steps - int(states.step[0]))
+    k = min(n, pending.at - int(states.step[0]))
     m = None
     if k > 0:
         states, m = train_lanes(states, data, k, cfg, compiled)
     if k == n:
-        return states, m, data, trunk
-    states = trunk.fork(states, mesh_all)
+        return states, m, data, pending
+    states = pending.grow(states, m, mesh_all)
     data = replicate(data_host, mesh_all)
     states, m2 = train_lanes(states, data, n - k, cfg, compiled)
     if m is not None:
-        m2 = {**m2, "finite": jnp.logical_and(m2["finite"], jnp.asarray(m["finite"])[
-            jnp.asarray(trunk.of)])}
+        m2 = {**m2, "finite": jnp.logical_and(m2["finite"],
+                                              jnp.asarray(pending.finite_before(m)))}
     return states, m2, data, None
 
 
 def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_ds, test_ds,
                  train_pols, test_pols, seeds, sizes: dict, robust_eps=None,
-                 check_eval: bool = False, fork: bool = True):
+                 check_eval: bool = False, fork: bool = True, share: dict | None = None):
     """One family's lanes (its ``methods`` x ``seeds``, key PRNGKey(seed), eps the method's
     default or ``robust_eps`` for the robust ones) trained as one vmapped program over the
     local devices, evaluated on the test policies and the training policies' held-out
@@ -314,6 +455,16 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     other lane from its seed's trunk lane with its own eps, critic, simulated envs and buffer
     (drawn by its own ``init``): the same states as separate lanes, at 1 / len(methods) of
     the pre-training work. result["fork"][family] says whether and where it forked.
+
+    ``share`` (a dict passed to every family of one process; with ``fork``): the forking
+    family leaves its trunk there (share["trunk"]: its evaluation points up to the fork and
+    its pre-trained fields at ``pretrain_steps``), and a later family's BC lanes, whose
+    likelihood steps from the same key are the trunk's pre-training, continue from it: the
+    other lanes train alone until ``pretrain_steps``, the BC lanes report the trunk's
+    evaluations until then and join there (``join_trunk``), when the trunk is compatible
+    (``_join_refusal``: one process, the same seeds, data, evaluation sizes and config but
+    for the method); else they train from step 0 and a line says why.
+    result["fork"][family] says where and from what they joined.
     -> (lanes [(method, seed)] * L, their final TrainState, leading lane axis L)"""
     t0 = time.perf_counter()
     data_host = data = make_train_data(train_ds, train_pols, cfg)
@@ -327,23 +478,50 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     keys = jnp.stack([jax.random.PRNGKey(s) for _, s in lanes])
     states = init_lanes(keys, cfg, data, eps=jnp.asarray(eps, jnp.float32))
     mesh_all = mesh = lane_mesh(len(lanes))  # lanes over the local devices (one: unchanged)
-    trunk = None
+    pending, note, record = None, "", None  # a fork (_Trunk) or join (_Join) to come
+    joining = [i for i, (m, _) in enumerate(lanes) if m == "bc"]
     if fork and cfg.pretrains and len(methods) > 1 and jax.process_count() == 1:
-        trunk = _Trunk(jax.block_until_ready(shard_lanes(states, mesh_all)), len(seeds),
-                       len(lanes))
-        mesh = lane_mesh(len(seeds))
-        states = take_lanes(states, list(range(len(seeds))))
-    result.setdefault("fork", {})[family] = (
-        None if trunk is None else {"trunk": methods[0], "at_step": cfg.pretrain_steps,
-                                    "steps_saved_per_seed": (len(methods) - 1) * min(
-                                        cfg.pretrain_steps, sizes["steps"])})
+        trunk = None
+        if share is not None:
+            trunk = share["trunk"] = {
+                "family": family, "method": methods[0], "config": cfg, "seeds": list(seeds),
+                "at_step": cfg.pretrain_steps,
+                "sizes": {k: sizes[k] for k in ("eval_every", "eval_episodes")},
+                "inputs": (train_ds, test_ds, train_pols, test_pols), "points": {},
+                "fields": None, "finite_before": None}
+        pending = _Trunk(jax.block_until_ready(shard_lanes(states, mesh_all)), len(seeds),
+                         len(lanes), cfg.pretrain_steps, trunk)
+        record = {
+            "trunk": methods[0], "at_step": cfg.pretrain_steps,
+            "steps_saved_per_seed": (len(methods) - 1) * min(cfg.pretrain_steps,
+                                                             sizes["steps"])}
+        note = f"; the {methods[0]} lanes pre-train for all (fork at step {cfg.pretrain_steps})"
+    elif joining:
+        trunk = (share or {}).pop("trunk", None) if fork else None
+        why = ("the fork is off (--no-fork)" if not fork else _join_refusal(
+            trunk, cfg, lanes, joining, eps, seeds=seeds, sizes=sizes,
+            inputs=(train_ds, test_ds, train_pols, test_pols)))
+        if why is None:
+            pending = _Join(trunk, states, lanes, joining)
+            at = pending.at
+            record = {
+                "trunk": trunk["method"], "trunk_family": trunk["family"],
+                "joined": sorted({lanes[i][0] for i in joining}), "at_step": at,
+                "steps_saved_per_seed": at * len({lanes[i][0] for i in joining})}
+            note = (f"; the bc lanes join at step {at} from the {trunk['family']} family's "
+                    f"{trunk['method']} lanes (their pre-training)")
+        else:
+            log(f"[paper] {family}: the bc lanes train from step 0, not from the adversarial "
+                f"trunk's pre-training: {why}")
+    result.setdefault("fork", {})[family] = record
+    if pending is not None:
+        mesh = lane_mesh(len(pending.now))
+        states = take_lanes(states, pending.now)
     states = jax.block_until_ready(shard_lanes(states, mesh))
     data = replicate(data, mesh)
     log(f"[paper] {family}: {len(lanes)} lanes over {mesh_all.size} device(s) "
         f"{', '.join(f'{m}/{s} (eps {e:g})' for (m, s), e in zip(lanes, eps, strict=True))}"
-        f", config method {cfg.method}; init {time.perf_counter() - t0:.1f}s"
-        + ("" if trunk is None else f"; the {methods[0]} lanes pre-train for all "
-           f"(fork at step {cfg.pretrain_steps})"))
+        f", config method {cfg.method}; init {time.perf_counter() - t0:.1f}s{note}")
     n_sel = [int(n_worst(e, data_host.n_policies)) if cfg.vd_every else data_host.n_policies
              for e in eps]
     n = sizes["eval_every"]
@@ -353,33 +531,32 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     lane_seeds = [s for _, s in lanes]
     for _ in range(sizes["steps"] // n):
         t1 = time.perf_counter()
-        what = (f"{len(states.step)} lanes" if trunk is None else
-                f"{len(states.step)} trunk lanes" + (
-                    "" if int(states.step[0]) + n <= cfg.pretrain_steps else
-                    f" forked into {len(lanes)} at step {cfg.pretrain_steps}"))
-        states, m, data, trunk = _train_chunk(states, data, n, cfg, compiled, trunk,
-                                              data_host, mesh_all)
+        what = f"{len(states.step)} {'trunk ' if isinstance(pending, _Trunk) else ''}lanes"
+        if pending is not None and int(states.step[0]) + n > pending.at:
+            what += (f" forked into {len(lanes)}" if isinstance(pending, _Trunk) else
+                     f", joined by {len(joining)} bc lanes") + f" at step {pending.at}"
+        states, m, data, pending = _train_chunk(states, data, n, cfg, compiled, pending,
+                                                data_host, mesh_all)
         states, m = jax.block_until_ready((states, m))
         seconds = time.perf_counter() - t1
         t1 = time.perf_counter()
         sims = simulator(states)
-        seeds_now = lane_seeds[:len(states.step)]  # the trunk: the first method's lanes
+        seeds_now = (lane_seeds if pending is None else
+                     [lane_seeds[i] for i in pending.now])  # the lanes training now
         evals, values, returns, lengths = evaluate_lanes(
             sims, seeds_now, test_pols, test_pool, truth, key_base=1000, **roll)
         selects = evaluate_lanes(sims, seeds_now, data.policies, select_pool, select_truth,
                                  key_base=2000, **roll)[0]
-        if trunk is not None:  # every lane of a seed is its trunk lane until the fork
-            evals, values, returns, lengths, selects = map(
-                trunk.expand, (evals, list(values), list(returns), list(lengths), selects))
-            m = {k: np.asarray(v)[trunk.of] for k, v in m.items()}
-            m["n_selected"] = np.asarray(n_sel)
-        t_eval += time.perf_counter() - t1
         step = int(states.step[0])
+        if pending is not None:  # the other lanes are their trunk lanes until the fork / join
+            evals, values, returns, lengths, selects, m = pending.rows(
+                step, evals, values, returns, lengths, selects, m, n_sel)
+        t_eval += time.perf_counter() - t1
         header = (f"[paper] {family} step {step}: {n} steps of {what} in {seconds:.1f}s; "
                   f"test evaluation {time.perf_counter() - t1:.1f}s")
         _evaluation_point(result, lanes, step, m, evals, selects, points, worst, header)
-    if trunk is not None:  # training ended within pre-training: fork the final states
-        states = trunk.fork(states, mesh_all)
+    if pending is not None:  # training ended within pre-training: fork / join the final states
+        states = pending.grow(states, None, mesh_all)
     _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
                 true_values_se(test_ds, cfg.vd_horizon, cfg.gamma), sizes["bootstrap"])
     result["true_value"] = np.asarray(truth).tolist()

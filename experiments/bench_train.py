@@ -24,6 +24,15 @@ run).
 ``--matmul-dtype float32,bfloat16`` times every row under each ``TrainConfig.matmul_dtype``,
 one after the other in the same process (issue 40 item 3: bf16 matmuls); the FLOP rate stays
 the float32 matmul's.
+
+The race with the official loop (issue 40 item 4; its torch port is
+../shared/tools/official_port/official_loop.py, run beside this by ``device.sh race``):
+``--official-sizes`` times our step at the official loop's sizes (OFFICIAL_SIZES: one 4x512
+ReLU generator, batch 256, no NLL anchor, no held-out scoring; 5 critic updates per generator
+update as our default); ``--breakdown`` adds rows at P=17 that each take one part away (no VD,
+one simulated step, one critic update per generator update, one generator update per step),
+so that the differences say where a step's time goes; ``--official-dir DIR`` reads the port's
+``official_p<P>.json`` lines from DIR and writes each P's ratios (``race`` in the JSON).
 """
 from __future__ import annotations
 
@@ -45,6 +54,58 @@ from rl2s_jax.train.data import TrainData
 from rl2s_jax.train.step import init, train_steps
 
 OBS, ACT, POLICY_HIDDEN = 12, 3, (64, 64)
+# The official RL2S loop's model and updates (exp_specs/l2s_hopper.yaml): one generator of
+# 4x512 ReLU, batch 256, no NLL anchor, held-out scoring or early stop (the critic 4x512, 5
+# updates per generator update, as ours).
+OFFICIAL_SIZES = dict(ensemble_size=1, n_elites=1, batch_size=256, gen_activation="relu",
+                      adv_nll_weight=0.0, holdout_frac=0.0, early_stop_patience=0)
+
+
+def breakdown_configs(cfg: TrainConfig) -> list[tuple[str, TrainConfig]]:
+    """(part taken away, config) rows for ``--breakdown``: each row's time subtracted from the
+    full step's is that part's share. No VD needs eps 1 (no worst policies to choose)."""
+    return [("no VD", dataclasses.replace(cfg, vd_every=0, eps=1.0)),
+            ("1 sim step", dataclasses.replace(cfg, sim_steps=1)),
+            ("1 critic update", dataclasses.replace(cfg, disc_updates=1)),
+            ("1 gen update", dataclasses.replace(cfg, updates_per_step=1))]
+
+
+def race_ratios(rows: list[dict], official: dict[int, dict], horizon: int) -> list[dict]:
+    """Our rows against the official port's output per P (``official_loop.py``'s JSON line:
+    cycle_s, generator_updates_per_s, sim_transitions_per_s). A cycle is 1000 generator
+    updates with their critic updates and their share of VD. -> one dict per (P, vmapped
+    runs) of the full-step rows at the VD ``horizon`` (no breakdown or horizon row) whose P
+    the port measured."""
+    out = []
+    for r in rows:
+        o = official.get(r["policies"])
+        if o is None or r.get("variant", "full") != "full" or r["vd_horizon"] != horizon:
+            continue
+        ours_cycle = 1000 / r["gen_updates_per_s"]
+        out.append({"policies": r["policies"], "vmapped_runs": r["vmapped_runs"],
+                    "matmul_dtype": r.get("matmul_dtype", "float32"),
+                    "official_cycle_s": o["cycle_s"], "ours_cycle_s": ours_cycle,
+                    "cycle_ratio": o["cycle_s"] / ours_cycle,
+                    "gen_update_ratio": r["gen_updates_per_s"] / o["generator_updates_per_s"],
+                    "sim_ratio": r["sim_transitions_per_s"] / o["sim_transitions_per_s"]})
+    return out
+
+
+def read_official(directory: str) -> dict[int, dict]:
+    """official_p<P>.json files of DIR (the port's last JSON line each) -> {P: dict}."""
+    import glob
+    import os
+    import re
+    found = {}
+    for path in sorted(glob.glob(os.path.join(directory, "official_p*.json"))):
+        m = re.fullmatch(r"official_p(\d+)\.json", os.path.basename(path))
+        lines = [x for x in open(path).read().splitlines() if x.strip().startswith("{")]
+        if m and lines:
+            found[int(m.group(1))] = json.loads(lines[-1])
+    if not found:
+        raise SystemExit(f"official-dir: expected official_p<P>.json files with the port's JSON "
+                         f"line in {directory}, found none")
+    return found
 
 
 def fake_data(n_policies: int, rows_per_policy: int = 2000, seed: int = 0,
@@ -154,8 +215,15 @@ def main(argv=None) -> int:
     ap.add_argument("--matmul-dtype", default="float32", help="comma list of "
                     "TrainConfig.matmul_dtype values: every row is timed under each "
                     "(float32,bfloat16: the bf16 matmuls beside float32)")
+    ap.add_argument("--official-sizes", action="store_true", help="our step at the official "
+                    "loop's sizes (OFFICIAL_SIZES): the equal-work race")
+    ap.add_argument("--breakdown", action="store_true", help="rows at P=17 that each take one "
+                    "part of the step away (where its time goes)")
+    ap.add_argument("--official-dir", help="the official port's official_p<P>.json files: "
+                    "ratios per P (printed and under 'race' in --json)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
+    official = read_official(args.official_dir) if args.official_dir else None
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
     # the adversarial step itself, not the MLE pre-training that precedes it in a run
@@ -168,6 +236,8 @@ def main(argv=None) -> int:
         cfg = TrainConfig.small(task="hopper", method=args.method, **phase)
         policies, horizons, sims = [4, 17], [400], [16]
         steps, mm, vmaps = 5, 1024, [2]
+    if args.official_sizes:
+        cfg = dataclasses.replace(cfg, **OFFICIAL_SIZES)
     policies = policies if args.policies is None else args.policies
     horizons = horizons if args.horizons is None else args.horizons
     sims = sims if args.sim_steps is None else args.sim_steps
@@ -189,28 +259,42 @@ def main(argv=None) -> int:
     runs += [(dataclasses.replace(cfg, vd_horizon=h), 17, 1) for h in horizons]
     runs += [(dataclasses.replace(cfg, sim_steps=s), 17, 1) for s in sims]
     runs += [(cfg, 17, v) for v in vmaps]
-    runs = [(dataclasses.replace(c, matmul_dtype=d), P, v) for c, P, v in runs for d in dtypes]
+    runs = [("full", c, P, v) for c, P, v in runs]
+    if args.breakdown:
+        runs += [(part, c, 17, 1) for part, c in breakdown_configs(cfg)]
+    runs = [(part, dataclasses.replace(c, matmul_dtype=d), P, v) for part, c, P, v in runs
+            for d in dtypes]
+    for _, c, _, _ in runs:  # refused by name before any timing
+        c.validate()
     rows = []
-    hdr = (f"{'matmul':>8} {'P':>4} {'vd_H':>5} {'sim':>4} {'runs':>4} {'ms/step':>9} "
+    hdr = (f"{'row':>15} {'matmul':>8} {'P':>4} {'vd_H':>5} {'sim':>4} {'runs':>4} "
+           f"{'ms/step':>9} "
            f"{'gen upd/s':>10} "
            f"{'sim trans/s':>12} {'GFLOP/step':>11} {'TFLOP/s':>8} {'of matmul':>9} {'compile':>8}")
     print(hdr, flush=True)
-    for c, P, v in runs:
+    for part, c, P, v in runs:
         r = bench(c, P, steps, v)
         r["fraction_of_matmul"] = r["tflop_s"] * 1e12 / rate
         r["matmul_dtype"] = c.matmul_dtype
+        r["variant"] = part
         rows.append(r)
-        print(f"{c.matmul_dtype:>8} {P:>4} {c.vd_horizon:>5} {c.sim_steps:>4} {v:>4} "
+        print(f"{part:>15} {c.matmul_dtype:>8} {P:>4} {c.vd_horizon:>5} {c.sim_steps:>4} {v:>4} "
               f"{r['step_ms']:>9.2f} {r['gen_updates_per_s']:>10.0f} "
               f"{r['sim_transitions_per_s']:>12.0f} "
               f"{r['gflop_per_step']:>11.2f} {r['tflop_s']:>8.2f} "
               f"{r['fraction_of_matmul']:>9.3f} {r['compile_s']:>7.1f}s", flush=True)
+    race = race_ratios(rows, official, cfg.vd_horizon) if official is not None else None
+    for x in race or []:
+        print(f"race P={x['policies']} runs={x['vmapped_runs']} ({x['matmul_dtype']}): official "
+              f"{x['official_cycle_s']:.2f} s per cycle, ours {x['ours_cycle_s']:.3f} s: "
+              f"{x['cycle_ratio']:.1f}x", flush=True)
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"device": jax.devices()[0].device_kind, "backend": backend,
                        "jax": jax.__version__, "profile": profile,
-                       "matmul_tflop_s": rate / 1e12, "config": cfg.to_dict(), "rows": rows},
-                      f, indent=1)
+                       "official_sizes": args.official_sizes,
+                       "matmul_tflop_s": rate / 1e12, "config": cfg.to_dict(), "rows": rows,
+                       "race": race}, f, indent=1)
     return 0
 
 

@@ -16,6 +16,11 @@
 #   bash experiments/device.sh ablation TASK [ablation_model.py args]
 #   bash experiments/device.sh model_fit TASK [model_fit.py args]
 #   bash experiments/device.sh control [improve_control.py args]  the real-env improvement
+#   bash experiments/device.sh race                               the official loop's torch
+#       port (.race/official_loop.py: copy ../shared/tools/official_port/ to .race/ here, git
+#       ignores it, carry it) at P=17 and 64, then bench_train.py --official-sizes --breakdown
+#       (equal work) and the default family beside it; $OUT/official_p<P>.json,
+#       race_equal_work.json, race_default.json (each with its "race" ratios)
 #   bash experiments/device.sh zoo TASK [TASK ...]                `rl2s zoo` side by side
 #       ([ZOO_LIMIT=320] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="..."] [ZOO_EXPORT=1]
 #       [ZOO_IMPORT=DIR] [ZOO_MEM_FRACTION]; $OUT/zoo_<task>.tar, untar into
@@ -168,6 +173,20 @@ cmd_control() {
   run_logged control.log python3 experiments/improve_control.py --out $OUT "$@"
 }
 
+cmd_race() {
+  [ -f .race/official_loop.py ] || { echo "race: expected .race/official_loop.py (cp -r" \
+    "../shared/tools/official_port .race, then carry .race)" >&2; return 2; }
+  for P in 17 64; do
+    run_logged race.log timeout "${T_OFF:-240}" python3 .race/official_loop.py --device cuda \
+      --policies $P | grep '^{' | tail -n 1 > "$OUT/official_p$P.json"
+  done
+  run_logged race.log python3 experiments/bench_train.py --official-sizes --breakdown \
+    --policies 17 64 --horizons --sim-steps --vmap 8 --official-dir "$OUT" \
+    --json "$OUT/race_equal_work.json"
+  run_logged race.log python3 experiments/bench_train.py --policies 17 64 --horizons \
+    --sim-steps --vmap 8 --official-dir "$OUT" --json "$OUT/race_default.json"
+}
+
 cmd_zoo() {
   [ $# -gt 0 ] || { echo "usage: bash experiments/device.sh zoo TASK [TASK ...]" >&2; return 2; }
   export XLA_PYTHON_CLIENT_MEM_FRACTION=${ZOO_MEM_FRACTION:-$(python3 -c "print(round(0.9 / $#, 2))")}
@@ -292,7 +311,7 @@ cmd_run() {
 sub=${1:-}
 shift || true
 case "$sub" in
-  paper|tasks|ablation|model_fit|control|zoo|smoke|run|poll) setup_env; "cmd_$sub" "$@" ;;
+  paper|tasks|ablation|model_fit|control|race|zoo|smoke|run|poll) setup_env; "cmd_$sub" "$@" ;;
   streams) [ $# -gt 0 ] || usage
            setup_env; cmd_streams "$@" ;;
   _streams_run) setup_env; cmd__streams_run "$@" ;;

@@ -1,5 +1,6 @@
 """`make paper`: experiments/paper_tables.py on synthetic results (fast, no JAX) and one CPU
 smoke run of experiments/paper.py on Hopper at absurdly small sizes."""
+import dataclasses
 import importlib.util
 import json
 import os
@@ -975,3 +976,58 @@ def test_paper_zoo_recipe_and_guard_floor_flags():
     args.task = "no-such-task"
     with pytest.raises(SystemExit, match="zoo-recipe"):
         paper.check_arguments(args)
+
+
+# ------------------------------------------------------------------ bench_train.py (the race)
+
+
+def test_bench_train_race_ratios_and_breakdown(tmp_path, monkeypatch):
+    """The official-loop race's bookkeeping: the port's last JSON line per P is read, each full
+    row at the config's VD horizon gets cycle = 1000 / our generator updates per second and
+    the ratios against the port's (breakdown and other-horizon rows are skipped); an empty
+    dir is refused by name; the breakdown rows each take one part away and validate; the
+    official sizes are one ReLU generator at batch 256 with no NLL anchor or held-out rows."""
+    monkeypatch.syspath_prepend(os.path.join(ROOT, "experiments"))
+    bt = _load("bench_train")
+    (tmp_path / "official_p17.json").write_text(
+        'loading...\n{"cycle_s": 40.0, "generator_updates_per_s": 25.0, '
+        '"sim_transitions_per_s": 100.0}\n')
+    (tmp_path / "notes.json").write_text("{}")
+    official = bt.read_official(str(tmp_path))
+    assert list(official) == [17] and official[17]["cycle_s"] == 40.0
+    rows = [dict(policies=17, vmapped_runs=1, vd_horizon=1000, gen_updates_per_s=500.0,
+                 sim_transitions_per_s=1e4, variant="full"),
+            dict(policies=17, vmapped_runs=8, vd_horizon=1000, gen_updates_per_s=2000.0,
+                 sim_transitions_per_s=4e4, variant="full", matmul_dtype="bfloat16"),
+            dict(policies=17, vmapped_runs=1, vd_horizon=250, gen_updates_per_s=900.0,
+                 sim_transitions_per_s=1e4, variant="full"),
+            dict(policies=17, vmapped_runs=1, vd_horizon=1000, gen_updates_per_s=900.0,
+                 sim_transitions_per_s=1e4, variant="no VD"),
+            dict(policies=64, vmapped_runs=1, vd_horizon=1000, gen_updates_per_s=400.0,
+                 sim_transitions_per_s=1e4, variant="full")]
+    race = bt.race_ratios(rows, official, horizon=1000)
+    assert [(r["vmapped_runs"], r["matmul_dtype"]) for r in race] == [(1, "float32"),
+                                                                       (8, "bfloat16")]
+    assert race[0]["ours_cycle_s"] == pytest.approx(2.0)
+    assert race[0]["cycle_ratio"] == pytest.approx(20.0)
+    assert race[1]["cycle_ratio"] == pytest.approx(80.0)
+    assert race[0]["gen_update_ratio"] == pytest.approx(20.0)
+    assert race[0]["sim_ratio"] == pytest.approx(100.0)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(SystemExit, match="official-dir: expected official_p<P>.json"):
+        bt.read_official(str(empty))
+    from rl2s_jax.train.config import TrainConfig
+    cfg = dataclasses.replace(TrainConfig(task="hopper", method="rl2s"), **bt.OFFICIAL_SIZES)
+    cfg.validate()
+    assert (cfg.ensemble_size, cfg.batch_size, cfg.gen_activation) == (1, 256, "relu")
+    parts = dict(bt.breakdown_configs(cfg))
+    assert list(parts) == ["no VD", "1 sim step", "1 critic update", "1 gen update"]
+    for c in parts.values():
+        c.validate()
+    assert parts["no VD"].vd_every == 0 and parts["1 sim step"].sim_steps == 1
+    assert parts["1 critic update"].disc_updates == 1
+    assert parts["1 gen update"].updates_per_step == 1
+    changed = {k for k, c in parts.items()
+               for f in dataclasses.fields(cfg) if getattr(c, f.name) != getattr(cfg, f.name)}
+    assert changed == set(parts)

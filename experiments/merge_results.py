@@ -103,7 +103,9 @@ def merge_runs(parts: list[dict]) -> dict:
     """One result from runs of the same protocol split over calls: runs that trained
     different families (``--families``) and runs of other seeds (``--first-seed``) on the
     same data. The per-method entries joined (a method's seeds in seed order, its intervals
-    over seeds recomputed), curves concatenated, timings summed, complete when every part is.
+    over seeds recomputed), curves concatenated, timings summed (process-seconds: parts that
+    ran side by side on several GPUs overlap, so ``total`` is not a wall time;
+    ``timings_per_run`` keeps each part's), complete when every part is.
     Raises ValueError naming the field where the runs differ (task, sizes of the data, zoo,
     training settings, ...), when two of them ran the same method and seed, or when the
     methods do not end up with the same seeds."""
@@ -152,6 +154,7 @@ def merge_runs(parts: list[dict]) -> dict:
             t[k] = round(t.get(k, 0.0) + v, 1)
         merged["complete"] = bool(merged.get("complete")) and bool(part.get("complete"))
         merged["command"] = f"{merged['command']} && {part['command']}"
+    merged["timings_per_run"] = [dict(p.get("timings", {})) for p in parts]
     seed_sets = {m: sorted(ids) for m, ids in has.items()}
     if len({tuple(v) for v in seed_sets.values()}) > 1:
         raise ValueError(f"seeds: the methods ran different seeds {seed_sets}")

@@ -346,6 +346,7 @@ def test_merge_runs_joins_the_two_families():
     assert merged["families"] == ["adversarial", "mle"]
     assert merged["timings"] == {"data": 20.0, "train_adversarial": 5.0, "train_mle": 5.0,
                                  "total": 40.0}
+    assert merged["timings_per_run"] == [adv["timings"], mle["timings"]]
     assert merged["complete"] is False  # one part was cut off
     assert "--families adversarial && " in merged["command"]
     assert "methods" not in adv["per_seed"] and adv["methods"] == {}  # inputs untouched

@@ -37,7 +37,7 @@ checks the flags, the phases are ``rl2s_jax.app.protocol`` (data, oracle, traini
    ``train.lanes.fork`` continues the gail lanes from them (the same states). BC's likelihood
    steps from the same key are that pre-training too, so when both families run in this
    process the bc lanes join the likelihood program at step pretrain_steps, continued from
-   the rl2s lane of their seed (``protocol.join_trunk``; until then the rl2s-bc lanes train
+   the rl2s lane of their seed (``protocol_fork.join_trunk``; until then the rl2s-bc lanes train
    alone and the bc lanes report the rl2s lanes' evaluations). --no-fork trains every lane
    apart, for checking.
    ``--families adversarial`` (or ``mle``) runs one of the two, so a task's protocol can be

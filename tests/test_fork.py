@@ -1,7 +1,7 @@
 """Forking adversarial lanes off one pre-trained trunk (issue 40, item 3): ``train.lanes.fork``
 gives the state a separate run of the other eps has at the same step, bit for bit, and the
 protocol's ``train_family`` with the fork reports what it reports without it; the likelihood
-family's BC lanes join from the same pre-training (``protocol.join_trunk``), with the same
+family's BC lanes join from the same pre-training (``protocol_fork.join_trunk``), with the same
 result as BC trained from step 0."""
 
 import jax
@@ -125,11 +125,11 @@ def test_fork_lanes_checks_and_vmaps(pm_small):
 def test_bc_lane_runs_the_trunks_pre_training(pm_small):
     """BC (eps 1, the likelihood family's config) from the same key takes the same likelihood
     steps as an adversarial lane's pre-training: every field the pre-training writes
-    (protocol.JOINED: the members, their optimiser, best weights and moving average, held-out
+    (protocol_fork.JOINED: the members, their optimiser, best weights and moving average, held-out
     scores and early-stopping bookkeeping, the value measurement, the key and step) is bitwise
     equal after PRE steps, so ``join_trunk`` (the BC init with those fields of the trunk) is
     leaf for leaf the BC lane's own state, and so are the BC steps after it."""
-    from rl2s_jax.app.protocol import JOINED, join_trunk
+    from rl2s_jax.app.protocol_fork import JOINED, join_trunk
 
     ds, policies = pm_small
     cfg = _cfg()
@@ -292,7 +292,8 @@ def test_incompatible_trunk_is_refused(pm_files, capsys):
     reason; the family then trains its bc lanes from step 0 and records no join."""
     import dataclasses
 
-    from rl2s_jax.app.protocol import _join_refusal, train_family
+    from rl2s_jax.app.protocol import train_family
+    from rl2s_jax.app.protocol_fork import join_refusal
 
     inputs, fresh = _mle_run(pm_files)
     cfg = _cfg(vd_horizon=10, method="rl2s-bc")
@@ -308,7 +309,7 @@ def test_incompatible_trunk_is_refused(pm_files, capsys):
         args = dict(lanes=lanes, joining=[2, 3], eps=eps, seeds=[0, 1],
                     sizes=inputs["sizes"], inputs=ins)
         args.update(kw)
-        return _join_refusal(trunk, cfg, **args)
+        return join_refusal(trunk, cfg, **args)
 
     assert why(ok) is None
     assert "no adversarial trunk" in why(None)

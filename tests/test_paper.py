@@ -816,8 +816,9 @@ def test_paper_all_whole_task_units(tmp_path):
     ran = _check_one_process_per_gpu(ev)
     assert ran.keys() == {(t, "both") for t in TASKS4}
     assert set(ran.values()) == {"gpu=0", "gpu=1"}
-    order = [e.split()[1] for e in ev if e.startswith("start")]
-    assert order[:2] == ["ant", "halfcheetah"]
+    order = [line.split()[1] for line in proc.stdout.splitlines()
+             if line.startswith("[paper_all] ") and " on GPU " in line]
+    assert order[:2] == ["ant/all", "halfcheetah/all"]  # the costliest first
     assert not any(e.startswith("merge") for e in ev) and ev[-1] == "tables"
     out = tmp_path / "a" / "out"
     assert all(f"--out {out} " in e for e in ev if e.startswith("start"))

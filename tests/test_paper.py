@@ -1033,3 +1033,38 @@ def test_bench_train_race_ratios_and_breakdown(tmp_path, monkeypatch):
     changed = {k for k, c in parts.items()
                for f in dataclasses.fields(cfg) if getattr(c, f.name) != getattr(cfg, f.name)}
     assert changed == set(parts)
+
+
+def test_worst_policy_names_the_policy_that_sets_each_lanes_mvd(tmp_path):
+    """experiments/worst_policy.py: per lane the test policy of the largest |sim - true| (its
+    MVD) and the second-largest error; pooled counts most frequent first, each policy's range
+    of true and simulated values; a lane whose values do not match the test policies is
+    refused by name; lanes without sim_value are skipped."""
+    wp = _load("worst_policy")
+    a = {"true_value": [0.0, 100.0, 200.0], "test_policy_names": ["p0", "p1", "p2"],
+         "lanes": {"rl2s/0": {"sim_value": [5.0, 100.0, 900.0]},
+                   "bc/0": {"sim_value": [-50.0, 110.0, 190.0]},
+                   "gail/0": {"sim_value": [0.0, 100.0, 150.0]},
+                   "old/0": {"seed": 0}}}
+    rows = wp.lane_worst(a, "a.json")
+    by = {r["lane"]: r for r in rows}
+    assert set(by) == {"rl2s/0", "bc/0", "gail/0"}
+    assert (by["rl2s/0"]["policy"], by["rl2s/0"]["mvd"], by["rl2s/0"]["second"]) == ("p2", 700.0,
+                                                                                     5.0)
+    assert (by["bc/0"]["policy"], by["bc/0"]["sim"], by["bc/0"]["second"]) == ("p0", -50.0, 10.0)
+    b = {**a, "true_value": [0.0, 100.0, 210.0], "lanes": {"rl2s/1": {"sim_value": [0, 0, 10]}}}
+    s = wp.summary(rows + wp.lane_worst(b, "b.json"))
+    assert s["lanes"] == 4 and s["worst_counts"] == [("p2", 3), ("p0", 1)]
+    assert s["by_policy"]["p2"] == {"n": 3, "true_min": 200.0, "true_max": 210.0,
+                                    "sim_min": 10.0, "sim_max": 900.0, "mvd_max": 700.0}
+    assert s["median_mvd"] == pytest.approx(125.0)  # 700, 50, 50, 200
+    bad = {**a, "lanes": {"rl2s/0": {"sim_value": [1.0, 2.0]}}}
+    with pytest.raises(ValueError, match="lanes.rl2s/0.sim_value: expected 3 values"):
+        wp.lane_worst(bad)
+    path = tmp_path / "a.json"
+    path.write_text(json.dumps(a))
+    out = tmp_path / "out.json"
+    assert wp.main([str(path), "--json", str(out)]) == 0
+    written = json.loads(out.read_text())
+    assert written["summary"]["worst_counts"] == [["p2", 2], ["p0", 1]]
+    assert len(written["rows"]) == 3 and written["command"].endswith(str(path))

@@ -1,0 +1,100 @@
+"""Which test policy sets each lane's MVD (issue 41, item 1: the cause of a catastrophic seed).
+
+From `experiments/paper.py` result JSONs (each lane's simulated value of every test policy,
+``lanes[<method>/<seed>]["sim_value"]``, against ``true_value``), per lane: the test policy
+with the largest |simulated - true| value (the lane's MVD), its true and simulated value, and
+the second-largest error (what the MVD would be without that policy); pooled over the files:
+how often each policy is the worst, and the spread of its simulated value over the lanes.
+
+    python experiments/worst_policy.py docs/results/protocol_4gpu_h200/halfcheetah.json ...
+        [--json OUT]
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections import Counter
+
+import numpy as np
+
+
+def lane_worst(result: dict, source: str = "") -> list[dict]:
+    """-> one row per lane with a sim_value: {source, lane, policy, true, sim, mvd,
+    second}. Raises ValueError naming the field when a lane's values do not match the test
+    policies."""
+    truth = np.asarray(result["true_value"], np.float64)
+    names = result.get("test_policy_names") or [f"test-{i}" for i in range(len(truth))]
+    if len(names) != len(truth):
+        raise ValueError(f"test_policy_names: expected {len(truth)} names (true_value's), got "
+                         f"{len(names)}")
+    rows = []
+    for lane, info in sorted(result.get("lanes", {}).items()):
+        if "sim_value" not in info:
+            continue
+        sim = np.asarray(info["sim_value"], np.float64)
+        if sim.shape != truth.shape:
+            raise ValueError(f"lanes.{lane}.sim_value: expected {truth.shape[0]} values, got "
+                             f"{sim.shape}")
+        err = np.abs(sim - truth)
+        order = np.argsort(err)
+        i = int(order[-1])
+        rows.append({"source": source, "lane": lane, "policy": names[i],
+                     "true": float(truth[i]), "sim": float(sim[i]), "mvd": float(err[i]),
+                     "second": float(err[order[-2]]) if len(err) > 1 else 0.0})
+    return rows
+
+
+def summary(rows: list[dict]) -> dict:
+    """Pooled: {lanes, worst_counts [(policy, n)] most frequent first, median_mvd,
+    median_second, by_policy {policy: {n, true_min, true_max, sim_min, sim_max, mvd_max}}}
+    (the true value differs between data collections)."""
+    counts = Counter(r["policy"] for r in rows)
+    by = {}
+    for p, n in counts.most_common():
+        mine = [r for r in rows if r["policy"] == p]
+        by[p] = {"n": n, "true_min": min(r["true"] for r in mine),
+                 "true_max": max(r["true"] for r in mine), "sim_min": min(r["sim"] for r in mine),
+                 "sim_max": max(r["sim"] for r in mine), "mvd_max": max(r["mvd"] for r in mine)}
+    return {"lanes": len(rows), "worst_counts": counts.most_common(),
+            "median_mvd": float(np.median([r["mvd"] for r in rows])) if rows else None,
+            "median_second": float(np.median([r["second"] for r in rows])) if rows else None,
+            "by_policy": by}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("files", nargs="+", help="paper.py result JSONs (<task>.json)")
+    ap.add_argument("--json", help="write the rows and the summary here")
+    args = ap.parse_args(argv)
+    rows = []
+    for path in args.files:
+        with open(path) as f:
+            try:
+                rows += lane_worst(json.load(f), path)
+            except (KeyError, ValueError) as err:
+                raise SystemExit(f"{path}: {err}") from None
+    print(f"{'source':<50} {'lane':<10} {'worst policy':<18} {'true':>8} {'sim':>8} "
+          f"{'MVD':>7} {'2nd':>6}")
+    for r in rows:
+        print(f"{r['source'][-50:]:<50} {r['lane']:<10} {r['policy']:<18} {r['true']:>8.0f} "
+              f"{r['sim']:>8.0f} {r['mvd']:>7.0f} {r['second']:>6.0f}")
+    s = summary(rows)
+    print(f"{s['lanes']} lanes; worst policy: "
+          + ", ".join(f"{p} {n}x" for p, n in s["worst_counts"])
+          + f"; median MVD {s['median_mvd']:.0f}, median second-worst error "
+          f"{s['median_second']:.0f}")
+    for p, b in s["by_policy"].items():
+        true = (f"{b['true_min']:.0f}" if b["true_min"] == b["true_max"]
+                else f"{b['true_min']:.0f} .. {b['true_max']:.0f}")
+        print(f"  {p}: true {true}, simulated {b['sim_min']:.0f} .. {b['sim_max']:.0f} over "
+              f"the {b['n']} lanes it is worst in")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump({"command": "python experiments/worst_policy.py " + " ".join(args.files),
+                       "rows": rows, "summary": s}, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -4,7 +4,9 @@ From `experiments/paper.py` result JSONs (each lane's simulated value of every t
 ``lanes[<method>/<seed>]["sim_value"]``, against ``true_value``), per lane: the test policy
 with the largest |simulated - true| value (the lane's MVD), its true and simulated value, and
 the second-largest error (what the MVD would be without that policy); pooled over the files:
-how often each policy is the worst, and the spread of its simulated value over the lanes.
+how often each policy is the worst, and the spread of its simulated value over the lanes;
+per run and method, whether the policy the seeds disagree on most (the std over seeds of its
+simulated value) is the worst one (``seed_spread``: a signal that needs no true value).
 
     python experiments/worst_policy.py docs/results/protocol_4gpu_h200/halfcheetah.json ...
         [--json OUT]
@@ -45,6 +47,36 @@ def lane_worst(result: dict, source: str = "") -> list[dict]:
     return rows
 
 
+def seed_spread(result: dict, source: str = "") -> list[dict]:
+    """Whether the seeds' disagreement points at the worst policy: per method with 2+ seeds,
+    each test policy's spread (std over the seeds of its simulated value) against its largest
+    error over the seeds. -> [{source, method, seeds, rho (Spearman of spread and mean |error|
+    over the policies), worst (the policy of the largest error), worst_rank (its rank by
+    spread, 1 = the most disputed), top_spread (the most disputed policy)}]."""
+    truth = np.asarray(result["true_value"], np.float64)
+    names = result.get("test_policy_names") or [f"test-{i}" for i in range(len(truth))]
+    by_method: dict[str, list] = {}
+    for lane, info in sorted(result.get("lanes", {}).items()):
+        if "sim_value" in info:
+            by_method.setdefault(lane.split("/")[0], []).append(info["sim_value"])
+    out = []
+    for method, values in by_method.items():
+        sims = np.asarray(values, np.float64)  # [seeds, P]
+        if sims.shape[0] < 2 or sims.shape[1] < 2:
+            continue
+        spread, err = sims.std(0, ddof=1), np.abs(sims - truth)
+        worst = int(err.max(0).argmax())
+
+        def ranks(x):
+            return np.argsort(np.argsort(x))
+        rho = float(np.corrcoef(ranks(spread), ranks(err.mean(0)))[0, 1])
+        out.append({"source": source, "method": method, "seeds": int(sims.shape[0]),
+                    "rho": rho, "worst": names[worst],
+                    "worst_rank": int((spread > spread[worst]).sum()) + 1,
+                    "top_spread": names[int(spread.argmax())]})
+    return out
+
+
 def summary(rows: list[dict]) -> dict:
     """Pooled: {lanes, worst_counts [(policy, n)] most frequent first, median_mvd,
     median_second, by_policy {policy: {n, true_min, true_max, sim_min, sim_max, mvd_max}}}
@@ -67,13 +99,15 @@ def main(argv=None) -> int:
     ap.add_argument("files", nargs="+", help="paper.py result JSONs (<task>.json)")
     ap.add_argument("--json", help="write the rows and the summary here")
     args = ap.parse_args(argv)
-    rows = []
+    rows, spreads = [], []
     for path in args.files:
         with open(path) as f:
-            try:
-                rows += lane_worst(json.load(f), path)
-            except (KeyError, ValueError) as err:
-                raise SystemExit(f"{path}: {err}") from None
+            result = json.load(f)
+        try:
+            rows += lane_worst(result, path)
+            spreads += seed_spread(result, path)
+        except (KeyError, ValueError) as err:
+            raise SystemExit(f"{path}: {err}") from None
     print(f"{'source':<50} {'lane':<10} {'worst policy':<18} {'true':>8} {'sim':>8} "
           f"{'MVD':>7} {'2nd':>6}")
     for r in rows:
@@ -89,10 +123,16 @@ def main(argv=None) -> int:
                 else f"{b['true_min']:.0f} .. {b['true_max']:.0f}")
         print(f"  {p}: true {true}, simulated {b['sim_min']:.0f} .. {b['sim_max']:.0f} over "
               f"the {b['n']} lanes it is worst in")
+    if spreads:
+        first = sum(x["worst_rank"] == 1 for x in spreads)
+        top3 = sum(x["worst_rank"] <= 3 for x in spreads)
+        print(f"the seeds' disagreement: the worst policy is the most disputed one in {first} "
+              f"of {len(spreads)} (run, method) pairs, in the 3 most disputed in {top3}; "
+              f"median Spearman of spread and error {np.median([x['rho'] for x in spreads]):.2f}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"command": "python experiments/worst_policy.py " + " ".join(args.files),
-                       "rows": rows, "summary": s}, f, indent=1)
+                       "rows": rows, "summary": s, "seed_spread": spreads}, f, indent=1)
     return 0
 
 

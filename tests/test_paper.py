@@ -1068,3 +1068,27 @@ def test_worst_policy_names_the_policy_that_sets_each_lanes_mvd(tmp_path):
     written = json.loads(out.read_text())
     assert written["summary"]["worst_counts"] == [["p2", 2], ["p0", 1]]
     assert len(written["rows"]) == 3 and written["command"].endswith(str(path))
+
+
+def test_worst_policy_seed_spread_points_at_the_disputed_policy():
+    """seed_spread: per method with 2+ seeds, the std over seeds of each policy's simulated
+    value; the worst policy (largest error over the seeds) and its rank by that spread, the
+    most disputed policy and the Spearman correlation of spread and mean error (checked
+    against numbers worked by hand); one-seed methods are skipped."""
+    wp = _load("worst_policy")
+    r = {"true_value": [0.0, 10.0, 20.0], "test_policy_names": ["a", "b", "c"],
+         "lanes": {"rl2s/0": {"sim_value": [0.0, 12.0, 60.0]},
+                   "rl2s/1": {"sim_value": [1.0, 8.0, -20.0]},
+                   "gail/0": {"sim_value": [5.0, 15.0, 25.0]},
+                   "bc/0": {"sim_value": [0.0, 30.0, 20.0]},
+                   "bc/1": {"sim_value": [0.0, 50.0, 21.0]}}}
+    out = {x["method"]: x for x in wp.seed_spread(r, "r.json")}
+    assert set(out) == {"rl2s", "bc"}  # gail has one seed
+    assert (out["rl2s"]["worst"], out["rl2s"]["worst_rank"], out["rl2s"]["top_spread"]) == (
+        "c", 1, "c")
+    assert out["rl2s"]["rho"] == pytest.approx(1.0)  # spreads .7, 2.8, 56.6; errors .5, 2, 40
+    # bc: spreads 0, 14.1, .7; largest error b (40); mean errors 0, 30, .5 -> same order
+    assert (out["bc"]["worst"], out["bc"]["worst_rank"], out["bc"]["seeds"]) == ("b", 1, 2)
+    r["lanes"]["bc/1"]["sim_value"] = [12.0, 25.0, 20.0]  # spreads 8.5, 3.5, 0; b errs 20
+    bc = next(x for x in wp.seed_spread(r) if x["method"] == "bc")
+    assert (bc["worst"], bc["top_spread"], bc["worst_rank"]) == ("b", "a", 2)

@@ -161,7 +161,7 @@ def cmd_train(args) -> int:
 
 
 def cmd_evaluate(args) -> int:
-    from rl2s_jax.app.evaluate import evaluate_checkpoint, evaluate_oracle_data, format_report
+    from rl2s_jax.app import evaluate as ev
 
     if not os.path.exists(args.data):
         raise FileNotFoundError(f"data: no such file {args.data}")
@@ -169,9 +169,13 @@ def cmd_evaluate(args) -> int:
         raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
     kw = dict(zoo=args.zoo, policy_file=args.policy_file, seed=args.seed,
               n_episodes=args.episodes, horizon=args.horizon, n_boot=args.bootstrap)
-    report = (evaluate_oracle_data(args.data, **kw) if args.oracle
-              else evaluate_checkpoint(args.ckpt, args.data, step=args.step, **kw))
-    print(format_report(report))
+    if args.ckpt and len(args.ckpt) > 1:  # several simulators: where they disagree
+        report = ev.evaluate_checkpoints(args.ckpt, args.data, step=args.step, **kw)
+        print(ev.format_agreement(report))
+    else:
+        report = (ev.evaluate_oracle_data(args.data, **kw) if args.oracle
+                  else ev.evaluate_checkpoint(args.ckpt[0], args.data, step=args.step, **kw))
+        print(ev.format_report(report))
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
         with open(args.json, "w") as f:
@@ -412,7 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="VD and ranking of a checkpoint's simulator on a "
                        "dataset's policies (fresh process, no training data)")
-    p.add_argument("--ckpt", help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--ckpt", action="append", help="checkpoint directory (DIR/checkpoints); "
+                   "repeat it for several simulators of one task: each scored, and the "
+                   "policies whose values they disagree on most")
     p.add_argument("--oracle", action="store_true", help="evaluate the task's real dynamics "
                    "through the same path instead of a checkpoint (the ceiling)")
     p.add_argument("--data", required=True, help="Dataset of the policies to evaluate")

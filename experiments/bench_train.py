@@ -38,7 +38,10 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import glob
 import json
+import os
+import re
 import sys
 import time
 
@@ -93,9 +96,6 @@ def race_ratios(rows: list[dict], official: dict[int, dict], horizon: int) -> li
 
 def read_official(directory: str) -> dict[int, dict]:
     """official_p<P>.json files of DIR (the port's last JSON line each) -> {P: dict}."""
-    import glob
-    import os
-    import re
     found = {}
     for path in sorted(glob.glob(os.path.join(directory, "official_p*.json"))):
         m = re.fullmatch(r"official_p(\d+)\.json", os.path.basename(path))
@@ -244,17 +244,6 @@ def main(argv=None) -> int:
     vmaps = vmaps if args.vmap is None else args.vmap
     steps = args.steps or steps
     dtypes = [d.strip() for d in args.matmul_dtype.split(",") if d.strip()]
-    for d in dtypes:  # refused by name before any timing
-        dataclasses.replace(cfg, matmul_dtype=d).validate()
-    rate = matmul_rate(mm)
-    print(f"device {jax.devices()[0].device_kind} ({backend}), jax {jax.__version__}; profile "
-          f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen {cfg.gen_hidden}, "
-          f"disc {cfg.disc_hidden}, batch {cfg.batch_size}, "
-          f"{cfg.updates_per_step} gen x {cfg.disc_updates} critic updates/step, "
-          f"{cfg.sim_envs} sim envs x {cfg.sim_steps} steps, VD {cfg.vd_episodes} episodes x "
-          f"{cfg.vd_horizon} steps every {cfg.vd_every}", flush=True)
-    print(f"measured float32 matmul ({mm}^3, default precision): {rate / 1e12:.1f} TFLOP/s",
-          flush=True)
     runs = [(cfg, P, 1) for P in policies]
     runs += [(dataclasses.replace(cfg, vd_horizon=h), 17, 1) for h in horizons]
     runs += [(dataclasses.replace(cfg, sim_steps=s), 17, 1) for s in sims]
@@ -264,8 +253,17 @@ def main(argv=None) -> int:
         runs += [(part, c, 17, 1) for part, c in breakdown_configs(cfg)]
     runs = [(part, dataclasses.replace(c, matmul_dtype=d), P, v) for part, c, P, v in runs
             for d in dtypes]
-    for _, c, _, _ in runs:  # refused by name before any timing
+    for _, c, _, _ in runs:  # refused by name before any measurement
         c.validate()
+    rate = matmul_rate(mm)
+    print(f"device {jax.devices()[0].device_kind} ({backend}), jax {jax.__version__}; profile "
+          f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen {cfg.gen_hidden}, "
+          f"disc {cfg.disc_hidden}, batch {cfg.batch_size}, "
+          f"{cfg.updates_per_step} gen x {cfg.disc_updates} critic updates/step, "
+          f"{cfg.sim_envs} sim envs x {cfg.sim_steps} steps, VD {cfg.vd_episodes} episodes x "
+          f"{cfg.vd_horizon} steps every {cfg.vd_every}", flush=True)
+    print(f"measured float32 matmul ({mm}^3, default precision): {rate / 1e12:.1f} TFLOP/s",
+          flush=True)
     rows = []
     hdr = (f"{'row':>15} {'matmul':>8} {'P':>4} {'vd_H':>5} {'sim':>4} {'runs':>4} "
            f"{'ms/step':>9} "

@@ -49,10 +49,13 @@ def lane_worst(result: dict, source: str = "") -> list[dict]:
 
 def seed_spread(result: dict, source: str = "") -> list[dict]:
     """Whether the seeds' disagreement points at the worst policy: per method with 2+ seeds,
-    each test policy's spread (std over the seeds of its simulated value) against its largest
-    error over the seeds. -> [{source, method, seeds, rho (Spearman of spread and mean |error|
-    over the policies), worst (the policy of the largest error), worst_rank (its rank by
-    spread, 1 = the most disputed), top_spread (the most disputed policy)}]."""
+    ``app.evaluate.simulator_agreement`` of its seeds' simulated values (each test policy's
+    spread, the std over the seeds, against its errors). -> [{source, method, seeds, rho
+    (Spearman of spread and mean |error| over the policies), worst (the policy of the largest
+    error), worst_rank (its rank by spread, 1 = the most disputed), top_spread (the most
+    disputed policy)}]."""
+    from rl2s_jax.app.evaluate import simulator_agreement
+
     truth = np.asarray(result["true_value"], np.float64)
     names = result.get("test_policy_names") or [f"test-{i}" for i in range(len(truth))]
     by_method: dict[str, list] = {}
@@ -61,19 +64,12 @@ def seed_spread(result: dict, source: str = "") -> list[dict]:
             by_method.setdefault(lane.split("/")[0], []).append(info["sim_value"])
     out = []
     for method, values in by_method.items():
-        sims = np.asarray(values, np.float64)  # [seeds, P]
-        if sims.shape[0] < 2 or sims.shape[1] < 2:
+        if len(values) < 2 or len(truth) < 2:
             continue
-        spread, err = sims.std(0, ddof=1), np.abs(sims - truth)
-        worst = int(err.max(0).argmax())
-
-        def ranks(x):
-            return np.argsort(np.argsort(x))
-        rho = float(np.corrcoef(ranks(spread), ranks(err.mean(0)))[0, 1])
-        out.append({"source": source, "method": method, "seeds": int(sims.shape[0]),
-                    "rho": rho, "worst": names[worst],
-                    "worst_rank": int((spread > spread[worst]).sum()) + 1,
-                    "top_spread": names[int(spread.argmax())]})
+        a = simulator_agreement(values, truth, names, top_k=1)
+        out.append({"source": source, "method": method, "seeds": len(values),
+                    "rho": a["spearman_spread_error"], "worst": a["worst"],
+                    "worst_rank": a["worst_rank"], "top_spread": a["most_disputed"][0]})
     return out
 
 
@@ -128,7 +124,8 @@ def main(argv=None) -> int:
         top3 = sum(x["worst_rank"] <= 3 for x in spreads)
         print(f"the seeds' disagreement: the worst policy is the most disputed one in {first} "
               f"of {len(spreads)} (run, method) pairs, in the 3 most disputed in {top3}; "
-              f"median Spearman of spread and error {np.median([x['rho'] for x in spreads]):.2f}")
+              f"median Spearman of spread and error "
+              f"{np.median([x['rho'] for x in spreads if x['rho'] is not None]):.2f}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"command": "python experiments/worst_policy.py " + " ".join(args.files),

@@ -786,6 +786,9 @@ def test_paper_all_spreads_task_family_units_over_the_gpus(tmp_path):
                       if e.startswith(f"merge experiments/merge_results.py --task {t} "))
         assert all(ev.index(f"end {t} {f} {ran[(t, f)]}") < merged
                    for f in ("adversarial", "mle"))
+    first_merge = min(i for i, e in enumerate(ev) if e.startswith("merge"))
+    last_end = max(i for i, e in enumerate(ev) if e.startswith("end"))
+    assert first_merge < last_end  # a merge ran while other units were still running
     assert ev[-1] == "tables"
     sched = json.loads((out / "schedule.json").read_text())
     assert sched["gpus"] == 2 and len(sched["units"]) == 8 and len(sched["merges"]) == 4

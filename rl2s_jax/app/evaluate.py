@@ -14,6 +14,7 @@ import numpy as np
 
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
+from rl2s_jax.evaluate.metrics import spearman
 from rl2s_jax.evaluate.simulator import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.train.checkpoint import Checkpointer, load_checkpoint
 from rl2s_jax.zoo.zoo import policies_for
@@ -150,16 +151,6 @@ AGREEMENT_NOTE = ("spread: the std over the simulators of a policy's simulated v
                   "the values they disagree on; it cannot flag an error they all share.")
 
 
-def _ranks(x: np.ndarray) -> np.ndarray:
-    """Ranks 0..n-1 of ``x``, ties given their mean rank (as Spearman's rho wants)."""
-    order = np.argsort(x, kind="stable")
-    r = np.empty(len(x))
-    r[order] = np.arange(len(x), dtype=np.float64)
-    for v in np.unique(x):
-        r[x == v] = r[x == v].mean()
-    return r
-
-
 def simulator_agreement(sim_values, true_values=None, names=None, top_k: int = 3) -> dict:
     """How far S simulators of one data set agree on each policy's value (no true value needed).
 
@@ -205,8 +196,7 @@ def simulator_agreement(sim_values, true_values=None, names=None, top_k: int = 3
                  mean_abs_error=float(mean_err[i]))
     ok = np.isfinite(spread) & np.isfinite(mean_err)
     if ok.sum() >= 2 and np.ptp(spread[ok]) > 0 and np.ptp(mean_err[ok]) > 0:
-        out["spearman_spread_error"] = float(
-            np.corrcoef(_ranks(spread[ok]), _ranks(mean_err[ok]))[0, 1])
+        out["spearman_spread_error"] = spearman(spread[ok], mean_err[ok])
     big = np.where(np.isfinite(err), err, np.inf)
     worst = int(big.max(0).argmax())
     out.update(worst=names[worst], worst_rank=rank[worst],

@@ -20,15 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rl2s_jax.app.pipeline import collect_dataset
-from rl2s_jax.app.protocol_fork import (  # noqa: F401  (JOINED, join_trunk: re-exported)
-    JOINED,
-    Join,
-    Trunk,
-    join_refusal,
-    join_trunk,
-    take_lanes,
-    train_chunk,
-)
+from rl2s_jax.app.protocol_fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.values import true_values, true_values_se
 from rl2s_jax.evaluate.lanes import (
@@ -114,8 +106,6 @@ def none_if_nan(x):
     """float(x), None when it is not finite (JSON has no NaN)."""
     x = float(x)
     return x if np.isfinite(x) else None
-
-
 
 
 # ------------------------------------------------------------------ data

@@ -843,12 +843,14 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
     actors = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), tuned)
     pool = jnp.asarray(_pool(8))
     roll = dict(horizon=12, gamma=0.9, n_episodes=4)
-    accepted, index, chosen = guard_lanes(sims, start, actors, None, "pointmass", pool,
-                                          margin=0.0, floors=[0.0, 1e9], **roll)
+    accepted, index, chosen, gains = guard_lanes(sims, start, actors, None, "pointmass", pool,
+                                                 margin=0.0, floors=[0.0, 1e9], **roll)
     assert index is None and chosen == []
     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), start, tuned)
     v = member_values(sim, "pointmass", both, pool, jax.random.PRNGKey(40), **roll)
     np.testing.assert_array_equal(accepted[0], deployment_guard(v[:, :3], v[:, 3:], 0.0))
+    np.testing.assert_allclose(gains[0], v[:, 3:] - v[:, :3], rtol=1e-6)  # what was judged
+    np.testing.assert_array_equal(accepted[0], (gains[0] > 0).all(axis=0))
     assert accepted[0].any()  # the test needs a deployment that the floor then blocks
     assert not accepted[1].any()
     with pytest.raises(ValueError, match="floors"):

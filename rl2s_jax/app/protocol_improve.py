@@ -242,10 +242,10 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
             snaps, actors = actors, jax.tree_util.tree_map(lambda x: x[-1], actors)
         tag = "" if vi == 0 else f"[{variant}]"
         phase(f"improve_sac{tag}", t0)
-        accepted, chosen_index, chosen = None, None, []
+        accepted, chosen_index, chosen, gains = None, None, [], None
         if guard_margin is not None:  # each simulator's own verdict per policy
             t0 = time.perf_counter()
-            accepted, chosen_index, chosen = guard_lanes(
+            accepted, chosen_index, chosen, gains = guard_lanes(
                 v_sims, ft.policies, actors, snaps, ft.task, start_pool(test_ds),
                 margin=guard_margin, horizon=ft.horizon, gamma=ft.gamma,
                 floors=None if guard_floors is None else [guard_floors[i] for i in v_idx])
@@ -255,9 +255,13 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
         phase(f"improve_measure{tag}", t0)
         improvement, per_method, guarded, snapshot = _lane_entries(
             ft, v_lanes, methods, r, paired, sim_return, accepted, chosen_index)
-        if accepted is not None and guard_floors is not None:
-            for i, (m, s) in zip(v_idx, v_lanes, strict=True):
-                improvement[f"{m}/{s}"]["guard_floor"] = guard_floors[i]
+        if accepted is not None:
+            for j, (i, (m, s)) in enumerate(zip(v_idx, v_lanes, strict=True)):
+                entry = improvement[f"{m}/{s}"]
+                # [M][P]: what each elite member predicted; the guard read these
+                entry["guard_member_gain"] = np.asarray(gains[j], np.float64).tolist()
+                if guard_floors is not None:
+                    entry["guard_floor"] = guard_floors[i]
         if vi == 0:
             for m in per_method:
                 for k in IMPROVE_METRICS:

@@ -12,7 +12,8 @@
 #   bash experiments/paper_all.sh [OUT] [paper.py args]
 # Environment: PY (the python command, default python3), TASKS (default the four),
 # DATA_DIR (collected data, default OUT/data), RL2S_GPUS (the GPU count, default nvidia-smi's),
-# PAPER_UNITS=task (a whole task per unit on any number of GPUs; default family pairs).
+# PAPER_UNITS=task|family|auto (auto, the default: a whole task per unit when there are
+# at least as many GPUs as tasks and fewer than twice as many, else (task, family) pairs).
 set -uo pipefail
 OUT=${1:-results/paper}
 shift || true

@@ -18,8 +18,11 @@ row is kept.
 
 ``--units task`` (or PAPER_UNITS=task) makes a whole task the unit on any number of GPUs,
 costliest first: both families in one paper.py, so that the likelihood family's BC lanes
-continue from the adversarial family's pre-training (docs/SCALING.md), with one task per GPU
-when there are as many GPUs as tasks.
+continue from the adversarial family's pre-training (docs/SCALING.md). ``--units family``
+forces the pairs. The default, ``auto``, takes whole tasks when there are at least as many
+GPUs as tasks but fewer than twice as many (one task per GPU: 584 s against 622 s for the
+pairs on 4x H200, docs/BENCHMARKS.md), and the pairs otherwise (with fewer GPUs than tasks,
+or with enough GPUs for every family to have its own).
 
 With one GPU or none, a unit is a whole task (both families in one paper.py, OUT/<task>.json,
 log OUT/paper_<task>.log, also shown here), one after another: splitting would only add a
@@ -74,14 +77,17 @@ def split_families(args: list[str]) -> tuple[list[str], list[str]]:
 
 
 def plan(tasks: list[str], n_gpus: int, args: list[str], out: str,
-         units: str = "family") -> list[dict]:
+         units: str = "auto") -> list[dict]:
     """The units in queue order, each {task, family (None: every family), args, out, log,
     collects}; ``collects``: the task's first unit, which collects its data. ``units``
     "family": (task, family) pairs when there are two GPUs or more; "task": a whole task per
     unit whatever the GPUs (its families in one process, so that the likelihood family's BC
-    lanes can continue from the adversarial pre-training: docs/SCALING.md)."""
-    if units not in ("family", "task"):
-        raise SystemExit(f"units: expected family or task, got {units!r}")
+    lanes can continue from the adversarial pre-training: docs/SCALING.md); "auto": "task"
+    when len(tasks) <= n_gpus < 2 len(tasks), else "family"."""
+    if units not in ("auto", "family", "task"):
+        raise SystemExit(f"units: expected auto, family or task, got {units!r}")
+    if units == "auto":
+        units = "task" if len(tasks) <= n_gpus < 2 * len(tasks) else "family"
     if n_gpus <= 1 or units == "task":
         if n_gpus > 1:  # the costliest tasks first
             tasks = sorted(tasks, key=lambda t: -sum(COST.get(t, DEFAULT_COST).values()))
@@ -263,9 +269,10 @@ def main(argv=None) -> int:
     ap.add_argument("--py", default="python3", help="the python command of paper.py and "
                     "merge_results.py (may carry a prefix, e.g. 'timeout 560 python3')")
     ap.add_argument("--tasks", default="hopper walker2d halfcheetah ant")
-    ap.add_argument("--units", default=os.environ.get("PAPER_UNITS", "family"),
-                    help="family: (task, family) units with two GPUs or more (default); "
-                    "task: one process per task whatever the GPUs (env PAPER_UNITS)")
+    ap.add_argument("--units", default=os.environ.get("PAPER_UNITS", "auto"),
+                    help="auto (default): task when tasks <= GPUs < 2 x tasks, else family; "
+                    "family: (task, family) units with two GPUs or more; task: one process "
+                    "per task whatever the GPUs (env PAPER_UNITS)")
     args = ap.parse_args(argv)
     t0 = time.monotonic()
     tasks, py, n = args.tasks.split(), shlex.split(args.py), max(0, args.gpus)

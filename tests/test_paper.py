@@ -828,8 +828,23 @@ def test_paper_all_whole_task_units(tmp_path):
     sched = json.loads((out / "schedule.json").read_text())
     assert [u["family"] for u in sched["units"]] == [None] * 4 and sched["merges"] == []
     rc, ev, proc = _run_paper_all(tmp_path / "b", 2, env_extra={"PAPER_UNITS": "seed"})
-    assert rc != 0 and "units: expected family or task, got 'seed'" in proc.stderr
+    assert rc != 0 and "units: expected auto, family or task, got 'seed'" in proc.stderr
     assert not any(e.startswith("start") for e in ev)
+
+
+def test_paper_schedule_auto_units():
+    """units="auto": whole tasks when tasks <= GPUs < 2 x tasks (4 GPUs, 4 tasks: one task per
+    GPU, as measured), (task, family) pairs with fewer GPUs than tasks or twice as many."""
+    spec = importlib.util.spec_from_file_location(
+        "paper_schedule", os.path.join(os.path.dirname(__file__), "..", "experiments",
+                                       "paper_schedule.py"))
+    sched = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sched)
+    fams = lambda tasks, n: {u["family"] for u in sched.plan(list(tasks), n, [], "o")}
+    assert fams(TASKS4, 4) == fams(TASKS4, 7) == {None}
+    assert fams(TASKS4, 2) == fams(TASKS4, 3) == fams(TASKS4, 8) == {"adversarial", "mle"}
+    assert fams(("hopper",), 2) == {"adversarial", "mle"} and fams(("hopper",), 1) == {None}
+    assert [u["task"] for u in sched.plan(list(TASKS4), 4, [], "o")][0] == "ant"  # costliest
 
 
 def test_paper_all_failures_and_the_paths_without_units(tmp_path):

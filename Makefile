@@ -32,9 +32,10 @@ hopper walker2d halfcheetah ant: setup
 	$(VENV)/bin/rl2s pipeline --task $@
 
 # The paper's protocol on the four tasks (sizes by JAX backend, see experiments/paper.py)
-# into results/paper/<task>.json, then the tables; with 2+ GPUs the (task, family) units share
-# the GPUs costliest first, one process per GPU at a time, a task's data collected once, and
-# the wall time per unit is printed (experiments/paper_all.sh, docs/SCALING.md).
+# into results/paper/<task>.json, then the tables; with 2+ GPUs the units (a whole task per GPU
+# when tasks <= GPUs < 2 x tasks, else (task, family) pairs) share the GPUs costliest first,
+# one process per GPU at a time, a task's data collected once, and the wall time per unit is
+# printed (experiments/paper_all.sh, docs/SCALING.md).
 paper: setup
 	PY=$(PY) bash experiments/paper_all.sh results/paper
 

@@ -835,11 +835,7 @@ def test_paper_all_whole_task_units(tmp_path):
 def test_paper_schedule_auto_units():
     """units="auto": whole tasks when tasks <= GPUs < 2 x tasks (4 GPUs, 4 tasks: one task per
     GPU, as measured), (task, family) pairs with fewer GPUs than tasks or twice as many."""
-    spec = importlib.util.spec_from_file_location(
-        "paper_schedule", os.path.join(os.path.dirname(__file__), "..", "experiments",
-                                       "paper_schedule.py"))
-    sched = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(sched)
+    sched = _load("paper_schedule")
     fams = lambda tasks, n: {u["family"] for u in sched.plan(list(tasks), n, [], "o")}
     assert fams(TASKS4, 4) == fams(TASKS4, 7) == {None}
     assert fams(TASKS4, 2) == fams(TASKS4, 3) == fams(TASKS4, 8) == {"adversarial", "mle"}
@@ -1110,3 +1106,57 @@ def test_worst_policy_seed_spread_points_at_the_disputed_policy():
     r["lanes"]["bc/1"]["sim_value"] = [12.0, 25.0, 20.0]  # spreads 8.5, 3.5, 0; b errs 20
     bc = next(x for x in wp.seed_spread(r) if x["method"] == "bc")
     assert (bc["worst"], bc["top_spread"], bc["worst_rank"]) == ("b", "a", 2)
+
+
+def test_improvement_summary_by_hand(tmp_path):
+    """experiments/improvement_summary.py on two made-up one-seed runs of hopper's first three
+    test policies: the raw and guarded median gains, MPI / API, the deployed count, the paired
+    RL2S - GAIL median and the guard rules' counts equal the numbers worked by hand."""
+    from rl2s_jax.zoo.zoo import load_zoo
+    summ = _load("improvement_summary")
+    zoo = load_zoo("hopper")
+    zret = np.asarray(zoo.returns, np.float64)
+    test = list(zoo.split_ids("test"))
+    order = sorted(test, key=lambda i: zret[i])[:3]  # three below the top quartile
+    names = [f"hopper-{i:03d}" for i in test]
+    ids = [test.index(i) for i in order]
+    c0 = [100.0, 200.0, 400.0]
+
+    def run(seed, c1_rl2s, c1_gail, acc_rl2s, gain_rl2s):
+        lane = lambda m, c1, acc, g: {
+            "method": m, "seed": seed, "policy_ids": ids, "c0_paired": c0, "c1": c1,
+            "guard_accepted": acc, "guard_member_gain": g}
+        return {"task": "hopper", "command": f"paper.py --first-seed {seed}", "hardware": "h",
+                "sizes": {"improve_iterations": 10, "sac_envs": 4}, "test_policy_names": names,
+                "improvement": {f"rl2s/{seed}": lane("rl2s", c1_rl2s, acc_rl2s, gain_rl2s),
+                                f"gail/{seed}": lane("gail", c1_gail, [False] * 3,
+                                                     [[-1.0] * 3, [1.0] * 3])}}
+    runs = [run(0, [150.0, 180.0, 440.0], [100.0, 220.0, 400.0], [True, False, False],
+                [[5.0, -1.0, 2.0], [3.0, 2.0, 1.0]]),
+            run(1, [110.0, 200.0, 300.0], [120.0, 200.0, 400.0], [False, False, True],
+                [[1.0, 1.0, -2.0], [1.0, 1.0, 1.0]])]
+    paths = []
+    for k, r in enumerate(runs):
+        paths.append(tmp_path / f"r{k}.json")
+        paths[-1].write_text(json.dumps(r))
+    assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
+                      str(tmp_path / "o"), "--bootstrap", "50"]) == 0
+    s = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"]
+    rl2s, gail = s["methods"]["rl2s"], s["methods"]["gail"]
+    # rl2s I per seed: [.5, -.1, .1] and [.1, 0, -.25]; seed means [.3, -.05, -.075]
+    assert rl2s["median_gain_raw"] == pytest.approx(-0.05)
+    assert rl2s["median_gain_raw_per_seed"] == pytest.approx([0.1, 0.0])
+    # deployed: seed 0 policy 0 (I .5), seed 1 policy 2 (I -.25): means [.25, 0, -.125]
+    assert rl2s["median_gain"] == pytest.approx(0.0) and rl2s["deployed"] == 2
+    assert rl2s["mpi"] == pytest.approx((0.0 - 0.25) / 2)
+    assert rl2s["api"] == pytest.approx((0.5 / 3 - 0.25 / 3) / 2)
+    assert rl2s["worst_raw"] == pytest.approx(-0.25) and gail["deployed"] == 0
+    # gail I: [0, .1, 0] and [.2, 0, 0]; rl2s - gail: [.5, -.2, .1, -.1, 0, -.25]
+    pr = s["paired"]["rl2s-gail"]
+    assert pr["median"] == pytest.approx(-0.05) and pr["rl2s_higher"] == 2
+    assert pr["pairs"] == 6
+    every = s["guard_rules"]["rl2s"]["every member predicts a gain"]
+    assert every["deployed"] == 4 and every["worse_than_start"] == 0  # s0 p0, p2; s1 p0, p1
+    prot = s["guard_rules"]["rl2s"]["protocol guard (training-MVD floor)"]
+    assert prot["deployed"] == 2 and prot["worse_than_start"] == 1
+    assert s["budget_env_steps"] == 40

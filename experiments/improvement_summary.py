@@ -1,0 +1,178 @@
+"""Issue 39's summary of fine-tuning inside the learned simulators: per method, over the
+seeds of one or more ``experiments/paper.py`` runs with improvement (one seed each, e.g.
+``--first-seed K --seeds 1``), beside the task's real-env control (docs/results/<task>.json).
+
+    python experiments/improvement_summary.py --task hopper --runs A.json B.json C.json
+        [--control docs/results/hopper.json] [--out docs/results/improvement_in_sim]
+        [--bootstrap 2000]
+
+Per method: ``median_gain`` (``improve.finetune.median_gain``: median over the test policies
+that start below the zoo's top quartile of their real gain I = (C1 - C0) / |C0|, averaged
+over the seeds, with C0 measured paired with C1) both raw (every fine-tuned policy deployed)
+and through the protocol's guard (a kept start policy gains 0), the per-seed values, MPI / API
+raw and guarded (means over seeds), the deployed count, ``budget_env_steps`` (simulated env
+steps per policy) and the commands. ``paired``: RL2S's raw gain minus GAIL's and BC's per
+(seed, policy below the top quartile), the median and its 95% bootstrap interval over those
+pairs, and in how many RL2S gained more.
+``guard_rules``: what other deployment rules would have deployed, from the elite members'
+predicted gains the runs kept (``guard_member_gain``): "every member predicts a gain" (the
+guard without the training-MVD floor) against the protocol's guard. This reads the test
+policies' real gains, so it explains the guard's choice; it must not choose it.
+Writes OUT/<task>.json (the runs trimmed to what this summary reads, and the summary) and
+prints a table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from rl2s_jax.improve.finetune import median_gain
+from rl2s_jax.zoo.zoo import load_zoo
+
+KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",
+        "zoo_sha256", "sac_config", "improve_variant", "timings", "improvement")
+
+
+def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
+    """One row per (method, seed) lane of a paper.py result with improvement: the start
+    returns of its policies in the zoo, C0 (paired) and C1, the guard's verdicts and the
+    members' predicted gains [M, P]."""
+    names = run["test_policy_names"]
+    rows = []
+    for e in run["improvement"].values():
+        ids = e["policy_ids"]
+        zoo_ids = [int(names[i].rsplit("-", 1)[1]) for i in ids]
+        rows.append({"method": e["method"], "seed": e["seed"],
+                     "start": zoo_returns[zoo_ids], "c0": np.asarray(e["c0_paired"], float),
+                     "c1": np.asarray(e["c1"], float),
+                     "accepted": np.asarray(e["guard_accepted"], bool),
+                     "member_gain": (np.asarray(e["guard_member_gain"], float)
+                                     if "guard_member_gain" in e else None)})
+    return rows
+
+
+def _boot_median(x: np.ndarray, n: int, seed: int = 0) -> list[float]:
+    """95% bootstrap interval of the median (the gains of policies that start near 0 are
+    ratios of thousands: a mean would be theirs alone)."""
+    rng = np.random.default_rng(seed)
+    meds = np.median(x[rng.integers(0, len(x), (n, len(x)))], axis=1)
+    return [float(np.quantile(meds, 0.025)), float(np.quantile(meds, 0.975))]
+
+
+def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
+    """Per method: raw and guarded median gain (per seed and over seeds), MPI / API, deployed;
+    the paired RL2S differences; the guard rules' counts. rows: ``lane_rows`` of every run."""
+    out, gains = {}, {}
+    for m in dict.fromkeys(r["method"] for r in rows):
+        mine = sorted((r for r in rows if r["method"] == m), key=lambda r: r["seed"])
+        c0 = np.stack([r["c0"] for r in mine])
+        c1 = np.stack([r["c1"] for r in mine])
+        dep = np.stack([np.where(r["accepted"], r["c1"], r["c0"]) for r in mine])
+        start = mine[0]["start"]
+        raw, guarded = (median_gain(c0, c, start, zoo_returns) for c in (c1, dep))
+        per_seed = [median_gain(a, b, start, zoo_returns)["median_gain"]
+                    for a, b in zip(c0, c1, strict=True)]
+        per_seed_g = [median_gain(a, b, start, zoo_returns)["median_gain"]
+                      for a, b in zip(c0, dep, strict=True)]
+        i_raw, i_dep = (c1 - c0) / np.abs(c0), (dep - c0) / np.abs(c0)
+        below = np.asarray(raw["below"])
+        gains[m] = i_raw[:, below]  # [seeds, policies below the top quartile]
+        out[m] = {"seeds": [r["seed"] for r in mine], "policies": len(start),
+                  "n_below": raw["n_below"],
+                  "median_gain_raw": raw["median_gain"], "median_gain_raw_per_seed": per_seed,
+                  "median_gain": guarded["median_gain"],
+                  "median_gain_per_seed": per_seed_g,
+                  "mpi_raw": float(i_raw.min(1).mean()), "api_raw": float(i_raw.mean(1).mean()),
+                  "worst_raw": float(i_raw.min()),
+                  "mpi": float(i_dep.min(1).mean()), "api": float(i_dep.mean(1).mean()),
+                  "worst_deployed": float(i_dep.min()),
+                  "deployed": int(sum(r["accepted"].sum() for r in mine)),
+                  "lanes_x_policies": int(sum(len(r["accepted"]) for r in mine))}
+    paired = {}
+    for other in ("gail", "bc"):
+        if "rl2s" in gains and other in gains and gains["rl2s"].shape == gains[other].shape:
+            d = (gains["rl2s"] - gains[other]).ravel()
+            paired[f"rl2s-{other}"] = {"median": float(np.median(d)),
+                                       "ci95": _boot_median(d, n_boot),
+                                       "rl2s_higher": int((d > 0).sum()), "pairs": int(d.size)}
+    rules = {}
+    for m in out:
+        mine = [r for r in rows if r["method"] == m and r["member_gain"] is not None]
+        if not mine:
+            continue
+        real = np.concatenate([(r["c1"] - r["c0"]) / np.abs(r["c0"]) for r in mine])
+        every = np.concatenate([(r["member_gain"] > 0).all(axis=0) for r in mine])
+        prot = np.concatenate([r["accepted"] for r in mine])
+        rules[m] = {name: {"deployed": int(sel.sum()),
+                           "real_gain_median": (float(np.median(real[sel])) if sel.any()
+                                                else None),
+                           "real_gain_min": float(real[sel].min()) if sel.any() else None,
+                           "worse_than_start": int((real[sel] < 0).sum())}
+                    for name, sel in (("protocol guard (training-MVD floor)", prot),
+                                      ("every member predicts a gain", every))}
+    return {"methods": out, "paired": paired, "guard_rules": rules}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--task", required=True)
+    ap.add_argument("--runs", nargs="+", required=True, help="paper.py JSONs with improvement")
+    ap.add_argument("--control", help="the task's docs/results JSON with 'control'")
+    ap.add_argument("--out", default="docs/results/improvement_in_sim")
+    ap.add_argument("--bootstrap", type=int, default=2000)
+    args = ap.parse_args(argv)
+    runs = []
+    for path in args.runs:
+        with open(path) as f:
+            run = json.load(f)
+        if run.get("task") != args.task:
+            raise SystemExit(f"runs: {path} is task {run.get('task')!r}, not {args.task!r}")
+        if not run.get("improvement"):
+            raise SystemExit(f"runs: {path} has no improvement (paper.py "
+                             f"--improve-iterations 0?)")
+        runs.append({k: run[k] for k in KEEP if k in run})
+    seeds = [e["seed"] for r in runs for e in r["improvement"].values()]
+    if len(seeds) != len(set(seeds)) * len({e["method"] for r in runs
+                                            for e in r["improvement"].values()}):
+        raise SystemExit("runs: a (method, seed) lane appears twice or methods differ")
+    zoo_returns = np.asarray(load_zoo(args.task).returns, np.float64)
+    rows = [row for r in runs for row in lane_rows(r, zoo_returns)]
+    summary = summarise(rows, zoo_returns, args.bootstrap)
+    sizes = runs[0]["sizes"]
+    summary["budget_env_steps"] = sizes["improve_iterations"] * sizes["sac_envs"]
+    summary["commands"] = [r["command"] for r in runs]
+    summary["hardware"] = sorted({r.get("hardware", "") for r in runs})
+    if args.control:
+        with open(args.control) as f:
+            ctl = json.load(f)["control"]
+        summary["control"] = {k: ctl.get(k) for k in ("median_gain", "mpi", "api", "deployed",
+                                                      "seeds", "budget_env_steps", "command")}
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, f"{args.task}.json")
+    with open(path, "w") as f:
+        json.dump({"summary": summary, "runs": runs}, f, indent=1)
+    ctl = summary.get("control") or {}
+    print(f"{args.task}: budget {summary['budget_env_steps']} simulated env steps per policy"
+          + (f"; control median gain {ctl['median_gain']:+.3f}" if ctl.get("median_gain")
+             is not None else ""))
+    print(f"{'method':<8} {'raw median':>10} {'per seed':>22} {'guarded':>8} {'deployed':>9} "
+          f"{'MPI':>7} {'API':>7} {'worst raw':>9}")
+    for m, s in summary["methods"].items():
+        per = " / ".join(f"{g:+.2f}" for g in s["median_gain_raw_per_seed"])
+        print(f"{m:<8} {s['median_gain_raw']:>+10.3f} {per:>22} {s['median_gain']:>+8.3f} "
+              f"{s['deployed']:>4}/{s['lanes_x_policies']:<4} {s['mpi']:>+7.3f} "
+              f"{s['api']:>+7.3f} {s['worst_raw']:>+9.3f}")
+    for k, v in summary["paired"].items():
+        print(f"paired {k}: median {v['median']:+.3f} [{v['ci95'][0]:+.3f}, "
+              f"{v['ci95'][1]:+.3f}]; RL2S higher in {v['rl2s_higher']} of {v['pairs']} "
+              f"(seed, policy) pairs")
+    print(f"-> {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

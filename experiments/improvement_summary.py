@@ -18,6 +18,10 @@ pairs, and in how many RL2S gained more.
 predicted gains the runs kept (``guard_member_gain``): "every member predicts a gain" (the
 guard without the training-MVD floor) against the protocol's guard. This reads the test
 policies' real gains, so it explains the guard's choice; it must not choose it.
+``controls``: the same median gain for the runs' own controls when they have them: the
+fine-tuning inside the oracle (``paper.py --improve-oracle-seeds``: the simulated env with
+the real physics) and in the real env with the runs' SAC settings (``paper.py --control``),
+each over all of its seeds in all runs.
 Writes OUT/<task>.json (the runs trimmed to what this summary reads, and the summary) and
 prints a table.
 """
@@ -34,7 +38,8 @@ from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.zoo.zoo import load_zoo
 
 KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",
-        "zoo_sha256", "sac_config", "improve_variant", "timings", "improvement")
+        "zoo_sha256", "sac_config", "improve_variant", "timings", "improvement",
+        "oracle_improvement", "control")
 
 
 def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
@@ -53,6 +58,35 @@ def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
                      "member_gain": (np.asarray(e["guard_member_gain"], float)
                                      if "guard_member_gain" in e else None)})
     return rows
+
+
+def run_controls(runs: list[dict], zoo_returns: np.ndarray) -> dict:
+    """The runs' own controls as {"oracle_sim" / "real_env": {"median_gain", "seeds",
+    "median_gain_per_seed"}} (``median_gain`` of their C0 / C1 over all their seeds)."""
+    rows = {"oracle_sim": [], "real_env": []}
+    for run in runs:
+        names = run["test_policy_names"]
+        if "oracle_improvement" in run:
+            oi = run["oracle_improvement"]
+            zid = [int(names[i].rsplit("-", 1)[1]) for i in oi["policy_ids"]]
+            rows["oracle_sim"] += [(zid, p["c0_paired"], p["c1"]) for p in oi["per_seed"]]
+        if "control" in run:
+            c = run["control"]
+            zid = [int(names[i].rsplit("-", 1)[1]) for i in c["policy_ids"]]
+            rows["real_env"] += [(zid, a, b) for a, b in zip(c["c0"], c["c1"], strict=True)]
+    out = {}
+    for name, got in rows.items():
+        if not got:
+            continue
+        if len({tuple(z) for z, _, _ in got}) != 1:
+            raise SystemExit(f"runs: the {name} controls fine-tuned different policies")
+        start = zoo_returns[got[0][0]]
+        c0, c1 = np.asarray([a for _, a, _ in got]), np.asarray([b for _, _, b in got])
+        per_seed = [median_gain(a, b, start, zoo_returns)["median_gain"]
+                    for a, b in zip(c0, c1, strict=True)]
+        out[name] = {"median_gain": median_gain(c0, c1, start, zoo_returns)["median_gain"],
+                     "seeds": len(got), "median_gain_per_seed": per_seed}
+    return out
 
 
 def _boot_median(x: np.ndarray, n: int, seed: int = 0) -> list[float]:
@@ -142,6 +176,7 @@ def main(argv=None) -> int:
     zoo_returns = np.asarray(load_zoo(args.task).returns, np.float64)
     rows = [row for r in runs for row in lane_rows(r, zoo_returns)]
     summary = summarise(rows, zoo_returns, args.bootstrap)
+    summary["controls"] = run_controls(runs, zoo_returns)
     sizes = runs[0]["sizes"]
     summary["budget_env_steps"] = sizes["improve_iterations"] * sizes["sac_envs"]
     summary["commands"] = [r["command"] for r in runs]
@@ -166,6 +201,9 @@ def main(argv=None) -> int:
         print(f"{m:<8} {s['median_gain_raw']:>+10.3f} {per:>22} {s['median_gain']:>+8.3f} "
               f"{s['deployed']:>4}/{s['lanes_x_policies']:<4} {s['mpi']:>+7.3f} "
               f"{s['api']:>+7.3f} {s['worst_raw']:>+9.3f}")
+    for name, c in summary["controls"].items():
+        print(f"{name:<8} {c['median_gain']:>+10.3f} (the runs' own control, {c['seeds']} "
+              f"seed(s))")
     for k, v in summary["paired"].items():
         print(f"paired {k}: median {v['median']:+.3f} [{v['ci95'][0]:+.3f}, "
               f"{v['ci95'][1]:+.3f}]; RL2S higher in {v['rl2s_higher']} of {v['pairs']} "

@@ -78,6 +78,10 @@ checks the flags, the phases are ``rl2s_jax.app.protocol`` (data, oracle, traini
    that guard to the actor after every ``--sac-chunk`` iterations as well
    (``improve.select_by_members``: early stopping by the simulator alone) and measures the
    chosen snapshots in the real env: ablation entry ``<variant>+guard-snapshots``.
+   ``--improve-oracle-seeds N`` fine-tunes the same policies inside the oracle (the real
+   physics stepped from observations) through the first variant's simulated env: the
+   ``oracle_improvement`` entry, which tells the simulated env's set-up from the model's
+   errors in the gap between the control and the learned simulators.
 """
 from __future__ import annotations
 
@@ -111,6 +115,7 @@ from rl2s_jax.app.protocol_improve import (
     lane_training_mvd,
     run_control,
     run_improvement,
+    run_oracle_improvement,
     setup_fine_tuning,
 )
 from rl2s_jax.app.train import make_config, parse_overrides
@@ -161,6 +166,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--control", action="store_true", help="also fine-tune the same test "
                     "policies with the same SAC in the real env (the 'control' entry)")
     ap.add_argument("--control-seeds", type=pos, default=1, help="SAC seeds of the control")
+    ap.add_argument("--improve-oracle-seeds", type=int, default=0, help="also fine-tune the "
+                    "same test policies inside the oracle (the real physics stepped from "
+                    "observations) through the first variant's simulated env, this many SAC "
+                    "seeds: result['oracle_improvement'], the control between the real env "
+                    "and the learned simulators")
     ap.add_argument("--improve-variants", default="full", help="comma list of simulated-env "
                     "variants, each '+'-joined: full|branched [+penalty] [+stop]; the first "
                     "gives MPI/API, all go to 'ablation'")
@@ -379,16 +389,17 @@ def main(argv=None) -> int:
 
     # ---- 3. improvement
     it = sizes["improve_iterations"]
-    if it and (sizes["improve_seeds"] or args.control):
+    oracle_seeds = max(0, args.improve_oracle_seeds)
+    if it and (sizes["improve_seeds"] or args.control or oracle_seeds):
         ft = setup_fine_tuning(result, args.task, test_ds, test_pols, sizes,
                                next(iter(configs.values())).vd_horizon,
                                {**PROFILES[profile]["sac"], **sac_overrides})
+    settings_of = partial(variant_settings, branch_length=args.branch_length,
+                          uncertainty_penalty=args.uncertainty_penalty,
+                          uncertainty_threshold=args.uncertainty_threshold,
+                          halt_penalty=args.halt_penalty)
     if it and sizes["improve_seeds"]:
         lanes, sims = lane_simulators(finals, seed_ids[0] + sizes["improve_seeds"])
-        settings_of = partial(variant_settings, branch_length=args.branch_length,
-                              uncertainty_penalty=args.uncertainty_penalty,
-                              uncertainty_threshold=args.uncertainty_threshold,
-                              halt_penalty=args.halt_penalty)
         floors = (lane_training_mvd(finals, seed_ids[0] + sizes["improve_seeds"],
                                     ft.horizon, ft.gamma)
                   if args.guard_floor == "mvd" else None)
@@ -396,6 +407,10 @@ def main(argv=None) -> int:
                         ablation_methods=ablation_methods, guard_margin=args.guard_margin,
                         guard_snapshots=args.guard_snapshots, phase=phase, save=save,
                         guard_floors=floors)
+    if it and oracle_seeds:
+        run_oracle_improvement(result, ft, test_ds, variants[0], settings_of(variants[0]),
+                               oracle_seeds, phase)
+        save()
     if it and args.control:
         run_control(result, ft, args.control_seeds, phase)
     timings["total"] = round(time.perf_counter() - t_start, 1)

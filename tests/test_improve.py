@@ -866,3 +866,35 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
     assert lane_training_mvd(finals, 1, 12, 0.99) == [0.0, 0.0, 0.0]  # another gamma
     finals["mle"][1].vd[0, 0] = np.nan  # a lane not yet measured: no floor
     assert lane_training_mvd(finals, 1, 12, 0.9) == [5.0, 4.0, 0.0]
+
+
+def test_oracle_improvement_matches_the_real_env_on_pointmass(pointmass_ppo):
+    """app.protocol_improve.run_oracle_improvement: fine-tuning inside the oracle (pointmass's
+    is exact) through the simulated env gains what the real env gives (the control above:
+    18 -> 42 for the mediocre snapshot), keeps the near-optimal one, and records per seed the
+    paired C0 / C1 and the I, MPI and API they give."""
+    from types import SimpleNamespace
+
+    from rl2s_jax.app.protocol_improve import FineTuning, run_oracle_improvement
+
+    ret = pointmass_ppo["returns"]
+    ids = [1, 4]
+    cfg = SACConfig.fine_tuning(n_envs=8, batch_size=128, hidden=(64, 64), warmup_steps=16,
+                                buffer_size=20_000, episode_length=50, updates_per_step=2,
+                                critic_warmup_updates=400)
+    ft = FineTuning(task=TASK, ids=ids, c0=ret[ids], horizon=50, sac=cfg, iterations=1000,
+                    chunk=500, episodes=64, episode_length=50, gamma=0.99,
+                    policies=pol.index_params(pointmass_ppo["params"], np.asarray(ids)))
+    data = SimpleNamespace(obs=_pool(64), t=np.zeros(64, np.int32))  # every row a start
+    result, phases = {}, []
+    run_oracle_improvement(result, ft, data, "full", {"rollout_length": None}, 1,
+                           lambda name, t0: phases.append(name))
+    oi = result["oracle_improvement"]
+    assert phases == ["improve_oracle"] and oi["seeds"] == 1 and oi["env_options"] == {}
+    (s,) = oi["per_seed"]
+    c0, c1 = np.asarray(s["c0_paired"]), np.asarray(s["c1"])
+    assert c1[0] > c0[0] + 10, s  # the mediocre snapshot gains as in the real env
+    assert c1[1] > c0[1] - 1.5, s  # the near-optimal one stays
+    np.testing.assert_allclose(s["I_paired"], (c1 - c0) / np.abs(c0), rtol=1e-6)
+    assert oi["mpi"] == pytest.approx(min(s["I_paired"]))
+    assert oi["api"] == pytest.approx(np.mean(s["I_paired"]))

@@ -1135,6 +1135,9 @@ def test_improvement_summary_by_hand(tmp_path):
                 [[5.0, -1.0, 2.0], [3.0, 2.0, 1.0]]),
             run(1, [110.0, 200.0, 300.0], [120.0, 200.0, 400.0], [False, False, True],
                 [[1.0, 1.0, -2.0], [1.0, 1.0, 1.0]])]
+    runs[0]["oracle_improvement"] = {"policy_ids": ids, "per_seed": [
+        {"c0_paired": c0, "c1": [200.0, 300.0, 600.0]}]}  # I 1, .5, .5
+    runs[1]["control"] = {"policy_ids": ids, "c0": [c0], "c1": [[110.0, 220.0, 440.0]]}
     paths = []
     for k, r in enumerate(runs):
         paths.append(tmp_path / f"r{k}.json")
@@ -1160,3 +1163,6 @@ def test_improvement_summary_by_hand(tmp_path):
     prot = s["guard_rules"]["rl2s"]["protocol guard (training-MVD floor)"]
     assert prot["deployed"] == 2 and prot["worse_than_start"] == 1
     assert s["budget_env_steps"] == 40
+    assert s["controls"]["oracle_sim"]["median_gain"] == pytest.approx(0.5)
+    assert s["controls"]["real_env"]["median_gain"] == pytest.approx(0.1)
+    assert s["controls"]["real_env"]["seeds"] == 1

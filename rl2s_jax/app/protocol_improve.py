@@ -327,3 +327,49 @@ def run_control(result: dict, ft: FineTuning, n_seeds: int,
     cc = result["control"]
     log(f"[paper] control (real env): MPI {fmt_ms(cc['mpi'], cc['mpi_std'])}  API "
         f"{fmt_ms(cc['api'], cc['api_std'])} over {n_seeds} seed(s)")
+
+
+def run_oracle_improvement(result: dict, ft: FineTuning, test_ds, variant: str, settings: dict,
+                           n_seeds: int, phase: Callable[[str, float], None]) -> None:
+    """The same fine-tuning inside the oracle simulator (``evaluate.oracle``: the real physics
+    stepped from each observation) through the simulated env of ``variant`` (its rollouts and
+    start states; the oracle has no ensemble, so a penalty or stop on u is a no-op), ``n_seeds``
+    times, measured like the lanes: result["oracle_improvement"]. Between the real-env control
+    and the learned simulators it splits a gap in two: what the simulated env's set-up costs
+    (branches from the data's states, the task's reward and termination functions) and what
+    the learned model's errors cost. ``phase("improve_oracle", t0)`` its timing."""
+    from rl2s_jax.evaluate.oracle import oracle_dynamics
+    from rl2s_jax.improve.finetune import improve_policies
+
+    t0 = time.perf_counter()
+    opts = ({"rollout_length": int(settings["rollout_length"])}
+            if settings.get("rollout_length") else {})
+    pool = (branch_pool(test_ds, max_states=100_000) if opts else start_pool(test_ds))
+    log(f"[paper] oracle improvement ({variant}, {opts or 'whole episodes'}): the same SAC x "
+        f"{ft.iterations} iterations inside the real dynamics stepped from observations, for "
+        f"{len(ft.ids)} test policies x {n_seeds} seed(s)")
+    P = len(ft.ids)
+    tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * n_seeds), ft.policies)
+    actors, metrics = improve_policies(
+        oracle_dynamics(ft.task), ft.task, pool, tiled, jax.random.PRNGKey(50), ft.sac,
+        n_iterations=ft.iterations, chunk_iterations=ft.chunk, env_options=opts)
+    actors = jax.tree_util.tree_map(lambda x: x.reshape((n_seeds, P) + x.shape[1:]), actors)
+    r, paired = _measure(ft, actors, [])
+    sim_return = np.asarray(episode_returns(  # [R, P]: the episodes of the last chunk
+        jax.tree_util.tree_map(lambda x: x[:, -ft.chunk:], metrics))).reshape(n_seeds, P)
+    per = []
+    for s, pr in enumerate(paired):
+        per.append({"seed": s, "c0_paired": pr["c0"].tolist(), "c1": pr["c1"].tolist(),
+                    "c1_se": pr["c1_se"].tolist(), "diff_se": pr["diff_se"].tolist(),
+                    "I_paired": pr["I"].tolist(), "mpi_paired": pr["mpi"],
+                    "api_paired": pr["api"],
+                    "sim_return": [none_if_nan(x) for x in sim_return[s]]})
+    result["oracle_improvement"] = {
+        "variant": variant, "env_options": opts, "policy_ids": ft.ids, "c0": ft.c0.tolist(),
+        "seeds": n_seeds, "paired_episodes": int(r.shape[-1]), "per_seed": per,
+        "mpi": float(np.mean([p["mpi_paired"] for p in per])),
+        "api": float(np.mean([p["api_paired"] for p in per]))}
+    phase("improve_oracle", t0)
+    oi = result["oracle_improvement"]
+    log(f"[paper] oracle improvement: MPI {oi['mpi']:+.3f}  API {oi['api']:+.3f} over "
+        f"{n_seeds} seed(s)")

@@ -19,7 +19,8 @@
 #   bash experiments/device.sh race                               the official loop's torch
 #       port (.race/official_loop.py: copy ../shared/tools/official_port/ to .race/ here, git
 #       ignores it, carry it) at P=17 and 64, then bench_train.py --official-sizes --breakdown
-#       (equal work) and the default family beside it, then equal work again with XLA's
+#       (equal work) and the default family beside it (--breakdown too: where the protocol
+#       step's time goes), then equal work again with XLA's
 #       command buffers over loops; $OUT/official_p<P>.json, race_equal_work.json,
 #       race_default.json, race_equal_work_cmdbuf.json (each with its "race" ratios)
 #   bash experiments/device.sh zoo TASK [TASK ...]                `rl2s zoo` side by side
@@ -185,7 +186,7 @@ cmd_race() {
     --policies 17 64 --horizons --sim-steps --vmap 8 --official-dir "$OUT" \
     --json "$OUT/race_equal_work.json"
   run_logged race.log python3 experiments/bench_train.py --policies 17 64 --horizons \
-    --sim-steps --vmap 8 --official-dir "$OUT" --json "$OUT/race_default.json"
+    --sim-steps --vmap 8 --breakdown --official-dir "$OUT" --json "$OUT/race_default.json"
   # The single run is launch-bound (BENCHMARKS, "The race"): the same equal-work rows with
   # XLA's command buffers (CUDA graphs) also capturing loops and conditionals, so a whole
   # scan of updates can launch as one graph (WHILE and CONDITIONAL are not in XLA's default)

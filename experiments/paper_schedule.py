@@ -11,7 +11,7 @@ unit that is ready. A task's data is collected once: its first unit in the queue
 adversarial one) collects it into --data-dir, with the oracle and ``--control`` if asked; its
 other units run with ``--no-oracle`` and without ``--control`` and are ready only once that
 unit has printed ``[paper] data: `` (or has ended, when it failed before that: then the next
-one collects). As soon as all of a task's units have ended, and they all succeeded, the task
+one collects, with the oracle and ``--control``). As soon as all of a task's units have ended, and they all succeeded, the task
 is merged into OUT/<task>.json by experiments/merge_results.py (log OUT/merge_<task>.log; in
 a thread, beside the units still running), the collecting unit's file first so its oracle
 row is kept.
@@ -103,6 +103,9 @@ def plan(tasks: list[str], n_gpus: int, args: list[str], out: str,
         extra = rest if first else [a for a in rest if a != "--control"] + ["--no-oracle"]
         units.append({"task": t, "family": f, "collects": first,
                       "args": [*extra, "--families", f],
+                      # the args if it must collect after all (the collecting unit failed
+                      # before its data): the oracle and control go with the data
+                      "collect_args": [*rest, "--families", f],
                       "out": os.path.join(out, "units", f"{t}_{f}"),
                       "log": os.path.join(out, f"paper_{t}_{f}.log")})
     return units
@@ -170,7 +173,11 @@ def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: 
             continue
         unit["wall_s"] = round(time.monotonic() - t0 - unit["start_s"], 1)
         unit["rc"] = rc
-        data_done.add(unit["task"])  # ended: nobody collects its data now
+        if rc != 0 and unit["collects"] and "data_s" not in unit:
+            heir = next((u for u in pending if u["task"] == unit["task"]), None)
+            if heir is not None:  # it collects now, with the oracle and the control
+                heir.update(collects=True, args=heir.get("collect_args", heir["args"]))
+        data_done.add(unit["task"])  # ended: nobody waits for its data now
         free = sorted(free + [unit["gpu"]])
         running -= 1
         print(f"[paper_all] {name(unit)} ended with {rc} after {unit['wall_s']:.0f}s",

@@ -845,18 +845,23 @@ def test_paper_schedule_auto_units():
 
 def test_paper_all_failures_and_the_paths_without_units(tmp_path):
     """A unit failing before its data line: the task's other unit then runs after it (it
-    collects the data itself, never beside it), every other unit runs, that task is not
+    collects the data itself, never beside it, with the oracle and the control that went
+    with the data), every other unit runs, that task is not
     merged, no tables, exit 1 naming the unit and its log. RL2S_GPUS overrides nvidia-smi.
     With one GPU or none: one paper.py per task (both families), one after another, a failed
     task after the others, no merge."""
     rc, ev, proc = _run_paper_all(tmp_path / "a", 4, fail="walker2d/adversarial",
-                                  env_extra={"RL2S_GPUS": "2"})
+                                  env_extra={"RL2S_GPUS": "2"}, args=("--control",))
     out = tmp_path / "a" / "out"
     assert rc == 1 and "tables" not in ev
     ran = _check_one_process_per_gpu(ev)
     assert len(ran) == 8 and set(ran.values()) == {"gpu=0", "gpu=1"}
+    heir = next(e for e in ev if e.startswith("start walker2d mle"))
     assert (ev.index(f"end walker2d adversarial {ran[('walker2d', 'adversarial')]}")
-            < ev.index(next(e for e in ev if e.startswith("start walker2d mle"))))
+            < ev.index(heir))
+    # it collects in the failed unit's place, so the oracle and the control go with it
+    assert "--no-oracle" not in heir and "--control" in heir
+    assert "--no-oracle" in next(e for e in ev if e.startswith("start hopper mle"))
     assert sorted(e.split()[3] for e in ev if e.startswith("merge")) == [
         "ant", "halfcheetah", "hopper"]
     assert (f"FAILED walker2d/adversarial (exit 3, log {out}/paper_walker2d_adversarial.log)"

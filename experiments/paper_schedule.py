@@ -11,8 +11,8 @@ unit that is ready. A task's data is collected once: its first unit in the queue
 adversarial one) collects it into --data-dir, with the oracle and ``--control`` if asked; its
 other units run with ``--no-oracle`` and without ``--control`` and are ready only once that
 unit has printed ``[paper] data: `` (or has ended, when it failed before that: then the next
-one collects, with the oracle and ``--control``). As soon as all of a task's units have ended, and they all succeeded, the task
-is merged into OUT/<task>.json by experiments/merge_results.py (log OUT/merge_<task>.log; in
+one collects, with the oracle and ``--control``). As soon as all of a task's units have
+ended, and they all succeeded, the task is merged into OUT/<task>.json by experiments/merge_results.py (log OUT/merge_<task>.log; in
 a thread, beside the units still running), the collecting unit's file first so its oracle
 row is kept.
 

@@ -12,9 +12,9 @@ adversarial one) collects it into --data-dir, with the oracle and ``--control`` 
 other units run with ``--no-oracle`` and without ``--control`` and are ready only once that
 unit has printed ``[paper] data: `` (or has ended, when it failed before that: then the next
 one collects, with the oracle and ``--control``). As soon as all of a task's units have
-ended, and they all succeeded, the task is merged into OUT/<task>.json by experiments/merge_results.py (log OUT/merge_<task>.log; in
-a thread, beside the units still running), the collecting unit's file first so its oracle
-row is kept.
+ended, and they all succeeded, the task is merged into OUT/<task>.json by
+experiments/merge_results.py (log OUT/merge_<task>.log; in a thread, beside the units still
+running), the collecting unit's file first so its oracle row is kept.
 
 ``--units task`` (or PAPER_UNITS=task) makes a whole task the unit on any number of GPUs,
 costliest first: both families in one paper.py, so that the likelihood family's BC lanes

@@ -25,7 +25,13 @@ from rl2s_jax.app.protocol import (
 )
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import Task, get_task
-from rl2s_jax.improve.finetune import improve_in_real_env, improvement_metrics, paired_returns
+from rl2s_jax.evaluate.oracle import oracle_dynamics
+from rl2s_jax.improve.finetune import (
+    improve_in_real_env,
+    improve_policies,
+    improvement_metrics,
+    paired_returns,
+)
 from rl2s_jax.improve.lanes import finite_mean, guard_lanes, improve_in_lanes, pick_policies
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
@@ -338,9 +344,6 @@ def run_oracle_improvement(result: dict, ft: FineTuning, test_ds, variant: str, 
     and the learned simulators it splits a gap in two: what the simulated env's set-up costs
     (branches from the data's states, the task's reward and termination functions) and what
     the learned model's errors cost. ``phase("improve_oracle", t0)`` its timing."""
-    from rl2s_jax.evaluate.oracle import oracle_dynamics
-    from rl2s_jax.improve.finetune import improve_policies
-
     t0 = time.perf_counter()
     opts = ({"rollout_length": int(settings["rollout_length"])}
             if settings.get("rollout_length") else {})

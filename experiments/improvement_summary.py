@@ -23,7 +23,8 @@ fine-tuning inside the oracle (``paper.py --improve-oracle-seeds``: the simulate
 the real physics) and in the real env with the runs' SAC settings (``paper.py --control``),
 each over all of its seeds in all runs.
 Writes OUT/<task>.json (the runs trimmed to what this summary reads, and the summary) and
-prints a table.
+OUT/<task>.png (per method every (seed, policy)'s real gain, the guard's deployments marked,
+beside the control's median), and prints a table.
 """
 from __future__ import annotations
 
@@ -58,6 +59,40 @@ def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
                      "member_gain": (np.asarray(e["guard_member_gain"], float)
                                      if "guard_member_gain" in e else None)})
     return rows
+
+
+def plot(rows: list[dict], summary: dict, task: str, path: str) -> None:
+    """Per method the real gain I of every (seed, policy) fine-tuned in its simulators (x: the
+    policy's start return in the zoo; filled: deployed by the guard), on a symlog axis, with
+    the control's median gain of the policies below the top quartile as a line."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    methods = list(summary["methods"])
+    fig, axes = plt.subplots(1, len(methods), figsize=(3.2 * len(methods), 3.2), sharey=True,
+                             squeeze=False)
+    ctl = (summary.get("control") or {}).get("median_gain")
+    for ax, m in zip(axes[0], methods, strict=True):
+        for r in (r for r in rows if r["method"] == m):
+            gain = (r["c1"] - r["c0"]) / np.abs(r["c0"])
+            ax.scatter(r["start"][~r["accepted"]], gain[~r["accepted"]], s=14,
+                       facecolors="none", edgecolors="tab:blue")
+            ax.scatter(r["start"][r["accepted"]], gain[r["accepted"]], s=18, c="tab:green")
+        ax.axhline(0, color="0.6", lw=0.8)
+        if ctl is not None:
+            ax.axhline(ctl, color="tab:red", ls="--", lw=1, label=f"control median {ctl:+.2f}")
+            ax.legend(fontsize=7, loc="upper right")
+        s = summary["methods"][m]
+        ax.set_title(f"{m}: median {s['median_gain_raw']:+.2f} raw, {s['deployed']} deployed",
+                     fontsize=8)
+        ax.set_yscale("symlog", linthresh=0.1)
+        ax.set_xlabel("start return (zoo)", fontsize=8)
+    axes[0][0].set_ylabel("real gain I (open: kept by the guard)", fontsize=8)
+    fig.suptitle(f"{task}: fine-tuning inside the learned simulators", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def run_controls(runs: list[dict], zoo_returns: np.ndarray) -> dict:
@@ -190,6 +225,7 @@ def main(argv=None) -> int:
     path = os.path.join(args.out, f"{args.task}.json")
     with open(path, "w") as f:
         json.dump({"summary": summary, "runs": runs}, f, indent=1)
+    plot(rows, summary, args.task, os.path.join(args.out, f"{args.task}.png"))
     ctl = summary.get("control") or {}
     print(f"{args.task}: budget {summary['budget_env_steps']} simulated env steps per policy"
           + (f"; control median gain {ctl['median_gain']:+.3f}" if ctl.get("median_gain")

@@ -1171,3 +1171,4 @@ def test_improvement_summary_by_hand(tmp_path):
     assert s["controls"]["oracle_sim"]["median_gain"] == pytest.approx(0.5)
     assert s["controls"]["real_env"]["median_gain"] == pytest.approx(0.1)
     assert s["controls"]["real_env"]["seeds"] == 1
+    assert (tmp_path / "o" / "hopper.png").stat().st_size > 10_000  # the figure

@@ -43,17 +43,22 @@ KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test
         "oracle_improvement", "control")
 
 
+def zoo_ids(run: dict, ids: list[int]) -> list[int]:
+    """The zoo ids of test policies ``ids`` of a paper.py result (from its
+    ``test_policy_names``, "<task>-<zoo id>")."""
+    names = run["test_policy_names"]
+    return [int(names[i].rsplit("-", 1)[1]) for i in ids]
+
+
 def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
     """One row per (method, seed) lane of a paper.py result with improvement: the start
     returns of its policies in the zoo, C0 (paired) and C1, the guard's verdicts and the
     members' predicted gains [M, P]."""
-    names = run["test_policy_names"]
     rows = []
     for e in run["improvement"].values():
-        ids = e["policy_ids"]
-        zoo_ids = [int(names[i].rsplit("-", 1)[1]) for i in ids]
         rows.append({"method": e["method"], "seed": e["seed"],
-                     "start": zoo_returns[zoo_ids], "c0": np.asarray(e["c0_paired"], float),
+                     "start": zoo_returns[zoo_ids(run, e["policy_ids"])],
+                     "c0": np.asarray(e["c0_paired"], float),
                      "c1": np.asarray(e["c1"], float),
                      "accepted": np.asarray(e["guard_accepted"], bool),
                      "member_gain": (np.asarray(e["guard_member_gain"], float)
@@ -100,14 +105,13 @@ def run_controls(runs: list[dict], zoo_returns: np.ndarray) -> dict:
     "median_gain_per_seed"}} (``median_gain`` of their C0 / C1 over all their seeds)."""
     rows = {"oracle_sim": [], "real_env": []}
     for run in runs:
-        names = run["test_policy_names"]
         if "oracle_improvement" in run:
             oi = run["oracle_improvement"]
-            zid = [int(names[i].rsplit("-", 1)[1]) for i in oi["policy_ids"]]
+            zid = zoo_ids(run, oi["policy_ids"])
             rows["oracle_sim"] += [(zid, p["c0_paired"], p["c1"]) for p in oi["per_seed"]]
         if "control" in run:
             c = run["control"]
-            zid = [int(names[i].rsplit("-", 1)[1]) for i in c["policy_ids"]]
+            zid = zoo_ids(run, c["policy_ids"])
             rows["real_env"] += [(zid, a, b) for a, b in zip(c["c0"], c["c1"], strict=True)]
     out = {}
     for name, got in rows.items():

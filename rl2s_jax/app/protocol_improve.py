@@ -200,6 +200,15 @@ def _lane_entries(ft: FineTuning, lanes, methods, r, paired, sim_return, accepte
     return improvement, per_method, guarded_method, snapshot_method
 
 
+def variant_pool(test_ds, settings: dict):
+    """The real states a variant's simulated episodes start from [S, o]: every state of the
+    test data for a branched variant (``settings["rollout_length"]``; at most 100,000), its
+    episode starts otherwise."""
+    if settings.get("rollout_length"):
+        return branch_pool(test_ds, max_states=100_000)
+    return start_pool(test_ds)
+
+
 def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants, *,
                     settings_of: Callable[[str], dict], ablation_methods,
                     guard_margin: float | None, guard_snapshots: bool,
@@ -228,8 +237,7 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
             continue
         v_lanes, v_sims = [lanes[i] for i in v_idx], take_lanes(sims, v_idx)
         settings = settings_of(variant)
-        pool = (branch_pool(test_ds, max_states=100_000) if settings["rollout_length"]
-                else start_pool(test_ds))
+        pool = variant_pool(test_ds, settings)
 
         def env_options(sim, settings=settings):
             return scaled_env_options(sim, *u_rows, **settings)
@@ -347,7 +355,7 @@ def run_oracle_improvement(result: dict, ft: FineTuning, test_ds, variant: str, 
     t0 = time.perf_counter()
     opts = ({"rollout_length": int(settings["rollout_length"])}
             if settings.get("rollout_length") else {})
-    pool = (branch_pool(test_ds, max_states=100_000) if opts else start_pool(test_ds))
+    pool = variant_pool(test_ds, settings)
     log(f"[paper] oracle improvement ({variant}, {opts or 'whole episodes'}): the same SAC x "
         f"{ft.iterations} iterations inside the real dynamics stepped from observations, for "
         f"{len(ft.ids)} test policies x {n_seeds} seed(s)")

@@ -34,7 +34,7 @@
 #   bash experiments/device.sh streams "SUB args; SUB args" ...    runs that outlast a call:
 #       each argument a stream of device.sh subcommands run one after another, the streams
 #       side by side on the GPU(s) (XLA_PYTHON_CLIENT_MEM_FRACTION 0.9 / streams), detached
-#       (setsid) from a copy of the repo (/tmp/streams_repo); returns at once. Each run's OUT is
+#       (setsid) from a copy of the repo ($STREAMS_repo); returns at once. Each run's OUT is
 #       $STREAMS/<stream>_<k> (STREAMS=/tmp/streams), progress in $STREAMS/progress.log. A
 #       stream that begins with "@N " runs on GPU N alone (CUDA_VISIBLE_DEVICES=N; memory
 #       0.9 / the streams pinned to N); unpinned streams see every GPU
@@ -249,7 +249,8 @@ PY
 }
 
 cmd_streams() {
-  local streams=${STREAMS:-/tmp/streams} snap=/tmp/streams_repo
+  local streams=${STREAMS:-/tmp/streams}
+  local snap=${streams}_repo  # per STREAMS dir: a second set may start while the first runs
   [ -e "$streams/progress.log" ] && ! grep -q "^ALLDONE" "$streams/progress.log" && {
     echo "streams: streams are still running ($streams/progress.log)" >&2; return 2; }
   rm -rf "$streams" "$snap" && mkdir -p "$streams" "$snap" && cp -r . "$snap"/ || return 1

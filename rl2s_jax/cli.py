@@ -46,6 +46,7 @@ def cmd_zoo(args) -> int:
         learner_plans,
         write_zoo_outputs,
         write_zoo_plots,
+        zoo_with_log,
     )
     from rl2s_jax.zoo.store import load_runs, read_export, write_export
     from rl2s_jax.zoo.zoo import zoo_dir
@@ -68,11 +69,13 @@ def cmd_zoo(args) -> int:
     work = args.work or os.path.join("runs", "zoo", args.task)
     imported = read_export(args.import_file) if args.import_file else None
     deadline = started + args.time_limit if args.time_limit else None
+    base, base_log = zoo_with_log(args.extend) if args.extend else (None, [])
     zoo, extras = build_zoo(args.task, algo=algo, seeds=args.seeds, seed=args.seed, plans=plans,
                             work_dir=work, deadline=deadline, imported=imported,
                             value_episodes=args.value_episodes, zoo_size=args.zoo_size,
+                            min_test=args.min_test if base is not None else None,
                             checkpoint_every_s=args.checkpoint_every, final=args.final,
-                            progress=not args.quiet)
+                            extend=base, progress=not args.quiet)
     if args.export:
         files = write_export(args.export, load_runs(work, plans),
                              max_bytes=int(args.export_max_mib * 2**20))
@@ -81,8 +84,11 @@ def cmd_zoo(args) -> int:
         print(f"zoo: training stopped at the time limit ({time.time() - started:.0f}s); the "
               f"same command continues from {work}")
         return 0
-    files = write_zoo_outputs(zoo, extras["log"], out)
+    files = write_zoo_outputs(zoo, base_log + extras["log"], out)
     info = zoo.info
+    if base is not None:
+        print(f"zoo: extended {args.extend}: {len(extras['added'])} of {len(extras['log'])} new "
+              f"snapshots join the test split as ids {base.size}..{zoo.size - 1}")
     bar = info["expert_bar"]
     print(f"zoo: {zoo.size} policies from {info['snapshots_measured']} snapshots, returns "
           f"{zoo.returns.min():.1f} .. {zoo.returns.max():.1f}"
@@ -338,6 +344,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resume from an export for learners with no checkpoint in --work")
     p.add_argument("--value-episodes", type=_positive("value-episodes"), default=16)
     p.add_argument("--zoo-size", type=_positive("zoo-size"), default=60)
+    p.add_argument("--extend", metavar="ZOO", help="grow a zoo (task or directory): learners from "
+                   "another --seed add test policies filling its holes (ids, train split kept)")
+    p.add_argument("--min-test", type=_positive("min-test"), default=20, help="for --extend")
     p.add_argument("--out", help="directory (default: rl2s_jax/zoo/shipped/<task>)")
     p.add_argument("--plots-only", action="store_true",
                    help="only redraw curves.png / returns_hist.png from --out's zoo.json and "

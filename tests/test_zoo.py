@@ -24,6 +24,8 @@ from rl2s_jax.zoo.build import (
     ZOO_SAC,
     build_zoo,
     choose_split,
+    extend_zoo,
+    fill_gaps,
     learner_plans,
     spread_check,
     spread_subset,
@@ -95,6 +97,36 @@ def test_spread_check_reports_a_hole():
     assert not high["pass"] and any("lowest" in f for f in high["failures"])
     with pytest.raises(ValueError, match="no range"):
         spread_check([1.0], [1.0, 1.0])
+
+
+def test_fill_gaps_by_hand():
+    # worked by hand: [0, 10] is halved (5), the lower half halved (2), the widest gap left
+    # (5..10, half the range) takes 7.5, then 7.5..10 (25% > 20%) takes 9.9; 2..5 (30%) has no
+    # candidate and 11 lies outside the range
+    cand = [5.0, 2.0, 9.9, 11.0, 7.5]
+    assert fill_gaps([0.0, 10.0], cand, 0.0, 10.0, min_count=4, max_gap=0.2) == [0, 1, 4, 2]
+    assert fill_gaps([0.0, 10.0], cand, 0.0, 10.0, min_count=3, max_gap=1.0) == [0]
+    assert fill_gaps([0.0, 10.0], [11.0, np.nan], 0.0, 10.0, min_count=5) == []
+
+
+def test_extend_zoo_keeps_ids_and_training_split():
+    P = 10
+    base = zoo_mod.Zoo(task="pointmass", params={"w": np.arange(P * 2.0).reshape(P, 2)},
+                       returns=np.linspace(0, 90, P).astype(np.float32),
+                       return_se=np.ones(P, np.float32), origins=[{"seed": 0}] * P,
+                       train_ids=[0, 2, 4, 6, 9], test_ids=[1, 3, 5, 7, 8])
+    cand = np.array([95.0, 44.0, 46.0, 12.0, -5.0])
+    values = {"value": cand, "value_se": np.full(5, 2.0)}
+    new = {"w": np.arange(10.0).reshape(5, 2) + 100}
+    zoo, picks = extend_zoo(base, new, values, [{"seed": 1, "k": i} for i in range(5)], 7)
+    assert picks == [1, 3]          # inside the range, nearest the middles of the widest gaps
+    assert zoo.train_ids == base.train_ids and zoo.test_ids == [1, 3, 5, 7, 8, 10, 11]
+    np.testing.assert_array_equal(zoo.params["w"][10:], new["w"][[1, 3]])
+    np.testing.assert_array_equal(zoo.returns[10:], [44.0, 12.0])
+    assert zoo.origins[10]["k"] == 1 and zoo.info["extensions"][0]["ids"] == [10, 11]
+    assert zoo.info["spread"]["test"]["n"] == 7
+    with pytest.raises(ValueError, match="min_test"):
+        extend_zoo(base, new, values, [{}] * 5, 9)
 
 
 def test_spread_subset_and_split_span_the_range():
@@ -275,3 +307,27 @@ def test_cli_zoo_end_to_end(tmp_path, capsys):
     assert cli.main(argv[:-len(sets)] + ["--set", "sac.nope=1"]) == 2
     assert "nope" in capsys.readouterr().err
     assert cli.main(["zoo", "--task", "pointmass", "--plots-only", "--out", str(out)]) == 0
+
+    # --extend: new seeds add test policies; the old ids, params and training split stay
+    grown = tmp_path / "grown"
+    ext = [a for a in argv if a not in ("--export", str(exp))]
+    ext = ext[:ext.index("--work")] + ext[ext.index("--out") + 2:]
+    assert cli.main(ext + ["--work", str(tmp_path / "work2"), "--out", str(grown), "--extend",
+                           str(out), "--min-test", "13"]) == 2      # same seed as the zoo's
+    assert "another seed" in capsys.readouterr().err
+    assert cli.main(ext + ["--work", str(tmp_path / "work2"), "--out", str(grown), "--extend",
+                           str(out), "--min-test", "13", "--seed", "1"]) == 0
+    assert "join the test split as ids 28.." in capsys.readouterr().out
+    big = zoo_mod.load_zoo(str(grown))
+    assert big.size >= zoo.size + 2 and len(big.test_ids) >= 13
+    assert big.train_ids == zoo.train_ids and set(zoo.test_ids) < set(big.test_ids)
+    np.testing.assert_array_equal(big.returns[:zoo.size], zoo.returns)
+    for a, b in zip(jax.tree_util.tree_leaves(zoo.params), jax.tree_util.tree_leaves(big.params),
+                    strict=True):
+        np.testing.assert_array_equal(a, b[:zoo.size])
+    assert all(o["run_seed"] == 1 for o in big.origins[zoo.size:])
+    lo, hi = zoo.returns.min(), zoo.returns.max()
+    assert np.all((big.returns >= lo) & (big.returns <= hi))
+    rows = [json.loads(line) for line in open(grown / "train_log.jsonl")]
+    assert sum(r["zoo"] == "test" for r in rows) == len(big.test_ids)
+    assert len({(r["learner"], r["seed"]) for r in rows}) == 8   # 2 learners x (2 + 2) seeds

@@ -26,7 +26,7 @@ from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.policy.ppo import PPOConfig
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.zoo.learners import LEARNERS, LearnerPlan, LearnerRun, make_learner, train_learner
-from rl2s_jax.zoo.zoo import Zoo, save_zoo
+from rl2s_jax.zoo.zoo import Zoo, load_zoo, save_zoo, zoo_dir
 
 # Per-task learner settings (per seed). SAC follows brax's published MJX Hopper/Walker2d SAC
 # (normalised observations, discount 0.997, lr 6e-4, batch 512, reward scaling, target entropy
@@ -138,6 +138,54 @@ def choose_split(returns: np.ndarray, n_train: int, min_test: int = 8
     return train, sorted(set(range(P)) - set(train))
 
 
+def extend_zoo(base: Zoo, params, values: dict, origins: list[dict], min_test: int,
+               run: dict | None = None) -> tuple[Zoo, list[int]]:
+    """``base`` with test policies added from new snapshots (``params`` [C, ...], measured
+    ``values`` {"value", "value_se"} [C], ``origins`` C dicts) by ``fill_gaps`` until its test
+    split holds at least ``min_test`` and has no fillable hole. Policy ids and the training
+    split stay as they were, so a dataset collected from the base zoo's training policies is
+    the dataset of the extended zoo too; added policies take ids base.size, base.size + 1, ...
+
+    -> (the extended Zoo, the candidate indices added, in id order)."""
+    ret = np.asarray(base.returns, np.float64)
+    lo, hi = float(ret.min()), float(ret.max())
+    picks = sorted(fill_gaps(ret[base.test_ids], values["value"], lo, hi, min_test))
+    if len(base.test_ids) + len(picks) < min_test:
+        raise ValueError(
+            f"min_test: the {len(origins)} new snapshots hold {len(picks)} returns inside the "
+            f"zoo's range [{lo:.1f}, {hi:.1f}]; the test split would have "
+            f"{len(base.test_ids) + len(picks)} < {min_test} policies. Train more seeds "
+            "(--seeds) or more snapshots (--snapshots)")
+    added = jax.tree_util.tree_map(lambda x: np.asarray(x)[np.asarray(picks, int)], params)
+    new_params = jax.tree_util.tree_map(lambda a, b: np.concatenate([np.asarray(a), b]),
+                                        base.params, added)
+    new_ret = np.concatenate([ret, values["value"][picks]]).astype(np.float32)
+    new_se = np.concatenate([np.asarray(base.return_se, np.float64),
+                             values["value_se"][picks]]).astype(np.float32)
+    test_ids = sorted(list(base.test_ids) + list(range(base.size, base.size + len(picks))))
+    info = dict(base.info or {})
+    info["spread"] = {"train": spread_check(new_ret[base.train_ids], new_ret),
+                      "test": spread_check(new_ret[test_ids], new_ret)}
+    info["extensions"] = list(info.get("extensions", [])) + [
+        {**(run or {}), "candidates": len(origins), "added": len(picks),
+         "ids": list(range(base.size, base.size + len(picks)))}]
+    zoo = dataclasses.replace(base, params=new_params, returns=new_ret, return_se=new_se,
+                              origins=list(base.origins) + [origins[i] for i in picks],
+                              test_ids=test_ids, info=info)
+    return zoo, picks
+
+
+def zoo_with_log(task_or_dir: str) -> tuple[Zoo, list[dict]]:
+    """A zoo (``load_zoo``) and the rows of its train_log.jsonl ([] when it has none)."""
+    directory = task_or_dir if os.path.isdir(task_or_dir) else zoo_dir(task_or_dir)
+    path = os.path.join(directory, "train_log.jsonl")
+    rows = []
+    if os.path.exists(path):
+        with open(path) as f:
+            rows = [json.loads(line) for line in f if line.strip()]
+    return load_zoo(task_or_dir), rows
+
+
 def resplit(zoo: Zoo, n_train: int, min_test: int = 8) -> Zoo:
     """``zoo`` with its train/test split chosen again by ``choose_split`` and the spread check
     of ``info`` updated (for zoos built with an earlier split rule)."""
@@ -147,6 +195,43 @@ def resplit(zoo: Zoo, n_train: int, min_test: int = 8) -> Zoo:
     info["spread"] = {"train": spread_check(ret[train_ids], ret),
                       "test": spread_check(ret[test_ids], ret)}
     return dataclasses.replace(zoo, train_ids=train_ids, test_ids=test_ids, info=info)
+
+
+def fill_gaps(split_returns, candidate_returns, lo: float, hi: float, min_count: int,
+              max_gap: float = MAX_GAP) -> list[int]:
+    """Indices into ``candidate_returns`` to add to a split so that it holds at least
+    ``min_count`` policies and no gap wider than ``max_gap`` of the range [lo, hi] that a
+    candidate could fill remains.
+
+    Greedy: while more are needed, the widest gap between neighbouring returns of the split
+    (the ends lo and hi count as neighbours) that holds a free candidate strictly inside takes
+    the candidate closest to its middle. Candidates outside [lo, hi] are never taken: added
+    policies fill holes, they do not stretch the range the training split was chosen over."""
+    split = [float(r) for r in np.asarray(split_returns, np.float64)]
+    cand = np.asarray(candidate_returns, np.float64)
+    span = hi - lo
+    if span <= 0:
+        raise ValueError("fill_gaps: expected lo < hi (the zoo's return range)")
+    free = np.isfinite(cand) & (cand >= lo) & (cand <= hi)
+    picks: list[int] = []
+    while True:
+        edges = np.array(sorted(split + [float(cand[i]) for i in picks] + [lo, hi]))
+        n_now = len(split) + len(picks)
+        order = np.argsort(-np.diff(edges), kind="stable")
+        pick = None
+        for g in order:
+            a, b = edges[g], edges[g + 1]
+            if n_now >= min_count and (b - a) / span <= max_gap:
+                break                      # enough policies and the widest fillable gap is fine
+            inside = free & (cand > a) & (cand < b)
+            if inside.any():
+                mid = (a + b) / 2
+                pick = int(np.argmin(np.where(inside, np.abs(cand - mid), np.inf)))
+                break
+        if pick is None:
+            return picks
+        free[pick] = False
+        picks.append(pick)
 
 
 def spread_check(split_returns, zoo_returns, max_gap: float = MAX_GAP, bottom: float = BOTTOM,
@@ -241,8 +326,8 @@ def build_zoo(task_name: str, *, algo: str | None = None, seeds: int = 4, seed: 
               deadline: float | None = None, imported: dict | None = None,
               value_episodes: int = 16, n_train: int | None = None, zoo_size: int = 60,
               min_test: int | None = None, checkpoint_every_s: float = 120.0,
-              final: bool = False, progress: bool = True, log=print
-              ) -> tuple[Zoo | None, dict]:
+              final: bool = False, extend: Zoo | None = None, progress: bool = True,
+              log=print) -> tuple[Zoo | None, dict]:
     """Train the learners of ``algo`` (default: the task's ``DEFAULT_ALGO``) over ``seeds``
     seeds, measure every snapshot, keep ``zoo_size`` spread evenly over the returns, split.
 
@@ -252,7 +337,9 @@ def build_zoo(task_name: str, *, algo: str | None = None, seeds: int = 4, seed: 
     one snapshot interval per call); imported: ``zoo_train.read_export``'s runs,
     used for learners with no checkpoint in work_dir; final: when the deadline stops training,
     build the zoo from the snapshots trained so far instead of returning None (the last call
-    of a run; a later call with a larger budget still continues it).
+    of a run; a later call with a larger budget still continues it); extend: a zoo whose test
+    split the new snapshots grow to ``min_test`` policies (``extend_zoo``: its training split
+    and ids kept; zoo_size and n_train unused); run it with another ``seed`` than the zoo's.
 
     -> (the Zoo, or None when the time limit stopped training first; extras: {"runs":
     {learner: LearnerRun}, "log": training-log rows with measured returns}).
@@ -271,8 +358,23 @@ def build_zoo(task_name: str, *, algo: str | None = None, seeds: int = 4, seed: 
         raise ValueError("algo both: the learners' policies differ in shape "
                          f"({ {n: [s[1] for s in v] for n, v in specs.items()} }); the zoo "
                          "stacks them, so set sac.actor_hidden equal to ppo.hidden")
+    if extend is not None:
+        if extend.task != task_name:
+            raise ValueError(f"extend: a {extend.task} zoo cannot take {task_name} policies")
+        base_spec = [(jax.tree_util.keystr(p), np.shape(x)[1:]) for p, x in
+                     jax.tree_util.tree_flatten_with_path(extend.params)[0]]
+        for name, spec in specs.items():
+            if [(k, tuple(v)) for k, v in spec] != [(k, tuple(v)) for k, v in base_spec]:
+                raise ValueError(f"extend: the {name} learner's policy {spec} differs in shape "
+                                 f"from the zoo's {base_spec}; use the zoo's learner settings")
+        seeds_used = {(o.get("learner"), o.get("run_seed", extend.info.get("seed", 0)))
+                      for o in extend.origins}
+        clash = [n for n in learners if (n, seed) in seeds_used]
+        if clash:
+            raise ValueError(f"seed: the zoo's {clash} snapshots already come from --seed "
+                             f"{seed}; extend it from another seed")
     n_candidates = sum(seeds * (p.snapshots + 1) for p in plans.values())
-    if n_candidates < n_train + min_test:
+    if extend is None and n_candidates < n_train + min_test:
         raise ValueError(f"snapshots: {n_candidates} snapshots cannot give {n_train} train + "
                          f"{min_test} test policies; raise --snapshots or --seeds")
     work_dir = work_dir or tempfile.mkdtemp(prefix=f"zoo_{task_name}_")
@@ -311,6 +413,22 @@ def build_zoo(task_name: str, *, algo: str | None = None, seeds: int = 4, seed: 
     params = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *params)
     values, measure_s = _measure(env, params, origins, task, seed, value_episodes, work_dir,
                                  log)
+    if extend is not None:
+        offset = {n: 1 + max((o["seed"] for o in extend.origins if o.get("learner") == n),
+                             default=-1) for n in learners}
+        rows = [{**r, "seed": r["seed"] + offset[r["learner"]], "run_seed": seed}
+                for r in _log_rows(runs, origins, values, {})]
+        origins = [{**o, "seed": o["seed"] + offset[o["learner"]], "run_seed": seed}
+                   for o in origins]
+        run = {"seed": seed, "seeds": seeds, "value_episodes": value_episodes,
+               "learners": {n: {"env_steps_per_seed": int(r.snapshots["env_steps"][-1]),
+                                "snapshots_per_seed": int(r.meta["snapshots_done"]),
+                                "train_seconds": r.meta["train_seconds"]}
+                            for n, r in runs.items()}, "measure_seconds": measure_s}
+        zoo, picks = extend_zoo(extend, params, values, origins, min_test, run)
+        for j in picks:
+            rows[j]["zoo"] = "test"
+        return zoo, {"runs": runs, "log": rows, "added": picks}
 
     keep = spread_subset(values["value"], min(zoo_size, len(origins)))
     zoo_params = jax.tree_util.tree_map(lambda x: x[np.asarray(keep)], params)
@@ -445,5 +563,5 @@ def write_zoo_plots(directory: str) -> list[str]:
 
 
 __all__ = ["DEFAULT_ALGO", "EXPERT_BARS", "ZOO_PPO", "ZOO_SAC", "build_zoo", "choose_split",
-           "fine_tuning_recipe", "learner_plans", "spread_check", "spread_subset",
-           "write_zoo_outputs", "write_zoo_plots"]
+           "extend_zoo", "fill_gaps", "fine_tuning_recipe", "learner_plans", "spread_check",
+           "spread_subset", "write_zoo_outputs", "write_zoo_plots", "zoo_with_log"]

@@ -1,0 +1,142 @@
+"""experiments/worst_case_runs.py on synthetic paper.py results (fast, no JAX): the rows, the
+merge into an existing out file, bar (a)'s max / median and bar (b)'s paired difference."""
+import importlib.util
+import json
+import os
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+EPS = {"rl2s": 0.25, "gail": 1.0, "bc": 1.0, "rl2s-bc": 0.25}
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location(
+        "worst_case_runs", os.path.join(ROOT, "experiments", "worst_case_runs.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+wc = _load()
+
+
+def _paper(mvd: dict, seed_ids=(0, 1, 2), data_seed=0, ids_key=True, command_extra=""):
+    """A paper.py result: per_seed mvd / kendall_tau, selected, lanes with eps, the command."""
+    ids = list(seed_ids)
+    command = (f"python experiments/paper.py --task hopper --seeds {len(ids)} "
+               f"--data-seed {data_seed}{command_extra}")
+    result = {"task": "hopper", "seeds": len(ids), "command": command,
+              "hardware": "NVIDIA H100 80GB HBM3", "per_seed": {}, "selected": {}, "lanes": {}}
+    if ids_key:
+        result["seed_ids"] = ids
+    for m, vals in mvd.items():
+        result["per_seed"][m] = {"mvd": list(vals), "kendall_tau": [0.9 + 0.01 * s for s in ids],
+                                 "avd": [1.0] * len(ids)}
+        result["selected"][m] = {"step": [600] * len(ids), "mvd": [v + 1 for v in vals],
+                                 "kendall_tau": [0.8] * len(ids)}
+        for s in ids:
+            result["lanes"][f"{m}/{s}"] = {"family": "x", "eps": EPS[m], "seed": s}
+    result["per_seed"]["oracle"] = {"mvd": [5.0], "kendall_tau": [1.0]}
+    return result
+
+
+def _write(tmp_path, name, obj):
+    path = tmp_path / name
+    path.write_text(json.dumps(obj))
+    return str(path)
+
+
+def test_rows_seed_ids_data_seed_eps_and_selection(tmp_path):
+    p = _write(tmp_path, "a.json", _paper({"rl2s": [10.0, 20.0], "gail": [30.0, 40.0]},
+                                          seed_ids=(3, 4), data_seed=7))
+    out = str(tmp_path / "wc.json")
+    assert wc.main(["--task", "hopper", p, "--out", out]) == 0
+    runs = json.load(open(out))["runs"]
+    assert [(r["data_seed"], r["seed"], r["method"], r["eps"], r["mvd"]) for r in runs] == [
+        (7, 3, "rl2s", 0.25, 10.0), (7, 4, "rl2s", 0.25, 20.0),
+        (7, 3, "gail", 1.0, 30.0), (7, 4, "gail", 1.0, 40.0)]
+    r = runs[1]
+    assert r["tau"] == pytest.approx(0.94) and r["mvd_selected"] == 21.0
+    assert r["tau_selected"] == 0.8 and r["step_selected"] == 600
+    assert r["source"] == p and r["device"] == "NVIDIA H100 80GB HBM3"
+    # no seed_ids: --first-seed of the command; the default data seed is paper.py's 0
+    res = _paper({"rl2s": [1.0, 2.0]}, seed_ids=(5, 6), ids_key=False,
+                 command_extra=" --first-seed 5")
+    res["command"] = res["command"].replace(" --data-seed 0", "")
+    rows = wc.lane_rows(res, "x")
+    assert [(r["data_seed"], r["seed"]) for r in rows] == [(0, 5), (0, 6)]
+
+
+def test_merge_keeps_other_keys_and_rows_replaces_same_key(tmp_path):
+    out = tmp_path / "wc.json"
+    old = {"task": "hopper", "note": "kept", "worst_policy": {"x": 1},
+           "runs": [{"data_seed": 0, "seed": 0, "method": "rl2s", "eps": 0.25, "mvd": 999.0,
+                     "tau": 0.1},
+                    {"data_seed": 9, "seed": 0, "method": "rl2s", "eps": 0.25, "mvd": 50.0,
+                     "tau": 0.5}]}
+    out.write_text(json.dumps(old))
+    p = _write(tmp_path, "a.json", _paper({"rl2s": [10.0]}, seed_ids=(0,)))
+    wc.main(["--task", "hopper", p, "--out", str(out), "--source-label", "label"])
+    doc = json.load(open(out))
+    assert doc["note"] == "kept" and doc["worst_policy"] == {"x": 1} and "summary" in doc
+    assert [(r["data_seed"], r["mvd"]) for r in doc["runs"]] == [(0, 10.0), (9, 50.0)]
+    assert doc["runs"][0]["source"] == "label"
+
+
+def test_bar_a_against_hand_computation(tmp_path):
+    a = [10.0, 12.0, 14.0, 16.0, 18.0]
+    b = [11.0, 13.0, 15.0, 17.0, 40.0]  # median of all ten: (14 + 15) / 2 = 14.5; max 40
+    paths = [_write(tmp_path, f"{ds}.json", _paper({"rl2s": v}, seed_ids=range(5), data_seed=ds))
+             for ds, v in ((0, a), (1, b))]
+    out = str(tmp_path / "wc.json")
+    wc.main(["--task", "hopper", *paths, "--out", out])
+    s = json.load(open(out))["summary"]
+    st, bar = s["methods"]["rl2s"], s["bar_a"]["rl2s"]
+    assert st["n"] == 10 and st["median_mvd"] == 14.5 and st["max_mvd"] == 40.0
+    assert st["mean_mvd"] == pytest.approx(np.mean(a + b))
+    assert bar["max_over_median"] == pytest.approx(40.0 / 14.5) and bar["verdict"] == "fail"
+    ok = wc.bar_a(wc.method_stats(wc.group_runs(
+        [{**r, "mvd": min(r["mvd"], 29.0)} for r in json.load(open(out))["runs"]])["rl2s"]))
+    assert ok["verdict"] == "pass"  # 29 <= 2 x 14.5
+    few = wc.bar_a(wc.method_stats(wc.lane_rows(_paper({"rl2s": a}, range(5)), "x")))
+    assert few["verdict"].startswith("not enough runs") and "{'0': 5}" in few["verdict"]
+
+
+def test_paired_difference_against_numpy(tmp_path):
+    rng = np.random.default_rng(1)
+    r_mvd, g_mvd = rng.uniform(50, 100, (2, 5)), rng.uniform(60, 120, (2, 5))
+    paths = [_write(tmp_path, f"{ds}.json",
+                    _paper({"rl2s": r_mvd[ds].tolist(), "gail": g_mvd[ds].tolist()},
+                           seed_ids=range(5), data_seed=ds)) for ds in (0, 1)]
+    out = str(tmp_path / "wc.json")
+    wc.main(["--task", "hopper", *paths, "--out", out])
+    b = json.load(open(out))["summary"]["bar_b"]["rl2s - gail"]
+    diff = (r_mvd - g_mvd).ravel()
+    assert b["n_pairs"] == 10 and b["mean_diff"] == pytest.approx(diff.mean())
+    lo, hi = b["ci95_bootstrap"]
+    assert lo <= diff.mean() <= hi
+    assert np.mean(b["ci95_t"]) == pytest.approx(diff.mean())
+    assert b["verdict"] == ("pass" if diff.mean() <= 0 or lo <= 0 <= hi else "fail")
+    # only the shared (data_seed, seed) keys pair
+    one = wc.paired_difference([{"data_seed": 0, "seed": 0, "mvd": 3.0},
+                                {"data_seed": 0, "seed": 1, "mvd": 5.0}],
+                               [{"data_seed": 0, "seed": 1, "mvd": 1.0}])
+    assert one["n_pairs"] == 1 and one["mean_diff"] == 4.0
+
+
+def test_bad_input_names_file_and_field_writes_nothing(tmp_path):
+    res = _paper({"rl2s": [1.0, 2.0, 3.0]})
+    del res["per_seed"]["rl2s"]["mvd"]
+    p = _write(tmp_path, "bad.json", res)
+    out = tmp_path / "wc.json"
+    with pytest.raises(SystemExit, match=r"bad\.json: missing field 'per_seed\.rl2s\.mvd'"):
+        wc.main(["--task", "hopper", p, "--out", str(out)])
+    short = _write(tmp_path, "short.json", _paper({"rl2s": [1.0, 2.0]}))
+    with pytest.raises(SystemExit, match=r"short\.json: per_seed\.rl2s\.mvd: expected 3"):
+        wc.main(["--task", "hopper", short, "--out", str(out)])
+    with pytest.raises(SystemExit, match=r"a\.json: task is 'hopper'"):
+        wc.main(["--task", "ant", _write(tmp_path, "a.json", _paper({"rl2s": [1.0] * 3})),
+                 "--out", str(out)])
+    assert not out.exists()

@@ -306,6 +306,28 @@ def test_vmap_over_seeds_equals_separate_runs_adversarial(pm):
         _assert_trees_close_but_noise(_member(batched, 0), _member(batched, 1))
 
 
+@pytest.mark.parametrize("anchor_on", ["selected", "all"])
+def test_adversarial_anchor_reaches_the_policies_it_names(pm, anchor_on):
+    """rl2s with the NLL anchor: the next states of the policies outside the CVaR set change
+    the generator's update only when the anchor draws from every policy (adv_nll_on="all",
+    issue 41); with "selected" (the default) no real batch of the step reads them."""
+    ds, policies = pm
+    cfg = _tiny("rl2s", adv_nll_weight=1.0, adv_nll_on=anchor_on)
+    data = T.make_train_data(ds, policies, cfg)
+    state = _init(jax.random.PRNGKey(3), cfg, data)
+    state = state.replace(selected=jnp.arange(P) < 2)       # the CVaR set: policies 0 and 1
+    rows = np.arange(data.next_obs.shape[0])
+    outside = rows >= int(data.policy_start[2])
+    moved = data.replace(next_obs=jnp.where(outside[:, None], data.next_obs + 5.0,
+                                            data.next_obs))
+    a, _ = _train_step(state, data)
+    b, _ = _train_step(state, moved)
+    same = all(np.array_equal(x, y) for x, y in zip(jax.tree_util.tree_leaves(a.gen),
+                                                     jax.tree_util.tree_leaves(b.gen),
+                                                     strict=True))
+    assert same == (anchor_on == "selected")
+
+
 # ---------------------------------------------------------------------- 4. BC on the point mass
 
 
@@ -689,6 +711,7 @@ def test_discriminator_loss_sign_convention():
     (dict(ema_decay=1.0), "ema_decay"),
     (dict(pretrain_steps=-1), "pretrain_steps"),
     (dict(disc_warmup_steps=1.5), "disc_warmup_steps"),
+    (dict(adv_nll_on="test"), "adv_nll_on"),
 ])
 def test_bad_config_names_the_field(overrides, field):
     cfg = T.TrainConfig.small(task="pointmass", **overrides)

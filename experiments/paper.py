@@ -211,6 +211,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--families", default="adversarial,mle", help="comma list of the training "
                     "programs to run: adversarial (rl2s, gail) and / or mle (rl2s-bc, bc); one "
                     "of them splits the protocol over two calls (merge_results.py joins them)")
+    ap.add_argument("--eps-lanes", help="comma list of extra eps values: RL2S lanes "
+                    "rl2s@EPS in the adversarial family, forked from its pre-training (the eps "
+                    "curve; needs --improve-iterations 0)")
     ap.add_argument("--no-fork", dest="fork", action="store_false", help="pre-train the "
                     "gail lanes and train the bc lanes from step 0 too, instead of continuing "
                     "them from the rl2s lanes' pre-training")
@@ -247,6 +250,27 @@ def parse_families(text: str) -> tuple:
     if not names or names - set(known):
         raise SystemExit(f"families: expected a comma list of {', '.join(known)}, got {text!r}")
     return tuple(row for row in FAMILIES if row[0] in names)
+
+
+def add_eps_lanes(families: tuple, text: str, sizes_improve) -> tuple:
+    """--eps-lanes 0.05,0.1,0.5: RL2S lanes at these eps ("rl2s@0.05", ...) join the
+    adversarial family after its rl2s lanes, forked from their pre-training (the eps curve,
+    issue 41). SystemExit naming the flag on bad values, without the adversarial family, or
+    with fine-tuning (the eps lanes are measured, not fine-tuned in)."""
+    try:
+        values = [float(x) for x in text.split(",") if x.strip()]
+    except ValueError:
+        values = []
+    if not values or not all(0.0 < v <= 1.0 for v in values):
+        raise SystemExit(f"eps-lanes: expected a comma list of floats in (0, 1], got {text!r}")
+    if not any(f == "adversarial" for f, _, _ in families):
+        raise SystemExit("eps-lanes: the eps lanes are RL2S lanes: include the adversarial "
+                         "family (--families adversarial[,mle])")
+    if sizes_improve is None or sizes_improve != 0:
+        raise SystemExit("eps-lanes: set --improve-iterations 0 (no fine-tuning in eps lanes)")
+    extra = tuple(f"rl2s@{v:g}" for v in dict.fromkeys(values))
+    return tuple((f, c, (ms[0], *extra, *ms[1:]) if f == "adversarial" else ms)
+                 for f, c, ms in families)
 
 
 def resolve_sizes(args, profile: str) -> dict:
@@ -290,6 +314,8 @@ def check_arguments(args) -> tuple:
                              f"(zoo.build.ZOO_SAC) to take the recipe from")
         sac_overrides = {**recipe, **sac_overrides}
     families = parse_families(args.families)
+    if args.eps_lanes:
+        families = add_eps_lanes(families, args.eps_lanes, sizes_improve=args.improve_iterations)
     if args.guard_margin is not None and not (np.isfinite(args.guard_margin)
                                               and args.guard_margin >= 0):
         raise SystemExit(f"guard-margin: expected a finite float >= 0, got {args.guard_margin}")

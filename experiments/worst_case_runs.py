@@ -12,7 +12,8 @@ policies chose (``selected[method]``), its source (the file, or --source-label: 
 all files or one per file) and the file's commit / device (``hardware``) when it has them.
 The seed is the lane's own (``seed_ids``; else ``--first-seed`` of the command + 0 .. seeds-1),
 eps the lane's initial CVaR fraction (``lanes["<method>/<seed>"]["eps"]``: 0.25 for rl2s and
-rl2s-bc, 1 for gail and bc; null without it), the data seed ``data_seed`` or the command's
+rl2s-bc, 1 for gail and bc; null without it; the lanes "rl2s@EPS" of ``paper.py --eps-lanes``
+are rows of method rl2s at their eps), the data seed ``data_seed`` or the command's
 ``--data-seed`` (paper.py's default 0 when absent).
 
 The out file keeps its other top-level keys and its other rows; a row with the same
@@ -92,7 +93,7 @@ def lane_rows(result: dict, source: str) -> list[dict]:
             if k in ("mvd", "kendall_tau", "step") and len(v) != len(ids):
                 raise ValueError(f"selected.{m}.{k}: expected {len(ids)} values, got {len(v)}")
         for i, s in enumerate(ids):
-            row = {"data_seed": data_seed, "seed": s, "method": m,
+            row = {"data_seed": data_seed, "seed": s, "method": m.split("@")[0],  # rl2s@0.1
                    "eps": result.get("lanes", {}).get(f"{m}/{s}", {}).get("eps"),
                    "mvd": per["mvd"][i], "tau": per["kendall_tau"][i]}
             for k, name in (("mvd", "mvd_selected"), ("kendall_tau", "tau_selected"),

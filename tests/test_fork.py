@@ -174,19 +174,22 @@ def test_protocol_forked_family_reports_as_the_separate_one(pm_files):
     sizes = dict(steps=4, eval_every=2, eval_episodes=2, bootstrap=0)
     out = {}
     for fork_on in (True, False):
-        methods = ("rl2s", "gail")
+        methods = ("rl2s", "rl2s@0.5", "gail")  # with an eps lane (paper.py --eps-lanes 0.5)
         result = {"per_seed": {m: {k: [] for k in METRICS} for m in methods}, "curves": [],
                   "lanes": {}, "timings": {}}
         lanes, states = train_family(
             result, "adversarial", cfg, methods, train_ds=train_ds, test_ds=test_ds,
             train_pols=policies_for(train_ds), test_pols=policies_for(test_ds), seeds=[0, 1],
             sizes=sizes, fork=fork_on)
-        assert lanes == [("rl2s", 0), ("rl2s", 1), ("gail", 0), ("gail", 1)]
-        np.testing.assert_array_equal(np.asarray(states.step), [4] * 4)
+        assert lanes == [("rl2s", 0), ("rl2s", 1), ("rl2s@0.5", 0), ("rl2s@0.5", 1),
+                         ("gail", 0), ("gail", 1)]
+        np.testing.assert_array_equal(np.asarray(states.step), [4] * 6)
+        np.testing.assert_allclose(np.asarray(states.eps), [0.25, 0.25, 0.5, 0.5, 1, 1])
+        assert result["lanes"]["rl2s@0.5/1"]["eps"] == 0.5
         out[fork_on] = result, states
     (forked, fs), (separate, ss) = out[True], out[False]
     assert forked.pop("fork") == {"adversarial": {"trunk": "rl2s", "at_step": PRE,
-                                                  "steps_saved_per_seed": PRE}}
+                                                  "steps_saved_per_seed": 2 * PRE}}
     assert separate.pop("fork") == {"adversarial": None}
     for r in (forked, separate):
         r["timings"].clear()

@@ -495,6 +495,26 @@ def test_paper_families_flag():
             paper.parse_families(bad)
 
 
+def test_paper_eps_lanes_flag():
+    """--eps-lanes adds rl2s@EPS lanes to the adversarial family after its rl2s lanes (the
+    fork's trunk stays first); bad values, no adversarial family or fine-tuning are refused."""
+    from rl2s_jax.app.protocol import lane_eps
+    paper = _load("paper")
+    fams = paper.add_eps_lanes(paper.parse_families("adversarial,mle"), "0.05, 0.5,0.05", 0)
+    assert fams[0][2] == ("rl2s", "rl2s@0.05", "rl2s@0.5", "gail")
+    assert fams[1][2] == ("rl2s-bc", "bc")
+    assert [lane_eps(m) for m in fams[0][2]] == [0.25, 0.05, 0.5, 1.0]
+    assert lane_eps("rl2s", 0.1) == 0.1 and lane_eps("gail", 0.1) == 1.0
+    assert lane_eps("rl2s@0.5", 0.1) == 0.5
+    for text, fam, it, what in (("0", "adversarial", 0, "floats in"),
+                                ("a,b", "adversarial", 0, "floats in"),
+                                ("0.1", "mle", 0, "adversarial family"),
+                                ("0.1", "adversarial", 100, "improve-iterations 0"),
+                                ("0.1", "adversarial", None, "improve-iterations 0")):
+        with pytest.raises(SystemExit, match=what):
+            paper.add_eps_lanes(paper.parse_families(fam), text, it)
+
+
 def test_paper_sizes_per_task():
     """Ant's, Hopper's and Walker2d's gpu sizes measure enough episodes for their noisy
     returns, HalfCheetah keeps the profile's; flags still win."""

@@ -37,7 +37,8 @@ def _paper(mvd: dict, seed_ids=(0, 1, 2), data_seed=0, ids_key=True, command_ext
         result["selected"][m] = {"step": [600] * len(ids), "mvd": [v + 1 for v in vals],
                                  "kendall_tau": [0.8] * len(ids)}
         for s in ids:
-            result["lanes"][f"{m}/{s}"] = {"family": "x", "eps": EPS[m], "seed": s}
+            eps = EPS[m] if m in EPS else float(m.split("@")[1])   # paper.py's rl2s@0.5
+            result["lanes"][f"{m}/{s}"] = {"family": "x", "eps": eps, "seed": s}
     result["per_seed"]["oracle"] = {"mvd": [5.0], "kendall_tau": [1.0]}
     return result
 
@@ -67,6 +68,18 @@ def test_rows_seed_ids_data_seed_eps_and_selection(tmp_path):
     res["command"] = res["command"].replace(" --data-seed 0", "")
     rows = wc.lane_rows(res, "x")
     assert [(r["data_seed"], r["seed"]) for r in rows] == [(0, 5), (0, 6)]
+
+
+def test_eps_lanes_are_rl2s_rows_at_their_eps(tmp_path):
+    p = _write(tmp_path, "a.json", _paper({"rl2s": [10.0, 20.0], "rl2s@0.5": [11.0, 12.0],
+                                           "gail": [30.0, 40.0]}, seed_ids=(0, 1)))
+    out = str(tmp_path / "wc.json")
+    assert wc.main(["--task", "hopper", p, "--out", out]) == 0
+    got = json.load(open(out))
+    assert sorted((r["method"], r["eps"], r["mvd"]) for r in got["runs"]) == [
+        ("gail", 1.0, 30.0), ("gail", 1.0, 40.0), ("rl2s", 0.25, 10.0), ("rl2s", 0.25, 20.0),
+        ("rl2s", 0.5, 11.0), ("rl2s", 0.5, 12.0)]
+    assert set(got["summary"]["methods"]) == {"rl2s@eps=0.25", "rl2s@eps=0.5", "gail"}
 
 
 def test_merge_keeps_other_keys_and_rows_replaces_same_key(tmp_path):

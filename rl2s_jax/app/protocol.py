@@ -226,6 +226,16 @@ def _evaluation_point(result, lanes, step, m, evals, selects, points, worst, hea
             f"{'' if row['finite'] else '  NON-FINITE'}")
 
 
+def lane_eps(method: str, robust_eps=None) -> float:
+    """A lane's initial eps: "rl2s@0.1" names its own; a robust method's (eps < 1) is
+    ``robust_eps`` when given, else the method's default (DEFAULT_EPS)."""
+    base, _, own = method.partition("@")
+    if own:
+        return float(own)
+    default = DEFAULT_EPS[base]
+    return float(robust_eps) if robust_eps is not None and default < 1 else default
+
+
 def _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
                 truth_se, n_boot):
     """Per lane: the selected point's test metrics, the final ones, their bootstrap intervals
@@ -289,8 +299,7 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     select_pool, select_truth = heldout_start_pool(train_ds), np.asarray(data.true_value)
     lanes = [(m, s) for m in methods for s in seeds]
     points = [[] for _ in lanes]  # per lane: {"step", "select", "test"} (model selection)
-    eps = [float(robust_eps) if robust_eps is not None and DEFAULT_EPS[m] < 1
-           else DEFAULT_EPS[m] for m, _ in lanes]
+    eps = [lane_eps(m, robust_eps) for m, _ in lanes]
     keys = jnp.stack([jax.random.PRNGKey(s) for _, s in lanes])
     states = init_lanes(keys, cfg, data, eps=jnp.asarray(eps, jnp.float32))
     mesh_all = mesh = lane_mesh(len(lanes))  # lanes over the local devices (one: unchanged)
@@ -445,7 +454,9 @@ def table(result: dict) -> str:
     """The summary printed at the end: per method (and the oracle) mean ± std over seeds."""
     cols = ("kendall_tau", "ndcg@1", "ndcg@5", "spearman", "avd", "mvd", "mpi", "api")
     lines = [f"{'method':<9}" + "".join(f"{c:>16}" for c in cols)]
-    for m in [m for m in METHODS + ("oracle",) if m in result["methods"]]:
+    known = METHODS + ("oracle",)
+    for m in ([m for m in known if m in result["methods"]]
+              + [m for m in result["methods"] if m not in known]):  # eps lanes: rl2s@0.1
         cells = []
         for c in cols:
             v, s = result["methods"][m].get(c), result["std"][m].get(c)

@@ -1,0 +1,113 @@
+"""experiments/eps_curve.py on synthetic worst_case files (fast, no JAX): the points, the paired
+differences against eps 0.25, bc ignored, GAIL beside an rl2s eps 1 point, the outputs, a
+missing task skipped and a malformed row refused."""
+import importlib.util
+import json
+import os
+
+import numpy as np
+import pytest
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _load():
+    spec = importlib.util.spec_from_file_location(
+        "eps_curve", os.path.join(ROOT, "experiments", "eps_curve.py"))
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+ec = _load()
+KEYS = [(0, 0), (0, 1), (1, 0), (1, 1)]   # (data_seed, seed)
+
+
+def _rows(method, eps, mvd, tau, keys=KEYS):
+    return [{"data_seed": ds, "seed": s, "method": method, "eps": eps, "mvd": m, "tau": t,
+             "source": "x"} for (ds, s), m, t in zip(keys, mvd, tau, strict=True)]
+
+
+def _write(tmp_path, task, runs):
+    (tmp_path / f"{task}_worst_case.json").write_text(json.dumps({"task": task, "runs": runs}))
+
+
+def _boot(x):
+    x = np.asarray(x, np.float64)
+    b = x[np.random.default_rng(0).integers(0, len(x), (2000, len(x)))].mean(axis=1)
+    return list(np.percentile(b, [2.5, 97.5]))
+
+
+def test_points_paired_and_outputs(tmp_path, capsys):
+    base = ([100.0, 200.0, 300.0, 400.0], [0.9, 0.8, 0.7, 0.6])
+    small = ([90.0, 150.0, 310.0], [0.95, 0.85, 0.7])          # no run at (1, 1)
+    gail = ([120.0, 260.0, 280.0, 500.0], [0.9, 0.7, 0.75, 0.5])
+    _write(tmp_path, "hopper", _rows("rl2s", 0.25, *base) + _rows("rl2s", 0.1, *small, KEYS[:3])
+           + _rows("gail", 1.0, *gail) + _rows("bc", 1.0, [1e6] * 4, [0.0] * 4)
+           + _rows("rl2s-bc", 0.25, [1e6] * 4, [0.0] * 4))
+    _write(tmp_path, "walker2d", _rows("rl2s", 0.25, *base) + _rows("rl2s", 1.0, *gail)
+           + _rows("gail", 1.0, *base))
+    js, png = tmp_path / "out" / "c.json", tmp_path / "out" / "c.png"
+    assert ec.main(["--tasks", "hopper", "walker2d", "ant", "--results", str(tmp_path),
+                    "--json", str(js), "--png", str(png)]) == 0
+    out = capsys.readouterr().out
+    assert "ant: no" in out and "skipped" in out and "GAIL (eps 1)" in out
+    doc = json.loads(js.read_text())
+    assert doc["command"].startswith("python experiments/eps_curve.py --tasks hopper")
+    assert list(doc["tasks"]) == ["hopper", "walker2d"]
+    assert png.read_bytes()[:4] == b"\x89PNG"
+
+    pts = doc["tasks"]["hopper"]["points"]
+    assert [(p["label"], p["method"], p["eps"], p["n"]) for p in pts] == [
+        ("rl2s eps 0.1", "rl2s", 0.1, 3), ("rl2s eps 0.25", "rl2s", 0.25, 4),
+        ("GAIL (eps 1)", "gail", 1.0, 4)]                        # bc, rl2s-bc ignored
+    for p, (mvd, tau) in zip(pts, (small, base, gail), strict=True):
+        assert p["mean_mvd"] == pytest.approx(np.mean(mvd))
+        assert p["median_mvd"] == pytest.approx(np.median(mvd))
+        assert p["max_mvd"] == max(mvd) and p["mean_tau"] == pytest.approx(np.mean(tau))
+        assert p["ci95_mean_mvd"] == pytest.approx(_boot(mvd))
+        assert p["ci95_mean_tau"] == pytest.approx(_boot(tau))
+        lo, hi = p["ci95_mean_mvd"]
+        assert lo <= p["mean_mvd"] <= hi
+    assert pts[0]["data_seeds"] == [0, 1]
+
+    pair = doc["tasks"]["hopper"]["paired_vs_0.25"]
+    assert set(pair) == {"rl2s eps 0.1", "GAIL (eps 1)"}
+    d_mvd = [90 - 100, 150 - 200, 310 - 300]                   # the three shared pairs
+    d_tau = [0.95 - 0.9, 0.85 - 0.8, 0.7 - 0.7]
+    assert pair["rl2s eps 0.1"]["mvd"]["n_pairs"] == 3
+    assert pair["rl2s eps 0.1"]["mvd"]["mean_diff"] == pytest.approx(-50 / 3)
+    assert pair["rl2s eps 0.1"]["tau"]["mean_diff"] == pytest.approx(np.mean(d_tau))
+    assert pair["rl2s eps 0.1"]["mvd"]["ci95"] == pytest.approx(_boot(d_mvd))
+    g = pair["GAIL (eps 1)"]
+    assert g["mvd"]["n_pairs"] == 4 and g["mvd"]["mean_diff"] == pytest.approx(40.0)
+    assert g["tau"]["mean_diff"] == pytest.approx(-0.05 / 4 - 0.1 / 4)
+
+    # an rl2s point at eps 1 and GAIL stay two labelled points
+    w = doc["tasks"]["walker2d"]["points"]
+    assert [(p["label"], p["eps"]) for p in w] == [
+        ("rl2s eps 0.25", 0.25), ("rl2s eps 1", 1.0), ("GAIL (eps 1)", 1.0)]
+    assert w[1]["mean_mvd"] == pytest.approx(np.mean(gail[0]))
+    assert w[2]["mean_mvd"] == pytest.approx(np.mean(base[0]))
+
+
+def test_bad_input(tmp_path):
+    js, png = tmp_path / "c.json", tmp_path / "c.png"
+    argv = ["--tasks", "hopper", "walker2d", "--results", str(tmp_path), "--json", str(js),
+            "--png", str(png)]
+    with pytest.raises(SystemExit, match="no curve"):               # no file at all
+        ec.main(argv)
+    _write(tmp_path, "hopper", _rows("rl2s", 0.25, [1.0] * 4, [0.5] * 4))
+    rows = _rows("rl2s", 0.25, [1.0] * 4, [0.5] * 4)
+    del rows[2]["tau"]
+    _write(tmp_path, "walker2d", rows)
+    with pytest.raises(SystemExit, match=r"walker2d_worst_case.json: runs\[2\] has no field 'tau'"):
+        ec.main(argv)
+    rows[2]["tau"], rows[1]["mvd"] = 0.5, "big"
+    _write(tmp_path, "walker2d", rows)
+    with pytest.raises(SystemExit, match=r"runs\[1\] field 'mvd'"):
+        ec.main(argv)
+    _write(tmp_path, "walker2d", _rows("rl2s", None, [1.0] * 4, [0.5] * 4))
+    with pytest.raises(SystemExit, match=r"runs\[0\] field 'eps'"):
+        ec.main(argv)
+    assert not js.exists() and not png.exists()                     # nothing written

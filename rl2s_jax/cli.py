@@ -39,21 +39,13 @@ def _gamma(text):
 def cmd_zoo(args) -> int:
     """Train (or continue) a task's zoo learners, then measure, choose and split the zoo."""
     started = time.time()
-    from rl2s_jax.zoo.build import (
-        DEFAULT_ALGO,
-        build_zoo,
-        format_spread,
-        learner_plans,
-        write_zoo_outputs,
-        write_zoo_plots,
-        zoo_with_log,
-    )
+    from rl2s_jax.zoo import build as zb
     from rl2s_jax.zoo.store import load_runs, read_export, write_export
     from rl2s_jax.zoo.zoo import zoo_dir
 
     out = args.out or zoo_dir(args.task)
     if args.plots_only:
-        files = write_zoo_plots(out)
+        files = zb.write_zoo_plots(out)
         print(f"zoo plots: {', '.join(files)} -> {out}")
         return 0
     if args.time_limit is not None and args.time_limit <= 0:
@@ -64,18 +56,18 @@ def cmd_zoo(args) -> int:
         if not field:
             raise ValueError(f"set: expected sac.FIELD=VALUE or ppo.FIELD=VALUE, got {k!r}")
         overrides.setdefault(learner, {})[field] = v
-    algo = args.algo or DEFAULT_ALGO.get(args.task, "sac")
-    plans = learner_plans(args.task, algo, args.env_steps, args.snapshots, overrides)
+    algo = args.algo or zb.DEFAULT_ALGO.get(args.task, "sac")
+    plans = zb.learner_plans(args.task, algo, args.env_steps, args.snapshots, overrides)
     work = args.work or os.path.join("runs", "zoo", args.task)
     imported = read_export(args.import_file) if args.import_file else None
     deadline = started + args.time_limit if args.time_limit else None
-    base, base_log = zoo_with_log(args.extend) if args.extend else (None, [])
-    zoo, extras = build_zoo(args.task, algo=algo, seeds=args.seeds, seed=args.seed, plans=plans,
-                            work_dir=work, deadline=deadline, imported=imported,
-                            value_episodes=args.value_episodes, zoo_size=args.zoo_size,
-                            min_test=args.min_test if base is not None else None,
-                            checkpoint_every_s=args.checkpoint_every, final=args.final,
-                            extend=base, progress=not args.quiet)
+    base, base_log = zb.zoo_with_log(args.extend) if args.extend else (None, [])
+    zoo, extras = zb.build_zoo(
+        args.task, algo=algo, seeds=args.seeds, seed=args.seed, plans=plans, work_dir=work,
+        deadline=deadline, imported=imported, value_episodes=args.value_episodes,
+        zoo_size=args.zoo_size, min_test=args.min_test if base is not None else None,
+        checkpoint_every_s=args.checkpoint_every, final=args.final, extend=base,
+        progress=not args.quiet)
     if args.export:
         files = write_export(args.export, load_runs(work, plans),
                              max_bytes=int(args.export_max_mib * 2**20))
@@ -84,7 +76,7 @@ def cmd_zoo(args) -> int:
         print(f"zoo: training stopped at the time limit ({time.time() - started:.0f}s); the "
               f"same command continues from {work}")
         return 0
-    files = write_zoo_outputs(zoo, base_log + extras["log"], out)
+    files = zb.write_zoo_outputs(zoo, base_log + extras["log"], out)
     info = zoo.info
     if base is not None:
         print(f"zoo: extended {args.extend}: {len(extras['added'])} of {len(extras['log'])} new "
@@ -99,7 +91,7 @@ def cmd_zoo(args) -> int:
         print(f"  {name}: {lr['env_steps_per_seed']:,} of {lr['env_steps_target']:,} env steps "
               f"per seed" + ("" if lr["complete"] else " (stopped at the time limit)"))
     for split in ("train", "test"):
-        print("  spread " + format_spread(split, info["spread"][split]))
+        print("  spread " + zb.format_spread(split, info["spread"][split]))
     print(f"-> {out}: {', '.join(files)} ({time.time() - started:.0f}s)")
     return 0
 
@@ -487,6 +479,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", help="directory (default: results/<task>)")
     p.add_argument("--methods", default="rl2s,gail,bc,rl2s-bc")
+    p.add_argument("--zoo", help="zoo directory to collect from (default: the task's shipped)")
     p.add_argument("--steps", type=_positive("steps"), help="train_steps per method")
     p.add_argument("--eval-every", type=_positive("eval-every"))
     p.add_argument("--transitions-per-policy", type=_positive("transitions-per-policy"))

@@ -4,6 +4,7 @@ one adversarial and one likelihood method; tests/test_checkpoint.py trains all f
 The data sizes are conftest's hopper_train_ds (80 transitions per policy, 40-step episodes,
 16 value episodes): the train split's MJX collection is then the same program as that
 fixture's, which the persistent compilation cache holds once the fixture has run."""
+import dataclasses
 import json
 import os
 
@@ -11,14 +12,19 @@ import numpy as np
 import pytest
 
 from rl2s_jax.cli import main
-from rl2s_jax.zoo.zoo import load_zoo
+from rl2s_jax.zoo.zoo import load_zoo, save_zoo
 
 
 def test_hopper_pipeline_smoke(tmp_path, capsys):
+    # the shipped zoo with 6 of its test policies (--zoo): the same training split (and its
+    # compiled collection), a quarter of the test work
+    shipped = load_zoo("hopper")
+    small = dataclasses.replace(shipped, test_ids=shipped.test_ids[::3][:6])
+    save_zoo(small, str(tmp_path / "zoo"))
     out = tmp_path / "hopper"
     args = ["pipeline", "--task", "hopper", "--profile", "cpu", "--out", str(out), "--steps",
             "2", "--eval-every", "1", "--transitions-per-policy", "80", "--value-episodes", "16",
-            "--improve-iterations", "2", "--methods", "rl2s,bc",
+            "--improve-iterations", "2", "--methods", "rl2s,bc", "--zoo", str(tmp_path / "zoo"),
             "--episode-length", "40", "--quiet"]
     assert main(args) == 0, capsys.readouterr().err
     text = capsys.readouterr().out
@@ -33,8 +39,8 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
             assert k in m
         assert m["mvd"] >= m["avd"] >= 0 and m["mpi"] <= m["api"]
     assert [r["step"] for r in report["curves"]["rl2s"]] == [1, 2]
-    n_test = len(load_zoo("hopper").test_ids)
-    assert len(report["evaluations"]["bc"]["vd"]) == n_test  # the zoo's test split
+    n_test = len(small.test_ids)
+    assert len(report["evaluations"]["bc"]["vd"]) == n_test == 6  # the --zoo's test split
     imp = report["evaluations"]["rl2s"]["improvement"]
     assert len(imp["I"]) == n_test and imp["mpi"] == min(imp["I"])
     np.testing.assert_allclose(imp["I"], (np.asarray(imp["c1"]) - imp["c0"])

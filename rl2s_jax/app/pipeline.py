@@ -167,6 +167,8 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
           f"[pipeline] {sizes}")
     data_key = {k: sizes[k] for k in ("transitions_per_policy", "value_episodes")}
     data_key.update(seed=args.seed, task=args.task)
+    if getattr(args, "zoo", None):
+        data_key["zoo"] = args.zoo
     if args.episode_length is not None:
         data_key["episode_length"] = args.episode_length
     summary = {"task": args.task, "profile": profile, "backend": backend, "sizes": sizes,
@@ -186,7 +188,8 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
         else:
             ds = collect_dataset(args.task, split, sizes["transitions_per_policy"],
                                  seed=args.seed, value_episodes=sizes["value_episodes"],
-                                 episode_length=args.episode_length, progress=not args.quiet)
+                                 episode_length=args.episode_length, progress=not args.quiet,
+                                 zoo_path=getattr(args, "zoo", None))
             save_dataset(path, ds)
             print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
         summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,

@@ -3,12 +3,11 @@ rl2s_jax.evaluate.errors): the evaluation point is chosen on the training polici
 (highest selection tau, ties to the lower selection AVD, non-finite last), the table reports
 the TEST metrics at that point and at the last one, averaged over seeds; the diagnostics and
 their control scripts."""
-import importlib.util
 import json
-import os
 
 import numpy as np
 import pytest
+from experiment_scripts import load_script
 
 from rl2s_jax.app import ablation as abl
 from rl2s_jax.data.summary import episode_lengths
@@ -16,16 +15,7 @@ from rl2s_jax.evaluate import errors
 from rl2s_jax.train.lanes import select_point
 from rl2s_jax.train.step import simulator
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def _script(name: str):
-    """experiments/<name>.py as a module."""
-    spec = importlib.util.spec_from_file_location(
-        name, os.path.join(ROOT, "experiments", f"{name}.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+_script = load_script
 
 
 @pytest.fixture(scope="module")

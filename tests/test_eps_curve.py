@@ -1,25 +1,13 @@
 """experiments/eps_curve.py on synthetic worst_case files (fast, no JAX): the points, the paired
 differences against eps 0.25, bc ignored, GAIL beside an rl2s eps 1 point, the outputs, a
 missing task skipped and a malformed row refused."""
-import importlib.util
 import json
-import os
 
 import numpy as np
 import pytest
+from experiment_scripts import load_script
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def _load():
-    spec = importlib.util.spec_from_file_location(
-        "eps_curve", os.path.join(ROOT, "experiments", "eps_curve.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-ec = _load()
+ec = load_script("eps_curve")
 KEYS = [(0, 0), (0, 1), (1, 0), (1, 1)]   # (data_seed, seed)
 
 

@@ -1,12 +1,12 @@
 """`make paper`: experiments/paper_tables.py on synthetic results (fast, no JAX) and one CPU
 smoke run of experiments/paper.py on Hopper at absurdly small sizes."""
 import dataclasses
-import importlib.util
 import json
 import os
 
 import numpy as np
 import pytest
+from experiment_scripts import load_script
 
 from rl2s_jax.app import results_tables
 
@@ -15,12 +15,7 @@ METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearman", "
            "avd", "mvd", "mpi", "api")
 
 
-def _load(name):
-    spec = importlib.util.spec_from_file_location(name, os.path.join(ROOT, "experiments",
-                                                                     f"{name}.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+_load = load_script
 
 
 # ------------------------------------------------------------------ paper_tables.py

@@ -1,25 +1,15 @@
 """experiments/worst_case_runs.py on synthetic paper.py results (fast, no JAX): the rows, the
 merge into an existing out file, bar (a)'s max / median and bar (b)'s paired difference."""
-import importlib.util
 import json
-import os
 
 import numpy as np
 import pytest
+from experiment_scripts import load_script
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 EPS = {"rl2s": 0.25, "gail": 1.0, "bc": 1.0, "rl2s-bc": 0.25}
 
 
-def _load():
-    spec = importlib.util.spec_from_file_location(
-        "worst_case_runs", os.path.join(ROOT, "experiments", "worst_case_runs.py"))
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
-wc = _load()
+wc = load_script("worst_case_runs")
 
 
 def _paper(mvd: dict, seed_ids=(0, 1, 2), data_seed=0, ids_key=True, command_extra=""):

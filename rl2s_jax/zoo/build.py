@@ -315,10 +315,15 @@ def learner_plans(task_name: str, algo: str, env_steps: int | None = None,
     return plans
 
 
+def _leaf_shapes(tree, lead: int = 0) -> list[tuple[str, tuple]]:
+    """[(keystr path, shape without its ``lead`` leading axes)] of a pytree's leaves."""
+    return [(jax.tree_util.keystr(p), tuple(x.shape[lead:])) for p, x in
+            jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
 def _policy_spec(learner) -> list:
-    shape = jax.eval_shape(lambda k: learner.policy(learner.init(k)), jax.random.PRNGKey(0))
-    return [(jax.tree_util.keystr(p), x.shape) for p, x in
-            jax.tree_util.tree_flatten_with_path(shape)[0]]
+    return _leaf_shapes(jax.eval_shape(lambda k: learner.policy(learner.init(k)),
+                                       jax.random.PRNGKey(0)))
 
 
 def build_zoo(task_name: str, *, algo: str | None = None, seeds: int = 4, seed: int = 0,
@@ -361,10 +366,9 @@ def build_zoo(task_name: str, *, algo: str | None = None, seeds: int = 4, seed: 
     if extend is not None:
         if extend.task != task_name:
             raise ValueError(f"extend: a {extend.task} zoo cannot take {task_name} policies")
-        base_spec = [(jax.tree_util.keystr(p), np.shape(x)[1:]) for p, x in
-                     jax.tree_util.tree_flatten_with_path(extend.params)[0]]
+        base_spec = _leaf_shapes(extend.params, lead=1)   # the zoo's params are stacked
         for name, spec in specs.items():
-            if [(k, tuple(v)) for k, v in spec] != [(k, tuple(v)) for k, v in base_spec]:
+            if spec != base_spec:
                 raise ValueError(f"extend: the {name} learner's policy {spec} differs in shape "
                                  f"from the zoo's {base_spec}; use the zoo's learner settings")
         seeds_used = {(o.get("learner"), o.get("run_seed", extend.info.get("seed", 0)))

@@ -898,3 +898,28 @@ def test_oracle_improvement_matches_the_real_env_on_pointmass(pointmass_ppo):
     np.testing.assert_allclose(s["I_paired"], (c1 - c0) / np.abs(c0), rtol=1e-6)
     assert oi["mpi"] == pytest.approx(min(s["I_paired"]))
     assert oi["api"] == pytest.approx(np.mean(s["I_paired"]))
+
+
+def test_run_control_gains_in_the_real_env_on_pointmass(pointmass_ppo):
+    """app.protocol_improve.run_control: the same fine-tuning in the real env, one seed; the
+    mediocre snapshot gains (18 -> 42 as above), and the entry's I, MPI and API are its own
+    paired C0 / C1's."""
+    from rl2s_jax.app.protocol_improve import FineTuning, run_control
+
+    ret = pointmass_ppo["returns"]
+    ids = [1, 4]
+    cfg = SACConfig.fine_tuning(n_envs=8, batch_size=128, hidden=(64, 64), warmup_steps=16,
+                                buffer_size=20_000, episode_length=50, updates_per_step=2,
+                                critic_warmup_updates=400)
+    ft = FineTuning(task=TASK, ids=ids, c0=ret[ids], horizon=50, sac=cfg, iterations=1000,
+                    chunk=500, episodes=64, episode_length=50, gamma=0.99,
+                    policies=pol.index_params(pointmass_ppo["params"], np.asarray(ids)))
+    result, phases = {}, []
+    run_control(result, ft, 1, lambda name, t0: phases.append(name))
+    cc = result["control"]
+    assert phases == ["control"] and cc["seeds"] == 1 and cc["policy_ids"] == ids
+    c0, c1 = np.asarray(cc["c0"][0]), np.asarray(cc["c1"][0])
+    assert c1[0] > c0[0] + 10, cc
+    np.testing.assert_allclose(cc["I"][0], (c1 - c0) / np.abs(c0), rtol=1e-6)
+    assert cc["mpi"] == pytest.approx(min(cc["I"][0]))
+    assert len(cc["train_return"]) >= len(ids)   # the last chunk's training episodes

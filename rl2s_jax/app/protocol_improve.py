@@ -321,6 +321,19 @@ def control_entry(res: dict, ids: list[int], c0_data: np.ndarray, n_seeds: int,
             "api": float(np.mean(api)), "mpi_std": std(mpi), "api_std": std(api)}
 
 
+def _seeds_tiled(ft: FineTuning, n_seeds: int):
+    """ft.policies repeated ``n_seeds`` times, seed-major [n_seeds * P, ...]: one SAC run per
+    (seed, policy) in one vmapped program."""
+    return jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * n_seeds), ft.policies)
+
+
+def _last_chunk_returns(ft: FineTuning, metrics) -> np.ndarray:
+    """SAC's training-episode returns in the last ``ft.chunk`` iterations of ``metrics``
+    [R * P, iterations, ...] (``episode_returns``)."""
+    return np.asarray(episode_returns(
+        jax.tree_util.tree_map(lambda x: x[:, -ft.chunk:], metrics)))
+
+
 def run_control(result: dict, ft: FineTuning, n_seeds: int,
                 phase: Callable[[str, float], None]) -> None:
     """The same fine-tuning (policies, budget, SAC settings) in the real env, ``n_seeds``
@@ -329,14 +342,12 @@ def run_control(result: dict, ft: FineTuning, n_seeds: int,
     t0 = time.perf_counter()
     log(f"[paper] control: the same SAC x {ft.iterations} iterations in the real env for "
         f"{len(ft.ids)} test policies x {n_seeds} seed(s)")
-    tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * n_seeds), ft.policies)
     _, ctrl_metrics, ctrl = improve_in_real_env(
-        ft.task, tiled, jax.random.PRNGKey(30), ft.sac, n_iterations=ft.iterations,
-        n_episodes=ft.episodes, episode_length=ft.episode_length, gamma=ft.gamma,
-        chunk_iterations=ft.chunk)
-    # the training return of the last chunk
-    result["control"] = control_entry(ctrl, ft.ids, ft.c0, n_seeds, np.asarray(episode_returns(
-        jax.tree_util.tree_map(lambda x: x[:, -ft.chunk:], ctrl_metrics))))
+        ft.task, _seeds_tiled(ft, n_seeds), jax.random.PRNGKey(30), ft.sac,
+        n_iterations=ft.iterations, n_episodes=ft.episodes, episode_length=ft.episode_length,
+        gamma=ft.gamma, chunk_iterations=ft.chunk)
+    result["control"] = control_entry(ctrl, ft.ids, ft.c0, n_seeds,
+                                      _last_chunk_returns(ft, ctrl_metrics))
     phase("control", t0)
     cc = result["control"]
     log(f"[paper] control (real env): MPI {fmt_ms(cc['mpi'], cc['mpi_std'])}  API "
@@ -360,14 +371,13 @@ def run_oracle_improvement(result: dict, ft: FineTuning, test_ds, variant: str, 
         f"{ft.iterations} iterations inside the real dynamics stepped from observations, for "
         f"{len(ft.ids)} test policies x {n_seeds} seed(s)")
     P = len(ft.ids)
-    tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * n_seeds), ft.policies)
     actors, metrics = improve_policies(
-        oracle_dynamics(ft.task), ft.task, pool, tiled, jax.random.PRNGKey(50), ft.sac,
-        n_iterations=ft.iterations, chunk_iterations=ft.chunk, env_options=opts)
+        oracle_dynamics(ft.task), ft.task, pool, _seeds_tiled(ft, n_seeds),
+        jax.random.PRNGKey(50), ft.sac, n_iterations=ft.iterations,
+        chunk_iterations=ft.chunk, env_options=opts)
     actors = jax.tree_util.tree_map(lambda x: x.reshape((n_seeds, P) + x.shape[1:]), actors)
     r, paired = _measure(ft, actors, [])
-    sim_return = np.asarray(episode_returns(  # [R, P]: the episodes of the last chunk
-        jax.tree_util.tree_map(lambda x: x[:, -ft.chunk:], metrics))).reshape(n_seeds, P)
+    sim_return = _last_chunk_returns(ft, metrics).reshape(n_seeds, P)
     per = []
     for s, pr in enumerate(paired):
         per.append({"seed": s, "c0_paired": pr["c0"].tolist(), "c1": pr["c1"].tolist(),

@@ -266,7 +266,7 @@ def add_eps_lanes(families: tuple, text: str, sizes_improve) -> tuple:
     if not any(f == "adversarial" for f, _, _ in families):
         raise SystemExit("eps-lanes: the eps lanes are RL2S lanes: include the adversarial "
                          "family (--families adversarial[,mle])")
-    if sizes_improve is None or sizes_improve != 0:
+    if sizes_improve != 0:  # None: the profile's default, which fine-tunes
         raise SystemExit("eps-lanes: set --improve-iterations 0 (no fine-tuning in eps lanes)")
     extra = tuple(f"rl2s@{v:g}" for v in dict.fromkeys(values))
     return tuple((f, c, (ms[0], *extra, *ms[1:]) if f == "adversarial" else ms)

@@ -167,7 +167,7 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
           f"[pipeline] {sizes}")
     data_key = {k: sizes[k] for k in ("transitions_per_policy", "value_episodes")}
     data_key.update(seed=args.seed, task=args.task)
-    if getattr(args, "zoo", None):
+    if args.zoo:
         data_key["zoo"] = args.zoo
     if args.episode_length is not None:
         data_key["episode_length"] = args.episode_length
@@ -189,7 +189,7 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             ds = collect_dataset(args.task, split, sizes["transitions_per_policy"],
                                  seed=args.seed, value_episodes=sizes["value_episodes"],
                                  episode_length=args.episode_length, progress=not args.quiet,
-                                 zoo_path=getattr(args, "zoo", None))
+                                 zoo_path=args.zoo)
             save_dataset(path, ds)
             print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
         summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,

@@ -16,8 +16,13 @@ rl2s-bc, 1 for gail and bc; null without it; the lanes "rl2s@EPS" of ``paper.py 
 are rows of method rl2s at their eps), the data seed ``data_seed`` or the command's
 ``--data-seed`` (paper.py's default 0 when absent).
 
+A run with TrainConfig overrides (paper.py's ``--set KEY=VALUE`` other than eps) is an
+ablation: its rows carry ``variant`` ("KEY=VALUE,...", else null), are summarised under
+'method+VARIANT' and enter no bar. A method without values in a result paper.py marked
+incomplete (stopped mid-run) is left out with a printed note.
+
 The out file keeps its other top-level keys and its other rows; a row with the same
-(data_seed, seed, method, eps) is replaced. Its ``summary`` is rewritten from all rows: per
+(data_seed, seed, method, eps, variant) is replaced. Its ``summary`` is rewritten from all rows: per
 method (per method and eps when a method has several) n, data seeds, mean / median / max MVD
 and max / median; bar (a): no RL2S run's MVD above twice the median of RL2S's runs, judged
 once there are >= 5 seeds for each of >= 2 data seeds; bar (b), per GAIL and BC: RL2S's MVD
@@ -49,9 +54,19 @@ def _flag(result: dict, flag: str, default: int) -> int | None:
     return values.pop() if len(values) == 1 else None
 
 
-def lane_rows(result: dict, source: str) -> list[dict]:
-    """-> one row per (method, seed) of a paper.py result. Raises ValueError naming the
-    missing or inconsistent field."""
+def _variant(result: dict) -> str | None:
+    """The run's TrainConfig overrides (paper.py's ``--set KEY=VALUE``, sorted, joined by ',')
+    other than eps, or None for the default configuration."""
+    sets = sorted({m.group(1) for p in result.get("command", "").split("&&")
+                   for m in re.finditer(r"--set[= ](\S+)", p)
+                   if not m.group(1).startswith("eps=")})
+    return ",".join(sets) or None
+
+
+def lane_rows(result: dict, source: str, skipped: list | None = None) -> list[dict]:
+    """-> one row per (method, seed) of a paper.py result. A method without values in a result
+    that paper.py marked incomplete (``complete`` false: stopped mid-run) is left out and named
+    in ``skipped``. Raises ValueError naming the missing or inconsistent field."""
     for key in ("per_seed", "task"):
         if key not in result:
             raise ValueError(f"missing field {key!r}")
@@ -80,9 +95,14 @@ def lane_rows(result: dict, source: str) -> list[dict]:
     extra = {k: result[k] for k in ("commit",) if result.get(k)}
     if result.get("device") or result.get("hardware"):
         extra["device"] = result.get("device") or result["hardware"]
+    extra["variant"] = _variant(result)
     rows = []
     for m in methods:
         per, sel = result["per_seed"][m], result.get("selected", {}).get(m, {})
+        if result.get("complete") is False and not per.get("mvd"):
+            if skipped is not None:
+                skipped.append(m)
+            continue
         for k in ("mvd", "kendall_tau"):
             if k not in per:
                 raise ValueError(f"missing field 'per_seed.{m}.{k}'")
@@ -105,7 +125,7 @@ def lane_rows(result: dict, source: str) -> list[dict]:
 
 
 def row_key(r: dict) -> tuple:
-    return (r["data_seed"], r["seed"], r["method"], r["eps"])
+    return (r["data_seed"], r["seed"], r["method"], r["eps"], r.get("variant"))
 
 
 def merge_rows(old: list[dict], new: list[dict]) -> list[dict]:
@@ -120,15 +140,17 @@ def merge_rows(old: list[dict], new: list[dict]) -> list[dict]:
 
 
 def group_runs(rows: list[dict]) -> dict[str, list[dict]]:
-    """{label: rows}: the label is the method, or 'method@eps=X' when a method has rows of
-    several eps."""
+    """{label: rows}: the label is the method, 'method+VARIANT' for a run with TrainConfig
+    overrides, and '@eps=X' after either when a method has rows of several eps."""
     eps_of: dict[str, set] = {}
     for r in rows:
         eps_of.setdefault(r["method"], set()).add(r["eps"])
     out: dict[str, list[dict]] = {}
     for r in rows:
-        multi = len(eps_of[r["method"]]) > 1
-        out.setdefault(f"{r['method']}@eps={r['eps']}" if multi else r["method"], []).append(r)
+        label = r["method"] + (f"+{r['variant']}" if r.get("variant") else "")
+        if len(eps_of[r["method"]]) > 1:
+            label += f"@eps={r['eps']}"
+        out.setdefault(label, []).append(r)
     return out
 
 
@@ -273,19 +295,23 @@ def main(argv=None) -> int:
                          f"{len(labels)}")
     new, seen = [], {}
     for path, label in zip(args.results, labels, strict=True):
+        skipped: list[str] = []
         try:
             with open(path) as f:
                 result = json.load(f)
             if not isinstance(result, dict):
                 raise ValueError("expected a JSON object")
-            rows = lane_rows(result, label)
+            rows = lane_rows(result, label, skipped)
         except (OSError, ValueError, TypeError, KeyError) as err:
             raise SystemExit(f"{path}: {err}") from None
+        if skipped:
+            print(f"{path}: incomplete run; no values for {', '.join(skipped)} (left out)")
         if result["task"] != args.task:
             raise SystemExit(f"{path}: task is {result['task']!r}, not --task {args.task!r}")
         for r in rows:
             if row_key(r) in seen:
-                raise SystemExit(f"{path}: run {row_key(r)} (data_seed, seed, method, eps) "
+                raise SystemExit(f"{path}: run {row_key(r)} (data_seed, seed, method, eps, "
+                                 f"variant) "
                                  f"is in {seen[row_key(r)]} too")
             seen[row_key(r)] = path
         new += rows

@@ -143,3 +143,33 @@ def test_bad_input_names_file_and_field_writes_nothing(tmp_path):
         wc.main(["--task", "ant", _write(tmp_path, "a.json", _paper({"rl2s": [1.0] * 3})),
                  "--out", str(out)])
     assert not out.exists()
+
+
+def test_set_overrides_are_a_variant_kept_apart_from_the_bars(tmp_path):
+    base = _write(tmp_path, "a.json", _paper({"rl2s": [10.0, 20.0], "gail": [30.0, 40.0]},
+                                             seed_ids=(0, 1)))
+    abl = _write(tmp_path, "b.json", _paper({"rl2s": [1.0, 2.0]}, seed_ids=(0, 1),
+                                            command_extra=" --set adv_nll_on=all --set eps=0.1"))
+    out = str(tmp_path / "wc.json")
+    assert wc.main(["--task", "hopper", base, abl, "--out", out]) == 0
+    doc = json.load(open(out))
+    variants = {(r["method"], r["seed"]): r["variant"] for r in doc["runs"]}
+    assert [v for (m, _), v in variants.items() if m == "rl2s"].count("adv_nll_on=all") == 2
+    assert len(doc["runs"]) == 6  # the ablation's rows did not replace the default ones
+    assert doc["summary"]["methods"]["rl2s+adv_nll_on=all"]["mean_mvd"] == 1.5
+    assert doc["summary"]["methods"]["rl2s"]["mean_mvd"] == 15.0
+    assert set(doc["summary"]["bar_a"]) == {"rl2s"}
+    assert set(doc["summary"]["bar_b"]) == {"rl2s - gail"}
+
+
+def test_incomplete_run_leaves_out_methods_without_values(tmp_path, capsys):
+    res = _paper({"rl2s": [10.0, 20.0], "bc": []}, seed_ids=(0, 1))
+    res["per_seed"]["bc"] = {"mvd": [], "kendall_tau": []}
+    res["complete"] = False
+    out = str(tmp_path / "wc.json")
+    assert wc.main(["--task", "hopper", _write(tmp_path, "a.json", res), "--out", out]) == 0
+    assert {r["method"] for r in json.load(open(out))["runs"]} == {"rl2s"}
+    assert "incomplete run; no values for bc" in capsys.readouterr().out
+    res["complete"] = True  # a finished run without values is bad input, as before
+    with pytest.raises(SystemExit, match="per_seed.bc.mvd: expected 2 values"):
+        wc.main(["--task", "hopper", _write(tmp_path, "b.json", res), "--out", out])

@@ -8,7 +8,8 @@ from the rows of docs/results/<task>_worst_case.json (experiments/worst_case_run
 The curve's points: the rl2s rows grouped by eps, and the gail rows as the eps = 1 point (GAIL
 is the eps = 1 lane of the same adversarial program; an rl2s point at eps 1 stays a separate
 point). Other methods and ablation rows (a non-null ``variant``) are not on the curve. Per
-point: n runs, data seeds, mean / median / max MVD, mean Kendall tau, and 95% bootstrap intervals of the mean MVD and mean tau over runs
+point: n runs, data seeds, mean / median / max MVD, mean Kendall tau, and 95% bootstrap
+intervals of the mean MVD and mean tau over runs
 (2000 replicates, numpy rng seed 0). ``paired_vs_0.25``: per other point, its MVD and tau
 minus the eps 0.25 rl2s point's, paired by (data_seed, seed): mean, 95% bootstrap interval
 over pairs, n pairs (a negative MVD difference: lower worst-case error than eps 0.25).

@@ -100,6 +100,7 @@ from rl2s_jax.app.protocol import (
     METHODS,
     METRICS,
     PROFILES,
+    lane_eps,
     load_or_collect,
     log,
     positive_int,
@@ -125,6 +126,7 @@ from rl2s_jax.improve.lanes import parse_variants, uses_uncertainty, variant_set
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.sharding import initialize_distributed
 from rl2s_jax.train.config import LEGACY_MODEL
+from rl2s_jax.train.cvar import n_worst
 from rl2s_jax.zoo.build import fine_tuning_recipe
 from rl2s_jax.zoo.zoo import policies_for
 
@@ -273,6 +275,16 @@ def add_eps_lanes(families: tuple, text: str, sizes_improve) -> tuple:
                  for f, c, ms in families)
 
 
+def identical_eps(eps_values, n_policies: int) -> list[list[float]]:
+    """Groups of eps values that select the same number of training policies
+    (``cvar.n_worst``: max(2, ceil(eps P))), whose lanes are then the same program with the
+    same keys: identical results. -> the groups of two or more, in the given order."""
+    by_k: dict[int, list[float]] = {}
+    for e in dict.fromkeys(float(v) for v in eps_values):
+        by_k.setdefault(int(n_worst(e, n_policies)), []).append(e)
+    return [g for g in by_k.values() if len(g) > 1]
+
+
 def resolve_sizes(args, profile: str) -> dict:
     sizes = {k: v for k, v in profile_sizes(profile, args.task).items() if k != "sac"}
     for k in list(sizes):
@@ -384,6 +396,13 @@ def main(argv=None) -> int:
     phase("data", t0)
     train_ds, test_ds = datasets["train"], datasets["test"]
     result["sizes"].update(train_policies=train_ds.n_policies, test_policies=test_ds.n_policies)
+    if args.eps_lanes:
+        eps_all = [lane_eps("rl2s", parse_overrides(args.set).get("eps"))] + [
+            float(m.split("@")[1]) for f, _, ms in families for m in ms if "@" in m]
+        for group in identical_eps(eps_all, train_ds.n_policies):
+            log(f"[paper] eps {', '.join(f'{e:g}' for e in group)} all select "
+                f"{int(n_worst(group[0], train_ds.n_policies))} of {train_ds.n_policies} "
+                "training policies: their lanes will be identical")
     train_pols, test_pols = policies_for(train_ds), policies_for(test_ds)
     result["test_policy_names"] = list(test_ds.meta.get("policy_names") or [])
     result["true_value_undiscounted"] = np.asarray(test_ds.value, np.float64).tolist()

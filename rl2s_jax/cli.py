@@ -198,7 +198,7 @@ def cmd_improve(args) -> int:
                     n_episodes=args.episodes, zoo=args.zoo, policy_file=args.policy_file,
                     step=args.step, guard_snapshots=args.guard_snapshots,
                     measure=not args.no_measure, branch_length=args.branch_length,
-                    uncertainty_penalty=args.uncertainty_penalty,
+                    uncertainty_penalty=args.uncertainty_penalty or 0.0,
                     uncertainty_threshold=args.uncertainty_threshold,
                     halt_penalty=args.halt_penalty, guard_margin=guard_margin(args),
                     guard_episodes=args.guard_episodes, progress=not args.quiet)
@@ -293,6 +293,15 @@ def _guard_options(p) -> None:
                    help="simulated episodes per policy and member for the guard")
     p.add_argument("--no-guard", action="store_true", help="no deployment guard: deploy "
                    "every fine-tuned policy (raw fine-tuning)")
+
+
+def _sim_env_options(p, default: str = "whole episodes from its start states") -> None:
+    """The simulated env SAC fine-tunes in (MBPO branches, MOPO penalty)."""
+    p.add_argument("--branch-length", type=_positive("branch-length"), help="MBPO: rollouts "
+                   f"of this many steps from every real state of the data (default: {default})")
+    p.add_argument("--uncertainty-penalty", type=float, metavar="LAMBDA",
+                   help="MOPO: reward r - LAMBDA * u(s, a), u = the ensemble's disagreement in "
+                   "units of its mean on the data (needs >= 2 elites)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -452,12 +461,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="override a SACConfig field, e.g. --set kl_weight=0.03")
     p.add_argument("--episodes", type=_positive("episodes"), default=16,
                    help="real episodes per policy before and after")
-    p.add_argument("--branch-length", type=_positive("branch-length"),
-                   help="MBPO: rollouts of this many steps from every real state of the data "
-                   "(default: whole episodes from its start states)")
-    p.add_argument("--uncertainty-penalty", type=float, default=0.0,
-                   help="MOPO: reward r - LAMBDA * u(s, a), u = the ensemble's disagreement in "
-                   "units of its mean on the data (needs >= 2 elites)")
+    _sim_env_options(p)
     p.add_argument("--uncertainty-threshold", type=float,
                    help="MOReL: end a rollout when u(s, a) exceeds this (same units)")
     p.add_argument("--halt-penalty", type=float, default=0.0,
@@ -486,6 +490,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--value-episodes", type=_positive("value-episodes"))
     p.add_argument("--improve-iterations", type=int,
                    help="SAC iterations per test policy in each simulator (0: skip)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE",
+                   help="override a fine-tuning SACConfig field, e.g. --set kl_weight=0.1")
+    _sim_env_options(p, "the profile's")
     _guard_options(p)
     p.add_argument("--episode-length", type=_positive("episode-length"),
                    help="shorter episodes than the task's (smoke runs)")

@@ -508,6 +508,10 @@ def test_paper_eps_lanes_flag():
                                 ("0.1", "adversarial", None, "improve-iterations 0")):
         with pytest.raises(SystemExit, match=what):
             paper.add_eps_lanes(paper.parse_families(fam), text, it)
+    # which eps give the same selection size max(2, ceil(eps P)), hence identical lanes
+    assert paper.identical_eps([0.25, 0.05, 0.1, 0.5], 17) == [[0.05, 0.1]]
+    assert paper.identical_eps([0.25, 0.05, 0.1, 0.5], 32) == []
+    assert paper.identical_eps([0.25, 0.05, 0.3, 0.1, 0.5], 10) == [[0.25, 0.3], [0.05, 0.1]]
 
 
 def test_paper_sizes_per_task():

@@ -68,3 +68,28 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
     assert main([*rerun, "--no-guard"]) == 0
     assert "reusing" in capsys.readouterr().out
     assert json.loads((out / "report.json").read_text())["guard_margin"] is None
+
+
+def test_pipeline_sizes_take_the_fine_tuning_recipe_and_refuse_bad_input():
+    from rl2s_jax.app.pipeline import PROFILES, pipeline_sizes
+    from rl2s_jax.cli import build_parser
+
+    def sizes(*flags):
+        args = build_parser().parse_args(["pipeline", "--task", "hopper", *flags])
+        return pipeline_sizes(args, "cpu")
+
+    base = sizes()
+    assert base["improve_recipe"] == PROFILES["cpu"]["improve_recipe"]
+    assert base["sac"] == PROFILES["cpu"]["sac"]
+    s = sizes("--branch-length", "25", "--uncertainty-penalty", "0.5", "--set", "kl_weight=0.1",
+              "--set", "hidden=[32,32]", "--improve-iterations", "7")
+    assert s["improve_recipe"] == {"branch_length": 25, "uncertainty_penalty": 0.5}
+    assert s["sac"]["kl_weight"] == 0.1 and s["sac"]["hidden"] == (32, 32)
+    assert s["sac"]["n_envs"] == PROFILES["cpu"]["sac"]["n_envs"] and s["improve_iterations"] == 7
+    assert PROFILES["cpu"]["sac"].get("kl_weight") is None  # the profile is not mutated
+    with pytest.raises(ValueError, match="sac-set|set: unknown SACConfig field"):
+        sizes("--set", "kl_wieght=0.1")
+    with pytest.raises(ValueError, match="uncertainty-penalty: expected a finite float >= 0"):
+        sizes("--uncertainty-penalty", "-1")
+    with pytest.raises(SystemExit):  # argparse: branch-length must be positive
+        sizes("--branch-length", "0")

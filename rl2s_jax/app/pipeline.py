@@ -15,16 +15,18 @@ from rl2s_jax.app.evaluate import evaluate_checkpoint
 from rl2s_jax.app.improve import (
     GUARD_MARGIN,
     deploy_through_guard,
+    fine_tuning_overrides,
     guard_floor,
     training_error_floor,
 )
 from rl2s_jax.app.report import improvement_text, load_curve, write_report
-from rl2s_jax.app.train import run_training
+from rl2s_jax.app.train import parse_overrides, run_training
 from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
+from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
@@ -58,17 +60,19 @@ PROFILES = {
     "cpu": dict(transitions_per_policy=2000, value_episodes=4, steps=300, eval_every=50,
                 eval_episodes=8, improve_iterations=300,
                 sac=dict(n_envs=4, hidden=(64, 64), batch_size=128, critic_warmup_updates=200,
-                         buffer_size=20_000)),
+                         buffer_size=20_000),
+                improve_recipe=dict(branch_length=None, uncertainty_penalty=0.0)),
     "gpu": dict(transitions_per_policy=100_000, value_episodes=32, steps=3000, eval_every=250,
                 eval_episodes=16, improve_iterations=5000,
-                sac=dict(n_envs=16, critic_warmup_updates=2000)),
+                sac=dict(n_envs=16, critic_warmup_updates=2000),
+                improve_recipe=dict(branch_length=None, uncertainty_penalty=0.0)),
 }
 
 
 def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
                           horizon: int, seed: int = 0, guard_margin: float | None = GUARD_MARGIN,
                           guard_episodes: int = 16, guard_floors: dict | None = None,
-                          log=print) -> dict[str, dict]:
+                          recipe: dict | None = None, log=print) -> dict[str, dict]:
     """Fine-tune every test policy with SAC inside each method's simulator, pass it through
     the deployment guard (``guard_margin``; None: every fine-tuned policy deploys), then
     measure the real return (MJX) of what deploys, paired with the start policy's: C0 and C1
@@ -80,10 +84,14 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     predict a gain above ``guard_margin`` x |start value| and above the method's
     floor (``guard_floors[method]``, ``training_error_floor``: the simulator's MVD on the
     training policies, the worst error it is known to make; used only where measured at this
-    horizon and gamma).
+    horizon and gamma). ``recipe`` (default ``sizes["improve_recipe"]``, else none): the
+    simulated env SAC fine-tunes in, {"branch_length": MBPO rollouts of that many steps from
+    every real state of the test data (None: whole episodes from its start states),
+    "uncertainty_penalty": MOPO's lambda on the ensemble's disagreement, in units of its mean
+    on the test data}; the guard always values whole episodes from the start states.
     -> {method: {"c0", "c0_se", "c1", "c1_se", "I", "c0_data" (the data's true values),
     "deployed" (bool), "predicted_gain" / "predicted_gain_mean" (None without the guard)
-    (lists [P]), "mpi", "api", "guard_margin"}}."""
+    (lists [P]), "mpi", "api", "guard_margin", "guard_floor", "recipe"}}."""
 
 
     ds = load_dataset(test_path)
@@ -93,17 +101,23 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     policies, pool = policies_for(ds), start_pool(ds)
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
     gamma = float(ds.meta.get("gamma") or 0.999)
-    cfg = SACConfig.fine_tuning(episode_length=horizon, **sizes["sac"])
+    cfg = SACConfig.fine_tuning(**{"episode_length": horizon, **sizes["sac"]})
+    recipe = dict(sizes.get("improve_recipe") or {}) if recipe is None else dict(recipe)
+    branch = recipe.get("branch_length")
+    sac_pool = pool if branch is None else branch_pool(ds, max_states=100_000, seed=seed)
     P = len(ds.value)
     floor_of = lambda m: guard_floor((guard_floors or {}).get(m), horizon, gamma)  # noqa: E731
     deployed, guards = [], {}
     for i, (method, ckpt) in enumerate(ckpts.items()):
         t0 = time.perf_counter()
         sim = load_simulator(ckpt)
-        params, _ = improve_policies(sim, task, pool, policies,
+        opts = scaled_env_options(sim, *real_rows(ds, seed=seed), rollout_length=branch,
+                                  uncertainty_penalty=recipe.get("uncertainty_penalty", 0.0))
+        params, _ = improve_policies(sim, task, sac_pool, policies,
                                      jax.random.PRNGKey(seed + 10 + i), cfg,
                                      n_iterations=sizes["improve_iterations"],
-                                     chunk_iterations=min(1000, sizes["improve_iterations"]))
+                                     chunk_iterations=min(1000, sizes["improve_iterations"]),
+                                     env_options=opts)
         log(f"[pipeline] SAC in {method}'s simulator: {time.perf_counter() - t0:.0f}s")
         accept, lo, mean = np.ones(P, bool), [None] * P, [None] * P
         if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
@@ -135,12 +149,33 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
                        "c0_data": [float(v) for v in ds.value],
                        "deployed": accept.tolist(), "predicted_gain": lo,
                        "predicted_gain_mean": mean, "guard_margin": guard_margin,
-                       "guard_floor": floor_of(method) if guard_margin is not None else None}
+                       "guard_floor": floor_of(method) if guard_margin is not None else None,
+                       "recipe": recipe}
         log(f"[pipeline] improvement in {method}'s simulator: MPI {m['mpi']:.3f}  API "
             f"{m['api']:.3f} ({int(accept.sum())} of {P} deployed)")
     log(f"[pipeline] real returns of the start and deployed policies measured in "
         f"{time.perf_counter() - t0:.0f}s")
     return out
+
+
+def pipeline_sizes(args, profile: str) -> dict:
+    """The profile's sizes with the command line's: the sizes given, SAC fields (``--set``,
+    checked by ``fine_tuning_overrides``) and the fine-tuning's simulated env
+    (``--branch-length``, ``--uncertainty-penalty``). ValueError before any work."""
+    sizes = dict(PROFILES[profile])
+    for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every",
+              "improve_iterations"):
+        if getattr(args, k, None) is not None:
+            sizes[k] = getattr(args, k)
+    sizes["sac"] = {**sizes["sac"],
+                    **fine_tuning_overrides(parse_overrides(getattr(args, "set", None)))}
+    penalty = getattr(args, "uncertainty_penalty", None)
+    if penalty is not None and not (np.isfinite(penalty) and penalty >= 0):
+        raise ValueError(f"uncertainty-penalty: expected a finite float >= 0, got {penalty}")
+    sizes["improve_recipe"] = {**sizes["improve_recipe"], **{
+        k: getattr(args, k) for k in ("branch_length", "uncertainty_penalty")
+        if getattr(args, k, None) is not None}}
+    return sizes
 
 
 def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
@@ -152,11 +187,7 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
     t_start = time.perf_counter()
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
-    sizes = dict(PROFILES[profile])
-    for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every",
-              "improve_iterations"):
-        if getattr(args, k) is not None:
-            sizes[k] = getattr(args, k)
+    sizes = pipeline_sizes(args, profile)
     methods = args.methods.split(",")
     bad = [m for m in methods if m not in ("rl2s", "gail", "bc", "rl2s-bc")]
     if bad:

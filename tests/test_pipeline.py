@@ -55,6 +55,9 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
             assert imp["c1"][j] == imp["c0"][j] and imp["I"][j] == 0.0
     floor = imp["guard_floor"]  # the simulator's MVD on the training policies
     assert floor == pytest.approx(report["train_runs"]["rl2s"]["mvd_train"]) and floor > 0
+    assert imp["guard_horizon"] == 40  # the real episodes' length (= the VD horizon here)
+    assert imp["recipe"] == report["sizes"]["improve_recipe"] == {"branch_length": None,
+                                                                  "uncertainty_penalty": 0.0}
     assert (f"Improvement in rl2s's simulator (guard margin 0.02, floor {floor:.3g}: every "
             "member's gain must exceed the simulator's MVD on the training policies)") in text
     for png in ("vd_curves.png", "vd_per_policy.png", "true_vs_sim.png", "improvement.png"):
@@ -68,6 +71,19 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
     assert main([*rerun, "--no-guard"]) == 0
     assert "reusing" in capsys.readouterr().out
     assert json.loads((out / "report.json").read_text())["guard_margin"] is None
+    # a training MVD measured at another horizon is no floor at the guard's: the pipeline
+    # measures the simulator's MVD on the training policies at the real episodes' length
+    from rl2s_jax.app.evaluate import evaluate_checkpoint
+    from rl2s_jax.app.pipeline import PROFILES, improve_in_simulators
+    ckpt, train = str(out / "rl2s" / "checkpoints"), str(out / "train.npz")
+    sizes = {**PROFILES["cpu"], "improve_iterations": 2, "value_episodes": 16}
+    imp = improve_in_simulators("hopper", str(out / "test.npz"), {"rl2s": ckpt}, sizes,
+                                horizon=40, guard_episodes=4, train_path=train, log=lambda _: 0,
+                                guard_floors={"rl2s": {"mvd": 1e-3, "horizon": 20,
+                                                       "gamma": 0.999}})["rl2s"]
+    on_train = evaluate_checkpoint(ckpt, train, n_episodes=4, horizon=40)
+    assert imp["guard_floor"] == pytest.approx(on_train["metrics"]["mvd"]) > 0
+    assert imp["guard_horizon"] == 40
 
 
 def test_pipeline_sizes_take_the_fine_tuning_recipe_and_refuse_bad_input():

@@ -72,7 +72,8 @@ PROFILES = {
 def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
                           horizon: int, seed: int = 0, guard_margin: float | None = GUARD_MARGIN,
                           guard_episodes: int = 16, guard_floors: dict | None = None,
-                          recipe: dict | None = None, log=print) -> dict[str, dict]:
+                          recipe: dict | None = None, train_path: str | None = None,
+                          log=print) -> dict[str, dict]:
     """Fine-tune every test policy with SAC inside each method's simulator, pass it through
     the deployment guard (``guard_margin``; None: every fine-tuned policy deploys), then
     measure the real return (MJX) of what deploys, paired with the start policy's: C0 and C1
@@ -80,18 +81,21 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     so that a kept start has C1 = C0 exactly (I = 0) and a deployed policy's real gain is not
     drowned by the two measurements' own noise. The guard is ``rl2s improve``'s
     (``improve.deployment_guard`` on the final actor): every elite member, over
-    ``guard_episodes`` simulated episodes of ``horizon`` steps (the fine-tuning's), must
-    predict a gain above ``guard_margin`` x |start value| and above the method's
-    floor (``guard_floors[method]``, ``training_error_floor``: the simulator's MVD on the
-    training policies, the worst error it is known to make; used only where measured at this
-    horizon and gamma). ``recipe`` (default ``sizes["improve_recipe"]``, else none): the
-    simulated env SAC fine-tunes in, {"branch_length": MBPO rollouts of that many steps from
-    every real state of the test data (None: whole episodes from its start states),
-    "uncertainty_penalty": MOPO's lambda on the ensemble's disagreement, in units of its mean
-    on the test data}; the guard always values whole episodes from the start states.
+    ``guard_episodes`` simulated episodes as long as the real ones the gain is measured on
+    (the data's episode length; SAC's episodes may be shorter: ``horizon``), must predict a
+    gain above ``guard_margin`` x |start value| and above the method's floor: the simulator's
+    MVD on the training policies, the worst error it is known to make, at the guard's horizon
+    and gamma (``guard_floors[method]``, ``training_error_floor``, where measured there;
+    else measured here on ``train_path``'s policies; else 0). A policy that a short horizon
+    rewards for speed can fall later: judged over short episodes it would deploy and lose.
+    ``recipe`` (default ``sizes["improve_recipe"]``, else none): the simulated env SAC
+    fine-tunes in, {"branch_length": MBPO rollouts of that many steps from every real state of
+    the test data (None: whole episodes from its start states), "uncertainty_penalty": MOPO's
+    lambda on the ensemble's disagreement, in units of its mean on the test data}; the guard
+    always values whole episodes from the start states.
     -> {method: {"c0", "c0_se", "c1", "c1_se", "I", "c0_data" (the data's true values),
     "deployed" (bool), "predicted_gain" / "predicted_gain_mean" (None without the guard)
-    (lists [P]), "mpi", "api", "guard_margin", "guard_floor", "recipe"}}."""
+    (lists [P]), "mpi", "api", "guard_margin", "guard_floor", "guard_horizon", "recipe"}}."""
 
 
     ds = load_dataset(test_path)
@@ -106,7 +110,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     branch = recipe.get("branch_length")
     sac_pool = pool if branch is None else branch_pool(ds, max_states=100_000, seed=seed)
     P = len(ds.value)
-    floor_of = lambda m: guard_floor((guard_floors or {}).get(m), horizon, gamma)  # noqa: E731
+    floors = {}
     deployed, guards = [], {}
     for i, (method, ckpt) in enumerate(ckpts.items()):
         t0 = time.perf_counter()
@@ -121,10 +125,19 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
         log(f"[pipeline] SAC in {method}'s simulator: {time.perf_counter() - t0:.0f}s")
         accept, lo, mean = np.ones(P, bool), [None] * P, [None] * P
         if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
+            floors[method] = guard_floor((guard_floors or {}).get(method), episode_length,
+                                         gamma)
+            if not floors[method] and train_path is not None:
+                on_train = evaluate_checkpoint(ckpt, train_path, seed=seed,
+                                               n_episodes=guard_episodes, horizon=episode_length)
+                floors[method] = guard_floor(training_error_floor(
+                    {"mvd_train": on_train["metrics"]["mvd"], "config": {
+                        "vd_horizon": on_train["horizon"], "gamma": on_train["gamma"]}}),
+                    episode_length, gamma)
             g, params = deploy_through_guard(
                 sim, task, pool, policies, params, None, jax.random.PRNGKey(seed + 30 + i),
-                margin=guard_margin, n_episodes=guard_episodes, horizon=horizon, gamma=gamma,
-                floor=floor_of(method))
+                margin=guard_margin, n_episodes=guard_episodes, horizon=episode_length,
+                gamma=gamma, floor=floors[method])
             accept = np.asarray(g["accepted"])
             lo, mean = g["predicted_gain"], g["predicted_gain_mean"]
             log(f"[pipeline] guard (margin {guard_margin}, floor {g['floor']:.3g}) in {method}'s "
@@ -149,7 +162,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
                        "c0_data": [float(v) for v in ds.value],
                        "deployed": accept.tolist(), "predicted_gain": lo,
                        "predicted_gain_mean": mean, "guard_margin": guard_margin,
-                       "guard_floor": floor_of(method) if guard_margin is not None else None,
+                       "guard_floor": floors.get(method), "guard_horizon": episode_length,
                        "recipe": recipe}
         log(f"[pipeline] improvement in {method}'s simulator: MPI {m['mpi']:.3f}  API "
             f"{m['api']:.3f} ({int(accept.sum())} of {P} deployed)")
@@ -250,7 +263,8 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
             horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed,
             guard_margin=guard_margin, guard_episodes=getattr(args, "guard_episodes", 16),
-            guard_floors={m: training_error_floor(r) for m, r in runs.items()})
+            guard_floors={m: training_error_floor(r) for m, r in runs.items()},
+            train_path=summary["datasets"]["train"]["path"])
         for m, imp in improvement.items():
             evals[m]["metrics"].update(mpi=imp["mpi"], api=imp["api"])
             evals[m]["improvement"] = imp

@@ -6,7 +6,9 @@ with the largest |simulated - true| value (the lane's MVD), its true and simulat
 the second-largest error (what the MVD would be without that policy); pooled over the files:
 how often each policy is the worst, and the spread of its simulated value over the lanes;
 per run and method, whether the policy the seeds disagree on most (the std over seeds of its
-simulated value) is the worst one (``seed_spread``: a signal that needs no true value).
+simulated value) is the worst one (``seed_spread``: a signal that needs no true value); per
+adversarial lane, how far it moved each policy's value from the same seed's bc lane
+(``likelihood_shift``: no true value needed either).
 
     python experiments/worst_policy.py docs/results/protocol_4gpu_h200/halfcheetah.json ...
         [--json OUT]
@@ -73,6 +75,32 @@ def seed_spread(result: dict, source: str = "") -> list[dict]:
     return out
 
 
+def likelihood_shift(result: dict, source: str = "", reference: str = "bc") -> list[dict]:
+    """How far the adversarial phase moved each policy's value, a signal that needs no true
+    value: per lane "<method>/<seed>" with a ``reference`` lane of the same seed (paper.py's
+    bc lanes continue the pre-training the adversarial lanes start from), each test policy's
+    score |sim - sim_reference| / the lane's median of it. -> [{source, lane, top (the
+    policy of the largest score), top_score, worst (the policy of the lane's MVD),
+    worst_score, mvd}]."""
+    truth = np.asarray(result["true_value"], np.float64)
+    names = result.get("test_policy_names") or [f"test-{i}" for i in range(len(truth))]
+    lanes = result.get("lanes", {})
+    out = []
+    for lane, info in sorted(lanes.items()):
+        method, _, seed = lane.partition("/")
+        ref = lanes.get(f"{reference}/{seed}", {})
+        if method == reference or "sim_value" not in info or "sim_value" not in ref:
+            continue
+        sim = np.asarray(info["sim_value"], np.float64)
+        shift = np.abs(sim - np.asarray(ref["sim_value"], np.float64))
+        score = shift / max(float(np.median(shift)), 1e-9)
+        top, worst = int(np.argmax(score)), int(np.argmax(np.abs(sim - truth)))
+        out.append({"source": source, "lane": lane, "top": names[top],
+                    "top_score": float(score[top]), "worst": names[worst],
+                    "worst_score": float(score[worst]), "mvd": float(abs(sim - truth)[worst])})
+    return out
+
+
 def summary(rows: list[dict]) -> dict:
     """Pooled: {lanes, worst_counts [(policy, n)] most frequent first, median_mvd,
     median_second, by_policy {policy: {n, true_min, true_max, sim_min, sim_max, mvd_max}}}
@@ -95,13 +123,14 @@ def main(argv=None) -> int:
     ap.add_argument("files", nargs="+", help="paper.py result JSONs (<task>.json)")
     ap.add_argument("--json", help="write the rows and the summary here")
     args = ap.parse_args(argv)
-    rows, spreads = [], []
+    rows, spreads, shifts = [], [], []
     for path in args.files:
         with open(path) as f:
             result = json.load(f)
         try:
             rows += lane_worst(result, path)
             spreads += seed_spread(result, path)
+            shifts += likelihood_shift(result, path)
         except (KeyError, ValueError) as err:
             raise SystemExit(f"{path}: {err}") from None
     print(f"{'source':<50} {'lane':<10} {'worst policy':<18} {'true':>8} {'sim':>8} "
@@ -126,10 +155,18 @@ def main(argv=None) -> int:
               f"of {len(spreads)} (run, method) pairs, in the 3 most disputed in {top3}; "
               f"median Spearman of spread and error "
               f"{np.median([x['rho'] for x in spreads if x['rho'] is not None]):.2f}")
+    if shifts:
+        print("the move away from the likelihood model (|sim - sim_bc| / its median; no truth "
+              "needed), per lane: the top policy and its score; the worst policy's score; MVD")
+        for x in sorted(shifts, key=lambda x: -x["mvd"]):
+            print(f"  {x['source'][-40:]:<40} {x['lane']:<12} top {x['top']:<18} "
+                  f"{x['top_score']:>6.1f}  worst {x['worst']:<18} {x['worst_score']:>6.1f}  "
+                  f"MVD {x['mvd']:.0f}")
     if args.json:
         with open(args.json, "w") as f:
             json.dump({"command": "python experiments/worst_policy.py " + " ".join(args.files),
-                       "rows": rows, "summary": s, "seed_spread": spreads}, f, indent=1)
+                       "rows": rows, "summary": s, "seed_spread": spreads,
+                       "likelihood_shift": shifts}, f, indent=1)
     return 0
 
 

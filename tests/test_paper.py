@@ -1191,3 +1191,19 @@ def test_improvement_summary_by_hand(tmp_path):
     assert s["controls"]["real_env"]["median_gain"] == pytest.approx(0.1)
     assert s["controls"]["real_env"]["seeds"] == 1
     assert (tmp_path / "o" / "hopper.png").stat().st_size > 10_000  # the figure
+
+
+def test_worst_policy_likelihood_shift_scores_the_move_from_bc():
+    """likelihood_shift: per adversarial lane with a bc lane of the same seed, each policy's
+    |sim - sim_bc| over the lane's median of it; the top policy, the worst one's score (worked
+    by hand); bc lanes and lanes without a same-seed bc are skipped."""
+    wp = _load("worst_policy")
+    r = {"true_value": [0.0, 10.0, 20.0, 30.0], "test_policy_names": ["a", "b", "c", "d"],
+         "lanes": {"rl2s/0": {"sim_value": [1.0, 12.0, 60.0, 31.0]},
+                   "bc/0": {"sim_value": [0.0, 10.0, 20.0, 30.0]},
+                   "gail/1": {"sim_value": [0.0, 0.0, 0.0, 0.0]}}}
+    out = wp.likelihood_shift(r, "r.json")
+    assert len(out) == 1 and out[0]["lane"] == "rl2s/0"
+    # shifts 1, 2, 40, 1: median 1.5; the top and the worst are c (error 40), score 40 / 1.5
+    assert (out[0]["top"], out[0]["worst"], out[0]["mvd"]) == ("c", "c", 40.0)
+    assert out[0]["top_score"] == pytest.approx(40 / 1.5) == out[0]["worst_score"]

@@ -868,6 +868,21 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
     assert lane_training_mvd(finals, 1, 12, 0.9) == [5.0, 4.0, 0.0]
 
 
+def _pointmass_fine_tuning(pointmass_ppo):
+    """The protocol's fine-tuning of the zoo's snapshots 1 (mediocre) and 4 (near-optimal) on
+    pointmass. -> (ids, FineTuning)."""
+    from rl2s_jax.app.protocol_improve import FineTuning
+
+    ids = [1, 4]
+    cfg = SACConfig.fine_tuning(n_envs=8, batch_size=128, hidden=(64, 64), warmup_steps=16,
+                                buffer_size=20_000, episode_length=50, updates_per_step=2,
+                                critic_warmup_updates=400)
+    return ids, FineTuning(task=TASK, ids=ids, c0=pointmass_ppo["returns"][ids], horizon=50,
+                           sac=cfg, iterations=1000, chunk=500, episodes=64,
+                           episode_length=50, gamma=0.99,
+                           policies=pol.index_params(pointmass_ppo["params"], np.asarray(ids)))
+
+
 def test_oracle_improvement_matches_the_real_env_on_pointmass(pointmass_ppo):
     """app.protocol_improve.run_oracle_improvement: fine-tuning inside the oracle (pointmass's
     is exact) through the simulated env gains what the real env gives (the control above:
@@ -875,16 +890,9 @@ def test_oracle_improvement_matches_the_real_env_on_pointmass(pointmass_ppo):
     paired C0 / C1 and the I, MPI and API they give."""
     from types import SimpleNamespace
 
-    from rl2s_jax.app.protocol_improve import FineTuning, run_oracle_improvement
+    from rl2s_jax.app.protocol_improve import run_oracle_improvement
 
-    ret = pointmass_ppo["returns"]
-    ids = [1, 4]
-    cfg = SACConfig.fine_tuning(n_envs=8, batch_size=128, hidden=(64, 64), warmup_steps=16,
-                                buffer_size=20_000, episode_length=50, updates_per_step=2,
-                                critic_warmup_updates=400)
-    ft = FineTuning(task=TASK, ids=ids, c0=ret[ids], horizon=50, sac=cfg, iterations=1000,
-                    chunk=500, episodes=64, episode_length=50, gamma=0.99,
-                    policies=pol.index_params(pointmass_ppo["params"], np.asarray(ids)))
+    ids, ft = _pointmass_fine_tuning(pointmass_ppo)
     data = SimpleNamespace(obs=_pool(64), t=np.zeros(64, np.int32))  # every row a start
     result, phases = {}, []
     run_oracle_improvement(result, ft, data, "full", {"rollout_length": None}, 1,
@@ -904,16 +912,9 @@ def test_run_control_gains_in_the_real_env_on_pointmass(pointmass_ppo):
     """app.protocol_improve.run_control: the same fine-tuning in the real env, one seed; the
     mediocre snapshot gains (18 -> 42 as above), and the entry's I, MPI and API are its own
     paired C0 / C1's."""
-    from rl2s_jax.app.protocol_improve import FineTuning, run_control
+    from rl2s_jax.app.protocol_improve import run_control
 
-    ret = pointmass_ppo["returns"]
-    ids = [1, 4]
-    cfg = SACConfig.fine_tuning(n_envs=8, batch_size=128, hidden=(64, 64), warmup_steps=16,
-                                buffer_size=20_000, episode_length=50, updates_per_step=2,
-                                critic_warmup_updates=400)
-    ft = FineTuning(task=TASK, ids=ids, c0=ret[ids], horizon=50, sac=cfg, iterations=1000,
-                    chunk=500, episodes=64, episode_length=50, gamma=0.99,
-                    policies=pol.index_params(pointmass_ppo["params"], np.asarray(ids)))
+    ids, ft = _pointmass_fine_tuning(pointmass_ppo)
     result, phases = {}, []
     run_control(result, ft, 1, lambda name, t0: phases.append(name))
     cc = result["control"]

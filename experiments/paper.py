@@ -397,8 +397,9 @@ def main(argv=None) -> int:
     train_ds, test_ds = datasets["train"], datasets["test"]
     result["sizes"].update(train_policies=train_ds.n_policies, test_policies=test_ds.n_policies)
     if args.eps_lanes:
-        eps_all = [lane_eps("rl2s", parse_overrides(args.set).get("eps"))] + [
-            float(m.split("@")[1]) for f, _, ms in families for m in ms if "@" in m]
+        robust = parse_overrides(args.set).get("eps")
+        eps_all = [lane_eps(m, robust) for _, _, ms in families for m in ms
+                   if m.split("@")[0] == "rl2s"]
         for group in identical_eps(eps_all, train_ds.n_policies):
             log(f"[paper] eps {', '.join(f'{e:g}' for e in group)} all select "
                 f"{int(n_worst(group[0], train_ds.n_policies))} of {train_ds.n_policies} "

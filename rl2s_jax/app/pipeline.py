@@ -130,10 +130,9 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
             if not floors[method] and train_path is not None:
                 on_train = evaluate_checkpoint(ckpt, train_path, seed=seed,
                                                n_episodes=guard_episodes, horizon=episode_length)
-                floors[method] = guard_floor(training_error_floor(
-                    {"mvd_train": on_train["metrics"]["mvd"], "config": {
-                        "vd_horizon": on_train["horizon"], "gamma": on_train["gamma"]}}),
-                    episode_length, gamma)
+                floors[method] = guard_floor({"mvd": on_train["metrics"]["mvd"],
+                                              "horizon": on_train["horizon"],
+                                              "gamma": on_train["gamma"]}, episode_length, gamma)
             g, params = deploy_through_guard(
                 sim, task, pool, policies, params, None, jax.random.PRNGKey(seed + 30 + i),
                 margin=guard_margin, n_episodes=guard_episodes, horizon=episode_length,

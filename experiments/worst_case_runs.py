@@ -18,8 +18,9 @@ are rows of method rl2s at their eps), the data seed ``data_seed`` or the comman
 
 A run with TrainConfig overrides (paper.py's ``--set KEY=VALUE`` other than eps) is an
 ablation: its rows carry ``variant`` ("KEY=VALUE,...", else null), are summarised under
-'method+VARIANT' and enter no bar. A method without values in a result paper.py marked
-incomplete (stopped mid-run) is left out with a printed note.
+'method+VARIANT' and enter no bar; ``summary.variants`` pairs them (variant_comparisons).
+A method without values in a result paper.py marked incomplete (stopped mid-run) is left out
+with a printed note.
 
 The out file keeps its other top-level keys and its other rows; a row with the same
 (data_seed, seed, method, eps, variant) is replaced. Its ``summary`` is rewritten from all rows: per
@@ -229,12 +230,47 @@ def bar_b(diff: dict) -> dict:
     return {**diff, "holds_so_far": holds, "verdict": why or ("pass" if holds else "fail")}
 
 
+def _pick(rows: list[dict], method: str, variant: str | None, eps=None) -> list[dict]:
+    return [r for r in rows if r["method"] == method and r.get("variant") == variant
+            and (eps is None or r["eps"] == eps)]
+
+
+def _minus(a: list[dict], b: list[dict]) -> list[dict]:
+    """Rows {data_seed, seed, mvd}: a's MVD minus b's on their shared (data_seed, seed)."""
+    mb = {(r["data_seed"], r["seed"]): r["mvd"] for r in b if _finite(r["mvd"])}
+    return [{"data_seed": r["data_seed"], "seed": r["seed"],
+             "mvd": r["mvd"] - mb[(r["data_seed"], r["seed"])]}
+            for r in a if _finite(r["mvd"]) and (r["data_seed"], r["seed"]) in mb]
+
+
+def variant_comparisons(rows: list[dict]) -> dict:
+    """Per TrainConfig variant of the rl2s rows (no bar), paired by (data_seed, seed):
+    rl2s+V against its own run's gail+V, the default bc, and the default rl2s at the same eps
+    (the variant's effect, run-to-run noise included); gail+V against the default gail (that
+    noise alone where V leaves gail's training unchanged); and the effect net of it,
+    (rl2s+V - gail+V) - (rl2s - gail)."""
+    out = {}
+    for v in sorted({r["variant"] for r in rows if r["method"] == "rl2s" and r.get("variant")}):
+        gail_v, gail = _pick(rows, "gail", v), _pick(rows, "gail", None)
+        for eps in sorted({r["eps"] for r in _pick(rows, "rl2s", v)},
+                          key=lambda e: -1 if e is None else e):
+            a, base = _pick(rows, "rl2s", v, eps), _pick(rows, "rl2s", None, eps)
+            name = f"rl2s+{v}@eps={eps}"
+            for other, b in ((f"gail+{v}", gail_v), ("bc", _pick(rows, "bc", None)),
+                             (f"rl2s@eps={eps}", base)):
+                out[f"{name} - {other}"] = paired_difference(a, b)
+            out[f"({name} - gail+{v}) - (rl2s@eps={eps} - gail)"] = paired_difference(
+                _minus(a, gail_v), _minus(base, gail))
+        out[f"gail+{v} - gail"] = paired_difference(gail_v, gail)
+    return {k: d for k, d in out.items() if d["n_pairs"]}
+
+
 def summarise(rows: list[dict]) -> dict:
     """The out file's ``summary``: per label method_stats, bar (a) for each rl2s label, bar
-    (b) for each rl2s label against each gail and bc label."""
+    (b) for each rl2s label against each gail and bc label, the variants' comparisons."""
     groups = group_runs(rows)
     summary = {"methods": {k: method_stats(v) for k, v in groups.items()},
-               "bar_a": {}, "bar_b": {}}
+               "bar_a": {}, "bar_b": {}, "variants": variant_comparisons(rows)}
     for k in groups:
         if k.split("@")[0] != "rl2s":
             continue
@@ -275,6 +311,10 @@ def report(task: str, rows: list[dict], summary: dict) -> str:
         lines.append(f"bar (b) {k}: paired MVD diff {_f(b['mean_diff'])} over {b['n_pairs']} "
                      f"pairs, 95% bootstrap {ci}, t {ct} (holds so far: {b['holds_so_far']}): "
                      f"{b['verdict']}")
+    for k, d in summary.get("variants", {}).items():
+        ci = d["ci95_bootstrap"] and "[" + ", ".join(_f(x) for x in d["ci95_bootstrap"]) + "]"
+        lines.append(f"variant {k}: paired MVD diff {_f(d['mean_diff'])} over {d['n_pairs']} "
+                     f"pairs, 95% bootstrap {ci}")
     return "\n".join(lines)
 
 

@@ -162,6 +162,26 @@ def test_set_overrides_are_a_variant_kept_apart_from_the_bars(tmp_path):
     assert set(doc["summary"]["bar_b"]) == {"rl2s - gail"}
 
 
+def test_variant_comparisons_pair_within_the_run_and_against_the_default(tmp_path):
+    base = _write(tmp_path, "a.json", _paper({"rl2s": [10.0, 20.0], "gail": [30.0, 40.0],
+                                              "bc": [5.0, 7.0]}, seed_ids=(0, 1)))
+    abl = _write(tmp_path, "b.json", _paper({"rl2s": [1.0, 2.0], "gail": [4.0, 10.0]},
+                                            seed_ids=(0, 1), command_extra=" --set adv_nll_on=all"))
+    out = str(tmp_path / "wc.json")
+    assert wc.main(["--task", "hopper", base, abl, "--out", out]) == 0
+    v = json.load(open(out))["summary"]["variants"]
+    name = "rl2s+adv_nll_on=all@eps=0.25"
+    expected = {f"{name} - gail+adv_nll_on=all": np.mean([1 - 4, 2 - 10]),
+                f"{name} - bc": np.mean([1 - 5, 2 - 7]),
+                f"{name} - rl2s@eps=0.25": np.mean([1 - 10, 2 - 20]),
+                f"({name} - gail+adv_nll_on=all) - (rl2s@eps=0.25 - gail)":
+                    np.mean([(1 - 4) - (10 - 30), (2 - 10) - (20 - 40)]),
+                "gail+adv_nll_on=all - gail": np.mean([4 - 30, 10 - 40])}
+    assert set(v) == set(expected)
+    for k, mean in expected.items():
+        assert v[k]["n_pairs"] == 2 and v[k]["mean_diff"] == pytest.approx(mean), k
+
+
 def test_incomplete_run_leaves_out_methods_without_values(tmp_path, capsys):
     res = _paper({"rl2s": [10.0, 20.0], "bc": []}, seed_ids=(0, 1))
     res["per_seed"]["bc"] = {"mvd": [], "kendall_tau": []}

@@ -306,11 +306,12 @@ def test_vmap_over_seeds_equals_separate_runs_adversarial(pm):
         _assert_trees_close_but_noise(_member(batched, 0), _member(batched, 1))
 
 
-@pytest.mark.parametrize("anchor_on", ["selected", "all"])
+@pytest.mark.parametrize("anchor_on", ["selected", "all", "both"])
 def test_adversarial_anchor_reaches_the_policies_it_names(pm, anchor_on):
     """rl2s with the NLL anchor: the next states of the policies outside the CVaR set change
-    the generator's update only when the anchor draws from every policy (adv_nll_on="all",
-    issue 41); with "selected" (the default) no real batch of the step reads them."""
+    the generator's update only when the anchor draws from every policy (adv_nll_on "all",
+    the default since issue 41, or "both"); with "selected" no real batch of the step reads
+    them."""
     ds, policies = pm
     cfg = _tiny("rl2s", adv_nll_weight=1.0, adv_nll_on=anchor_on)
     data = T.make_train_data(ds, policies, cfg)

@@ -109,9 +109,10 @@ class TrainConfig:
     adv_nll_weight: float = 10.0   # rl2s / gail: weight of the NLL of the real batch kept in
     # the adversarial generator loss; anchors the MLE start (0: pure WGAIL, the paper's,
     # which undid the start on every task: RESULTS)
-    adv_nll_on: str = "selected"   # whose rows the anchor's batch comes from: "selected" (the
-    # CVaR set, the adversarial real batch itself) | "all" (its own batch of every training
-    # policy, so regions the CVaR set leaves are still anchored: issue 41)
+    adv_nll_on: str = "all"        # whose rows the anchor's batch comes from: "all" (its own
+    # batch of every training policy, so regions the CVaR set leaves stay anchored: issue 41,
+    # RESULTS) | "selected" (the CVaR set: the adversarial real batch itself; the default
+    # before 2026-11-27) | "both" (the mean of the two batches' NLL)
     termination: str = "rule"      # what ends a simulated episode: the task's "rule" on the
     # simulated state | a learned "hazard" h(s, a) of the logged done flags | "both" |
     # "predictive": the rule also on one draw at noise scale 1 (rl2s_jax.model.termination)
@@ -255,8 +256,9 @@ class TrainConfig:
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name}: expected a finite float >= 0, got {v!r}")
-        if self.adv_nll_on not in ("selected", "all"):
-            raise ValueError(f"adv_nll_on: expected 'selected' or 'all', got {self.adv_nll_on!r}")
+        if self.adv_nll_on not in ("selected", "all", "both"):
+            raise ValueError(f"adv_nll_on: expected 'selected', 'all' or 'both', got "
+                             f"{self.adv_nll_on!r}")
         if not 0.0 < self.gamma <= 1.0:
             raise ValueError(f"gamma: expected a float in (0, 1], got {self.gamma!r}")
         if not (isinstance(self.holdout_frac, int | float) and 0.0 <= self.holdout_frac < 1.0):

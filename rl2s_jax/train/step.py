@@ -421,17 +421,18 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         hist = (None if r_hist is None else
                 jax.tree_util.tree_map(lambda r, f: jnp.concatenate([r, f]), r_hist, f_hist))
         keys = dyn.member_keys(k_gen, cfg.ensemble_size)
-        anchor = (r_obs, r_act, r_next, r_hist)
-        if cfg.adv_nll_weight and cfg.adv_nll_on == "all":  # fold_in: "selected" keeps its keys
-            anchor = _real_batch_history(jax.random.fold_in(k_real, 1), data,
-                                         jnp.ones_like(state.selected), n)
+        anchors = [(r_obs, r_act, r_next, r_hist)]
+        if cfg.adv_nll_weight and cfg.adv_nll_on != "selected":  # fold_in: "selected" keeps
+            every = _real_batch_history(jax.random.fold_in(k_real, 1), data,  # its keys
+                                        jnp.ones_like(state.selected), n)
+            anchors = [every] if cfg.adv_nll_on == "all" else anchors + [every]
 
         def member_loss(g, k):
             loss = losses.generator_adversarial_loss(g, disc, us, state.norm, obs, act, k,
                                                      hist, cfg.matmul_dtype)[0]
             if cfg.adv_nll_weight:  # the likelihood anchor (static: off costs nothing)
-                loss = loss + cfg.adv_nll_weight * losses.generator_nll_loss(
-                    g, state.norm, *anchor)[0]
+                nll = sum(losses.generator_nll_loss(g, state.norm, *a)[0] for a in anchors)
+                loss = loss + cfg.adv_nll_weight * nll / len(anchors)
             return loss
 
         def total(g_all):  # each member's loss on the same (s, a), its own noise: sum

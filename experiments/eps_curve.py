@@ -3,11 +3,13 @@ from the rows of docs/results/<task>_worst_case.json (experiments/worst_case_run
 
     python experiments/eps_curve.py [--tasks hopper walker2d halfcheetah ant]
         [--results docs/results] [--json docs/results/eps_curve.json]
-        [--png docs/results/eps_curve.png]
+        [--png docs/results/eps_curve.png] [--variant KEY=VALUE,...]
 
 The curve's points: the rl2s rows grouped by eps, and the gail rows as the eps = 1 point (GAIL
 is the eps = 1 lane of the same adversarial program; an rl2s point at eps 1 stays a separate
-point). Other methods and ablation rows (a non-null ``variant``) are not on the curve. Per
+point). Other methods and the rows of other configurations are not on the curve: by default
+the bars' (a null ``variant``), with --variant the rows of that worst_case_runs.py variant
+(e.g. ``adv_nll_on=selected``, the anchor of the committed eps lanes). Per
 point: n runs, data seeds, mean / median / max MVD, mean Kendall tau, and 95% bootstrap
 intervals of the mean MVD and mean tau over runs
 (2000 replicates, numpy rng seed 0). ``paired_vs_0.25``: per other point, its MVD and tau
@@ -36,8 +38,9 @@ def _num(x) -> bool:
     return x is not None and math.isfinite(x)
 
 
-def check_rows(doc, task: str) -> list[dict]:
-    """The curve's rows (rl2s, gail) of a worst_case file. ValueError naming the field."""
+def check_rows(doc, task: str, variant: str | None = None) -> list[dict]:
+    """The curve's rows (rl2s, gail of ``variant``) of a worst_case file. ValueError naming
+    the field."""
     if not isinstance(doc, dict) or not isinstance(doc.get("runs"), list):
         raise ValueError("no field 'runs' (a list of rows)")
     if doc.get("task", task) != task:
@@ -55,8 +58,8 @@ def check_rows(doc, task: str) -> list[dict]:
             raise ValueError(f"runs[{i}] field 'eps': null for an rl2s row")
         if r["method"] == "gail" and r["eps"] not in (None, 1, 1.0):
             raise ValueError(f"runs[{i}] field 'eps': {r['eps']} for a gail row (expected 1)")
-        if r["method"] not in ("rl2s", "gail") or r.get("variant"):
-            continue  # other methods, and ablations (worst_case_runs.py's variant rows)
+        if r["method"] not in ("rl2s", "gail") or r.get("variant") != variant:
+            continue  # other methods, and other configurations (worst_case_runs.py's variant)
         key = (r["method"], r["eps"], r["data_seed"], r["seed"])
         if key in seen:
             raise ValueError(f"runs[{i}]: duplicate run (method, eps, data_seed, seed) {key}")
@@ -198,6 +201,8 @@ def main(argv=None) -> int:
     ap.add_argument("--results", default=os.path.join("docs", "results"))
     ap.add_argument("--json", default=os.path.join("docs", "results", "eps_curve.json"))
     ap.add_argument("--png", default=os.path.join("docs", "results", "eps_curve.png"))
+    ap.add_argument("--variant", help="the rows of this worst_case_runs.py variant (default: "
+                    "the bars' configuration)")
     args = ap.parse_args(argv)
     tasks = {}
     for task in args.tasks:
@@ -207,11 +212,11 @@ def main(argv=None) -> int:
             continue
         try:
             with open(path) as f:
-                rows = check_rows(json.load(f), task)
+                rows = check_rows(json.load(f), task, args.variant)
         except (OSError, ValueError) as err:
             raise SystemExit(f"{path}: {err}") from None
         if not rows:
-            print(f"{task}: no rl2s or gail rows in {path}, skipped")
+            print(f"{task}: no rl2s or gail rows of variant {args.variant} in {path}, skipped")
             continue
         points = curve(rows)
         base = next((p for p in points if p["method"] == "rl2s" and p["eps"] == DEFAULT_EPS),
@@ -229,7 +234,7 @@ def main(argv=None) -> int:
                     *(sys.argv[1:] if argv is None else argv)])
     os.makedirs(os.path.dirname(args.json) or ".", exist_ok=True)
     with open(args.json, "w") as f:
-        json.dump({"command": cmd, "tasks": tasks}, f, indent=1)
+        json.dump({"command": cmd, "variant": args.variant, "tasks": tasks}, f, indent=1)
     plot(tasks, args.png)
     print(f"-> {args.json}, {args.png}")
     return 0

@@ -16,9 +16,11 @@ rl2s-bc, 1 for gail and bc; null without it; the lanes "rl2s@EPS" of ``paper.py 
 are rows of method rl2s at their eps), the data seed ``data_seed`` or the command's
 ``--data-seed`` (paper.py's default 0 when absent).
 
-A run with TrainConfig overrides (paper.py's ``--set KEY=VALUE`` other than eps) is an
-ablation: its rows carry ``variant`` ("KEY=VALUE,...", else null), are summarised under
-'method+VARIANT' and enter no bar; ``summary.variants`` pairs them (variant_comparisons).
+A row whose TrainConfig differs from the bars' (paper.py's ``--set KEY=VALUE`` other than
+eps; for rl2s / gail also the NLL anchor they ran with, BAR_CONFIG: "all", the default since
+2026-11-27, so the committed "selected" runs are variants) is an ablation: it carries
+``variant`` ("KEY=VALUE,...", else null), is summarised under 'method+VARIANT' and enters no
+bar; ``summary.variants`` pairs the variants (variant_comparisons).
 A method without values in a result paper.py marked incomplete (stopped mid-run) is left out
 with a printed note.
 
@@ -43,6 +45,8 @@ import sys
 import numpy as np
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")  # rl2s_jax.app.protocol.METHODS (no JAX here)
+ADVERSARIAL = ("rl2s", "gail")  # the methods the NLL anchor (adv_nll_on) enters
+BAR_CONFIG = {"adv_nll_on": "all"}  # TrainConfig's defaults since 2026-11-27: the bars' runs
 MIN_SEEDS, MIN_DATA_SEEDS, N_BOOT = 5, 2, 2000
 
 
@@ -55,13 +59,21 @@ def _flag(result: dict, flag: str, default: int) -> int | None:
     return values.pop() if len(values) == 1 else None
 
 
-def _variant(result: dict) -> str | None:
-    """The run's TrainConfig overrides (paper.py's ``--set KEY=VALUE``, sorted, joined by ',')
-    other than eps, or None for the default configuration."""
-    sets = sorted({m.group(1) for p in result.get("command", "").split("&&")
-                   for m in re.finditer(r"--set[= ](\S+)", p)
-                   if not m.group(1).startswith("eps=")})
-    return ",".join(sets) or None
+def _variant(result: dict, method: str = "rl2s") -> str | None:
+    """How the run's TrainConfig for ``method`` differs from the bars' (BAR_CONFIG, the
+    defaults; eps aside): paper.py's ``--set KEY=VALUE`` overrides, and for the adversarial
+    methods the anchor they ran with (``train_config.adversarial.adv_nll_on``, else the --set,
+    else "selected": runs from before the option); sorted "KEY=VALUE" joined by ',', None
+    when none differs."""
+    sets = dict(m.group(1).split("=", 1) for p in result.get("command", "").split("&&")
+                for m in re.finditer(r"--set[= ](\S+=\S+)", p))
+    sets.pop("eps", None)
+    anchor = sets.pop("adv_nll_on", None)
+    if method.split("@")[0] in ADVERSARIAL:
+        config = (result.get("train_config") or {}).get("adversarial") or {}
+        sets["adv_nll_on"] = config.get("adv_nll_on") or anchor or "selected"
+    return ",".join(sorted(f"{k}={v}" for k, v in sets.items()
+                           if BAR_CONFIG.get(k) != v)) or None
 
 
 def lane_rows(result: dict, source: str, skipped: list | None = None) -> list[dict]:
@@ -96,9 +108,9 @@ def lane_rows(result: dict, source: str, skipped: list | None = None) -> list[di
     extra = {k: result[k] for k in ("commit",) if result.get(k)}
     if result.get("device") or result.get("hardware"):
         extra["device"] = result.get("device") or result["hardware"]
-    extra["variant"] = _variant(result)
     rows = []
     for m in methods:
+        extra["variant"] = _variant(result, m)
         per, sel = result["per_seed"][m], result.get("selected", {}).get(m, {})
         if result.get("complete") is False and not per.get("mvd"):
             if skipped is not None:

@@ -33,8 +33,10 @@ def test_points_paired_and_outputs(tmp_path, capsys):
     _write(tmp_path, "hopper", _rows("rl2s", 0.25, *base) + _rows("rl2s", 0.1, *small, KEYS[:3])
            + _rows("gail", 1.0, *gail) + _rows("bc", 1.0, [1e6] * 4, [0.0] * 4)
            + _rows("rl2s-bc", 0.25, [1e6] * 4, [0.0] * 4))
+    other = [{**r, "variant": "adv_nll_on=selected", "mvd": 1e6}
+             for r in _rows("rl2s", 0.25, *base) + _rows("rl2s", 0.5, *base)]
     _write(tmp_path, "walker2d", _rows("rl2s", 0.25, *base) + _rows("rl2s", 1.0, *gail)
-           + _rows("gail", 1.0, *base))
+           + _rows("gail", 1.0, *base) + other)
     js, png = tmp_path / "out" / "c.json", tmp_path / "out" / "c.png"
     assert ec.main(["--tasks", "hopper", "walker2d", "ant", "--results", str(tmp_path),
                     "--json", str(js), "--png", str(png)]) == 0
@@ -42,6 +44,7 @@ def test_points_paired_and_outputs(tmp_path, capsys):
     assert "ant: no" in out and "skipped" in out and "GAIL (eps 1)" in out
     doc = json.loads(js.read_text())
     assert doc["command"].startswith("python experiments/eps_curve.py --tasks hopper")
+    assert doc["variant"] is None  # the other configuration's rows are not on the curve
     assert list(doc["tasks"]) == ["hopper", "walker2d"]
     assert png.read_bytes()[:4] == b"\x89PNG"
 
@@ -77,6 +80,14 @@ def test_points_paired_and_outputs(tmp_path, capsys):
         ("rl2s eps 0.25", 0.25), ("rl2s eps 1", 1.0), ("GAIL (eps 1)", 1.0)]
     assert w[1]["mean_mvd"] == pytest.approx(np.mean(gail[0]))
     assert w[2]["mean_mvd"] == pytest.approx(np.mean(base[0]))
+
+    # --variant: that configuration's rows alone
+    assert ec.main(["--tasks", "walker2d", "--results", str(tmp_path), "--json", str(js),
+                    "--png", str(png), "--variant", "adv_nll_on=selected"]) == 0
+    doc = json.loads(js.read_text())
+    assert doc["variant"] == "adv_nll_on=selected"
+    assert [(p["label"], p["mean_mvd"]) for p in doc["tasks"]["walker2d"]["points"]] == [
+        ("rl2s eps 0.25", 1e6), ("rl2s eps 0.5", 1e6)]
 
 
 def test_bad_input(tmp_path):

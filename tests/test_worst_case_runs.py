@@ -12,13 +12,18 @@ EPS = {"rl2s": 0.25, "gail": 1.0, "bc": 1.0, "rl2s-bc": 0.25}
 wc = load_script("worst_case_runs")
 
 
-def _paper(mvd: dict, seed_ids=(0, 1, 2), data_seed=0, ids_key=True, command_extra=""):
-    """A paper.py result: per_seed mvd / kendall_tau, selected, lanes with eps, the command."""
+def _paper(mvd: dict, seed_ids=(0, 1, 2), data_seed=0, ids_key=True, command_extra="",
+           anchor="all"):
+    """A paper.py result: per_seed mvd / kendall_tau, selected, lanes with eps, the command,
+    the adversarial family's anchor in train_config (None: no train_config, an old run)."""
     ids = list(seed_ids)
     command = (f"python experiments/paper.py --task hopper --seeds {len(ids)} "
                f"--data-seed {data_seed}{command_extra}")
     result = {"task": "hopper", "seeds": len(ids), "command": command,
               "hardware": "NVIDIA H100 80GB HBM3", "per_seed": {}, "selected": {}, "lanes": {}}
+    if anchor is not None:
+        result["train_config"] = {"adversarial": {"method": "rl2s", "adv_nll_on": anchor},
+                                  "mle": {"method": "rl2s-bc"}}
     if ids_key:
         result["seed_ids"] = ids
     for m, vals in mvd.items():
@@ -149,14 +154,16 @@ def test_set_overrides_are_a_variant_kept_apart_from_the_bars(tmp_path):
     base = _write(tmp_path, "a.json", _paper({"rl2s": [10.0, 20.0], "gail": [30.0, 40.0]},
                                              seed_ids=(0, 1)))
     abl = _write(tmp_path, "b.json", _paper({"rl2s": [1.0, 2.0]}, seed_ids=(0, 1),
-                                            command_extra=" --set adv_nll_on=all --set eps=0.1"))
+                                            command_extra=" --set adv_nll_on=selected --set "
+                                            "eps=0.1 --set nll_beta=0", anchor=None))
     out = str(tmp_path / "wc.json")
     assert wc.main(["--task", "hopper", base, abl, "--out", out]) == 0
     doc = json.load(open(out))
     variants = {(r["method"], r["seed"]): r["variant"] for r in doc["runs"]}
-    assert [v for (m, _), v in variants.items() if m == "rl2s"].count("adv_nll_on=all") == 2
+    label = "adv_nll_on=selected,nll_beta=0"
+    assert [v for (m, _), v in variants.items() if m == "rl2s"].count(label) == 2
     assert len(doc["runs"]) == 6  # the ablation's rows did not replace the default ones
-    assert doc["summary"]["methods"]["rl2s+adv_nll_on=all"]["mean_mvd"] == 1.5
+    assert doc["summary"]["methods"][f"rl2s+{label}"]["mean_mvd"] == 1.5
     assert doc["summary"]["methods"]["rl2s"]["mean_mvd"] == 15.0
     assert set(doc["summary"]["bar_a"]) == {"rl2s"}
     assert set(doc["summary"]["bar_b"]) == {"rl2s - gail"}
@@ -166,20 +173,35 @@ def test_variant_comparisons_pair_within_the_run_and_against_the_default(tmp_pat
     base = _write(tmp_path, "a.json", _paper({"rl2s": [10.0, 20.0], "gail": [30.0, 40.0],
                                               "bc": [5.0, 7.0]}, seed_ids=(0, 1)))
     abl = _write(tmp_path, "b.json", _paper({"rl2s": [1.0, 2.0], "gail": [4.0, 10.0]},
-                                            seed_ids=(0, 1), command_extra=" --set adv_nll_on=all"))
+                                            seed_ids=(0, 1), anchor="both"))
     out = str(tmp_path / "wc.json")
     assert wc.main(["--task", "hopper", base, abl, "--out", out]) == 0
     v = json.load(open(out))["summary"]["variants"]
-    name = "rl2s+adv_nll_on=all@eps=0.25"
-    expected = {f"{name} - gail+adv_nll_on=all": np.mean([1 - 4, 2 - 10]),
+    name = "rl2s+adv_nll_on=both@eps=0.25"
+    expected = {f"{name} - gail+adv_nll_on=both": np.mean([1 - 4, 2 - 10]),
                 f"{name} - bc": np.mean([1 - 5, 2 - 7]),
                 f"{name} - rl2s@eps=0.25": np.mean([1 - 10, 2 - 20]),
-                f"({name} - gail+adv_nll_on=all) - (rl2s@eps=0.25 - gail)":
+                f"({name} - gail+adv_nll_on=both) - (rl2s@eps=0.25 - gail)":
                     np.mean([(1 - 4) - (10 - 30), (2 - 10) - (20 - 40)]),
-                "gail+adv_nll_on=all - gail": np.mean([4 - 30, 10 - 40])}
+                "gail+adv_nll_on=both - gail": np.mean([4 - 30, 10 - 40])}
     assert set(v) == set(expected)
     for k, mean in expected.items():
         assert v[k]["n_pairs"] == 2 and v[k]["mean_diff"] == pytest.approx(mean), k
+
+
+def test_the_anchor_a_run_trained_with_decides_its_variant(tmp_path):
+    """The bars take the default anchor's runs ("all"): a run whose train_config says
+    "selected", or an old run without train_config or --set (before the option: "selected"),
+    is a variant for rl2s and gail; the likelihood methods, which no anchor enters, stay
+    in the bars."""
+    mvd = {"rl2s": [1.0], "gail": [2.0], "bc": [3.0], "rl2s-bc": [4.0]}
+    cases = {"all": None, "selected": "adv_nll_on=selected", None: "adv_nll_on=selected"}
+    for anchor, expected in cases.items():
+        res = _paper(mvd, seed_ids=(0,), anchor=anchor)
+        got = {m: wc._variant(res, m) for m in mvd}
+        assert got == {"rl2s": expected, "gail": expected, "bc": None, "rl2s-bc": None}, anchor
+    old = _paper(mvd, seed_ids=(0,), anchor=None, command_extra=" --set adv_nll_on=all")
+    assert wc._variant(old, "rl2s") is None and wc._variant(old, "rl2s@0.1") is None
 
 
 def test_incomplete_run_leaves_out_methods_without_values(tmp_path, capsys):

@@ -112,8 +112,8 @@ from rl2s_jax.app.protocol import (
     zoo_sha256,
 )
 from rl2s_jax.app.protocol_improve import (
+    lane_floors,
     lane_simulators,
-    lane_training_mvd,
     run_control,
     run_improvement,
     run_oracle_improvement,
@@ -446,8 +446,8 @@ def main(argv=None) -> int:
                           halt_penalty=args.halt_penalty)
     if it and sizes["improve_seeds"]:
         lanes, sims = lane_simulators(finals, seed_ids[0] + sizes["improve_seeds"])
-        floors = (lane_training_mvd(finals, seed_ids[0] + sizes["improve_seeds"],
-                                    ft.horizon, ft.gamma)
+        floors = (lane_floors(finals, seed_ids[0] + sizes["improve_seeds"], sims, train_ds,
+                              train_pols, ft)
                   if args.guard_floor == "mvd" else None)
         run_improvement(result, ft, lanes, sims, test_ds, variants, settings_of=settings_of,
                         ablation_methods=ablation_methods, guard_margin=args.guard_margin,

@@ -868,6 +868,36 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
     assert lane_training_mvd(finals, 1, 12, 0.9) == [5.0, 4.0, 0.0]
 
 
+def test_lane_floors_measure_where_training_did_not(pm_files):
+    """The protocol's guard floor per lane at the real episodes' length: a lane whose
+    training MVD was measured there keeps it; a lane measured at another horizon (the CPU
+    profile's 100 steps) gets its simulator's MVD on the training policies, measured there
+    (evaluate_simulator with the lane's key)."""
+    from types import SimpleNamespace
+
+    from rl2s_jax.app.protocol_improve import lane_floors
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.evaluate.simulator import evaluate_simulator
+    from rl2s_jax.zoo.zoo import policies_for
+
+    ds = load_dataset(pm_files["train"])
+    pols = policies_for(ds, data_path=pm_files["train"])
+    ep, gamma = int(ds.meta["episode_length"]), float(ds.meta["gamma"])
+    sim = _ensemble_simulator()
+    sims = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), sim)
+    vd = np.array([[1.0, 5.0, 2.0]])
+    finals = {"adversarial": ([("rl2s", 0)], SimpleNamespace(
+                  vd=vd, config=SimpleNamespace(vd_horizon=ep, gamma=gamma))),
+              "mle": ([("bc", 0)], SimpleNamespace(
+                  vd=vd, config=SimpleNamespace(vd_horizon=ep // 2, gamma=gamma)))}
+    ft = SimpleNamespace(episode_length=ep, gamma=gamma)
+    floors = lane_floors(finals, 1, sims, ds, pols, ft, n_episodes=4)
+    ref = evaluate_simulator(sim, ds, pols, key=jax.random.PRNGKey(51), n_episodes=4,
+                             horizon=ep, gamma=gamma)["metrics"]["mvd"]
+    assert floors[0] == 5.0 and ref > 0 and ref != 5.0
+    assert floors[1] == pytest.approx(ref)
+
+
 def _pointmass_fine_tuning(pointmass_ppo):
     """The protocol's fine-tuning of the zoo's snapshots 1 (mediocre) and 4 (near-optimal) on
     pointmass. -> (ids, FineTuning)."""

@@ -26,6 +26,7 @@ from rl2s_jax.app.protocol import (
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import Task, get_task
 from rl2s_jax.evaluate.oracle import oracle_dynamics
+from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.improve.finetune import (
     improve_in_real_env,
     improve_policies,
@@ -101,6 +102,23 @@ def lane_training_mvd(finals: dict, last_seed: int, horizon: int, gamma: float
         out += [guard_floor({"mvd": float(vd[i].max()), **at}, horizon, gamma)
                 for i, (_, s) in enumerate(fam_lanes) if s < last_seed]
     return out
+
+
+def lane_floors(finals: dict, last_seed: int, sims, train_ds, train_pols, ft: FineTuning,
+                n_episodes: int = 16) -> list[float]:
+    """Each lane's guard floor at the guard's horizon (the real episodes' length,
+    ``ft.episode_length``) and gamma: its training MVD where training measured it there
+    (``lane_training_mvd``: the GPU profile), else its simulator's MVD on the training
+    policies measured now at that horizon (``evaluate_simulator``, keys PRNGKey(50 + lane);
+    the CPU profile's training measures 100 steps). sims [L]: ``lane_simulators``'."""
+    floors = lane_training_mvd(finals, last_seed, ft.episode_length, ft.gamma)
+    for i, floor in enumerate(floors):
+        if not floor:
+            r = evaluate_simulator(take_lanes(sims, i), train_ds, train_pols,
+                                   key=jax.random.PRNGKey(50 + i), n_episodes=n_episodes,
+                                   horizon=ft.episode_length, gamma=ft.gamma)
+            floors[i] = float(r["metrics"]["mvd"])
+    return floors
 
 
 def lane_simulators(finals: dict, last_seed: int):
@@ -220,8 +238,10 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
     result["ablation"][variant] (with ``guard_margin``: also "<variant>+guard", with
     ``guard_snapshots`` "<variant>+guard-snapshots"). settings_of(variant): its
     ``scaled_env_options`` settings. ``phase(name, t0)`` records a timing, ``save()`` writes
-    the result after each variant. ``guard_floors``: per lane the guard's floor in value units
-    (``lane_training_mvd``), None: 0."""
+    the result after each variant. The guard values the real episodes' length
+    (``ft.episode_length``: the real gain is measured there), whatever SAC's episodes were.
+    ``guard_floors``: per lane the guard's floor in value units at that horizon
+    (``lane_floors``), None: 0."""
     keys = jnp.stack([jax.random.split(jax.random.fold_in(jax.random.PRNGKey(10 + s),
                                                           METHODS.index(m)), len(ft.ids))
                       for m, s in lanes])
@@ -261,7 +281,7 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
             t0 = time.perf_counter()
             accepted, chosen_index, chosen, gains = guard_lanes(
                 v_sims, ft.policies, actors, snaps, ft.task, start_pool(test_ds),
-                margin=guard_margin, horizon=ft.horizon, gamma=ft.gamma,
+                margin=guard_margin, horizon=ft.episode_length, gamma=ft.gamma,
                 floors=None if guard_floors is None else [guard_floors[i] for i in v_idx])
             phase(f"improve_guard{tag}", t0)
         t0 = time.perf_counter()
@@ -288,6 +308,7 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
         if accepted is not None:
             result["ablation"][f"{variant}+guard"] = {
                 "settings": {**settings, "guard_margin": guard_margin,
+                             "guard_horizon": ft.episode_length,
                              "guard_floor": ("training MVD per lane" if guard_floors
                                              else None)},
                 "methods": method_means(guarded)}

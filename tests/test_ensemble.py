@@ -598,27 +598,41 @@ def test_multistep_training_lowers_the_k_step_error(pm):
 # --------------------------------------------------------------- the likelihood anchor
 
 
-def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm):
-    """adv_nll_weight w: each member's adversarial loss gains w x its NLL of the real batch the
-    update draws (the critic updates before it do not depend on w), and a large w keeps the
-    members' held-out NLL near the pre-trained one where pure WGAIL moves it."""
+@pytest.mark.parametrize("anchor_on", ["all", "selected", "both"])
+def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm, anchor_on):
+    """adv_nll_weight w: each member's adversarial loss gains w x its NLL of the anchor's batch
+    (the critic updates before it do not depend on w): "selected" the real batch the update
+    draws from the CVaR set, "all" its own batch of every training policy (the real batch's key
+    folded with 1), "both" the mean of the two; a large w keeps the members' held-out NLL near
+    the pre-trained one where pure WGAIL moves it."""
     ds, policies = pm
     cfg = T.TrainConfig.small(task="pointmass", method="gail", vd_horizon=20, vd_every=0,
-                              updates_per_step=1, early_stop_patience=0, adv_nll_weight=0.0)
+                              updates_per_step=1, early_stop_patience=0, adv_nll_weight=0.0,
+                              adv_nll_on=anchor_on)
     data = T.make_train_data(ds, policies, cfg)
     state = T.init(jax.random.PRNGKey(4), cfg, data)
+    state = state.replace(selected=jnp.arange(state.selected.shape[0]) < 2)  # as a CVaR set
     key = jax.random.PRNGKey(9)
     w = 2.5
     _, m0 = T.step._adversarial_updates(state, data, key)
     anchored = state.replace(config=dataclasses.replace(cfg, adv_nll_weight=w))
     _, mw = T.step._adversarial_updates(anchored, data, key)
     k_real = jax.random.split(jax.random.split(key, 1)[0], 4)[1]
-    r_obs, r_act, r_next = T.data._real_batch(k_real, data, state.selected, cfg.batch_size)
-    nll = [float(-jnp.mean(models.generator_log_prob(_member(state.gen, i), state.norm, r_obs,
-                                                       r_act, r_next)))
-           for i in range(cfg.ensemble_size)]
-    np.testing.assert_allclose(float(mw["gen_loss"]) - float(m0["gen_loss"]), w * np.mean(nll),
+    draws = {"selected": [(k_real, state.selected)],
+             "all": [(jax.random.fold_in(k_real, 1), jnp.ones_like(state.selected))]}
+    draws["both"] = draws["selected"] + draws["all"]
+
+    def nll_of(k, selected):
+        r_obs, r_act, r_next = T.data._real_batch(k, data, selected, cfg.batch_size)
+        return np.mean([float(-jnp.mean(models.generator_log_prob(
+            _member(state.gen, i), state.norm, r_obs, r_act, r_next)))
+            for i in range(cfg.ensemble_size)])
+
+    nll = np.mean([nll_of(k, sel) for k, sel in draws[anchor_on]])
+    np.testing.assert_allclose(float(mw["gen_loss"]) - float(m0["gen_loss"]), w * nll,
                                rtol=1e-4, atol=1e-4)
+    if anchor_on != "all":
+        return  # the behaviour below does not depend on the batch's source
     # behaviour: from a likelihood-trained start, the anchor holds the held-out NLL
     bc = dataclasses.replace(cfg, method="bc", updates_per_step=20)
     start = T.train_steps(T.init(jax.random.PRNGKey(4), bc, data), data, 10)[0]

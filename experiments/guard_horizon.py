@@ -25,9 +25,8 @@ from rl2s_jax.improve.finetune import improve_policies, member_values, paired_ep
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_simulator
+from rl2s_jax.train.config import METHODS  # the pipeline's default order: method i's key 10 + i
 from rl2s_jax.zoo.zoo import policies_for
-
-METHODS = ("rl2s", "gail", "bc", "rl2s-bc")  # the pipeline's order: method i's key is 10 + i
 
 
 def main(argv=None) -> int:

@@ -207,16 +207,22 @@ def bar_a(stats: dict) -> dict:
             "holds_so_far": holds, "verdict": why or ("pass" if holds else "fail")}
 
 
+def _minus(a: list[dict], b: list[dict]) -> list[dict]:
+    """Rows {data_seed, seed, mvd}: a's MVD minus b's on their shared (data_seed, seed)."""
+    mb = {(r["data_seed"], r["seed"]): r["mvd"] for r in b if _finite(r["mvd"])}
+    return [{"data_seed": r["data_seed"], "seed": r["seed"],
+             "mvd": r["mvd"] - mb[(r["data_seed"], r["seed"])]}
+            for r in a if _finite(r["mvd"]) and (r["data_seed"], r["seed"]) in mb]
+
+
 def paired_difference(a: list[dict], b: list[dict], seed: int = 0) -> dict:
     """MVD of a minus MVD of b over their shared (data_seed, seed) keys with finite MVDs:
     mean, 95% bootstrap interval (N_BOOT replicates, rng ``seed``), 95% t-interval."""
-    mb = {(r["data_seed"], r["seed"]): r["mvd"] for r in b if _finite(r["mvd"])}
-    pairs = sorted((r["data_seed"], r["seed"], r["mvd"] - mb[(r["data_seed"], r["seed"])])
-                   for r in a if _finite(r["mvd"]) and (r["data_seed"], r["seed"]) in mb)
-    d = np.array([p[2] for p in pairs], np.float64)
+    pairs = sorted(_minus(a, b), key=lambda r: (r["data_seed"], r["seed"]))
+    d = np.array([p["mvd"] for p in pairs], np.float64)
     per_ds: dict[str, int] = {}
-    for ds, _, _ in pairs:
-        per_ds[str(ds)] = per_ds.get(str(ds), 0) + 1
+    for p in pairs:
+        per_ds[str(p["data_seed"])] = per_ds.get(str(p["data_seed"]), 0) + 1
     out = {"n_pairs": len(d), "pairs_per_data_seed": per_ds, "mean_diff": None,
            "ci95_bootstrap": None, "ci95_t": None}
     if not len(d):
@@ -245,14 +251,6 @@ def bar_b(diff: dict) -> dict:
 def _pick(rows: list[dict], method: str, variant: str | None, eps=None) -> list[dict]:
     return [r for r in rows if r["method"] == method and r.get("variant") == variant
             and (eps is None or r["eps"] == eps)]
-
-
-def _minus(a: list[dict], b: list[dict]) -> list[dict]:
-    """Rows {data_seed, seed, mvd}: a's MVD minus b's on their shared (data_seed, seed)."""
-    mb = {(r["data_seed"], r["seed"]): r["mvd"] for r in b if _finite(r["mvd"])}
-    return [{"data_seed": r["data_seed"], "seed": r["seed"],
-             "mvd": r["mvd"] - mb[(r["data_seed"], r["seed"])]}
-            for r in a if _finite(r["mvd"]) and (r["data_seed"], r["seed"]) in mb]
 
 
 def variant_comparisons(rows: list[dict]) -> dict:

@@ -25,6 +25,7 @@ from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
@@ -110,7 +111,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     branch = recipe.get("branch_length")
     sac_pool = pool if branch is None else branch_pool(ds, max_states=100_000, seed=seed)
     P = len(ds.value)
-    floors = {}
+    floors, train = {}, None  # train: (dataset, policies) of train_path, loaded where needed
     deployed, guards = [], {}
     for i, (method, ckpt) in enumerate(ckpts.items()):
         t0 = time.perf_counter()
@@ -127,12 +128,13 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
         if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
             floors[method] = guard_floor((guard_floors or {}).get(method), episode_length,
                                          gamma)
-            if not floors[method] and train_path is not None:
-                on_train = evaluate_checkpoint(ckpt, train_path, seed=seed,
-                                               n_episodes=guard_episodes, horizon=episode_length)
-                floors[method] = guard_floor({"mvd": on_train["metrics"]["mvd"],
-                                              "horizon": on_train["horizon"],
-                                              "gamma": on_train["gamma"]}, episode_length, gamma)
+            if not floors[method] and train_path is not None:  # measured at the guard's
+                if train is None:                                  # horizon and gamma
+                    train_ds = load_dataset(train_path)
+                    train = (train_ds, policies_for(train_ds, data_path=train_path))
+                floors[method] = float(evaluate_simulator(
+                    sim, *train, key=jax.random.PRNGKey(seed), n_episodes=guard_episodes,
+                    horizon=episode_length, gamma=gamma)["metrics"]["mvd"])
             g, params = deploy_through_guard(
                 sim, task, pool, policies, params, None, jax.random.PRNGKey(seed + 30 + i),
                 margin=guard_margin, n_episodes=guard_episodes, horizon=episode_length,

@@ -21,7 +21,9 @@ policies' real gains, so it explains the guard's choice; it must not choose it.
 ``controls``: the same median gain for the runs' own controls when they have them: the
 fine-tuning inside the oracle (``paper.py --improve-oracle-seeds``: the simulated env with
 the real physics) and in the real env with the runs' SAC settings (``paper.py --control``),
-each over all of its seeds in all runs.
+each over all of its seeds in all runs. ``on_control_policies`` (with ``--control``): every
+method's and own control's median gain on the policies the task's control fine-tuned (its
+file's ``test_policy_names``), so that the gap to that control is read on the same policies.
 Writes OUT/<task>.json (the runs trimmed to what this summary reads, and the summary) and
 OUT/<task>.png (per method every (seed, policy)'s real gain, the guard's deployments marked,
 beside the control's median), and prints a table.
@@ -56,8 +58,9 @@ def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
     members' predicted gains [M, P]."""
     rows = []
     for e in run["improvement"].values():
-        rows.append({"method": e["method"], "seed": e["seed"],
-                     "start": zoo_returns[zoo_ids(run, e["policy_ids"])],
+        zid = zoo_ids(run, e["policy_ids"])
+        rows.append({"method": e["method"], "seed": e["seed"], "zoo_ids": zid,
+                     "start": zoo_returns[zid],
                      "c0": np.asarray(e["c0_paired"], float),
                      "c1": np.asarray(e["c1"], float),
                      "accepted": np.asarray(e["guard_accepted"], bool),
@@ -100,9 +103,9 @@ def plot(rows: list[dict], summary: dict, task: str, path: str) -> None:
     plt.close(fig)
 
 
-def run_controls(runs: list[dict], zoo_returns: np.ndarray) -> dict:
-    """The runs' own controls as {"oracle_sim" / "real_env": {"median_gain", "seeds",
-    "median_gain_per_seed"}} (``median_gain`` of their C0 / C1 over all their seeds)."""
+def control_rows(runs: list[dict]) -> dict[str, list[tuple[list[int], list, list]]]:
+    """The runs' own controls' (zoo ids, C0, C1) per seed: {"oracle_sim": [...],
+    "real_env": [...]}."""
     rows = {"oracle_sim": [], "real_env": []}
     for run in runs:
         if "oracle_improvement" in run:
@@ -113,8 +116,14 @@ def run_controls(runs: list[dict], zoo_returns: np.ndarray) -> dict:
             c = run["control"]
             zid = zoo_ids(run, c["policy_ids"])
             rows["real_env"] += [(zid, a, b) for a, b in zip(c["c0"], c["c1"], strict=True)]
+    return rows
+
+
+def run_controls(runs: list[dict], zoo_returns: np.ndarray) -> dict:
+    """The runs' own controls as {"oracle_sim" / "real_env": {"median_gain", "seeds",
+    "median_gain_per_seed"}} (``median_gain`` of their C0 / C1 over all their seeds)."""
     out = {}
-    for name, got in rows.items():
+    for name, got in control_rows(runs).items():
         if not got:
             continue
         if len({tuple(z) for z, _, _ in got}) != 1:
@@ -125,6 +134,30 @@ def run_controls(runs: list[dict], zoo_returns: np.ndarray) -> dict:
                     for a, b in zip(c0, c1, strict=True)]
         out[name] = {"median_gain": median_gain(c0, c1, start, zoo_returns)["median_gain"],
                      "seeds": len(got), "median_gain_per_seed": per_seed}
+    return out
+
+
+def on_control_policies(rows: list[dict], runs: list[dict], control: dict,
+                        zoo_returns: np.ndarray) -> dict:
+    """Every method's raw median gain and the runs' own controls' on the policies the task's
+    control fine-tuned (``control["zoo_ids"]``), so that the gap to the control is read on the
+    same policies: {"zoo_ids", "n_below", "control", <method>, "oracle_sim", "real_env"}."""
+    keep = list(control["zoo_ids"])
+    pick = lambda zid, x: np.asarray(x, np.float64)[[list(zid).index(i) for i in keep]]
+    covers = lambda zid: set(keep) <= set(zid)
+    out = {"zoo_ids": keep, "control": control.get("median_gain")}
+    for m in dict.fromkeys(r["method"] for r in rows):
+        mine = [r for r in rows if r["method"] == m]
+        if all(covers(r["zoo_ids"]) for r in mine):
+            got = median_gain([pick(r["zoo_ids"], r["c0"]) for r in mine],
+                              [pick(r["zoo_ids"], r["c1"]) for r in mine],
+                              zoo_returns[keep], zoo_returns)
+            out[m], out["n_below"] = got["median_gain"], got["n_below"]
+    for name, got in control_rows(runs).items():
+        if got and all(covers(z) for z, _, _ in got):
+            out[name] = median_gain([pick(z, a) for z, a, _ in got],
+                                    [pick(z, b) for z, _, b in got],
+                                    zoo_returns[keep], zoo_returns)["median_gain"]
     return out
 
 
@@ -222,9 +255,15 @@ def main(argv=None) -> int:
     summary["hardware"] = sorted({r.get("hardware", "") for r in runs})
     if args.control:
         with open(args.control) as f:
-            ctl = json.load(f)["control"]
+            doc = json.load(f)
+        ctl, names = doc["control"], doc.get("test_policy_names")
         summary["control"] = {k: ctl.get(k) for k in ("median_gain", "mpi", "api", "deployed",
                                                       "seeds", "budget_env_steps", "command")}
+        if names:
+            summary["control"]["zoo_ids"] = [int(n.rsplit("-", 1)[1])
+                                             for n in names[:ctl.get("policies", len(names))]]
+            summary["on_control_policies"] = on_control_policies(
+                rows, runs, summary["control"], zoo_returns)
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, f"{args.task}.json")
     with open(path, "w") as f:
@@ -244,6 +283,12 @@ def main(argv=None) -> int:
     for name, c in summary["controls"].items():
         print(f"{name:<8} {c['median_gain']:>+10.3f} (the runs' own control, {c['seeds']} "
               f"seed(s))")
+    common = summary.get("on_control_policies")
+    if common:
+        print(f"on the control's {len(common['zoo_ids'])} policies ({common.get('n_below')} "
+              "below the top quartile): " + ", ".join(
+                  f"{k} {v:+.3f}" for k, v in common.items()
+                  if k not in ("zoo_ids", "n_below") and v is not None))
     for k, v in summary["paired"].items():
         print(f"paired {k}: median {v['median']:+.3f} [{v['ci95'][0]:+.3f}, "
               f"{v['ci95'][1]:+.3f}]; RL2S higher in {v['rl2s_higher']} of {v['pairs']} "

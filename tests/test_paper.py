@@ -1191,6 +1191,19 @@ def test_improvement_summary_by_hand(tmp_path):
     assert s["controls"]["real_env"]["median_gain"] == pytest.approx(0.1)
     assert s["controls"]["real_env"]["seeds"] == 1
     assert (tmp_path / "o" / "hopper.png").stat().st_size > 10_000  # the figure
+    # --control: the gap read on the control's policies (here the first two of the three)
+    ctl = tmp_path / "control.json"
+    ctl.write_text(json.dumps({"control": {"median_gain": 0.4, "policies": 2},
+                               "test_policy_names": [f"hopper-{i:03d}" for i in order]}))
+    assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
+                      str(tmp_path / "o"), "--bootstrap", "50", "--control", str(ctl)]) == 0
+    common = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"][
+        "on_control_policies"]
+    assert common["zoo_ids"] == order[:2] and common["n_below"] == 2
+    # seed-mean I on the two: rl2s [.3, -.05], gail [.1, .05], oracle [1, .5], real [.1, .1]
+    assert common["rl2s"] == pytest.approx(0.125) and common["gail"] == pytest.approx(0.075)
+    assert common["oracle_sim"] == pytest.approx(0.75)
+    assert common["real_env"] == pytest.approx(0.1) and common["control"] == 0.4
 
 
 def test_worst_policy_likelihood_shift_scores_the_move_from_bc():

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import os
 
+import jax
 import numpy as np
 import pytest
 
@@ -33,6 +34,9 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
         assert (out / method / "checkpoints").is_dir()
     report = json.loads((out / "report.json").read_text())
     assert set(report["methods"]) == {"rl2s", "bc"}
+    # where it ran: CPU results move with the CPU, so the report names it
+    assert report["machine"]["backend"] == "cpu" and report["machine"]["jax"] == jax.__version__
+    assert f"with {report['machine']['cpu_isa']}" in (out / "report.md").read_text()
     for m in report["methods"].values():
         for k in ("avd", "mvd", "kendall_tau", "spearman", "ndcg@1", "ndcg@10", "regret@1",
                   "mpi", "api"):
@@ -110,3 +114,13 @@ def test_pipeline_sizes_take_the_fine_tuning_recipe_and_refuse_bad_input():
         sizes("--uncertainty-penalty", "-1")
     with pytest.raises(SystemExit):  # argparse: branch-length must be positive
         sizes("--branch-length", "0")
+
+
+def test_cpu_from_cpuinfo_names_the_model_and_the_widest_instruction_set():
+    """report.cpu_from_cpuinfo: the first processor's model name and its widest vector ISA."""
+    from rl2s_jax.app.report import cpu_from_cpuinfo
+    text = ("processor\t: 0\nmodel name\t: AMD EPYC\nflags\t\t: fpu sse4_2 avx avx2 "
+            "avx512f avx512bw\n\nprocessor\t: 1\nmodel name\t: other\nflags\t: fpu\n")
+    assert cpu_from_cpuinfo(text) == {"cpu": "AMD EPYC", "cpu_isa": "AVX512"}
+    assert cpu_from_cpuinfo(text.replace(" avx512f avx512bw", ""))["cpu_isa"] == "AVX2"
+    assert cpu_from_cpuinfo("") == {"cpu": None, "cpu_isa": None}

@@ -22,6 +22,7 @@ def test_a_run_inside_pretraining_warns_and_says_how_far(pm_files, tmp_path):
     with open(tmp_path / "run" / "summary.json") as f:
         saved = json.load(f)
     assert saved["vd_measured_by"]["horizon"] == 50 and saved["vd_measured_by"]["episodes"] == 2
+    assert saved["machine"]["backend"] == "cpu" and "cpu_isa" in saved["machine"]
 
 
 def test_eval_data_results_reach_the_summary_with_their_settings(pm_files, tmp_path, capsys):

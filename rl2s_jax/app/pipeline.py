@@ -19,7 +19,7 @@ from rl2s_jax.app.improve import (
     guard_floor,
     training_error_floor,
 )
-from rl2s_jax.app.report import improvement_text, load_curve, write_report
+from rl2s_jax.app.report import improvement_text, load_curve, machine_info, write_report
 from rl2s_jax.app.train import parse_overrides, run_training
 from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
@@ -216,7 +216,8 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
         data_key["zoo"] = args.zoo
     if args.episode_length is not None:
         data_key["episode_length"] = args.episode_length
-    summary = {"task": args.task, "profile": profile, "backend": backend, "sizes": sizes,
+    summary = {"task": args.task, "profile": profile, "backend": backend,
+               "machine": machine_info(), "sizes": sizes,
                "guard_margin": guard_margin,
                "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
                "datasets": {}}

@@ -4,10 +4,43 @@ from __future__ import annotations
 import json
 import os
 
+import jax
+import jaxlib
 import numpy as np
 
 TABLE_KEYS = ("avd", "mvd", "kendall_tau", "spearman", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10",
               "regret@1", "mpi", "api")
+
+# (name, /proc/cpuinfo flag), widest first: XLA's CPU code, so MJX's rounding, follows them
+_ISA = (("AVX512", "avx512f"), ("AVX2", "avx2"), ("AVX", "avx"), ("SSE4_2", "sse4_2"))
+
+
+def cpu_from_cpuinfo(text: str) -> dict:
+    """The first processor's model name and widest x86 vector instruction set in a
+    /proc/cpuinfo text. -> {"cpu": str | None, "cpu_isa": str | None}"""
+    model, flags = None, set()
+    for line in text.splitlines():
+        key, _, value = line.partition(":")
+        key = key.strip()
+        if key == "model name" and model is None:
+            model = value.strip()
+        elif key == "flags" and not flags:
+            flags = set(value.split())
+    isa = next((name for name, flag in _ISA if flag in flags), None)
+    return {"cpu": model, "cpu_isa": isa}
+
+
+def machine_info() -> dict:
+    """Where a result was measured: JAX's backend and device kind, the CPU's model and widest
+    instruction set (CPU results move with it: docs/RESULTS.md, "`make hopper` on the CPU"),
+    and the jax / jaxlib versions."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            cpu = cpu_from_cpuinfo(f.read())
+    except OSError:
+        cpu = {"cpu": None, "cpu_isa": None}
+    return {"backend": jax.default_backend(), "device": jax.devices()[0].device_kind, **cpu,
+            "jax": jax.__version__, "jaxlib": jaxlib.__version__}
 
 
 def load_curve(path: str) -> list[dict]:
@@ -181,8 +214,11 @@ def write_report(out: str, summary: dict, evals: dict[str, dict],
     with open(os.path.join(out, "report.json"), "w") as f:
         json.dump(report, f, indent=1)
     first = next(iter(evals.values()), None)
+    mach = summary.get("machine") or {}
+    where = (f" ({mach.get('device')}, CPU {mach.get('cpu')} with {mach.get('cpu_isa')}, jax "
+             f"{mach.get('jax')})" if mach else "")
     lines = [f"# {summary.get('task', '')} pipeline report", "",
-             f"Profile `{summary.get('profile')}` on `{summary.get('backend')}`; "
+             f"Profile `{summary.get('profile')}` on `{summary.get('backend')}`{where}; "
              f"command: `{summary.get('command', '')}`.", ""]
     if first is not None:
         lines += [f"Test policies: {len(first['vd'])}; each simulated for "

@@ -10,6 +10,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.simulator import evaluate_simulator
@@ -169,7 +170,8 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     summary = {
         "method": method, "eps": float(state.eps), "profile": profile, "steps": int(state.step),
         "steps_run": int(state.step) - start, "seconds": round(seconds, 2),
-        "backend": jax.default_backend(), "avd_train": float(np.mean(vd)),
+        "backend": jax.default_backend(), "machine": machine_info(),
+        "avd_train": float(np.mean(vd)),
         "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(out, "checkpoints"),
         "pretrain_steps_left": (max(0, cfg.pretrain_steps + 1 - int(state.step))
                                 if cfg.pretrains else 0),

@@ -13,75 +13,11 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
         [--set field=value ...] [--families adversarial,mle] [--first-seed K] [--no-fork]
 
-Phases (each prints its wall time; OUT/<task>.json is rewritten after each, so a run cut off
-by a time limit still leaves what it finished, with "complete": false); this script parses and
-checks the flags, the phases are ``rl2s_jax.app.protocol`` (data, oracle, training) and
-``rl2s_jax.app.protocol_improve`` (improvement, control):
-
-1. data: train / test Datasets from the shipped zoo: ONE ``rl2s_jax.app.pipeline.collect_dataset``
-   run over all the zoo's policies (split "all": one MJX program), split into the zoo's train
-   and test policies with ``Dataset.select_policies``; reused from --data-dir when the sizes
-   match.
-1b. oracle: the control, ``evaluate.evaluate_oracle`` (the real MJX dynamics stepped from each
-   observation through the lanes' evaluation path: same start states, horizon, gamma and
-   episodes, key PRNGKey(1000 + seed) per seed): the "oracle" row, the ceiling of any simulator
-   of this observation under this protocol (--no-oracle skips it).
-2. training: the four methods x S seeds as TWO vmapped programs, as experiments/eps_sweep.py:
-   eps is a state leaf, so ``rl2s`` (eps 0.25) and ``gail`` (eps 1) are lanes of one
-   adversarial program (config method "rl2s"), ``rl2s-bc`` (eps 0.25) and ``bc`` (eps 1)
-   lanes of one likelihood program (config method "rl2s-bc"). A lane (method m, seed s) is the
-   program ``rl2s train --method m --seed s`` runs: gail differs from rl2s, and bc from rl2s-bc,
-   only in the initial eps (TrainConfig.initial_eps), and the key is PRNGKey(s) (checked: the
-   final states are bitwise equal unvmapped; a vmapped lane matches to ~3e-8). The lanes of
-   a seed are equal through pre-training, so the rl2s lanes pre-train for gail too and
-   ``train.lanes.fork`` continues the gail lanes from them (the same states). BC's likelihood
-   steps from the same key are that pre-training too, so when both families run in this
-   process the bc lanes join the likelihood program at step pretrain_steps, continued from
-   the rl2s lane of their seed (``protocol_fork.join_trunk``; until then the rl2s-bc lanes train
-   alone and the bc lanes report the rl2s lanes' evaluations). --no-fork trains every lane
-   apart, for checking.
-   ``--families adversarial`` (or ``mle``) runs one of the two, so a task's protocol can be
-   split over two device calls; experiments/merge_results.py joins the two JSON files.
-   ``--first-seed K`` runs seeds K..K+S-1 (keys, evaluation keys and lane names as in one
-   run of K+S seeds), so more seeds can join a result later, on the same --data-dir.
-   Every --eval-every steps every lane's simulator is evaluated on the test policies as
-   ``evaluate.evaluate_simulator`` does (simulated discounted value over the config's vd_horizon
-   from the test data's start states, ``evaluate.ranking_metrics`` against the true values),
-   vmapped over the lanes, with key PRNGKey(1000 + seed). The last evaluation (at --steps) is
-   the final one; it gets 95% bootstrap intervals over its episodes (--bootstrap N
-   replicates; ``evaluate.bootstrap_intervals``), per lane in "lane_intervals" and averaged
-   over seeds in "intervals".
-3. improvement: for the first --improve-seeds seeds, SAC fine-tunes --improve-policies test
-   policies (spread evenly over their true returns; 0: all) inside each method's
-   simulator (all methods x seeds x policies as one vmapped program), then the fine-tuned
-   policies' real return C1 is measured in MJX with the test data's protocol (--value-episodes
-   fresh episodes of the full episode length); C0 is the data's measured ``value``.
-   I = (C1 - C0) / |C0|, MPI = min I, API = mean I (``improve.improvement_metrics``).
-   ``--improve-variants`` runs this once per variant of the simulated env (each a '+' list
-   of ``full`` (whole episodes from the data's start states), ``branched`` (MBPO:
-   ``--branch-length`` steps from every real state of the test data), ``penalty`` (MOPO:
-   r - ``--uncertainty-penalty`` * u) and ``stop`` (MOReL: end when u >
-   ``--uncertainty-threshold``), u being the ensemble's disagreement
-   (``sim_env.simulator_uncertainty``; needs >= 2 elites, so not --model legacy) in units of
-   its mean on the test data): the first variant fills MPI/API (Table 2) from every lane, the
-   others run in the lanes of ``--ablation-methods`` only; every variant goes to
-   ``ablation``. ``--control`` runs the same fine-tuning (same policies, budget and SAC
-   settings) in the real env, ``--control-seeds`` times, with real returns before and after
-   (``improve.improve_in_real_env``): the ``control`` entry, the ceiling of improvement for
-   that budget. ``--guard-margin M`` adds, per variant, the deployed policies' MPI / API
-   when each lane keeps a fine-tuned policy only where every elite member of its simulator
-   predicts a gain above M x |start value| (``improve.deployment_guard``; a kept start
-   policy has I = 0) and above the lane's MVD on the training policies in value units
-   (``--guard-floor mvd``, the default; ``none``: no floor): ablation entry
-   ``<variant>+guard``. ``--zoo-recipe`` fine-tunes at the zoo learner's discount, reward
-   scale and batch (``zoo.build.fine_tuning_recipe``). ``--guard-snapshots`` applies
-   that guard to the actor after every ``--sac-chunk`` iterations as well
-   (``improve.select_by_members``: early stopping by the simulator alone) and measures the
-   chosen snapshots in the real env: ablation entry ``<variant>+guard-snapshots``.
-   ``--improve-oracle-seeds N`` fine-tunes the same policies inside the oracle (the real
-   physics stepped from observations) through the first variant's simulated env: the
-   ``oracle_improvement`` entry, which tells the simulated env's set-up from the model's
-   errors in the gap between the control and the learned simulators.
+This script parses and checks the flags; the phases are ``rl2s_jax.app.protocol`` (data,
+oracle, training and evaluation) and ``rl2s_jax.app.protocol_improve`` (improvement and its
+controls). Each prints its wall time and rewrites OUT/<task>.json, so a run cut off by a time
+limit keeps what it finished ("complete": false). What each phase and flag does:
+docs/EVALUATION.md, "The paper's protocol (`make paper`)".
 """
 from __future__ import annotations
 
@@ -119,6 +55,7 @@ from rl2s_jax.app.protocol_improve import (
     run_oracle_improvement,
     setup_fine_tuning,
 )
+from rl2s_jax.app.report import machine_info
 from rl2s_jax.app.train import make_config, parse_overrides
 from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.envs.tasks import task_names
@@ -168,11 +105,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--control", action="store_true", help="also fine-tune the same test "
                     "policies with the same SAC in the real env (the 'control' entry)")
     ap.add_argument("--control-seeds", type=pos, default=1, help="SAC seeds of the control")
-    ap.add_argument("--improve-oracle-seeds", type=int, default=0, help="also fine-tune the "
-                    "same test policies inside the oracle (the real physics stepped from "
-                    "observations) through the first variant's simulated env, this many SAC "
-                    "seeds: result['oracle_improvement'], the control between the real env "
-                    "and the learned simulators")
+    ap.add_argument("--improve-oracle-seeds", type=int, default=0, help="SAC seeds of the "
+                    "same fine-tuning inside the oracle through the first variant's simulated "
+                    "env (result['oracle_improvement'])")
     ap.add_argument("--improve-variants", default="full", help="comma list of simulated-env "
                     "variants, each '+'-joined: full|branched [+penalty] [+stop]; the first "
                     "gives MPI/API, all go to 'ablation'")
@@ -188,28 +123,20 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--halt-penalty", type=float, default=0.0, help="reward subtracted when "
                     "the stop rule ends a rollout (variant 'stop')")
     ap.add_argument("--model", choices=("ensemble", "legacy"), default="ensemble",
-                    help="the generator: the ensemble model family with MLE pre-training "
-                    "(TrainConfig's defaults) or the single generator trained from scratch "
-                    "that preceded it (train.LEGACY_MODEL); --set overrides either")
+                    help="TrainConfig's ensemble or train.LEGACY_MODEL; --set overrides either")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
-    ap.add_argument("--guard-margin", type=float, help="also report MPI / API of the deployed "
-                    "policies when a fine-tuned policy is kept only where every elite member of "
-                    "its simulator predicts a gain above this fraction (improve."
-                    "deployment_guard): the ablation entry '<variant>+guard'")
+    ap.add_argument("--guard-margin", type=float, help="MPI / API of the policies deployed "
+                    "where every elite member predicts a gain above this fraction "
+                    "(ablation '<variant>+guard')")
     ap.add_argument("--guard-floor", choices=("mvd", "none"), default="mvd", help="with "
                     "--guard-margin: a gain must also exceed, in value units, the lane's MVD on "
                     "the training policies (mvd, the default; its worst known error) or "
                     "nothing (none)")
     ap.add_argument("--zoo-recipe", action="store_true", help="fine-tune at the zoo learner's "
-                    "discount, reward scale and batch with a 2^19-row buffer "
-                    "(zoo.build.fine_tuning_recipe; --sac-set still wins): the recipe under "
-                    "which the real-env control gains")
+                    "discount, reward scale and batch (zoo.build.fine_tuning_recipe)")
     ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
-                    "also apply the guard to the actor after every --sac-chunk iterations and "
-                    "deploy the snapshot with the largest smallest predicted gain "
-                    "(improve.select_by_members), measured in the real env: the ablation "
-                    "entry '<variant>+guard-snapshots'")
+                    "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
     ap.add_argument("--families", default="adversarial,mle", help="comma list of the training "
                     "programs to run: adversarial (rl2s, gail) and / or mle (rl2s-bc, bc); one "
                     "of them splits the protocol over two calls (merge_results.py joins them)")
@@ -376,6 +303,7 @@ def main(argv=None) -> int:
     result = {"task": args.task, "model": args.model, "methods": {}, "std": {}, "n": {},
               "seeds": S, "seed_ids": seed_ids,
               "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
+              "machine": machine_info(),
               "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
               "command": " ".join(["python", "experiments/paper.py", *argv]),
               "families": [f for f, _, _ in families],

@@ -260,8 +260,7 @@ def main(argv=None) -> int:
         summary["control"] = {k: ctl.get(k) for k in ("median_gain", "mpi", "api", "deployed",
                                                       "seeds", "budget_env_steps", "command")}
         if names:
-            summary["control"]["zoo_ids"] = [int(n.rsplit("-", 1)[1])
-                                             for n in names[:ctl.get("policies", len(names))]]
+            summary["control"]["zoo_ids"] = zoo_ids(doc, range(ctl.get("policies", len(names))))
             summary["on_control_policies"] = on_control_policies(
                 rows, runs, summary["control"], zoo_returns)
     os.makedirs(args.out, exist_ok=True)

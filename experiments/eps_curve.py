@@ -9,12 +9,13 @@ The curve's points: the rl2s rows grouped by eps, and the gail rows as the eps =
 is the eps = 1 lane of the same adversarial program; an rl2s point at eps 1 stays a separate
 point). Other methods and the rows of other configurations are not on the curve: by default
 the bars' (a null ``variant``), with --variant the rows of that worst_case_runs.py variant
-(e.g. ``adv_nll_on=selected``, the anchor of the committed eps lanes). Per
-point: n runs, data seeds, mean / median / max MVD, mean Kendall tau, and 95% bootstrap
-intervals of the mean MVD and mean tau over runs
-(2000 replicates, numpy rng seed 0). ``paired_vs_0.25``: per other point, its MVD and tau
-minus the eps 0.25 rl2s point's, paired by (data_seed, seed): mean, 95% bootstrap interval
-over pairs, n pairs (a negative MVD difference: lower worst-case error than eps 0.25).
+(e.g. ``adv_nll_on=selected``, the anchor of the first eps lanes). Per point: n runs (a
+rerun of a data seed and seed, worst_case_runs.py's ``rerun`` > 0, counts as a run of its own),
+data seeds, mean / median / max MVD, mean Kendall tau, and 95% bootstrap intervals of the mean
+MVD and mean tau over runs (2000 replicates, numpy rng seed 0). ``paired_vs_0.25``: per other
+point, its MVD and tau minus the eps 0.25 rl2s point's, paired within one run (data_seed,
+seed, rerun): mean, 95% bootstrap interval over pairs, n pairs (a negative MVD difference:
+lower worst-case error than eps 0.25).
 A missing task file is skipped; bad input stops with the file and field before anything is
 written.
 """
@@ -54,15 +55,20 @@ def check_rows(doc, task: str, variant: str | None = None) -> list[dict]:
                 raise ValueError(f"runs[{i}] has no field {k!r}")
             if not isinstance(r[k], typ) or isinstance(r[k], bool):
                 raise ValueError(f"runs[{i}] field {k!r}: bad value {r[k]!r}")
+        if not isinstance(r.get("rerun", 0), int) or isinstance(r.get("rerun"), bool) \
+                or r.get("rerun", 0) < 0:
+            raise ValueError(f"runs[{i}] field 'rerun': bad value {r['rerun']!r} (expected an "
+                             f"int >= 0)")
         if r["method"] == "rl2s" and r["eps"] is None:
             raise ValueError(f"runs[{i}] field 'eps': null for an rl2s row")
         if r["method"] == "gail" and r["eps"] not in (None, 1, 1.0):
             raise ValueError(f"runs[{i}] field 'eps': {r['eps']} for a gail row (expected 1)")
         if r["method"] not in ("rl2s", "gail") or r.get("variant") != variant:
             continue  # other methods, and other configurations (worst_case_runs.py's variant)
-        key = (r["method"], r["eps"], r["data_seed"], r["seed"])
+        key = (r["method"], r["eps"], r["data_seed"], r["seed"], r.get("rerun", 0))
         if key in seen:
-            raise ValueError(f"runs[{i}]: duplicate run (method, eps, data_seed, seed) {key}")
+            raise ValueError(f"runs[{i}]: duplicate run (method, eps, data_seed, seed, rerun) "
+                             f"{key}")
         seen.add(key)
         rows.append(r)
     return rows
@@ -97,17 +103,23 @@ def curve(rows: list[dict]) -> list[dict]:
             "mean_mvd": _mean(mvd), "median_mvd": float(np.median(mvd)) if len(mvd) else None,
             "max_mvd": float(mvd.max()) if len(mvd) else None, "mean_tau": _mean(tau),
             "ci95_mean_mvd": _ci(mvd), "ci95_mean_tau": _ci(tau),
-            "runs": [{k: r[k] for k in ("data_seed", "seed", "mvd", "tau")} for r in runs]})
+            "runs": [{"data_seed": r["data_seed"], "seed": r["seed"], "rerun": r.get("rerun", 0),
+                      "mvd": r["mvd"], "tau": r["tau"]} for r in runs]})
     return points
 
 
+def _run(r: dict) -> tuple:
+    """The run a row is a lane of: (data_seed, seed, rerun) (worst_case_runs.pair_key)."""
+    return (r["data_seed"], r["seed"], r.get("rerun", 0))
+
+
 def paired(point: dict, base: dict) -> dict:
-    """point minus base over shared (data_seed, seed), for MVD and tau."""
+    """point minus base over the runs they share, (data_seed, seed, rerun), for MVD and tau."""
     out = {}
     for k in ("mvd", "tau"):
-        b = {(r["data_seed"], r["seed"]): r[k] for r in base["runs"] if _num(r[k])}
-        d = np.array([r[k] - b[(r["data_seed"], r["seed"])] for r in point["runs"]
-                      if _num(r[k]) and (r["data_seed"], r["seed"]) in b], np.float64)
+        b = {_run(r): r[k] for r in base["runs"] if _num(r[k])}
+        d = np.array([r[k] - b[_run(r)] for r in point["runs"] if _num(r[k]) and _run(r) in b],
+                     np.float64)
         out[k] = {"n_pairs": len(d), "mean_diff": _mean(d), "ci95": _ci(d)}
     return out
 
@@ -177,7 +189,10 @@ def plot(tasks: dict, path: str) -> None:
                         color="tab:blue", lw=1, zorder=1)
             ax.set_xscale("log")
             ax.set_xticks(ticks)
-            ax.set_xticklabels([f"{e:g}" for e in ticks])
+            seeds = {p["eps"]: p["data_seeds"] for p in pts if p["method"] == "rl2s"}
+            mixed = len({tuple(v) for v in seeds.values()}) > 1   # points on other data
+            ax.set_xticklabels([f"{e:g}" + (f"\nds {','.join(map(str, seeds.get(e, [])))}"
+                                            if mixed and e in seeds else "") for e in ticks])
             ax.xaxis.set_minor_locator(NullLocator())
             ax.set_xlim(min(ticks) / 1.6, max(ticks) * 1.6)
             ax.grid(alpha=0.3)

@@ -6,32 +6,28 @@ issue's two bars checked.
         [--out docs/results/halfcheetah_worst_case.json] [--source-label LABEL ...]
 
 A row is {data_seed, seed, method, eps, mvd, tau} (the final evaluation's test MVD and Kendall
-tau: ``per_seed[method]["mvd"|"kendall_tau"]``, one entry per seed of ``seed_ids``), plus
-mvd_selected / tau_selected / step_selected at the step model selection on the training
-policies chose (``selected[method]``), its source (the file, or --source-label: one label for
-all files or one per file) and the file's commit / device (``hardware``) when it has them.
-The seed is the lane's own (``seed_ids``; else ``--first-seed`` of the command + 0 .. seeds-1),
-eps the lane's initial CVaR fraction (``lanes["<method>/<seed>"]["eps"]``: 0.25 for rl2s and
-rl2s-bc, 1 for gail and bc; null without it; the lanes "rl2s@EPS" of ``paper.py --eps-lanes``
-are rows of method rl2s at their eps), the data seed ``data_seed`` or the command's
-``--data-seed`` (paper.py's default 0 when absent).
+tau: ``per_seed[method]``, per seed of ``seed_ids``, else the command's ``--first-seed`` + 0 ..
+seeds-1), plus mvd / tau / step_selected (``selected[method]``: model selection on the training
+policies), its source (the file, or --source-label: one for all files or one per file), commit
+and device. eps: ``lanes["<method>/<seed>"]["eps"]`` (``--eps-lanes``' "rl2s@EPS" lanes are
+rl2s rows at their eps); data seed: ``data_seed`` or the command's ``--data-seed`` (else 0).
 
-A row whose TrainConfig differs from the bars' (paper.py's ``--set KEY=VALUE`` other than
-eps; for rl2s / gail also the NLL anchor they ran with, BAR_CONFIG: "all", the default since
-2026-11-27, so the committed "selected" runs are variants) is an ablation: it carries
-``variant`` ("KEY=VALUE,...", else null), is summarised under 'method+VARIANT' and enters no
-bar; ``summary.variants`` pairs the variants (variant_comparisons).
-A method without values in a result paper.py marked incomplete (stopped mid-run) is left out
-with a printed note.
+A row whose TrainConfig differs from the bars' (``--set KEY=VALUE`` other than eps; for rl2s /
+gail also the NLL anchor they ran with, BAR_CONFIG: "all", the default since 2026-11-27, so the
+committed "selected" runs are variants) carries ``variant`` ("KEY=VALUE,...", else null), is
+summarised under 'method+VARIANT' and enters no bar; ``summary.variants`` pairs the variants.
+A method without values in a run paper.py marked incomplete is left out with a note.
 
-The out file keeps its other top-level keys and its other rows; a row with the same
-(data_seed, seed, method, eps, variant) is replaced. Its ``summary`` is rewritten from all rows: per
-method (per method and eps when a method has several) n, data seeds, mean / median / max MVD
-and max / median; bar (a): no RL2S run's MVD above twice the median of RL2S's runs, judged
-once there are >= 5 seeds for each of >= 2 data seeds; bar (b), per GAIL and BC: RL2S's MVD
-minus theirs, paired by (data_seed, seed), its mean with a 95% bootstrap interval (2000
-replicates, rng seed 0) and t-interval; it holds when the mean is <= 0 or the interval holds 0.
-Bad input stops with the file and the missing field before anything is written.
+A key (data_seed, seed, method, eps, variant) that an earlier file of the call gave is a rerun
+(same configuration, data and seed; another run, e.g. one with eps lanes): ``rerun`` counts
+them in the files' order (0: the first); rows pair only within one run, by pair_key (data_seed,
+seed, rerun). A file with an earlier one's values is refused (the same run twice). The out
+file keeps its other keys and rows; a row with the same key and rerun is replaced. ``summary``
+is rebuilt from all rows: per method (and eps) n, data seeds, mean / median / max MVD, max /
+median; bar (a): no RL2S run's MVD above twice the median of RL2S's runs, judged once >= 5
+seeds for each of >= 2 data seeds; bar (b), per GAIL and BC: RL2S's MVD minus theirs, paired,
+its mean with a 95% bootstrap interval (2000 replicates, rng seed 0) and t-interval; it holds
+when the mean is <= 0 or the interval holds 0. Bad input stops before anything is written.
 """
 from __future__ import annotations
 
@@ -138,18 +134,24 @@ def lane_rows(result: dict, source: str, skipped: list | None = None) -> list[di
 
 
 def row_key(r: dict) -> tuple:
+    """The run's key, its rerun aside."""
     return (r["data_seed"], r["seed"], r["method"], r["eps"], r.get("variant"))
+
+
+def pair_key(r: dict) -> tuple:
+    """What pairs rows of one run: (data_seed, seed, rerun)."""
+    return (r["data_seed"], r["seed"], r.get("rerun", 0))
 
 
 def merge_rows(old: list[dict], new: list[dict]) -> list[dict]:
     """old rows whose key no new row has, and the new rows; sorted by data seed, method
     (METHODS' order), seed."""
-    keys = {row_key(r) for r in new}
-    rows = [r for r in old if row_key(r) not in keys] + new
+    keys = {(*row_key(r), r.get("rerun", 0)) for r in new}
+    rows = [r for r in old if (*row_key(r), r.get("rerun", 0)) not in keys] + new
     order = {m: i for i, m in enumerate(METHODS)}
     return sorted(rows, key=lambda r: (r["data_seed"], order.get(r["method"], len(order)),
-                                       r["method"], r["seed"], -1 if r["eps"] is None
-                                       else r["eps"]))
+                                       r["method"], r["seed"], r.get("rerun", 0),
+                                       -1 if r["eps"] is None else r["eps"]))
 
 
 def group_runs(rows: list[dict]) -> dict[str, list[dict]]:
@@ -208,17 +210,17 @@ def bar_a(stats: dict) -> dict:
 
 
 def _minus(a: list[dict], b: list[dict]) -> list[dict]:
-    """Rows {data_seed, seed, mvd}: a's MVD minus b's on their shared (data_seed, seed)."""
-    mb = {(r["data_seed"], r["seed"]): r["mvd"] for r in b if _finite(r["mvd"])}
-    return [{"data_seed": r["data_seed"], "seed": r["seed"],
-             "mvd": r["mvd"] - mb[(r["data_seed"], r["seed"])]}
-            for r in a if _finite(r["mvd"]) and (r["data_seed"], r["seed"]) in mb]
+    """Rows {data_seed, seed, rerun, mvd}: a's MVD minus b's on their shared pair_key."""
+    mb = {pair_key(r): r["mvd"] for r in b if _finite(r["mvd"])}
+    return [{"data_seed": r["data_seed"], "seed": r["seed"], "rerun": r.get("rerun", 0),
+             "mvd": r["mvd"] - mb[pair_key(r)]}
+            for r in a if _finite(r["mvd"]) and pair_key(r) in mb]
 
 
 def paired_difference(a: list[dict], b: list[dict], seed: int = 0) -> dict:
-    """MVD of a minus MVD of b over their shared (data_seed, seed) keys with finite MVDs:
-    mean, 95% bootstrap interval (N_BOOT replicates, rng ``seed``), 95% t-interval."""
-    pairs = sorted(_minus(a, b), key=lambda r: (r["data_seed"], r["seed"]))
+    """MVD of a minus MVD of b over their shared pair_key with finite MVDs: mean, 95%
+    bootstrap interval (N_BOOT replicates, rng ``seed``), 95% t-interval."""
+    pairs = sorted(_minus(a, b), key=pair_key)
     d = np.array([p["mvd"] for p in pairs], np.float64)
     per_ds: dict[str, int] = {}
     for p in pairs:
@@ -254,7 +256,7 @@ def _pick(rows: list[dict], method: str, variant: str | None, eps=None) -> list[
 
 
 def variant_comparisons(rows: list[dict]) -> dict:
-    """Per TrainConfig variant of the rl2s rows (no bar), paired by (data_seed, seed):
+    """Per TrainConfig variant of the rl2s rows (no bar), paired by pair_key:
     rl2s+V against its own run's gail+V, the default bc, and the default rl2s at the same eps
     (the variant's effect, run-to-run noise included); gail+V against the default gail (that
     noise alone where V leaves gail's training unchanged); and the effect net of it,
@@ -299,10 +301,11 @@ def _f(x, fmt=".1f") -> str:
 def report(task: str, rows: list[dict], summary: dict) -> str:
     """The printed table: the runs, the per-method summary, the bars."""
     lines = [f"{task}: {len(rows)} runs",
-             f"{'data_seed':>9} {'seed':>4} {'method':<8} {'eps':>5} {'MVD':>9} {'tau':>6} "
-             f"{'MVD sel':>9} {'tau sel':>7}"]
+             f"{'data_seed':>9} {'seed':>4} {'rerun':>5} {'method':<8} {'eps':>5} {'MVD':>9} "
+             f"{'tau':>6} {'MVD sel':>9} {'tau sel':>7}"]
     for r in rows:
-        lines.append(f"{r['data_seed']:>9} {r['seed']:>4} {r['method']:<8} "
+        lines.append(f"{r['data_seed']:>9} {r['seed']:>4} {r.get('rerun', 0):>5} "
+                     f"{r['method']:<8} "
                      f"{_f(r['eps'], 'g'):>5} {_f(r['mvd']):>9} {_f(r['tau'], '.3f'):>6} "
                      f"{_f(r.get('mvd_selected')):>9} {_f(r.get('tau_selected'), '.3f'):>7}")
     lines.append(f"\n{'method':<10} {'n':>3} {'data seeds':<12} {'mean MVD':>9} {'median':>9} "
@@ -359,11 +362,12 @@ def main(argv=None) -> int:
         if result["task"] != args.task:
             raise SystemExit(f"{path}: task is {result['task']!r}, not --task {args.task!r}")
         for r in rows:
-            if row_key(r) in seen:
-                raise SystemExit(f"{path}: run {row_key(r)} (data_seed, seed, method, eps, "
-                                 f"variant) "
-                                 f"is in {seen[row_key(r)]} too")
-            seen[row_key(r)] = path
+            earlier = seen.setdefault(row_key(r), [])
+            if any((q["mvd"], q["tau"]) == (r["mvd"], r["tau"]) for q in earlier):
+                raise SystemExit(f"{path}: run {row_key(r)} has the MVD and tau of an earlier "
+                                 f"file's: the same run twice?")
+            r["rerun"] = len(earlier)
+            earlier.append(r)
         new += rows
     doc = {}
     if os.path.exists(out):

@@ -90,6 +90,30 @@ def test_points_paired_and_outputs(tmp_path, capsys):
         ("rl2s eps 0.25", 1e6), ("rl2s eps 0.5", 1e6)]
 
 
+def test_a_rerun_pairs_within_its_own_run(tmp_path):
+    """A data seed and seed run twice (worst_case_runs.py's rerun 0 and 1): the eps lane of
+    rerun 1 pairs with rerun 1's eps 0.25 lane, and both reruns count as runs of the point."""
+    keys = [(0, 0), (0, 1)]
+    runs = (_rows("rl2s", 0.25, [100.0, 200.0], [0.9, 0.8], keys)
+            + [{**r, "rerun": 1} for r in _rows("rl2s", 0.25, [150.0, 260.0], [0.7, 0.6], keys)
+               + _rows("rl2s", 0.05, [140.0, 270.0], [0.75, 0.5], keys)])
+    _write(tmp_path, "hopper", runs)
+    js, png = tmp_path / "c.json", tmp_path / "c.png"
+    assert ec.main(["--tasks", "hopper", "--results", str(tmp_path), "--json", str(js),
+                    "--png", str(png)]) == 0
+    res = json.loads(js.read_text())["tasks"]["hopper"]
+    base = next(p for p in res["points"] if p["eps"] == 0.25)
+    assert base["n"] == 4 and base["mean_mvd"] == pytest.approx(177.5)
+    d = res["paired_vs_0.25"]["rl2s eps 0.05"]
+    assert d["mvd"]["n_pairs"] == 2 and d["mvd"]["mean_diff"] == pytest.approx((-10 + 10) / 2)
+    assert d["tau"]["mean_diff"] == pytest.approx((0.05 - 0.1) / 2)
+    runs[0]["rerun"] = -1
+    _write(tmp_path, "hopper", runs)
+    with pytest.raises(SystemExit, match=r"runs\[0\] field 'rerun'"):
+        ec.main(["--tasks", "hopper", "--results", str(tmp_path), "--json", str(js),
+                 "--png", str(png)])
+
+
 def test_bad_input(tmp_path):
     js, png = tmp_path / "c.json", tmp_path / "c.png"
     argv = ["--tasks", "hopper", "walker2d", "--results", str(tmp_path), "--json", str(js),

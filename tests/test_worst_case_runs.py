@@ -215,3 +215,26 @@ def test_incomplete_run_leaves_out_methods_without_values(tmp_path, capsys):
     res["complete"] = True  # a finished run without values is bad input, as before
     with pytest.raises(SystemExit, match="per_seed.bc.mvd: expected 2 values"):
         wc.main(["--task", "hopper", _write(tmp_path, "b.json", res), "--out", out])
+
+
+def test_a_rerun_of_the_same_keys_is_a_run_of_its_own_paired_within_itself(tmp_path):
+    first = _write(tmp_path, "a.json", _paper({"rl2s": [10.0, 20.0], "gail": [30.0, 40.0]},
+                                              seed_ids=(0, 1)))
+    again = _write(tmp_path, "b.json", _paper({"rl2s": [11.0, 24.0], "rl2s@0.05": [9.0, 23.0],
+                                               "gail": [15.0, 21.0]}, seed_ids=(0, 1)))
+    out = str(tmp_path / "wc.json")
+    assert wc.main(["--task", "hopper", first, again, "--out", out]) == 0
+    doc = json.load(open(out))
+    got = {(r["method"], r["eps"], r["seed"], r["rerun"]): r["mvd"] for r in doc["runs"]}
+    assert got[("rl2s", 0.25, 0, 0)] == 10.0 and got[("rl2s", 0.25, 0, 1)] == 11.0
+    assert got[("rl2s", 0.05, 1, 0)] == 23.0   # a key b.json alone has: its first run
+    assert len(doc["runs"]) == 10
+    # rl2s pairs with gail of its own run: (10-30, 20-40) and (11-15, 24-21)
+    b = doc["summary"]["bar_b"]["rl2s@eps=0.25 - gail"]
+    assert b["n_pairs"] == 4 and b["mean_diff"] == pytest.approx((-20 - 20 - 4 + 3) / 4)
+    assert doc["summary"]["methods"]["rl2s@eps=0.25"]["n"] == 4
+    # rebuilding from the same files gives the same rows; a file given twice is refused
+    assert wc.main(["--task", "hopper", first, again, "--out", out]) == 0
+    assert len(json.load(open(out))["runs"]) == 10
+    with pytest.raises(SystemExit, match=r"a\.json: run .* the same run twice"):
+        wc.main(["--task", "hopper", first, first, "--out", out])

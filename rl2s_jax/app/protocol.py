@@ -56,7 +56,9 @@ METRICS = EVAL_METRICS + IMPROVE_METRICS
 
 # Sizes per profile. gpu: 3 seeds, 1200 steps (the 1000 pre-training steps of the fitted
 # model family, then 200 WGAIL; RESULTS@bf0c7b2, "Ant and Hopper: the likelihood model was
-# underfit"), every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1.
+# underfit"), every test policy fine-tuned in the simulators of 2 seeds, SAC's KL weight 0.1
+# (it costs most of the in-simulator gain; the control's recipe at 0.01 wins most of it: the
+# flags in RESULTS, "Policy improvement inside the simulators").
 # Measured on one H100 (RESULTS@bf0c7b2, "The protocol on the new model family"), per task,
 # each family alone: data 83-97 s, the adversarial program (6 lanes) 355-375 s, the
 # likelihood program 190-210 s, SAC 18-22 s, the real measurement of the fine-tuned policies

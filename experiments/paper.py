@@ -4,11 +4,10 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
 
     python experiments/paper.py --task hopper [--seeds 3] [--steps N] [--eval-every N]
         [--transitions-per-policy N] [--value-episodes N] [--eval-episodes N]
-        [--improve-iterations N] [--improve-policies N] [--improve-seeds 1]
-        [--sac-envs N] [--sac-critic-warmup N] [--sac-updates-per-step N]
-        [--sac-set field=value ...] [--zoo-recipe] [--control] [--control-seeds N]
+        [--improve-iterations N] [--improve-policies N] [--improve-seeds 1] [--sac-envs N]
+        [--sac-critic-warmup N] [--sac-updates-per-step N] [--sac-set field=value ...]
+        [--zoo-recipe] [--improve-recipe control] [--control] [--control-seeds N]
         [--improve-variants full,branched,full+penalty,branched+penalty,full+stop]
-        [--ablation-methods rl2s]
         [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
         [--set field=value ...] [--families adversarial,mle] [--first-seed K] [--no-fork]
@@ -33,6 +32,7 @@ import numpy as np
 from rl2s_jax.app.improve import fine_tuning_overrides
 from rl2s_jax.app.protocol import (
     FAMILIES,
+    IMPROVE_RECIPES,
     METHODS,
     METRICS,
     PROFILES,
@@ -74,9 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--task", required=True, choices=task_names())
     ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
     ap.add_argument("--seeds", type=pos)
-    ap.add_argument("--first-seed", type=int, default=0, help="the seeds are first-seed ... "
-                    "first-seed + seeds - 1, so more seeds of one protocol can run in another "
-                    "call on the same data (merge_results.py joins them)")
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds first-seed .. +seeds-1: "
+                    "more seeds in another call on the same data (merge_results.py joins them)")
     ap.add_argument("--steps", type=pos, help="train_steps per lane")
     ap.add_argument("--eval-every", type=pos, help="steps between test evaluations "
                     "(divides --steps)")
@@ -91,9 +90,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--improve-policies", type=int, help="test policies fine-tuned, spread "
                     "evenly over their true returns (0 or more than there are: all)")
     ap.add_argument("--improve-seeds", type=int, help="seeds whose simulators are used")
-    ap.add_argument("--improve-episodes", type=pos, help="real episodes per policy for the "
-                    "paired measurement of C0 and C1 (start and fine-tuned policies from the "
-                    "same starts and noise draws)")
+    ap.add_argument("--improve-episodes", type=pos, help="real episodes per policy for C0 and "
+                    "C1, paired (same starts and noise draws)")
     ap.add_argument("--sac-envs", type=pos, help="SAC envs per fine-tuned policy")
     ap.add_argument("--sac-critic-warmup", type=int, help="updates training only the critics "
                     "(default: a quarter of --improve-iterations)")
@@ -106,18 +104,15 @@ def build_parser() -> argparse.ArgumentParser:
                     "policies with the same SAC in the real env (the 'control' entry)")
     ap.add_argument("--control-seeds", type=pos, default=1, help="SAC seeds of the control")
     ap.add_argument("--improve-oracle-seeds", type=int, default=0, help="SAC seeds of the "
-                    "same fine-tuning inside the oracle through the first variant's simulated "
-                    "env (result['oracle_improvement'])")
-    ap.add_argument("--improve-variants", default="full", help="comma list of simulated-env "
-                    "variants, each '+'-joined: full|branched [+penalty] [+stop]; the first "
-                    "gives MPI/API, all go to 'ablation'")
+                    "same fine-tuning inside the oracle, the first variant's env")
+    ap.add_argument("--improve-variants", default="full", help="comma list of simulated envs "
+                    "full|branched [+penalty] [+stop]; the first gives MPI/API")
     ap.add_argument("--ablation-methods", default="rl2s", help="comma list of methods whose "
                     "lanes run the variants after the first (the first runs in all lanes)")
     ap.add_argument("--branch-length", type=pos, default=100, help="steps of a branched "
                     "rollout (variant 'branched')")
-    ap.add_argument("--uncertainty-penalty", type=float, default=1.0, help="lambda of the "
-                    "penalty r - lambda * u, u in units of its mean on the test data "
-                    "(variant 'penalty')")
+    ap.add_argument("--uncertainty-penalty", type=float, default=1.0, help="lambda of r - "
+                    "lambda * u, u in units of its mean on the test data (variant 'penalty')")
     ap.add_argument("--uncertainty-threshold", type=float, default=3.0, help="end a rollout "
                     "when u exceeds this, same units (variant 'stop')")
     ap.add_argument("--halt-penalty", type=float, default=0.0, help="reward subtracted when "
@@ -129,34 +124,40 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--guard-margin", type=float, help="MPI / API of the policies deployed "
                     "where every elite member predicts a gain above this fraction "
                     "(ablation '<variant>+guard')")
-    ap.add_argument("--guard-floor", choices=("mvd", "none"), default="mvd", help="with "
-                    "--guard-margin: a gain must also exceed, in value units, the lane's MVD on "
-                    "the training policies (mvd, the default; its worst known error) or "
-                    "nothing (none)")
+    ap.add_argument("--guard-floor", choices=("mvd", "none"), default="mvd", help="a gain "
+                    "must also exceed the lane's training MVD (mvd) or nothing (none)")
     ap.add_argument("--zoo-recipe", action="store_true", help="fine-tune at the zoo learner's "
                     "discount, reward scale and batch (zoo.build.fine_tuning_recipe)")
+    ap.add_argument("--improve-recipe", choices=sorted(IMPROVE_RECIPES), help="a measured "
+                    "recipe's flags as the defaults (protocol.IMPROVE_RECIPES); flags win")
     ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
                     "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
-    ap.add_argument("--families", default="adversarial,mle", help="comma list of the training "
-                    "programs to run: adversarial (rl2s, gail) and / or mle (rl2s-bc, bc); one "
-                    "of them splits the protocol over two calls (merge_results.py joins them)")
-    ap.add_argument("--eps-lanes", help="comma list of extra eps values: RL2S lanes "
-                    "rl2s@EPS in the adversarial family, forked from its pre-training (the eps "
-                    "curve; needs --improve-iterations 0)")
-    ap.add_argument("--no-fork", dest="fork", action="store_false", help="pre-train the "
-                    "gail lanes and train the bc lanes from step 0 too, instead of continuing "
-                    "them from the rl2s lanes' pre-training")
+    ap.add_argument("--families", default="adversarial,mle", help="comma list of programs: "
+                    "adversarial (rl2s, gail), mle (rl2s-bc, bc) (merge_results.py joins calls)")
+    ap.add_argument("--eps-lanes", help="comma list of extra eps: RL2S lanes rl2s@EPS forked "
+                    "from the pre-training (the eps curve; needs --improve-iterations 0)")
+    ap.add_argument("--no-fork", dest="fork", action="store_false", help="gail and bc lanes "
+                    "from step 0 too, not forked from the rl2s lanes' pre-training")
     ap.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
                     "95%% intervals over evaluation episodes (0: none)")
     ap.add_argument("--no-oracle", dest="oracle", action="store_false", help="skip the control "
                     "(the real dynamics through the same evaluation path)")
     ap.add_argument("--out", default="results/paper")
     ap.add_argument("--data-dir", help="where train/test .npz live (default: --out)")
-    ap.add_argument("--check-eval", action="store_true", help="also run "
-                    "evaluate.evaluate_simulator on one lane and record the largest difference "
-                    "from the vmapped evaluation (tests)")
+    ap.add_argument("--check-eval", action="store_true", help="record one lane's largest "
+                    "difference from evaluate.evaluate_simulator (tests)")
     ap.add_argument("--progress", action="store_true", help="progress bars while collecting")
     return ap
+
+
+def parse_args(argv: list[str]) -> argparse.Namespace:
+    """build_parser's arguments, with --improve-recipe's flags as the defaults."""
+    ap = build_parser()
+    args = ap.parse_args(argv)
+    if args.improve_recipe:
+        ap.set_defaults(**IMPROVE_RECIPES[args.improve_recipe])
+        args = ap.parse_args(argv)
+    return args
 
 
 def _sac_overrides(items) -> dict:
@@ -278,7 +279,7 @@ def check_uncertainty(variants, sizes: dict, cfg, family: str) -> None:
 
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    args = parse_args(argv)
     t_start = time.perf_counter()
     initialize_distributed()  # multi-host, when the coordinator variables are set
     backend = jax.default_backend()

@@ -536,6 +536,27 @@ def test_paper_sizes_per_task():
     assert paper.resolve_sizes(flags, "gpu")["eval_episodes"] == 64
 
 
+def test_improve_recipe_sets_the_measured_flags_and_flags_given_win():
+    """--improve-recipe control: issue 39's measured flags as the defaults, SAC at KL 0.01
+    through --sac-set; a flag on the command line (and a later --sac-set) wins."""
+    paper = _load("paper")
+    args = paper.parse_args(["--task", "hopper", "--improve-recipe", "control"])
+    sizes = paper.resolve_sizes(args, "gpu")
+    assert (sizes["improve_iterations"], sizes["sac_envs"], sizes["sac_critic_warmup"],
+            sizes["sac_updates_per_step"]) == (4000, 128, 2000, 32)
+    _, _, sac, _ = paper.check_arguments(args)
+    assert sac["kl_weight"] == 0.01 and sac["gamma"] == paper.fine_tuning_recipe("hopper")["gamma"]
+    assert args.guard_margin == 0.02 and args.improve_variants == "branched+penalty"
+    mine = paper.parse_args(["--task", "hopper", "--improve-recipe", "control",
+                             "--improve-iterations", "10", "--sac-set", "kl_weight=0.1"])
+    assert paper.resolve_sizes(mine, "gpu")["improve_iterations"] == 10
+    assert paper.check_arguments(mine)[2]["kl_weight"] == 0.1
+    plain = paper.parse_args(["--task", "hopper"])
+    assert plain.guard_margin is None and not plain.zoo_recipe and plain.sac_set is None
+    with pytest.raises(SystemExit):
+        paper.parse_args(["--task", "hopper", "--improve-recipe", "nope"])
+
+
 # ------------------------------------------------------------------ paper.py smoke
 
 

@@ -13,7 +13,8 @@ and through the protocol's guard (a kept start policy gains 0), the per-seed val
 raw and guarded (means over seeds), the deployed count, ``budget_env_steps`` (simulated env
 steps per policy) and the commands. ``paired``: RL2S's raw gain minus GAIL's and BC's per
 (seed, policy below the top quartile), the median and its 95% bootstrap interval over those
-pairs, and in how many RL2S gained more.
+pairs, and in how many RL2S gained more ("... guarded": the same for the deployed gains).
+``bars`` (with --control): issue 39's bars (``issue_bars``).
 ``guard_rules``: what other deployment rules would have deployed, from the elite members'
 predicted gains the runs kept (``guard_member_gain``): "every member predicts a gain" (the
 guard without the training-MVD floor) against the protocol's guard. This reads the test
@@ -37,12 +38,14 @@ import sys
 
 import numpy as np
 
+from rl2s_jax.app.results_tables import PAPER
 from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.zoo.zoo import load_zoo
 
 KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",
         "zoo_sha256", "sac_config", "improve_variant", "timings", "improvement",
         "oracle_improvement", "control")
+MIN_SEEDS, CONTROL_BAR = 3, 0.30  # issue 39's bars: 3 seeds; the control's median gain
 
 
 def zoo_ids(run: dict, ids: list[int]) -> list[int]:
@@ -172,7 +175,7 @@ def _boot_median(x: np.ndarray, n: int, seed: int = 0) -> list[float]:
 def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
     """Per method: raw and guarded median gain (per seed and over seeds), MPI / API, deployed;
     the paired RL2S differences; the guard rules' counts. rows: ``lane_rows`` of every run."""
-    out, gains = {}, {}
+    out, gains, gains_g = {}, {}, {}
     for m in dict.fromkeys(r["method"] for r in rows):
         mine = sorted((r for r in rows if r["method"] == m), key=lambda r: r["seed"])
         c0 = np.stack([r["c0"] for r in mine])
@@ -187,6 +190,7 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
         i_raw, i_dep = (c1 - c0) / np.abs(c0), (dep - c0) / np.abs(c0)
         below = np.asarray(raw["below"])
         gains[m] = i_raw[:, below]  # [seeds, policies below the top quartile]
+        gains_g[m] = i_dep[:, below]
         out[m] = {"seeds": [r["seed"] for r in mine], "policies": len(start),
                   "n_below": raw["n_below"],
                   "median_gain_raw": raw["median_gain"], "median_gain_raw_per_seed": per_seed,
@@ -200,11 +204,12 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
                   "lanes_x_policies": int(sum(len(r["accepted"]) for r in mine))}
     paired = {}
     for other in ("gail", "bc"):
-        if "rl2s" in gains and other in gains and gains["rl2s"].shape == gains[other].shape:
-            d = (gains["rl2s"] - gains[other]).ravel()
-            paired[f"rl2s-{other}"] = {"median": float(np.median(d)),
-                                       "ci95": _boot_median(d, n_boot),
-                                       "rl2s_higher": int((d > 0).sum()), "pairs": int(d.size)}
+        for suffix, g in (("", gains), (" guarded", gains_g)):
+            if "rl2s" in g and other in g and g["rl2s"].shape == g[other].shape:
+                d = (g["rl2s"] - g[other]).ravel()
+                paired[f"rl2s-{other}{suffix}"] = {
+                    "median": float(np.median(d)), "ci95": _boot_median(d, n_boot),
+                    "rl2s_higher": int((d > 0).sum()), "pairs": int(d.size)}
     rules = {}
     for m in out:
         mine = [r for r in rows if r["method"] == m and r["member_gain"] is not None]
@@ -221,6 +226,34 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
                     for name, sel in (("protocol guard (training-MVD floor)", prot),
                                       ("every member predicts a gain", every))}
     return {"methods": out, "paired": paired, "guard_rules": rules}
+
+
+def issue_bars(summary: dict, task: str) -> dict:
+    """Issue 39's bars on this summary (with its ``control``): the control's median gain >=
+    CONTROL_BAR; RL2S's guarded median gain >= half the control's, its guarded MPI >= 0 and API
+    >= the paper's; RL2S's guarded median gain >= GAIL's and BC's, or the 95% interval of
+    their paired guarded difference holds 0. Each {value, target, holds}; ``verdict`` "pass" /
+    "fail", or why not yet (RL2S on fewer than MIN_SEEDS seeds, no control)."""
+    ctl, rl2s = (summary.get("control") or {}).get("median_gain"), summary["methods"].get("rl2s")
+    if ctl is None or rl2s is None:
+        return {"verdict": "no control or no rl2s lanes"}
+    bars = {"control median gain": (ctl, CONTROL_BAR, ctl >= CONTROL_BAR),
+            "rl2s median gain": (rl2s["median_gain"], ctl / 2, rl2s["median_gain"] >= ctl / 2),
+            "rl2s mpi": (rl2s["mpi"], 0.0, rl2s["mpi"] >= 0),
+            "rl2s api": (rl2s["api"], PAPER["api"]["rl2s"].get(task),
+                         rl2s["api"] >= PAPER["api"]["rl2s"].get(task, np.inf))}
+    for other in ("gail", "bc"):
+        if other in summary["methods"]:
+            theirs, pair = summary["methods"][other]["median_gain"], summary["paired"].get(
+                f"rl2s-{other} guarded")
+            tie = pair is not None and pair["ci95"][0] <= 0 <= pair["ci95"][1]
+            bars[f"rl2s >= {other}"] = (rl2s["median_gain"], theirs,
+                                        rl2s["median_gain"] >= theirs or tie)
+    out = {k: {"value": v, "target": t, "holds": bool(h)} for k, (v, t, h) in bars.items()}
+    n = len(rl2s["seeds"])
+    out["verdict"] = (f"not enough seeds: {n} of {MIN_SEEDS}" if n < MIN_SEEDS else
+                      "pass" if all(b["holds"] for b in out.values()) else "fail")
+    return out
 
 
 def main(argv=None) -> int:
@@ -263,6 +296,7 @@ def main(argv=None) -> int:
             summary["control"]["zoo_ids"] = zoo_ids(doc, range(ctl.get("policies", len(names))))
             summary["on_control_policies"] = on_control_policies(
                 rows, runs, summary["control"], zoo_returns)
+        summary["bars"] = issue_bars(summary, args.task)
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, f"{args.task}.json")
     with open(path, "w") as f:
@@ -292,6 +326,9 @@ def main(argv=None) -> int:
         print(f"paired {k}: median {v['median']:+.3f} [{v['ci95'][0]:+.3f}, "
               f"{v['ci95'][1]:+.3f}]; RL2S higher in {v['rl2s_higher']} of {v['pairs']} "
               f"(seed, policy) pairs")
+    for k, b in summary.get("bars", {}).items():
+        print(f"bar {k}: {b}" if k == "verdict" else
+              f"bar {k}: {b['value']:+.3f} (target {b['target']:.3g}) holds {b['holds']}")
     print(f"-> {path}")
     return 0
 

@@ -1229,6 +1229,19 @@ def test_improvement_summary_by_hand(tmp_path):
     assert common["rl2s"] == pytest.approx(0.125) and common["gail"] == pytest.approx(0.075)
     assert common["oracle_sim"] == pytest.approx(0.75)
     assert common["real_env"] == pytest.approx(0.1) and common["control"] == 0.4
+    # issue 39's bars on it: the control's 0.4 >= 0.3; rl2s guarded 0 < 0.2, MPI -0.125 < 0,
+    # API 1/24 < the paper's 2.94; rl2s >= gail (both 0); 2 seeds: no verdict yet
+    bars = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"]["bars"]
+    assert {k: b["holds"] for k, b in bars.items() if k != "verdict"} == {
+        "control median gain": True, "rl2s median gain": False, "rl2s mpi": False,
+        "rl2s api": False, "rl2s >= gail": True}
+    assert bars["rl2s median gain"]["target"] == pytest.approx(0.2)
+    assert bars["rl2s api"]["value"] == pytest.approx(1 / 24)
+    assert bars["rl2s api"]["target"] == 2.94 and bars["verdict"] == "not enough seeds: 2 of 3"
+    # guarded rl2s - gail: [.5, 0, 0, 0, 0, -.25]
+    pg = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"]["paired"][
+        "rl2s-gail guarded"]
+    assert pg["median"] == 0.0 and pg["rl2s_higher"] == 1 and pg["pairs"] == 6
 
 
 def test_worst_policy_likelihood_shift_scores_the_move_from_bc():

@@ -55,17 +55,17 @@ def check_rows(doc, task: str, variant: str | None = None) -> list[dict]:
                 raise ValueError(f"runs[{i}] has no field {k!r}")
             if not isinstance(r[k], typ) or isinstance(r[k], bool):
                 raise ValueError(f"runs[{i}] field {k!r}: bad value {r[k]!r}")
-        if not isinstance(r.get("rerun", 0), int) or isinstance(r.get("rerun"), bool) \
-                or r.get("rerun", 0) < 0:
-            raise ValueError(f"runs[{i}] field 'rerun': bad value {r['rerun']!r} (expected an "
-                             f"int >= 0)")
+        rerun = r.get("rerun", 0)
+        if not isinstance(rerun, int) or isinstance(rerun, bool) or rerun < 0:
+            raise ValueError(f"runs[{i}] field 'rerun': bad value {rerun!r} (expected an int "
+                             f">= 0)")
         if r["method"] == "rl2s" and r["eps"] is None:
             raise ValueError(f"runs[{i}] field 'eps': null for an rl2s row")
         if r["method"] == "gail" and r["eps"] not in (None, 1, 1.0):
             raise ValueError(f"runs[{i}] field 'eps': {r['eps']} for a gail row (expected 1)")
         if r["method"] not in ("rl2s", "gail") or r.get("variant") != variant:
             continue  # other methods, and other configurations (worst_case_runs.py's variant)
-        key = (r["method"], r["eps"], r["data_seed"], r["seed"], r.get("rerun", 0))
+        key = (r["method"], r["eps"], r["data_seed"], r["seed"], rerun)
         if key in seen:
             raise ValueError(f"runs[{i}]: duplicate run (method, eps, data_seed, seed, rerun) "
                              f"{key}")

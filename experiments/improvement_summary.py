@@ -237,11 +237,12 @@ def issue_bars(summary: dict, task: str) -> dict:
     ctl, rl2s = (summary.get("control") or {}).get("median_gain"), summary["methods"].get("rl2s")
     if ctl is None or rl2s is None:
         return {"verdict": "no control or no rl2s lanes"}
+    paper_api = PAPER["api"]["rl2s"].get(task)  # None: a task the paper has not (never holds)
     bars = {"control median gain": (ctl, CONTROL_BAR, ctl >= CONTROL_BAR),
             "rl2s median gain": (rl2s["median_gain"], ctl / 2, rl2s["median_gain"] >= ctl / 2),
             "rl2s mpi": (rl2s["mpi"], 0.0, rl2s["mpi"] >= 0),
-            "rl2s api": (rl2s["api"], PAPER["api"]["rl2s"].get(task),
-                         rl2s["api"] >= PAPER["api"]["rl2s"].get(task, np.inf))}
+            "rl2s api": (rl2s["api"], paper_api,
+                         paper_api is not None and rl2s["api"] >= paper_api)}
     for other in ("gail", "bc"):
         if other in summary["methods"]:
             theirs, pair = summary["methods"][other]["median_gain"], summary["paired"].get(
@@ -328,7 +329,8 @@ def main(argv=None) -> int:
               f"(seed, policy) pairs")
     for k, b in summary.get("bars", {}).items():
         print(f"bar {k}: {b}" if k == "verdict" else
-              f"bar {k}: {b['value']:+.3f} (target {b['target']:.3g}) holds {b['holds']}")
+              f"bar {k}: {b['value']:+.3f} (target "
+              f"{'n/a' if b['target'] is None else format(b['target'], '.3g')}) holds {b['holds']}")
     print(f"-> {path}")
     return 0
 

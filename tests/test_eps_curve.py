@@ -94,9 +94,10 @@ def test_a_rerun_pairs_within_its_own_run(tmp_path):
     """A data seed and seed run twice (worst_case_runs.py's rerun 0 and 1): the eps lane of
     rerun 1 pairs with rerun 1's eps 0.25 lane, and both reruns count as runs of the point."""
     keys = [(0, 0), (0, 1)]
-    runs = (_rows("rl2s", 0.25, [100.0, 200.0], [0.9, 0.8], keys)
-            + [{**r, "rerun": 1} for r in _rows("rl2s", 0.25, [150.0, 260.0], [0.7, 0.6], keys)
-               + _rows("rl2s", 0.05, [140.0, 270.0], [0.75, 0.5], keys)])
+    # rerun 1 first: pairing by (data_seed, seed) alone would meet rerun 0's 0.25 lane last
+    runs = ([{**r, "rerun": 1} for r in _rows("rl2s", 0.25, [150.0, 260.0], [0.7, 0.6], keys)
+             + _rows("rl2s", 0.05, [140.0, 270.0], [0.75, 0.5], keys)]
+            + _rows("rl2s", 0.25, [100.0, 200.0], [0.9, 0.8], keys))
     _write(tmp_path, "hopper", runs)
     js, png = tmp_path / "c.json", tmp_path / "c.png"
     assert ec.main(["--tasks", "hopper", "--results", str(tmp_path), "--json", str(js),

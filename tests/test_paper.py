@@ -1242,6 +1242,10 @@ def test_improvement_summary_by_hand(tmp_path):
     pg = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"]["paired"][
         "rl2s-gail guarded"]
     assert pg["median"] == 0.0 and pg["rl2s_higher"] == 1 and pg["pairs"] == 6
+    # a task the paper has no API for: no target, the bar does not hold
+    nopaper = summ.issue_bars(json.loads((tmp_path / "o" / "hopper.json").read_text())[
+        "summary"], "pointmass")["rl2s api"]
+    assert nopaper["target"] is None and nopaper["holds"] is False
 
 
 def test_worst_policy_likelihood_shift_scores_the_move_from_bc():

@@ -15,7 +15,8 @@ data seeds, mean / median / max MVD, mean Kendall tau, and 95% bootstrap interva
 MVD and mean tau over runs (2000 replicates, numpy rng seed 0). ``paired_vs_0.25``: per other
 point, its MVD and tau minus the eps 0.25 rl2s point's, paired within one run (data_seed,
 seed, rerun): mean, 95% bootstrap interval over pairs, n pairs (a negative MVD difference:
-lower worst-case error than eps 0.25).
+lower worst-case error than eps 0.25). ``rerun_noise``: per point with reruns, how far a rerun's
+MVD lies from its first run's (the yardstick of run-to-run noise for the differences).
 A missing task file is skipped; bad input stops with the file and field before anything is
 written.
 """
@@ -124,6 +125,22 @@ def paired(point: dict, base: dict) -> dict:
     return out
 
 
+def rerun_noise(point: dict) -> dict | None:
+    """A point's run-to-run noise: the MVD of each rerun (``rerun`` k > 0) minus its first run's
+    (same data seed and seed): n pairs, mean and max |difference|, and the mean |difference|
+    over the first runs' mean MVD. None without reruns."""
+    first = {(r["data_seed"], r["seed"]): r["mvd"] for r in point["runs"]
+             if r["rerun"] == 0 and _num(r["mvd"])}
+    pairs = [(first[(r["data_seed"], r["seed"])], r["mvd"]) for r in point["runs"]
+             if r["rerun"] > 0 and _num(r["mvd"]) and (r["data_seed"], r["seed"]) in first]
+    if not pairs:
+        return None
+    a, b = np.array(pairs, np.float64).T
+    d = np.abs(b - a)
+    return {"n_pairs": len(d), "mean_abs_diff": float(d.mean()), "max_abs_diff": float(d.max()),
+            "relative": float(d.mean() / a.mean())}
+
+
 def _f(x, fmt=".1f") -> str:
     return "n/a" if x is None else format(x, fmt)
 
@@ -151,6 +168,10 @@ def report(task: str, res: dict) -> str:
                      f"{_f(p['mean_mvd']):>9} {_ci_s(p['ci95_mean_mvd']):>18} "
                      f"{_f(p['median_mvd']):>8} {_f(p['max_mvd']):>8} "
                      f"{_f(p['mean_tau'], '.3f'):>6} {_ci_s(p['ci95_mean_tau'], '.3f'):>16}  {vs}")
+    for label, n in res.get("rerun_noise", {}).items():
+        lines.append(f"rerun noise {label}: mean |MVD rerun - first run| {n['mean_abs_diff']:.1f} "
+                     f"({100 * n['relative']:.0f}% of the first runs' mean), max "
+                     f"{n['max_abs_diff']:.1f}, {n['n_pairs']} pairs")
     return "\n".join(lines)
 
 
@@ -239,7 +260,8 @@ def main(argv=None) -> int:
         if base is None:
             print(f"{task}: no rl2s rows at eps {DEFAULT_EPS}, no paired differences")
         tasks[task] = {"points": points, f"paired_vs_{DEFAULT_EPS}": {
-            p["label"]: paired(p, base) for p in points if base is not None and p is not base}}
+            p["label"]: paired(p, base) for p in points if base is not None and p is not base},
+            "rerun_noise": {p["label"]: n for p in points if (n := rerun_noise(p))}}
     if not tasks:
         raise SystemExit(f"no curve: no {{task}}_worst_case.json with rl2s or gail rows under "
                          f"{args.results} for tasks {args.tasks}")

@@ -108,6 +108,10 @@ def test_a_rerun_pairs_within_its_own_run(tmp_path):
     d = res["paired_vs_0.25"]["rl2s eps 0.05"]
     assert d["mvd"]["n_pairs"] == 2 and d["mvd"]["mean_diff"] == pytest.approx((-10 + 10) / 2)
     assert d["tau"]["mean_diff"] == pytest.approx((0.05 - 0.1) / 2)
+    # the 0.25 point's run-to-run noise: |150 - 100|, |260 - 200| over the first runs' mean 150
+    assert res["rerun_noise"] == {"rl2s eps 0.25": {
+        "n_pairs": 2, "mean_abs_diff": 55.0, "max_abs_diff": 60.0,
+        "relative": pytest.approx(55 / 150)}}
     runs[0]["rerun"] = -1
     _write(tmp_path, "hopper", runs)
     with pytest.raises(SystemExit, match=r"runs\[0\] field 'rerun'"):

@@ -11,12 +11,13 @@ point). Other methods and the rows of other configurations are not on the curve:
 the bars' (a null ``variant``), with --variant the rows of that worst_case_runs.py variant
 (e.g. ``adv_nll_on=selected``, the anchor of the first eps lanes). Per point: n runs (a
 rerun of a data seed and seed, worst_case_runs.py's ``rerun`` > 0, counts as a run of its own),
-data seeds, mean / median / max MVD, mean Kendall tau, and 95% bootstrap intervals of the mean
-MVD and mean tau over runs (2000 replicates, numpy rng seed 0). ``paired_vs_0.25``: per other
-point, its MVD and tau minus the eps 0.25 rl2s point's, paired within one run (data_seed,
-seed, rerun): mean, 95% bootstrap interval over pairs, n pairs (a negative MVD difference:
-lower worst-case error than eps 0.25). ``rerun_noise``: per point with reruns, how far a rerun's
-MVD lies from its first run's (the yardstick of run-to-run noise for the differences).
+data seeds, median / max MVD over runs; mean MVD, mean Kendall tau and their 95% bootstrap
+intervals (2000 replicates, numpy rng seed 0) over seeds, a (data seed, seed)'s reruns averaged
+first (they share data and seed). ``paired_vs_0.25``: per other point, its MVD and tau minus
+the eps 0.25 rl2s point's, paired within one run (data_seed, seed, rerun), averaged over a
+seed's reruns: mean and 95% bootstrap interval over seeds, n pairs and n seeds (a negative MVD
+difference: lower worst-case error than eps 0.25). ``rerun_noise``: per point with reruns, how
+far a rerun's MVD lies from its first run's (the yardstick of run-to-run noise).
 A missing task file is skipped; bad input stops with the file and field before anything is
 written.
 """
@@ -87,6 +88,15 @@ def _mean(x: np.ndarray) -> float | None:
     return float(x.mean()) if len(x) else None
 
 
+def _by_seed(values: list[tuple[dict, float]]) -> np.ndarray:
+    """[(row, value)] -> one value per (data_seed, seed): the mean over its reruns (they share
+    data and seed, so they are not independent samples)."""
+    units: dict[tuple, list[float]] = {}
+    for r, v in values:
+        units.setdefault((r["data_seed"], r["seed"]), []).append(v)
+    return np.array([np.mean(v) for v in units.values()], np.float64)
+
+
 def curve(rows: list[dict]) -> list[dict]:
     """The points, sorted by eps (at equal eps rl2s before GAIL), each with its runs."""
     groups: dict[tuple, list[dict]] = {}
@@ -96,14 +106,15 @@ def curve(rows: list[dict]) -> list[dict]:
     points = []
     for (eps, gail), runs in sorted(groups.items()):
         mvd = np.array([r["mvd"] for r in runs if _num(r["mvd"])], np.float64)
-        tau = np.array([r["tau"] for r in runs if _num(r["tau"])], np.float64)
+        mvd_u, tau_u = (_by_seed([(r, r[k]) for r in runs if _num(r[k])]) for k in ("mvd", "tau"))
         points.append({
             "label": GAIL if gail else f"rl2s eps {eps:g}", "method": "gail" if gail else "rl2s",
-            "eps": eps, "n": len(runs), "n_missing_mvd": len(runs) - len(mvd),
+            "eps": eps, "n": len(runs), "n_seeds": len(mvd_u),
+            "n_missing_mvd": len(runs) - len(mvd),
             "data_seeds": sorted({r["data_seed"] for r in runs}),
-            "mean_mvd": _mean(mvd), "median_mvd": float(np.median(mvd)) if len(mvd) else None,
-            "max_mvd": float(mvd.max()) if len(mvd) else None, "mean_tau": _mean(tau),
-            "ci95_mean_mvd": _ci(mvd), "ci95_mean_tau": _ci(tau),
+            "mean_mvd": _mean(mvd_u), "median_mvd": float(np.median(mvd)) if len(mvd) else None,
+            "max_mvd": float(mvd.max()) if len(mvd) else None, "mean_tau": _mean(tau_u),
+            "ci95_mean_mvd": _ci(mvd_u), "ci95_mean_tau": _ci(tau_u),
             "runs": [{"data_seed": r["data_seed"], "seed": r["seed"], "rerun": r.get("rerun", 0),
                       "mvd": r["mvd"], "tau": r["tau"]} for r in runs]})
     return points
@@ -115,13 +126,14 @@ def _run(r: dict) -> tuple:
 
 
 def paired(point: dict, base: dict) -> dict:
-    """point minus base over the runs they share, (data_seed, seed, rerun), for MVD and tau."""
+    """point minus base over the runs they share, (data_seed, seed, rerun), for MVD and tau,
+    averaged over a seed's reruns (_by_seed): the mean and interval are over seeds."""
     out = {}
     for k in ("mvd", "tau"):
         b = {_run(r): r[k] for r in base["runs"] if _num(r[k])}
-        d = np.array([r[k] - b[_run(r)] for r in point["runs"] if _num(r[k]) and _run(r) in b],
-                     np.float64)
-        out[k] = {"n_pairs": len(d), "mean_diff": _mean(d), "ci95": _ci(d)}
+        pairs = [(r, r[k] - b[_run(r)]) for r in point["runs"] if _num(r[k]) and _run(r) in b]
+        d = _by_seed(pairs)
+        out[k] = {"n_pairs": len(pairs), "n_seeds": len(d), "mean_diff": _mean(d), "ci95": _ci(d)}
     return out
 
 

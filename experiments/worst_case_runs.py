@@ -26,8 +26,9 @@ file keeps its other keys and rows; a row with the same key and rerun is replace
 is rebuilt from all rows: per method (and eps) n, data seeds, mean / median / max MVD, max /
 median; bar (a): no RL2S run's MVD above twice the median of RL2S's runs, judged once >= 5
 seeds for each of >= 2 data seeds; bar (b), per GAIL and BC: RL2S's MVD minus theirs, paired,
-its mean with a 95% bootstrap interval (2000 replicates, rng seed 0) and t-interval; it holds
-when the mean is <= 0 or the interval holds 0. Bad input stops before anything is written.
+averaged over a (data seed, seed)'s reruns, its mean over those with a 95% bootstrap interval
+(2000 replicates, rng seed 0) and t-interval; it holds when the mean is <= 0 or the interval
+holds 0. Bad input stops before anything is written.
 """
 from __future__ import annotations
 
@@ -218,15 +219,17 @@ def _minus(a: list[dict], b: list[dict]) -> list[dict]:
 
 
 def paired_difference(a: list[dict], b: list[dict], seed: int = 0) -> dict:
-    """MVD of a minus MVD of b over their shared pair_key with finite MVDs: mean, 95%
-    bootstrap interval (N_BOOT replicates, rng ``seed``), 95% t-interval."""
-    pairs = sorted(_minus(a, b), key=pair_key)
-    d = np.array([p["mvd"] for p in pairs], np.float64)
-    per_ds: dict[str, int] = {}
-    for p in pairs:
-        per_ds[str(p["data_seed"])] = per_ds.get(str(p["data_seed"]), 0) + 1
-    out = {"n_pairs": len(d), "pairs_per_data_seed": per_ds, "mean_diff": None,
-           "ci95_bootstrap": None, "ci95_t": None}
+    """MVD of a minus MVD of b over their shared pair_key with finite MVDs, averaged first
+    over a (data_seed, seed) unit's reruns (they share data and seed: not independent), then
+    over units: mean, 95% bootstrap (N_BOOT replicates, rng ``seed``) and t intervals."""
+    units: dict[tuple, list[float]] = {}
+    for p in sorted(_minus(a, b), key=pair_key):
+        units.setdefault((p["data_seed"], p["seed"]), []).append(p["mvd"])
+    d = np.array([np.mean(v) for v in units.values()], np.float64)
+    per_ds = {str(ds): sum(u[0] == ds for u in units) for ds, _ in units}
+    out = {"n_pairs": sum(map(len, units.values())), "n_units": len(d),
+           "seeds_per_data_seed": per_ds, "mean_diff": None, "ci95_bootstrap": None,
+           "ci95_t": None}
     if not len(d):
         return out
     boot = d[np.random.default_rng(seed).integers(0, len(d), (N_BOOT, len(d)))].mean(axis=1)
@@ -246,7 +249,7 @@ def bar_b(diff: dict) -> dict:
         return {**diff, "holds_so_far": None, "verdict": "no paired runs"}
     lo, hi = diff["ci95_bootstrap"]
     holds = diff["mean_diff"] <= 0 or lo <= 0 <= hi
-    why = _enough(diff["pairs_per_data_seed"])
+    why = _enough(diff["seeds_per_data_seed"])
     return {**diff, "holds_so_far": holds, "verdict": why or ("pass" if holds else "fail")}
 
 
@@ -283,9 +286,7 @@ def summarise(rows: list[dict]) -> dict:
     groups = group_runs(rows)
     summary = {"methods": {k: method_stats(v) for k, v in groups.items()},
                "bar_a": {}, "bar_b": {}, "variants": variant_comparisons(rows)}
-    for k in groups:
-        if k.split("@")[0] != "rl2s":
-            continue
+    for k in [k for k in groups if k.split("@")[0] == "rl2s"]:
         summary["bar_a"][k] = bar_a(summary["methods"][k])
         for other in groups:
             if other.split("@")[0] in ("gail", "bc"):
@@ -304,8 +305,7 @@ def report(task: str, rows: list[dict], summary: dict) -> str:
              f"{'data_seed':>9} {'seed':>4} {'rerun':>5} {'method':<8} {'eps':>5} {'MVD':>9} "
              f"{'tau':>6} {'MVD sel':>9} {'tau sel':>7}"]
     for r in rows:
-        lines.append(f"{r['data_seed']:>9} {r['seed']:>4} {r.get('rerun', 0):>5} "
-                     f"{r['method']:<8} "
+        lines.append(f"{r['data_seed']:>9} {r['seed']:>4} {r.get('rerun', 0):>5} {r['method']:<8} "
                      f"{_f(r['eps'], 'g'):>5} {_f(r['mvd']):>9} {_f(r['tau'], '.3f'):>6} "
                      f"{_f(r.get('mvd_selected')):>9} {_f(r.get('tau_selected'), '.3f'):>7}")
     lines.append(f"\n{'method':<10} {'n':>3} {'data seeds':<12} {'mean MVD':>9} {'median':>9} "
@@ -322,12 +322,12 @@ def report(task: str, rows: list[dict], summary: dict) -> str:
         ci = b["ci95_bootstrap"] and "[" + ", ".join(_f(x) for x in b["ci95_bootstrap"]) + "]"
         ct = b["ci95_t"] and "[" + ", ".join(_f(x) for x in b["ci95_t"]) + "]"
         lines.append(f"bar (b) {k}: paired MVD diff {_f(b['mean_diff'])} over {b['n_pairs']} "
-                     f"pairs, 95% bootstrap {ci}, t {ct} (holds so far: {b['holds_so_far']}): "
-                     f"{b['verdict']}")
+                     f"pairs ({b['n_units']} seeds), 95% bootstrap {ci}, t {ct} (holds so far: "
+                     f"{b['holds_so_far']}): {b['verdict']}")
     for k, d in summary.get("variants", {}).items():
         ci = d["ci95_bootstrap"] and "[" + ", ".join(_f(x) for x in d["ci95_bootstrap"]) + "]"
         lines.append(f"variant {k}: paired MVD diff {_f(d['mean_diff'])} over {d['n_pairs']} "
-                     f"pairs, 95% bootstrap {ci}")
+                     f"pairs ({d['n_units']} seeds), 95% bootstrap {ci}")
     return "\n".join(lines)
 
 
@@ -341,8 +341,7 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     out = args.out or os.path.join("docs", "results", f"{args.task}_worst_case.json")
     labels = args.source_label or args.results
-    if len(labels) == 1:
-        labels = labels * len(args.results)
+    labels = labels * len(args.results) if len(labels) == 1 else labels
     if len(labels) != len(args.results):
         raise SystemExit(f"--source-label: expected 1 or {len(args.results)} labels, got "
                          f"{len(labels)}")

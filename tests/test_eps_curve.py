@@ -97,7 +97,8 @@ def test_a_rerun_pairs_within_its_own_run(tmp_path):
     # rerun 1 first: pairing by (data_seed, seed) alone would meet rerun 0's 0.25 lane last
     runs = ([{**r, "rerun": 1} for r in _rows("rl2s", 0.25, [150.0, 260.0], [0.7, 0.6], keys)
              + _rows("rl2s", 0.05, [140.0, 270.0], [0.75, 0.5], keys)]
-            + _rows("rl2s", 0.25, [100.0, 200.0], [0.9, 0.8], keys))
+            + _rows("rl2s", 0.25, [100.0, 200.0], [0.9, 0.8], keys)
+            + _rows("rl2s", 0.05, [150.0], [0.8], keys[:1]))  # rerun 0 has it on seed 0 alone
     _write(tmp_path, "hopper", runs)
     js, png = tmp_path / "c.json", tmp_path / "c.png"
     assert ec.main(["--tasks", "hopper", "--results", str(tmp_path), "--json", str(js),
@@ -105,13 +106,19 @@ def test_a_rerun_pairs_within_its_own_run(tmp_path):
     res = json.loads(js.read_text())["tasks"]["hopper"]
     base = next(p for p in res["points"] if p["eps"] == 0.25)
     assert base["n"] == 4 and base["mean_mvd"] == pytest.approx(177.5)
+    # reruns share data and seed: the interval is over the 2 seeds' means (125, 230), not 4 runs
+    assert base["n_seeds"] == 2 and base["ci95_mean_mvd"] == pytest.approx(_boot([125.0, 230.0]))
     d = res["paired_vs_0.25"]["rl2s eps 0.05"]
-    assert d["mvd"]["n_pairs"] == 2 and d["mvd"]["mean_diff"] == pytest.approx((-10 + 10) / 2)
-    assert d["tau"]["mean_diff"] == pytest.approx((0.05 - 0.1) / 2)
+    # seed 0's pairs -10 (rerun 1) and +50 (rerun 0) average to 20 first; seed 1's: +10
+    assert d["mvd"]["n_pairs"] == 3 and d["mvd"]["n_seeds"] == 2
+    assert d["mvd"]["mean_diff"] == pytest.approx((20 + 10) / 2)
+    assert d["tau"]["mean_diff"] == pytest.approx(((0.05 - 0.1) / 2 - 0.1) / 2)
     # the 0.25 point's run-to-run noise: |150 - 100|, |260 - 200| over the first runs' mean 150
     assert res["rerun_noise"] == {"rl2s eps 0.25": {
         "n_pairs": 2, "mean_abs_diff": 55.0, "max_abs_diff": 60.0,
-        "relative": pytest.approx(55 / 150)}}
+        "relative": pytest.approx(55 / 150)}, "rl2s eps 0.05": {
+        "n_pairs": 1, "mean_abs_diff": 10.0, "max_abs_diff": 10.0,
+        "relative": pytest.approx(10 / 150)}}
     runs[0]["rerun"] = -1
     _write(tmp_path, "hopper", runs)
     with pytest.raises(SystemExit, match=r"runs\[0\] field 'rerun'"):

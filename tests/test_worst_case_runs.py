@@ -204,6 +204,25 @@ def test_the_anchor_a_run_trained_with_decides_its_variant(tmp_path):
     assert wc._variant(old, "rl2s") is None and wc._variant(old, "rl2s@0.1") is None
 
 
+def test_paired_difference_averages_a_seeds_reruns_first():
+    """Reruns share data and seed: a seed with three runs weighs as one seed, and the
+    intervals and the seed count are over seeds (hand-worked: seed 0's diffs 10, 30, 50 ->
+    30; seed 1's -20 and seed 2's -4; pooled over runs the mean would be 13.2)."""
+    a = [{"data_seed": 0, "seed": 0, "rerun": k, "mvd": 100.0 + d} for k, d in
+         enumerate((10.0, 30.0, 50.0))] + [{"data_seed": 0, "seed": 1, "mvd": 80.0},
+                                            {"data_seed": 0, "seed": 2, "mvd": 96.0}]
+    b = [{"data_seed": 0, "seed": s, "rerun": k, "mvd": 100.0} for s, k in
+         ((0, 0), (0, 1), (0, 2), (1, 0), (2, 0))]
+    d = wc.paired_difference(a, b)
+    units = np.array([30.0, -20.0, -4.0])
+    assert d["n_pairs"] == 5 and d["n_units"] == 3 and d["seeds_per_data_seed"] == {"0": 3}
+    assert d["mean_diff"] == pytest.approx(units.mean())
+    half = 4.302652729911275 * units.std(ddof=1) / np.sqrt(3)  # t(0.975, 2)
+    assert d["ci95_t"] == pytest.approx([units.mean() - half, units.mean() + half])
+    boot = units[np.random.default_rng(0).integers(0, 3, (wc.N_BOOT, 3))].mean(axis=1)
+    assert d["ci95_bootstrap"] == pytest.approx(np.percentile(boot, [2.5, 97.5]))
+
+
 def test_incomplete_run_leaves_out_methods_without_values(tmp_path, capsys):
     res = _paper({"rl2s": [10.0, 20.0], "bc": []}, seed_ids=(0, 1))
     res["per_seed"]["bc"] = {"mvd": [], "kendall_tau": []}

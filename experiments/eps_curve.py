@@ -165,7 +165,8 @@ def report(task: str, res: dict) -> str:
     pts, pair = res["points"], res[f"paired_vs_{DEFAULT_EPS}"]
     lines = [f"{task}: {sum(p['n'] for p in pts)} runs on the curve",
              f"{'point':<14} {'n':>3} {'data':<6} {'mean MVD':>9} {'95% CI':>18} {'median':>8} "
-             f"{'max':>8} {'tau':>6} {'95% CI':>16}  {'vs 0.25: dMVD [95%]; dtau [95%] (pairs)'}"]
+             f"{'max':>8} {'tau':>6} {'95% CI':>16}  vs 0.25: dMVD [95%]; dtau [95%] "
+             "(pairs / seeds)"]
     for p in pts:
         d = pair.get(p["label"])
         if p["method"] == "rl2s" and p["eps"] == DEFAULT_EPS:
@@ -175,7 +176,7 @@ def report(task: str, res: dict) -> str:
         else:
             vs = (f"{_f(d['mvd']['mean_diff'], '+.1f')} {_ci_s(d['mvd']['ci95'])}; "
                   f"{_f(d['tau']['mean_diff'], '+.3f')} {_ci_s(d['tau']['ci95'], '.3f')} "
-                  f"({d['mvd']['n_pairs']})")
+                  f"({d['mvd']['n_pairs']} / {d['mvd']['n_seeds']})")
         lines.append(f"{p['label']:<14} {p['n']:>3} {','.join(map(str, p['data_seeds'])):<6} "
                      f"{_f(p['mean_mvd']):>9} {_ci_s(p['ci95_mean_mvd']):>18} "
                      f"{_f(p['median_mvd']):>8} {_f(p['max_mvd']):>8} "

@@ -232,8 +232,9 @@ def issue_bars(summary: dict, task: str) -> dict:
     """Issue 39's bars on this summary (with its ``control``): the control's median gain >=
     CONTROL_BAR; RL2S's guarded median gain >= half the control's, its guarded MPI >= 0 and API
     >= the paper's; RL2S's guarded median gain >= GAIL's and BC's, or the 95% interval of
-    their paired guarded difference holds 0. Each {value, target, holds}; ``verdict`` "pass" /
-    "fail", or why not yet (RL2S on fewer than MIN_SEEDS seeds, no control)."""
+    their paired guarded difference holds 0. Each {value, target, holds} (holds None: that
+    method was not run); ``verdict`` "pass" / "fail", or why not yet (RL2S on fewer than
+    MIN_SEEDS seeds, no control, a method not run)."""
     ctl, rl2s = (summary.get("control") or {}).get("median_gain"), summary["methods"].get("rl2s")
     if ctl is None or rl2s is None:
         return {"verdict": "no control or no rl2s lanes"}
@@ -244,16 +245,21 @@ def issue_bars(summary: dict, task: str) -> dict:
             "rl2s api": (rl2s["api"], paper_api,
                          paper_api is not None and rl2s["api"] >= paper_api)}
     for other in ("gail", "bc"):
-        if other in summary["methods"]:
-            theirs, pair = summary["methods"][other]["median_gain"], summary["paired"].get(
-                f"rl2s-{other} guarded")
-            tie = pair is not None and pair["ci95"][0] <= 0 <= pair["ci95"][1]
-            bars[f"rl2s >= {other}"] = (rl2s["median_gain"], theirs,
-                                        rl2s["median_gain"] >= theirs or tie)
-    out = {k: {"value": v, "target": t, "holds": bool(h)} for k, (v, t, h) in bars.items()}
-    n = len(rl2s["seeds"])
+        if other not in summary["methods"]:  # not run: the bar cannot be judged
+            bars[f"rl2s >= {other}"] = (rl2s["median_gain"], None, None)
+            continue
+        theirs, pair = summary["methods"][other]["median_gain"], summary["paired"].get(
+            f"rl2s-{other} guarded")
+        tie = pair is not None and pair["ci95"][0] <= 0 <= pair["ci95"][1]
+        bars[f"rl2s >= {other}"] = (rl2s["median_gain"], theirs,
+                                    rl2s["median_gain"] >= theirs or tie)
+    out = {k: {"value": v, "target": t, "holds": None if h is None else bool(h)}
+           for k, (v, t, h) in bars.items()}
+    n, held = len(rl2s["seeds"]), [b["holds"] for b in out.values()]
+    unrun = [k.split(">= ")[1] for k, b in out.items() if b["holds"] is None]
     out["verdict"] = (f"not enough seeds: {n} of {MIN_SEEDS}" if n < MIN_SEEDS else
-                      "pass" if all(b["holds"] for b in out.values()) else "fail")
+                      "fail" if False in held else
+                      f"incomplete: no {' or '.join(unrun)} lanes" if unrun else "pass")
     return out
 
 
@@ -330,7 +336,8 @@ def main(argv=None) -> int:
     for k, b in summary.get("bars", {}).items():
         print(f"bar {k}: {b}" if k == "verdict" else
               f"bar {k}: {b['value']:+.3f} (target "
-              f"{'n/a' if b['target'] is None else format(b['target'], '.3g')}) holds {b['holds']}")
+              f"{'n/a' if b['target'] is None else format(b['target'], '.3g')}) holds "
+              f"{'n/a (not run)' if b['holds'] is None else b['holds']}")
     print(f"-> {path}")
     return 0
 

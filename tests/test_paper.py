@@ -1234,7 +1234,7 @@ def test_improvement_summary_by_hand(tmp_path):
     bars = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"]["bars"]
     assert {k: b["holds"] for k, b in bars.items() if k != "verdict"} == {
         "control median gain": True, "rl2s median gain": False, "rl2s mpi": False,
-        "rl2s api": False, "rl2s >= gail": True}
+        "rl2s api": False, "rl2s >= gail": True, "rl2s >= bc": None}  # no bc lanes: n/a
     assert bars["rl2s median gain"]["target"] == pytest.approx(0.2)
     assert bars["rl2s api"]["value"] == pytest.approx(1 / 24)
     assert bars["rl2s api"]["target"] == 2.94 and bars["verdict"] == "not enough seeds: 2 of 3"
@@ -1246,6 +1246,16 @@ def test_improvement_summary_by_hand(tmp_path):
     nopaper = summ.issue_bars(json.loads((tmp_path / "o" / "hopper.json").read_text())[
         "summary"], "pointmass")["rl2s api"]
     assert nopaper["target"] is None and nopaper["holds"] is False
+    # 3 seeds, every judged bar met: a method not run leaves the verdict incomplete, not pass
+    summ_ = {"control": {"median_gain": 0.4}, "paired": {}, "methods": {
+        "rl2s": {"median_gain": 0.3, "mpi": 0.0, "api": 3.0, "seeds": [0, 1, 2]},
+        "gail": {"median_gain": 0.1}}}
+    assert summ.issue_bars(summ_, "hopper")["verdict"] == "incomplete: no bc lanes"
+    summ_["methods"]["bc"] = {"median_gain": 0.5}
+    summ_["paired"]["rl2s-bc guarded"] = {"ci95": [-0.3, -0.1]}
+    assert summ.issue_bars(summ_, "hopper")["verdict"] == "fail"   # bc wins, no tie
+    summ_["paired"]["rl2s-bc guarded"] = {"ci95": [-0.3, 0.1]}
+    assert summ.issue_bars(summ_, "hopper")["verdict"] == "pass"   # a paired tie
 
 
 def test_worst_policy_likelihood_shift_scores_the_move_from_bc():

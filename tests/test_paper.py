@@ -631,6 +631,12 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         steps.setdefault(row["lane"], []).append(row["step"])
         assert {"step", "lane", "avd", "mvd", "tau"} <= set(row)
     assert steps == {lane: [2, 4] for lane in r["lanes"]}
+    # the training policies' simulated values at the last point (held-out starts) beside their
+    # true values: their mean |difference| is that point's selection AVD
+    for lane, v in r["lanes"].items():
+        err = np.abs(np.subtract(v["train_sim_value"], r["train_true_value"]))
+        row = [row for row in r["curves"] if row["lane"] == lane and row["step"] == 4][0]
+        assert row["select_avd"] == pytest.approx(err.mean(), rel=1e-5), lane
     last = [row for row in r["curves"] if row["lane"] == "rl2s/2" and row["step"] == 4][0]
     assert last["tau"] == r["per_seed"]["rl2s"]["kendall_tau"][1]
     # model selection: per lane the step with the best TRAINING-policy tau (held-out episode

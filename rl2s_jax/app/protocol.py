@@ -252,7 +252,8 @@ def lane_eps(method: str, robust_eps=None) -> float:
 def _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
                 truth_se, n_boot):
     """Per lane: the selected point's test metrics, the final ones, their bootstrap intervals
-    over episodes (``n_boot`` replicates, seed = the lane's), the simulated values."""
+    over episodes (``n_boot`` replicates, seed = the lane's), the simulated values (the test
+    policies'; the training policies' at the last point, ``train_sim_value``)."""
     for i, (meth, s) in enumerate(lanes):
         chosen = select_point(points[i])
         sel = result.setdefault("selected", {}).setdefault(
@@ -274,6 +275,7 @@ def _final_rows(result, family, lanes, eps, points, evals, values, returns, leng
             "family": family, "eps": eps[i], "seed": s,
             "sim_value": np.asarray(values[i]).tolist(),
             "sim_length": np.round(lengths[i], 1).tolist(),
+            "train_sim_value": ((points[i] or [{}])[-1].get("select") or {}).get("sim_value"),
             "finite": all(row["finite"] for row in result["curves"]
                           if row["lane"] == f"{meth}/{s}")}
 
@@ -383,8 +385,10 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
                      [lane_seeds[i] for i in pending.now])  # the lanes training now
         evals, values, returns, lengths = evaluate_lanes(
             sims, seeds_now, test_pols, test_pool, truth, key_base=1000, **roll)
-        selects = evaluate_lanes(sims, seeds_now, data.policies, select_pool, select_truth,
-                                 key_base=2000, **roll)[0]
+        selects, train_values = evaluate_lanes(sims, seeds_now, data.policies, select_pool,
+                                               select_truth, key_base=2000, **roll)[:2]
+        selects = [r and {**r, "sim_value": v.tolist()}  # rides with the point through forks
+                   for r, v in zip(selects, train_values, strict=True)]
         step = int(states.step[0])
         if pending is not None:  # the other lanes are their trunk lanes until the fork / join
             evals, values, returns, lengths, selects, m = pending.rows(
@@ -398,6 +402,7 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
                 true_values_se(test_ds, cfg.vd_horizon, cfg.gamma), sizes["bootstrap"])
     result["true_value"] = np.asarray(truth).tolist()
+    result["train_true_value"] = select_truth.tolist()
     result.setdefault("train_config", {})[family] = cfg.to_dict()
     result["timings"][f"eval_{family}"] = round(t_eval, 1)
     if check_eval:

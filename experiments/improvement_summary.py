@@ -17,8 +17,10 @@ pairs, and in how many RL2S gained more ("... guarded": the same for the deploye
 ``bars`` (with --control): issue 39's bars (``issue_bars``).
 ``guard_rules``: what other deployment rules would have deployed, from the elite members'
 predicted gains the runs kept (``guard_member_gain``): "every member predicts a gain" (the
-guard without the training-MVD floor) against the protocol's guard. This reads the test
-policies' real gains, so it explains the guard's choice; it must not choose it.
+guard without the training-MVD floor) and, where the runs recorded it, "training-error range
+floor" (``protocol_improve.lane_error_range``: a floor from the training policies alone)
+against the protocol's guard. This reads the test policies' real gains, so it explains the
+guard's choice; it must not choose it (judge a rule on runs it was not designed on).
 ``controls``: the same median gain for the runs' own controls when they have them: the
 fine-tuning inside the oracle (``paper.py --improve-oracle-seeds``: the simulated env with
 the real physics) and in the real env with the runs' SAC settings (``paper.py --control``),
@@ -68,7 +70,9 @@ def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
                      "c1": np.asarray(e["c1"], float),
                      "accepted": np.asarray(e["guard_accepted"], bool),
                      "member_gain": (np.asarray(e["guard_member_gain"], float)
-                                     if "guard_member_gain" in e else None)})
+                                     if "guard_member_gain" in e else None),
+                     "accepted_range": (np.asarray(e["guard_accepted_range"], bool)
+                                        if "guard_accepted_range" in e else None)})
     return rows
 
 
@@ -218,13 +222,17 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
         real = np.concatenate([(r["c1"] - r["c0"]) / np.abs(r["c0"]) for r in mine])
         every = np.concatenate([(r["member_gain"] > 0).all(axis=0) for r in mine])
         prot = np.concatenate([r["accepted"] for r in mine])
+        sels = [("protocol guard (training-MVD floor)", prot),
+                ("every member predicts a gain", every)]
+        if all(r["accepted_range"] is not None for r in mine):
+            sels.append(("training-error range floor",
+                         np.concatenate([r["accepted_range"] for r in mine])))
         rules[m] = {name: {"deployed": int(sel.sum()),
                            "real_gain_median": (float(np.median(real[sel])) if sel.any()
                                                 else None),
                            "real_gain_min": float(real[sel].min()) if sel.any() else None,
                            "worse_than_start": int((real[sel] < 0).sum())}
-                    for name, sel in (("protocol guard (training-MVD floor)", prot),
-                                      ("every member predicts a gain", every))}
+                    for name, sel in sels}
     return {"methods": out, "paired": paired, "guard_rules": rules}
 
 

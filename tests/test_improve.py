@@ -843,13 +843,14 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
     actors = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), tuned)
     pool = jnp.asarray(_pool(8))
     roll = dict(horizon=12, gamma=0.9, n_episodes=4)
-    accepted, index, chosen, gains = guard_lanes(sims, start, actors, None, "pointmass", pool,
-                                                 margin=0.0, floors=[0.0, 1e9], **roll)
+    accepted, index, chosen, gains, starts_v = guard_lanes(
+        sims, start, actors, None, "pointmass", pool, margin=0.0, floors=[0.0, 1e9], **roll)
     assert index is None and chosen == []
     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), start, tuned)
     v = member_values(sim, "pointmass", both, pool, jax.random.PRNGKey(40), **roll)
     np.testing.assert_array_equal(accepted[0], deployment_guard(v[:, :3], v[:, 3:], 0.0))
     np.testing.assert_allclose(gains[0], v[:, 3:] - v[:, :3], rtol=1e-6)  # what was judged
+    np.testing.assert_allclose(starts_v[0], v[:, :3], rtol=1e-6)  # what the margin scales
     np.testing.assert_array_equal(accepted[0], (gains[0] > 0).all(axis=0))
     assert accepted[0].any()  # the test needs a deployment that the floor then blocks
     assert not accepted[1].any()
@@ -866,6 +867,25 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
     assert lane_training_mvd(finals, 1, 12, 0.99) == [0.0, 0.0, 0.0]  # another gamma
     finals["mle"][1].vd[0, 0] = np.nan  # a lane not yet measured: no floor
     assert lane_training_mvd(finals, 1, 12, 0.9) == [5.0, 4.0, 0.0]
+
+
+def test_lane_error_range_is_the_spread_of_the_signed_training_errors():
+    """lane_error_range: max(e) - min(e), e = train_sim_value - train_true_value (by hand:
+    e = [2, -1, 0] -> 3, where the training MVD would read 2), only at the guard's horizon
+    and gamma, None without the values or with a non-finite one."""
+    from rl2s_jax.app.protocol_improve import lane_error_range
+
+    result = {"lanes": {"rl2s/0": {"family": "adversarial", "train_sim_value": [10, 5, 3]},
+                        "gail/0": {"family": "adversarial"}},
+              "train_true_value": [8, 6, 3],
+              "train_config": {"adversarial": {"vd_horizon": 12, "gamma": 0.9}}}
+    assert lane_error_range(result, "rl2s/0", 12, 0.9) == 3.0
+    assert lane_error_range(result, "rl2s/0", 50, 0.9) is None    # another horizon
+    assert lane_error_range(result, "rl2s/0", 12, 0.99) is None   # another gamma
+    assert lane_error_range(result, "gail/0", 12, 0.9) is None    # not recorded
+    assert lane_error_range(result, "bc/0", 12, 0.9) is None      # no such lane
+    result["lanes"]["rl2s/0"]["train_sim_value"][1] = float("nan")
+    assert lane_error_range(result, "rl2s/0", 12, 0.9) is None
 
 
 def test_lane_floors_measure_where_training_did_not(pm_files):

@@ -687,6 +687,13 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     # the guard's floor (--guard-floor mvd, the default): each lane's training MVD
     assert all(np.isfinite(v["guard_floor"]) and v["guard_floor"] > 0 for v in imp.values())
     assert r["ablation"]["full+guard"]["settings"]["guard_floor"] == "training MVD per lane"
+    # recorded beside it, unused: the range floor (the spread of the lane's signed training
+    # errors at the guard's horizon: 50 steps here) and its verdict on the same members' values
+    for lane, v in imp.items():
+        e = np.subtract(r["lanes"][lane]["train_sim_value"], r["train_true_value"])
+        assert v["guard_floor_range"] == pytest.approx(e.max() - e.min(), rel=1e-6), lane
+        gain = np.asarray(v["guard_member_gain"])  # --guard-margin 0: the floor alone
+        assert v["guard_accepted_range"] == (gain > v["guard_floor_range"]).all(axis=0).tolist()
     # the guard over snapshots (after iterations 1 and 2): a kept start has I = 0; a final
     # snapshot the guard accepts is eligible, so some snapshot deploys; the final one chosen
     # earns the final policy's return (the same episodes)
@@ -1190,6 +1197,9 @@ def test_improvement_summary_by_hand(tmp_path):
                 [[5.0, -1.0, 2.0], [3.0, 2.0, 1.0]]),
             run(1, [110.0, 200.0, 300.0], [120.0, 200.0, 400.0], [False, False, True],
                 [[1.0, 1.0, -2.0], [1.0, 1.0, 1.0]])]
+    # the range floor's verdicts, recorded by rl2s's lanes (gail's runs have none)
+    runs[0]["improvement"]["rl2s/0"]["guard_accepted_range"] = [True, True, False]
+    runs[1]["improvement"]["rl2s/1"]["guard_accepted_range"] = [True, False, False]
     runs[0]["oracle_improvement"] = {"policy_ids": ids, "per_seed": [
         {"c0_paired": c0, "c1": [200.0, 300.0, 600.0]}]}  # I 1, .5, .5
     runs[1]["control"] = {"policy_ids": ids, "c0": [c0], "c1": [[110.0, 220.0, 440.0]]}
@@ -1217,6 +1227,10 @@ def test_improvement_summary_by_hand(tmp_path):
     assert every["deployed"] == 4 and every["worse_than_start"] == 0  # s0 p0, p2; s1 p0, p1
     prot = s["guard_rules"]["rl2s"]["protocol guard (training-MVD floor)"]
     assert prot["deployed"] == 2 and prot["worse_than_start"] == 1
+    rng = s["guard_rules"]["rl2s"]["training-error range floor"]  # I .5, -.1 (s0), .1 (s1)
+    assert rng["deployed"] == 3 and rng["worse_than_start"] == 1
+    assert rng["real_gain_median"] == pytest.approx(0.1)
+    assert "training-error range floor" not in s["guard_rules"]["gail"]
     assert s["budget_env_steps"] == 40
     assert s["controls"]["oracle_sim"]["median_gain"] == pytest.approx(0.5)
     assert s["controls"]["real_env"]["median_gain"] == pytest.approx(0.1)

@@ -28,6 +28,7 @@ from rl2s_jax.envs.tasks import Task, get_task
 from rl2s_jax.evaluate.oracle import oracle_dynamics
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.improve.finetune import (
+    deployment_guard,
     improve_in_real_env,
     improve_policies,
     improvement_metrics,
@@ -102,6 +103,23 @@ def lane_training_mvd(finals: dict, last_seed: int, horizon: int, gamma: float
         out += [guard_floor({"mvd": float(vd[i].max()), **at}, horizon, gamma)
                 for i, (_, s) in enumerate(fam_lanes) if s < last_seed]
     return out
+
+
+def lane_error_range(result: dict, lane: str, horizon: int, gamma: float) -> float | None:
+    """The spread max(e) - min(e) of a lane's signed errors on the training policies, e =
+    ``lanes[lane]["train_sim_value"]`` - ``train_true_value`` (its last evaluation), where
+    measured at the guard's ``horizon`` and ``gamma``; else None. Where a policy's error lies
+    within the training errors' range, the error of a predicted gain (tuned minus start) is at
+    most this spread, so a gain predicted above it is real; the training-MVD floor bounds the
+    gain's error only where the errors share a sign (issue 39's alternative guard floor)."""
+    entry = result.get("lanes", {}).get(lane) or {}
+    sim, truth = entry.get("train_sim_value"), result.get("train_true_value")
+    cfg = result.get("train_config", {}).get(entry.get("family")) or {}
+    if (sim is None or truth is None or cfg.get("vd_horizon") != horizon
+            or not np.isclose(cfg.get("gamma", np.nan), gamma)):
+        return None
+    e = np.asarray(sim, np.float64) - np.asarray(truth, np.float64)
+    return float(e.max() - e.min()) if np.all(np.isfinite(e)) else None
 
 
 def lane_floors(finals: dict, last_seed: int, sims, train_ds, train_pols, ft: FineTuning,
@@ -276,10 +294,10 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
             snaps, actors = actors, jax.tree_util.tree_map(lambda x: x[-1], actors)
         tag = "" if vi == 0 else f"[{variant}]"
         phase(f"improve_sac{tag}", t0)
-        accepted, chosen_index, chosen, gains = None, None, [], None
+        accepted, chosen_index, chosen, gains, starts_v = None, None, [], None, None
         if guard_margin is not None:  # each simulator's own verdict per policy
             t0 = time.perf_counter()
-            accepted, chosen_index, chosen, gains = guard_lanes(
+            accepted, chosen_index, chosen, gains, starts_v = guard_lanes(
                 v_sims, ft.policies, actors, snaps, ft.task, start_pool(test_ds),
                 margin=guard_margin, horizon=ft.episode_length, gamma=ft.gamma,
                 floors=None if guard_floors is None else [guard_floors[i] for i in v_idx])
@@ -296,6 +314,12 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
                 entry["guard_member_gain"] = np.asarray(gains[j], np.float64).tolist()
                 if guard_floors is not None:
                     entry["guard_floor"] = guard_floors[i]
+                # the range floor's verdict on the same members' values (recorded, not used)
+                spread = lane_error_range(result, f"{m}/{s}", ft.episode_length, ft.gamma)
+                if spread is not None:
+                    entry["guard_floor_range"] = spread
+                    entry["guard_accepted_range"] = deployment_guard(
+                        starts_v[j], starts_v[j] + gains[j], guard_margin, spread).tolist()
         if vi == 0:
             for m in per_method:
                 for k in IMPROVE_METRICS:

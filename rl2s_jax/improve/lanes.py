@@ -131,11 +131,12 @@ def guard_lanes(sims: Simulator, policies, actors, snaps, task, starts, *, margi
     chosen_index: L int arrays [P] (0: the start, c: snapshot c; None without snaps),
     chosen: L stacked policies [P], the snapshots ``select_by_members`` picks ([] without),
     gains: L arrays [M, P], each elite member's predicted gain of the final actor over the start
-    in simulated value units: what the guard judged).
+    in simulated value units: what the guard judged; starts: L arrays [M, P], each member's
+    value of the start policy, which the margin scales).
     """
     n_lanes = jax.tree_util.tree_leaves(sims)[0].shape[0]
     n_pol = jax.tree_util.tree_leaves(policies)[0].shape[0]
-    accepted, chosen, gains = [], [], []
+    accepted, chosen, gains, starts_v = [], [], [], []
     chosen_index = [] if snaps is not None else None
     floors = [0.0] * n_lanes if floors is None else [float(f) for f in floors]
     if len(floors) != n_lanes:
@@ -148,6 +149,7 @@ def guard_lanes(sims: Simulator, policies, actors, snaps, task, starts, *, margi
                               n_episodes=n_episodes, horizon=horizon, gamma=gamma)
             accepted.append(deployment_guard(v[:, :n_pol], v[:, n_pol:], margin, floors[i]))
             gains.append(np.asarray(v[:, n_pol:] - v[:, :n_pol]))
+            starts_v.append(np.asarray(v[:, :n_pol]))
             continue
         # the start and every snapshot [C + 1, P, ...], valued once: the guard on the final
         # actors reads the first and last rows of the same values
@@ -159,9 +161,10 @@ def guard_lanes(sims: Simulator, policies, actors, snaps, task, starts, *, margi
         accepted.append(deployment_guard(info["values"][0], info["values"][-1], margin,
                                          floors[i]))
         gains.append(np.asarray(info["values"][-1] - info["values"][0]))
+        starts_v.append(np.asarray(info["values"][0]))
         chosen_index.append(info["index"])
         chosen.append(pick)
-    return accepted, chosen_index, chosen, gains
+    return accepted, chosen_index, chosen, gains, starts_v
 
 
 def pick_policies(c0: np.ndarray, n: int | None) -> list[int]:

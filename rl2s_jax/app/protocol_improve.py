@@ -111,15 +111,17 @@ def lane_error_range(result: dict, lane: str, horizon: int, gamma: float) -> flo
     measured at the guard's ``horizon`` and ``gamma``; else None. Where a policy's error lies
     within the training errors' range, the error of a predicted gain (tuned minus start) is at
     most this spread, so a gain predicted above it is real; the training-MVD floor bounds the
-    gain's error only where the errors share a sign (issue 39's alternative guard floor)."""
+    gain's error only where the errors share a sign (issue 39's alternative guard floor).
+    Comparable as ``app.improve.guard_floor`` judges it (a zero spread reads as None too)."""
     entry = result.get("lanes", {}).get(lane) or {}
     sim, truth = entry.get("train_sim_value"), result.get("train_true_value")
-    cfg = result.get("train_config", {}).get(entry.get("family")) or {}
-    if (sim is None or truth is None or cfg.get("vd_horizon") != horizon
-            or not np.isclose(cfg.get("gamma", np.nan), gamma)):
+    if sim is None or truth is None:
         return None
     e = np.asarray(sim, np.float64) - np.asarray(truth, np.float64)
-    return float(e.max() - e.min()) if np.all(np.isfinite(e)) else None
+    cfg = result.get("train_config", {}).get(entry.get("family")) or {}
+    spread = guard_floor({"mvd": float(e.max() - e.min()), "horizon": cfg.get("vd_horizon"),
+                          "gamma": cfg.get("gamma", np.nan)}, horizon, gamma)
+    return spread or None  # 0.0: measured elsewhere or not finite
 
 
 def lane_floors(finals: dict, last_seed: int, sims, train_ds, train_pols, ft: FineTuning,

@@ -1,6 +1,6 @@
 """Issue 39's summary of fine-tuning inside the learned simulators: per method, over the
-seeds of one or more ``experiments/paper.py`` runs with improvement (one seed each, e.g.
-``--first-seed K --seeds 1``), beside the task's real-env control (docs/results/<task>.json).
+seeds of one or more ``experiments/paper.py`` runs with improvement (each of one or more seeds,
+e.g. ``--first-seed K --seeds 1``; a method may lack some seeds), beside the task's real-env control (docs/results/<task>.json).
 
     python experiments/improvement_summary.py --task hopper --runs A.json B.json C.json
         [--control docs/results/hopper.json] [--out docs/results/improvement_in_sim]
@@ -12,14 +12,16 @@ over the seeds, with C0 measured paired with C1) both raw (every fine-tuned poli
 and through the protocol's guard (a kept start policy gains 0), the per-seed values, MPI / API
 raw and guarded (means over seeds), the deployed count, ``budget_env_steps`` (simulated env
 steps per policy) and the commands. ``paired``: RL2S's raw gain minus GAIL's and BC's per
-(seed, policy below the top quartile), the median and its 95% bootstrap interval over those
-pairs, and in how many RL2S gained more ("... guarded": the same for the deployed gains).
+(seed, policy below the top quartile) over the seeds both ran (methods may have run on
+different seeds), the median and its 95% bootstrap interval over those pairs, and in how many
+RL2S gained more ("... guarded": the same for the deployed gains).
 ``bars`` (with --control): issue 39's bars (``issue_bars``).
 ``guard_rules``: what other deployment rules would have deployed, from the elite members'
 predicted gains the runs kept (``guard_member_gain``): "every member predicts a gain" (the
-guard without the training-MVD floor) and, where the runs recorded it, "training-error range
-floor" (``protocol_improve.lane_error_range``: a floor from the training policies alone)
-against the protocol's guard. This reads the test policies' real gains, so it explains the
+guard without the training-MVD floor) and, on the lanes that recorded it, "training-error
+range floor" (``protocol_improve.lane_error_range``: a floor from the training policies alone)
+against the protocol's guard (on the same lanes where not every lane recorded it; ``lanes``:
+how many (method, seed) lanes a rule was read on). This reads the test policies' real gains, so it explains the
 guard's choice; it must not choose it (judge a rule on runs it was not designed on).
 ``controls``: the same median gain for the runs' own controls when they have them: the
 fine-tuning inside the oracle (``paper.py --improve-oracle-seeds``: the simulated env with
@@ -193,8 +195,9 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
                       for a, b in zip(c0, dep, strict=True)]
         i_raw, i_dep = (c1 - c0) / np.abs(c0), (dep - c0) / np.abs(c0)
         below = np.asarray(raw["below"])
-        gains[m] = i_raw[:, below]  # [seeds, policies below the top quartile]
-        gains_g[m] = i_dep[:, below]
+        seeds = [r["seed"] for r in mine]  # {seed: [policies below the top quartile]}
+        gains[m] = dict(zip(seeds, i_raw[:, below], strict=True))
+        gains_g[m] = dict(zip(seeds, i_dep[:, below], strict=True))
         out[m] = {"seeds": [r["seed"] for r in mine], "policies": len(start),
                   "n_below": raw["n_below"],
                   "median_gain_raw": raw["median_gain"], "median_gain_raw_per_seed": per_seed,
@@ -209,11 +212,13 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
     paired = {}
     for other in ("gail", "bc"):
         for suffix, g in (("", gains), (" guarded", gains_g)):
-            if "rl2s" in g and other in g and g["rl2s"].shape == g[other].shape:
-                d = (g["rl2s"] - g[other]).ravel()
+            common = sorted(set(g.get("rl2s", {})) & set(g.get(other, {})))
+            if common:  # paired over the seeds both methods ran
+                d = np.concatenate([g["rl2s"][k] - g[other][k] for k in common])
                 paired[f"rl2s-{other}{suffix}"] = {
                     "median": float(np.median(d)), "ci95": _boot_median(d, n_boot),
-                    "rl2s_higher": int((d > 0).sum()), "pairs": int(d.size)}
+                    "rl2s_higher": int((d > 0).sum()), "pairs": int(d.size),
+                    "seeds": common}
     rules = {}
     for m in out:
         mine = [r for r in rows if r["method"] == m and r["member_gain"] is not None]
@@ -222,17 +227,23 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
         real = np.concatenate([(r["c1"] - r["c0"]) / np.abs(r["c0"]) for r in mine])
         every = np.concatenate([(r["member_gain"] > 0).all(axis=0) for r in mine])
         prot = np.concatenate([r["accepted"] for r in mine])
-        sels = [("protocol guard (training-MVD floor)", prot),
-                ("every member predicts a gain", every)]
-        if all(r["accepted_range"] is not None for r in mine):
-            sels.append(("training-error range floor",
-                         np.concatenate([r["accepted_range"] for r in mine])))
-        rules[m] = {name: {"deployed": int(sel.sum()),
+        sels = [("protocol guard (training-MVD floor)", prot, len(mine)),
+                ("every member predicts a gain", every, len(mine))]
+        has = np.concatenate([np.full(len(r["accepted"]), r["accepted_range"] is not None)
+                              for r in mine])
+        if has.any():  # on the lanes that recorded it, beside the protocol guard on them
+            rng = np.concatenate([r["accepted_range"] if r["accepted_range"] is not None
+                                  else np.zeros(len(r["accepted"]), bool) for r in mine])
+            k = sum(r["accepted_range"] is not None for r in mine)
+            sels.append(("training-error range floor", rng, k))
+            if not has.all():
+                sels.append(("protocol guard on the range floor's lanes", prot & has, k))
+        rules[m] = {name: {"deployed": int(sel.sum()), "lanes": lanes,
                            "real_gain_median": (float(np.median(real[sel])) if sel.any()
                                                 else None),
                            "real_gain_min": float(real[sel].min()) if sel.any() else None,
                            "worse_than_start": int((real[sel] < 0).sum())}
-                    for name, sel in sels}
+                    for name, sel, lanes in sels}
     return {"methods": out, "paired": paired, "guard_rules": rules}
 
 
@@ -289,10 +300,9 @@ def main(argv=None) -> int:
             raise SystemExit(f"runs: {path} has no improvement (paper.py "
                              f"--improve-iterations 0?)")
         runs.append({k: run[k] for k in KEEP if k in run})
-    seeds = [e["seed"] for r in runs for e in r["improvement"].values()]
-    if len(seeds) != len(set(seeds)) * len({e["method"] for r in runs
-                                            for e in r["improvement"].values()}):
-        raise SystemExit("runs: a (method, seed) lane appears twice or methods differ")
+    lanes = [(e["method"], e["seed"]) for r in runs for e in r["improvement"].values()]
+    if len(lanes) != len(set(lanes)):
+        raise SystemExit("runs: a (method, seed) lane appears twice")
     zoo_returns = np.asarray(load_zoo(args.task).returns, np.float64)
     rows = [row for r in runs for row in lane_rows(r, zoo_returns)]
     summary = summarise(rows, zoo_returns, args.bootstrap)

@@ -1231,6 +1231,8 @@ def test_improvement_summary_by_hand(tmp_path):
     assert rng["deployed"] == 3 and rng["worse_than_start"] == 1
     assert rng["real_gain_median"] == pytest.approx(0.1)
     assert "training-error range floor" not in s["guard_rules"]["gail"]
+    assert rng["lanes"] == 2 and "protocol guard on the range floor's lanes" not in s[
+        "guard_rules"]["rl2s"]
     assert s["budget_env_steps"] == 40
     assert s["controls"]["oracle_sim"]["median_gain"] == pytest.approx(0.5)
     assert s["controls"]["real_env"]["median_gain"] == pytest.approx(0.1)
@@ -1276,6 +1278,31 @@ def test_improvement_summary_by_hand(tmp_path):
     assert summ.issue_bars(summ_, "hopper")["verdict"] == "fail"   # bc wins, no tie
     summ_["paired"]["rl2s-bc guarded"] = {"ci95": [-0.3, 0.1]}
     assert summ.issue_bars(summ_, "hopper")["verdict"] == "pass"   # a paired tie
+    # a bc run on seed 0 only: paired with rl2s over seed 0 alone; a lane twice is refused
+    bc = {**runs[0], "improvement": {"bc/0": {**runs[0]["improvement"]["gail/0"],
+                                              "method": "bc", "c1": [100.0, 200.0, 480.0]}}}
+    paths.append(tmp_path / "bc.json")
+    paths[-1].write_text(json.dumps(bc))
+    assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
+                      str(tmp_path / "o"), "--bootstrap", "50"]) == 0
+    s = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"]
+    pb = s["paired"]["rl2s-bc"]  # seed 0: rl2s I [.5, -.1, .1] - bc I [0, 0, .2]
+    assert pb["seeds"] == [0] and pb["pairs"] == 3 and pb["median"] == pytest.approx(-0.1)
+    assert s["methods"]["bc"]["seeds"] == [0] and s["paired"]["rl2s-gail"]["pairs"] == 6
+    # the range floor on the lanes that recorded it (bc's: none), the protocol guard on them
+    del runs[1]["improvement"]["rl2s/1"]["guard_accepted_range"]
+    paths[1].write_text(json.dumps(runs[1]))
+    assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
+                      str(tmp_path / "o"), "--bootstrap", "50"]) == 0
+    gr = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"]["guard_rules"]
+    part, same = (gr["rl2s"][k] for k in ("training-error range floor",
+                                           "protocol guard on the range floor's lanes"))
+    assert (part["lanes"], part["deployed"], part["worse_than_start"]) == (1, 2, 1)  # seed 0
+    assert (same["lanes"], same["deployed"], same["worse_than_start"]) == (1, 1, 0)
+    assert gr["rl2s"]["protocol guard (training-MVD floor)"]["lanes"] == 2
+    with pytest.raises(SystemExit, match="appears twice"):
+        summ.main(["--task", "hopper", "--runs", *map(str, paths), str(paths[-1]), "--out",
+                   str(tmp_path / "o"), "--bootstrap", "50"])
 
 
 def test_worst_policy_likelihood_shift_scores_the_move_from_bc():

@@ -1,6 +1,7 @@
 """Issue 39's summary of fine-tuning inside the learned simulators: per method, over the
-seeds of one or more ``experiments/paper.py`` runs with improvement (each of one or more seeds,
-e.g. ``--first-seed K --seeds 1``; a method may lack some seeds), beside the task's real-env control (docs/results/<task>.json).
+seeds of one or more ``experiments/paper.py`` runs with improvement (each of one or more
+seeds, e.g. ``--first-seed K --seeds 1``; a method may lack some seeds), beside the task's
+real-env control (docs/results/<task>.json).
 
     python experiments/improvement_summary.py --task hopper --runs A.json B.json C.json
         [--control docs/results/hopper.json] [--out docs/results/improvement_in_sim]
@@ -21,8 +22,9 @@ predicted gains the runs kept (``guard_member_gain``): "every member predicts a 
 guard without the training-MVD floor) and, on the lanes that recorded it, "training-error
 range floor" (``protocol_improve.lane_error_range``: a floor from the training policies alone)
 against the protocol's guard (on the same lanes where not every lane recorded it; ``lanes``:
-how many (method, seed) lanes a rule was read on). This reads the test policies' real gains, so it explains the
-guard's choice; it must not choose it (judge a rule on runs it was not designed on).
+how many (method, seed) lanes a rule was read on). This reads the test policies' real gains,
+so it explains the guard's choice; it must not choose it (judge a rule on runs it was not
+designed on).
 ``controls``: the same median gain for the runs' own controls when they have them: the
 fine-tuning inside the oracle (``paper.py --improve-oracle-seeds``: the simulated env with
 the real physics) and in the real env with the runs' SAC settings (``paper.py --control``),

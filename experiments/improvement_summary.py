@@ -284,6 +284,23 @@ def issue_bars(summary: dict, task: str) -> dict:
     return out
 
 
+def by_method(summary: dict, runs: list[dict], source: str) -> dict:
+    """Issue 39's record for docs/results/<task>.json: for the control and each method its
+    ``median_gain`` (guarded: deployed or kept), ``mpi``, ``api``, ``deployed`` and
+    ``budget_env_steps``, with the commands of the runs that ran it, the bars' verdict and
+    this summary's path."""
+    keys = ("median_gain", "median_gain_raw", "median_gain_per_seed", "mpi", "api",
+            "deployed", "lanes_x_policies", "seeds")
+    out = {"control": summary["control"]}
+    out.update({m: {**{k: s[k] for k in keys}, "budget_env_steps": summary["budget_env_steps"],
+                    "commands": [r["command"] for r in runs if any(
+                        e["method"] == m for e in r["improvement"].values())]}
+                for m, s in summary["methods"].items()})
+    out["verdict"] = summary["bars"]["verdict"]
+    out["source"] = source
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
@@ -291,7 +308,11 @@ def main(argv=None) -> int:
     ap.add_argument("--control", help="the task's docs/results JSON with 'control'")
     ap.add_argument("--out", default="docs/results/improvement_in_sim")
     ap.add_argument("--bootstrap", type=int, default=2000)
+    ap.add_argument("--record", action="store_true",
+                    help="also write improvement_by_method into the --control file")
     args = ap.parse_args(argv)
+    if args.record and not args.control:
+        ap.error("--record writes into the task's results JSON: give it as --control")
     runs = []
     for path in args.runs:
         with open(path) as f:
@@ -329,6 +350,10 @@ def main(argv=None) -> int:
     with open(path, "w") as f:
         json.dump({"summary": summary, "runs": runs}, f, indent=1)
     plot(rows, summary, args.task, os.path.join(args.out, f"{args.task}.png"))
+    if args.record:
+        doc["improvement_by_method"] = by_method(summary, runs, path)
+        with open(args.control, "w") as f:
+            json.dump(doc, f, indent=1)
     ctl = summary.get("control") or {}
     print(f"{args.task}: budget {summary['budget_env_steps']} simulated env steps per policy"
           + (f"; control median gain {ctl['median_gain']:+.3f}" if ctl.get("median_gain")

@@ -1251,6 +1251,19 @@ def test_improvement_summary_by_hand(tmp_path):
     assert common["rl2s"] == pytest.approx(0.125) and common["gail"] == pytest.approx(0.075)
     assert common["oracle_sim"] == pytest.approx(0.75)
     assert common["real_env"] == pytest.approx(0.1) and common["control"] == 0.4
+    # --record writes issue 39's per-method record into the --control file, keeping the rest
+    assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
+                      str(tmp_path / "o"), "--bootstrap", "50", "--control", str(ctl),
+                      "--record"]) == 0
+    doc = json.loads(ctl.read_text())
+    rec = doc["improvement_by_method"]
+    assert doc["control"]["median_gain"] == 0.4 and rec["control"]["median_gain"] == 0.4
+    assert rec["rl2s"]["median_gain"] == pytest.approx(0.0) and rec["rl2s"]["deployed"] == 2
+    assert rec["rl2s"]["mpi"] == pytest.approx(-0.125) and rec["gail"]["budget_env_steps"] == 40
+    assert rec["rl2s"]["commands"] == ["paper.py --first-seed 0", "paper.py --first-seed 1"]
+    assert rec["verdict"] == "not enough seeds: 2 of 3"
+    with pytest.raises(SystemExit):  # --record without the file to record into
+        summ.main(["--task", "hopper", "--runs", str(paths[0]), "--record"])
     # issue 39's bars on it: the control's 0.4 >= 0.3; rl2s guarded 0 < 0.2, MPI -0.125 < 0,
     # API 1/24 < the paper's 2.94; rl2s >= gail (both 0); 2 seeds: no verdict yet
     bars = json.loads((tmp_path / "o" / "hopper.json").read_text())["summary"]["bars"]

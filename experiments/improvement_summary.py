@@ -265,8 +265,9 @@ def issue_bars(summary: dict, task: str) -> dict:
             "rl2s mpi": (rl2s["mpi"], 0.0, rl2s["mpi"] >= 0),
             "rl2s api": (rl2s["api"], paper_api,
                          paper_api is not None and rl2s["api"] >= paper_api)}
+    unrun = [m for m in ("gail", "bc") if m not in summary["methods"]]
     for other in ("gail", "bc"):
-        if other not in summary["methods"]:  # not run: the bar cannot be judged
+        if other in unrun:  # not run: the bar cannot be judged
             bars[f"rl2s >= {other}"] = (rl2s["median_gain"], None, None)
             continue
         theirs, pair = summary["methods"][other]["median_gain"], summary["paired"].get(
@@ -277,7 +278,6 @@ def issue_bars(summary: dict, task: str) -> dict:
     out = {k: {"value": v, "target": t, "holds": None if h is None else bool(h)}
            for k, (v, t, h) in bars.items()}
     n, held = len(rl2s["seeds"]), [b["holds"] for b in out.values()]
-    unrun = [k.split(">= ")[1] for k, b in out.items() if b["holds"] is None]
     out["verdict"] = (f"not enough seeds: {n} of {MIN_SEEDS}" if n < MIN_SEEDS else
                       "fail" if False in held else
                       f"incomplete: no {' or '.join(unrun)} lanes" if unrun else "pass")

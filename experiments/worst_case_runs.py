@@ -147,8 +147,9 @@ def pair_key(r: dict) -> tuple:
 def merge_rows(old: list[dict], new: list[dict]) -> list[dict]:
     """old rows whose key no new row has, and the new rows; sorted by data seed, method
     (METHODS' order), seed."""
-    keys = {(*row_key(r), r.get("rerun", 0)) for r in new}
-    rows = [r for r in old if (*row_key(r), r.get("rerun", 0)) not in keys] + new
+    run_key = lambda r: (*row_key(r), r.get("rerun", 0))
+    keys = {run_key(r) for r in new}
+    rows = [r for r in old if run_key(r) not in keys] + new
     order = {m: i for i, m in enumerate(METHODS)}
     return sorted(rows, key=lambda r: (r["data_seed"], order.get(r["method"], len(order)),
                                        r["method"], r["seed"], r.get("rerun", 0),

@@ -23,6 +23,12 @@ task's zoo (``zoo.build.ZOO_SAC``) and a 2^19-row buffer, under the fine-tuning 
 (``--sac-set`` still wins). Fine-tuning at the zoo's discount and reward scale is what made the
 control gain (docs/RESULTS.md, "Policy improvement: the real-env control").
 Writes OUT/control_<task>.json after each task and prints a table.
+
+    python experiments/improve_control.py --describe docs/results/control_zoo_recipe/*.json
+
+reads such files instead (``describe``): per task and config, of the policies below the zoo's
+top quartile, where they start (fraction of the zoo's top), how far the final actors moved
+(KL from the start) and their median gain, final and deployed, and how many stayed at the start.
 """
 from __future__ import annotations
 
@@ -45,6 +51,7 @@ from rl2s_jax.improve.finetune import (
     improve_in_real_env,
     improvement_intervals,
     improvement_metrics,
+    median_gain,
 )
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig  # noqa: E402
@@ -101,6 +108,29 @@ def summarise(res: dict, R: int, P: int) -> dict:
             "mpi": float(np.mean([p["mpi"] for p in per])),
             "api": float(np.mean([p["api"] for p in per])),
             "mpi_ci95": ci["mpi"], "api_ci95": ci["api"]}
+
+
+def describe(ctl: dict, zoo_returns: np.ndarray) -> dict:
+    """Per config of a control JSON, over its policies below the zoo's top quartile (all
+    seeds): n, start / zoo top (min, median, max), the final actors' KL from their start
+    (median, 10% and 90% quantiles), the median gain of the final actor and of the deployed
+    one (``median_gain``), and how many (seed, policy) were kept at the start."""
+    start = zoo_returns[ctl["zoo_ids"]]
+    below = start < np.quantile(zoo_returns, 0.75)
+    out = {}
+    for name, c in ctl["configs"].items():
+        kl = np.asarray(c["final_kl"], np.float64).reshape(-1, len(start))[:, below]
+        frac = start[below] / zoo_returns.max()
+        row = {"n_below": int(below.sum()),
+               "start_of_top": [float(frac.min()), float(np.median(frac)), float(frac.max())],
+               "final_kl": [float(np.median(kl)), *map(float, np.quantile(kl, [0.1, 0.9]))],
+               "median_gain": median_gain(c["c0"], c["c1"], start, zoo_returns)["median_gain"]}
+        if "final_c1" in c:
+            row["median_gain_final"] = median_gain(c["c0"], c["final_c1"], start,
+                                                   zoo_returns)["median_gain"]
+            row["kept_at_start"] = int((np.asarray(c["selected"])[:, below] == 0).sum())
+        out[name] = row
+    return out
 
 
 def run_task(task_name: str, args) -> dict:
@@ -162,7 +192,9 @@ def run_task(task_name: str, args) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tasks", default="hopper,walker2d,halfcheetah,ant")
-    ap.add_argument("--out", required=True)
+    ap.add_argument("--out", help="where control_<task>.json go (required unless --describe)")
+    ap.add_argument("--describe", nargs="+", metavar="CONTROL_JSON",
+                    help="describe these control JSONs (docstring) instead of running")
     ap.add_argument("--policies", type=int, default=0, help="test policies (0: all)")
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--iterations", type=int, default=2000)
@@ -181,6 +213,21 @@ def main(argv=None) -> int:
     ap.add_argument("--zoo-recipe", action="store_true",
                     help="the zoo learner's discount, reward scale and batch size (docstring)")
     args = ap.parse_args(argv)
+    if args.describe:
+        for path in args.describe:
+            with open(path) as f:
+                ctl = json.load(f)
+            zret = np.asarray(load_zoo(ctl["task"]).returns, np.float64)
+            for name, r in describe(ctl, zret).items():
+                log(f"{path}: {ctl['task']} {name}: {r['n_below']} below the top quartile, "
+                    "start at {:.2f} / {:.2f} / {:.2f} of the top; ".format(*r["start_of_top"])
+                    + "final KL from the start {:.4f} [{:.4f}, {:.4f}]; ".format(*r["final_kl"])
+                    + f"median gain deployed {r['median_gain']:+.3f}"
+                    + (f", final {r['median_gain_final']:+.3f}, kept at the start "
+                       f"{r['kept_at_start']}" if "kept_at_start" in r else ""))
+        return 0
+    if not args.out:
+        ap.error("--out is required (unless --describe)")
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
     bad = [t for t in tasks if t not in task_names()]
     if bad:

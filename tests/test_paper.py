@@ -1251,6 +1251,16 @@ def test_improvement_summary_by_hand(tmp_path):
     assert common["rl2s"] == pytest.approx(0.125) and common["gail"] == pytest.approx(0.075)
     assert common["oracle_sim"] == pytest.approx(0.75)
     assert common["real_env"] == pytest.approx(0.1) and common["control"] == 0.4
+    # with its C0 / C1 the control's median gain is recomputed on today's zoo: I .5 and 0
+    ctl2 = tmp_path / "control2.json"
+    ctl2.write_text(json.dumps({"control": {"median_gain": 0.4, "policies": 2,
+                                            "c0": [[100.0, 200.0]], "c1": [[150.0, 200.0]]},
+                                "test_policy_names": [f"hopper-{i:03d}" for i in order]}))
+    assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
+                      str(tmp_path / "o2"), "--bootstrap", "50", "--control", str(ctl2)]) == 0
+    c2 = json.loads((tmp_path / "o2" / "hopper.json").read_text())["summary"]["control"]
+    assert c2["median_gain"] == pytest.approx(0.25) and c2["median_gain_recorded"] == 0.4
+    assert c2["n_below"] == 2
     # --record writes issue 39's per-method record into the --control file, keeping the rest
     assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
                       str(tmp_path / "o"), "--bootstrap", "50", "--control", str(ctl),
@@ -1332,3 +1342,26 @@ def test_worst_policy_likelihood_shift_scores_the_move_from_bc():
     # shifts 1, 2, 40, 1: median 1.5; the top and the worst are c (error 40), score 40 / 1.5
     assert (out[0]["top"], out[0]["worst"], out[0]["mvd"]) == ("c", "c", 40.0)
     assert out[0]["top_score"] == pytest.approx(40 / 1.5) == out[0]["worst_score"]
+
+
+def test_improve_control_describe_by_hand():
+    """improve_control.describe on a made-up control of hopper's three lowest test policies
+    and its top one: only the three below the zoo's top quartile count; their start as a
+    fraction of the zoo's top, the final actors' KL (median, 10% / 90%), the median gains of
+    the deployed and the final actors and the starts kept equal the numbers worked by hand."""
+    from rl2s_jax.zoo.zoo import load_zoo
+    ic = _load("improve_control")
+    zret = np.asarray(load_zoo("hopper").returns, np.float64)
+    test = sorted(load_zoo("hopper").split_ids("test"), key=lambda i: zret[i])
+    ids = test[:3] + test[-1:]
+    c = {"c0": [[100.0, 200.0, 400.0, 2000.0]], "c1": [[150.0, 200.0, 400.0, 1000.0]],
+         "final_c1": [[150.0, 300.0, 300.0, 1000.0]], "selected": [[2, 0, 0, 1]],
+         "final_kl": [0.1, 0.2, 0.3, 9.0]}
+    out = ic.describe({"task": "hopper", "zoo_ids": ids, "configs": {"ft": c}}, zret)["ft"]
+    assert out["n_below"] == 3 and out["kept_at_start"] == 2
+    frac = zret[ids[:3]] / zret.max()
+    assert out["start_of_top"] == pytest.approx([frac.min(), np.median(frac), frac.max()])
+    assert out["final_kl"][0] == pytest.approx(0.2)  # the top policy's 9.0 does not count
+    assert out["final_kl"][1:] == pytest.approx(np.quantile([0.1, 0.2, 0.3], [0.1, 0.9]))
+    assert out["median_gain"] == pytest.approx(0.0)          # I .5, 0, 0
+    assert out["median_gain_final"] == pytest.approx(0.5)    # I .5, .5, -.25

@@ -5,7 +5,7 @@ improvement phase, and their real returns before and after. No simulator is need
     python experiments/improve_control.py --tasks hopper,walker2d,halfcheetah,ant --out DIR
         [--policies 0] [--seeds 2] [--iterations 2000] [--episodes 16] [--sac-envs 16]
         [--critic-warmup 500] [--updates-per-step 1] [--sac-set KEY=VALUE ...] [--plain]
-        [--select-episodes 0] [--select-every 400] [--select-z 2] [--zoo-recipe]
+        [--select-episodes 0] [--select-every 400] [--select-z 2] [--zoo-recipe] [--ids ID ...]
 
 For each task: C0 and C1 of every chosen test policy (``--policies`` N spread over their
 returns, 0 = all) over ``--episodes`` fresh real episodes, for ``--seeds`` SAC seeds (one
@@ -137,7 +137,8 @@ def run_task(task_name: str, args) -> dict:
     task = get_task(task_name)
     zoo = load_zoo(task_name)
     test_ids = zoo.split_ids("test")
-    chosen = [test_ids[i] for i in pick(np.asarray(zoo.returns)[test_ids], args.policies)]
+    chosen = (sorted(args.ids) if args.ids else
+              [test_ids[i] for i in pick(np.asarray(zoo.returns)[test_ids], args.policies)])
     pols = index_params(zoo.params, np.asarray(chosen))
     R, P = args.seeds, len(chosen)
     tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * R), pols)
@@ -196,6 +197,8 @@ def main(argv=None) -> int:
     ap.add_argument("--describe", nargs="+", metavar="CONTROL_JSON",
                     help="describe these control JSONs (docstring) instead of running")
     ap.add_argument("--policies", type=int, default=0, help="test policies (0: all)")
+    ap.add_argument("--ids", type=int, nargs="+", metavar="ZOO_ID",
+                    help="these test policies (zoo ids; one task) instead of --policies")
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--iterations", type=int, default=2000)
     ap.add_argument("--episodes", type=int, default=16)
@@ -232,6 +235,12 @@ def main(argv=None) -> int:
     bad = [t for t in tasks if t not in task_names()]
     if bad:
         raise SystemExit(f"tasks: unknown {bad}; known: {task_names()}")
+    if args.ids:
+        test = set(load_zoo(tasks[0]).split_ids("test")) if len(tasks) == 1 else None
+        if test is None or not set(args.ids) <= test:
+            raise SystemExit(f"ids: expected test-policy zoo ids of one task; got {args.ids} "
+                             f"for tasks {tasks}" + (f" (test ids: {sorted(test)})"
+                                                    if test is not None else ""))
     for name in ("seeds", "iterations", "episodes", "sac_envs"):
         if getattr(args, name) < 1:
             raise SystemExit(f"{name.replace('_', '-')}: expected >= 1")

@@ -1365,3 +1365,17 @@ def test_improve_control_describe_by_hand():
     assert out["final_kl"][1:] == pytest.approx(np.quantile([0.1, 0.2, 0.3], [0.1, 0.9]))
     assert out["median_gain"] == pytest.approx(0.0)          # I .5, 0, 0
     assert out["median_gain_final"] == pytest.approx(0.5)    # I .5, .5, -.25
+
+
+def test_improve_control_ids_must_be_test_policies_of_one_task(tmp_path):
+    """improve_control --ids: zoo ids that are not test policies of the one task named are
+    refused before any work, with the field named."""
+    from rl2s_jax.zoo.zoo import load_zoo
+    ic = _load("improve_control")
+    train = list(load_zoo("hopper").split_ids("train"))
+    test = list(load_zoo("hopper").split_ids("test"))
+    with pytest.raises(SystemExit, match="ids: expected test-policy zoo ids"):
+        ic.main(["--tasks", "hopper", "--ids", str(train[0]), "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="ids: expected"):
+        ic.main(["--tasks", "hopper,ant", "--ids", str(test[0]), "--out", str(tmp_path)])
+    assert not any(tmp_path.iterdir())  # nothing written

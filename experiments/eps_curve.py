@@ -31,6 +31,8 @@ import sys
 
 import numpy as np
 
+from rl2s_jax.evaluate.metrics import mean_per_unit
+
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
 DEFAULT_EPS, N_BOOT, GAIL = 0.25, 2000, "GAIL (eps 1)"
 FIELDS = {"data_seed": int, "seed": int, "method": str, "eps": (int, float, type(None)),
@@ -89,12 +91,8 @@ def _mean(x: np.ndarray) -> float | None:
 
 
 def _by_seed(values: list[tuple[dict, float]]) -> np.ndarray:
-    """[(row, value)] -> one value per (data_seed, seed): the mean over its reruns (they share
-    data and seed, so they are not independent samples)."""
-    units: dict[tuple, list[float]] = {}
-    for r, v in values:
-        units.setdefault((r["data_seed"], r["seed"]), []).append(v)
-    return np.array([np.mean(v) for v in units.values()], np.float64)
+    """[(row, value)] -> one value per (data_seed, seed): the mean over its reruns."""
+    return mean_per_unit(((r["data_seed"], r["seed"]), v) for r, v in values)[0]
 
 
 def curve(rows: list[dict]) -> list[dict]:

@@ -41,6 +41,8 @@ import sys
 
 import numpy as np
 
+from rl2s_jax.evaluate.metrics import mean_per_unit
+
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")  # rl2s_jax.app.protocol.METHODS (no JAX here)
 ADVERSARIAL = ("rl2s", "gail")  # the methods the NLL anchor (adv_nll_on) enters
 BAR_CONFIG = {"adv_nll_on": "all"}  # TrainConfig's defaults since 2026-11-27: the bars' runs
@@ -223,12 +225,10 @@ def paired_difference(a: list[dict], b: list[dict], seed: int = 0) -> dict:
     """MVD of a minus MVD of b over their shared pair_key with finite MVDs, averaged first
     over a (data_seed, seed) unit's reruns (they share data and seed: not independent), then
     over units: mean, 95% bootstrap (N_BOOT replicates, rng ``seed``) and t intervals."""
-    units: dict[tuple, list[float]] = {}
-    for p in sorted(_minus(a, b), key=pair_key):
-        units.setdefault((p["data_seed"], p["seed"]), []).append(p["mvd"])
-    d = np.array([np.mean(v) for v in units.values()], np.float64)
+    pairs = sorted(_minus(a, b), key=pair_key)
+    d, units = mean_per_unit(((p["data_seed"], p["seed"]), p["mvd"]) for p in pairs)
     per_ds = {str(ds): sum(u[0] == ds for u in units) for ds, _ in units}
-    out = {"n_pairs": sum(map(len, units.values())), "n_units": len(d),
+    out = {"n_pairs": len(pairs), "n_units": len(d),
            "seeds_per_data_seed": per_ds, "mean_diff": None, "ci95_bootstrap": None,
            "ci95_t": None}
     if not len(d):

@@ -315,3 +315,13 @@ def bootstrap_intervals(true_values, sim_returns, true_se=None, *, n_boot: int =
 
     return {"level": level, "n_boot": n_boot, "n_episodes": n, "metrics": summary(both),
             "sim_only": summary(sim_only)}
+
+
+def mean_per_unit(values) -> tuple[np.ndarray, list]:
+    """[(unit, value)] -> (the mean value per unit [U], the units in first-seen order). A
+    unit is e.g. a (data seed, seed): its reruns share data and seed, so they are averaged
+    before any interval over units."""
+    units: dict = {}
+    for unit, v in values:
+        units.setdefault(unit, []).append(v)
+    return np.array([np.mean(v) for v in units.values()], np.float64), list(units)

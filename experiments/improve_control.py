@@ -113,17 +113,20 @@ def summarise(res: dict, R: int, P: int) -> dict:
 def describe(ctl: dict, zoo_returns: np.ndarray) -> dict:
     """Per config of a control JSON, over its policies below the zoo's top quartile (all
     seeds): n, start / zoo top (min, median, max), the final actors' KL from their start
-    (median, 10% and 90% quantiles), the median gain of the final actor and of the deployed
-    one (``median_gain``), and how many (seed, policy) were kept at the start."""
+    (median, 10% and 90% quantiles; None at kl_weight 0, where SAC measures none), the median
+    gain of the final actor and of the deployed one (``median_gain``), and how many (seed,
+    policy) were kept at the start."""
     start = zoo_returns[ctl["zoo_ids"]]
     below = start < np.quantile(zoo_returns, 0.75)
     out = {}
     for name, c in ctl["configs"].items():
         kl = np.asarray(c["final_kl"], np.float64).reshape(-1, len(start))[:, below]
         frac = start[below] / zoo_returns.max()
+        measured = c.get("sac", {}).get("kl_weight", 1.0) > 0  # SAC keeps no anchor at 0
         row = {"n_below": int(below.sum()),
                "start_of_top": [float(frac.min()), float(np.median(frac)), float(frac.max())],
-               "final_kl": [float(np.median(kl)), *map(float, np.quantile(kl, [0.1, 0.9]))],
+               "final_kl": ([float(np.median(kl)), *map(float, np.quantile(kl, [0.1, 0.9]))]
+                            if measured else None),
                "median_gain": median_gain(c["c0"], c["c1"], start, zoo_returns)["median_gain"]}
         if "final_c1" in c:
             row["median_gain_final"] = median_gain(c["c0"], c["final_c1"], start,
@@ -224,7 +227,8 @@ def main(argv=None) -> int:
             for name, r in describe(ctl, zret).items():
                 log(f"{path}: {ctl['task']} {name}: {r['n_below']} below the top quartile, "
                     "start at {:.2f} / {:.2f} / {:.2f} of the top; ".format(*r["start_of_top"])
-                    + "final KL from the start {:.4f} [{:.4f}, {:.4f}]; ".format(*r["final_kl"])
+                    + ("final KL from the start {:.4f} [{:.4f}, {:.4f}]; ".format(*r["final_kl"])
+                       if r["final_kl"] else "final KL not measured (kl_weight 0); ")
                     + f"median gain deployed {r['median_gain']:+.3f}"
                     + (f", final {r['median_gain_final']:+.3f}, kept at the start "
                        f"{r['kept_at_start']}" if "kept_at_start" in r else ""))
@@ -256,6 +260,8 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         res = run_task(t, args)
         res["seconds"] = round(time.perf_counter() - t0, 1)
+        res["command"] = " ".join(["python experiments/improve_control.py",
+                                   *(sys.argv[1:] if argv is None else argv)])
         with open(os.path.join(args.out, f"control_{t}.json"), "w") as f:
             json.dump(res, f, indent=1)
         log(f"[control] {t} done in {res['seconds']:.0f}s -> {args.out}/control_{t}.json")

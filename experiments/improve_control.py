@@ -117,17 +117,18 @@ def describe(ctl: dict, zoo_returns: np.ndarray) -> dict:
     gain of the final actor and of the deployed one (``median_gain``), and how many (seed,
     policy) were kept at the start."""
     start = zoo_returns[ctl["zoo_ids"]]
-    below = start < np.quantile(zoo_returns, 0.75)
     out = {}
     for name, c in ctl["configs"].items():
+        deployed = median_gain(c["c0"], c["c1"], start, zoo_returns)
+        below = np.asarray(deployed["below"])  # median_gain's rule: below the top quartile
         kl = np.asarray(c["final_kl"], np.float64).reshape(-1, len(start))[:, below]
         frac = start[below] / zoo_returns.max()
         measured = c.get("sac", {}).get("kl_weight", 1.0) > 0  # SAC keeps no anchor at 0
-        row = {"n_below": int(below.sum()),
+        row = {"n_below": deployed["n_below"],
                "start_of_top": [float(frac.min()), float(np.median(frac)), float(frac.max())],
                "final_kl": ([float(np.median(kl)), *map(float, np.quantile(kl, [0.1, 0.9]))]
                             if measured else None),
-               "median_gain": median_gain(c["c0"], c["c1"], start, zoo_returns)["median_gain"]}
+               "median_gain": deployed["median_gain"]}
         if "final_c1" in c:
             row["median_gain_final"] = median_gain(c["c0"], c["final_c1"], start,
                                                    zoo_returns)["median_gain"]

@@ -202,7 +202,7 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
         seeds = [r["seed"] for r in mine]  # {seed: [policies below the top quartile]}
         gains[m] = dict(zip(seeds, i_raw[:, below], strict=True))
         gains_g[m] = dict(zip(seeds, i_dep[:, below], strict=True))
-        out[m] = {"seeds": [r["seed"] for r in mine], "policies": len(start),
+        out[m] = {"seeds": seeds, "policies": len(start),
                   "n_below": raw["n_below"],
                   "median_gain_raw": raw["median_gain"], "median_gain_raw_per_seed": per_seed,
                   "median_gain": guarded["median_gain"],

@@ -342,8 +342,8 @@ def main(argv=None) -> int:
         ctl, names = doc["control"], doc.get("test_policy_names")
         summary["control"] = {k: ctl.get(k) for k in ("median_gain", "mpi", "api", "deployed",
                                                       "seeds", "budget_env_steps", "command")}
-        if names:
-            zid = summary["control"]["zoo_ids"] = zoo_ids(
+        if ctl.get("zoo_ids") or names:  # older files: the first `policies` test names
+            zid = summary["control"]["zoo_ids"] = ctl.get("zoo_ids") or zoo_ids(
                 doc, range(ctl.get("policies", len(names))))
             if "c0" in ctl and "c1" in ctl:  # "below the top quartile" of today's zoo
                 now = median_gain(ctl["c0"], ctl["c1"], zoo_returns[zid], zoo_returns)

@@ -264,6 +264,7 @@ def main(argv=None) -> int:
         gain = median_gain(c["c0"], c["c1"], zret[ctl["zoo_ids"]], zret)
         result["control"] = {"config": name, "seeds": ctl["seeds"],
                              "iterations": ctl["iterations"], "policies": len(ctl["zoo_ids"]),
+                             "zoo_ids": ctl["zoo_ids"],
                              "mpi": c["mpi"], "api": c["api"], "mpi_ci95": c["mpi_ci95"],
                              "api_ci95": c["api_ci95"], "c0": c["c0"], "c1": c["c1"],
                              "I": c["I"], "device": ctl["device"],

@@ -36,6 +36,7 @@ from rl2s_jax.app.protocol import (
     METHODS,
     METRICS,
     PROFILES,
+    improve_recipe,
     lane_eps,
     load_or_collect,
     log,
@@ -129,7 +130,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--zoo-recipe", action="store_true", help="fine-tune at the zoo learner's "
                     "discount, reward scale and batch (zoo.build.fine_tuning_recipe)")
     ap.add_argument("--improve-recipe", choices=sorted(IMPROVE_RECIPES), help="a measured "
-                    "recipe's flags as the defaults (protocol.IMPROVE_RECIPES); flags win")
+                    "recipe's flags as the defaults, with the task's changes "
+                    "(protocol.improve_recipe); flags win")
     ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
                     "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
     ap.add_argument("--families", default="adversarial,mle", help="comma list of programs: "
@@ -155,7 +157,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap = build_parser()
     args = ap.parse_args(argv)
     if args.improve_recipe:
-        ap.set_defaults(**IMPROVE_RECIPES[args.improve_recipe])
+        ap.set_defaults(**improve_recipe(args.improve_recipe, args.task))
         args = ap.parse_args(argv)
     return args
 

@@ -9,6 +9,7 @@ import pytest
 from experiment_scripts import load_script
 
 from rl2s_jax.app import results_tables
+from rl2s_jax.zoo.zoo import load_zoo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 METRICS = ("kendall_tau", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10", "spearman", "regret@1",
@@ -147,6 +148,8 @@ def test_paper_tables_control_and_ablation(tmp_path):
     assert "| hopper | full | gail | n/a | n/a |" in ablation
     b = results_tables.bars(r)
     assert b["control"] == (True, "0.050") and b["oracle"] == (True, "0.970 / 1.000")
+    r["control"]["mpi"] = 6e-7  # float residue of kept policies' zero gains: no gain
+    assert results_tables.bars(r)["control"] == (False, "0.000")
     del r["ablation"]["full"]  # one variant: no ablation table
     assert "### Improvement by simulated-env variant" not in pt.render({"hopper": r}, "res")
 
@@ -438,6 +441,34 @@ def test_merge_results_takes_the_oracle_of_another_run(tmp_path):
                  "--oracle-paper", str(paths["orc"]), "--out", str(out)])
 
 
+def test_merge_results_control_records_its_policies_and_median_gain(tmp_path):
+    """--control (--keep): the control's zoo ids, issue 39's median gain on them (by hand) and
+    its deployed count go into the task's result; the rest of the file is kept."""
+    mr = _load("merge_results")
+    zoo = load_zoo("hopper")
+    ids = zoo.split_ids("test")[:2]
+    zret = np.asarray(zoo.returns, np.float64)
+    start = zret[ids]
+    c0 = [[100.0, 200.0]]
+    c1 = [[150.0, 190.0]]  # I = +0.5, -0.05
+    ctl = {"task": "hopper", "zoo_ids": ids, "seeds": 1, "iterations": 10, "device": "cpu",
+           "command": "improve_control.py", "configs": {"fine_tuning": {
+               "c0": c0, "c1": c1, "I": [0.5, -0.05], "mpi": -0.05, "api": 0.225,
+               "mpi_ci95": [0, 0], "api_ci95": [0, 0], "paired": True, "sac": {"n_envs": 4},
+               "selected": [[2, 0]]}}}
+    (tmp_path / "c.json").write_text(json.dumps(ctl))
+    (tmp_path / "hopper.json").write_text(json.dumps({"task": "hopper", "methods": {"x": 1}}))
+    assert mr.main(["--task", "hopper", "--keep", "--control", str(tmp_path / "c.json"),
+                    "--out", str(tmp_path)]) == 0
+    got = json.loads((tmp_path / "hopper.json").read_text())
+    c = got["control"]
+    assert got["methods"] == {"x": 1} and c["zoo_ids"] == ids and c["policies"] == 2
+    below = start < np.quantile(zret, 0.75)
+    assert c["n_below"] == int(below.sum())
+    assert c["median_gain"] == pytest.approx(float(np.median(np.array([0.5, -0.05])[below])))
+    assert c["deployed"] == 1 and c["budget_env_steps"] == 40
+
+
 def test_merge_runs_joins_the_improvement_variants():
     """Each family's run fine-tuned its own lanes: the merged 'ablation' holds every method of
     every variant; runs fine-tuned with other settings are refused."""
@@ -553,6 +584,14 @@ def test_improve_recipe_sets_the_measured_flags_and_flags_given_win():
     assert paper.check_arguments(mine)[2]["kl_weight"] == 0.1
     plain = paper.parse_args(["--task", "hopper"])
     assert plain.guard_margin is None and not plain.zoo_recipe and plain.sac_set is None
+    # a task's change to the recipe (HalfCheetah: no KL anchor); its other flags stay, and a
+    # --sac-set given still wins
+    cheetah = paper.parse_args(["--task", "halfcheetah", "--improve-recipe", "control"])
+    assert paper.check_arguments(cheetah)[2]["kl_weight"] == 0
+    assert paper.resolve_sizes(cheetah, "gpu")["sac_envs"] == 128
+    assert paper.check_arguments(paper.parse_args(
+        ["--task", "halfcheetah", "--improve-recipe", "control", "--sac-set",
+         "kl_weight=0.01"]))[2]["kl_weight"] == 0.01
     with pytest.raises(SystemExit):
         paper.parse_args(["--task", "hopper", "--improve-recipe", "nope"])
 
@@ -1261,6 +1300,16 @@ def test_improvement_summary_by_hand(tmp_path):
     c2 = json.loads((tmp_path / "o2" / "hopper.json").read_text())["summary"]["control"]
     assert c2["median_gain"] == pytest.approx(0.25) and c2["median_gain_recorded"] == 0.4
     assert c2["n_below"] == 2
+    # a control that records its zoo ids is read by them, not by the runs' first test names
+    # (Ant's zoo grew: its control fine-tuned a policy the paper run's names lack)
+    ctl3 = tmp_path / "control3.json"
+    ctl3.write_text(json.dumps({"control": {"median_gain": 0.4, "policies": 2,
+                                            "zoo_ids": order[1:]},
+                                "test_policy_names": [f"hopper-{i:03d}" for i in order]}))
+    assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
+                      str(tmp_path / "o3"), "--bootstrap", "50", "--control", str(ctl3)]) == 0
+    assert json.loads((tmp_path / "o3" / "hopper.json").read_text())["summary"][
+        "on_control_policies"]["zoo_ids"] == order[1:]
     # --record writes issue 39's per-method record into the --control file, keeping the rest
     assert summ.main(["--task", "hopper", "--runs", *map(str, paths), "--out",
                       str(tmp_path / "o"), "--bootstrap", "50", "--control", str(ctl),

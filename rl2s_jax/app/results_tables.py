@@ -168,10 +168,12 @@ def bars(result: dict) -> dict[str, tuple[bool | None, str]]:
     else:
         out["mvd"] = (mv["rl2s"] < mv["gail"] and mv["rl2s"] < mv["bc"],
                       f"{mv['rl2s']:.1f} vs {mv['gail']:.1f}, {mv['bc']:.1f}")
+    # MPI > 0 as printed: a kept policy gains exactly 0, and float residue (+6e-7) is no gain
     mpi = mean("rl2s", "mpi")
-    out["mpi"] = (None if mpi is None else mpi > 0, "n/a" if mpi is None else f"{mpi:.3f}")
+    out["mpi"] = (None if mpi is None else round(mpi, 3) > 0,
+                  "n/a" if mpi is None else f"{mpi:.3f}")
     c = (result.get("control") or {}).get("mpi")
-    out["control"] = (None if c is None else c > 0, "n/a" if c is None else f"{c:.3f}")
+    out["control"] = (None if c is None else round(c, 3) > 0, "n/a" if c is None else f"{c:.3f}")
     ot, on = mean("oracle", "kendall_tau"), mean("oracle", "ndcg@1")
     nc = (result.get("noise_ceiling") or {}).get("kendall_tau")
     noise = "" if nc is None else f"; noise alone allows tau {nc['mean']:.2f}"

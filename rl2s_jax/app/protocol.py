@@ -89,7 +89,8 @@ IMPROVE_RECIPES = {
 # Per-task changes to a recipe. HalfCheetah's KL anchor held its policies at their start: at
 # KL 0.01 the control's policies below the top quartile end a median KL 0.009 from it and gain
 # +0.01; without the anchor they gain +0.20 (3 seeds) and the simulators +0.16 to +0.20 (RESULTS,
-# "HalfCheetah without the anchor"); the validation selection and the guard catch collapse.
+# "Policy improvement: the real-env control"); the validation selection and the guard catch
+# collapse.
 IMPROVE_RECIPE_TASKS = {"control": {"halfcheetah": dict(sac_set=["kl_weight=0"])}}
 
 

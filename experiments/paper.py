@@ -32,11 +32,9 @@ import numpy as np
 from rl2s_jax.app.improve import fine_tuning_overrides
 from rl2s_jax.app.protocol import (
     FAMILIES,
-    IMPROVE_RECIPES,
     METHODS,
     METRICS,
     PROFILES,
-    improve_recipe,
     lane_eps,
     load_or_collect,
     log,
@@ -61,6 +59,7 @@ from rl2s_jax.app.train import make_config, parse_overrides
 from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.envs.tasks import task_names
 from rl2s_jax.improve.lanes import parse_variants, uses_uncertainty, variant_settings
+from rl2s_jax.improve.recipes import IMPROVE_RECIPES, paper_flags
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.sharding import initialize_distributed
 from rl2s_jax.train.config import LEGACY_MODEL
@@ -131,7 +130,7 @@ def build_parser() -> argparse.ArgumentParser:
                     "discount, reward scale and batch (zoo.build.fine_tuning_recipe)")
     ap.add_argument("--improve-recipe", choices=sorted(IMPROVE_RECIPES), help="a measured "
                     "recipe's flags as the defaults, with the task's changes "
-                    "(protocol.improve_recipe); flags win")
+                    "(improve.recipes); flags win")
     ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
                     "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
     ap.add_argument("--families", default="adversarial,mle", help="comma list of programs: "
@@ -157,7 +156,7 @@ def parse_args(argv: list[str]) -> argparse.Namespace:
     ap = build_parser()
     args = ap.parse_args(argv)
     if args.improve_recipe:
-        ap.set_defaults(**improve_recipe(args.improve_recipe, args.task))
+        ap.set_defaults(**paper_flags(args.improve_recipe, args.task))
         args = ap.parse_args(argv)
     return args
 

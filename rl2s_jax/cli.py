@@ -191,19 +191,18 @@ def _policy_ids(text):
 
 
 def cmd_improve(args) -> int:
-    from rl2s_jax.app.improve import guard_margin, run_improve
+    from rl2s_jax.app.improve import guard_margin, run_improve, summary_markdown
 
     s = run_improve(args.ckpt, args.data, args.out, policy_ids=args.policies,
                     iterations=args.iterations, overrides=_set(args.set), seed=args.seed,
                     n_episodes=args.episodes, zoo=args.zoo, policy_file=args.policy_file,
                     step=args.step, guard_snapshots=args.guard_snapshots,
                     measure=not args.no_measure, branch_length=args.branch_length,
-                    uncertainty_penalty=args.uncertainty_penalty or 0.0,
+                    uncertainty_penalty=args.uncertainty_penalty,
                     uncertainty_threshold=args.uncertainty_threshold,
                     halt_penalty=args.halt_penalty, guard_margin=guard_margin(args),
-                    guard_episodes=args.guard_episodes, progress=not args.quiet)
-    from rl2s_jax.app.improve import summary_markdown
-
+                    guard_episodes=args.guard_episodes, recipe=args.recipe,
+                    progress=not args.quiet)
     print(summary_markdown(s))
     print(f"-> {args.out}: zoo.npz, zoo.json, summary.json, summary.md"
           + (f", {len(s['plots'])} PNGs" if s["plots"] else ""))
@@ -306,6 +305,7 @@ def _sim_env_options(p, default: str = "whole episodes from its start states") -
 
 def build_parser() -> argparse.ArgumentParser:
     from rl2s_jax.envs.tasks import task_names
+    from rl2s_jax.improve.recipes import IMPROVE_RECIPES
 
     parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -455,17 +455,16 @@ def build_parser() -> argparse.ArgumentParser:
                    "e.g. 0,3,5 (default: all)")
     p.add_argument("--out", required=True, help="directory: zoo.npz/zoo.json, summary.json, "
                    "summary.md, policy_*.png")
-    p.add_argument("--iterations", type=_positive("iterations"), default=1000,
-                   help="SAC iterations per policy")
-    p.add_argument("--set", action="append", metavar="KEY=VALUE",
-                   help="override a SACConfig field, e.g. --set kl_weight=0.03")
-    p.add_argument("--episodes", type=_positive("episodes"), default=16,
-                   help="real episodes per policy before and after")
+    p.add_argument("--recipe", choices=sorted(IMPROVE_RECIPES), help="a measured recipe for "
+                   "the simulator's task as the defaults, flags given win (improve/recipes.py)")
+    p.add_argument("--iterations", type=_positive("iterations"),
+                   help="SAC iterations per policy (default: 1000, or the recipe's)")
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a SACConfig field")
+    p.add_argument("--episodes", type=_positive("episodes"), default=16, help="real episodes")
     _sim_env_options(p)
-    p.add_argument("--uncertainty-threshold", type=float,
-                   help="MOReL: end a rollout when u(s, a) exceeds this (same units)")
-    p.add_argument("--halt-penalty", type=float, default=0.0,
-                   help="reward subtracted when the threshold ends a rollout")
+    p.add_argument("--uncertainty-threshold", type=float, help="MOReL: end a rollout when "
+                   "u(s, a) exceeds this (same units); --halt-penalty: subtracted then")
+    p.add_argument("--halt-penalty", type=float, default=0.0)
     _guard_options(p)
     p.add_argument("--guard-snapshots", action="store_true", help="keep the actor every "
                    "tenth of the iterations; of the snapshots that pass the guard, deploy the "

@@ -13,7 +13,9 @@ from rl2s_jax.data.collect import measure_values
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.envs.tasks import PointMass
 from rl2s_jax.policy import policy as pol
+from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.zoo import zoo as zoo_mod
+from rl2s_jax.zoo.build import fine_tuning_recipe
 from rl2s_jax.zoo.zoo import policies_for
 
 SMALL = ["--set", "n_envs=4", "--set", "hidden=[32,32]", "--set", "batch_size=32",
@@ -79,6 +81,39 @@ def test_improve_branched_with_penalty_runs(pointmass_checkpoint, tmp_path):
     assert s["mpi"] is None and not list(out.glob("*.png"))
     zoo = zoo_mod.load_zoo(str(out))
     assert zoo.size == 1 and np.isnan(zoo.returns[0])
+
+
+def test_improve_recipe_gives_the_defaults_and_flags_given_win(pointmass_checkpoint, tmp_path):
+    """--recipe control: the measured recipe's branches, penalty, KL, SAC sizes and the zoo
+    learner's discount where no flag is given; --iterations, --set, --branch-length and
+    --uncertainty-penalty given win."""
+    run = pointmass_checkpoint
+    out = tmp_path / "recipe"
+    assert cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--policies",
+                     "1", "--out", str(out), "--recipe", "control", "--iterations", "6",
+                     "--no-measure", "--quiet", "--no-guard", *SMALL, "--set",
+                     "updates_per_step=1", "--set", "critic_warmup_updates=3"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["recipe"] == "control" and s["iterations"] == 6
+    assert s["env_options"]["rollout_length"] == 100
+    assert s["env_options"]["uncertainty_penalty"] == 1.0
+    sac = zoo_mod.load_zoo(str(out)).info["sac"]
+    assert sac["kl_weight"] == 0.01 and sac["n_envs"] == 4 and sac["updates_per_step"] == 1
+    assert sac["critic_warmup_updates"] == 3 and sac["buffer_size"] == 2000
+    assert sac["gamma"] == fine_tuning_recipe("pointmass")["gamma"] != SACConfig.fine_tuning(
+        ).gamma and sac["learn_alpha"] is False
+    assert "(recipe control)" in (out / "summary.md").read_text()
+    out2 = tmp_path / "recipe_penalty"
+    assert cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--policies",
+                     "1", "--out", str(out2), "--recipe", "control", "--iterations", "2",
+                     "--no-measure", "--quiet", "--no-guard", "--uncertainty-penalty", "0",
+                     "--branch-length", "5", *SMALL, "--set", "critic_warmup_updates=1",
+                     "--set", "updates_per_step=1"]) == 0
+    env = json.loads((out2 / "summary.json").read_text())["env_options"]
+    assert env["rollout_length"] == 5 and env.get("uncertainty_penalty", 0.0) == 0.0  # off
+    with pytest.raises(SystemExit):  # an unknown recipe: refused by the parser
+        cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--out",
+                  str(tmp_path / "x"), "--recipe", "nope"])
 
 
 def test_improve_guard_keeps_the_start_where_the_simulator_sees_no_gain(pointmass_checkpoint,

@@ -9,6 +9,7 @@ import pytest
 from experiment_scripts import load_script
 
 from rl2s_jax.app import results_tables
+from rl2s_jax.improve.recipes import recipe_settings
 from rl2s_jax.zoo.zoo import load_zoo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -594,6 +595,30 @@ def test_improve_recipe_sets_the_measured_flags_and_flags_given_win():
          "kl_weight=0.01"]))[2]["kl_weight"] == 0.01
     with pytest.raises(SystemExit):
         paper.parse_args(["--task", "hopper", "--improve-recipe", "nope"])
+
+
+@pytest.mark.parametrize("task", ["hopper", "halfcheetah"])
+def test_rl2s_improve_recipe_is_paper_py_recipe(task):
+    """``recipe_settings`` (rl2s improve --recipe) resolves to what paper.py --improve-recipe
+    runs: the same SAC fields, iterations, envs, updates, warm-up, branches and penalty; a task
+    without a zoo learner (a user's own system) gets the rest without the zoo's discount."""
+    paper = _load("paper")
+    args = paper.parse_args(["--task", task, "--improve-recipe", "control"])
+    sizes, (variants, _, sac, _) = paper.resolve_sizes(args, "gpu"), paper.check_arguments(args)
+    rs = recipe_settings("control", task)
+    assert rs["zoo_recipe"] and {k: rs["sac"][k] for k in sac} == sac
+    assert (rs["iterations"], rs["sac"]["n_envs"], rs["sac"]["updates_per_step"],
+            rs["sac"]["critic_warmup_updates"]) == (
+        sizes["improve_iterations"], sizes["sac_envs"], sizes["sac_updates_per_step"],
+        sizes["sac_critic_warmup"])
+    assert variants == ["branched+penalty"] and rs["guard_margin"] == args.guard_margin
+    assert (rs["branch_length"], rs["uncertainty_penalty"]) == (args.branch_length,
+                                                                args.uncertainty_penalty)
+    own = recipe_settings("control", "my_robot")
+    assert not own["zoo_recipe"] and "gamma" not in own["sac"]
+    assert own["sac"]["kl_weight"] == 0.01 and own["iterations"] == rs["iterations"]
+    with pytest.raises(ValueError, match="recipe: expected one of"):
+        recipe_settings("nope", task)
 
 
 # ------------------------------------------------------------------ paper.py smoke

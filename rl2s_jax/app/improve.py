@@ -55,6 +55,7 @@ from rl2s_jax.improve.finetune import (
     select_by_members,
     training_return_curve,
 )
+from rl2s_jax.improve.recipes import IMPROVE_RECIPES, recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
@@ -68,9 +69,9 @@ GUARD_MARGIN = 0.02
 
 
 def guard_margin(args) -> float | None:
-    """The guard's margin from the command line's --guard-margin (None: the default,
-    ``GUARD_MARGIN``) and --no-guard (-> None: no guard); --no-guard with --guard-margin or
-    --guard-snapshots is refused."""
+    """The guard's margin from the command line's --guard-margin (None: the --recipe's, else
+    the default, ``GUARD_MARGIN``) and --no-guard (-> None: no guard); --no-guard with
+    --guard-margin or --guard-snapshots is refused."""
     if args.no_guard:
         given = [o for o, on in (("--guard-margin", args.guard_margin is not None),
                                  ("--guard-snapshots", getattr(args, "guard_snapshots", False)))
@@ -78,6 +79,8 @@ def guard_margin(args) -> float | None:
         if given:
             raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
         return None
+    if args.guard_margin is None and getattr(args, "recipe", None):
+        return IMPROVE_RECIPES[args.recipe]["guard_margin"]
     return GUARD_MARGIN if args.guard_margin is None else args.guard_margin
 
 
@@ -144,22 +147,26 @@ def check_inputs(ckpt: str, data_path: str, policy_ids: list[int] | None):
 
 
 def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | None = None,
-                iterations: int = 1000, overrides: dict | None = None, seed: int = 0,
+                iterations: int | None = None, overrides: dict | None = None, seed: int = 0,
                 n_episodes: int = 16, zoo: str | None = None, policy_file: str | None = None,
                 step: int | None = None, measure: bool = True, chunk: int | None = None,
-                branch_length: int | None = None, uncertainty_penalty: float = 0.0,
+                branch_length: int | None = None, uncertainty_penalty: float | None = None,
                 uncertainty_threshold: float | None = None, halt_penalty: float = 0.0,
                 guard_margin: float | None = GUARD_MARGIN, guard_episodes: int = 16,
                 guard_snapshots: bool = False, floor: float | None = None,
-                progress: bool = True, log=print) -> dict:
+                recipe: str | None = None, progress: bool = True, log=print) -> dict:
     """Fine-tune policies ``policy_ids`` (indices into the Dataset's policies; default all)
     inside the simulator of checkpoint ``ckpt`` and write the zoo, plots and summary into
     ``out`` (module docstring). The policies come from ``zoo``, ``policy_file`` or what the
     data's meta.source names (``zoo.policies_for``). -> the summary dict (also
     out/summary.json). ``floor``: the guard's floor in value units (``deployment_guard``);
-    None: the checkpoint's training MVD where comparable (``checkpoint_floor``), else 0."""
+    None: the checkpoint's training MVD where comparable (``checkpoint_floor``), else 0.
+    ``recipe``: a measured recipe (``improve.recipes``) for the simulator's task gives the
+    iterations (else 1000), branch length, penalty (else 0) and SAC fields not given here."""
 
-    if not isinstance(iterations, int) or iterations < 1:
+    if recipe is not None and recipe not in IMPROVE_RECIPES:
+        raise ValueError(f"recipe: expected one of {sorted(IMPROVE_RECIPES)}, got {recipe!r}")
+    if iterations is not None and (not isinstance(iterations, int) or iterations < 1):
         raise ValueError(f"iterations: expected an int >= 1, got {iterations!r}")
     if n_episodes < 2 and measure:
         raise ValueError(f"episodes: expected >= 2 (for standard errors), got {n_episodes}")
@@ -181,6 +188,18 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
             f"{ds.meta.get('task')!r}): no real system to measure the fine-tuned policies in, "
             f"so the real returns are skipped (as --no-measure)")
         measure = False
+    if recipe is not None:  # what the caller gave wins over the recipe
+        rs = recipe_settings(recipe, sim.task)
+        if not rs["zoo_recipe"]:
+            log(f"[improve] recipe {recipe}: task {sim.task!r} has no zoo learner to take the "
+                f"discount, reward scale and batch from; SAC keeps the fine-tuning defaults")
+        iterations = rs["iterations"] if iterations is None else iterations
+        branch_length = rs["branch_length"] if branch_length is None else branch_length
+        if uncertainty_penalty is None:
+            uncertainty_penalty = rs["uncertainty_penalty"]
+        overrides = {**rs["sac"], **(overrides or {})}
+    iterations = 1000 if iterations is None else iterations
+    uncertainty_penalty = 0.0 if uncertainty_penalty is None else uncertainty_penalty
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
     cfg = sac_config(overrides, episode_length, iterations)
     where = policy_source(ds, zoo, policy_file=policy_file, data_path=data_path)
@@ -291,7 +310,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
             row["real_gain"] = row["I"]
         rows.append(row)
     summary = {"task": task.name, "checkpoint": os.path.abspath(ckpt),
-               "data": os.path.abspath(data_path), "iterations": iterations,
+               "data": os.path.abspath(data_path), "iterations": iterations, "recipe": recipe,
                "sac": _jsonable(cfg), "env_options": {k: v for k, v in env_options.items()
                                                       if k != "uncertainty_fn"},
                "sac_seconds": round(sac_seconds, 1), "backend": jax.default_backend(),
@@ -410,7 +429,8 @@ def _deployed_text(guard: dict, j: int) -> str:
 
 def summary_markdown(s: dict) -> str:
     """The summary as a markdown table: real return before / after ± SE, I, simulated return."""
-    lines = [f"# rl2s improve: {s['task']}, {s['iterations']} SAC iterations",
+    recipe = f" (recipe {s['recipe']})" if s.get("recipe") else ""
+    lines = [f"# rl2s improve: {s['task']}, {s['iterations']} SAC iterations{recipe}",
              "", f"checkpoint `{s['checkpoint']}`, data `{s['data']}`", ""]
     measured = s["mpi"] is not None
     if measured:

@@ -76,31 +76,6 @@ PROFILES = {
                 improve_iterations=300, sac_envs=4, sac=dict(hidden=(64, 64), batch_size=128)),
 }
 
-# Named fine-tuning recipes: paper.py --improve-recipe NAME takes these flags (paper.py's argument
-# names) as its defaults; flags given on the command line win. "control": issue 39's, measured
-# (RESULTS, "Policy improvement inside the simulators"): the real-env control's budget and SAC
-# (the zoo learner's discount, reward scale and batch; KL 0.01) inside 100-step branches from the
-# data's states penalised by the ensemble's disagreement, deployed through the guard.
-IMPROVE_RECIPES = {
-    "control": dict(zoo_recipe=True, sac_envs=128, sac_updates_per_step=32,
-                    sac_critic_warmup=2000, improve_iterations=4000, guard_margin=0.02,
-                    improve_variants="branched+penalty", sac_set=["kl_weight=0.01"]),
-}
-# Per-task changes to a recipe. HalfCheetah's KL anchor held its policies at their start: at
-# KL 0.01 the control's policies below the top quartile end a median KL 0.009 from it and gain
-# +0.01; without the anchor they gain +0.20 (3 seeds) and the simulators +0.16 to +0.20 (RESULTS,
-# "Policy improvement: the real-env control"); the validation selection and the guard catch
-# collapse.
-IMPROVE_RECIPE_TASKS = {"control": {"halfcheetah": dict(sac_set=["kl_weight=0"])}}
-
-
-def improve_recipe(name: str, task: str) -> dict:
-    """Recipe ``name``'s flags (IMPROVE_RECIPES) with ``task``'s changes
-    (IMPROVE_RECIPE_TASKS) applied."""
-    if name not in IMPROVE_RECIPES:
-        raise ValueError(f"improve_recipe: expected one of {sorted(IMPROVE_RECIPES)}, got {name!r}")
-    return {**IMPROVE_RECIPES[name], **IMPROVE_RECIPE_TASKS.get(name, {}).get(task, {})}
-
 # Per-task changes to a profile. Ant's returns spread so widely between episodes (per-episode
 # sd ~830 against ~90 between neighbouring test policies) that with 16 truth / 32 simulated
 # episodes even the real dynamics rank at tau 0.78; with 256 / 256 the oracle reaches 0.88

@@ -113,7 +113,8 @@ def summarise(res: dict, R: int, P: int) -> dict:
 def describe(ctl: dict, zoo_returns: np.ndarray) -> dict:
     """Per config of a control JSON, over its policies below the zoo's top quartile (all
     seeds): n, start / zoo top (min, median, max), the final actors' KL from their start
-    (median, 10% and 90% quantiles; None at kl_weight 0, where SAC measures none), the median
+    (median, 10% and 90% quantiles; None where not measured: kl_weight 0 before SAC measured
+    it there, all zeros), the median
     gain of the final actor and of the deployed one (``median_gain``), and how many (seed,
     policy) were kept at the start."""
     start = zoo_returns[ctl["zoo_ids"]]
@@ -123,7 +124,8 @@ def describe(ctl: dict, zoo_returns: np.ndarray) -> dict:
         below = np.asarray(deployed["below"])  # median_gain's rule: below the top quartile
         kl = np.asarray(c["final_kl"], np.float64).reshape(-1, len(start))[:, below]
         frac = start[below] / zoo_returns.max()
-        measured = c.get("sac", {}).get("kl_weight", 1.0) > 0  # SAC keeps no anchor at 0
+        # at kl_weight 0 SAC measured no KL before 2026-11-27 (it read 0); since, it does
+        measured = c.get("sac", {}).get("kl_weight", 1.0) > 0 or bool(np.any(kl > 0))
         row = {"n_below": deployed["n_below"],
                "start_of_top": [float(frac.min()), float(np.median(frac)), float(frac.max())],
                "final_kl": ([float(np.median(kl)), *map(float, np.quantile(kl, [0.1, 0.9]))]

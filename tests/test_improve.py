@@ -385,6 +385,24 @@ def test_sac_fine_tuning_state_targets_start_entropy_and_anchors():
             make_sac(env, SACConfig(**bad))
 
 
+def test_sac_measures_the_kl_to_the_start_without_the_anchor_in_the_loss():
+    """kl_weight 0: the metric 'kl' still reports KL(pi || pi_start), but it is not in the
+    actor's loss: two runs that differ only in their anchor train the same actor and report
+    different KLs."""
+    env = SimulatorEnv(_true_dynamics, _pool(64), TASK)
+    start = pol.index_params(_policies([0.5]), 0)
+    cfg = SACConfig.fine_tuning(n_envs=4, warmup_steps=32, buffer_size=1000, hidden=(8,),
+                                kl_weight=0.0, batch_size=32)
+    sac = make_sac(env, cfg)
+    st = jax.jit(sac.init)(jax.random.PRNGKey(0), start)
+    other = pol.index_params(_policies([-0.5]), 0)
+    runs = [jax.jit(sac.train, static_argnums=1)(s, 20) for s in (st, st._replace(anchor=other))]
+    (a, m_a), (b, m_b) = runs
+    _leaves_equal(a.actor, b.actor)
+    kl_a, kl_b = np.asarray(m_a["kl"]), np.asarray(m_b["kl"])
+    assert np.all(np.isfinite(kl_a)) and kl_a[-1] > 0 and kl_b[-1] > kl_a[-1] + 0.1
+
+
 def _leaves_equal(a, b):
     for x, y in zip(jax.tree_util.tree_leaves(a), jax.tree_util.tree_leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

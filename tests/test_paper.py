@@ -1439,7 +1439,10 @@ def test_improve_control_describe_by_hand():
     assert out["final_kl"][1:] == pytest.approx(np.quantile([0.1, 0.2, 0.3], [0.1, 0.9]))
     assert out["median_gain"] == pytest.approx(0.0)          # I .5, 0, 0
     assert out["median_gain_final"] == pytest.approx(0.5)    # I .5, .5, -.25
-    c["sac"] = {"kl_weight": 0.0}  # no anchor: SAC's KL reads 0 but was not measured
+    c["sac"] = {"kl_weight": 0.0}  # no anchor in the loss: SAC measures the KL all the same
+    assert ic.describe({"task": "hopper", "zoo_ids": ids, "configs": {"ft": c}},
+                       zret)["ft"]["final_kl"][0] == pytest.approx(0.2)
+    c["final_kl"] = [0.0] * 4  # a file from before SAC measured it at weight 0: read 0, unknown
     assert ic.describe({"task": "hopper", "zoo_ids": ids, "configs": {"ft": c}},
                        zret)["ft"]["final_kl"] is None
 

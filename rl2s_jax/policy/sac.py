@@ -321,9 +321,11 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         action, _, logp = sample_action(pol, obs, key)
         q = jnp.min(q_values(critic, actor, obs, action), axis=0)
         loss = jnp.mean(alpha * logp - q)
-        if anchor is None or cfg.kl_weight == 0:  # static: from scratch or no anchor
+        if anchor is None:  # static: from scratch
             return loss, (logp, jnp.zeros((), jnp.float32))
         kl = jnp.mean(gaussian_kl(*policy_dist(pol, obs), *policy_dist(anchor, obs)))
+        if cfg.kl_weight == 0:  # static: no anchor in the loss, but how far it moved is measured
+            return loss, (logp, kl)
         scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(q)))
         return loss + kl_coef * scale * kl, (logp, kl)
 

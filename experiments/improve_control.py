@@ -25,10 +25,14 @@ control gain (docs/RESULTS.md, "Policy improvement: the real-env control").
 Writes OUT/control_<task>.json after each task and prints a table.
 
     python experiments/improve_control.py --describe docs/results/control_zoo_recipe/*.json
+    python experiments/improve_control.py --combine A.json B.json --out DIR
 
-reads such files instead (``describe``): per task and config, of the policies below the zoo's
-top quartile, where they start (fraction of the zoo's top), how far the final actors moved
-(KL from the start) and their median gain, final and deployed, and how many stayed at the start.
+The first reads such files instead (``describe``): per task and config, of the policies below
+the zoo's top quartile, where they start (fraction of the zoo's top), how far the final actors
+moved (KL from the start), their median gain, final and deployed, and how many stayed at the
+start.
+``--first-seed K`` runs seeds K .. K + seeds - 1 (a control split over GPUs); ``--combine``
+joins such runs' seeds into one control_<task>.json (``combine``).
 """
 from __future__ import annotations
 
@@ -45,6 +49,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from rl2s_jax.app.report import machine_info  # noqa: E402
 from rl2s_jax.app.train import parse_overrides  # noqa: E402
 from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
 from rl2s_jax.improve.finetune import (
@@ -148,9 +153,13 @@ def run_task(task_name: str, args) -> dict:
     pols = index_params(zoo.params, np.asarray(chosen))
     R, P = args.seeds, len(chosen)
     tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * R), pols)
-    result = {"task": task_name, "zoo_ids": chosen, "seeds": R, "iterations": args.iterations,
+    K = args.first_seed
+    result = {"task": task_name, "zoo_ids": chosen, "seeds": R, "first_seed": K,
+              "seed_ids": list(range(K, K + R)), "iterations": args.iterations,
               "n_episodes": args.episodes, "backend": jax.default_backend(),
-              "device": str(jax.devices()[0]), "configs": {}}
+              "device": str(jax.devices()[0]), "machine": machine_info(), "configs": {}}
+    # --first-seed 0 keeps the key of the runs before it; K > 0 folds K in: other draws
+    key = jax.random.PRNGKey(30) if K == 0 else jax.random.fold_in(jax.random.PRNGKey(30), K)
     result["zoo_recipe"] = fine_tuning_recipe(task_name) if args.zoo_recipe else None
     for name, cfg in sac_configs(args, task.episode_length, task_name).items():
         t0 = time.perf_counter()
@@ -158,7 +167,7 @@ def run_task(task_name: str, args) -> dict:
             f"for {P} test policies x {R} seed(s)")
         select = args.select_episodes > 0
         _, metrics, res = improve_in_real_env(
-            task, tiled, jax.random.PRNGKey(30), cfg, n_iterations=args.iterations,
+            task, tiled, key, cfg, n_iterations=args.iterations,
             n_episodes=args.episodes,
             chunk_iterations=min(args.select_every if select else 1000, args.iterations),
             select_episodes=args.select_episodes, select_z=args.select_z)
@@ -182,7 +191,8 @@ def run_task(task_name: str, args) -> dict:
                 validation_mean=np.asarray(res["validation_mean"]).reshape(-1, R, P).tolist(),
                 validation_gain_se=np.asarray(res["validation_gain_se"]).reshape(-1, R, P)
                 .tolist(),
-                final_c1=np.asarray(res["final"]["c1"]).reshape(R, P).tolist(),
+                **{f"final_{k}": np.asarray(res["final"][k]).reshape(R, P).tolist()
+                   for k in ("c1", "c1_se", "diff_se")},
                 **{f"final_{k}": fin[k] for k in ("I", "mpi", "api", "mpi_ci95", "api_ci95")})
             log(f"  {name:<12} without the selection (final snapshot): MPI "
                 f"{entry['final_mpi']:+.3f}  API {entry['final_api']:+.3f}; "
@@ -196,6 +206,65 @@ def run_task(task_name: str, args) -> dict:
     return result
 
 
+RP_FIELDS = ("c0", "c0_se", "c1", "c1_se", "diff_se", "I", "selected", "final_c1",
+             "final_c1_se", "final_diff_se", "final_I")  # [R, P] lists, joined over seeds
+
+
+def combine(controls: list[dict]) -> dict:
+    """One control of the seeds of several runs of one task (``--first-seed``, e.g. one GPU
+    each): the same policies, iterations, episodes, configs and SAC / selection settings,
+    disjoint seeds. Per config the [R, P] fields and validation [S, R, P] are joined in seed
+    order and MPI / API and their intervals recomputed over all seeds (``summarise``; the
+    final snapshot's where its SEs were kept). ValueError naming what differs."""
+    if len(controls) < 2:
+        raise ValueError("combine: expected at least two control files")
+    runs = sorted(controls, key=lambda c: c.get("first_seed", 0))
+    first = runs[0]
+    for key in ("task", "zoo_ids", "iterations", "n_episodes", "zoo_recipe"):
+        bad = [c.get(key) for c in runs if c.get(key) != first.get(key)]
+        if bad:
+            raise ValueError(f"combine: {key} differs ({first.get(key)!r} vs {bad[0]!r})")
+    seeds = [s for c in runs for s in c.get("seed_ids", range(c["seeds"]))]
+    if len(set(seeds)) != len(seeds):
+        raise ValueError(f"combine: a seed in two files (seed ids {seeds})")
+    if any(set(c["configs"]) != set(first["configs"]) for c in runs):
+        raise ValueError("combine: the files ran different configs")
+    P, R = len(first["zoo_ids"]), len(seeds)
+    out = {**first, "seeds": R, "seed_ids": seeds, "first_seed": None, "configs": {},
+           "seconds": [c.get("seconds") for c in runs], "command": [c.get("command")
+                                                                     for c in runs]}
+    for name, e0 in first["configs"].items():
+        es = [c["configs"][name] for c in runs]
+        for key in ("sac", "select"):
+            if any(e.get(key) != e0.get(key) for e in es):
+                raise ValueError(f"combine: {name}'s {key} settings differ")
+        entry = {"sac": e0["sac"], "paired": e0.get("paired"),
+                 "seconds": [e.get("seconds") for e in es]}
+        for key in RP_FIELDS:
+            if all(key in e for e in es):
+                entry[key] = [row for e in es for row in np.reshape(e[key], (-1, P)).tolist()]
+        for key in ("final_alpha", "final_kl"):  # flat [R * P], as a run writes them
+            if all(key in e for e in es):
+                entry[key] = [x for e in es for x in np.ravel(e[key]).tolist()]
+        flat = {k: np.ravel(entry[k]) for k in ("c0", "c0_se", "c1", "c1_se", "diff_se")}
+        entry.update(summarise(flat, R, P))
+        if "select" in e0:
+            entry["select"] = e0["select"]
+            for key in ("validation_mean", "validation_gain_se"):
+                entry[key] = np.concatenate([np.asarray(e[key]) for e in es], 1).tolist()
+            if "final_c1_se" in entry:
+                fin = summarise({"c0": flat["c0"], "c0_se": flat["c0_se"],
+                                 **{k: np.ravel(entry[f"final_{k}"])
+                                    for k in ("c1", "c1_se", "diff_se")}}, R, P)
+                entry.update({f"final_{k}": fin[k]
+                              for k in ("I", "mpi", "api", "mpi_ci95", "api_ci95")})
+            elif "final_I" in entry:  # older files: no SEs kept, so no intervals
+                fi = np.asarray(entry["final_I"], np.float64)
+                entry.update(final_mpi=float(fi.min(1).mean()), final_api=float(fi.mean()))
+        out["configs"][name] = entry
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--tasks", default="hopper,walker2d,halfcheetah,ant")
@@ -206,6 +275,10 @@ def main(argv=None) -> int:
     ap.add_argument("--ids", type=int, nargs="+", metavar="ZOO_ID",
                     help="these test policies (zoo ids; one task) instead of --policies")
     ap.add_argument("--seeds", type=int, default=2)
+    ap.add_argument("--first-seed", type=int, default=0, help="seeds K .. K + seeds - 1 "
+                    "(split a control over GPUs; --combine joins the files)")
+    ap.add_argument("--combine", nargs="+", metavar="CONTROL_JSON", help="join these runs' "
+                    "seeds into OUT/control_<task>.json (combine) instead of running")
     ap.add_argument("--iterations", type=int, default=2000)
     ap.add_argument("--episodes", type=int, default=16)
     ap.add_argument("--sac-envs", type=int, default=16)
@@ -238,6 +311,23 @@ def main(argv=None) -> int:
         return 0
     if not args.out:
         ap.error("--out is required (unless --describe)")
+    if args.combine:
+        parts = []
+        for path in args.combine:
+            with open(path) as f:
+                parts.append(json.load(f))
+        try:
+            joined = combine(parts)
+        except ValueError as err:
+            raise SystemExit(str(err)) from None
+        os.makedirs(args.out, exist_ok=True)
+        path = os.path.join(args.out, f"control_{joined['task']}.json")
+        with open(path, "w") as f:
+            json.dump(joined, f, indent=1)
+        log(f"[control] seeds {joined['seed_ids']} of {joined['task']} -> {path}")
+        return 0
+    if args.first_seed < 0:
+        raise SystemExit(f"first-seed: expected >= 0, got {args.first_seed}")
     tasks = [t.strip() for t in args.tasks.split(",") if t.strip()]
     bad = [t for t in tasks if t not in task_names()]
     if bad:

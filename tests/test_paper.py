@@ -1447,6 +1447,51 @@ def test_improve_control_describe_by_hand():
                        zret)["ft"]["final_kl"] is None
 
 
+def test_improve_control_combine_joins_seeds_by_hand(tmp_path):
+    """--combine: two runs of one control (--first-seed 0 and 1) become one of 2 seeds, fields
+    joined in seed order, MPI / API over both (worked by hand); runs that differ or share a
+    seed are refused, naming what."""
+    ic = _load("improve_control")
+
+    def run(k, c1):
+        e = {"sac": {"kl_weight": 0.0}, "select": {"episodes": 4}, "paired": True,
+             "c0": [[100.0, 200.0]], "c0_se": [[1.0, 1.0]], "c1": [c1], "c1_se": [[1.0, 1.0]],
+             "diff_se": [[1.0, 1.0]], "selected": [[1, 0]], "final_c1": [c1],
+             "final_c1_se": [[1.0, 1.0]], "final_diff_se": [[1.0, 1.0]],
+             "validation_mean": [[[100.0, 200.0]], [[110.0 + k, 200.0]]],
+             "validation_gain_se": [[[0.0, 0.0]], [[1.0, 1.0]]], "final_kl": [0.1 * (k + 1)] * 2}
+        return {"task": "hopper", "zoo_ids": [3, 7], "seeds": 1, "first_seed": k,
+                "seed_ids": [k], "iterations": 10, "n_episodes": 4, "zoo_recipe": None,
+                "seconds": 5.0, "command": f"run {k}", "configs": {"ft": e}}
+
+    a, b = run(0, [150.0, 200.0]), run(1, [100.0, 100.0])  # I: (.5, 0) and (0, -.5)
+    paths = []
+    for i, r in enumerate((b, a)):  # given out of order: joined in seed order
+        paths.append(tmp_path / f"c{i}.json")
+        paths[-1].write_text(json.dumps(r))
+    assert ic.main(["--combine", *map(str, paths), "--out", str(tmp_path / "o")]) == 0
+    c = json.loads((tmp_path / "o" / "control_hopper.json").read_text())
+    e = c["configs"]["ft"]
+    assert c["seeds"] == 2 and c["seed_ids"] == [0, 1] and c["command"] == ["run 0", "run 1"]
+    assert e["c1"] == [[150.0, 200.0], [100.0, 100.0]] and e["final_kl"] == [0.1, 0.1, 0.2, 0.2]
+    assert e["mpi"] == pytest.approx((0.0 - 0.5) / 2) and e["api"] == pytest.approx(0.0)
+    assert e["final_mpi"] == pytest.approx(-0.25) and len(e["mpi_ci95"]) == 2
+    assert np.asarray(e["validation_mean"]).shape == (2, 2, 2)
+    assert e["validation_mean"][1][1] == [111.0, 200.0]
+    other = run(1, [1.0, 1.0])
+    other["iterations"] = 20
+    with pytest.raises(ValueError, match="iterations differs"):
+        ic.combine([a, other])
+    with pytest.raises(ValueError, match="a seed in two files"):
+        ic.combine([a, run(0, [1.0, 1.0])])
+    bad = run(1, [1.0, 1.0])
+    bad["configs"]["ft"]["sac"] = {"kl_weight": 0.01}
+    with pytest.raises(ValueError, match="ft's sac settings differ"):
+        ic.combine([a, bad])
+    with pytest.raises(SystemExit, match="first-seed: expected >= 0"):
+        ic.main(["--tasks", "hopper", "--first-seed", "-1", "--out", str(tmp_path / "n")])
+
+
 def test_improve_control_ids_must_be_test_policies_of_one_task(tmp_path):
     """improve_control --ids: zoo ids that are not test policies of the one task named are
     refused before any work, with the field named."""

@@ -83,10 +83,11 @@ def test_improve_branched_with_penalty_runs(pointmass_checkpoint, tmp_path):
     assert zoo.size == 1 and np.isnan(zoo.returns[0])
 
 
-def test_improve_recipe_gives_the_defaults_and_flags_given_win(pointmass_checkpoint, tmp_path):
+def test_improve_recipe_gives_the_defaults_and_flags_given_win(pointmass_checkpoint, tmp_path,
+                                                               capsys):
     """--recipe control: the measured recipe's branches, penalty, KL, SAC sizes and the zoo
     learner's discount where no flag is given; --iterations, --set, --branch-length and
-    --uncertainty-penalty given win."""
+    --uncertainty-penalty given win; a simulator the recipe cannot run in is refused."""
     run = pointmass_checkpoint
     out = tmp_path / "recipe"
     assert cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--policies",
@@ -111,9 +112,32 @@ def test_improve_recipe_gives_the_defaults_and_flags_given_win(pointmass_checkpo
                      "--set", "updates_per_step=1"]) == 0
     env = json.loads((out2 / "summary.json").read_text())["env_options"]
     assert env["rollout_length"] == 5 and env.get("uncertainty_penalty", 0.0) == 0.0  # off
+    # a simulator with history inputs cannot start the recipe's branches: refused, named,
+    # before any SAC (a step-0 checkpoint of such a model will do)
+    hist = _history_checkpoint(run["data"], tmp_path / "hist")
+    assert cli.main(["improve", "--ckpt", hist, "--data", run["data"], "--out",
+                     str(tmp_path / "h"), "--recipe", "control", "--quiet"]) == 2
+    assert "recipe: control fine-tunes in branches" in capsys.readouterr().err
+    assert not (tmp_path / "h").exists()
     with pytest.raises(SystemExit):  # an unknown recipe: refused by the parser
         cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--out",
                   str(tmp_path / "x"), "--recipe", "nope"])
+
+
+def _history_checkpoint(data_path, root) -> str:
+    """A step-0 checkpoint of a pointmass BC model with history inputs (obs_history 1)."""
+    from rl2s_jax.train.checkpoint import Checkpointer
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.step import init
+
+    ds = load_dataset(data_path)
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=20, obs_history=1)
+    ck = Checkpointer(root / "checkpoints")
+    ck.save(init(jax.random.PRNGKey(0), cfg, make_train_data(ds, policies_for(ds), cfg)),
+            {"data": {"obs_size": ds.obs_size, "action_size": ds.action_size}})
+    ck.close()
+    return str(root / "checkpoints")
 
 
 def test_improve_guard_keeps_the_start_where_the_simulator_sees_no_gain(pointmass_checkpoint,

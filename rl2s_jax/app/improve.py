@@ -194,6 +194,10 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
             log(f"[improve] recipe {recipe}: task {sim.task!r} has no zoo learner to take the "
                 f"discount, reward scale and batch from; SAC keeps the fine-tuning defaults")
         iterations = rs["iterations"] if iterations is None else iterations
+        if branch_length is None and rs["branch_length"] is not None and not sim.markov:
+            raise ValueError(f"recipe: {recipe} fine-tunes in branches from the data's logged "
+                             "states, and this simulator's members see the episode's past "
+                             "(history inputs), which those states lack; run without --recipe")
         branch_length = rs["branch_length"] if branch_length is None else branch_length
         if uncertainty_penalty is None:
             uncertainty_penalty = rs["uncertainty_penalty"]

@@ -147,14 +147,15 @@ def describe(ctl: dict, zoo_returns: np.ndarray) -> dict:
 def run_task(task_name: str, args) -> dict:
     task = get_task(task_name)
     zoo = load_zoo(task_name)
-    test_ids = zoo.split_ids("test")
+    split_ids = zoo.split_ids(args.split)
     chosen = (sorted(args.ids) if args.ids else
-              [test_ids[i] for i in pick(np.asarray(zoo.returns)[test_ids], args.policies)])
+              [split_ids[i] for i in pick(np.asarray(zoo.returns)[split_ids], args.policies)])
     pols = index_params(zoo.params, np.asarray(chosen))
     R, P = args.seeds, len(chosen)
     tiled = jax.tree_util.tree_map(lambda x: jnp.concatenate([x] * R), pols)
     K = args.first_seed
-    result = {"task": task_name, "zoo_ids": chosen, "seeds": R, "first_seed": K,
+    result = {"task": task_name, "split": args.split, "zoo_ids": chosen, "seeds": R,
+              "first_seed": K,
               "seed_ids": list(range(K, K + R)), "iterations": args.iterations,
               "n_episodes": args.episodes, "backend": jax.default_backend(),
               "device": str(jax.devices()[0]), "machine": machine_info(), "configs": {}}
@@ -274,6 +275,8 @@ def main(argv=None) -> int:
     ap.add_argument("--policies", type=int, default=0, help="test policies (0: all)")
     ap.add_argument("--ids", type=int, nargs="+", metavar="ZOO_ID",
                     help="these test policies (zoo ids; one task) instead of --policies")
+    ap.add_argument("--split", choices=("test", "train"), default="test", help="whose policies "
+                    "(train: to choose a recipe without touching the test policies)")
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--first-seed", type=int, default=0, help="seeds K .. K + seeds - 1 "
                     "(split a control over GPUs; --combine joins the files)")
@@ -301,7 +304,8 @@ def main(argv=None) -> int:
                 ctl = json.load(f)
             zret = np.asarray(load_zoo(ctl["task"]).returns, np.float64)
             for name, r in describe(ctl, zret).items():
-                log(f"{path}: {ctl['task']} {name}: {r['n_below']} below the top quartile, "
+                log(f"{path}: {ctl['task']} {name}: {r['n_below']} "
+                    f"{ctl.get('split', 'test')} policies below the top quartile, "
                     "start at {:.2f} / {:.2f} / {:.2f} of the top; ".format(*r["start_of_top"])
                     + ("final KL from the start {:.4f} [{:.4f}, {:.4f}]; ".format(*r["final_kl"])
                        if r["final_kl"] else "final KL not measured (kl_weight 0); ")
@@ -333,11 +337,11 @@ def main(argv=None) -> int:
     if bad:
         raise SystemExit(f"tasks: unknown {bad}; known: {task_names()}")
     if args.ids:
-        test = set(load_zoo(tasks[0]).split_ids("test")) if len(tasks) == 1 else None
-        if test is None or not set(args.ids) <= test:
-            raise SystemExit(f"ids: expected test-policy zoo ids of one task; got {args.ids} "
-                             f"for tasks {tasks}" + (f" (test ids: {sorted(test)})"
-                                                    if test is not None else ""))
+        own = set(load_zoo(tasks[0]).split_ids(args.split)) if len(tasks) == 1 else None
+        if own is None or not set(args.ids) <= own:
+            raise SystemExit(f"ids: expected {args.split}-policy zoo ids of one task; got "
+                             f"{args.ids} for tasks {tasks}" + (
+                                 f" ({args.split} ids: {sorted(own)})" if own else ""))
     for name in ("seeds", "iterations", "episodes", "sac_envs"):
         if getattr(args, name) < 1:
             raise SystemExit(f"{name.replace('_', '-')}: expected >= 1")

@@ -258,6 +258,9 @@ def main(argv=None) -> int:
     if args.control:
         with open(args.control) as f:
             ctl = json.load(f)
+        if ctl.get("split", "test") != "test":
+            raise SystemExit(f"control: fine-tuned the {ctl['split']} policies; the task's "
+                             "control is the test policies'")
         name, c = next(iter(ctl["configs"].items()))
         zoo = load_zoo(args.task)
         zret = np.asarray(zoo.returns)

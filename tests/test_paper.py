@@ -468,6 +468,10 @@ def test_merge_results_control_records_its_policies_and_median_gain(tmp_path):
     assert c["n_below"] == int(below.sum())
     assert c["median_gain"] == pytest.approx(float(np.median(np.array([0.5, -0.05])[below])))
     assert c["deployed"] == 1 and c["budget_env_steps"] == 40
+    (tmp_path / "t.json").write_text(json.dumps({**ctl, "split": "train"}))
+    with pytest.raises(SystemExit, match="control: fine-tuned the train policies"):
+        mr.main(["--task", "hopper", "--keep", "--control", str(tmp_path / "t.json"),
+                 "--out", str(tmp_path)])
 
 
 def test_merge_runs_joins_the_improvement_variants():
@@ -1501,6 +1505,9 @@ def test_improve_control_ids_must_be_test_policies_of_one_task(tmp_path):
     test = list(load_zoo("hopper").split_ids("test"))
     with pytest.raises(SystemExit, match="ids: expected test-policy zoo ids"):
         ic.main(["--tasks", "hopper", "--ids", str(train[0]), "--out", str(tmp_path)])
+    with pytest.raises(SystemExit, match="ids: expected train-policy zoo ids"):
+        ic.main(["--tasks", "hopper", "--split", "train", "--ids", str(test[0]), "--out",
+                 str(tmp_path)])
     with pytest.raises(SystemExit, match="ids: expected"):
         ic.main(["--tasks", "hopper,ant", "--ids", str(test[0]), "--out", str(tmp_path)])
     assert not any(tmp_path.iterdir())  # nothing written

@@ -165,7 +165,7 @@ def run_task(task_name: str, args) -> dict:
     for name, cfg in sac_configs(args, task.episode_length, task_name).items():
         t0 = time.perf_counter()
         log(f"[control] {task_name} {name}: SAC x {args.iterations} iterations in the real env "
-            f"for {P} test policies x {R} seed(s)")
+            f"for {P} {args.split} policies x {R} seed(s)")
         select = args.select_episodes > 0
         _, metrics, res = improve_in_real_env(
             task, tiled, key, cfg, n_iterations=args.iterations,

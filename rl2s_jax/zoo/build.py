@@ -92,7 +92,10 @@ def fine_tuning_recipe(task_name: str) -> dict:
     at its start (``learn_alpha=False``): the recipe under which the real-env control gains
     (docs/RESULTS.md, "Policy improvement: the real-env control (issue 39)"; a learned alpha
     ran away from 0.01 to 0.3-98 and lost 0.1-0.2 of median gain on every task).
-    KeyError-free: a task without a SAC plan gets {}."""
+    KeyError-free: a task without a SAC plan gets {}. Ant's shipped zoo was trained by PPO
+    (gamma 0.97, reward scaling 10), so Ant gets its SAC plan's settings, not its learner's;
+    a CPU probe on two training policies found PPO's worse for fine-tuning
+    (docs/results/control_zoo_recipe/cpu_probe/ant_train_*.json)."""
     plan = ZOO_SAC.get(task_name)
     if plan is None:
         return {}

@@ -119,9 +119,8 @@ def describe(ctl: dict, zoo_returns: np.ndarray) -> dict:
     """Per config of a control JSON, over its policies below the zoo's top quartile (all
     seeds): n, start / zoo top (min, median, max), the final actors' KL from their start
     (median, 10% and 90% quantiles; None where not measured: kl_weight 0 before SAC measured
-    it there, all zeros), the median
-    gain of the final actor and of the deployed one (``median_gain``), and how many (seed,
-    policy) were kept at the start."""
+    it there, all zeros), the median gain of the final actor and of the deployed one
+    (``median_gain``), and how many (seed, policy) were kept at the start."""
     start = zoo_returns[ctl["zoo_ids"]]
     out = {}
     for name, c in ctl["configs"].items():

@@ -321,11 +321,9 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
         action, _, logp = sample_action(pol, obs, key)
         q = jnp.min(q_values(critic, actor, obs, action), axis=0)
         loss = jnp.mean(alpha * logp - q)
-        if anchor is None:  # static: from scratch
+        if anchor is None or cfg.kl_weight == 0:  # static: from scratch or no anchor in the loss
             return loss, (logp, jnp.zeros((), jnp.float32))
         kl = jnp.mean(gaussian_kl(*policy_dist(pol, obs), *policy_dist(anchor, obs)))
-        if cfg.kl_weight == 0:  # static: no anchor in the loss, but how far it moved is measured
-            return loss, (logp, kl)
         scale = jax.lax.stop_gradient(jnp.mean(jnp.abs(q)))
         return loss + kl_coef * scale * kl, (logp, kl)
 
@@ -379,6 +377,12 @@ def make_sac(env: Env, cfg: SACConfig) -> SAC:
                                key=key, actor=actor, obs_norm=obs_norm)
         state, m = jax.lax.scan(update, state, jax.random.split(k_upd, cfg.updates_per_step))
         m = jax.tree_util.tree_map(lambda x: x[-1], m)
+        if state.anchor is not None and cfg.kl_weight == 0:  # static
+            # no anchor in the loss, but how far the actor moved is measured: once per
+            # iteration on a replay batch, not in every update (only the last is reported)
+            obs = state.buffer.sample(jax.random.fold_in(k_upd, 1), cfg.batch_size)[0]
+            m["kl"] = jnp.mean(gaussian_kl(*policy_dist(state.actor, obs),
+                                           *policy_dist(state.anchor, obs)))
         m["return_sum"], m["episodes"], m["reward_mean"] = ret_sum, n_ended, reward_mean
         return state, m
 

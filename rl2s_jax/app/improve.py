@@ -55,7 +55,7 @@ from rl2s_jax.improve.finetune import (
     select_by_members,
     training_return_curve,
 )
-from rl2s_jax.improve.recipes import IMPROVE_RECIPES, recipe_settings
+from rl2s_jax.improve.recipes import IMPROVE_RECIPES, check_recipe, recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
@@ -164,8 +164,8 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     ``recipe``: a measured recipe (``improve.recipes``) for the simulator's task gives the
     iterations (else 1000), branch length, penalty (else 0) and SAC fields not given here."""
 
-    if recipe is not None and recipe not in IMPROVE_RECIPES:
-        raise ValueError(f"recipe: expected one of {sorted(IMPROVE_RECIPES)}, got {recipe!r}")
+    if recipe is not None:
+        check_recipe(recipe)
     if iterations is not None and (not isinstance(iterations, int) or iterations < 1):
         raise ValueError(f"iterations: expected an int >= 1, got {iterations!r}")
     if n_episodes < 2 and measure:

@@ -29,10 +29,15 @@ IMPROVE_RECIPES = {
 IMPROVE_RECIPE_TASKS = {"control": {"halfcheetah": dict(sac=dict(kl_weight=0.0))}}
 
 
-def improve_recipe(name: str, task: str) -> dict:
-    """Recipe ``name`` (IMPROVE_RECIPES) with ``task``'s changes (IMPROVE_RECIPE_TASKS)."""
+def check_recipe(name: str) -> None:
+    """ValueError naming the field unless ``name`` is a recipe of IMPROVE_RECIPES."""
     if name not in IMPROVE_RECIPES:
         raise ValueError(f"recipe: expected one of {sorted(IMPROVE_RECIPES)}, got {name!r}")
+
+
+def improve_recipe(name: str, task: str) -> dict:
+    """Recipe ``name`` (IMPROVE_RECIPES) with ``task``'s changes (IMPROVE_RECIPE_TASKS)."""
+    check_recipe(name)
     base, change = IMPROVE_RECIPES[name], IMPROVE_RECIPE_TASKS.get(name, {}).get(task, {})
     return {**base, **change, "sac": {**base.get("sac", {}), **change.get("sac", {})}}
 

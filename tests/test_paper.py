@@ -589,11 +589,15 @@ def test_improve_recipe_sets_the_measured_flags_and_flags_given_win():
     assert paper.check_arguments(mine)[2]["kl_weight"] == 0.1
     plain = paper.parse_args(["--task", "hopper"])
     assert plain.guard_margin is None and not plain.zoo_recipe and plain.sac_set is None
-    # a task's change to the recipe (HalfCheetah: no KL anchor); its other flags stay, and a
-    # --sac-set given still wins
+    # a task's change to the recipe (HalfCheetah: no KL anchor, 8,000 iterations); its other
+    # flags stay, and a flag or --sac-set given still wins
     cheetah = paper.parse_args(["--task", "halfcheetah", "--improve-recipe", "control"])
     assert paper.check_arguments(cheetah)[2]["kl_weight"] == 0
-    assert paper.resolve_sizes(cheetah, "gpu")["sac_envs"] == 128
+    assert (paper.resolve_sizes(cheetah, "gpu")["sac_envs"],
+            paper.resolve_sizes(cheetah, "gpu")["improve_iterations"]) == (128, 8000)
+    assert paper.resolve_sizes(paper.parse_args(
+        ["--task", "halfcheetah", "--improve-recipe", "control", "--improve-iterations",
+         "4000"]), "gpu")["improve_iterations"] == 4000
     assert paper.check_arguments(paper.parse_args(
         ["--task", "halfcheetah", "--improve-recipe", "control", "--sac-set",
          "kl_weight=0.01"]))[2]["kl_weight"] == 0.01
@@ -601,7 +605,7 @@ def test_improve_recipe_sets_the_measured_flags_and_flags_given_win():
         paper.parse_args(["--task", "hopper", "--improve-recipe", "nope"])
 
 
-@pytest.mark.parametrize("task", ["hopper", "halfcheetah"])
+@pytest.mark.parametrize("task", ["hopper", "halfcheetah", "ant"])
 def test_rl2s_improve_recipe_is_paper_py_recipe(task):
     """``recipe_settings`` (rl2s improve --recipe) resolves to what paper.py --improve-recipe
     runs: the same SAC fields, iterations, envs, updates, warm-up, branches and penalty; a task
@@ -620,7 +624,7 @@ def test_rl2s_improve_recipe_is_paper_py_recipe(task):
                                                                 args.uncertainty_penalty)
     own = recipe_settings("control", "my_robot")
     assert not own["zoo_recipe"] and "gamma" not in own["sac"]
-    assert own["sac"]["kl_weight"] == 0.01 and own["iterations"] == rs["iterations"]
+    assert own["sac"]["kl_weight"] == 0.01 and own["iterations"] == 4000
     with pytest.raises(ValueError, match="recipe: expected one of"):
         recipe_settings("nope", task)
 
@@ -1268,6 +1272,12 @@ def test_improvement_summary_by_hand(tmp_path):
     # the range floor's verdicts, recorded by rl2s's lanes (gail's runs have none)
     runs[0]["improvement"]["rl2s/0"]["guard_accepted_range"] = [True, True, False]
     runs[1]["improvement"]["rl2s/1"]["guard_accepted_range"] = [True, False, False]
+    # run 0 kept its training values: the discordant-pair floor is 4 - 2 = 2 (margin 2% of
+    # 100): rl2s/0's members clear it on policy 0 only (gains 5, 3)
+    runs[0]["improvement"]["rl2s/0"]["guard_floor_range"] = 1.0
+    runs[0]["lanes"] = {"rl2s/0": {"family": "adversarial", "eps": 0.25, "sim_value": [100.0] * 3,
+                                   "train_sim_value": [1.0, 4.0, 2.0]}}
+    runs[0]["train_true_value"] = [1.0, 2.0, 3.0]
     runs[0]["oracle_improvement"] = {"policy_ids": ids, "per_seed": [
         {"c0_paired": c0, "c1": [200.0, 300.0, 600.0]}]}  # I 1, .5, .5
     runs[1]["control"] = {"policy_ids": ids, "c0": [c0], "c1": [[110.0, 220.0, 440.0]]}
@@ -1301,6 +1311,13 @@ def test_improvement_summary_by_hand(tmp_path):
     assert "training-error range floor" not in s["guard_rules"]["gail"]
     assert rng["lanes"] == 2 and "protocol guard on the range floor's lanes" not in s[
         "guard_rules"]["rl2s"]
+    pair = s["guard_rules"]["rl2s"]["discordant-pair floor"]
+    assert (pair["deployed"], pair["lanes"], pair["worse_than_start"]) == (1, 1, 0)
+    assert "discordant-pair floor" not in s["guard_rules"]["gail"]
+    kept = json.loads((tmp_path / "o" / "hopper.json").read_text())["runs"][0]
+    assert kept["lanes"]["rl2s/0"] == {"family": "adversarial", "sim_value": [100.0] * 3,
+                                       "train_sim_value": [1.0, 4.0, 2.0]}
+    assert kept["train_true_value"] == [1.0, 2.0, 3.0]
     assert s["budget_env_steps"] == 40
     assert s["controls"]["oracle_sim"]["median_gain"] == pytest.approx(0.5)
     assert s["controls"]["real_env"]["median_gain"] == pytest.approx(0.1)

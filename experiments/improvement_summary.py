@@ -7,35 +7,28 @@ real-env control (docs/results/<task>.json).
         [--control docs/results/hopper.json] [--out docs/results/improvement_in_sim]
         [--bootstrap 2000]
 
-Per method: ``median_gain`` (``improve.finetune.median_gain``: median over the test policies
-that start below the zoo's top quartile of their real gain I = (C1 - C0) / |C0|, averaged
-over the seeds, with C0 measured paired with C1) both raw (every fine-tuned policy deployed)
-and through the protocol's guard (a kept start policy gains 0), the per-seed values, MPI / API
-raw and guarded (means over seeds), the deployed count, ``budget_env_steps`` (simulated env
-steps per policy) and the commands. ``paired``: RL2S's raw gain minus GAIL's and BC's per
-(seed, policy below the top quartile) over the seeds both ran (methods may have run on
-different seeds), the median and its 95% bootstrap interval over those pairs, and in how many
-RL2S gained more ("... guarded": the same for the deployed gains).
-``bars`` (with --control): issue 39's bars (``issue_bars``).
-``guard_rules``: what other deployment rules would have deployed, from the elite members'
-predicted gains the runs kept (``guard_member_gain``): "every member predicts a gain" (the
-guard without the training-MVD floor) and, on the lanes that recorded it, "training-error
-range floor" (``protocol_improve.lane_error_range``: a floor from the training policies alone)
-against the protocol's guard (on the same lanes where not every lane recorded it; ``lanes``:
-how many (method, seed) lanes a rule was read on). This reads the test policies' real gains,
-so it explains the guard's choice; it must not choose it (judge a rule on runs it was not
-designed on).
-``controls``: the same median gain for the runs' own controls when they have them: the
-fine-tuning inside the oracle (``paper.py --improve-oracle-seeds``: the simulated env with
-the real physics) and in the real env with the runs' SAC settings (``paper.py --control``),
-each over all of its seeds in all runs. ``on_control_policies`` (with ``--control``): every
-method's and own control's median gain on the policies the task's control fine-tuned (its
-file's ``test_policy_names``), so that the gap to that control is read on the same policies.
-Writes OUT/<task>.json (the runs trimmed to what this summary reads, and the summary) and
-OUT/<task>.png (per method every (seed, policy)'s real gain, the guard's deployments marked,
-beside the control's median), and prints a table. The control's median gain is recomputed
-from its C0 / C1 against today's zoo (a grown zoo moves its top quartile), as the methods'
-are; the value its file recorded is kept as ``median_gain_recorded`` where they differ.
+Per method: ``median_gain`` (``improve.finetune.median_gain``: median real gain I = (C1 -
+C0) / |C0| of the test policies below the zoo's top quartile, averaged over the seeds, C0
+paired with C1), raw (all deployed) and through the protocol's guard (a kept start gains 0),
+per seed; MPI / API raw and guarded (means over seeds), deployed count, ``budget_env_steps``
+(simulated env steps per policy), commands. ``paired``: RL2S's raw (and guarded) gain minus
+GAIL's and BC's per (seed, policy below the top quartile) over the seeds both ran: median,
+95% bootstrap interval, how often RL2S gained more. ``bars`` (with --control): ``issue_bars``.
+``guard_rules``: what other deployment rules would have deployed, from the members' predicted
+gains (``guard_member_gain``): "every member predicts a gain" and, on the lanes that recorded
+the range floor, the "training-error range floor" (``protocol_improve.lane_error_range``) and
+the "discordant-pair floor" (``protocol_improve.pair_floor_verdict``), beside the protocol's
+guard (``lanes``: on how many (method, seed) lanes). They read the test policies' real gains:
+they explain the guard, they must not choose it (judge a rule on runs not used to design it).
+``controls``: the same median gain for the runs' own controls (``paper.py
+--improve-oracle-seeds``: the oracle's physics in the simulated env; ``--control``: the real
+env with the runs' SAC), over all their seeds. ``on_control_policies`` (with ``--control``):
+each method's median gain on the policies the task's control fine-tuned (its ``zoo_ids``).
+Writes OUT/<task>.json (the runs trimmed to what this summary reads, and the summary),
+OUT/<task>.png (every (seed, policy)'s real gain per method, deployments marked, beside the
+control's median) and prints a table. The control's median gain is recomputed from its C0 /
+C1 against today's zoo (a grown zoo moves its top quartile); a different recorded value is
+kept as ``median_gain_recorded``.
 """
 from __future__ import annotations
 
@@ -46,13 +39,15 @@ import sys
 
 import numpy as np
 
+from rl2s_jax.app.protocol_improve import pair_floor_verdict
 from rl2s_jax.app.results_tables import PAPER
-from rl2s_jax.improve.finetune import median_gain
+from rl2s_jax.improve.finetune import median_ci95, median_gain
 from rl2s_jax.zoo.zoo import load_zoo
 
 KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",
         "zoo_sha256", "sac_config", "improve_variant", "timings", "improvement",
-        "oracle_improvement", "control")
+        "oracle_improvement", "control", "train_true_value")  # + lanes' LANE_KEEP
+LANE_KEEP, PAIR_MARGIN = ("family", "sim_value", "train_sim_value"), 0.02  # the recipe's
 MIN_SEEDS, CONTROL_BAR = 3, 0.30  # issue 39's bars: 3 seeds; the control's median gain
 
 
@@ -68,8 +63,11 @@ def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
     returns of its policies in the zoo, C0 (paired) and C1, the guard's verdicts and the
     members' predicted gains [M, P]."""
     rows = []
-    for e in run["improvement"].values():
+    for lane, e in run["improvement"].items():
         zid = zoo_ids(run, e["policy_ids"])
+        pair = None  # the discordant-pair floor's verdict, where the range floor was recorded
+        if "guard_floor_range" in e and lane in run.get("lanes", {}):
+            pair = pair_floor_verdict(run, lane, e["guard_member_gain"], PAIR_MARGIN)
         rows.append({"method": e["method"], "seed": e["seed"], "zoo_ids": zid,
                      "start": zoo_returns[zid],
                      "c0": np.asarray(e["c0_paired"], float),
@@ -78,7 +76,8 @@ def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
                      "member_gain": (np.asarray(e["guard_member_gain"], float)
                                      if "guard_member_gain" in e else None),
                      "accepted_range": (np.asarray(e["guard_accepted_range"], bool)
-                                        if "guard_accepted_range" in e else None)})
+                                        if "guard_accepted_range" in e else None),
+                     "accepted_pair": pair})
     return rows
 
 
@@ -117,18 +116,17 @@ def plot(rows: list[dict], summary: dict, task: str, path: str) -> None:
 
 
 def control_rows(runs: list[dict]) -> dict[str, list[tuple[list[int], list, list]]]:
-    """The runs' own controls' (zoo ids, C0, C1) per seed: {"oracle_sim": [...],
-    "real_env": [...]}."""
+    """The runs' own controls' (zoo ids, C0, C1) per seed: {"oracle_sim", "real_env"}."""
     rows = {"oracle_sim": [], "real_env": []}
     for run in runs:
         if "oracle_improvement" in run:
             oi = run["oracle_improvement"]
-            zid = zoo_ids(run, oi["policy_ids"])
-            rows["oracle_sim"] += [(zid, p["c0_paired"], p["c1"]) for p in oi["per_seed"]]
+            rows["oracle_sim"] += [(zoo_ids(run, oi["policy_ids"]), p["c0_paired"], p["c1"])
+                                   for p in oi["per_seed"]]
         if "control" in run:
             c = run["control"]
-            zid = zoo_ids(run, c["policy_ids"])
-            rows["real_env"] += [(zid, a, b) for a, b in zip(c["c0"], c["c1"], strict=True)]
+            rows["real_env"] += [(zoo_ids(run, c["policy_ids"]), a, b)
+                                 for a, b in zip(c["c0"], c["c1"], strict=True)]
     return rows
 
 
@@ -174,14 +172,6 @@ def on_control_policies(rows: list[dict], runs: list[dict], control: dict,
     return out
 
 
-def _boot_median(x: np.ndarray, n: int, seed: int = 0) -> list[float]:
-    """95% bootstrap interval of the median (the gains of policies that start near 0 are
-    ratios of thousands: a mean would be theirs alone)."""
-    rng = np.random.default_rng(seed)
-    meds = np.median(x[rng.integers(0, len(x), (n, len(x)))], axis=1)
-    return [float(np.quantile(meds, 0.025)), float(np.quantile(meds, 0.975))]
-
-
 def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
     """Per method: raw and guarded median gain (per seed and over seeds), MPI / API, deployed;
     the paired RL2S differences; the guard rules' counts. rows: ``lane_rows`` of every run."""
@@ -220,7 +210,7 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
             if common:  # paired over the seeds both methods ran
                 d = np.concatenate([g["rl2s"][k] - g[other][k] for k in common])
                 paired[f"rl2s-{other}{suffix}"] = {
-                    "median": float(np.median(d)), "ci95": _boot_median(d, n_boot),
+                    "median": float(np.median(d)), "ci95": median_ci95(d, n_boot),
                     "rl2s_higher": int((d > 0).sum()), "pairs": int(d.size),
                     "seeds": common}
     rules = {}
@@ -235,13 +225,16 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
                 ("every member predicts a gain", every, len(mine))]
         has = np.concatenate([np.full(len(r["accepted"]), r["accepted_range"] is not None)
                               for r in mine])
-        if has.any():  # on the lanes that recorded it, beside the protocol guard on them
-            rng = np.concatenate([r["accepted_range"] if r["accepted_range"] is not None
-                                  else np.zeros(len(r["accepted"]), bool) for r in mine])
-            k = sum(r["accepted_range"] is not None for r in mine)
-            sels.append(("training-error range floor", rng, k))
-            if not has.all():
-                sels.append(("protocol guard on the range floor's lanes", prot & has, k))
+        for name, key in (("training-error range floor", "accepted_range"),
+                          ("discordant-pair floor", "accepted_pair")):
+            on = [r[key] is not None for r in mine]  # on the lanes that recorded it
+            if any(on):
+                sels.append((name, np.concatenate([
+                    r[key] if r[key] is not None else np.zeros(len(r["accepted"]), bool)
+                    for r in mine]), sum(on)))
+        if has.any() and not has.all():  # the protocol guard on the range floor's lanes
+            sels.append(("protocol guard on the range floor's lanes", prot & has,
+                         sum(r["accepted_range"] is not None for r in mine)))
         rules[m] = {name: {"deployed": int(sel.sum()), "lanes": lanes,
                            "real_gain_median": (float(np.median(real[sel])) if sel.any()
                                                 else None),
@@ -322,9 +315,10 @@ def main(argv=None) -> int:
         if run.get("task") != args.task:
             raise SystemExit(f"runs: {path} is task {run.get('task')!r}, not {args.task!r}")
         if not run.get("improvement"):
-            raise SystemExit(f"runs: {path} has no improvement (paper.py "
-                             f"--improve-iterations 0?)")
-        runs.append({k: run[k] for k in KEEP if k in run})
+            raise SystemExit(f"runs: {path} has no improvement (--improve-iterations 0?)")
+        runs.append({**{k: run[k] for k in KEEP if k in run}, "lanes": {
+            lane: {k: e[k] for k in LANE_KEEP if k in e}
+            for lane, e in run.get("lanes", {}).items()}})
     lanes = [(e["method"], e["seed"]) for r in runs for e in r["improvement"].values()]
     if len(lanes) != len(set(lanes)):
         raise SystemExit("runs: a (method, seed) lane appears twice")
@@ -387,6 +381,9 @@ def main(argv=None) -> int:
         print(f"paired {k}: median {v['median']:+.3f} [{v['ci95'][0]:+.3f}, "
               f"{v['ci95'][1]:+.3f}]; RL2S higher in {v['rl2s_higher']} of {v['pairs']} "
               f"(seed, policy) pairs")
+    for m, rules in summary["guard_rules"].items():
+        print(f"guard rules {m}: " + "; ".join(f"{k} {r['deployed']} deployed, "
+              f"{r['worse_than_start']} worse" for k, r in rules.items()))
     for k, b in summary.get("bars", {}).items():
         print(f"bar {k}: {b}" if k == "verdict" else
               f"bar {k}: {b['value']:+.3f} (target "

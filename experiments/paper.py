@@ -129,8 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--zoo-recipe", action="store_true", help="fine-tune at the zoo learner's "
                     "discount, reward scale and batch (zoo.build.fine_tuning_recipe)")
     ap.add_argument("--improve-recipe", choices=sorted(IMPROVE_RECIPES), help="a measured "
-                    "recipe's flags as the defaults, with the task's changes "
-                    "(improve.recipes); flags win")
+                    "recipe's flags, with the task's changes (improve.recipes); flags win")
     ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
                     "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
     ap.add_argument("--families", default="adversarial,mle", help="comma list of programs: "

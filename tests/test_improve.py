@@ -831,6 +831,21 @@ def test_select_by_members_values_every_snapshot_and_deploys_the_choice():
                           pool, key, **roll)
 
 
+def test_median_ci95_brackets_the_median_and_repeats():
+    """median_ci95: a constant sample's interval is that constant; 0..100's brackets its
+    median 50 within +-10; one seed gives one interval, a median far from the mean (one huge
+    ratio, as a start near 0 gives) moves it not at all."""
+    from rl2s_jax.improve.finetune import median_ci95
+
+    assert median_ci95(np.full(7, 0.3), 200) == pytest.approx([0.3, 0.3])
+    lo, hi = median_ci95(np.arange(101.0), 500)
+    assert 40 <= lo <= 50 <= hi <= 60
+    assert median_ci95(np.arange(101.0), 500) == [lo, hi]
+    skewed = np.arange(101.0)
+    skewed[-1] = 1e9
+    assert median_ci95(skewed, 500) == [lo, hi]
+
+
 def test_median_gain_counts_the_policies_below_the_zoos_top_quartile():
     zoo = np.arange(1.0, 101.0)  # top quartile from 75.25
     start = np.array([10.0, 50.0, 80.0, 90.0, 70.0])
@@ -904,6 +919,31 @@ def test_lane_error_range_is_the_spread_of_the_signed_training_errors():
     assert lane_error_range(result, "bc/0", 12, 0.9) is None      # no such lane
     result["lanes"]["rl2s/0"]["train_sim_value"][1] = float("nan")
     assert lane_error_range(result, "rl2s/0", 12, 0.9) is None
+
+
+def test_discordant_pair_floor_against_a_loop_over_pairs():
+    """discordant_pair_floor: the largest s_j - s_i over the pairs the simulator orders wrong
+    (s_j > s_i, v_j <= v_i), against a plain loop on random values (ties in truth included);
+    0 when every pair is ordered right; pair_floor_verdict: every member's gain above the
+    floor and the margin of the lane's simulated start value."""
+    from rl2s_jax.app.protocol_improve import discordant_pair_floor, pair_floor_verdict
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        s, v = rng.normal(size=9), rng.integers(0, 4, 9).astype(float)
+        want = max([s[j] - s[i] for i in range(9) for j in range(9)
+                    if s[j] > s[i] and v[j] <= v[i]], default=0.0)
+        assert discordant_pair_floor(s, v) == pytest.approx(want)
+    assert discordant_pair_floor([1.0, 2.0, 3.0], [0.0, 5.0, 9.0]) == 0.0  # ranked right
+    assert discordant_pair_floor([1.0, 4.0, 2.0], [1.0, 2.0, 3.0]) == 2.0  # 4 - 2 wrong
+    with pytest.raises(ValueError, match="train_sim_value, train_true_value"):
+        discordant_pair_floor([1.0, 2.0], [1.0])
+    result = {"lanes": {"rl2s/0": {"train_sim_value": [1.0, 4.0, 2.0],
+                                   "sim_value": [100.0, 100.0, 300.0]}},
+              "train_true_value": [1.0, 2.0, 3.0]}
+    gains = [[5.0, -1.0, 7.0], [3.0, 2.0, 6.5]]  # floor 2; margins 2, 2, 6
+    assert pair_floor_verdict(result, "rl2s/0", gains, 0.02).tolist() == [True, False, True]
+    assert pair_floor_verdict(result, "rl2s/0", gains, 0.025).tolist() == [True, False, False]
 
 
 def test_lane_floors_measure_where_training_did_not(pm_files):

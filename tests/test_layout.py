@@ -1,6 +1,7 @@
 """The package's shape (issue 37's bars): no import cycle among modules or subpackages
 (module-level and function-local imports both count), no module over 600 lines, diagnosis
-trains nothing of its own (no optax under diagnose/), lower layers never import upper ones."""
+trains nothing of its own (no optax under diagnose/), lower layers never import upper ones;
+no experiments/ script over 400 lines (ARCHITECTURE: a script that grows is a library)."""
 
 import ast
 import pathlib
@@ -8,7 +9,7 @@ import pathlib
 import pytest
 
 PKG = pathlib.Path(__file__).resolve().parents[1] / "rl2s_jax"
-MAX_LINES = 600
+MAX_LINES, MAX_SCRIPT_LINES = 600, 400
 # Lower layers first; a module may import only from its own layer or lower ones.
 LAYERS = [
     {"_quiet", "compile_cache", "sharding", "envs", "policy"},
@@ -118,6 +119,12 @@ def test_layers_point_down():
 def test_module_size(path):
     n = len(path.read_text().splitlines())
     assert n <= MAX_LINES, f"{path.relative_to(PKG)}: {n} lines (at most {MAX_LINES})"
+
+
+def test_experiment_scripts_stay_scripts():
+    long = {p.name: n for p in sorted((PKG.parent / "experiments").rglob("*.py"))
+            if (n := len(p.read_text().splitlines())) > MAX_SCRIPT_LINES}
+    assert not long, f"experiments/ scripts over {MAX_SCRIPT_LINES} lines: {long}"
 
 
 def test_diagnose_trains_nothing_of_its_own():

@@ -124,6 +124,33 @@ def lane_error_range(result: dict, lane: str, horizon: int, gamma: float) -> flo
     return spread or None  # 0.0: measured elsewhere or not finite
 
 
+def discordant_pair_floor(train_sim_value, train_true_value) -> float:
+    """The largest simulated gain between two training policies that is false in truth: the
+    max of s_j - s_i over the pairs (i, j) with s_j > s_i but v_j <= v_i (s, v: [P_train]
+    simulated and true values); 0 where the simulator orders every pair right. A floor on a
+    predicted gain's error from the simulator's ranking mistakes (issue 39's second
+    alternative guard floor, judged offline by ``improvement_summary.py``: rejected)."""
+    s = np.asarray(train_sim_value, np.float64)
+    v = np.asarray(train_true_value, np.float64)
+    if s.ndim != 1 or s.shape != v.shape:
+        raise ValueError(f"train_sim_value, train_true_value: expected two [P_train] arrays, "
+                         f"got {s.shape}, {v.shape}")
+    gain_sim, gain_true = s[None, :] - s[:, None], v[None, :] - v[:, None]
+    wrong = (gain_sim > 0) & (gain_true <= 0)
+    return float(gain_sim[wrong].max()) if wrong.any() else 0.0
+
+
+def pair_floor_verdict(result: dict, lane: str, member_gain, margin: float) -> np.ndarray:
+    """[P] bool: where every elite member's predicted gain (``member_gain`` [M, P], value
+    units) exceeds the lane's ``discordant_pair_floor`` and ``margin`` x |the lane's simulated
+    value of the start| (``lanes[lane]["sim_value"]``: the guard's own start values are not
+    kept, so the margin is read on the protocol's; the floor dominates it where it is large)."""
+    entry = result["lanes"][lane]
+    floor = discordant_pair_floor(entry["train_sim_value"], result["train_true_value"])
+    bar = np.maximum(margin * np.abs(np.asarray(entry["sim_value"], np.float64)), floor)
+    return (np.asarray(member_gain, np.float64) > bar).all(axis=0)
+
+
 def lane_floors(finals: dict, last_seed: int, sims, train_ds, train_pols, ft: FineTuning,
                 n_episodes: int = 16) -> list[float]:
     """Each lane's guard floor at the guard's horizon (the real episodes' length,

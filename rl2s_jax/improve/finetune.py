@@ -390,6 +390,14 @@ def median_gain(c0, c1, start_returns, zoo_returns, quantile: float = 0.75) -> d
             "gain": gain.tolist()}
 
 
+def median_ci95(x, n_boot: int = 2000, seed: int = 0) -> list[float]:
+    """95% bootstrap interval [lo, hi] of the median of x [N] (gains: those of policies that
+    start near 0 are ratios of thousands, so a mean would be theirs alone)."""
+    x = np.asarray(x, np.float64)
+    meds = np.median(x[np.random.default_rng(seed).integers(0, len(x), (n_boot, len(x)))], 1)
+    return [float(np.quantile(meds, 0.025)), float(np.quantile(meds, 0.975))]
+
+
 def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.Array, *,
                         n_episodes: int, episode_length: int, gamma: float = 0.99,
                         discounted: bool = False) -> dict[str, np.ndarray | float]:

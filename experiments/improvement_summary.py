@@ -67,7 +67,8 @@ def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
         zid = zoo_ids(run, e["policy_ids"])
         pair = None  # the discordant-pair floor's verdict, where the range floor was recorded
         if "guard_floor_range" in e and lane in run.get("lanes", {}):
-            pair = pair_floor_verdict(run, lane, e["guard_member_gain"], PAIR_MARGIN)
+            pair = pair_floor_verdict(run, lane, e["guard_member_gain"], PAIR_MARGIN,
+                                      e["policy_ids"])
         rows.append({"method": e["method"], "seed": e["seed"], "zoo_ids": zid,
                      "start": zoo_returns[zid],
                      "c0": np.asarray(e["c0_paired"], float),

@@ -939,11 +939,15 @@ def test_discordant_pair_floor_against_a_loop_over_pairs():
     with pytest.raises(ValueError, match="train_sim_value, train_true_value"):
         discordant_pair_floor([1.0, 2.0], [1.0])
     result = {"lanes": {"rl2s/0": {"train_sim_value": [1.0, 4.0, 2.0],
-                                   "sim_value": [100.0, 100.0, 300.0]}},
+                                   "sim_value": [100.0, 900.0, 100.0, 300.0]}},
               "train_true_value": [1.0, 2.0, 3.0]}
-    gains = [[5.0, -1.0, 7.0], [3.0, 2.0, 6.5]]  # floor 2; margins 2, 2, 6
-    assert pair_floor_verdict(result, "rl2s/0", gains, 0.02).tolist() == [True, False, True]
-    assert pair_floor_verdict(result, "rl2s/0", gains, 0.025).tolist() == [True, False, False]
+    gains = [[5.0, -1.0, 7.0], [3.0, 2.0, 6.5]]  # floor 2; test policies 0, 2, 3: margins 2, 2, 6
+    ids = [0, 2, 3]
+    assert pair_floor_verdict(result, "rl2s/0", gains, 0.02, ids).tolist() == [True, False, True]
+    assert pair_floor_verdict(result, "rl2s/0", gains, 0.025, ids).tolist() == [
+        True, False, False]
+    assert pair_floor_verdict(result, "rl2s/0", gains, 0.02, [1, 2, 3]).tolist() == [
+        False, False, True]  # policy 1's margin 18 is above its members' 5 and 3
 
 
 def test_lane_floors_measure_where_training_did_not(pm_files):

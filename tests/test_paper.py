@@ -1275,7 +1275,8 @@ def test_improvement_summary_by_hand(tmp_path):
     # run 0 kept its training values: the discordant-pair floor is 4 - 2 = 2 (margin 2% of
     # 100): rl2s/0's members clear it on policy 0 only (gains 5, 3)
     runs[0]["improvement"]["rl2s/0"]["guard_floor_range"] = 1.0
-    runs[0]["lanes"] = {"rl2s/0": {"family": "adversarial", "eps": 0.25, "sim_value": [100.0] * 3,
+    runs[0]["lanes"] = {"rl2s/0": {"family": "adversarial", "eps": 0.25,
+                                   "sim_value": [100.0] * len(test),
                                    "train_sim_value": [1.0, 4.0, 2.0]}}
     runs[0]["train_true_value"] = [1.0, 2.0, 3.0]
     runs[0]["oracle_improvement"] = {"policy_ids": ids, "per_seed": [
@@ -1315,7 +1316,7 @@ def test_improvement_summary_by_hand(tmp_path):
     assert (pair["deployed"], pair["lanes"], pair["worse_than_start"]) == (1, 1, 0)
     assert "discordant-pair floor" not in s["guard_rules"]["gail"]
     kept = json.loads((tmp_path / "o" / "hopper.json").read_text())["runs"][0]
-    assert kept["lanes"]["rl2s/0"] == {"family": "adversarial", "sim_value": [100.0] * 3,
+    assert kept["lanes"]["rl2s/0"] == {"family": "adversarial", "sim_value": [100.0] * len(test),
                                        "train_sim_value": [1.0, 4.0, 2.0]}
     assert kept["train_true_value"] == [1.0, 2.0, 3.0]
     assert s["budget_env_steps"] == 40

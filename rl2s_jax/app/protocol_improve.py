@@ -140,14 +140,17 @@ def discordant_pair_floor(train_sim_value, train_true_value) -> float:
     return float(gain_sim[wrong].max()) if wrong.any() else 0.0
 
 
-def pair_floor_verdict(result: dict, lane: str, member_gain, margin: float) -> np.ndarray:
+def pair_floor_verdict(result: dict, lane: str, member_gain, margin: float,
+                       policy_ids) -> np.ndarray:
     """[P] bool: where every elite member's predicted gain (``member_gain`` [M, P], value
-    units) exceeds the lane's ``discordant_pair_floor`` and ``margin`` x |the lane's simulated
-    value of the start| (``lanes[lane]["sim_value"]``: the guard's own start values are not
-    kept, so the margin is read on the protocol's; the floor dominates it where it is large)."""
+    units, of test policies ``policy_ids`` [P]) exceeds the lane's ``discordant_pair_floor``
+    and ``margin`` x |the lane's simulated value of the start| (``lanes[lane]["sim_value"]``
+    [P_test]: the guard's own start values are not kept, so the margin is read on the
+    protocol's; the floor dominates it where it is large)."""
     entry = result["lanes"][lane]
     floor = discordant_pair_floor(entry["train_sim_value"], result["train_true_value"])
-    bar = np.maximum(margin * np.abs(np.asarray(entry["sim_value"], np.float64)), floor)
+    start = np.asarray(entry["sim_value"], np.float64)[np.asarray(policy_ids, int)]
+    bar = np.maximum(margin * np.abs(start), floor)
     return (np.asarray(member_gain, np.float64) > bar).all(axis=0)
 
 

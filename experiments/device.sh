@@ -38,6 +38,9 @@
 #       $STREAMS/<stream>_<k> (STREAMS=/tmp/streams), progress in $STREAMS/progress.log. A
 #       stream that begins with "@N " runs on GPU N alone (CUDA_VISIBLE_DEVICES=N; memory
 #       0.9 / the streams pinned to N); unpinned streams see every GPU
+#   bash experiments/device.sh waitdata TASK [MAX_S]              waits (at most MAX_S, default
+#       900) until paper.py's data of TASK is in $W: a stream that begins with it reuses the
+#       data another stream is collecting instead of collecting it beside it
 #   bash experiments/device.sh poll [WAIT_S]                       waits until every stream
 #       ended or WAIT_S (default 540) passed, prints the progress, packs $STREAMS into
 #       $OUT/streams.tgz; call it again (within the machine's 30 s idle window) to go on
@@ -312,6 +315,18 @@ cmd_poll() {
   tar -czf "$OUT/streams.tgz" -C "$(dirname "$streams")" "$(basename "$streams")"
 }
 
+cmd_waitdata() {
+  local task=${1:?usage: bash experiments/device.sh waitdata TASK [MAX_S]} t0=$SECONDS
+  # load_or_collect writes <task>_data.json after the datasets: its presence means complete
+  until [ -s "$W/${task}_data.json" ]; do
+    [ $((SECONDS - t0)) -ge "${2:-900}" ] && { echo "waitdata: no $W/${task}_data.json" >&2
+                                              return 1; }
+    sleep 5
+  done
+  sleep 2  # the file's few bytes, fully written
+  echo "waitdata: $task's data in $W after $((SECONDS - t0)) s"
+}
+
 cmd_run() {
   local log=${1:?usage: bash experiments/device.sh run LOG CMD...}
   shift
@@ -322,7 +337,8 @@ cmd_run() {
 sub=${1:-}
 shift || true
 case "$sub" in
-  paper|tasks|ablation|model_fit|control|race|zoo|smoke|run|poll) setup_env; "cmd_$sub" "$@" ;;
+  paper|tasks|ablation|model_fit|control|race|zoo|smoke|run|poll|waitdata) setup_env
+      "cmd_$sub" "$@" ;;
   streams) [ $# -gt 0 ] || usage
            setup_env; cmd_streams "$@" ;;
   _streams_run) setup_env; cmd__streams_run "$@" ;;

@@ -1068,6 +1068,39 @@ def test_device_jobs_runs_side_by_side_and_waits_for_the_data(tmp_path):
         assert rc == 2 and "job spec" in proc.stderr and ev == [], bad
 
 
+def test_device_waitdata_waits_for_the_data_key_file(tmp_path):
+    """device.sh waitdata TASK MAX_S: returns 0 once $W/<TASK>_data.json (written last by
+    load_or_collect) appears, not before; 1 when MAX_S passes without it."""
+    import subprocess
+    import time
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "python3").write_text("#!/usr/bin/env bash\n[ \"$1\" = -m ] && exit 0\n")
+    (bin_dir / "python3").chmod(0o755)
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "OUT": str(tmp_path / "o"),
+           "RL2S_SITE": str(tmp_path / "site")}
+    task = f"waitdata_test_{os.getpid()}"
+    key = os.path.join("/tmp/work", f"{task}_data.json")  # device.sh's W
+    cmd = ["bash", "experiments/device.sh", "waitdata", task]
+    try:
+        proc = subprocess.run([*cmd, "1"], cwd=ROOT, env=env, capture_output=True, text=True,
+                              timeout=60)
+        assert proc.returncode == 1 and "no /tmp/work/" in proc.stderr
+        t0 = time.monotonic()
+        waiter = subprocess.Popen([*cmd, "60"], cwd=ROOT, env=env, stdout=subprocess.PIPE,
+                                  text=True)
+        time.sleep(3)
+        assert waiter.poll() is None  # still waiting
+        with open(key, "w") as f:
+            f.write("{}")
+        out, _ = waiter.communicate(timeout=60)
+        assert waiter.returncode == 0 and f"waitdata: {task}'s data" in out
+        assert time.monotonic() - t0 >= 3
+    finally:
+        if os.path.exists(key):
+            os.remove(key)
+
+
 def test_device_runner_lists_its_subcommands_on_a_bad_one():
     """experiments/device.sh with no or an unknown subcommand installs nothing, exits 2 and
     prints its help, which names every subcommand it dispatches."""

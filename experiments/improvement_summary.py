@@ -1,7 +1,6 @@
 """Issue 39's summary of fine-tuning inside the learned simulators: per method, over the
-seeds of one or more ``experiments/paper.py`` runs with improvement (each of one or more
-seeds, e.g. ``--first-seed K --seeds 1``; a method may lack some seeds), beside the task's
-real-env control (docs/results/<task>.json).
+seeds of ``experiments/paper.py`` runs with improvement (e.g. ``--first-seed K --seeds 1``; a
+method may lack seeds), beside the task's real-env control (docs/results/<task>.json).
 
     python experiments/improvement_summary.py --task hopper --runs A.json B.json C.json
         [--control docs/results/hopper.json] [--out docs/results/improvement_in_sim]
@@ -24,11 +23,11 @@ they explain the guard, they must not choose it (judge a rule on runs not used t
 --improve-oracle-seeds``: the oracle's physics in the simulated env; ``--control``: the real
 env with the runs' SAC), over all their seeds. ``on_control_policies`` (with ``--control``):
 each method's median gain on the policies the task's control fine-tuned (its ``zoo_ids``).
-Writes OUT/<task>.json (the runs trimmed to what this summary reads, and the summary),
-OUT/<task>.png (every (seed, policy)'s real gain per method, deployments marked, beside the
-control's median) and prints a table. The control's median gain is recomputed from its C0 /
-C1 against today's zoo (a grown zoo moves its top quartile); a different recorded value is
-kept as ``median_gain_recorded``.
+Writes OUT/<task>.json (the runs, trimmed, and the summary), OUT/<task>.png (each (seed,
+policy)'s real gain per method, deployments marked, beside the control's median), a table.
+The control's median gain is recomputed from its C0 / C1 on today's zoo (a grown zoo moves its
+top quartile; ``median_gain_recorded``: its file's). Runs on the validation policies
+(``paper.py --policy-split validation``) take no --control: their own controls compare.
 """
 from __future__ import annotations
 
@@ -46,7 +45,7 @@ from rl2s_jax.zoo.zoo import load_zoo
 
 KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",
         "zoo_sha256", "sac_config", "improve_variant", "timings", "improvement",
-        "oracle_improvement", "control", "train_true_value")  # + lanes' LANE_KEEP
+        "oracle_improvement", "control", "train_true_value", "policy_split")  # + LANE_KEEP
 LANE_KEEP, PAIR_MARGIN = ("family", "sim_value", "train_sim_value"), 0.02  # the recipe's
 MIN_SEEDS, CONTROL_BAR = 3, 0.30  # issue 39's bars: 3 seeds; the control's median gain
 
@@ -68,7 +67,7 @@ def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:
         pair = None  # the discordant-pair floor's verdict, where the range floor was recorded
         if "guard_floor_range" in e and lane in run.get("lanes", {}):
             pair = pair_floor_verdict(run, lane, e["guard_member_gain"], PAIR_MARGIN,
-                                      e["policy_ids"])
+                                      e["policy_ids"], e.get("guard_member_start"))
         rows.append({"method": e["method"], "seed": e["seed"], "zoo_ids": zid,
                      "start": zoo_returns[zid],
                      "c0": np.asarray(e["c0_paired"], float),
@@ -317,12 +316,15 @@ def main(argv=None) -> int:
             raise SystemExit(f"runs: {path} is task {run.get('task')!r}, not {args.task!r}")
         if not run.get("improvement"):
             raise SystemExit(f"runs: {path} has no improvement (--improve-iterations 0?)")
+        if run.get("policy_split", "zoo") != "zoo" and args.control:
+            raise SystemExit(f"runs: {path} fine-tuned validation policies; the task's control "
+                             "is the test policies' (their own: paper.py --control)")
         runs.append({**{k: run[k] for k in KEEP if k in run}, "lanes": {
             lane: {k: e[k] for k in LANE_KEEP if k in e}
             for lane, e in run.get("lanes", {}).items()}})
     lanes = [(e["method"], e["seed"]) for r in runs for e in r["improvement"].values()]
-    if len(lanes) != len(set(lanes)):
-        raise SystemExit("runs: a (method, seed) lane appears twice")
+    if len(lanes) != len(set(lanes)) or len({r.get("policy_split") for r in runs}) > 1:
+        raise SystemExit("runs: a (method, seed) lane appears twice, or --policy-split differs")
     zoo_returns = np.asarray(load_zoo(args.task).returns, np.float64)
     rows = [row for r in runs for row in lane_rows(r, zoo_returns)]
     summary = summarise(rows, zoo_returns, args.bootstrap)

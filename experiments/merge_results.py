@@ -221,6 +221,9 @@ def main(argv=None) -> int:
         for p in args.paper:
             with open(p) as f:
                 parts.append(json.load(f))
+            if parts[-1].get("policy_split", "zoo") != "zoo":
+                raise SystemExit(f"paper: {p} ran on the {parts[-1]['policy_split']} split "
+                                 "(--policy-split): not the task's protocol")
         if len(parts) == 1:
             result = parts[0]
         else:

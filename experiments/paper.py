@@ -83,9 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--transitions-per-policy", type=pos)
     ap.add_argument("--value-episodes", type=pos, help="real episodes per policy for true "
                     "values (C0) and for C1")
-    ap.add_argument("--episode-length", type=pos, help="shorter episodes than the task's "
-                    "(smoke runs)")
+    ap.add_argument("--episode-length", type=pos, help="shorter episodes (smoke runs)")
     ap.add_argument("--data-seed", type=int, default=0)
+    ap.add_argument("--policy-split", choices=("zoo", "validation"), default="zoo",
+                    help="validation: the training policies split again (zoo.VALIDATION_EVERY)"
+                    " as train / test, to choose a recipe without the test policies")
     ap.add_argument("--improve-iterations", type=int, help="SAC iterations (0: skip)")
     ap.add_argument("--improve-policies", type=int, help="test policies fine-tuned, spread "
                     "evenly over their true returns (0 or more than there are: all)")
@@ -96,8 +98,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--sac-critic-warmup", type=int, help="updates training only the critics "
                     "(default: a quarter of --improve-iterations)")
     ap.add_argument("--sac-updates-per-step", type=pos, default=1)
-    ap.add_argument("--sac-chunk", type=pos, default=1000, help="SAC iterations per compiled "
-                    "call")
+    ap.add_argument("--sac-chunk", type=pos, default=1000, help="SAC iterations per call")
     ap.add_argument("--sac-set", action="append", metavar="KEY=VALUE",
                     help="SACConfig override for every fine-tuning (methods and control)")
     ap.add_argument("--control", action="store_true", help="also fine-tune the same test "
@@ -227,9 +228,8 @@ def resolve_sizes(args, profile: str) -> dict:
     sizes["improve_iterations"] = it
     sizes["sac_critic_warmup"] = (args.sac_critic_warmup if args.sac_critic_warmup is not None
                                   else it // 4)
-    sizes["sac_updates_per_step"] = args.sac_updates_per_step
-    sizes["sac_chunk"] = args.sac_chunk
-    sizes["episode_length"] = args.episode_length
+    sizes.update(sac_updates_per_step=args.sac_updates_per_step, sac_chunk=args.sac_chunk,
+                 episode_length=args.episode_length)
     sizes["bootstrap"] = max(0, args.bootstrap)
     sizes["oracle"] = args.oracle
     return sizes
@@ -302,7 +302,7 @@ def main(argv=None) -> int:
     log(f"[paper] task {args.task} on {device} ({backend}, jax {jax.__version__}), profile "
         f"{profile}, {S} seeds ({seed_ids[0]}..{seed_ids[-1]}) -> {path}\n[paper] sizes {sizes}")
     result = {"task": args.task, "model": args.model, "methods": {}, "std": {}, "n": {},
-              "seeds": S, "seed_ids": seed_ids,
+              "seeds": S, "seed_ids": seed_ids, "policy_split": args.policy_split,
               "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
               "machine": machine_info(),
               "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
@@ -317,7 +317,7 @@ def main(argv=None) -> int:
     # ---- 1. data
     t0 = time.perf_counter()
     datasets, reused = load_or_collect(args.task, sizes, data_dir, args.data_seed,
-                                       args.episode_length, args.progress)
+                                       args.episode_length, args.progress, args.policy_split)
     for split, ds in datasets.items():
         log(f"[paper] {split} data: {ds.n_policies} policies x "
             f"{ds.n_transitions // ds.n_policies} transitions"

@@ -948,6 +948,10 @@ def test_discordant_pair_floor_against_a_loop_over_pairs():
         True, False, False]
     assert pair_floor_verdict(result, "rl2s/0", gains, 0.02, [1, 2, 3]).tolist() == [
         False, False, True]  # policy 1's margin 18 is above its members' 5 and 3
+    # the members' own start values, where recorded, set each member's margin
+    starts = [[100.0, 100.0, 300.0], [100.0, 100.0, 400.0]]  # margins 2, 2, 6 / 2, 2, 8
+    assert pair_floor_verdict(result, "rl2s/0", gains, 0.02, ids, starts).tolist() == [
+        True, False, False]
 
 
 def test_lane_floors_measure_where_training_did_not(pm_files):

@@ -9,6 +9,7 @@ import pytest
 from experiment_scripts import load_script
 
 from rl2s_jax.app import results_tables
+from rl2s_jax.improve.finetune import deployment_guard
 from rl2s_jax.improve.recipes import recipe_settings
 from rl2s_jax.zoo.zoo import load_zoo
 
@@ -440,6 +441,10 @@ def test_merge_results_takes_the_oracle_of_another_run(tmp_path):
     with pytest.raises(SystemExit, match="at most one oracle source"):
         mr.main(["--task", "hopper", "--paper", str(paths["run"]), "--oracle", str(paths["orc"]),
                  "--oracle-paper", str(paths["orc"]), "--out", str(out)])
+    # a run on the validation policies (--policy-split validation) is not the task's protocol
+    (tmp_path / "val.json").write_text(json.dumps({**run, "policy_split": "validation"}))
+    with pytest.raises(SystemExit, match="ran on the validation split"):
+        mr.main(["--task", "hopper", "--paper", str(tmp_path / "val.json"), "--out", str(out)])
 
 
 def test_merge_results_control_records_its_policies_and_median_gain(tmp_path):
@@ -766,6 +771,10 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         assert v["guard_floor_range"] == pytest.approx(e.max() - e.min(), rel=1e-6), lane
         gain = np.asarray(v["guard_member_gain"])  # --guard-margin 0: the floor alone
         assert v["guard_accepted_range"] == (gain > v["guard_floor_range"]).all(axis=0).tolist()
+        # the members' start values are kept beside their gains: the guard's verdict re-reads
+        start = np.asarray(v["guard_member_start"])
+        assert start.shape == gain.shape and v["guard_accepted"] == deployment_guard(
+            start, start + gain, 0.0, v["guard_floor"]).tolist()
     # the guard over snapshots (after iterations 1 and 2): a kept start has I = 0; a final
     # snapshot the guard accepts is eligible, so some snapshot deploys; the final one chosen
     # earns the final policy's return (the same episodes)
@@ -783,6 +792,19 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     # the data is reused when the sizes match (no collection)
     ds, reused = paper.load_or_collect("hopper", r["sizes"], str(out), 0, 50, False)
     assert reused and ds["test"].n_policies == n_test and ds["train"].n_policies == n_train
+    # --policy-split validation: the same data, its training policies split again, with their
+    # values and transitions; the test policies are not in it
+    val, reused = paper.load_or_collect("hopper", r["sizes"], str(out), 0, 50, False,
+                                        "validation")
+    ids = list(ds["train"].meta["source"]["zoo_ids"])
+    for split, name in (("train", "fit"), ("test", "validation")):
+        want = zoo.split_ids(name)
+        assert reused and val[split].meta["source"]["zoo_ids"] == want
+        np.testing.assert_array_equal(val[split].value,
+                                      np.asarray(ds["train"].value)[[ids.index(i) for i in want]])
+    assert val["train"].n_transitions + val["test"].n_transitions == ds["train"].n_transitions
+    with pytest.raises(ValueError, match="policy_split: expected"):
+        paper.load_or_collect("hopper", r["sizes"], str(out), 0, 50, False, "tests")
 
 
 def test_noise_ceiling_script_reads_the_oracle_seeds(tmp_path, capsys):
@@ -1353,6 +1375,17 @@ def test_improvement_summary_by_hand(tmp_path):
                                        "train_sim_value": [1.0, 4.0, 2.0]}
     assert kept["train_true_value"] == [1.0, 2.0, 3.0]
     assert s["budget_env_steps"] == 40
+    # validation-policy runs: no --control (the task's is the test policies'), and no mixing
+    val = tmp_path / "val.json"
+    val.write_text(json.dumps({**runs[0], "policy_split": "validation"}))
+    ctl0 = tmp_path / "ctl0.json"
+    ctl0.write_text(json.dumps({"control": {"median_gain": 0.4}}))
+    with pytest.raises(SystemExit, match="fine-tuned validation policies"):
+        summ.main(["--task", "hopper", "--runs", str(val), "--control", str(ctl0), "--out",
+                   str(tmp_path / "v")])
+    with pytest.raises(SystemExit, match="--policy-split differs"):
+        summ.main(["--task", "hopper", "--runs", str(val), str(paths[1]), "--out",
+                   str(tmp_path / "v")])
     assert s["controls"]["oracle_sim"]["median_gain"] == pytest.approx(0.5)
     assert s["controls"]["real_env"]["median_gain"] == pytest.approx(0.1)
     assert s["controls"]["real_env"]["seeds"] == 1

@@ -129,6 +129,23 @@ def test_extend_zoo_keeps_ids_and_training_split():
         extend_zoo(base, new, values, [{}] * 5, 9)
 
 
+def test_validation_split_holds_out_every_fourth_training_policy_by_return():
+    """split_ids("validation"): every VALIDATION_EVERY-th training policy by return, from the
+    middle of each group; "fit": the rest; together the training policies, no test policy;
+    an unknown split names the known ones."""
+    from rl2s_jax.zoo.zoo import VALIDATION_EVERY, load_zoo
+
+    for task in ("hopper", "ant"):
+        zoo = load_zoo(task)
+        fit, held = zoo.split_ids("fit"), zoo.split_ids("validation")
+        assert sorted(fit + held) == sorted(zoo.train_ids) and not set(held) & set(fit)
+        by_return = sorted(zoo.train_ids, key=lambda i: zoo.returns[i])
+        want = [by_return[k] for k in range(len(by_return)) if k % VALIDATION_EVERY == 2]
+        assert sorted(held) == sorted(want) and len(held) == len(zoo.train_ids) // 4
+    with pytest.raises(ValueError, match="'fit', 'validation', got 'val'"):
+        load_zoo("hopper").split_ids("val")
+
+
 def test_spread_subset_and_split_span_the_range():
     returns = np.array([0.0, 1.0, 1.1, 1.2, 1.3, 5.0, 9.0, 9.1, 10.0])
     assert spread_subset(returns, 4) == [0, 5, 6, 8]  # targets 0, 3.33, 6.67, 10

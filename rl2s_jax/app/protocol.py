@@ -114,12 +114,18 @@ def none_if_nan(x):
 
 
 def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
-                    episode_length: int | None, progress: bool):
+                    episode_length: int | None, progress: bool, policy_split: str = "zoo"):
     """The train and test Datasets of the zoo's split: reused from data_dir when collected with
     the same sizes (``transitions_per_policy``, ``value_episodes`` of ``sizes``), else
     collected as ONE ``collect_dataset(task, "all", ...)`` run (one MJX program for all the
-    zoo's policies) and split with ``Dataset.select_policies``.
+    zoo's policies) and split with ``Dataset.select_policies``. ``policy_split`` "validation":
+    the zoo's training policies split again (``validation_datasets``), the test policies unused.
     -> ({"train": Dataset, "test": Dataset}, reused)"""
+    if policy_split not in ("zoo", "validation"):
+        raise ValueError(f"policy_split: expected 'zoo' or 'validation', got {policy_split!r}")
+    if policy_split == "validation":
+        datasets, reused = load_or_collect(task, sizes, data_dir, seed, episode_length, progress)
+        return validation_datasets(datasets["train"], load_zoo(task)), reused
     paths = {split: os.path.join(data_dir, f"{task}_{split}.npz") for split in ("train", "test")}
     key_path = os.path.join(data_dir, f"{task}_data.json")
     data_key = {"task": task, "seed": seed, "episode_length": episode_length,
@@ -147,6 +153,22 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
     with open(key_path, "w") as f:
         json.dump(data_key, f)
     return out, False
+
+
+def validation_datasets(train, zoo) -> dict:
+    """The protocol's training Dataset split again, as ``load_or_collect``'s splits: {"train":
+    its "fit" policies, "test": its "validation" policies} (``Zoo.split_ids``), each with its
+    zoo ids in ``meta["source"]``, so that a recipe is chosen on policies the simulators never
+    saw without touching the test policies."""
+    ids = [int(i) for i in train.meta["source"]["zoo_ids"]]
+    out = {}
+    for split, name in (("train", "fit"), ("test", "validation")):
+        want = zoo.split_ids(name)
+        part = train.select_policies([ids.index(i) for i in want])
+        part.meta["source"] = {**part.meta["source"], "split": name,
+                               "zoo_ids": [int(i) for i in want]}
+        out[split] = part
+    return out
 
 
 def zoo_sha256(task: str) -> str | None:

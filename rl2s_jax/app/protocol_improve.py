@@ -140,18 +140,21 @@ def discordant_pair_floor(train_sim_value, train_true_value) -> float:
     return float(gain_sim[wrong].max()) if wrong.any() else 0.0
 
 
-def pair_floor_verdict(result: dict, lane: str, member_gain, margin: float,
-                       policy_ids) -> np.ndarray:
-    """[P] bool: where every elite member's predicted gain (``member_gain`` [M, P], value
-    units, of test policies ``policy_ids`` [P]) exceeds the lane's ``discordant_pair_floor``
-    and ``margin`` x |the lane's simulated value of the start| (``lanes[lane]["sim_value"]``
-    [P_test]: the guard's own start values are not kept, so the margin is read on the
-    protocol's; the floor dominates it where it is large)."""
+def pair_floor_verdict(result: dict, lane: str, member_gain, margin: float, policy_ids,
+                       member_start=None) -> np.ndarray:
+    """[P] bool: the guard (``finetune.deployment_guard``) with the lane's
+    ``discordant_pair_floor``: every elite member's predicted gain (``member_gain`` [M, P],
+    value units, of test policies ``policy_ids`` [P]) above the floor and ``margin`` x |its
+    value of the start| (``member_start`` [M, P], recorded as ``guard_member_start``; runs
+    before it kept none: then the lane's protocol value ``lanes[lane]["sim_value"]`` [P_test]
+    stands in, and the floor dominates the margin where it is large)."""
     entry = result["lanes"][lane]
     floor = discordant_pair_floor(entry["train_sim_value"], result["train_true_value"])
-    start = np.asarray(entry["sim_value"], np.float64)[np.asarray(policy_ids, int)]
-    bar = np.maximum(margin * np.abs(start), floor)
-    return (np.asarray(member_gain, np.float64) > bar).all(axis=0)
+    gain = np.asarray(member_gain, np.float64)
+    if member_start is None:
+        member_start = np.asarray(entry["sim_value"], np.float64)[np.asarray(policy_ids, int)]
+        member_start = np.broadcast_to(member_start, gain.shape)
+    return deployment_guard(member_start, np.asarray(member_start) + gain, margin, floor)
 
 
 def lane_floors(finals: dict, last_seed: int, sims, train_ds, train_pols, ft: FineTuning,
@@ -342,8 +345,10 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
         if accepted is not None:
             for j, (i, (m, s)) in enumerate(zip(v_idx, v_lanes, strict=True)):
                 entry = improvement[f"{m}/{s}"]
-                # [M][P]: what each elite member predicted; the guard read these
+                # [M][P]: what each elite member predicted, and its value of the start (the
+                # margin's scale); the guard read these, and so can a rule judged offline
                 entry["guard_member_gain"] = np.asarray(gains[j], np.float64).tolist()
+                entry["guard_member_start"] = np.asarray(starts_v[j], np.float64).tolist()
                 if guard_floors is not None:
                     entry["guard_floor"] = guard_floors[i]
                 # the range floor's verdict on the same members' values (recorded, not used)

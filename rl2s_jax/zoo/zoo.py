@@ -23,6 +23,10 @@ from rl2s_jax.policy.policy import (
 )
 
 ZOO_ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "shipped")
+# The "validation" split: every VALIDATION_EVERY-th training policy by return (from the
+# middle of each group), held out of the training policies ("fit": the rest), so a recipe
+# can be chosen on policies the simulator never saw without touching the test policies.
+VALIDATION_EVERY = 4
 # Datasets collected before the zoos became package data name them by this repository path.
 _OLD_ZOO_PREFIX = "rl2s_jax/zoo/shipped/"
 
@@ -33,7 +37,8 @@ class Zoo:
 
     params: stacked policy params [P, ...]; returns / return_se: [P] mean undiscounted episode
     return and its standard error (measured by ``collect.measure_values``); origins: P dicts
-    (seed, iteration, env_steps); train_ids / test_ids: disjoint index lists.
+    (seed, iteration, env_steps); train_ids / test_ids: disjoint index lists. ``split_ids``
+    also serves "fit" / "validation": the training policies split again (VALIDATION_EVERY).
     """
 
     task: str
@@ -56,7 +61,12 @@ class Zoo:
             return list(self.test_ids)
         if split == "all":
             return list(range(self.size))
-        raise ValueError(f"split: expected one of 'train', 'test', 'all', got {split!r}")
+        if split in ("fit", "validation"):
+            by_return = sorted(self.train_ids, key=lambda i: (self.returns[i], i))
+            held = set(by_return[VALIDATION_EVERY // 2::VALIDATION_EVERY])
+            return [i for i in self.train_ids if (i in held) == (split == "validation")]
+        raise ValueError(f"split: expected one of 'train', 'test', 'all', 'fit', 'validation', "
+                         f"got {split!r}")
 
     def policy_names(self, ids: Sequence[int]) -> list[str]:
         return [f"{self.task}-{i:03d}" for i in ids]

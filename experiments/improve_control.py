@@ -274,8 +274,9 @@ def main(argv=None) -> int:
     ap.add_argument("--policies", type=int, default=0, help="test policies (0: all)")
     ap.add_argument("--ids", type=int, nargs="+", metavar="ZOO_ID",
                     help="these test policies (zoo ids; one task) instead of --policies")
-    ap.add_argument("--split", choices=("test", "train"), default="test", help="whose policies "
-                    "(train: to choose a recipe without touching the test policies)")
+    ap.add_argument("--split", choices=("test", "train", "validation"), default="test",
+                    help="whose policies (train, validation: to choose a recipe without the "
+                    "test policies; validation: paper.py --policy-split validation's)")
     ap.add_argument("--seeds", type=int, default=2)
     ap.add_argument("--first-seed", type=int, default=0, help="seeds K .. K + seeds - 1 "
                     "(split a control over GPUs; --combine joins the files)")

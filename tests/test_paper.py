@@ -1594,4 +1594,8 @@ def test_improve_control_ids_must_be_test_policies_of_one_task(tmp_path):
                  str(tmp_path)])
     with pytest.raises(SystemExit, match="ids: expected"):
         ic.main(["--tasks", "hopper,ant", "--ids", str(test[0]), "--out", str(tmp_path)])
+    fit = load_zoo("hopper").split_ids("fit")  # training policies, but not validation ones
+    with pytest.raises(SystemExit, match="ids: expected validation-policy zoo ids"):
+        ic.main(["--tasks", "hopper", "--split", "validation", "--ids", str(fit[0]), "--out",
+                 str(tmp_path)])
     assert not any(tmp_path.iterdir())  # nothing written

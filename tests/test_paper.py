@@ -1599,3 +1599,62 @@ def test_improve_control_ids_must_be_test_policies_of_one_task(tmp_path):
         ic.main(["--tasks", "hopper", "--split", "validation", "--ids", str(fit[0]), "--out",
                  str(tmp_path)])
     assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_guard_calibration_by_hand(tmp_path):
+    """experiments/guard_calibration.py on made-up validation and test runs of hopper: per
+    floor scale k the deployments, real losses and guarded median gain by hand; k is the
+    smallest scale without a validation loss over every method's lanes; runs of the wrong
+    split, lanes without the members' starts and bad scales are refused by name."""
+    gc = _load("guard_calibration")
+    zoo = load_zoo("hopper")
+    zret = np.asarray(zoo.returns, np.float64)
+    val_ids, test = zoo.split_ids("validation"), list(zoo.split_ids("test"))
+    low = sorted(test, key=lambda i: zret[i])[:3]  # below the top quartile
+
+    def lane(m, ids, c0, c1, gain, floor):
+        return {"method": m, "seed": 0, "policy_ids": ids, "c0_paired": c0, "c1": c1,
+                "guard_member_start": [c0, c0], "guard_member_gain": gain,
+                "guard_floor": floor}
+
+    # rl2s: I .5, -.1; at margin .02 the bars are 2 / 4, at scale k k x 50: policy 1's members
+    # (30, 30) clear k 0 and .5 (a loss) but not .75; bc's never lose
+    val = {"task": "hopper", "policy_split": "validation",
+           "test_policy_names": zoo.policy_names(val_ids), "improvement": {
+               "rl2s/0": lane("rl2s", [0, 1], [100.0, 200.0], [150.0, 180.0],
+                              [[60.0, 30.0], [40.0, 30.0]], 50.0),
+               "bc/0": lane("bc", [0, 1], [100.0, 200.0], [110.0, 220.0],
+                            [[20.0, 20.0], [20.0, 20.0]], 10.0)}}
+    # test: I .5, -.1, .1; bars 2 / 4 / 8, at k x 40: policy 2's members (30, 20) fail from .75
+    tst = {"task": "hopper", "test_policy_names": zoo.policy_names(test), "improvement": {
+        "rl2s/0": lane("rl2s", [test.index(i) for i in low], [100.0, 200.0, 400.0],
+                       [150.0, 180.0, 440.0], [[80.0, 50.0, 30.0], [70.0, 60.0, 20.0]], 40.0)}}
+    paths = {}
+    for name, r in (("val", val), ("test", tst)):
+        paths[name] = tmp_path / f"{name}.json"
+        paths[name].write_text(json.dumps(r))
+    out = tmp_path / "o"
+    assert gc.main(["--task", "hopper", "--validation", str(paths["val"]), "--test",
+                    str(paths["test"]), "--scales", "0,0.5,0.75,1", "--out", str(out)]) == 0
+    doc = json.loads((out / "hopper.json").read_text())
+    assert doc["chosen_scale"] == 0.75 and doc["margin"] == 0.02
+    v = doc["by_scale"]
+    assert (v["0.5"]["validation"]["rl2s"]["deployed"],
+            v["0.5"]["validation"]["rl2s"]["losses"]) == (2, 1)
+    assert (v["0.75"]["validation"]["rl2s"]["deployed"],
+            v["0.75"]["validation"]["rl2s"]["losses"]) == (1, 0)
+    assert v["1"]["validation"]["bc"]["deployed"] == 2 and v["1"]["validation"]["bc"][
+        "losses"] == 0
+    t0, t75 = v["0"]["test"]["rl2s"], v["0.75"]["test"]["rl2s"]
+    assert (t0["deployed"], t0["losses"], t0["median_gain"]) == (3, 1, pytest.approx(0.1))
+    assert (t75["deployed"], t75["losses"], t75["median_gain"]) == (2, 1, pytest.approx(0.0))
+    with pytest.raises(SystemExit, match="on 'validation'"):
+        gc.main(["--task", "hopper", "--validation", str(paths["test"]), "--out", str(out)])
+    del val["improvement"]["bc/0"]["guard_member_start"]
+    (tmp_path / "old.json").write_text(json.dumps(val))
+    with pytest.raises(SystemExit, match="bc/0 has no guard_member_start"):
+        gc.main(["--task", "hopper", "--validation", str(tmp_path / "old.json"), "--out",
+                 str(out)])
+    with pytest.raises(SystemExit, match="scales: expected"):
+        gc.main(["--task", "hopper", "--validation", str(paths["val"]), "--scales", "-1",
+                 "--out", str(out)])

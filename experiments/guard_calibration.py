@@ -1,0 +1,160 @@
+"""Issue 39's guard, calibrated on held-out training policies: the deployment guard with its
+floor scaled, floor = k x the lane's training MVD, read offline on the elite members' recorded
+predictions, with k chosen on runs of ``paper.py --policy-split validation`` (the simulators
+learned from the "fit" policies, the "validation" policies fine-tuned) and then read on the
+test policies' runs.
+
+    python experiments/guard_calibration.py --task walker2d --validation V1.json [V2.json ...]
+        --test T1.json [T2.json ...] [--scales 0,0.25,0.5,0.75,1] [--margin 0.02]
+        [--out docs/results/guard_calibration]
+
+A lane's verdict at scale k is ``finetune.deployment_guard`` on its members' start values
+(``guard_member_start``) and their predicted gains (``guard_member_gain``), both [M, P], with
+margin ``--margin`` (the recipe's, ``improve.recipes``) and floor k x ``guard_floor``; the
+real gain of a policy is I = (C1 - C0) / |C0| with C0 paired. The rule, set before any
+validation run: **k is the smallest scale of the grid whose deployments on the validation
+runs (every method's lanes pooled: the floor is the guard's, not a method's) include no real
+loss (I < 0); none such: 1, the protocol's guard.** On the test runs each scale reports per
+method its deployed count, losses and guarded median gain (``finetune.median_gain``: kept
+policies gain 0); the chosen scale's are the result. Writes OUT/<task>.json and prints a table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+import numpy as np
+
+from rl2s_jax.improve.finetune import deployment_guard, median_gain
+from rl2s_jax.improve.recipes import IMPROVE_RECIPES
+from rl2s_jax.zoo.zoo import load_zoo
+
+SCALES = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def lanes_of(run: dict, path: str) -> list[dict]:
+    """The guarded lanes of one paper.py result: per lane its method, seed, zoo ids, C0
+    (paired), C1, members' start values and predicted gains [M, P] and training-MVD floor.
+    SystemExit naming the file where a lane lacks what the guard read."""
+    names = run["test_policy_names"]
+    out = []
+    for lane, e in run["improvement"].items():
+        missing = [k for k in ("guard_member_gain", "guard_member_start", "guard_floor")
+                   if k not in e]
+        if missing:
+            raise SystemExit(f"runs: {path} lane {lane} has no {', '.join(missing)} (a run "
+                             "with --guard-margin, since the guard kept its members' starts)")
+        out.append({"method": e["method"], "seed": e["seed"],
+                    "zoo_ids": [int(names[i].rsplit("-", 1)[1]) for i in e["policy_ids"]],
+                    "c0": np.asarray(e["c0_paired"], np.float64),
+                    "c1": np.asarray(e["c1"], np.float64),
+                    "start": np.asarray(e["guard_member_start"], np.float64),
+                    "gain": np.asarray(e["guard_member_gain"], np.float64),
+                    "floor": float(e["guard_floor"])})
+    return out
+
+
+def load_runs(paths: list[str], task: str, split: str) -> list[dict]:
+    """Every lane of the runs, each run checked to be ``task``'s on ``split``
+    ("validation" or "zoo": paper.py --policy-split)."""
+    lanes = []
+    for path in paths:
+        with open(path) as f:
+            run = json.load(f)
+        if run.get("task") != task or run.get("policy_split", "zoo") != split:
+            raise SystemExit(f"runs: {path} is task {run.get('task')!r} on the "
+                             f"{run.get('policy_split', 'zoo')!r} split; expected {task!r} on "
+                             f"{split!r}")
+        if not run.get("improvement"):
+            raise SystemExit(f"runs: {path} has no improvement (--improve-iterations 0?)")
+        lanes += lanes_of(run, path)
+    keys = [(r["method"], r["seed"]) for r in lanes]
+    if len(keys) != len(set(keys)):
+        raise SystemExit(f"runs: a (method, seed) lane appears twice among {split} runs")
+    return lanes
+
+
+def verdicts(lanes: list[dict], scale: float, margin: float) -> list[np.ndarray]:
+    """Per lane [P] bool: the guard with floor ``scale`` x its training MVD."""
+    return [deployment_guard(r["start"], r["start"] + r["gain"], margin, scale * r["floor"])
+            for r in lanes]
+
+
+def read_scale(lanes: list[dict], scale: float, margin: float, zoo_returns) -> dict:
+    """Per method at one scale: deployed, real losses among them, lanes x policies, and (with
+    ``zoo_returns``) the guarded median gain over the seeds."""
+    out = {}
+    for m in dict.fromkeys(r["method"] for r in lanes):
+        mine = sorted((r for r in lanes if r["method"] == m), key=lambda r: r["seed"])
+        acc = verdicts(mine, scale, margin)
+        gain = [(r["c1"] - r["c0"]) / np.abs(r["c0"]) for r in mine]
+        row = {"deployed": int(sum(a.sum() for a in acc)),
+               "losses": int(sum((a & (g < 0)).sum() for a, g in zip(acc, gain, strict=True))),
+               "lanes_x_policies": int(sum(a.size for a in acc)), "seeds": len(mine)}
+        if zoo_returns is not None:
+            dep = np.stack([np.where(a, r["c1"], r["c0"]) for a, r in zip(acc, mine,
+                                                                           strict=True)])
+            row["median_gain"] = median_gain(np.stack([r["c0"] for r in mine]), dep,
+                                             zoo_returns[mine[0]["zoo_ids"]],
+                                             zoo_returns)["median_gain"]
+        out[m] = row
+    return out
+
+
+def choose_scale(by_scale: dict) -> float:
+    """The rule: the smallest scale whose validation deployments (all methods) lose nothing;
+    else 1 (the protocol's guard)."""
+    for k in sorted(by_scale):
+        if sum(row["losses"] for row in by_scale[k]["validation"].values()) == 0:
+            return k
+    return 1.0
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--task", required=True)
+    ap.add_argument("--validation", nargs="+", required=True,
+                    help="paper.py --policy-split validation JSONs (guarded, fine-tuned)")
+    ap.add_argument("--test", nargs="*", default=[], help="paper.py JSONs of the test policies")
+    ap.add_argument("--scales", default=",".join(f"{k:g}" for k in SCALES))
+    ap.add_argument("--margin", type=float,
+                    default=IMPROVE_RECIPES["control"]["guard_margin"])
+    ap.add_argument("--out", default="docs/results/guard_calibration")
+    args = ap.parse_args(argv)
+    try:
+        scales = sorted({float(x) for x in args.scales.split(",") if x.strip()})
+    except ValueError:
+        scales = []
+    if not scales or not all(np.isfinite(k) and k >= 0 for k in scales):
+        raise SystemExit(f"scales: expected a comma list of floats >= 0, got {args.scales!r}")
+    if not (np.isfinite(args.margin) and args.margin >= 0):
+        raise SystemExit(f"margin: expected a finite float >= 0, got {args.margin}")
+    val = load_runs(args.validation, args.task, "validation")
+    test = load_runs(args.test, args.task, "zoo") if args.test else []
+    zret = np.asarray(load_zoo(args.task).returns, np.float64)
+    by_scale = {k: {"validation": read_scale(val, k, args.margin, zret),
+                    **({"test": read_scale(test, k, args.margin, zret)} if test else {})}
+                for k in scales}
+    chosen = choose_scale(by_scale)
+    doc = {"task": args.task, "margin": args.margin, "scales": scales, "chosen_scale": chosen,
+           "rule": "the smallest scale whose validation deployments (all methods pooled) "
+                   "include no real loss; none: 1",
+           "by_scale": {f"{k:g}": v for k, v in by_scale.items()},
+           "validation_runs": args.validation, "test_runs": args.test}
+    os.makedirs(args.out, exist_ok=True)
+    path = os.path.join(args.out, f"{args.task}.json")
+    with open(path, "w") as f:
+        json.dump(doc, f, indent=1)
+    for k, parts in by_scale.items():
+        for split, rows in parts.items():
+            print(f"k {k:<5g} {split:<10} " + "; ".join(
+                f"{m} {r['deployed']}/{r['lanes_x_policies']} deployed, {r['losses']} lost, "
+                f"median {r['median_gain']:+.3f}" for m, r in rows.items()))
+    print(f"chosen scale {chosen:g} (the rule: {doc['rule']}) -> {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -64,6 +64,10 @@ class Zoo:
         if split in ("fit", "validation"):
             by_return = sorted(self.train_ids, key=lambda i: (self.returns[i], i))
             held = set(by_return[VALIDATION_EVERY // 2::VALIDATION_EVERY])
+            if not held:
+                raise ValueError(f"split: {split!r} holds out every {VALIDATION_EVERY}th "
+                                 f"training policy; this zoo has {len(self.train_ids)} "
+                                 f"(needs {VALIDATION_EVERY // 2 + 1} or more)")
             return [i for i in self.train_ids if (i in held) == (split == "validation")]
         raise ValueError(f"split: expected one of 'train', 'test', 'all', 'fit', 'validation', "
                          f"got {split!r}")

@@ -18,14 +18,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.pipeline import PROFILES
+from rl2s_jax.app.pipeline import PROFILES, pipeline_keys
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.improve.finetune import improve_policies, member_values, paired_episode_returns
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_simulator
-from rl2s_jax.train.config import METHODS  # the pipeline's default order: method i's key 10 + i
+from rl2s_jax.train.config import METHODS  # the pipeline's default order of its checkpoints
 from rl2s_jax.zoo.zoo import policies_for
 
 
@@ -44,13 +44,14 @@ def main(argv=None) -> int:
     policies, pool = policies_for(ds), start_pool(ds)
     cfg = SACConfig.fine_tuning(**{"episode_length": args.horizon, **PROFILES["cpu"]["sac"]})
     sim = load_simulator(f"{args.run}/{args.method}/checkpoints")
-    i, p, n = METHODS.index(args.method), args.policy, len(ds.value)
-    tuned, _ = improve_policies(sim, task, pool, policies, jax.random.PRNGKey(10 + i), cfg,
+    p, n = args.policy, len(ds.value)
+    keys = pipeline_keys(0, METHODS.index(args.method))  # `rl2s pipeline`'s, seed 0
+    tuned, _ = improve_policies(sim, task, pool, policies, keys["improve"], cfg,
                                 n_iterations=args.iterations, chunk_iterations=args.iterations)
     name = (ds.meta.get("policy_names") or [f"policy-{p}"] * n)[p]
     env, gamma = task.make_env(), float(ds.meta.get("gamma") or 0.999)
     for length in (int(x) for x in args.lengths.split(",")):
-        r0, (r1,) = paired_episode_returns(env, policies, [tuned], jax.random.PRNGKey(20),
+        r0, (r1,) = paired_episode_returns(env, policies, [tuned], keys["measure"],
                                            n_episodes=args.episodes, episode_length=length,
                                            gamma=gamma)
         c0, c1 = r0[p].mean(), r1[p].mean()
@@ -59,7 +60,7 @@ def main(argv=None) -> int:
               f"gain {(c1 - c0) / abs(c0):+.3f}")
     both = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b]), policies, tuned)
     for h in sorted({args.horizon, int(ds.meta.get("episode_length") or task.episode_length)}):
-        v = member_values(sim, task, both, pool, jax.random.PRNGKey(30 + i), n_episodes=16,
+        v = member_values(sim, task, both, pool, keys["guard"], n_episodes=16,
                           horizon=h, gamma=gamma)
         gain = (v[:, n + p] - v[:, p]) / np.abs(v[:, p])
         print(f"{name}: the elite members' predicted gain over {h} simulated steps: "

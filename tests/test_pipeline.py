@@ -124,3 +124,16 @@ def test_cpu_from_cpuinfo_names_the_model_and_the_widest_instruction_set():
     assert cpu_from_cpuinfo(text) == {"cpu": "AMD EPYC", "cpu_isa": "AVX512"}
     assert cpu_from_cpuinfo(text.replace(" avx512f avx512bw", ""))["cpu_isa"] == "AVX2"
     assert cpu_from_cpuinfo("") == {"cpu": None, "cpu_isa": None}
+
+
+def test_pipeline_keys_are_the_recorded_runs_keys():
+    """pipeline_keys: per method its own SAC and guard keys, one measurement key for all, the
+    same as the runs recorded so far drew (PRNGKey(seed + 10 + i), (seed + 30 + i),
+    (seed + 20)), so that a script repeating one method's fine-tuning repeats it exactly."""
+    from rl2s_jax.app.pipeline import pipeline_keys
+
+    for seed, i in ((0, 0), (0, 3), (5, 1)):
+        k = pipeline_keys(seed, i)
+        for name, base in (("improve", 10 + i), ("measure", 20), ("guard", 30 + i)):
+            np.testing.assert_array_equal(k[name], jax.random.PRNGKey(seed + base))
+    assert not np.array_equal(pipeline_keys(0, 0)["improve"], pipeline_keys(0, 1)["improve"])

@@ -70,6 +70,17 @@ PROFILES = {
 }
 
 
+def pipeline_keys(seed: int, method_index: int) -> dict[str, jax.Array]:
+    """The keys of ``improve_in_simulators`` for the method at ``method_index`` of its
+    checkpoints (``train.config.METHODS`` order by default): SAC fine-tuning ("improve"), the
+    guard ("guard") and the paired real measurement shared by every method ("measure");
+    scripts that repeat one method's fine-tuning (``experiments/guard_horizon.py``) take them
+    here, so that they repeat it exactly."""
+    return {"improve": jax.random.PRNGKey(seed + 10 + method_index),
+            "measure": jax.random.PRNGKey(seed + 20),
+            "guard": jax.random.PRNGKey(seed + 30 + method_index)}
+
+
 def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
                           horizon: int, seed: int = 0, guard_margin: float | None = GUARD_MARGIN,
                           guard_episodes: int = 16, guard_floors: dict | None = None,
@@ -118,8 +129,8 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
         sim = load_simulator(ckpt)
         opts = scaled_env_options(sim, *real_rows(ds, seed=seed), rollout_length=branch,
                                   uncertainty_penalty=recipe.get("uncertainty_penalty", 0.0))
-        params, _ = improve_policies(sim, task, sac_pool, policies,
-                                     jax.random.PRNGKey(seed + 10 + i), cfg,
+        keys = pipeline_keys(seed, i)
+        params, _ = improve_policies(sim, task, sac_pool, policies, keys["improve"], cfg,
                                      n_iterations=sizes["improve_iterations"],
                                      chunk_iterations=min(1000, sizes["improve_iterations"]),
                                      env_options=opts)
@@ -136,7 +147,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
                     sim, *train, key=jax.random.PRNGKey(seed), n_episodes=guard_episodes,
                     horizon=episode_length, gamma=gamma)["metrics"]["mvd"])
             g, params = deploy_through_guard(
-                sim, task, pool, policies, params, None, jax.random.PRNGKey(seed + 30 + i),
+                sim, task, pool, policies, params, None, keys["guard"],
                 margin=guard_margin, n_episodes=guard_episodes, horizon=episode_length,
                 gamma=gamma, floor=floors[method])
             accept = np.asarray(g["accepted"])
@@ -150,7 +161,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     # (one MJX compile).
     t0 = time.perf_counter()
     r0, rs = paired_episode_returns(task.make_env(), policies, deployed,
-                                    jax.random.PRNGKey(seed + 20),
+                                    pipeline_keys(seed, 0)["measure"],
                                     n_episodes=sizes["value_episodes"],
                                     episode_length=episode_length, gamma=gamma)
     out = {}

@@ -16,7 +16,9 @@ validation run: **k is the smallest scale of the grid whose deployments on the v
 runs (every method's lanes pooled: the floor is the guard's, not a method's) include no real
 loss (I < 0); none such: 1, the protocol's guard.** On the test runs each scale reports per
 method its deployed count, losses and guarded median gain (``finetune.median_gain``: kept
-policies gain 0); the chosen scale's are the result. Writes OUT/<task>.json and prints a table.
+policies gain 0); the chosen scale's are the result. Writes OUT/<task>.json, OUT/<task>.png
+(per split and method, deployed and lost policies against k, the chosen k marked) and prints a
+table.
 """
 from __future__ import annotations
 
@@ -112,6 +114,34 @@ def choose_scale(by_scale: dict) -> float:
     return 1.0
 
 
+def plot(by_scale: dict, chosen: float, task: str, path: str) -> None:
+    """Per split (validation, test) one panel: each method's deployed count against the floor
+    scale k (solid) and its real losses among them (dashed, crosses), the chosen k marked."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scales = sorted(by_scale)
+    splits = [s for s in ("validation", "test") if s in by_scale[scales[0]]]
+    fig, axes = plt.subplots(1, len(splits), figsize=(4.2 * len(splits), 3.2), squeeze=False)
+    for ax, split in zip(axes[0], splits, strict=True):
+        for n, m in enumerate(by_scale[scales[0]][split]):
+            color = f"C{n}"
+            rows = [by_scale[k][split][m] for k in scales]
+            ax.plot(scales, [r["deployed"] for r in rows], "o-", color=color, label=m)
+            ax.plot(scales, [r["losses"] for r in rows], "x--", color=color)
+        ax.axvline(chosen, color="0.5", lw=0.8, ls=":", label=f"chosen k {chosen:g}")
+        ax.set_xlabel("floor scale k (x the lane's training MVD)", fontsize=8)
+        ax.set_title(f"{split}: deployed (solid), real losses (dashed)", fontsize=8)
+        ax.legend(fontsize=7)
+    axes[0][0].set_ylabel("(seed, policy) pairs", fontsize=8)
+    fig.suptitle(f"{task}: the guard's floor, calibrated on held-out training policies",
+                 fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
@@ -147,6 +177,7 @@ def main(argv=None) -> int:
     path = os.path.join(args.out, f"{args.task}.json")
     with open(path, "w") as f:
         json.dump(doc, f, indent=1)
+    plot(by_scale, chosen, args.task, os.path.join(args.out, f"{args.task}.png"))
     for k, parts in by_scale.items():
         for split, rows in parts.items():
             print(f"k {k:<5g} {split:<10} " + "; ".join(

@@ -1648,6 +1648,7 @@ def test_guard_calibration_by_hand(tmp_path):
     t0, t75 = v["0"]["test"]["rl2s"], v["0.75"]["test"]["rl2s"]
     assert (t0["deployed"], t0["losses"], t0["median_gain"]) == (3, 1, pytest.approx(0.1))
     assert (t75["deployed"], t75["losses"], t75["median_gain"]) == (2, 1, pytest.approx(0.0))
+    assert (out / "hopper.png").stat().st_size > 10_000  # the figure
     with pytest.raises(SystemExit, match="on 'validation'"):
         gc.main(["--task", "hopper", "--validation", str(paths["test"]), "--out", str(out)])
     del val["improvement"]["bc/0"]["guard_member_start"]

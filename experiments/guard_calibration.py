@@ -31,7 +31,7 @@ import numpy as np
 
 from rl2s_jax.improve.finetune import deployment_guard, median_gain
 from rl2s_jax.improve.recipes import IMPROVE_RECIPES
-from rl2s_jax.zoo.zoo import load_zoo
+from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
 
 SCALES = (0.0, 0.25, 0.5, 0.75, 1.0)
 
@@ -49,7 +49,7 @@ def lanes_of(run: dict, path: str) -> list[dict]:
             raise SystemExit(f"runs: {path} lane {lane} has no {', '.join(missing)} (a run "
                              "with --guard-margin, since the guard kept its members' starts)")
         out.append({"method": e["method"], "seed": e["seed"],
-                    "zoo_ids": [int(names[i].rsplit("-", 1)[1]) for i in e["policy_ids"]],
+                    "zoo_ids": names_to_zoo_ids([names[i] for i in e["policy_ids"]]),
                     "c0": np.asarray(e["c0_paired"], np.float64),
                     "c1": np.asarray(e["c1"], np.float64),
                     "start": np.asarray(e["guard_member_start"], np.float64),

@@ -41,7 +41,7 @@ import numpy as np
 from rl2s_jax.app.protocol_improve import pair_floor_verdict
 from rl2s_jax.app.results_tables import PAPER
 from rl2s_jax.improve.finetune import median_ci95, median_gain
-from rl2s_jax.zoo.zoo import load_zoo
+from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
 
 KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",
         "zoo_sha256", "sac_config", "improve_variant", "timings", "improvement",
@@ -54,7 +54,7 @@ def zoo_ids(run: dict, ids: list[int]) -> list[int]:
     """The zoo ids of test policies ``ids`` of a paper.py result (from its
     ``test_policy_names``, "<task>-<zoo id>")."""
     names = run["test_policy_names"]
-    return [int(names[i].rsplit("-", 1)[1]) for i in ids]
+    return names_to_zoo_ids([names[i] for i in ids])
 
 
 def lane_rows(run: dict, zoo_returns: np.ndarray) -> list[dict]:

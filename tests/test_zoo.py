@@ -129,6 +129,16 @@ def test_extend_zoo_keeps_ids_and_training_split():
         extend_zoo(base, new, values, [{}] * 5, 9)
 
 
+def test_names_to_zoo_ids_inverts_policy_names():
+    """names_to_zoo_ids reads back the ids Zoo.policy_names wrote, a task with a dash too."""
+    from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
+
+    zoo = load_zoo("hopper")
+    ids = [0, 7, 35]
+    assert names_to_zoo_ids(zoo.policy_names(ids)) == ids
+    assert names_to_zoo_ids(["my-robot-012"]) == [12]
+
+
 def test_validation_split_holds_out_every_fourth_training_policy_by_return():
     """split_ids("validation"): every VALIDATION_EVERY-th training policy by return, from the
     middle of each group; "fit": the rest; together the training policies, no test policy;

@@ -76,6 +76,11 @@ class Zoo:
         return [f"{self.task}-{i:03d}" for i in ids]
 
 
+def names_to_zoo_ids(names: Sequence[str]) -> list[int]:
+    """The zoo ids in policy names "<task>-<id>" (``Zoo.policy_names``' inverse)."""
+    return [int(name.rsplit("-", 1)[1]) for name in names]
+
+
 def zoo_dir(task: str, root: str | None = None) -> str:
     return os.path.join(root or ZOO_ROOT, task)
 

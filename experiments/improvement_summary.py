@@ -11,8 +11,8 @@ C0) / |C0| of the test policies below the zoo's top quartile, averaged over the 
 paired with C1), raw (all deployed) and through the protocol's guard (a kept start gains 0),
 per seed; MPI / API raw and guarded (means over seeds), deployed count, ``budget_env_steps``
 (simulated env steps per policy), commands. ``paired``: RL2S's raw (and guarded) gain minus
-GAIL's and BC's per (seed, policy below the top quartile) over the seeds both ran: median,
-95% bootstrap interval, how often RL2S gained more. ``bars`` (with --control): ``issue_bars``.
+GAIL's and BC's (``finetune.paired_gain_difference``: per (seed, policy below the top
+quartile) and per seed). ``bars`` (with --control): ``issue_bars``.
 ``guard_rules``: what other deployment rules would have deployed, from the members' predicted
 gains (``guard_member_gain``): "every member predicts a gain" and, on the lanes that recorded
 the range floor, the "training-error range floor" (``protocol_improve.lane_error_range``) and
@@ -40,7 +40,7 @@ import numpy as np
 
 from rl2s_jax.app.protocol_improve import pair_floor_verdict
 from rl2s_jax.app.results_tables import PAPER
-from rl2s_jax.improve.finetune import median_ci95, median_gain
+from rl2s_jax.improve.finetune import median_gain, paired_gain_difference
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
 
 KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",
@@ -203,16 +203,9 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
                   "worst_deployed": float(i_dep.min()),
                   "deployed": int(sum(r["accepted"].sum() for r in mine)),
                   "lanes_x_policies": int(sum(len(r["accepted"]) for r in mine))}
-    paired = {}
-    for other in ("gail", "bc"):
-        for suffix, g in (("", gains), (" guarded", gains_g)):
-            common = sorted(set(g.get("rl2s", {})) & set(g.get(other, {})))
-            if common:  # paired over the seeds both methods ran
-                d = np.concatenate([g["rl2s"][k] - g[other][k] for k in common])
-                paired[f"rl2s-{other}{suffix}"] = {
-                    "median": float(np.median(d)), "ci95": median_ci95(d, n_boot),
-                    "rl2s_higher": int((d > 0).sum()), "pairs": int(d.size),
-                    "seeds": common}
+    paired = {f"rl2s-{o}{sfx}": p for o in ("gail", "bc")  # over the seeds both ran
+              for sfx, g in (("", gains), (" guarded", gains_g))
+              if (p := paired_gain_difference(g.get("rl2s", {}), g.get(o, {}), n_boot))}
     rules = {}
     for m in out:
         mine = [r for r in rows if r["method"] == m and r["member_gain"] is not None]
@@ -242,6 +235,13 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
                            "worse_than_start": int((real[sel] < 0).sum())}
                     for name, sel, lanes in sels}
     return {"methods": out, "paired": paired, "guard_rules": rules}
+
+
+def over_seeds_text(o: dict) -> str:
+    """A paired entry's ``over_seeds`` as text: mean [t95] (per seed), or the one seed's."""
+    per = " / ".join(f"{d:+.3f}" for d in o["per_seed"])
+    return (f"{per} (one seed)" if o["mean"] is None else
+            f"{o['mean']:+.3f} [{o['t95'][0]:+.3f}, {o['t95'][1]:+.3f}] ({per})")
 
 
 def issue_bars(summary: dict, task: str) -> dict:
@@ -383,7 +383,7 @@ def main(argv=None) -> int:
     for k, v in summary["paired"].items():
         print(f"paired {k}: median {v['median']:+.3f} [{v['ci95'][0]:+.3f}, "
               f"{v['ci95'][1]:+.3f}]; RL2S higher in {v['rl2s_higher']} of {v['pairs']} "
-              f"(seed, policy) pairs")
+              f"(seed, policy) pairs; over seeds " + over_seeds_text(v["over_seeds"]))
     for m, rules in summary["guard_rules"].items():
         print(f"guard rules {m}: " + "; ".join(f"{k} {r['deployed']} deployed, "
               f"{r['worse_than_start']} worse" for k, r in rules.items()))

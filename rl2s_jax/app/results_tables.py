@@ -1,6 +1,6 @@
 """The row builders of experiments/paper_tables.py: the paper's published numbers and, from
 experiments/paper.py's result JSON (one dict per task), the markdown rows of each table of the
-generated block of docs/RESULTS.md. Pure Python (scipy for one t quantile); uses no JAX itself.
+generated block of docs/RESULTS.md. Pure Python; uses no JAX itself.
 """
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import math
 import os
 import statistics
 
-from scipy.stats import t as student_t
+from rl2s_jax.evaluate.metrics import t_interval
 
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -191,11 +191,8 @@ def paired_mvd(result: dict, other: str) -> tuple[float, float, float, int, int]
     if len(a) != len(b):
         return None
     diffs = [x - y for x, y in zip(a, b, strict=True) if x is not None and y is not None]
-    if len(diffs) < 2:
-        return None
-    n, mid = len(diffs), statistics.fmean(diffs)
-    half = float(student_t.ppf(0.975, n - 1)) * statistics.stdev(diffs) / math.sqrt(n)
-    return mid, mid - half, mid + half, sum(d < 0 for d in diffs), n
+    t = t_interval(diffs)
+    return None if t is None else (*t, sum(d < 0 for d in diffs), len(diffs))
 
 
 def paired_mvd_rows(results: dict) -> list[str]:

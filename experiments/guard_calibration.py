@@ -10,7 +10,8 @@ test policies' runs.
 
 A lane's verdict at scale k is ``finetune.deployment_guard`` on its members' start values
 (``guard_member_start``) and their predicted gains (``guard_member_gain``), both [M, P], with
-margin ``--margin`` (the recipe's, ``improve.recipes``) and floor k x ``guard_floor``; the
+margin ``--margin`` (the recipe's, ``improve.recipes``) and floor k x the lane's training MVD
+(``guard_training_mvd``; before it was recorded, ``guard_floor``, at scale 1); the
 real gain of a policy is I = (C1 - C0) / |C0| with C0 paired. The rule, set before any
 validation run: **k is the smallest scale of the grid whose deployments on the validation
 runs (every method's lanes pooled: the floor is the guard's, not a method's) include no real
@@ -18,7 +19,9 @@ loss (I < 0); none such: 1, the protocol's guard.** On the test runs each scale 
 method its deployed count, losses and guarded median gain (``finetune.median_gain``: kept
 policies gain 0); the chosen scale's are the result. Writes OUT/<task>.json, OUT/<task>.png
 (per split and method, deployed and lost policies against k, the chosen k marked) and prints a
-table.
+table. ``--rescore DIR``: each test run again as DIR/<its name>, its lanes' guard verdicts at
+the chosen k (``guard_accepted``, ``guard_floor``, ``guard_floor_scale``; the verdicts it had
+dropped), for ``improvement_summary.py --record`` once a recipe takes k.
 """
 from __future__ import annotations
 
@@ -54,7 +57,7 @@ def lanes_of(run: dict, path: str) -> list[dict]:
                     "c1": np.asarray(e["c1"], np.float64),
                     "start": np.asarray(e["guard_member_start"], np.float64),
                     "gain": np.asarray(e["guard_member_gain"], np.float64),
-                    "floor": float(e["guard_floor"])})
+                    "floor": float(e.get("guard_training_mvd", e["guard_floor"]))})
     return out
 
 
@@ -105,6 +108,28 @@ def read_scale(lanes: list[dict], scale: float, margin: float, zoo_returns) -> d
     return out
 
 
+def rescore(path: str, scale: float, margin: float, out_dir: str) -> str:
+    """Test run ``path`` with its lanes' guard at floor ``scale`` x the training MVD (what
+    ``improvement_summary`` reads), written to out_dir; its deployed-only figures, read at the
+    run's own floor, are dropped. -> the written path."""
+    with open(path) as f:
+        run = json.load(f)
+    for lane, e in run["improvement"].items():
+        (r,) = lanes_of({**run, "improvement": {lane: e}}, path)
+        e["guard_accepted"] = verdicts([r], scale, margin)[0].tolist()
+        e.update(guard_training_mvd=r["floor"], guard_floor=scale * r["floor"],
+                 guard_floor_scale=scale)
+        for k in ("I_deployed", "mpi_deployed", "api_deployed"):
+            e.pop(k, None)
+    run["guard_rescored"] = {"scale": scale, "margin": margin, "from": path,
+                             "by": "experiments/guard_calibration.py"}
+    os.makedirs(out_dir, exist_ok=True)
+    dest = os.path.join(out_dir, os.path.basename(path))
+    with open(dest, "w") as f:
+        json.dump(run, f, indent=1)
+    return dest
+
+
 def choose_scale(by_scale: dict) -> float:
     """The rule: the smallest scale whose validation deployments (all methods) lose nothing;
     else 1 (the protocol's guard)."""
@@ -152,6 +177,7 @@ def main(argv=None) -> int:
     ap.add_argument("--margin", type=float,
                     default=IMPROVE_RECIPES["control"]["guard_margin"])
     ap.add_argument("--out", default="docs/results/guard_calibration")
+    ap.add_argument("--rescore", metavar="DIR", help="write the test runs at the chosen k")
     args = ap.parse_args(argv)
     try:
         scales = sorted({float(x) for x in args.scales.split(",") if x.strip()})
@@ -184,6 +210,8 @@ def main(argv=None) -> int:
                 f"{m} {r['deployed']}/{r['lanes_x_policies']} deployed, {r['losses']} lost, "
                 f"median {r['median_gain']:+.3f}" for m, r in rows.items()))
     print(f"chosen scale {chosen:g} (the rule: {doc['rule']}) -> {path}")
+    for p in args.test if args.rescore else []:
+        print(f"rescored at k {chosen:g} -> {rescore(p, chosen, args.margin, args.rescore)}")
     return 0
 
 

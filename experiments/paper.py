@@ -125,8 +125,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--guard-margin", type=float, help="MPI / API of the policies deployed "
                     "where every elite member predicts a gain above this fraction "
                     "(ablation '<variant>+guard')")
-    ap.add_argument("--guard-floor", choices=("mvd", "none"), default="mvd", help="a gain "
-                    "must also exceed the lane's training MVD (mvd) or nothing (none)")
+    ap.add_argument("--guard-floor-scale", type=float, default=1.0, help="a gain must also "
+                    "exceed this x the lane's training MVD (0: the margin alone)")
     ap.add_argument("--zoo-recipe", action="store_true", help="fine-tune at the zoo learner's "
                     "discount, reward scale and batch (zoo.build.fine_tuning_recipe)")
     ap.add_argument("--improve-recipe", choices=sorted(IMPROVE_RECIPES), help="a measured "
@@ -256,9 +256,9 @@ def check_arguments(args) -> tuple:
     families = parse_families(args.families)
     if args.eps_lanes:
         families = add_eps_lanes(families, args.eps_lanes, sizes_improve=args.improve_iterations)
-    if args.guard_margin is not None and not (np.isfinite(args.guard_margin)
-                                              and args.guard_margin >= 0):
-        raise SystemExit(f"guard-margin: expected a finite float >= 0, got {args.guard_margin}")
+    for name, v in (("margin", args.guard_margin), ("floor-scale", args.guard_floor_scale)):
+        if v is not None and not (np.isfinite(v) and v >= 0):
+            raise SystemExit(f"guard-{name}: expected a finite float >= 0, got {v}")
     if args.guard_snapshots and args.guard_margin is None:
         raise SystemExit("guard-snapshots: needs --guard-margin (the guard's margin)")
     if args.first_seed < 0:
@@ -375,13 +375,12 @@ def main(argv=None) -> int:
                           halt_penalty=args.halt_penalty)
     if it and sizes["improve_seeds"]:
         lanes, sims = lane_simulators(finals, seed_ids[0] + sizes["improve_seeds"])
-        floors = (lane_floors(finals, seed_ids[0] + sizes["improve_seeds"], sims, train_ds,
-                              train_pols, ft)
-                  if args.guard_floor == "mvd" else None)
+        mvds = (lane_floors(finals, seed_ids[0] + sizes["improve_seeds"], sims, train_ds,
+                            train_pols, ft) if args.guard_margin is not None else None)
         run_improvement(result, ft, lanes, sims, test_ds, variants, settings_of=settings_of,
                         ablation_methods=ablation_methods, guard_margin=args.guard_margin,
                         guard_snapshots=args.guard_snapshots, phase=phase, save=save,
-                        guard_floors=floors)
+                        guard_floors=mvds, guard_floor_scale=args.guard_floor_scale)
     if it and oracle_seeds:
         run_oracle_improvement(result, ft, test_ds, variants[0], settings_of(variants[0]),
                                oracle_seeds, phase)

@@ -202,6 +202,7 @@ def cmd_improve(args) -> int:
                     uncertainty_threshold=args.uncertainty_threshold,
                     halt_penalty=args.halt_penalty, guard_margin=guard_margin(args),
                     guard_episodes=args.guard_episodes, recipe=args.recipe,
+                    floor_scale=args.guard_floor_scale,
                     progress=not args.quiet)
     print(summary_markdown(s))
     print(f"-> {args.out}: zoo.npz, zoo.json, summary.json, summary.md"
@@ -288,10 +289,11 @@ def _guard_options(p) -> None:
                    help="deploy a fine-tuned policy only where every elite member of the "
                    "simulator predicts a gain above M x |start value| (simulated); elsewhere "
                    "keep the start policy (default: 0.02)")
+    p.add_argument("--guard-floor-scale", type=float, metavar="K", help="and above K x the "
+                   "simulator's training MVD (default: the --recipe's, else 1; 0: no floor)")
     p.add_argument("--guard-episodes", type=_positive("guard-episodes"), default=16,
                    help="simulated episodes per policy and member for the guard")
-    p.add_argument("--no-guard", action="store_true", help="no deployment guard: deploy "
-                   "every fine-tuned policy (raw fine-tuning)")
+    p.add_argument("--no-guard", action="store_true", help="deploy every fine-tuned policy")
 
 
 def _sim_env_options(p, default: str = "whole episodes from its start states") -> None:
@@ -556,8 +558,7 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.flush()  # a closed pipe shows here, not in the flush at exit
     except BrokenPipeError:
         # stdout closed early (`rl2s inspect ... | head -1`): quiet, as Python's docs advise
-        # (library/signal.html, note on SIGPIPE): devnull takes stdout, so the flush at exit
-        # finds no closed pipe either.
+        # (library/signal.html, SIGPIPE): devnull takes stdout, so exit's flush finds no pipe.
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         sys.exit(1)
     return rc

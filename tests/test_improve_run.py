@@ -285,6 +285,10 @@ def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, c
     assert rc == 2 and "no-guard: turns the deployment guard off; drop --guard-snapshots" in err
     rc, err = refused("--no-guard", "--guard-margin", "0.1")
     assert rc == 2 and "drop --guard-margin" in err
+    rc, err = refused("--no-guard", "--guard-floor-scale", "0.5")
+    assert rc == 2 and "drop --guard-floor-scale" in err
+    rc, err = refused("--guard-floor-scale", "-1")
+    assert rc == 2 and "guard-floor-scale: expected a finite float >= 0" in err
     # data of another task
     ds = load_dataset(run["data"])
     other = ds.replace(meta={**ds.meta, "task": "twomass"})
@@ -298,19 +302,30 @@ def test_improve_refuses_bad_input_before_work(pointmass_checkpoint, tmp_path, c
     assert not os.path.exists(out)
 
 
-def test_improve_guard_floor_comes_from_the_training_summary(pointmass_checkpoint, tmp_path):
+def test_improve_guard_floor_comes_from_the_training_summary(pointmass_checkpoint, tmp_path,
+                                                             monkeypatch):
     """`rl2s improve` takes the guard's floor from the summary.json `rl2s train` wrote beside
     the checkpoint: the training MVD, where measured at the guard's horizon and gamma. A floor
     no predicted gain can clear keeps every start; one measured at another horizon is not
-    used (floor 0, the margin's decisions)."""
+    used (floor 0, the margin's decisions). --guard-floor-scale K (or the --recipe's) scales
+    the MVD: K 1e-6 gives floor 1 and the decisions of margin and floor 1."""
     import shutil
+
+    from rl2s_jax.improve import recipes
 
     run = pointmass_checkpoint
     ds = load_dataset(run["data"])
     horizon = int(ds.meta.get("episode_length") or PointMass().episode_length)
     gamma = float(ds.meta.get("gamma") or 0.999)
     decisions = {}
-    for name, h in (("comparable", horizon), ("other_horizon", horizon + 7)):
+    # the recipe's scale where no flag is given (a task's change, as a calibration would add)
+    monkeypatch.setitem(recipes.IMPROVE_RECIPE_TASKS["control"], "pointmass",
+                        {"guard_floor_scale": 1e-6})
+    recipe = ["--recipe", "control", "--branch-length", "5", "--uncertainty-penalty", "0",
+              "--no-measure"]
+    for name, h, extra in (("comparable", horizon, []), ("other_horizon", horizon + 7, []),
+                           ("scaled", horizon, ["--guard-floor-scale", "1e-6"]),
+                           ("recipe", horizon, recipe)):
         run_dir = tmp_path / name
         shutil.copytree(run["ckpt"], run_dir / "checkpoints")
         (run_dir / "summary.json").write_text(json.dumps(
@@ -320,16 +335,23 @@ def test_improve_guard_floor_comes_from_the_training_summary(pointmass_checkpoin
         assert cli.main(["improve", "--ckpt", str(run_dir / "checkpoints"), "--data",
                          run["data"], "--policies", "0,3", "--out", str(out), "--iterations",
                          "20", "--episodes", "2", "--quiet", "--guard-episodes", "4",
-                         *SMALL]) == 0
+                         *SMALL, *extra]) == 0
         g = json.loads((out / "summary.json").read_text())["guard"]
         v0, v1 = np.asarray(g["sim_value_start"]), np.asarray(g["sim_value_tuned"])
-        decisions[name] = (g, np.all(v1 - v0 > 0.02 * np.abs(v0), axis=0).tolist())
+        floor = 1.0 if name in ("scaled", "recipe") else 0.0
+        decisions[name] = (g, np.all(v1 - v0 > np.maximum(0.02 * np.abs(v0), floor),
+                                     axis=0).tolist())
     g, _ = decisions["comparable"]
     assert g["floor"] == 1e6 and "summary.json" in g["floor_source"]
     assert g["accepted"] == [False, False]
     g, by_margin = decisions["other_horizon"]
     assert g["floor"] == 0.0 and "horizon" in g["floor_source"]
     assert g["accepted"] == by_margin
+    for name in ("scaled", "recipe"):
+        g, by_floor = decisions[name]
+        assert g["floor_scale"] == 1e-6 and g["floor"] == pytest.approx(1.0), name
+        assert g["floor_source"].startswith("1e-06 x the training MVD"), name
+        assert g["accepted"] == by_floor, name
 
 
 def test_checkpoint_floor_reads_the_summary_beside_the_checkpoint(tmp_path):

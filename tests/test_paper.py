@@ -610,6 +610,26 @@ def test_improve_recipe_sets_the_measured_flags_and_flags_given_win():
         paper.parse_args(["--task", "hopper", "--improve-recipe", "nope"])
 
 
+def test_improve_recipe_guard_floor_scale_reaches_both_front_ends(monkeypatch):
+    """A task's guard floor scale in the recipe (as a calibration would set it) becomes
+    paper.py's --guard-floor-scale and ``recipe_settings``' (rl2s improve); a flag given wins;
+    the recipe's own is 1 (the training MVD)."""
+    from rl2s_jax.improve import recipes
+
+    paper = _load("paper")
+    assert recipes.IMPROVE_RECIPES["control"]["guard_floor_scale"] == 1.0
+    assert paper.parse_args(["--task", "walker2d", "--improve-recipe", "control"]
+                            ).guard_floor_scale == 1.0
+    monkeypatch.setitem(recipes.IMPROVE_RECIPE_TASKS["control"], "walker2d",
+                        {"guard_floor_scale": 0.25})
+    assert paper.parse_args(["--task", "walker2d", "--improve-recipe", "control"]
+                            ).guard_floor_scale == 0.25
+    assert recipe_settings("control", "walker2d")["guard_floor_scale"] == 0.25
+    assert paper.parse_args(["--task", "walker2d", "--improve-recipe", "control",
+                             "--guard-floor-scale", "1"]).guard_floor_scale == 1.0
+    assert recipe_settings("control", "hopper")["guard_floor_scale"] == 1.0
+
+
 @pytest.mark.parametrize("task", ["hopper", "halfcheetah", "ant"])
 def test_rl2s_improve_recipe_is_paper_py_recipe(task):
     """``recipe_settings`` (rl2s improve --recipe) resolves to what paper.py --improve-recipe
@@ -650,7 +670,8 @@ def test_paper_smoke_hopper(tmp_path, capsys):
             "--eval-every", "2", "--eval-episodes", "2", "--transitions-per-policy", "200",
             "--value-episodes", "2", "--episode-length", "50", "--improve-policies", "2",
             "--improve-iterations", "2", "--out", str(out), "--check-eval",
-            "--guard-margin", "0", "--guard-snapshots", "--sac-chunk", "1"]
+            "--guard-margin", "0", "--guard-snapshots", "--sac-chunk", "1",
+            "--guard-floor-scale", "0.5"]
     assert paper.main(args) == 0
     printed = capsys.readouterr().out
     for phase in ("data", "oracle", "train_adversarial", "train_mle", "improve_sac",
@@ -761,9 +782,13 @@ def test_paper_smoke_hopper(tmp_path, capsys):
         assert v["I_deployed"] == pytest.approx(np.where(v["guard_accepted"], v["I"], 0.0))
         assert v["mpi_deployed"] == pytest.approx(min(v["I_deployed"]))
     assert set(r["ablation"]["full+guard"]["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc"}
-    # the guard's floor (--guard-floor mvd, the default): each lane's training MVD
-    assert all(np.isfinite(v["guard_floor"]) and v["guard_floor"] > 0 for v in imp.values())
-    assert r["ablation"]["full+guard"]["settings"]["guard_floor"] == "training MVD per lane"
+    # the guard's floor: --guard-floor-scale (0.5) x each lane's training MVD, both recorded
+    for v in imp.values():
+        assert np.isfinite(v["guard_training_mvd"]) and v["guard_training_mvd"] > 0
+        assert v["guard_floor"] == pytest.approx(0.5 * v["guard_training_mvd"])
+    settings = r["ablation"]["full+guard"]["settings"]
+    assert settings["guard_floor"] == "training MVD per lane"
+    assert settings["guard_floor_scale"] == 0.5
     # recorded beside it, unused: the range floor (the spread of the lane's signed training
     # errors at the guard's horizon: 50 steps here) and its verdict on the same members' values
     for lane, v in imp.items():
@@ -1158,7 +1183,8 @@ def test_select_point_rejects_a_point_whose_worst_training_vd_exploded():
 def test_paper_zoo_recipe_and_guard_floor_flags():
     """--zoo-recipe puts the zoo learner's discount, reward scale and batch (and a 2^19-row
     buffer) under the SAC settings, --sac-set still winning; a task without a SAC zoo plan is
-    refused, naming the flag; --guard-floor defaults to the lanes' training MVD."""
+    refused, naming the flag; the guard's floor defaults to 1 x the lanes' training MVD and a
+    negative scale is refused."""
     from rl2s_jax.zoo.build import ZOO_SAC, fine_tuning_recipe
 
     paper = _load("paper")
@@ -1169,7 +1195,7 @@ def test_paper_zoo_recipe_and_guard_floor_flags():
                       "learn_alpha": False}
     args = paper.build_parser().parse_args(["--task", "hopper", "--zoo-recipe", "--sac-set",
                                             "batch_size=64"])
-    assert args.guard_floor == "mvd"
+    assert args.guard_floor_scale == 1.0
     sac = paper.check_arguments(args)[2]
     assert sac["gamma"] == plan.gamma and sac["reward_scaling"] == plan.reward_scaling
     assert sac["buffer_size"] == 1 << 19 and sac["batch_size"] == 64
@@ -1180,6 +1206,9 @@ def test_paper_zoo_recipe_and_guard_floor_flags():
     args = paper.build_parser().parse_args(["--task", "hopper", "--zoo-recipe"])
     args.task = "no-such-task"
     with pytest.raises(SystemExit, match="zoo-recipe"):
+        paper.check_arguments(args)
+    args = paper.build_parser().parse_args(["--task", "hopper", "--guard-floor-scale", "-1"])
+    with pytest.raises(SystemExit, match="guard-floor-scale: expected a finite float >= 0"):
         paper.check_arguments(args)
 
 
@@ -1603,9 +1632,10 @@ def test_improve_control_ids_must_be_test_policies_of_one_task(tmp_path):
 
 def test_guard_calibration_by_hand(tmp_path):
     """experiments/guard_calibration.py on made-up validation and test runs of hopper: per
-    floor scale k the deployments, real losses and guarded median gain by hand; k is the
-    smallest scale without a validation loss over every method's lanes; runs of the wrong
-    split, lanes without the members' starts and bad scales are refused by name."""
+    floor scale k the deployments, real losses and guarded median gain by hand (k scales the
+    recorded training MVD, not a run's own scaled floor); k is the smallest scale without a
+    validation loss over every method's lanes; --rescore writes the test runs' verdicts at k;
+    runs of the wrong split, lanes without the members' starts and bad scales are refused."""
     gc = _load("guard_calibration")
     zoo = load_zoo("hopper")
     zret = np.asarray(zoo.returns, np.float64)
@@ -1626,16 +1656,19 @@ def test_guard_calibration_by_hand(tmp_path):
                "bc/0": lane("bc", [0, 1], [100.0, 200.0], [110.0, 220.0],
                             [[20.0, 20.0], [20.0, 20.0]], 10.0)}}
     # test: I .5, -.1, .1; bars 2 / 4 / 8, at k x 40: policy 2's members (30, 20) fail from .75
+    # (a run at --guard-floor-scale 0.5: its floor 20, its training MVD 40, which k scales)
     tst = {"task": "hopper", "test_policy_names": zoo.policy_names(test), "improvement": {
-        "rl2s/0": lane("rl2s", [test.index(i) for i in low], [100.0, 200.0, 400.0],
-                       [150.0, 180.0, 440.0], [[80.0, 50.0, 30.0], [70.0, 60.0, 20.0]], 40.0)}}
+        "rl2s/0": {**lane("rl2s", [test.index(i) for i in low], [100.0, 200.0, 400.0],
+                          [150.0, 180.0, 440.0], [[80.0, 50.0, 30.0], [70.0, 60.0, 20.0]],
+                          20.0), "guard_training_mvd": 40.0, "I_deployed": [0.5, 0, 0]}}}
     paths = {}
     for name, r in (("val", val), ("test", tst)):
         paths[name] = tmp_path / f"{name}.json"
         paths[name].write_text(json.dumps(r))
     out = tmp_path / "o"
     assert gc.main(["--task", "hopper", "--validation", str(paths["val"]), "--test",
-                    str(paths["test"]), "--scales", "0,0.5,0.75,1", "--out", str(out)]) == 0
+                    str(paths["test"]), "--scales", "0,0.5,0.75,1", "--out", str(out),
+                    "--rescore", str(tmp_path / "at_k")]) == 0
     doc = json.loads((out / "hopper.json").read_text())
     assert doc["chosen_scale"] == 0.75 and doc["margin"] == 0.02
     v = doc["by_scale"]
@@ -1649,6 +1682,12 @@ def test_guard_calibration_by_hand(tmp_path):
     assert (t0["deployed"], t0["losses"], t0["median_gain"]) == (3, 1, pytest.approx(0.1))
     assert (t75["deployed"], t75["losses"], t75["median_gain"]) == (2, 1, pytest.approx(0.0))
     assert (out / "hopper.png").stat().st_size > 10_000  # the figure
+    # --rescore: the test run again with its guard at the chosen k (0.75 x 40)
+    again = json.loads((tmp_path / "at_k" / "test.json").read_text())
+    e = again["improvement"]["rl2s/0"]
+    assert e["guard_accepted"] == [True, True, False] and "I_deployed" not in e
+    assert (e["guard_floor"], e["guard_training_mvd"], e["guard_floor_scale"]) == (30, 40, 0.75)
+    assert again["guard_rescored"]["scale"] == 0.75 and e["c1"] == [150.0, 180.0, 440.0]
     with pytest.raises(SystemExit, match="on 'validation'"):
         gc.main(["--task", "hopper", "--validation", str(paths["test"]), "--out", str(out)])
     del val["improvement"]["bc/0"]["guard_member_start"]

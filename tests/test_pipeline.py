@@ -84,10 +84,11 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
     imp = improve_in_simulators("hopper", str(out / "test.npz"), {"rl2s": ckpt}, sizes,
                                 horizon=40, guard_episodes=4, train_path=train, log=lambda _: 0,
                                 guard_floors={"rl2s": {"mvd": 1e-3, "horizon": 20,
-                                                       "gamma": 0.999}})["rl2s"]
+                                                       "gamma": 0.999}},
+                                guard_floor_scale=0.5)["rl2s"]   # the floor: 0.5 x the MVD
     on_train = evaluate_checkpoint(ckpt, train, n_episodes=4, horizon=40)
-    assert imp["guard_floor"] == pytest.approx(on_train["metrics"]["mvd"])
-    assert imp["guard_floor"] > 0
+    assert imp["guard_floor"] == pytest.approx(0.5 * on_train["metrics"]["mvd"])
+    assert imp["guard_floor"] > 0 and imp["guard_floor_scale"] == 0.5
     assert imp["guard_horizon"] == 40
 
 

@@ -71,11 +71,15 @@ GUARD_MARGIN = 0.02
 def guard_margin(args) -> float | None:
     """The guard's margin from the command line's --guard-margin (None: the --recipe's, else
     the default, ``GUARD_MARGIN``) and --no-guard (-> None: no guard); --no-guard with
-    --guard-margin or --guard-snapshots is refused."""
+    --guard-margin, --guard-snapshots or --guard-floor-scale is refused, and so is a
+    --guard-floor-scale below 0 (before any work)."""
+    scale = getattr(args, "guard_floor_scale", None)
+    if scale is not None and not (np.isfinite(scale) and scale >= 0):
+        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got {scale!r}")
     if args.no_guard:
         given = [o for o, on in (("--guard-margin", args.guard_margin is not None),
-                                 ("--guard-snapshots", getattr(args, "guard_snapshots", False)))
-                 if on]
+                                 ("--guard-snapshots", getattr(args, "guard_snapshots", False)),
+                                 ("--guard-floor-scale", scale is not None)) if on]
         if given:
             raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
         return None
@@ -154,13 +158,15 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                 uncertainty_threshold: float | None = None, halt_penalty: float = 0.0,
                 guard_margin: float | None = GUARD_MARGIN, guard_episodes: int = 16,
                 guard_snapshots: bool = False, floor: float | None = None,
-                recipe: str | None = None, progress: bool = True, log=print) -> dict:
+                floor_scale: float | None = None, recipe: str | None = None,
+                progress: bool = True, log=print) -> dict:
     """Fine-tune policies ``policy_ids`` (indices into the Dataset's policies; default all)
     inside the simulator of checkpoint ``ckpt`` and write the zoo, plots and summary into
     ``out`` (module docstring). The policies come from ``zoo``, ``policy_file`` or what the
     data's meta.source names (``zoo.policies_for``). -> the summary dict (also
     out/summary.json). ``floor``: the guard's floor in value units (``deployment_guard``);
-    None: the checkpoint's training MVD where comparable (``checkpoint_floor``), else 0.
+    None: the checkpoint's training MVD where comparable (``checkpoint_floor``), else 0; the
+    guard uses ``floor_scale`` x it (None: the recipe's, else 1).
     ``recipe``: a measured recipe (``improve.recipes``) for the simulator's task gives the
     iterations (else 1000), branch length, penalty (else 0) and SAC fields not given here."""
 
@@ -175,6 +181,9 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     if floor is not None and not (np.isfinite(floor) and floor >= 0):
         raise ValueError(f"floor: expected a finite float >= 0 (value units) or None, got "
                          f"{floor!r}")
+    if floor_scale is not None and not (np.isfinite(floor_scale) and floor_scale >= 0):
+        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got "
+                         f"{floor_scale!r}")
     if not isinstance(guard_episodes, int) or guard_episodes < 1:
         raise ValueError(f"guard-episodes: expected an int >= 1, got {guard_episodes!r}")
     if guard_snapshots and guard_margin is None:
@@ -201,6 +210,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         branch_length = rs["branch_length"] if branch_length is None else branch_length
         if uncertainty_penalty is None:
             uncertainty_penalty = rs["uncertainty_penalty"]
+        floor_scale = rs["guard_floor_scale"] if floor_scale is None else floor_scale
         overrides = {**rs["sac"], **(overrides or {})}
     iterations = 1000 if iterations is None else iterations
     uncertainty_penalty = 0.0 if uncertainty_penalty is None else uncertainty_penalty
@@ -244,12 +254,15 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
         floor, floor_source = (checkpoint_floor(ckpt, step, episode_length, gamma)
                                if floor is None else (float(floor), "given"))
+        scale = 1.0 if floor_scale is None else float(floor_scale)
+        floor, floor_source = scale * floor, (floor_source if scale == 1 else
+                                              f"{scale:g} x {floor_source}")
         guard, deployed = deploy_through_guard(
             sim, None, start_pool(ds), policies, after, snapshots,
             jax.random.fold_in(k_measure, 1), margin=guard_margin, n_episodes=guard_episodes,
             horizon=episode_length, gamma=gamma, chunk=chunk, iterations=iterations,
             floor=floor)
-        guard["floor_source"] = floor_source
+        guard.update(floor_source=floor_source, floor_scale=scale)
         log(f"[improve] guard (margin {guard_margin}, floor {floor:.3g}: {floor_source}"
             + (f", over snapshots every {chunk} iterations" if snapshots is not None else "")
             + f"): {int(np.sum(guard['accepted']))} of {len(ids)} fine-tuned policies kept, "

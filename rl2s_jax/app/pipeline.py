@@ -84,6 +84,7 @@ def pipeline_keys(seed: int, method_index: int) -> dict[str, jax.Array]:
 def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str], sizes: dict,
                           horizon: int, seed: int = 0, guard_margin: float | None = GUARD_MARGIN,
                           guard_episodes: int = 16, guard_floors: dict | None = None,
+                          guard_floor_scale: float = 1.0,
                           recipe: dict | None = None, train_path: str | None = None,
                           log=print) -> dict[str, dict]:
     """Fine-tune every test policy with SAC inside each method's simulator, pass it through
@@ -95,8 +96,9 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     (``improve.deployment_guard`` on the final actor): every elite member, over
     ``guard_episodes`` simulated episodes as long as the real ones the gain is measured on
     (the data's episode length; SAC's episodes may be shorter: ``horizon``), must predict a
-    gain above ``guard_margin`` x |start value| and above the method's floor: the simulator's
-    MVD on the training policies, the worst error it is known to make, at the guard's horizon
+    gain above ``guard_margin`` x |start value| and above the method's floor:
+    ``guard_floor_scale`` x the simulator's MVD on the training policies, the worst error it is
+    known to make, at the guard's horizon
     and gamma (``guard_floors[method]``, ``training_error_floor``, where measured there;
     else measured here on ``train_path``'s policies; else 0). A policy that a short horizon
     rewards for speed can fall later: judged over short episodes it would deploy and lose.
@@ -107,9 +109,13 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     always values whole episodes from the start states.
     -> {method: {"c0", "c0_se", "c1", "c1_se", "I", "c0_data" (the data's true values),
     "deployed" (bool), "predicted_gain" / "predicted_gain_mean" (None without the guard)
-    (lists [P]), "mpi", "api", "guard_margin", "guard_floor", "guard_horizon", "recipe"}}."""
+    (lists [P]), "mpi", "api", "guard_margin", "guard_floor", "guard_floor_scale",
+    "guard_horizon", "recipe"}}."""
 
 
+    if not (np.isfinite(guard_floor_scale) and guard_floor_scale >= 0):
+        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got "
+                         f"{guard_floor_scale!r}")
     ds = load_dataset(test_path)
     if not ds.has_values:
         raise ValueError(f"data: {test_path} has no true values, so C0 is unknown")
@@ -146,6 +152,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
                 floors[method] = float(evaluate_simulator(
                     sim, *train, key=jax.random.PRNGKey(seed), n_episodes=guard_episodes,
                     horizon=episode_length, gamma=gamma)["metrics"]["mvd"])
+            floors[method] *= guard_floor_scale
             g, params = deploy_through_guard(
                 sim, task, pool, policies, params, None, keys["guard"],
                 margin=guard_margin, n_episodes=guard_episodes, horizon=episode_length,
@@ -175,6 +182,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
                        "deployed": accept.tolist(), "predicted_gain": lo,
                        "predicted_gain_mean": mean, "guard_margin": guard_margin,
                        "guard_floor": floors.get(method), "guard_horizon": episode_length,
+                       "guard_floor_scale": guard_floor_scale,
                        "recipe": recipe}
         log(f"[pipeline] improvement in {method}'s simulator: MPI {m['mpi']:.3f}  API "
             f"{m['api']:.3f} ({int(accept.sum())} of {P} deployed)")
@@ -230,6 +238,7 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
     summary = {"task": args.task, "profile": profile, "backend": backend,
                "machine": machine_info(), "sizes": sizes,
                "guard_margin": guard_margin,
+               "guard_floor_scale": getattr(args, "guard_floor_scale", None),
                "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
                "datasets": {}}
     state_path = os.path.join(out, "pipeline.json")
@@ -277,6 +286,8 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed,
             guard_margin=guard_margin, guard_episodes=getattr(args, "guard_episodes", 16),
             guard_floors={m: training_error_floor(r) for m, r in runs.items()},
+            guard_floor_scale=(1.0 if getattr(args, "guard_floor_scale", None) is None
+                               else args.guard_floor_scale),
             train_path=summary["datasets"]["train"]["path"])
         for m, imp in improvement.items():
             evals[m]["metrics"].update(mpi=imp["mpi"], api=imp["api"])

@@ -284,7 +284,8 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
                     settings_of: Callable[[str], dict], ablation_methods,
                     guard_margin: float | None, guard_snapshots: bool,
                     phase: Callable[[str, float], None], save: Callable[[], None],
-                    guard_floors: list[float] | None = None) -> None:
+                    guard_floors: list[float] | None = None,
+                    guard_floor_scale: float = 1.0) -> None:
     """Every variant's fine-tuning in the lanes ``lanes`` / ``sims`` (``lane_simulators``):
     the first variant in every lane (MPI / API of Table 2: result["per_seed"],
     ["improvement"]), the others in the lanes of ``ablation_methods`` only; each into
@@ -293,8 +294,13 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
     ``scaled_env_options`` settings. ``phase(name, t0)`` records a timing, ``save()`` writes
     the result after each variant. The guard values the real episodes' length
     (``ft.episode_length``: the real gain is measured there), whatever SAC's episodes were.
-    ``guard_floors``: per lane the guard's floor in value units at that horizon
-    (``lane_floors``), None: 0."""
+    ``guard_floors``: per lane the training MVD in value units at that horizon (``lane_floors``;
+    None: no floor); the guard's floor is ``guard_floor_scale`` x it. Each guarded lane records
+    "guard_training_mvd" and "guard_floor" (what the guard used)."""
+    if not (np.isfinite(guard_floor_scale) and guard_floor_scale >= 0):
+        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got "
+                         f"{guard_floor_scale!r}")
+    floors = None if guard_floors is None else [guard_floor_scale * f for f in guard_floors]
     keys = jnp.stack([jax.random.split(jax.random.fold_in(jax.random.PRNGKey(10 + s),
                                                           METHODS.index(m)), len(ft.ids))
                       for m, s in lanes])
@@ -335,7 +341,7 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
             accepted, chosen_index, chosen, gains, starts_v = guard_lanes(
                 v_sims, ft.policies, actors, snaps, ft.task, start_pool(test_ds),
                 margin=guard_margin, horizon=ft.episode_length, gamma=ft.gamma,
-                floors=None if guard_floors is None else [guard_floors[i] for i in v_idx])
+                floors=None if floors is None else [floors[i] for i in v_idx])
             phase(f"improve_guard{tag}", t0)
         t0 = time.perf_counter()
         r, paired = _measure(ft, actors, chosen)
@@ -349,8 +355,9 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
                 # margin's scale); the guard read these, and so can a rule judged offline
                 entry["guard_member_gain"] = np.asarray(gains[j], np.float64).tolist()
                 entry["guard_member_start"] = np.asarray(starts_v[j], np.float64).tolist()
-                if guard_floors is not None:
-                    entry["guard_floor"] = guard_floors[i]
+                if floors is not None:
+                    entry["guard_training_mvd"] = guard_floors[i]
+                    entry["guard_floor"] = floors[i]
                 # the range floor's verdict on the same members' values (recorded, not used)
                 spread = lane_error_range(result, f"{m}/{s}", ft.episode_length, ft.gamma)
                 if spread is not None:
@@ -370,6 +377,7 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
             result["ablation"][f"{variant}+guard"] = {
                 "settings": {**settings, "guard_margin": guard_margin,
                              "guard_horizon": ft.episode_length,
+                             "guard_floor_scale": guard_floor_scale if floors else None,
                              "guard_floor": ("training MVD per lane" if guard_floors
                                              else None)},
                 "methods": method_means(guarded)}

@@ -82,9 +82,11 @@ def improvement_text(evals: dict[str, dict]) -> str:
             continue
         names = [str(n) for n in r["policy_names"]]
         g, floor = imp.get("guard_margin"), imp.get("guard_floor")
+        k = imp.get("guard_floor_scale", 1.0)
         lines += ["", f"Improvement in {method}'s simulator ("
                   + (f"guard margin {g}" if g is not None else "no guard")
-                  + (f", floor {floor:.3g}: every member's gain must exceed the simulator's "
+                  + (f", floor {floor:.3g}: every member's gain must exceed "
+                     + ("" if k == 1 else f"{k:g} x ") + "the simulator's "
                      "MVD on the training policies" if floor else "")
                   + f"): {sum(imp['deployed'])} of {len(imp['I'])} deployed, MPI "
                   f"{imp['mpi']:.3f}, API {imp['api']:.3f}", "",

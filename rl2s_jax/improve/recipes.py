@@ -7,7 +7,8 @@ real-env control" and "... inside the simulators"), for both front ends: ``paper
 batch, ``zoo.build.fine_tuning_recipe``; 128 envs x 4,000 iterations, 32 updates a step, 2,000
 critic warm-up updates; KL 0.01; per-task changes in IMPROVE_RECIPE_TASKS) inside 100-step
 branches from the data's states penalised by the ensemble's disagreement, deployed through the
-guard (margin 0.02). A GPU recipe: 128k SAC updates per policy (HalfCheetah 256k).
+guard (margin 0.02, floor 1 x the simulator's training MVD). A GPU recipe: 128k SAC updates
+per policy (HalfCheetah 256k).
 """
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ from rl2s_jax.zoo.build import fine_tuning_recipe
 IMPROVE_RECIPES = {
     "control": dict(zoo_recipe=True, sac_envs=128, sac_updates_per_step=32,
                     sac_critic_warmup=2000, improve_iterations=4000, guard_margin=0.02,
+                    guard_floor_scale=1.0,
                     improve_variants="branched+penalty", branch_length=100,
                     uncertainty_penalty=1.0, sac=dict(kl_weight=0.01)),
 }
@@ -56,9 +58,10 @@ def paper_flags(name: str, task: str) -> dict:
 
 def recipe_settings(name: str, task: str) -> dict:
     """The recipe as the settings of one fine-tuning run (``rl2s improve``'s):
-    {"iterations", "branch_length", "uncertainty_penalty", "guard_margin", "sac": SACConfig
-    overrides (the zoo learner's recipe where ``task`` has one, envs, updates per step, critic
-    warm-up, the recipe's SAC fields)}, "zoo_recipe": whether the task had one}."""
+    {"iterations", "branch_length", "uncertainty_penalty", "guard_margin", "guard_floor_scale",
+    "sac": SACConfig overrides (the zoo learner's recipe where ``task`` has one, envs, updates
+    per step, critic warm-up, the recipe's SAC fields)}, "zoo_recipe": whether the task had
+    one}."""
     r = improve_recipe(name, task)
     (variant,) = parse_variants(r["improve_variants"])
     env = variant_settings(variant, branch_length=r["branch_length"],
@@ -69,4 +72,4 @@ def recipe_settings(name: str, task: str) -> dict:
            "critic_warmup_updates": r["sac_critic_warmup"], **r["sac"]}
     return {"iterations": r["improve_iterations"], "branch_length": env["rollout_length"],
             "uncertainty_penalty": env["uncertainty_penalty"], "guard_margin": r["guard_margin"],
-            "sac": sac, "zoo_recipe": bool(zoo)}
+            "guard_floor_scale": r["guard_floor_scale"], "sac": sac, "zoo_recipe": bool(zoo)}

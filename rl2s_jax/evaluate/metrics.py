@@ -18,6 +18,7 @@ import math
 from collections.abc import Iterable
 
 import numpy as np
+from scipy.stats import t as student_t  # jax's own dependency
 
 __all__ = [
     "kendall_tau",
@@ -333,8 +334,6 @@ def t_interval(values, level: float = 0.95) -> tuple[float, float, float] | None
     """The mean of ``values`` [N] (e.g. one paired difference per seed, each seed a draw of
     the whole pipeline) and its Student-t interval (N - 1 degrees of freedom):
     (mean, lo, hi), or None with fewer than 2 values. Non-finite values raise."""
-    from scipy.stats import t as student_t  # jax's own dependency
-
     x = np.asarray(values, np.float64).ravel()
     if not np.all(np.isfinite(x)):
         raise ValueError(f"values: expected finite numbers, got {x.tolist()}")

@@ -6,17 +6,20 @@ test policies' runs.
 
     python experiments/guard_calibration.py --task walker2d --validation V1.json [V2.json ...]
         --test T1.json [T2.json ...] [--scales 0,0.25,0.5,0.75,1] [--margin 0.02]
-        [--out docs/results/guard_calibration]
+        [--out docs/results/guard_calibration] [--rescore DIR]
 
 A lane's verdict at scale k is ``finetune.deployment_guard`` on its members' start values
 (``guard_member_start``) and their predicted gains (``guard_member_gain``), both [M, P], with
 margin ``--margin`` (the recipe's, ``improve.recipes``) and floor k x the lane's training MVD
-(``guard_training_mvd``; before it was recorded, ``guard_floor``, at scale 1); the
-real gain of a policy is I = (C1 - C0) / |C0| with C0 paired. The rule, set before any
-validation run: **k is the smallest scale of the grid whose deployments on the validation
-runs (every method's lanes pooled: the floor is the guard's, not a method's) include no real
-loss (I < 0); none such: 1, the protocol's guard.** On the test runs each scale reports per
-method its deployed count, losses and guarded median gain (``finetune.median_gain``: kept
+(``guard_training_mvd``; before it was recorded, ``guard_floor``, at scale 1); the real gain of
+a policy is I = (C1 - C0) / |C0| with C0 paired. The rule, set before any validation run: **k
+is the smallest scale of the grid whose deployments on the validation runs (every method's
+lanes pooled: the floor is the guard's, not a method's) include no real loss (I < 0); none
+such: 1, the protocol's guard.** Amended at stop 59, before any validation run (the original
+picks 0 when nothing deploys at any scale, and a scale that deploys nothing more than a larger
+one on validation has no evidence for it): **of the scales that deploy as many on validation as
+that smallest one, the largest** (no deployment at all: 1). On the test runs each scale reports
+per method its deployed count, losses and guarded median gain (``finetune.median_gain``: kept
 policies gain 0); the chosen scale's are the result. Writes OUT/<task>.json, OUT/<task>.png
 (per split and method, deployed and lost policies against k, the chosen k marked) and prints a
 table. ``--rescore DIR``: each test run again as DIR/<its name>, its lanes' guard verdicts at
@@ -37,6 +40,8 @@ from rl2s_jax.improve.recipes import IMPROVE_RECIPES
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
 
 SCALES = (0.0, 0.25, 0.5, 0.75, 1.0)
+RULE = ("the smallest scale whose validation deployments (all methods pooled) include no real "
+        "loss, then the largest scale deploying as many; no deployment or none such: 1")
 
 
 def lanes_of(run: dict, path: str) -> list[dict]:
@@ -131,12 +136,18 @@ def rescore(path: str, scale: float, margin: float, out_dir: str) -> str:
 
 
 def choose_scale(by_scale: dict) -> float:
-    """The rule: the smallest scale whose validation deployments (all methods) lose nothing;
-    else 1 (the protocol's guard)."""
-    for k in sorted(by_scale):
-        if sum(row["losses"] for row in by_scale[k]["validation"].values()) == 0:
-            return k
-    return 1.0
+    """RULE: the smallest scale whose validation deployments (all methods) lose nothing, then
+    the largest scale that deploys as many (a lower floor that deploys nothing more on
+    validation has no evidence for it: with no deployments at all, 1); none: 1 (the
+    protocol's guard). A larger floor deploys a subset, so the loss-free scales are the top
+    of the grid."""
+    total = {k: [sum(r[q] for r in by_scale[k]["validation"].values())
+                 for q in ("deployed", "losses")] for k in by_scale}
+    safe = [k for k in sorted(by_scale) if total[k][1] == 0]
+    if not safe:
+        return 1.0
+    most = total[safe[0]][0]
+    return 1.0 if most == 0 else max(k for k in safe if total[k][0] == most)
 
 
 def plot(by_scale: dict, chosen: float, task: str, path: str) -> None:
@@ -195,8 +206,7 @@ def main(argv=None) -> int:
                 for k in scales}
     chosen = choose_scale(by_scale)
     doc = {"task": args.task, "margin": args.margin, "scales": scales, "chosen_scale": chosen,
-           "rule": "the smallest scale whose validation deployments (all methods pooled) "
-                   "include no real loss; none: 1",
+           "rule": RULE,
            "by_scale": {f"{k:g}": v for k, v in by_scale.items()},
            "validation_runs": args.validation, "test_runs": args.test}
     os.makedirs(args.out, exist_ok=True)

@@ -1630,6 +1630,23 @@ def test_improve_control_ids_must_be_test_policies_of_one_task(tmp_path):
     assert not any(tmp_path.iterdir())  # nothing written
 
 
+def test_guard_calibration_rule_needs_evidence():
+    """choose_scale: the smallest loss-free scale, then the largest that deploys as many on
+    validation; nothing deployed anywhere, or a loss at every scale: 1."""
+    gc = _load("guard_calibration")
+
+    def grid(*rows):  # per scale 0, .5, 1: (deployed, losses) of two methods pooled
+        return {k: {"validation": {"a": {"deployed": d, "losses": lo},
+                                   "b": {"deployed": 0, "losses": 0}}}
+                for k, (d, lo) in zip((0.0, 0.5, 1.0), rows, strict=True)}
+
+    assert gc.choose_scale(grid((9, 2), (6, 0), (3, 0))) == 0.5
+    assert gc.choose_scale(grid((9, 0), (6, 0), (3, 0))) == 0.0
+    assert gc.choose_scale(grid((6, 0), (6, 0), (3, 0))) == 0.5   # 0 adds nothing on validation
+    assert gc.choose_scale(grid((0, 0), (0, 0), (0, 0))) == 1.0   # no evidence at all
+    assert gc.choose_scale(grid((9, 2), (6, 1), (3, 1))) == 1.0   # a loss everywhere
+
+
 def test_guard_calibration_by_hand(tmp_path):
     """experiments/guard_calibration.py on made-up validation and test runs of hopper: per
     floor scale k the deployments, real losses and guarded median gain by hand (k scales the

@@ -347,6 +347,8 @@ def test_improve_guard_floor_comes_from_the_training_summary(pointmass_checkpoin
     g, by_margin = decisions["other_horizon"]
     assert g["floor"] == 0.0 and "horizon" in g["floor_source"]
     assert g["accepted"] == by_margin
+    md = (tmp_path / "out_scaled" / "summary.md").read_text()  # what the user reads
+    assert "Deployment guard (margin 0.02, floor 1: 1e-06 x the training MVD in" in md
     for name in ("scaled", "recipe"):
         g, by_floor = decisions[name]
         assert g["floor_scale"] == 1e-6 and g["floor"] == pytest.approx(1.0), name

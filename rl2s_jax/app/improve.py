@@ -457,6 +457,8 @@ def summary_markdown(s: dict) -> str:
     if g:
         kept = sum(g["accepted"])
         lines += [f"Deployment guard (margin {g['margin']}"
+                  + (f", floor {g['floor']:.3g}: {g['floor_source']}" if "floor_source" in g
+                     else "")
                   + (f", over snapshots every {g['snapshot_every']} iterations: deployed "
                      f"after {g['snapshot_iteration']}" if "snapshot" in g else "")
                   + f"): {kept} of {len(g['accepted'])} "

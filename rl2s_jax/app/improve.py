@@ -73,9 +73,7 @@ def guard_margin(args) -> float | None:
     the default, ``GUARD_MARGIN``) and --no-guard (-> None: no guard); --no-guard with
     --guard-margin, --guard-snapshots or --guard-floor-scale is refused, and so is a
     --guard-floor-scale below 0 (before any work)."""
-    scale = getattr(args, "guard_floor_scale", None)
-    if scale is not None and not (np.isfinite(scale) and scale >= 0):
-        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got {scale!r}")
+    scale = check_floor_scale(getattr(args, "guard_floor_scale", None))
     if args.no_guard:
         given = [o for o, on in (("--guard-margin", args.guard_margin is not None),
                                  ("--guard-snapshots", getattr(args, "guard_snapshots", False)),
@@ -181,9 +179,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     if floor is not None and not (np.isfinite(floor) and floor >= 0):
         raise ValueError(f"floor: expected a finite float >= 0 (value units) or None, got "
                          f"{floor!r}")
-    if floor_scale is not None and not (np.isfinite(floor_scale) and floor_scale >= 0):
-        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got "
-                         f"{floor_scale!r}")
+    check_floor_scale(floor_scale)
     if not isinstance(guard_episodes, int) or guard_episodes < 1:
         raise ValueError(f"guard-episodes: expected an int >= 1, got {guard_episodes!r}")
     if guard_snapshots and guard_margin is None:
@@ -391,6 +387,14 @@ def training_error_floor(run: dict) -> dict:
     return {"mvd": float(run["mvd_train"]),
             "horizon": int(by.get("horizon", cfg.get("vd_horizon"))),
             "gamma": float(by.get("gamma", cfg.get("gamma"))), "step": run.get("steps")}
+
+
+def check_floor_scale(scale: float | None) -> float | None:
+    """``scale`` (the guard's floor as a multiple of the training MVD; None: not given), or a
+    ValueError naming --guard-floor-scale unless it is finite and >= 0."""
+    if scale is not None and not (np.isfinite(scale) and scale >= 0):
+        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got {scale!r}")
+    return scale
 
 
 def guard_floor(floor: dict | None, horizon: int, gamma: float) -> float:

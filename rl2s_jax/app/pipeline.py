@@ -14,6 +14,7 @@ import numpy as np
 from rl2s_jax.app.evaluate import evaluate_checkpoint
 from rl2s_jax.app.improve import (
     GUARD_MARGIN,
+    check_floor_scale,
     deploy_through_guard,
     fine_tuning_overrides,
     guard_floor,
@@ -113,9 +114,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     "guard_horizon", "recipe"}}."""
 
 
-    if not (np.isfinite(guard_floor_scale) and guard_floor_scale >= 0):
-        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got "
-                         f"{guard_floor_scale!r}")
+    check_floor_scale(guard_floor_scale)
     ds = load_dataset(test_path)
     if not ds.has_values:
         raise ValueError(f"data: {test_path} has no true values, so C0 is unknown")

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.improve import guard_floor
+from rl2s_jax.app.improve import check_floor_scale, guard_floor
 from rl2s_jax.app.protocol import (
     IMPROVE_METRICS,
     METHODS,
@@ -297,9 +297,7 @@ def run_improvement(result: dict, ft: FineTuning, lanes, sims, test_ds, variants
     ``guard_floors``: per lane the training MVD in value units at that horizon (``lane_floors``;
     None: no floor); the guard's floor is ``guard_floor_scale`` x it. Each guarded lane records
     "guard_training_mvd" and "guard_floor" (what the guard used)."""
-    if not (np.isfinite(guard_floor_scale) and guard_floor_scale >= 0):
-        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got "
-                         f"{guard_floor_scale!r}")
+    check_floor_scale(guard_floor_scale)
     floors = None if guard_floors is None else [guard_floor_scale * f for f in guard_floors]
     keys = jnp.stack([jax.random.split(jax.random.fold_in(jax.random.PRNGKey(10 + s),
                                                           METHODS.index(m)), len(ft.ids))

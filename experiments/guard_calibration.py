@@ -119,11 +119,11 @@ def rescore(path: str, scale: float, margin: float, out_dir: str) -> str:
     run's own floor, are dropped. -> the written path."""
     with open(path) as f:
         run = json.load(f)
-    for lane, e in run["improvement"].items():
-        (r,) = lanes_of({**run, "improvement": {lane: e}}, path)
-        e["guard_accepted"] = verdicts([r], scale, margin)[0].tolist()
-        e.update(guard_training_mvd=r["floor"], guard_floor=scale * r["floor"],
-                 guard_floor_scale=scale)
+    rows = lanes_of(run, path)  # in run["improvement"]'s order
+    for e, r, acc in zip(run["improvement"].values(), rows, verdicts(rows, scale, margin),
+                         strict=True):
+        e.update(guard_accepted=acc.tolist(), guard_training_mvd=r["floor"],
+                 guard_floor=scale * r["floor"], guard_floor_scale=scale)
         for k in ("I_deployed", "mpi_deployed", "api_deployed"):
             e.pop(k, None)
     run["guard_rescored"] = {"scale": scale, "margin": margin, "from": path,

@@ -117,6 +117,24 @@ def test_pipeline_sizes_take_the_fine_tuning_recipe_and_refuse_bad_input():
         sizes("--branch-length", "0")
 
 
+def test_improvement_text_names_the_floor_and_its_scale():
+    """The report's improvement line says which floor the guard used: the training MVD, or K x
+    it where --guard-floor-scale K was not 1; no floor, no clause."""
+    from rl2s_jax.app.report import improvement_text
+
+    def text(**guard):
+        imp = {"guard_margin": 0.02, "deployed": [True], "I": [0.5], "mpi": 0.5, "api": 0.5,
+               "predicted_gain": [0.3], "c0": [100.0], "c1": [150.0], **guard}
+        return improvement_text({"rl2s": {"policy_names": ["p0"], "improvement": imp}})
+
+    assert ("floor 40: every member's gain must exceed the simulator's MVD"
+            in text(guard_floor=40.0, guard_floor_scale=1.0))
+    assert ("floor 20: every member's gain must exceed 0.5 x the simulator's MVD"
+            in text(guard_floor=20.0, guard_floor_scale=0.5))
+    assert "floor" not in text(guard_floor=0.0, guard_floor_scale=0.0)
+    assert "| p0 | deployed | +0.300 | 100.0 | 150.0 | +0.500 |" in text(guard_floor=0.0)
+
+
 def test_cpu_from_cpuinfo_names_the_model_and_the_widest_instruction_set():
     """report.cpu_from_cpuinfo: the first processor's model name and its widest vector ISA."""
     from rl2s_jax.app.report import cpu_from_cpuinfo

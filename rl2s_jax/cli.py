@@ -283,14 +283,14 @@ def _policy_source(p) -> None:
                    "order, a save_policies file (docs/DATA.md), instead of a zoo")
 
 
-def _guard_options(p) -> None:
+def _guard_options(p, floor_default: str = "the --recipe's, else 1") -> None:
     """The deployment guard's options (on by default: rl2s_jax/app/improve.py says why)."""
     p.add_argument("--guard-margin", type=float, metavar="M",
                    help="deploy a fine-tuned policy only where every elite member of the "
                    "simulator predicts a gain above M x |start value| (simulated); elsewhere "
                    "keep the start policy (default: 0.02)")
     p.add_argument("--guard-floor-scale", type=float, metavar="K", help="and above K x the "
-                   "simulator's training MVD (default: the --recipe's, else 1; 0: no floor)")
+                   f"simulator's training MVD (default: {floor_default}; 0: no floor)")
     p.add_argument("--guard-episodes", type=_positive("guard-episodes"), default=16,
                    help="simulated episodes per policy and member for the guard")
     p.add_argument("--no-guard", action="store_true", help="deploy every fine-tuned policy")
@@ -494,7 +494,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a fine-tuning SACConfig field, e.g. --set kl_weight=0.1")
     _sim_env_options(p, "the profile's")
-    _guard_options(p)
+    _guard_options(p, "1")
     p.add_argument("--episode-length", type=_positive("episode-length"),
                    help="shorter episodes than the task's (smoke runs)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -22,9 +22,10 @@ that smallest one, the largest** (no deployment at all: 1). On the test runs eac
 per method its deployed count, losses and guarded median gain (``finetune.median_gain``: kept
 policies gain 0); the chosen scale's are the result. Writes OUT/<task>.json, OUT/<task>.png
 (per split and method, deployed and lost policies against k, the chosen k marked) and prints a
-table. ``--rescore DIR``: each test run again as DIR/<its name>, its lanes' guard verdicts at
-the chosen k (``guard_accepted``, ``guard_floor``, ``guard_floor_scale``; the verdicts it had
-dropped), for ``improvement_summary.py --record`` once a recipe takes k.
+table. ``--rescore DIR``: each test run again as DIR/<its name> (DIR/<i>_<its name>, i its
+place in --test, where two share a name), its lanes' guard verdicts at the chosen k
+(``guard_accepted``, ``guard_floor``, ``guard_floor_scale``; the verdicts it had dropped), for
+``improvement_summary.py --record`` once a recipe takes k.
 """
 from __future__ import annotations
 
@@ -113,10 +114,10 @@ def read_scale(lanes: list[dict], scale: float, margin: float, zoo_returns) -> d
     return out
 
 
-def rescore(path: str, scale: float, margin: float, out_dir: str) -> str:
+def rescore(path: str, scale: float, margin: float, dest: str) -> str:
     """Test run ``path`` with its lanes' guard at floor ``scale`` x the training MVD (what
-    ``improvement_summary`` reads), written to out_dir; its deployed-only figures, read at the
-    run's own floor, are dropped. -> the written path."""
+    ``improvement_summary`` reads), written to dest; its deployed-only figures, read at the
+    run's own floor, are dropped. -> dest."""
     with open(path) as f:
         run = json.load(f)
     rows = lanes_of(run, path)  # in run["improvement"]'s order
@@ -128,8 +129,6 @@ def rescore(path: str, scale: float, margin: float, out_dir: str) -> str:
             e.pop(k, None)
     run["guard_rescored"] = {"scale": scale, "margin": margin, "from": path,
                              "by": "experiments/guard_calibration.py"}
-    os.makedirs(out_dir, exist_ok=True)
-    dest = os.path.join(out_dir, os.path.basename(path))
     with open(dest, "w") as f:
         json.dump(run, f, indent=1)
     return dest
@@ -220,8 +219,13 @@ def main(argv=None) -> int:
                 f"{m} {r['deployed']}/{r['lanes_x_policies']} deployed, {r['losses']} lost, "
                 f"median {r['median_gain']:+.3f}" for m, r in rows.items()))
     print(f"chosen scale {chosen:g} (the rule: {doc['rule']}) -> {path}")
-    for p in args.test if args.rescore else []:
-        print(f"rescored at k {chosen:g} -> {rescore(p, chosen, args.margin, args.rescore)}")
+    names = [os.path.basename(p) for p in args.test]
+    if len(set(names)) < len(names):  # paper.py names every run <task>.json
+        names = [f"{i}_{n}" for i, n in enumerate(names)]
+    for p, name in zip(args.test if args.rescore else [], names, strict=False):
+        os.makedirs(args.rescore, exist_ok=True)
+        dest = rescore(p, chosen, args.margin, os.path.join(args.rescore, name))
+        print(f"rescored at k {chosen:g} -> {dest}")
     return 0
 
 

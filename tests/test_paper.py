@@ -1705,6 +1705,18 @@ def test_guard_calibration_by_hand(tmp_path):
     assert e["guard_accepted"] == [True, True, False] and "I_deployed" not in e
     assert (e["guard_floor"], e["guard_training_mvd"], e["guard_floor_scale"]) == (30, 40, 0.75)
     assert again["guard_rescored"]["scale"] == 0.75 and e["c1"] == [150.0, 180.0, 440.0]
+    # two test runs of one name (paper.py writes <task>.json in each run's dir): both kept
+    (tmp_path / "mle").mkdir()
+    mle = {**tst, "improvement": {"bc/0": {**tst["improvement"]["rl2s/0"], "method": "bc"}}}
+    (tmp_path / "mle" / "test.json").write_text(json.dumps(mle))
+    assert gc.main(["--task", "hopper", "--validation", str(paths["val"]), "--test",
+                    str(paths["test"]), str(tmp_path / "mle" / "test.json"), "--scales", "0.75",
+                    "--out", str(out), "--rescore", str(tmp_path / "both")]) == 0
+    assert sorted(p.name for p in (tmp_path / "both").iterdir()) == ["0_test.json",
+                                                                      "1_test.json"]
+    assert all(json.loads(p.read_text())["guard_rescored"]["from"] == str(src) for p, src in
+               zip(sorted((tmp_path / "both").iterdir()),
+                   (paths["test"], tmp_path / "mle" / "test.json"), strict=True))
     with pytest.raises(SystemExit, match="on 'validation'"):
         gc.main(["--task", "hopper", "--validation", str(paths["test"]), "--out", str(out)])
     del val["improvement"]["bc/0"]["guard_member_start"]

@@ -611,23 +611,25 @@ def test_improve_recipe_sets_the_measured_flags_and_flags_given_win():
 
 
 def test_improve_recipe_guard_floor_scale_reaches_both_front_ends(monkeypatch):
-    """A task's guard floor scale in the recipe (as a calibration would set it) becomes
+    """A task's guard floor scale in the recipe (as a calibration sets it: Walker2d's 0) becomes
     paper.py's --guard-floor-scale and ``recipe_settings``' (rl2s improve); a flag given wins;
     the recipe's own is 1 (the training MVD)."""
     from rl2s_jax.improve import recipes
 
     paper = _load("paper")
     assert recipes.IMPROVE_RECIPES["control"]["guard_floor_scale"] == 1.0
-    assert paper.parse_args(["--task", "walker2d", "--improve-recipe", "control"]
-                            ).guard_floor_scale == 1.0
-    monkeypatch.setitem(recipes.IMPROVE_RECIPE_TASKS["control"], "walker2d",
+    for task, scale in (("hopper", 1.0), ("walker2d", 0.0)):
+        assert paper.parse_args(["--task", task, "--improve-recipe", "control"]
+                                ).guard_floor_scale == scale
+        assert recipe_settings("control", task)["guard_floor_scale"] == scale
+    monkeypatch.setitem(recipes.IMPROVE_RECIPE_TASKS["control"], "hopper",
                         {"guard_floor_scale": 0.25})
-    assert paper.parse_args(["--task", "walker2d", "--improve-recipe", "control"]
+    assert paper.parse_args(["--task", "hopper", "--improve-recipe", "control"]
                             ).guard_floor_scale == 0.25
-    assert recipe_settings("control", "walker2d")["guard_floor_scale"] == 0.25
+    assert recipe_settings("control", "hopper")["guard_floor_scale"] == 0.25
     assert paper.parse_args(["--task", "walker2d", "--improve-recipe", "control",
                              "--guard-floor-scale", "1"]).guard_floor_scale == 1.0
-    assert recipe_settings("control", "hopper")["guard_floor_scale"] == 1.0
+    assert recipe_settings("control", "ant")["guard_floor_scale"] == 1.0
 
 
 @pytest.mark.parametrize("task", ["hopper", "halfcheetah", "ant"])

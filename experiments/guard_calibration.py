@@ -129,6 +129,9 @@ def rescore(path: str, scale: float, margin: float, dest: str) -> str:
             e.pop(k, None)
     run["guard_rescored"] = {"scale": scale, "margin": margin, "from": path,
                              "by": "experiments/guard_calibration.py"}
+    run["command"] = run.get("command", "?") + (
+        f"; guard verdicts rescored at floor {scale:g} x the training MVD, margin {margin:g} "
+        "(experiments/guard_calibration.py --rescore)")
     with open(dest, "w") as f:
         json.dump(run, f, indent=1)
     return dest

@@ -45,7 +45,7 @@ from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
 
 KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",
         "zoo_sha256", "sac_config", "improve_variant", "timings", "improvement",
-        "oracle_improvement", "control", "train_true_value", "policy_split")  # + LANE_KEEP
+        "oracle_improvement", "control", "train_true_value", "policy_split", "guard_rescored")
 LANE_KEEP, PAIR_MARGIN = ("family", "sim_value", "train_sim_value"), 0.02  # the recipe's
 MIN_SEEDS, CONTROL_BAR = 3, 0.30  # issue 39's bars: 3 seeds; the control's median gain
 
@@ -319,9 +319,9 @@ def main(argv=None) -> int:
         if run.get("policy_split", "zoo") != "zoo" and args.control:
             raise SystemExit(f"runs: {path} fine-tuned validation policies; the task's control "
                              "is the test policies' (their own: paper.py --control)")
-        runs.append({**{k: run[k] for k in KEEP if k in run}, "lanes": {
+        runs.append({k: run[k] for k in KEEP if k in run} | ({"lanes": {
             lane: {k: e[k] for k in LANE_KEEP if k in e}
-            for lane, e in run.get("lanes", {}).items()}})
+            for lane, e in run["lanes"].items()}} if "lanes" in run else {}))
     lanes = [(e["method"], e["seed"]) for r in runs for e in r["improvement"].values()]
     if len(lanes) != len(set(lanes)) or len({r.get("policy_split") for r in runs}) > 1:
         raise SystemExit("runs: a (method, seed) lane appears twice, or --policy-split differs")

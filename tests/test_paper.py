@@ -1368,6 +1368,7 @@ def test_improvement_summary_by_hand(tmp_path):
     runs[0]["oracle_improvement"] = {"policy_ids": ids, "per_seed": [
         {"c0_paired": c0, "c1": [200.0, 300.0, 600.0]}]}  # I 1, .5, .5
     runs[1]["control"] = {"policy_ids": ids, "c0": [c0], "c1": [[110.0, 220.0, 440.0]]}
+    runs[1]["guard_rescored"] = {"scale": 0.0, "by": "experiments/guard_calibration.py"}
     paths = []
     for k, r in enumerate(runs):
         paths.append(tmp_path / f"r{k}.json")
@@ -1405,6 +1406,8 @@ def test_improvement_summary_by_hand(tmp_path):
     assert kept["lanes"]["rl2s/0"] == {"family": "adversarial", "sim_value": [100.0] * len(test),
                                        "train_sim_value": [1.0, 4.0, 2.0]}
     assert kept["train_true_value"] == [1.0, 2.0, 3.0]
+    kept1 = json.loads((tmp_path / "o" / "hopper.json").read_text())["runs"][1]
+    assert "lanes" not in kept1 and kept1["guard_rescored"]["scale"] == 0.0  # nothing invented
     assert s["budget_env_steps"] == 40
     # validation-policy runs: no --control (the task's is the test policies'), and no mixing
     val = tmp_path / "val.json"
@@ -1676,7 +1679,8 @@ def test_guard_calibration_by_hand(tmp_path):
                             [[20.0, 20.0], [20.0, 20.0]], 10.0)}}
     # test: I .5, -.1, .1; bars 2 / 4 / 8, at k x 40: policy 2's members (30, 20) fail from .75
     # (a run at --guard-floor-scale 0.5: its floor 20, its training MVD 40, which k scales)
-    tst = {"task": "hopper", "test_policy_names": zoo.policy_names(test), "improvement": {
+    tst = {"task": "hopper", "command": "paper.py", "test_policy_names": zoo.policy_names(test),
+           "improvement": {
         "rl2s/0": {**lane("rl2s", [test.index(i) for i in low], [100.0, 200.0, 400.0],
                           [150.0, 180.0, 440.0], [[80.0, 50.0, 30.0], [70.0, 60.0, 20.0]],
                           20.0), "guard_training_mvd": 40.0, "I_deployed": [0.5, 0, 0]}}}
@@ -1707,6 +1711,8 @@ def test_guard_calibration_by_hand(tmp_path):
     assert e["guard_accepted"] == [True, True, False] and "I_deployed" not in e
     assert (e["guard_floor"], e["guard_training_mvd"], e["guard_floor_scale"]) == (30, 40, 0.75)
     assert again["guard_rescored"]["scale"] == 0.75 and e["c1"] == [150.0, 180.0, 440.0]
+    assert again["command"] == ("paper.py; guard verdicts rescored at floor 0.75 x the training "
+                                "MVD, margin 0.02 (experiments/guard_calibration.py --rescore)")
     # two test runs of one name (paper.py writes <task>.json in each run's dir): both kept
     (tmp_path / "mle").mkdir()
     mle = {**tst, "improvement": {"bc/0": {**tst["improvement"]["rl2s/0"], "method": "bc"}}}

@@ -202,8 +202,7 @@ def cmd_improve(args) -> int:
                     uncertainty_threshold=args.uncertainty_threshold,
                     halt_penalty=args.halt_penalty, guard_margin=guard_margin(args),
                     guard_episodes=args.guard_episodes, recipe=args.recipe,
-                    floor_scale=args.guard_floor_scale,
-                    progress=not args.quiet)
+                    floor_scale=args.guard_floor_scale, progress=not args.quiet)
     print(summary_markdown(s))
     print(f"-> {args.out}: zoo.npz, zoo.json, summary.json, summary.md"
           + (f", {len(s['plots'])} PNGs" if s["plots"] else ""))
@@ -283,14 +282,17 @@ def _policy_source(p) -> None:
                    "order, a save_policies file (docs/DATA.md), instead of a zoo")
 
 
-def _guard_options(p, floor_default: str = "the --recipe's, else 1") -> None:
-    """The deployment guard's options (on by default: rl2s_jax/app/improve.py says why)."""
+def _recipe_and_guard_options(p, recipes) -> None:
+    """--recipe (one of ``recipes``) and the deployment guard's options (on by default:
+    rl2s_jax/app/improve.py says why)."""
+    p.add_argument("--recipe", choices=sorted(recipes), help="a measured fine-tuning recipe "
+                   "for the task as the defaults, flags given win (improve/recipes.py)")
     p.add_argument("--guard-margin", type=float, metavar="M",
                    help="deploy a fine-tuned policy only where every elite member of the "
                    "simulator predicts a gain above M x |start value| (simulated); elsewhere "
                    "keep the start policy (default: 0.02)")
     p.add_argument("--guard-floor-scale", type=float, metavar="K", help="and above K x the "
-                   f"simulator's training MVD (default: {floor_default}; 0: no floor)")
+                   "simulator's training MVD (default: the --recipe's, else 1; 0: no floor)")
     p.add_argument("--guard-episodes", type=_positive("guard-episodes"), default=16,
                    help="simulated episodes per policy and member for the guard")
     p.add_argument("--no-guard", action="store_true", help="deploy every fine-tuned policy")
@@ -457,8 +459,6 @@ def build_parser() -> argparse.ArgumentParser:
                    "e.g. 0,3,5 (default: all)")
     p.add_argument("--out", required=True, help="directory: zoo.npz/zoo.json, summary.json, "
                    "summary.md, policy_*.png")
-    p.add_argument("--recipe", choices=sorted(IMPROVE_RECIPES), help="a measured recipe for "
-                   "the simulator's task as the defaults, flags given win (improve/recipes.py)")
     p.add_argument("--iterations", type=_positive("iterations"),
                    help="SAC iterations per policy (default: 1000, or the recipe's)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE", help="a SACConfig field")
@@ -467,7 +467,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--uncertainty-threshold", type=float, help="MOReL: end a rollout when "
                    "u(s, a) exceeds this (same units); --halt-penalty: subtracted then")
     p.add_argument("--halt-penalty", type=float, default=0.0)
-    _guard_options(p)
+    _recipe_and_guard_options(p, IMPROVE_RECIPES)
     p.add_argument("--guard-snapshots", action="store_true", help="keep the actor every "
                    "tenth of the iterations; of the snapshots that pass the guard, deploy the "
                    "one whose smallest predicted gain is largest (default: the final actor)")
@@ -489,12 +489,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--eval-every", type=_positive("eval-every"))
     p.add_argument("--transitions-per-policy", type=_positive("transitions-per-policy"))
     p.add_argument("--value-episodes", type=_positive("value-episodes"))
-    p.add_argument("--improve-iterations", type=int,
-                   help="SAC iterations per test policy in each simulator (0: skip)")
+    p.add_argument("--improve-iterations", type=int, help="SAC iterations per test policy in "
+                   "each simulator (default: the --recipe's, else the profile's; 0: skip)")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
                    help="override a fine-tuning SACConfig field, e.g. --set kl_weight=0.1")
     _sim_env_options(p, "the profile's")
-    _guard_options(p, "1")
+    _recipe_and_guard_options(p, IMPROVE_RECIPES)
     p.add_argument("--episode-length", type=_positive("episode-length"),
                    help="shorter episodes than the task's (smoke runs)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")

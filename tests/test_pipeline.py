@@ -117,6 +117,43 @@ def test_pipeline_sizes_take_the_fine_tuning_recipe_and_refuse_bad_input():
         sizes("--branch-length", "0")
 
 
+def test_pipeline_recipe_gives_the_defaults_and_flags_win():
+    """`rl2s pipeline --recipe control` fine-tunes with the task's measured recipe (as `rl2s
+    improve --recipe` and paper.py --improve-recipe do: ``recipe_settings``): its iterations,
+    SAC fields, branches, penalty, guard margin and floor scale (Walker2d's 0); flags given
+    win; without a recipe the floor scale is 1."""
+    from rl2s_jax.app.improve import guard_margin
+    from rl2s_jax.app.pipeline import PROFILES, pipeline_sizes
+    from rl2s_jax.cli import build_parser
+    from rl2s_jax.improve.recipes import recipe_settings
+
+    def parsed(task, *flags):
+        return build_parser().parse_args(["pipeline", "--task", task, *flags])
+
+    rs = recipe_settings("control", "walker2d")
+    args = parsed("walker2d", "--recipe", "control")
+    s = pipeline_sizes(args, "cpu")
+    assert s["recipe"] == "control" and s["improve_iterations"] == rs["iterations"] == 4000
+    assert s["sac"] == {**PROFILES["cpu"]["sac"], **rs["sac"]} and s["sac"]["n_envs"] == 128
+    assert s["improve_recipe"] == {"branch_length": 100, "uncertainty_penalty": 1.0}
+    assert s["guard_floor_scale"] == 0.0 and guard_margin(args) == rs["guard_margin"]
+    assert pipeline_sizes(parsed("hopper", "--recipe", "control"), "cpu")[
+        "guard_floor_scale"] == 1.0
+    given = pipeline_sizes(parsed("walker2d", "--recipe", "control", "--improve-iterations", "7",
+                                  "--set", "kl_weight=0.1", "--branch-length", "5",
+                                  "--guard-floor-scale", "0.5"), "cpu")
+    assert (given["improve_iterations"], given["sac"]["kl_weight"]) == (7, 0.1)
+    assert given["improve_recipe"]["branch_length"] == 5 and given["guard_floor_scale"] == 0.5
+    assert given["sac"]["n_envs"] == 128  # the recipe's, where no flag was given
+    plain = pipeline_sizes(parsed("walker2d"), "cpu")
+    assert plain["guard_floor_scale"] == 1.0 and "recipe" not in plain
+    assert plain["improve_iterations"] == PROFILES["cpu"]["improve_iterations"]
+    with pytest.raises(ValueError, match="guard-floor-scale: expected"):
+        pipeline_sizes(parsed("walker2d", "--guard-floor-scale", "-1"), "cpu")
+    with pytest.raises(SystemExit):  # argparse: no such recipe
+        parsed("walker2d", "--recipe", "nope")
+
+
 def test_improvement_text_names_the_floor_and_its_scale():
     """The report's improvement line says which floor the guard used: the training MVD, or K x
     it where --guard-floor-scale K was not 1; no floor, no clause."""

@@ -28,6 +28,7 @@ from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
+from rl2s_jax.improve.recipes import check_recipe, recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
@@ -191,10 +192,22 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
 
 
 def pipeline_sizes(args, profile: str) -> dict:
-    """The profile's sizes with the command line's: the sizes given, SAC fields (``--set``,
-    checked by ``fine_tuning_overrides``) and the fine-tuning's simulated env
-    (``--branch-length``, ``--uncertainty-penalty``). ValueError before any work."""
+    """The profile's sizes with the command line's: ``--recipe`` (``improve.recipes``: the
+    task's SAC iterations, SAC fields, simulated env and guard floor scale), then what is given:
+    the sizes, SAC fields (``--set``, checked by ``fine_tuning_overrides``), the fine-tuning's
+    simulated env (``--branch-length``, ``--uncertainty-penalty``) and
+    ``guard_floor_scale`` (else 1). ValueError before any work."""
     sizes = dict(PROFILES[profile])
+    recipe = getattr(args, "recipe", None)
+    scale = check_floor_scale(getattr(args, "guard_floor_scale", None))
+    if recipe is not None:
+        check_recipe(recipe)
+        rs = recipe_settings(recipe, args.task)
+        sizes.update(recipe=recipe, improve_iterations=rs["iterations"],
+                     sac={**sizes["sac"], **rs["sac"]}, improve_recipe={
+                         k: rs[k] for k in ("branch_length", "uncertainty_penalty")})
+        scale = rs["guard_floor_scale"] if scale is None else scale
+    sizes["guard_floor_scale"] = 1.0 if scale is None else scale
     for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every",
               "improve_iterations"):
         if getattr(args, k, None) is not None:
@@ -236,8 +249,7 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
         data_key["episode_length"] = args.episode_length
     summary = {"task": args.task, "profile": profile, "backend": backend,
                "machine": machine_info(), "sizes": sizes,
-               "guard_margin": guard_margin,
-               "guard_floor_scale": getattr(args, "guard_floor_scale", None),
+               "guard_margin": guard_margin, "guard_floor_scale": sizes["guard_floor_scale"],
                "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
                "datasets": {}}
     state_path = os.path.join(out, "pipeline.json")
@@ -285,8 +297,7 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed,
             guard_margin=guard_margin, guard_episodes=getattr(args, "guard_episodes", 16),
             guard_floors={m: training_error_floor(r) for m, r in runs.items()},
-            guard_floor_scale=(1.0 if getattr(args, "guard_floor_scale", None) is None
-                               else args.guard_floor_scale),
+            guard_floor_scale=sizes["guard_floor_scale"],
             train_path=summary["datasets"]["train"]["path"])
         for m, imp in improvement.items():
             evals[m]["metrics"].update(mpi=imp["mpi"], api=imp["api"])

@@ -632,6 +632,17 @@ def test_improve_recipe_guard_floor_scale_reaches_both_front_ends(monkeypatch):
     assert recipe_settings("control", "ant")["guard_floor_scale"] == 1.0
 
 
+def test_no_task_changes_the_recipe_margin():
+    """``app.improve.guard_margin`` gives a recipe's margin from IMPROVE_RECIPES before the
+    task is known (rl2s improve reads it from the checkpoint later), so a per-task margin would
+    reach paper.py but not rl2s improve or rl2s pipeline: none may exist until that is built."""
+    from rl2s_jax.improve import recipes
+
+    for name, tasks in recipes.IMPROVE_RECIPE_TASKS.items():
+        for task, change in tasks.items():
+            assert "guard_margin" not in change, (name, task)
+
+
 @pytest.mark.parametrize("task", ["hopper", "halfcheetah", "ant"])
 def test_rl2s_improve_recipe_is_paper_py_recipe(task):
     """``recipe_settings`` (rl2s improve --recipe) resolves to what paper.py --improve-recipe

@@ -69,6 +69,8 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
     md = (out / "report.md").read_text()
     assert "| rl2s |" in md and "kendall_tau" in md
     assert "| predicted gain (every member at least) |" in md
+    assert imp["iterations"] == 2 and ("Fine-tuned by SAC for 2 iterations per policy in whole "
+                                       "episodes from the data's start states.") in md
     # a rerun with the same sizes reuses the data and the finished runs
     rerun = [a if a != "2" or args[i - 1] != "--improve-iterations" else "0"
              for i, a in enumerate(args)]
@@ -169,6 +171,15 @@ def test_improvement_text_names_the_floor_and_its_scale():
     assert ("floor 20: every member's gain must exceed 0.5 x the simulator's MVD"
             in text(guard_floor=20.0, guard_floor_scale=0.5))
     assert "floor" not in text(guard_floor=0.0, guard_floor_scale=0.0)
+    # how the policies were fine-tuned, where the entry says (older reports do not)
+    assert ("Fine-tuned by SAC for 4000 iterations per policy in 100-step branches from the "
+            "data's states, reward minus 1 x the ensemble's disagreement." in text(
+                guard_floor=0.0, iterations=4000,
+                recipe={"branch_length": 100, "uncertainty_penalty": 1.0}))
+    assert ("Fine-tuned by SAC for 300 iterations per policy in whole episodes from the data's "
+            "start states." in text(guard_floor=0.0, iterations=300,
+                                    recipe={"branch_length": None, "uncertainty_penalty": 0.0}))
+    assert "Fine-tuned" not in text(guard_floor=0.0)
     assert "| p0 | deployed | +0.300 | 100.0 | 150.0 | +0.500 |" in text(guard_floor=0.0)
 
 

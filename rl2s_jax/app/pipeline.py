@@ -183,7 +183,7 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
                        "predicted_gain_mean": mean, "guard_margin": guard_margin,
                        "guard_floor": floors.get(method), "guard_horizon": episode_length,
                        "guard_floor_scale": guard_floor_scale,
-                       "recipe": recipe}
+                       "recipe": recipe, "iterations": sizes["improve_iterations"]}
         log(f"[pipeline] improvement in {method}'s simulator: MPI {m['mpi']:.3f}  API "
             f"{m['api']:.3f} ({int(accept.sum())} of {P} deployed)")
     log(f"[pipeline] real returns of the start and deployed policies measured in "

@@ -70,6 +70,20 @@ def markdown_table(methods: dict[str, dict], keys=TABLE_KEYS) -> str:
     return "\n".join(lines)
 
 
+def fine_tuning_text(imp: dict) -> list[str]:
+    """How an improvement entry's policies were fine-tuned (SAC iterations and the simulated
+    env of its ``recipe``), as [a sentence]; [] where the entry predates ``iterations``."""
+    if "iterations" not in imp:
+        return []
+    env = imp.get("recipe") or {}
+    branch, penalty = env.get("branch_length"), env.get("uncertainty_penalty") or 0.0
+    return ["", f"Fine-tuned by SAC for {imp['iterations']} iterations per policy in "
+            + (f"{branch}-step branches from the data's states" if branch
+               else "whole episodes from the data's start states")
+            + (f", reward minus {penalty:g} x the ensemble's disagreement" if penalty else "")
+            + "."]
+
+
 def improvement_text(evals: dict[str, dict]) -> str:
     """Per method and test policy of the improvement (``evals[m]["improvement"]``, the
     pipeline's ``improve_in_simulators``): deployed or kept, the simulator's predicted gain
@@ -89,7 +103,7 @@ def improvement_text(evals: dict[str, dict]) -> str:
                      + ("" if k == 1 else f"{k:g} x ") + "the simulator's "
                      "MVD on the training policies" if floor else "")
                   + f"): {sum(imp['deployed'])} of {len(imp['I'])} deployed, MPI "
-                  f"{imp['mpi']:.3f}, API {imp['api']:.3f}", "",
+                  f"{imp['mpi']:.3f}, API {imp['api']:.3f}", *fine_tuning_text(imp), "",
                   "| policy | deployed | predicted gain (every member at least) | real C0 | "
                   "real C1 | real gain |", "|---|---|---:|---:|---:|---:|"]
         for j, name in enumerate(names):

@@ -222,13 +222,14 @@ def main(argv=None) -> int:
                 f"{m} {r['deployed']}/{r['lanes_x_policies']} deployed, {r['losses']} lost, "
                 f"median {r['median_gain']:+.3f}" for m, r in rows.items()))
     print(f"chosen scale {chosen:g} (the rule: {doc['rule']}) -> {path}")
-    names = [os.path.basename(p) for p in args.test]
-    if len(set(names)) < len(names):  # paper.py names every run <task>.json
-        names = [f"{i}_{n}" for i, n in enumerate(names)]
-    for p, name in zip(args.test if args.rescore else [], names, strict=False):
+    if args.rescore and args.test:
+        names = [os.path.basename(p) for p in args.test]
+        if len(set(names)) < len(names):  # paper.py names every run <task>.json
+            names = [f"{i}_{n}" for i, n in enumerate(names)]
         os.makedirs(args.rescore, exist_ok=True)
-        dest = rescore(p, chosen, args.margin, os.path.join(args.rescore, name))
-        print(f"rescored at k {chosen:g} -> {dest}")
+        for p, name in zip(args.test, names, strict=True):
+            dest = rescore(p, chosen, args.margin, os.path.join(args.rescore, name))
+            print(f"rescored at k {chosen:g} -> {dest}")
     return 0
 
 

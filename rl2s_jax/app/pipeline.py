@@ -28,7 +28,7 @@ from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
-from rl2s_jax.improve.recipes import check_recipe, recipe_settings
+from rl2s_jax.improve.recipes import recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
@@ -201,8 +201,7 @@ def pipeline_sizes(args, profile: str) -> dict:
     recipe = getattr(args, "recipe", None)
     scale = check_floor_scale(getattr(args, "guard_floor_scale", None))
     if recipe is not None:
-        check_recipe(recipe)
-        rs = recipe_settings(recipe, args.task)
+        rs = recipe_settings(recipe, args.task)  # checks the name
         sizes.update(recipe=recipe, improve_iterations=rs["iterations"],
                      sac={**sizes["sac"], **rs["sac"]}, improve_recipe={
                          k: rs[k] for k in ("branch_length", "uncertainty_penalty")})

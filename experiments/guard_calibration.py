@@ -67,10 +67,11 @@ def lanes_of(run: dict, path: str) -> list[dict]:
     return out
 
 
-def load_runs(paths: list[str], task: str, split: str) -> list[dict]:
+def load_runs(paths: list[str], task: str, split: str) -> tuple[list[dict], list[dict]]:
     """Every lane of the runs, each run checked to be ``task``'s on ``split``
-    ("validation" or "zoo": paper.py --policy-split)."""
-    lanes = []
+    ("validation" or "zoo": paper.py --policy-split), and per run where it came from (its
+    path, the command that made it and its device)."""
+    lanes, sources = [], []
     for path in paths:
         with open(path) as f:
             run = json.load(f)
@@ -81,10 +82,12 @@ def load_runs(paths: list[str], task: str, split: str) -> list[dict]:
         if not run.get("improvement"):
             raise SystemExit(f"runs: {path} has no improvement (--improve-iterations 0?)")
         lanes += lanes_of(run, path)
+        sources.append({"path": path, "command": run.get("command"),
+                        "device": (run.get("machine") or {}).get("device")})
     keys = [(r["method"], r["seed"]) for r in lanes]
     if len(keys) != len(set(keys)):
         raise SystemExit(f"runs: a (method, seed) lane appears twice among {split} runs")
-    return lanes
+    return lanes, sources
 
 
 def verdicts(lanes: list[dict], scale: float, margin: float) -> list[np.ndarray]:
@@ -200,8 +203,8 @@ def main(argv=None) -> int:
         raise SystemExit(f"scales: expected a comma list of floats >= 0, got {args.scales!r}")
     if not (np.isfinite(args.margin) and args.margin >= 0):
         raise SystemExit(f"margin: expected a finite float >= 0, got {args.margin}")
-    val = load_runs(args.validation, args.task, "validation")
-    test = load_runs(args.test, args.task, "zoo") if args.test else []
+    val, val_sources = load_runs(args.validation, args.task, "validation")
+    test, test_sources = load_runs(args.test, args.task, "zoo") if args.test else ([], [])
     zret = np.asarray(load_zoo(args.task).returns, np.float64)
     by_scale = {k: {"validation": read_scale(val, k, args.margin, zret),
                     **({"test": read_scale(test, k, args.margin, zret)} if test else {})}
@@ -210,7 +213,9 @@ def main(argv=None) -> int:
     doc = {"task": args.task, "margin": args.margin, "scales": scales, "chosen_scale": chosen,
            "rule": RULE,
            "by_scale": {f"{k:g}": v for k, v in by_scale.items()},
-           "validation_runs": args.validation, "test_runs": args.test}
+           "command": "python experiments/guard_calibration.py " + " ".join(
+               sys.argv[1:] if argv is None else argv),
+           "validation_runs": val_sources, "test_runs": test_sources}
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, f"{args.task}.json")
     with open(path, "w") as f:

@@ -611,14 +611,14 @@ def test_improve_recipe_sets_the_measured_flags_and_flags_given_win():
 
 
 def test_improve_recipe_guard_floor_scale_reaches_both_front_ends(monkeypatch):
-    """A task's guard floor scale in the recipe (as a calibration sets it: Walker2d's 0) becomes
-    paper.py's --guard-floor-scale and ``recipe_settings``' (rl2s improve); a flag given wins;
-    the recipe's own is 1 (the training MVD)."""
+    """A task's guard floor scale in the recipe (as a calibration sets it: Walker2d's 0, Ant's
+    0.5) becomes paper.py's --guard-floor-scale and ``recipe_settings``' (rl2s improve); a flag
+    given wins; the recipe's own is 1 (the training MVD)."""
     from rl2s_jax.improve import recipes
 
     paper = _load("paper")
     assert recipes.IMPROVE_RECIPES["control"]["guard_floor_scale"] == 1.0
-    for task, scale in (("hopper", 1.0), ("walker2d", 0.0)):
+    for task, scale in (("hopper", 1.0), ("walker2d", 0.0), ("ant", 0.5)):
         assert paper.parse_args(["--task", task, "--improve-recipe", "control"]
                                 ).guard_floor_scale == scale
         assert recipe_settings("control", task)["guard_floor_scale"] == scale
@@ -629,7 +629,7 @@ def test_improve_recipe_guard_floor_scale_reaches_both_front_ends(monkeypatch):
     assert recipe_settings("control", "hopper")["guard_floor_scale"] == 0.25
     assert paper.parse_args(["--task", "walker2d", "--improve-recipe", "control",
                              "--guard-floor-scale", "1"]).guard_floor_scale == 1.0
-    assert recipe_settings("control", "ant")["guard_floor_scale"] == 1.0
+    assert recipe_settings("control", "halfcheetah")["guard_floor_scale"] == 1.0
 
 
 def test_no_task_changes_the_recipe_margin():
@@ -1716,6 +1716,10 @@ def test_guard_calibration_by_hand(tmp_path):
     assert (t0["deployed"], t0["losses"], t0["median_gain"]) == (3, 1, pytest.approx(0.1))
     assert (t75["deployed"], t75["losses"], t75["median_gain"]) == (2, 1, pytest.approx(0.0))
     assert (out / "hopper.png").stat().st_size > 10_000  # the figure
+    assert doc["test_runs"] == [{"path": str(paths["test"]), "command": "paper.py",
+                                 "device": None}]  # where each run came from
+    assert doc["validation_runs"][0]["path"] == str(paths["val"])
+    assert doc["command"].startswith("python experiments/guard_calibration.py --task hopper")
     # --rescore: the test run again with its guard at the chosen k (0.75 x 40)
     again = json.loads((tmp_path / "at_k" / "test.json").read_text())
     e = again["improvement"]["rl2s/0"]

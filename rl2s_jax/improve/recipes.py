@@ -7,7 +7,7 @@ real-env control" and "... inside the simulators"), for both front ends: ``paper
 batch, ``zoo.build.fine_tuning_recipe``; 128 envs x 4,000 iterations, 32 updates a step, 2,000
 critic warm-up updates; KL 0.01; per-task changes in IMPROVE_RECIPE_TASKS) inside 100-step
 branches from the data's states penalised by the ensemble's disagreement, deployed through the
-guard (margin 0.02, floor 1 x the simulator's training MVD; Walker2d 0). A GPU recipe: 128k
+guard (margin 0.02, floor 1 x the simulator's training MVD; Walker2d 0, Ant 0.5). A GPU recipe: 128k
 SAC updates per policy (HalfCheetah 256k).
 """
 from __future__ import annotations
@@ -35,7 +35,7 @@ IMPROVE_RECIPES = {
 IMPROVE_RECIPE_TASKS = {"control": {
     "halfcheetah": dict(improve_iterations=8000, sac=dict(kl_weight=0.0)),
     "walker2d": dict(guard_floor_scale=0.0),
-    "ant": dict(sac=dict(kl_weight=0.0)),
+    "ant": dict(sac=dict(kl_weight=0.0), guard_floor_scale=0.5),
 }}
 
 

@@ -9,25 +9,25 @@ method may lack seeds), beside the task's real-env control (docs/results/<task>.
 Per method: ``median_gain`` (``improve.finetune.median_gain``: median real gain I = (C1 -
 C0) / |C0| of the test policies below the zoo's top quartile, averaged over the seeds, C0
 paired with C1), raw (all deployed) and through the protocol's guard (a kept start gains 0),
-per seed; MPI / API raw and guarded (means over seeds), deployed count, ``budget_env_steps``
-(simulated env steps per policy), commands. ``paired``: RL2S's raw (and guarded) gain minus
-GAIL's and BC's (``finetune.paired_gain_difference``: per (seed, policy below the top
-quartile) and per seed). ``bars`` (with --control): ``issue_bars``.
-``guard_rules``: what other deployment rules would have deployed, from the members' predicted
-gains (``guard_member_gain``): "every member predicts a gain" and, on the lanes that recorded
-the range floor, the "training-error range floor" (``protocol_improve.lane_error_range``) and
-the "discordant-pair floor" (``protocol_improve.pair_floor_verdict``), beside the protocol's
-guard (``lanes``: on how many (method, seed) lanes). They read the test policies' real gains:
-they explain the guard, they must not choose it (judge a rule on runs not used to design it).
-``controls``: the same median gain for the runs' own controls (``paper.py
---improve-oracle-seeds``: the oracle's physics in the simulated env; ``--control``: the real
-env with the runs' SAC), over all their seeds. ``on_control_policies`` (with ``--control``):
-each method's median gain on the policies the task's control fine-tuned (its ``zoo_ids``).
-Writes OUT/<task>.json (the runs, trimmed, and the summary), OUT/<task>.png (each (seed,
-policy)'s real gain per method, deployments marked, beside the control's median), a table.
-The control's median gain is recomputed from its C0 / C1 on today's zoo (a grown zoo moves its
-top quartile; ``median_gain_recorded``: its file's). Runs on the validation policies
-(``paper.py --policy-split validation``) take no --control: their own controls compare.
+per seed, and through a perfect guard (``median_gain_perfect_guard``: each policy deployed
+exactly where it gains in reality, the most any guard could keep of the raw gain); MPI / API
+raw and guarded (means over seeds), deployed count, ``budget_env_steps``, commands.
+``paired``: RL2S's raw (and guarded) gain minus GAIL's and BC's
+(``finetune.paired_gain_difference``: per (seed, policy below the top quartile) and per
+seed). ``bars`` (with --control): ``issue_bars``.
+``guard_rules``: what other rules would have deployed, from the members' predicted gains:
+"every member predicts a gain" and, on the lanes that recorded them, the "training-error range
+floor" (``protocol_improve.lane_error_range``) and the "discordant-pair floor"
+(``protocol_improve.pair_floor_verdict``), beside the protocol's guard (``lanes``: how many
+(method, seed) lanes). They read the test policies' real gains: they explain the guard, they
+must not choose it. ``controls``: the same median gain for the runs' own controls (``paper.py
+--improve-oracle-seeds``: the oracle's physics; ``--control``: the real env with the runs'
+SAC). ``on_control_policies`` (with ``--control``): each method's median gain on the policies
+the task's control fine-tuned. Writes OUT/<task>.json (the runs, trimmed, and the summary),
+OUT/<task>.png (each (seed, policy)'s real gain per method, deployments marked, the control's
+median), a table. The control's median gain is recomputed on today's zoo (a grown zoo moves
+its top quartile; ``median_gain_recorded``: its file's). Validation runs (``paper.py
+--policy-split validation``) take no --control: their own controls compare.
 """
 from __future__ import annotations
 
@@ -182,7 +182,8 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
         c1 = np.stack([r["c1"] for r in mine])
         dep = np.stack([np.where(r["accepted"], r["c1"], r["c0"]) for r in mine])
         start = mine[0]["start"]
-        raw, guarded = (median_gain(c0, c, start, zoo_returns) for c in (c1, dep))
+        raw, guarded, perfect = (median_gain(c0, c, start, zoo_returns)
+                                 for c in (c1, dep, np.maximum(c0, c1)))
         per_seed = [median_gain(a, b, start, zoo_returns)["median_gain"]
                     for a, b in zip(c0, c1, strict=True)]
         per_seed_g = [median_gain(a, b, start, zoo_returns)["median_gain"]
@@ -192,11 +193,10 @@ def summarise(rows: list[dict], zoo_returns: np.ndarray, n_boot: int) -> dict:
         seeds = [r["seed"] for r in mine]  # {seed: [policies below the top quartile]}
         gains[m] = dict(zip(seeds, i_raw[:, below], strict=True))
         gains_g[m] = dict(zip(seeds, i_dep[:, below], strict=True))
-        out[m] = {"seeds": seeds, "policies": len(start),
-                  "n_below": raw["n_below"],
+        out[m] = {"seeds": seeds, "policies": len(start), "n_below": raw["n_below"],
                   "median_gain_raw": raw["median_gain"], "median_gain_raw_per_seed": per_seed,
-                  "median_gain": guarded["median_gain"],
-                  "median_gain_per_seed": per_seed_g,
+                  "median_gain": guarded["median_gain"], "median_gain_per_seed": per_seed_g,
+                  "median_gain_perfect_guard": perfect["median_gain"],
                   "mpi_raw": float(i_raw.min(1).mean()), "api_raw": float(i_raw.mean(1).mean()),
                   "worst_raw": float(i_raw.min()),
                   "mpi": float(i_dep.min(1).mean()), "api": float(i_dep.mean(1).mean()),
@@ -284,8 +284,8 @@ def by_method(summary: dict, runs: list[dict], source: str) -> dict:
     ``median_gain`` (guarded: deployed or kept), ``mpi``, ``api``, ``deployed`` and
     ``budget_env_steps``, with the commands of the runs that ran it, the bars' verdict and
     this summary's path."""
-    keys = ("median_gain", "median_gain_raw", "median_gain_per_seed", "mpi", "api",
-            "deployed", "lanes_x_policies", "seeds")
+    keys = ("median_gain", "median_gain_raw", "median_gain_per_seed",
+            "median_gain_perfect_guard", "mpi", "api", "deployed", "lanes_x_policies", "seeds")
     out = {"control": summary["control"]}
     out.update({m: {**{k: s[k] for k in keys}, "budget_env_steps": summary["budget_env_steps"],
                     "commands": [r["command"] for r in runs if any(
@@ -364,16 +364,16 @@ def main(argv=None) -> int:
     print(f"{args.task}: budget {summary['budget_env_steps']} simulated env steps per policy"
           + (f"; control median gain {ctl['median_gain']:+.3f}" if ctl.get("median_gain")
              is not None else ""))
-    print(f"{'method':<8} {'raw median':>10} {'per seed':>22} {'guarded':>8} {'deployed':>9} "
-          f"{'MPI':>7} {'API':>7} {'worst raw':>9}")
+    print(f"{'method':<8} {'raw median':>10} {'per seed':>22} {'guarded':>8} {'perfect':>8} "
+          f"{'deployed':>9} {'MPI':>7} {'API':>7} {'worst raw':>9}")
     for m, s in summary["methods"].items():
         per = " / ".join(f"{g:+.2f}" for g in s["median_gain_raw_per_seed"])
         print(f"{m:<8} {s['median_gain_raw']:>+10.3f} {per:>22} {s['median_gain']:>+8.3f} "
-              f"{s['deployed']:>4}/{s['lanes_x_policies']:<4} {s['mpi']:>+7.3f} "
-              f"{s['api']:>+7.3f} {s['worst_raw']:>+9.3f}")
+              f"{s['median_gain_perfect_guard']:>+8.3f} {s['deployed']:>4}/"
+              f"{s['lanes_x_policies']:<4} {s['mpi']:>+7.3f} {s['api']:>+7.3f} "
+              f"{s['worst_raw']:>+9.3f}")
     for name, c in summary["controls"].items():
-        print(f"{name:<8} {c['median_gain']:>+10.3f} (the runs' own control, {c['seeds']} "
-              f"seed(s))")
+        print(f"{name:<8} {c['median_gain']:>+10.3f} (the runs' own control, {c['seeds']} seeds)")
     common = summary.get("on_control_policies")
     if common:
         print(f"on the control's {len(common['zoo_ids'])} policies ({common.get('n_below')} "

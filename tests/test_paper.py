@@ -1391,6 +1391,8 @@ def test_improvement_summary_by_hand(tmp_path):
     # rl2s I per seed: [.5, -.1, .1] and [.1, 0, -.25]; seed means [.3, -.05, -.075]
     assert rl2s["median_gain_raw"] == pytest.approx(-0.05)
     assert rl2s["median_gain_raw_per_seed"] == pytest.approx([0.1, 0.0])
+    # a perfect guard keeps each loss at 0: [.5, 0, .1] and [.1, 0, 0]; means [.3, 0, .05]
+    assert rl2s["median_gain_perfect_guard"] == pytest.approx(0.05)
     # deployed: seed 0 policy 0 (I .5), seed 1 policy 2 (I -.25): means [.25, 0, -.125]
     assert rl2s["median_gain"] == pytest.approx(0.0) and rl2s["deployed"] == 2
     assert rl2s["mpi"] == pytest.approx((0.0 - 0.25) / 2)

@@ -7,8 +7,8 @@ real-env control" and "... inside the simulators"), for both front ends: ``paper
 batch, ``zoo.build.fine_tuning_recipe``; 128 envs x 4,000 iterations, 32 updates a step, 2,000
 critic warm-up updates; KL 0.01; per-task changes in IMPROVE_RECIPE_TASKS) inside 100-step
 branches from the data's states penalised by the ensemble's disagreement, deployed through the
-guard (margin 0.02, floor 1 x the simulator's training MVD; Walker2d 0, Ant 0.5). A GPU recipe: 128k
-SAC updates per policy (HalfCheetah 256k).
+guard (margin 0.02, floor 1 x the simulator's training MVD; Walker2d 0, Ant 0.5). A GPU
+recipe: 128k SAC updates per policy (HalfCheetah 256k).
 """
 from __future__ import annotations
 
@@ -29,9 +29,10 @@ IMPROVE_RECIPES = {
 # from it and gain +0.01; without the anchor +0.20 at 4,000 iterations (validation gain still
 # rising), +0.41 at 8,000 (3 seeds). Ant without it: +0.48, was +0.15 (3 seeds; KL 0 chosen on
 # training policies, ``improve_control --split train``). The validation selection and the guard
-# catch the collapses the anchor prevented. Walker2d's guard floor scale 0 (the margin alone) is
-# experiments/guard_calibration.py's choice on the validation policies, by a rule set before the
-# runs; on the test policies no method deployed a loss at it (docs/results/guard_calibration).
+# catch the collapses the anchor prevented. The guard floor scales, Walker2d's 0 (the margin
+# alone) and Ant's 0.5, are experiments/guard_calibration.py's choices on the validation
+# policies, by a rule set before the runs (docs/results/guard_calibration); on the test policies
+# no method deployed a loss at Walker2d's, and one RL2S-BC policy (-0.11) at Ant's (seed 0).
 IMPROVE_RECIPE_TASKS = {"control": {
     "halfcheetah": dict(improve_iterations=8000, sac=dict(kl_weight=0.0)),
     "walker2d": dict(guard_floor_scale=0.0),

@@ -217,6 +217,7 @@ def cmd_diagnose(args) -> int:
     from rl2s_jax.data.dataset import load_dataset
     from rl2s_jax.diagnose.extension import train_command
     from rl2s_jax.diagnose.model import ModelSpec
+    from rl2s_jax.train.checkpoint import load_meta
 
     if not 0.0 < args.heldout < 1.0:
         raise ValueError(f"heldout: expected a fraction in (0, 1), got {args.heldout}")
@@ -253,7 +254,9 @@ def cmd_diagnose(args) -> int:
             print(f"  {k:<16} {g['before'][k]:9.4f} -> {g['after'][k]:9.4f}  "
                   f"({d['mean']:+.4f} +- {d['std']:.4f} over {len(g['seeds'])} seeds)")
     ext = report["extension"]
-    command = train_command(report, args.data, os.path.join(args.out, "extended"))
+    steps = (load_meta(args.ckpt)["step"] if args.ckpt is not None else None) or None
+    command = train_command(report, args.data, os.path.join(args.out, "extended"),
+                            **({"steps": int(steps)} if steps else {}))
     if command:
         print(f"build the extended simulator (extension.train_set in report.json):\n  {command}")
     for n in ext.get("not_trainable", []):

@@ -249,8 +249,8 @@ def test_train_set_builds_what_the_trained_simulator_lacks():
                              change("actuation_delay", action_history=2)], legacy)
     assert items == ['gen_noise="state"', "nll_beta=0.5"], items  # history 3 already >= 2
     report = {"extension": {"train_set": ["action_history=2"], "method": "bc"}}
-    assert train_command(report, "d.npz", "out") == (
-        "rl2s train --data d.npz --method bc --out out --set 'action_history=2'")
+    assert train_command(report, "d.npz", "out", steps=7) == (
+        "rl2s train --data d.npz --method bc --steps 7 --out out --set action_history=2")
     assert train_command({"extension": {"train_set": []}}, "d.npz", "out") is None
 
 
@@ -393,3 +393,22 @@ def test_cli_diagnose_reference_of_another_system_is_refused(tmp_path, capsys):
                  "--reference", str(tmp_path / "missing.npz")]) == 2
     assert "reference" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "o")
+
+
+def test_printed_train_command_runs_as_printed(pm_files, tmp_path):
+    """The `rl2s train` command diagnosis prints (extension.train_command) runs through the
+    CLI exactly as printed, and builds the extension it names (here a 2-step action history)."""
+    import shlex
+
+    from rl2s_jax.cli import main
+    from rl2s_jax.train.checkpoint import load_meta
+
+    report = {"extension": {"train_set": ['time_inputs=["step"]', "action_history=2"],
+                            "method": "bc"}}
+    out = str(tmp_path / "extended dir")  # a space: the printed paths must be quoted
+    command = train_command(report, pm_files["train"], out, steps=2)
+    argv = shlex.split(command)
+    assert argv[0] == "rl2s", command
+    assert main(argv[1:]) == 0
+    cfg = load_meta(os.path.join(out, "checkpoints"))["config"]
+    assert (cfg["action_history"], list(cfg["time_inputs"])) == (2, ["step"]), cfg

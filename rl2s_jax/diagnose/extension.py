@@ -5,13 +5,14 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shlex
 
 from rl2s_jax.diagnose.causes import rivals
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.train.config import TrainConfig
 
-__all__ = ["CONTEXT_WINDOW", "EXTENSION_SHARE", "NOISE_NLL_BETA", "NOT_TRAINABLE", "extension_for",
-           "train_command", "train_set"]
+__all__ = ["CONTEXT_WINDOW", "DEFAULT_TRAIN_STEPS", "EXTENSION_SHARE", "NOISE_NLL_BETA",
+           "NOT_TRAINABLE", "extension_for", "train_command", "train_set"]
 
 EXTENSION_SHARE = 0.25  # secondary causes join the extension above this share of the top score
 CONTEXT_WINDOW = 4  # transitions the trained simulator's context is inferred from (at least)
@@ -118,11 +119,21 @@ def train_set(changes: list[dict], base: TrainConfig | None = None
     return items, skipped, already
 
 
-def train_command(report: dict, data_path: str, out: str) -> str | None:
-    """The `rl2s train` command that builds the extended simulator (None: nothing to build)."""
+#: train_steps of the printed `rl2s train` command when no diagnosed checkpoint gives its own.
+DEFAULT_TRAIN_STEPS = 2000
+
+
+def train_command(report: dict, data_path: str, out: str,
+                  steps: int = DEFAULT_TRAIN_STEPS) -> str | None:
+    """The `rl2s train` command that builds the extended simulator, runnable as printed
+    (``steps``: its --steps, the diagnosed checkpoint's step where there is one), or None when
+    there is nothing to build."""
     items = report["extension"].get("train_set") or []
     if not items:
         return None
+    if not isinstance(steps, int) or steps < 1:
+        raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
     method = report["extension"].get("method", "rl2s")
-    sets = " ".join(f"--set '{i}'" for i in items)
-    return f"rl2s train --data {data_path} --method {method} --out {out} {sets}"
+    sets = " ".join(f"--set {shlex.quote(i)}" for i in items)
+    return (f"rl2s train --data {shlex.quote(data_path)} --method {method} --steps {steps} "
+            f"--out {shlex.quote(out)} {sets}")

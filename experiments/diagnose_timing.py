@@ -56,6 +56,7 @@ def main(argv=None) -> int:
     ap.add_argument("--no-values", action="store_true", help="value views off (zoo=None and "
                     "the recorded values dropped)")
     ap.add_argument("--save-data", action="store_true")
+    ap.add_argument("--collect-only", action="store_true", help="record (and save), no diagnosis")
     ap.add_argument("--load-data", metavar="DIR2")
     ap.add_argument("--log-compiles", action="store_true")
     ap.add_argument("--stack-every", type=float, default=60.0)
@@ -87,6 +88,9 @@ def main(argv=None) -> int:
                         value_discounted_se=None)
     print(f"[timing] data: {ds.n_transitions} transitions, {ds.n_policies} policies "
           f"({collect_s:.1f}s)", flush=True)
+    if args.collect_only:
+        faulthandler.cancel_dump_traceback_later()
+        return 0
     t0 = time.perf_counter()
     report = diagnose(ds, os.path.join(args.out, "diagnosis"), seeds=tuple(range(args.seeds)),
                       reference=ref, zoo=None if args.no_values else args.task,

@@ -4,6 +4,7 @@ import argparse
 import json
 import pathlib
 import re
+import shlex
 import subprocess
 import typing
 
@@ -225,3 +226,58 @@ def test_block_checks_find_what_is_wrong():
         ["docs-test substitution 'hopper' matches nothing in the block"], [], []]
     with pytest.raises(ValueError, match="X.md:2: '<!-- not run: -->' without a reason"):
         doc_blocks("<!-- not run:  -->\n```bash\nmake test\n```\n", "X.md")
+
+
+@pytest.fixture(scope="module")
+def docs_workspace(pm_files, pm_checkpoint, tmp_path_factory):
+    """The files the docs' blocks name: zoo/ (pointmass, 6 policies), train.npz, test.npz,
+    D.npz and runs/rl2s/checkpoints (pm_files, pm_checkpoint)."""
+    import shutil
+
+    root = tmp_path_factory.mktemp("docs_workspace")
+    shutil.copytree(pathlib.Path(pm_files["train"]).parent / "zoo", root / "zoo")
+    for name, src in (("train.npz", "train"), ("test.npz", "test"), ("D.npz", "train")):
+        shutil.copy(pm_files[src], root / name)
+    shutil.copytree(pm_checkpoint, root / "runs" / "rl2s" / "checkpoints")
+    return root
+
+
+def run_blocks(blocks: list[Block], capsys) -> None:
+    """Run the blocks meant to run in order in the current directory: python blocks exec'd in
+    one namespace (a file's blocks continue one another), rl2s commands through cli.main."""
+    from rl2s_jax import cli
+
+    problems = [p for b in blocks for p in block_problems(b, cli.build_parser())]
+    assert problems == [], "blocks that cannot run and say no reason"
+    namespace: dict = {"__name__": "__docs__"}
+    for b in blocks:
+        if b.kind == "text" or b.not_run is not None:
+            continue
+        code = substituted(b)
+        if b.kind == "python":
+            exec(compile(code, f"{b.file}:{b.line}", "exec"), namespace)
+            continue
+        for cmd in commands(code):
+            try:
+                rc = cli.main(shlex.split(cmd)[1:])
+            except SystemExit as stop:  # argparse's usage errors
+                rc = stop.code
+            out = capsys.readouterr()
+            assert rc == 0, f"{b.file}:{b.line}: {cmd!r} exited {rc}:\n{out.out}\n{out.err}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("file", doc_files())
+def test_docs_blocks_run(file, docs_workspace, tmp_path, monkeypatch, capsys):
+    import shutil
+
+    work = tmp_path / "work"
+    shutil.copytree(docs_workspace, work)
+    monkeypatch.chdir(work)
+    blocks = doc_blocks((ROOT / file).read_text(), file)
+    try:
+        run_blocks(blocks, capsys)
+    except Exception:
+        if file in ELSEWHERE:
+            pytest.xfail(ELSEWHERE[file])
+        raise

@@ -266,15 +266,28 @@ def run_blocks(blocks: list[Block], capsys) -> None:
             assert rc == 0, f"{b.file}:{b.line}: {cmd!r} exited {rc}:\n{out.out}\n{out.err}"
 
 
+def written_by(blocks: list[Block]) -> set[str]:
+    """The top-level names the runnable rl2s commands write (--out): theirs to make, so the
+    workspace does not seed them."""
+    out = set()
+    for b in blocks:
+        if b.kind == "shell" and b.not_run is None:
+            for words in (c.split() for c in commands(substituted(b))):
+                out |= {pathlib.Path(v).parts[0] for f, v in zip(words, words[1:]) if f == "--out"}
+    return out
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("file", doc_files())
 def test_docs_blocks_run(file, docs_workspace, tmp_path, monkeypatch, capsys):
     import shutil
 
-    work = tmp_path / "work"
-    shutil.copytree(docs_workspace, work)
-    monkeypatch.chdir(work)
     blocks = doc_blocks((ROOT / file).read_text(), file)
+    written = written_by(blocks)
+    work = tmp_path / "work"
+    shutil.copytree(docs_workspace, work, ignore=lambda d, names: [
+        n for n in names if pathlib.Path(d) == docs_workspace and n in written])
+    monkeypatch.chdir(work)
     try:
         run_blocks(blocks, capsys)
     except Exception:

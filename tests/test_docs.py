@@ -193,7 +193,8 @@ def test_every_code_block_runs_or_says_why(file):
     """Each python / shell block of the file is runnable or marked not run with a reason, and
     every rl2s command shown has an existing subcommand and existing flags."""
     parser = _parser()
-    bad = [p for b in doc_blocks((ROOT / file).read_text(), file) for p in block_problems(b, parser)]
+    bad = [p for b in doc_blocks((ROOT / file).read_text(), file)
+           for p in block_problems(b, parser)]
     if bad and file in ELSEWHERE:
         pytest.xfail(f"{ELSEWHERE[file]}: {bad}")
     assert bad == []
@@ -273,7 +274,8 @@ def written_by(blocks: list[Block]) -> set[str]:
     for b in blocks:
         if b.kind == "shell" and b.not_run is None:
             for words in (c.split() for c in commands(substituted(b))):
-                out |= {pathlib.Path(v).parts[0] for f, v in zip(words, words[1:]) if f == "--out"}
+                out |= {pathlib.Path(v).parts[0]
+                        for f, v in zip(words, words[1:], strict=False) if f == "--out"}
     return out
 
 

@@ -1,6 +1,8 @@
 """The docs and code cite sections of docs/RESULTS.md that exist: a section that left RESULTS
 for the diary is cited as RESULTS@bf0c7b2 (README), so no citation points at nothing."""
 import argparse
+import contextlib
+import io
 import json
 import pathlib
 import re
@@ -176,9 +178,18 @@ def block_problems(block: Block, parser) -> list[str]:
         unknown = sorted(flags - set(sub._option_string_actions))
         if unknown:
             bad.append(f"{where}: rl2s {words[1]}: no such flags {unknown}")
-        if block.not_run is None and re.search(r"[\[\]|]|\.\.\.", cmd):
+        synopsis = (re.search(r"[\[\]|]|\.\.\.", cmd)
+                    or any(re.fullmatch(r"[A-Z][A-Z0-9_]*", w) for w in words))
+        if block.not_run is None and synopsis:
             bad.append(f"{where}: {cmd[:50]!r} is a synopsis, not a command: mark the block "
                        "'<!-- not run: REASON -->'")
+        elif not synopsis and not unknown:
+            try:  # a whole command, run or not: its values parse too (types, choices)
+                with contextlib.redirect_stderr(io.StringIO()) as err:
+                    parser.parse_args(words[1:])
+            except SystemExit:
+                bad.append(f"{where}: {cmd[:50]!r} does not parse: "
+                           f"{err.getvalue().strip().splitlines()[-1]}")
     return bad
 
 
@@ -208,7 +219,8 @@ def test_block_checks_find_what_is_wrong():
             "rl2s trian --data D.npz\n```\n\n```\nrl2s inspect --data D.npz\n"
             "     [--colour]   # indented: the same command\n```\n\n"
             '<!-- docs-test: "hopper" -> "pointmass" -->\n```python\nx = 1\n```\n\n'
-            "<!-- not run: needs a GPU -->\n```bash\nmake paper\n```\n\n"
+            "<!-- not run: needs a GPU -->\n```bash\nmake paper\n"
+            "rl2s train --data D.npz --method foo --steps 3 --out r\n```\n\n"
             "```text\nmake nothing of this\n```\n")
     blocks = doc_blocks(text, "X.md")
     assert [(b.kind, b.not_run) for b in blocks] == [
@@ -224,7 +236,10 @@ def test_block_checks_find_what_is_wrong():
          "subcommand"],
         ["rl2s inspect: no such flags ['--colour']", "'rl2s inspect --data D.npz [--colour]' "
          "is a synopsis, not a command: mark the block '<!-- not run: REASON -->'"],
-        ["docs-test substitution 'hopper' matches nothing in the block"], [], []]
+        ["docs-test substitution 'hopper' matches nothing in the block"], found[5], []]
+    assert len(found[5]) == 1 and re.fullmatch(  # argparse's wording varies with Python
+        r"'rl2s train --data D.npz --method foo --steps 3 --o' does not parse: rl2s train: "
+        r"error: argument --method: invalid choice: 'foo' \(choose from .*\)", found[5][0])
     with pytest.raises(ValueError, match="X.md:2: '<!-- not run: -->' without a reason"):
         doc_blocks("<!-- not run:  -->\n```bash\nmake test\n```\n", "X.md")
 

@@ -1,4 +1,6 @@
-"""The docs and code cite sections of docs/RESULTS.md that exist: a section that left RESULTS
+"""The docs are true to the code. Their code blocks run (README.md and docs/*.md, at tiny
+sizes, or marked not run with a reason; the convention: below, "the docs' code blocks run").
+The docs and code cite sections of docs/RESULTS.md that exist: a section that left RESULTS
 for the diary is cited as RESULTS@bf0c7b2 (README), so no citation points at nothing."""
 import argparse
 import contextlib
@@ -183,7 +185,16 @@ def block_problems(block: Block, parser) -> list[str]:
         if block.not_run is None and synopsis:
             bad.append(f"{where}: {cmd[:50]!r} is a synopsis, not a command: mark the block "
                        "'<!-- not run: REASON -->'")
-        elif not synopsis and not unknown:
+        if synopsis:
+            for flag, value in zip(words[1:], words[2:], strict=False):  # a synopsis's choices
+                action = sub._option_string_actions.get(flag.strip("[]()"))
+                if action is not None and action.choices and not value.startswith(("-", "[")):
+                    wrong = [v for v in value.strip("[]()").split("|")
+                             if v not in map(str, action.choices) and not v.isupper()]
+                    if wrong:
+                        bad.append(f"{where}: rl2s {words[1]} {flag.strip('[]()')}: no such "
+                                   f"choices {wrong}")
+        elif not unknown:
             try:  # a whole command, run or not: its values parse too (types, choices)
                 with contextlib.redirect_stderr(io.StringIO()) as err:
                     parser.parse_args(words[1:])
@@ -216,6 +227,7 @@ def test_block_checks_find_what_is_wrong():
     rl2s lacks, a stale substitution, an empty reason; a marked block and a text block pass."""
     text = ("```bash\nmake hopper\n```\n\n```bash\nrl2s train --data D.npz [--steps N]\n```\n\n"
             "<!-- not run: a synopsis -->\n```bash\nrl2s train --data D.npz [--stepz N]\n"
+            "rl2s train --data D.npz --method rl3s|bc [--resume-step N]\n"
             "rl2s trian --data D.npz\n```\n\n```\nrl2s inspect --data D.npz\n"
             "     [--colour]   # indented: the same command\n```\n\n"
             '<!-- docs-test: "hopper" -> "pointmass" -->\n```python\nx = 1\n```\n\n'
@@ -232,7 +244,8 @@ def test_block_checks_find_what_is_wrong():
         ["'make hopper' is not an rl2s command: mark the block '<!-- not run: REASON -->'"],
         ["'rl2s train --data D.npz [--steps N]' is a synopsis, not a command: mark the block "
          "'<!-- not run: REASON -->'"],
-        ["rl2s train: no such flags ['--stepz']", "'rl2s trian --data D.npz': no such rl2s "
+        ["rl2s train: no such flags ['--stepz']", "rl2s train --method: no such choices "
+         "['rl3s']", "'rl2s trian --data D.npz': no such rl2s "
          "subcommand"],
         ["rl2s inspect: no such flags ['--colour']", "'rl2s inspect --data D.npz [--colour]' "
          "is a synopsis, not a command: mark the block '<!-- not run: REASON -->'"],

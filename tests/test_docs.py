@@ -324,3 +324,20 @@ def test_docs_blocks_run(file, docs_workspace, tmp_path, monkeypatch, capsys):
         if file in ELSEWHERE:
             pytest.xfail(ELSEWHERE[file])
         raise
+
+
+def test_readme_first_screen_reads_in_a_minute():
+    """The README opens with what it is, the two set-up commands and a quickstart that runs (a
+    block not marked not run); that screen, HTML comments aside, is at most 40 lines and holds
+    no commit hash and no wall time (those are in docs/BENCHMARKS.md)."""
+    text = (ROOT / "README.md").read_text()
+    sections = re.split(r"^## ", text, flags=re.M)
+    assert [s.splitlines()[0] for s in sections[1:3]] == [
+        "Set-up: two commands on a fresh machine", "Quickstart"]
+    first = "## ".join(sections[:3])
+    assert "\nmake hopper " in first and "\nmake test " in first
+    assert [b.not_run for b in doc_blocks(sections[2], "README.md") if b.kind != "text"] == [None]
+    shown = re.sub(r"<!--.*?-->", "", first, flags=re.S)
+    assert len(shown.splitlines()) <= 40
+    assert not re.findall(r"\b(?=[0-9a-f]*[a-f])(?=[0-9a-f]*\d)[0-9a-f]{7,40}\b", shown)
+    assert not re.findall(r"\b\d+:\d\d\b|\b\d+(?:\.\d+)? ?(?:s|min|minutes|hours)\b", shown)

@@ -13,6 +13,7 @@ import numpy as np
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
+from rl2s_jax.evaluate.setting import EvalSetting, profile_horizon
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.train.checkpoint import Checkpointer
 from rl2s_jax.train.config import TrainConfig
@@ -49,10 +50,10 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
         base.update(reward="learned", termination="hazard",
                     data_episode_length=ds.meta.get("episode_length"))
     if profile == "cpu":
-        cfg = TrainConfig.small(vd_horizon=min(100, ep_len), pretrain_steps=100,
+        cfg = TrainConfig.small(vd_horizon=profile_horizon("cpu", ep_len), pretrain_steps=100,
                                 disc_warmup_steps=5, **CPU_MODEL, **base)
     elif profile == "gpu":
-        cfg = TrainConfig(vd_horizon=ep_len, **base)
+        cfg = TrainConfig(vd_horizon=profile_horizon("gpu", ep_len), **base)
     else:
         raise ValueError(f"profile: expected 'cpu' or 'gpu', got {profile!r}")
     if overrides:
@@ -69,7 +70,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                  profile: str = "auto", seed: int = 0, eps: float | None = None,
                  save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
                  progress: bool = True, log=print, eval_data: str | None = None,
-                 eval_every: int | None = None, eval_episodes: int = 8,
+                 eval_every: int | None = None, setting: EvalSetting | None = None,
                  resume_step: int | None = None, policy_file: str | None = None,
                  eval_policies: str | None = None) -> dict:
     """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
@@ -81,8 +82,11 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     (intact), since the run saves those steps anew.
 
     ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
-    with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve);
-    its policies from ``eval_policies`` (a policy file, checked as ``policy_file`` is, before
+    with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve),
+    and at the last step: the summary's test numbers are the final checkpoint's, in
+    ``setting`` (default ``EvalSetting()``, its horizon the config's vd_horizon), the numbers
+    `rl2s evaluate` gives that checkpoint in the same setting; its policies
+    from ``eval_policies`` (a policy file, checked as ``policy_file`` is, before
     any training work), else from ``zoo`` or what its meta.source names. The training
     policies: from ``zoo``, ``policy_file`` or what the data's meta.source names
     (``zoo.policies_for``). The summary's ``learned`` block holds the simulator's reward and
@@ -113,7 +117,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     eval_path = os.path.join(out, "eval.jsonl")
     on_eval, last_test = None, {}
     if eval_data is not None:  # its data and policies checked before any training work
-        on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo,
+        on_eval = _test_evaluator(eval_data, cfg, eval_path, setting or EvalSetting(), zoo,
                                   last_test, eval_policies)
         eval_every = eval_every or save_every or max(1, steps // 10)
     data = make_train_data(ds, policies, cfg)
@@ -164,6 +168,8 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                              on_warning=lambda text: (jumps.append(text), log(text)))
     finally:
         ck.close()
+    if on_eval is not None and last_test.get("step_test") != int(state.step):
+        on_eval(state)  # the final checkpoint's test numbers, when the last chunk had none
     seconds = time.perf_counter() - t0
     names = ds.meta.get("policy_names") or [str(i) for i in range(ds.n_policies)]
     vd = np.asarray(state.vd)
@@ -191,7 +197,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     return summary
 
 
-def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
+def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
                     zoo: str | None, last: dict, policy_file: str | None = None):
     """on_eval callback: VD and ranking of the eval Dataset's policies, appended to ``path``;
     the latest also in ``last`` (keys ending ``_test``, for summary.json) and returned (for
@@ -211,20 +217,24 @@ def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
             pols = policies_for(ds, zoo, data_path=eval_data, flag="eval-policies")
         except ValueError as err:  # say which Dataset's policies are unknown
             raise ValueError(f"eval_data: {eval_data}: {err}") from None
-    key = jax.random.PRNGKey(seed + 1)
+    setting = setting.resolve(ds.meta.get("episode_length"), cfg.vd_horizon)
+    key = setting.key()
 
     def on_eval(state):
-        r = evaluate_simulator(simulator(state), ds, pols, key=key, n_episodes=n_episodes,
-                               horizon=cfg.vd_horizon, gamma=cfg.gamma)
-        row = {"step": int(state.step), **r["metrics"], "vd": r["vd"]}
+        r = evaluate_simulator(simulator(state), ds, pols, key=key, n_episodes=setting.episodes,
+                               horizon=setting.horizon, gamma=cfg.gamma, truth=setting.truth)
+        row = {"step": int(state.step), **r["metrics"], "vd": r["vd"],
+               "setting": setting.to_dict(), "true_value_source": r["true_value_source"]}
         with open(path, "a") as f:
             f.write(json.dumps(row) + "\n")
         last.clear()
         last.update({f"{k}_test": v for k, v in r["metrics"].items()})
         last.update(step_test=int(state.step), eval_data=eval_data,
-                    eval_policies=policy_file, measured_by_test={
-            "source": "simulated vs the eval data's true values", "episodes": n_episodes,
-            "horizon": cfg.vd_horizon, "gamma": cfg.gamma})
+                    eval_policies=policy_file, setting_test=setting.to_dict(), measured_by_test={
+            "source": f"simulated vs the eval data's {r['true_value_source']} true values",
+            "episodes": setting.episodes, "horizon": setting.horizon, "gamma": r["gamma"],
+            "seed": setting.seed, "truth": setting.truth,
+            "true_value_source": r["true_value_source"]})
         return {f"{k}_test": r["metrics"][k] for k in ("avd", "mvd", "kendall_tau")
                 if k in r["metrics"]}
 
@@ -242,6 +252,9 @@ def train_command(args) -> int:
                                save_every=args.save_every, chunk=args.chunk,
                                overrides=parse_overrides(args.set), progress=not args.quiet,
                                eval_data=args.eval_data, eval_every=args.eval_every,
+                               setting=EvalSetting.from_flags(
+                                   args.eval_episodes, args.eval_horizon, args.eval_seed,
+                                   args.truth),
                                resume_step=args.resume_step, policy_file=args.policy_file,
                                eval_policies=args.eval_policies)
     except TrainingDiverged as err:
@@ -291,7 +304,8 @@ def _by(m: dict | None) -> str:
     """How a number was measured, in words: episodes x horizon, discount, source."""
     if not m:
         return "settings unknown"
-    return f"{m['episodes']} episodes x {m['horizon']} steps, gamma {m['gamma']:g}"
+    extra = "".join(f", {k} {m[k]}" for k in ("seed", "true_value_source") if k in m)
+    return f"{m['episodes']} episodes x {m['horizon']} steps, gamma {m['gamma']:g}{extra}"
 
 
 def parse_overrides(items: list[str] | None) -> dict:

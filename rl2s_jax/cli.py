@@ -409,6 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "summary.json; resumes if it holds a checkpoint")
     p.add_argument("--eps", type=float, help="CVaR fraction (default: 0.25 rl2s/rl2s-bc, 1 "
                    "gail/bc)")
+    p.add_argument("--no-task", action="store_true", help="learn reward and done from the data")
     _policy_source(p)
     p.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto",
                    help="network and batch sizes: gpu = paper sizes, cpu = small")
@@ -569,6 +570,7 @@ def _main(argv: list[str] | None) -> int:
     warnings.filterwarnings("ignore", category=UserWarning, module="brax")
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
     from rl2s_jax.train.checkpoint import CheckpointWarning
+    from rl2s_jax.zoo.likelihood import PolicyFileWarning
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -579,7 +581,7 @@ def _main(argv: list[str] | None) -> int:
     default_show = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, CheckpointWarning):  # ours: one plain line, no source line
+        if issubclass(category, (CheckpointWarning, PolicyFileWarning)):  # ours: one line
             print(f"rl2s {args.command}: warning: {message}", file=sys.stderr)
         else:
             default_show(message, category, filename, lineno, file, line)

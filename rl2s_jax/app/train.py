@@ -12,7 +12,7 @@ import numpy as np
 
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import load_dataset
-from rl2s_jax.envs.tasks import TASKS
+from rl2s_jax.envs.tasks import TASKS, data_task
 from rl2s_jax.evaluate.setting import EvalSetting, profile_horizon
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.train.checkpoint import Checkpointer
@@ -30,7 +30,7 @@ CPU_MODEL = dict(gen_hidden=(128, 128, 128), gen_activation="silu", batch_size=2
 
 
 def make_config(ds, method: str, profile: str, eps: float | None = None,
-                overrides: dict | None = None):
+                overrides: dict | None = None, no_task: bool = False):
     """The TrainConfig for ``ds``: 'gpu' = the paper's sizes with the ensemble model family
     (7 members of 4x512 SiLU, 5 elites, batch 1024, 1000 pre-training steps; TrainConfig's
     defaults), 'cpu' = ``TrainConfig.small`` with the members fitted as the gpu profile fits
@@ -38,15 +38,17 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
     docs/RESULTS.md, "make hopper"), 100 pre-training steps and 5 critic warm-up steps.
     ``overrides``: field -> value (``--set``).
 
-    Data of no registered task (``meta.task`` null, or a name this process has not
-    registered): the reward is learned from the data's rewards (``reward`` "learned") and
-    episodes end by the hazard learned from its done flags (``termination`` "hazard"), unless
-    ``overrides`` say otherwise; its time limit is ``data_episode_length``."""
+    Data of no registered task (``meta.task`` null) or ``no_task`` (--no-task): the reward is
+    learned from the data's rewards (``reward`` "learned") and episodes end by the hazard
+    learned from its done flags (``termination`` "hazard"), unless ``overrides`` say
+    otherwise; its time limit is ``data_episode_length``. A ``meta.task`` that is not
+    registered is refused without ``no_task`` (``envs.tasks.data_task``)."""
 
+    data_task(ds.meta["task"], no_task)
     ep_len = ds.meta.get("episode_length") or 1000
     base = dict(task=ds.meta["task"], method=method, eps=eps,
                 gamma=float(ds.meta.get("gamma") or 0.999))
-    if ds.meta["task"] not in TASKS:
+    if ds.meta["task"] not in TASKS or no_task:
         base.update(reward="learned", termination="hazard",
                     data_episode_length=ds.meta.get("episode_length"))
     if profile == "cpu":
@@ -72,7 +74,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                  progress: bool = True, log=print, eval_data: str | None = None,
                  eval_every: int | None = None, setting: EvalSetting | None = None,
                  resume_step: int | None = None, policy_file: str | None = None,
-                 eval_policies: str | None = None) -> dict:
+                 eval_policies: str | None = None, no_task: bool = False) -> dict:
     """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
     holds one), and return a summary dict (also written to out/summary.json).
 
@@ -101,10 +103,10 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     ds = load_dataset(data_path)
     if profile == "auto":
         profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
-    cfg = make_config(ds, method, profile, eps, overrides)
-    if not cfg.registered:
-        log(f"[train] {data_path} is data of no registered task (meta.task "
-            f"{ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
+    cfg = make_config(ds, method, profile, eps, overrides, no_task)
+    if not cfg.registered or no_task:
+        log(f"[train] {data_path}: {'--no-task' if no_task else 'data of no registered task'} "
+            f"(meta.task {ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
             f"{cfg.termination!r} (a reward head r(s, a, s') fitted on its rewards, the hazard "
             f"h(s, a) on its done flags; their held-out errors are in the summary)")
     if cfg.pretrains and steps <= cfg.pretrain_steps:
@@ -256,7 +258,8 @@ def train_command(args) -> int:
                                    args.eval_episodes, args.eval_horizon, args.eval_seed,
                                    args.truth),
                                resume_step=args.resume_step, policy_file=args.policy_file,
-                               eval_policies=args.eval_policies)
+                               eval_policies=args.eval_policies,
+                               no_task=getattr(args, "no_task", False))
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1

@@ -6,6 +6,10 @@ order) passes every shape check and makes every value error meaningless. The log
 tell: the rows policy p collected should be explained best by policy p. This is a warning, not
 an error: a stochastic policy's rows are also likely under a similar policy, and clipped or
 otherwise altered actions lower every likelihood alike.
+
+An action at the edge of the box (|a| > 1 - EDGE: tanh saturates there in float32, so a policy
+pushing hard logs exactly +-1) is scored as censored: the probability that the pre-tanh action
+lies beyond atanh(1 - EDGE) on that side, not a density at a point it cannot resolve.
 """
 from __future__ import annotations
 
@@ -16,10 +20,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.policy.policy import Params, gaussian_log_prob, policy_dist, tanh_log_det
+from rl2s_jax.policy.policy import Params, policy_dist, tanh_log_det
 
 MAX_ROWS = 20_000  # logged rows scored (evenly spread over the data)
-EDGE = 1e-6  # actions at the box's edge (clipped) are scored just inside it
+EDGE = 1e-5  # |action| above 1 - EDGE: at the box's edge (censored)
 SHARE = 0.1  # warn when the policies not explained best by their own hold more of the rows
 
 
@@ -28,16 +32,26 @@ class PolicyFileWarning(UserWarning):
 
 
 @jax.jit
-def _log_likelihoods(params: Params, obs: jax.Array, action: jax.Array) -> jax.Array:
-    """log pi_k(action | obs) of every row under every policy k: [K, n] (density of the
-    squashed action, as ``policy.sample_action`` draws it)."""
+def _log_likelihoods(params: Params, obs: jax.Array, action: jax.Array
+                     ) -> tuple[jax.Array, jax.Array]:
+    """log pi_k(action | obs) of every row under every policy k: [K, n] (the density of the
+    squashed action, as ``policy.sample_action`` draws it, in the dims inside the box; the
+    censored probability in the dims at its edge), and the same of a uniform action in the
+    box: [n]."""
+    edge = jnp.abs(action) > 1.0 - EDGE  # [n, a]
+    side = jnp.sign(action)
     raw = jnp.arctanh(jnp.clip(action, -1.0 + EDGE, 1.0 - EDGE))
 
     def one(p):
         loc, scale = policy_dist(p, obs)
-        return gaussian_log_prob(loc, scale, raw) - tanh_log_det(raw)
+        z = (raw - loc) / scale
+        inside = -0.5 * z**2 - jnp.log(scale) - 0.5 * jnp.log(2 * jnp.pi) - tanh_log_det(
+            raw[..., None])
+        beyond = jax.scipy.stats.norm.logcdf(-side * z)  # P(raw past the edge, that side)
+        return jnp.sum(jnp.where(edge, beyond, inside), -1)
 
-    return jax.vmap(one)(params)
+    uniform = jnp.sum(jnp.where(edge, jnp.log(EDGE / 2), -jnp.log(2.0)), -1)
+    return jax.vmap(one)(params), uniform
 
 
 def policy_log_likelihoods(ds, params: Params, max_rows: int = MAX_ROWS) -> dict:
@@ -45,23 +59,22 @@ def policy_log_likelihoods(ds, params: Params, max_rows: int = MAX_ROWS) -> dict
 
     ds: a Dataset of P policies; params: stacked [K, ...] policies (a policy file's, K = P
     when it claims the data). Up to ``max_rows`` rows, evenly spread. -> {"loglik": [P, K]
-    (row p: the rows policy_id p logged; NaN where it logged none), "uniform": the log-density
-    of a uniform action in the box [-1, 1]^a (a reference no policy should fall below), "rows":
-    [P] rows scored per policy}."""
+    (row p: the rows policy_id p logged; NaN where it logged none), "uniform": [P] the same of
+    a uniform action in the box [-1, 1]^a (a reference no policy should fall below), "rows":
+    [P] rows scored per policy}; edge actions are censored (module docstring)."""
     n = ds.n_transitions
     rows = (np.arange(n) if n <= max_rows
             else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
     obs = jnp.asarray(np.asarray(ds.obs, np.float32)[rows])
     action = jnp.asarray(np.asarray(ds.action, np.float32)[rows])
-    ll = np.asarray(_log_likelihoods(params, obs, action), np.float64)  # [K, n]
+    ll, uniform = (np.asarray(x, np.float64) for x in _log_likelihoods(params, obs, action))
     pid = np.asarray(ds.policy_id)[rows]
     counts = np.bincount(pid, minlength=ds.n_policies)
-    sums = np.stack([np.bincount(pid, weights=ll[k], minlength=ds.n_policies)
-                     for k in range(ll.shape[0])], axis=1)  # [P, K]
+    sums = np.stack([np.bincount(pid, weights=w, minlength=ds.n_policies)
+                     for w in (*ll, uniform)], axis=1)  # [P, K + 1]
     with np.errstate(invalid="ignore", divide="ignore"):
-        loglik = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], np.nan)
-    return {"loglik": loglik, "uniform": -ds.action_size * float(np.log(2.0)),
-            "rows": counts}
+        means = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], np.nan)
+    return {"loglik": means[:, :-1], "uniform": means[:, -1], "rows": counts}
 
 
 def policy_file_mismatch(ds, params: Params, names: Sequence[str] | None = None,
@@ -79,13 +92,13 @@ def policy_file_mismatch(ds, params: Params, names: Sequence[str] | None = None,
     own = ll[np.arange(P), np.arange(P)]
     others = np.where(np.eye(P, dtype=bool), -np.inf, ll)
     best_other = others.argmax(1)
-    beaten = np.maximum(others.max(1), r["uniform"]) > own
+    beaten = np.maximum(others.max(1), r["uniform"]) > own  # NaN rows (none logged): False
     bad = [p for p in range(P) if rows[p] > 0 and beaten[p]]
     if rows.sum() == 0 or rows[bad].sum() <= share * rows.sum():
         return None
 
     def why(p):
-        if P > 1 and others[p, best_other[p]] >= r["uniform"]:
+        if P > 1 and others[p, best_other[p]] >= r["uniform"][p]:
             return f"{names[p]} (better explained by {names[best_other[p]]})"
         return f"{names[p]} (worse than a uniform random action)"
     shown = ", ".join(why(p) for p in bad[:5]) + (f" and {len(bad) - 5} more" if len(bad) > 5

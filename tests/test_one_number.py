@@ -114,10 +114,11 @@ def test_one_checkpoint_gets_one_number_through_every_front_end(pm_files, tmp_pa
     from rl2s_jax.app.pipeline import evaluate_run
 
     run = tmp_path / "run"
-    assert cli.main(["train", "--data", pm_files["train"], "--method", "bc", "--steps", "3",
-                     "--out", str(run), "--profile", "cpu", "--quiet", "--eval-data",
-                     pm_files["test"], "--eval-every", "2", "--set", "vd_horizon=30",
-                     "--set", "updates_per_step=2", "--set", "gen_hidden=[32]"]) == 0
+    train = ["train", "--data", pm_files["train"], "--method", "bc", "--steps", "3", "--out",
+             str(run), "--profile", "cpu", "--quiet", "--eval-data", pm_files["test"],
+             "--eval-every", "2", "--set", "vd_horizon=30", "--set", "updates_per_step=2",
+             "--set", "gen_hidden=[32]"]
+    assert cli.main(train) == 0
     printed = capsys.readouterr().out
     summary = json.loads((run / "summary.json").read_text())
     rows = [json.loads(line) for line in (run / "eval.jsonl").read_text().splitlines()]
@@ -137,3 +138,9 @@ def test_one_checkpoint_gets_one_number_through_every_front_end(pm_files, tmp_pa
         assert r["metrics"] == {k: summary[f"{k}_test"] for k in r["metrics"]}
         assert r["vd"] == rows[-1]["vd"]
     assert piped["sim_value"] == evaluated["sim_value"]
+    # a rerun of the finished run scores its last step anew: the same numbers, no second row
+    assert cli.main(train) == 0
+    again = json.loads((run / "summary.json").read_text())
+    assert [json.loads(line)["step"] for line in
+            (run / "eval.jsonl").read_text().splitlines()] == [2, 3]
+    assert again["avd_test"] == summary["avd_test"] and again["step_test"] == 3

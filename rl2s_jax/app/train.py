@@ -171,7 +171,10 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     finally:
         ck.close()
     if on_eval is not None and last_test.get("step_test") != int(state.step):
-        on_eval(state)  # the final checkpoint's test numbers, when the last chunk had none
+        # the final checkpoint's test numbers, when no chunk here ended on an evaluation (a
+        # rerun of a finished run replaces its row of that step)
+        _truncate_metrics(eval_path, int(state.step) - 1)
+        on_eval(state)
     seconds = time.perf_counter() - t0
     names = ds.meta.get("policy_names") or [str(i) for i in range(ds.n_policies)]
     vd = np.asarray(state.vd)
@@ -224,7 +227,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
 
     def on_eval(state):
         r = evaluate_simulator(simulator(state), ds, pols, key=key, n_episodes=setting.episodes,
-                               horizon=setting.horizon, gamma=cfg.gamma, truth=setting.truth)
+                               horizon=setting.horizon, truth=setting.truth)  # data's gamma
         row = {"step": int(state.step), **r["metrics"], "vd": r["vd"],
                "setting": setting.to_dict(), "true_value_source": r["true_value_source"]}
         with open(path, "a") as f:

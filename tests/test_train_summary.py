@@ -50,7 +50,7 @@ def test_eval_data_results_reach_the_summary_with_their_settings(pm_files, tmp_p
         episodes=3, horizon=50, horizon_source="the checkpoint's vd_horizon").to_dict()
     table = format_summary(s)
     assert "test policies" in table and "3 episodes x 50 steps" in table
-    assert "seed 0, true_value_source measured" in table
+    assert "seed 0, true values: measured" in table
 
 
 def test_inspect_names_return_and_discounted_value_apart(pm_files):

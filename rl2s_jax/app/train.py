@@ -310,7 +310,8 @@ def _by(m: dict | None) -> str:
     """How a number was measured, in words: episodes x horizon, discount, source."""
     if not m:
         return "settings unknown"
-    extra = "".join(f", {k} {m[k]}" for k in ("seed", "true_value_source") if k in m)
+    extra = "".join(f", {word} {m[k]}" for k, word in (("seed", "seed"), (
+        "true_value_source", "true values:")) if k in m)
     return f"{m['episodes']} episodes x {m['horizon']} steps, gamma {m['gamma']:g}{extra}"
 
 

@@ -144,3 +144,26 @@ def test_one_checkpoint_gets_one_number_through_every_front_end(pm_files, tmp_pa
     assert [json.loads(line)["step"] for line in
             (run / "eval.jsonl").read_text().splitlines()] == [2, 3]
     assert again["avd_test"] == summary["avd_test"] and again["step_test"] == 3
+
+
+def test_the_oracle_scores_the_horizon_a_simulator_trained_here_does(pm_files, monkeypatch):
+    """`rl2s evaluate --oracle` on 300-step episodes: the cpu profile's 100 steps, the
+    vd_horizon `rl2s train` gives a checkpoint of this data on this backend (it took the
+    data's 300 before)."""
+    from rl2s_jax.app import evaluate as ev
+    from rl2s_jax.app.train import make_config
+    from rl2s_jax.data.dataset import load_dataset
+
+    ds = load_dataset(pm_files["test"])
+    ds = ds.replace(meta={**ds.meta, "episode_length": 300})
+    seen = {}
+
+    def oracle(task, data, policies, *, key, n_episodes, horizon, n_boot, truth):
+        seen.update(horizon=horizon, episodes=n_episodes, truth=truth)
+        return {}
+    monkeypatch.setattr(ev, "load_dataset", lambda path: ds)
+    monkeypatch.setattr(ev, "evaluate_oracle", oracle)
+    r = ev.evaluate_oracle_data(pm_files["test"])
+    assert seen == {"horizon": make_config(ds, "bc", "cpu").vd_horizon, "episodes": 16,
+                    "truth": "auto"} and seen["horizon"] == 100
+    assert r["setting"]["horizon"] == 100 and r["horizon_source"].startswith("the cpu profile")

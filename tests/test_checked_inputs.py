@@ -49,6 +49,15 @@ def test_no_task_learns_reward_and_termination_from_the_data(misspelt):
         data_task("zzz")  # nothing near: no did-you-mean
 
 
+def test_import_refuses_an_unregistered_task_before_reading(tmp_path, capsys):
+    out = tmp_path / "x.npz"
+    assert cli.main(["import", "--minari", str(tmp_path / "absent"), "--out", str(out),
+                     "--task", "walker"]) == 2
+    err = capsys.readouterr().err
+    assert "task: meta.task 'walker' is not a registered task (did you mean 'walker2d'?)" \
+        in err and "leave --task out" in err and not out.exists()
+
+
 def _np_loglik(params, k, obs, action):
     """log pi_k(action | obs) in NumPy: the squashed Gaussian of policy.sample_action, an
     action at the box's edge (|a| > 1 - 1e-5) censored: P(pre-tanh action beyond the edge)."""

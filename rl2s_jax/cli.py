@@ -570,7 +570,6 @@ def _main(argv: list[str] | None) -> int:
     warnings.filterwarnings("ignore", category=UserWarning, module="brax")
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
     from rl2s_jax.train.checkpoint import CheckpointWarning
-    from rl2s_jax.zoo.likelihood import PolicyFileWarning
 
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -581,6 +580,7 @@ def _main(argv: list[str] | None) -> int:
     default_show = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
+        from rl2s_jax.zoo.likelihood import PolicyFileWarning  # where one warns: JAX is loaded
         if issubclass(category, (CheckpointWarning, PolicyFileWarning)):  # ours: one line
             print(f"rl2s {args.command}: warning: {message}", file=sys.stderr)
         else:

@@ -165,7 +165,7 @@ def cmd_evaluate(args) -> int:
         raise FileNotFoundError(f"data: no such file {args.data}")
     if (args.ckpt is None) == (not args.oracle):
         raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
-    kw = dict(zoo=args.zoo, policy_file=args.policy_file, seed=args.seed,
+    kw = dict(zoo=args.zoo, policy_file=args.policy_file, seed=args.seed, truth=args.truth,
               n_episodes=args.episodes, horizon=args.horizon, n_boot=args.bootstrap)
     if args.ckpt and len(args.ckpt) > 1:  # several simulators: where they disagree
         report = ev.evaluate_checkpoints(args.ckpt, args.data, step=args.step, **kw)
@@ -312,6 +312,7 @@ def _sim_env_options(p, default: str = "whole episodes from its start states") -
 
 def build_parser() -> argparse.ArgumentParser:
     from rl2s_jax.envs.tasks import task_names
+    from rl2s_jax.evaluate.setting import setting_flags
     from rl2s_jax.improve.recipes import IMPROVE_RECIPES
 
     parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
@@ -411,6 +412,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "summary.json; resumes if it holds a checkpoint")
     p.add_argument("--eps", type=float, help="CVaR fraction (default: 0.25 rl2s/rl2s-bc, 1 "
                    "gail/bc)")
+    p.add_argument("--no-task", action="store_true", help="learn reward and done from the data")
     _policy_source(p)
     p.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto",
                    help="network and batch sizes: gpu = paper sizes, cpu = small")
@@ -426,6 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "policy_id order, a save_policies file (as evaluate's --policy-file)")
     p.add_argument("--eval-every", type=_positive("eval-every"),
                    help="steps between test evaluations (default: --save-every or steps/10)")
+    setting_flags(p, "eval-")
     p.add_argument("--resume-step", type=int, help="resume from this saved step (default: "
                    "the newest intact one); later steps are moved to checkpoints/superseded/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -442,14 +445,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
                    "95%% intervals over episodes (0: none)")
     _policy_source(p)
-    p.add_argument("--episodes", type=_positive("episodes"), help="simulated episodes per "
-                   "policy (default: the checkpoint's vd_episodes; --oracle: 16)")
-    p.add_argument("--horizon", type=_positive("horizon"), help="steps per simulated episode "
-                   "(default: the checkpoint's vd_horizon, at most the data's episode_length; "
-                   "--oracle: the data's episode_length)")
+    setting_flags(p, "")
     p.add_argument("--step", type=int, help="checkpoint step (default: the newest intact one; "
                    "broken newer steps are skipped with a warning)")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--json", help="write the report here")
     p.set_defaults(func=cmd_evaluate)
 
@@ -490,6 +488,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--zoo", help="zoo directory to collect from (default: the task's shipped)")
     p.add_argument("--steps", type=_positive("steps"), help="train_steps per method")
     p.add_argument("--eval-every", type=_positive("eval-every"))
+    setting_flags(p, "eval-")
     p.add_argument("--transitions-per-policy", type=_positive("transitions-per-policy"))
     p.add_argument("--value-episodes", type=_positive("value-episodes"))
     p.add_argument("--improve-iterations", type=int, help="SAC iterations per test policy in "
@@ -584,7 +583,8 @@ def _main(argv: list[str] | None) -> int:
     default_show = warnings.showwarning
 
     def show(message, category, filename, lineno, file=None, line=None):
-        if issubclass(category, CheckpointWarning):  # ours: one plain line, no source line
+        from rl2s_jax.zoo.likelihood import PolicyFileWarning  # where one warns: JAX is loaded
+        if issubclass(category, (CheckpointWarning, PolicyFileWarning)):  # ours: one line
             print(f"rl2s {args.command}: warning: {message}", file=sys.stderr)
         else:
             default_show(message, category, filename, lineno, file, line)

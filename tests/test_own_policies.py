@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 
 from rl2s_jax import cli
-from rl2s_jax.app.evaluate import checkpoint_settings
+from rl2s_jax.app.evaluate import checkpoint_setting
 from rl2s_jax.data.dataset import load_dataset, save_dataset
+from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
 from rl2s_jax.policy import policy as pol
 from rl2s_jax.zoo import zoo as zoo_mod
 
@@ -219,20 +220,23 @@ def short_checkpoint(run, tmp_path_factory):
     return path
 
 
-def test_evaluate_defaults_to_the_checkpoints_settings_and_says_so(run, short_checkpoint,
-                                                                   tmp_path, capsys):
+def test_evaluate_defaults_to_the_checkpoints_horizon_and_says_so(run, short_checkpoint,
+                                                                  tmp_path, capsys):
     path = tmp_path / "eval.json"
     base = ["evaluate", "--ckpt", short_checkpoint, "--data", run["data"], "--bootstrap", "0",
             "--json", str(path)]
     assert cli.main(base) == 0
     printed = capsys.readouterr().out
     r = json.loads(path.read_text())
-    assert (r["horizon"], r["n_episodes"]) == (20, 3)  # the data's episodes last 50 steps
+    # the data's episodes last 50 steps; the episodes are the one setting's, not vd_episodes
+    assert (r["horizon"], r["n_episodes"]) == (20, EVAL_EPISODES)
     assert r["horizon_source"] == "the checkpoint's vd_horizon"
-    assert r["episodes_source"] == "the checkpoint's vd_episodes"
+    assert r["episodes_source"] == f"the default {EVAL_EPISODES}"
+    assert r["setting"] == {"episodes": EVAL_EPISODES, "horizon": 20, "seed": 0,
+                            "truth": "auto", "horizon_source": "the checkpoint's vd_horizon"}
     assert max(r["sim_length"]) <= 20  # simulated so, not only reported
-    assert ("horizon 20 (the checkpoint's vd_horizon), 3 episodes (the checkpoint's "
-            "vd_episodes)") in printed
+    assert (f"horizon 20 (the checkpoint's vd_horizon), {EVAL_EPISODES} episodes (the default "
+            f"{EVAL_EPISODES})") in printed and "seed 0, true values: logged" in printed
     assert cli.main(base + ["--horizon", "10", "--episodes", "2"]) == 0
     r = json.loads(path.read_text())
     assert (r["horizon"], r["horizon_source"], r["n_episodes"], r["episodes_source"]) == (
@@ -240,19 +244,20 @@ def test_evaluate_defaults_to_the_checkpoints_settings_and_says_so(run, short_ch
     assert "horizon 10 (--horizon), 2 episodes (--episodes)" in capsys.readouterr().out
 
 
-def test_checkpoint_settings_stop_at_the_datas_episode_length(run):
+def test_checkpoint_setting_stops_at_the_datas_episode_length(run):
     ds = run["dataset"]
-    s = checkpoint_settings({"vd_horizon": 80, "vd_episodes": 5}, ds)
-    assert (s["horizon"], s["n_episodes"]) == (ds.meta["episode_length"], 5)
-    assert s["horizon_source"] == ("the data's episode_length; the checkpoint's vd_horizon 80 "
-                                   "is longer")
+    s = checkpoint_setting({"vd_horizon": 80, "vd_episodes": 5}, ds, EvalSetting(episodes=5))
+    assert (s.horizon, s.episodes) == (ds.meta["episode_length"], 5)
+    assert s.horizon_source == ("the data's episode_length; the checkpoint's vd_horizon 80 "
+                                "is longer")
     with pytest.raises(ValueError, match="horizon: expected an int >= 1"):
-        checkpoint_settings({}, ds, horizon=0)
+        EvalSetting(horizon=0)
 
 
 def test_oracle_takes_a_policy_file_and_names_its_defaults(run, tmp_path, capsys):
-    """--oracle (no checkpoint): the policies from --policy-file, 16 episodes of the data's
-    episode length by default, said in the report."""
+    """--oracle (no checkpoint): the policies from --policy-file, the one setting's 16
+    episodes of the horizon training on this backend uses (the cpu profile's here: the data's
+    50-step episodes, under its 100), said in the report."""
     pf = tmp_path / "p.npz"
     pol.save_policies(pf, run["params"], list("abcd"))
     path = tmp_path / "oracle.json"
@@ -260,8 +265,8 @@ def test_oracle_takes_a_policy_file_and_names_its_defaults(run, tmp_path, capsys
                      "--bootstrap", "0", "--json", str(path)]) == 0
     r = json.loads(path.read_text())
     assert (r["method"], r["horizon"], r["n_episodes"]) == ("oracle", 50, 16)
-    assert (r["horizon_source"], r["episodes_source"]) == ("the data's episode_length",
-                                                           "the default 16")
+    assert (r["horizon_source"], r["episodes_source"]) == (
+        "the cpu profile's: at most 100 steps of the data's episodes", "the default 16")
     assert "the real dynamics (oracle) on " in capsys.readouterr().out
     # the exact dynamics: the simulated values meet the measured ones within their noise
     true_se = np.asarray(run["dataset"].value_discounted_se)

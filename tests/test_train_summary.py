@@ -6,6 +6,7 @@ import json
 from rl2s_jax.app.train import format_summary, run_training
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.data.summary import dataset_summary
+from rl2s_jax.evaluate.setting import EvalSetting
 
 SMALL = {"vd_horizon": 50, "vd_episodes": 2, "updates_per_step": 2, "gen_hidden": [32],
          "disc_hidden": [32], "hazard_steps": 0}
@@ -31,7 +32,8 @@ def test_eval_data_results_reach_the_summary_with_their_settings(pm_files, tmp_p
     # when both named a key "avd"); chunks of 2 put an evaluation before the last bar update
     s = run_training(pm_files["train"], "bc", 4, str(tmp_path / "run"), profile="cpu",
                      overrides=SMALL, progress=True, log=logs.append, chunk=2,
-                     eval_data=pm_files["test"], eval_every=2, eval_episodes=3)
+                     eval_data=pm_files["test"], eval_every=2,
+                     setting=EvalSetting(episodes=3))
     assert "avd_test=" in capsys.readouterr().err
     assert not [line for line in logs if "warning" in line]  # bc: no pre-training
     assert s["pretrain_steps_left"] == 0 and s["step_test"] == 4
@@ -40,10 +42,15 @@ def test_eval_data_results_reach_the_summary_with_their_settings(pm_files, tmp_p
     with open(tmp_path / "run" / "eval.jsonl") as f:
         last = [json.loads(line) for line in f][-1]
     assert last["step"] == 4 and last["avd"] == s["avd_test"]
-    assert s["measured_by_test"] == {"source": "simulated vs the eval data's true values",
-                                     "episodes": 3, "horizon": 50, "gamma": s["config"]["gamma"]}
+    assert s["measured_by_test"] == {
+        "source": "simulated vs the eval data's measured true values", "episodes": 3,
+        "horizon": 50, "gamma": s["config"]["gamma"], "seed": 0, "truth": "auto",
+        "true_value_source": "measured"}
+    assert s["setting_test"] == last["setting"] == EvalSetting(
+        episodes=3, horizon=50, horizon_source="the checkpoint's vd_horizon").to_dict()
     table = format_summary(s)
     assert "test policies" in table and "3 episodes x 50 steps" in table
+    assert "seed 0, true values: measured" in table
 
 
 def test_inspect_names_return_and_discounted_value_apart(pm_files):

@@ -1,9 +1,9 @@
 """`rl2s evaluate`: a checkpoint (or the oracle) scored on a Dataset file; several checkpoints
 of one task (independently trained simulators) scored alike, with where they disagree.
 
-A checkpoint is evaluated by default with the settings training evaluated it with (its
-config's vd_horizon and vd_episodes, ``checkpoint_settings``), so the two agree; the report
-names the settings used and where each came from."""
+Every evaluation here runs with one ``EvalSetting`` (evaluate/setting.py: episodes, horizon,
+seed, which true value), the one `rl2s train` scores its test policies with, so the two agree
+on one checkpoint; the report prints the setting and stores it ("setting")."""
 
 from __future__ import annotations
 
@@ -15,82 +15,79 @@ import numpy as np
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.metrics import spearman
+from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
 from rl2s_jax.evaluate.simulator import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.train.checkpoint import Checkpointer, load_checkpoint
 from rl2s_jax.zoo.zoo import policies_for
 
-DEFAULT_EPISODES = 16  # simulated episodes per policy where nothing else sets them
+
+def _setting(setting: EvalSetting | None, n_episodes, horizon, seed, truth) -> EvalSetting:
+    """``setting``, or one of the flags (None: the defaults); both given is refused."""
+    if setting is None:
+        return EvalSetting.from_flags(n_episodes, horizon, seed, truth)
+    if any(v is not None for v in (n_episodes, horizon, seed, truth)):
+        raise ValueError("setting: give an EvalSetting or episodes / horizon / seed / truth, "
+                         "not both")
+    return setting
 
 
-def _check_settings(n_episodes, horizon) -> None:
-    for name, v in (("episodes", n_episodes), ("horizon", horizon)):
-        if v is not None and (not isinstance(v, int) or v < 1):
-            raise ValueError(f"{name}: expected an int >= 1 (or None: the default), got {v!r}")
+def checkpoint_setting(config: dict, ds, setting: EvalSetting) -> EvalSetting:
+    """``setting`` with the horizon filled for a checkpoint of ``config`` on ``ds``: given,
+    else the config's ``vd_horizon`` (at most the data's episode_length: the real episodes end
+    there); the same horizon training measured its VD with."""
+    return setting.resolve(ds.meta.get("episode_length"), config.get("vd_horizon"),
+                           config.get("profile"))
 
 
-def checkpoint_settings(config: dict, ds, n_episodes: int | None = None,
-                        horizon: int | None = None) -> dict:
-    """The horizon and episodes to evaluate a checkpoint with, and where each comes from.
-
-    By default the ones the checkpoint was evaluated with during training: its config's
-    ``vd_horizon`` (at most the data's episode_length: the real episodes end there) and
-    ``vd_episodes``; given values win. -> {"horizon", "horizon_source", "n_episodes",
-    "episodes_source"}."""
-    _check_settings(n_episodes, horizon)
-    out = {"horizon": horizon, "horizon_source": "--horizon",
-           "n_episodes": n_episodes, "episodes_source": "--episodes"}
-    if horizon is None:
-        vd, ep = config.get("vd_horizon"), ds.meta.get("episode_length")
-        if vd is None:
-            out.update(horizon=int(ep or 1000), horizon_source="the data's episode_length")
-        elif ep is not None and int(vd) > int(ep):
-            out.update(horizon=int(ep), horizon_source=f"the data's episode_length; the "
-                       f"checkpoint's vd_horizon {vd} is longer")
-        else:
-            out.update(horizon=int(vd), horizon_source="the checkpoint's vd_horizon")
-    if n_episodes is None:
-        vd = config.get("vd_episodes")
-        out.update(n_episodes=int(vd or DEFAULT_EPISODES),
-                   episodes_source=("the checkpoint's vd_episodes" if vd
-                                    else f"the default {DEFAULT_EPISODES}"))
-    return out
+def _sources(setting: EvalSetting, n_episodes) -> dict:
+    return {"horizon_source": setting.horizon_source,
+            "episodes_source": ("--episodes" if n_episodes is not None
+                                else "the evaluation setting"
+                                if setting.episodes != EVAL_EPISODES
+                                else f"the default {EVAL_EPISODES}"),
+            "setting": setting.to_dict()}
 
 
 def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None,
-                        policy_file: str | None = None, seed: int = 0,
+                        policy_file: str | None = None, seed: int | None = None,
                         n_episodes: int | None = None, horizon: int | None = None,
-                        step: int | None = None, n_boot: int = 0) -> dict:
+                        step: int | None = None, n_boot: int = 0,
+                        setting: EvalSetting | None = None, truth: str | None = None) -> dict:
     """Load a checkpoint's simulator and a Dataset (policies from ``zoo``, ``policy_file`` or
     the data's meta.source: ``zoo.policies_for``) and evaluate; no training data needed.
-    Episodes and horizon default to the checkpoint's (``checkpoint_settings``); the report
-    says which were used and where they came from (``horizon_source``, ``episodes_source``)."""
+    ``setting`` (or the flags ``n_episodes``, ``horizon``, ``seed``, ``truth``; None: the
+    defaults, ``EvalSetting``), its horizon by default the checkpoint's
+    (``checkpoint_setting``); the report stores the setting used ("setting") and where the
+    horizon and episodes came from (``horizon_source``, ``episodes_source``)."""
 
-    _check_settings(n_episodes, horizon)
+    setting = _setting(setting, n_episodes, horizon, seed, truth)
     ds = load_dataset(data_path)
     sim, meta = load_checkpoint(ckpt, step)  # the newest intact step unless step is given
     if ds.meta.get("task") != sim.task:
         raise ValueError(f"data: {data_path} is task {ds.meta.get('task')!r} but the "
                          f"checkpoint models {sim.task!r}")
     policies = policies_for(ds, zoo, policy_file=policy_file, data_path=data_path)
-    settings = checkpoint_settings(meta.get("config") or {}, ds, n_episodes, horizon)
-    report = evaluate_simulator(sim, ds, policies, key=jax.random.PRNGKey(seed),
-                                n_episodes=settings["n_episodes"], horizon=settings["horizon"],
-                                n_boot=n_boot)
+    setting = checkpoint_setting(meta.get("config") or {}, ds, setting)
+    report = evaluate_simulator(sim, ds, policies, key=setting.key(),
+                                n_episodes=setting.episodes, horizon=setting.horizon,
+                                n_boot=n_boot, truth=setting.truth)
     report.update(one_step_errors(sim, ds))
     report.update(checkpoint=ckpt, step=meta["step"], method=meta["config"]["method"],
-                  data=data_path, seed=seed, backend=jax.default_backend(),
-                  horizon_source=settings["horizon_source"],
-                  episodes_source=settings["episodes_source"])
+                  data=data_path, seed=setting.seed, backend=jax.default_backend(),
+                  **_sources(setting, n_episodes))
     return report
 
 
 def evaluate_oracle_data(data_path: str, *, zoo: str | None = None,
-                         policy_file: str | None = None, seed: int = 0,
+                         policy_file: str | None = None, seed: int | None = None,
                          n_episodes: int | None = None, horizon: int | None = None,
-                         n_boot: int = 0) -> dict:
-    """``evaluate_checkpoint`` with the task's real dynamics (``evaluate_oracle``): the control.
-    Defaults: the data's episode_length and ``DEFAULT_EPISODES`` episodes."""
-    _check_settings(n_episodes, horizon)
+                         n_boot: int = 0, setting: EvalSetting | None = None,
+                         truth: str | None = None) -> dict:
+    """``evaluate_checkpoint`` with the task's real dynamics (``evaluate_oracle``): the control,
+    in the same ``EvalSetting``; with no checkpoint its default horizon is the one training on
+    this backend measures VD with (``EvalSetting.resolve``), so that the oracle and a
+    simulator trained here score the same horizon."""
+    setting = _setting(setting, n_episodes, horizon, seed, truth)
     ds = load_dataset(data_path)
     if ds.meta.get("task") not in TASKS:
         raise ValueError(f"oracle: {data_path} is data of no registered task (meta.task "
@@ -98,19 +95,26 @@ def evaluate_oracle_data(data_path: str, *, zoo: str | None = None,
                          f"its true values are in the data (rl2s evaluate --ckpt scores a "
                          f"simulator against them)")
     policies = policies_for(ds, zoo, policy_file=policy_file, data_path=data_path)
-    report = evaluate_oracle(ds.meta.get("task"), ds, policies, key=jax.random.PRNGKey(seed),
-                             n_episodes=n_episodes or DEFAULT_EPISODES, horizon=horizon,
-                             n_boot=n_boot)
-    report.update(method="oracle", data=data_path, seed=seed,
-                  horizon_source=("--horizon" if horizon else "the data's episode_length"
-                                  if ds.meta.get("episode_length") else "the default 1000"),
-                  episodes_source=("--episodes" if n_episodes
-                                   else f"the default {DEFAULT_EPISODES}"))
+    setting = setting.resolve(ds.meta.get("episode_length"))
+    report = evaluate_oracle(ds.meta.get("task"), ds, policies, key=setting.key(),
+                             n_episodes=setting.episodes, horizon=setting.horizon,
+                             n_boot=n_boot, truth=setting.truth)
+    report.update(method="oracle", data=data_path, seed=setting.seed,
+                  **_sources(setting, n_episodes))
     return report
 
 
 def _metrics_line(m: dict) -> str:
     return "  ".join(f"{k} {v:.3f}" for k, v in m.items())
+
+
+def _truth(r: dict) -> str:
+    """Which true values a report used, in words."""
+    asked = (r.get("setting") or {}).get("truth", "auto")
+    used = r.get("true_value_source", "?")
+    words = {"measured": "measured (the data's fresh value episodes)",
+             "logged": "logged (the logged episodes' discounted return over the horizon)"}
+    return words.get(used, used) + (" (--truth auto)" if asked == "auto" else "")
 
 
 def format_report(r: dict) -> str:
@@ -123,7 +127,8 @@ def format_report(r: dict) -> str:
         return f" ({r[key]})" if key in r else ""
     head = [f"{what} on {r.get('data', '')}: {len(r['vd'])} policies, horizon {r['horizon']}"
             f"{source('horizon_source')}, {r['n_episodes']} episodes"
-            f"{source('episodes_source')}, gamma {r['gamma']:g}",
+            f"{source('episodes_source')}, gamma {r['gamma']:g}, seed {r.get('seed', '?')}, "
+            f"true values: {_truth(r)}",
             _metrics_line(m)]
     if "heldout_nll" in r:
         head.append(f"one-step error on these {r['one_step_rows']} transitions: heldout_nll "
@@ -208,9 +213,9 @@ def simulator_agreement(sim_values, true_values=None, names=None, top_k: int = 3
 def check_checkpoints(ckpts: list[str], data_path: str, n_episodes: int | None = None,
                       horizon: int | None = None) -> list[dict]:
     """The refusals of ``evaluate_checkpoints``, from the checkpoints' JSON meta and the data
-    alone (nothing compiled): 2+ distinct paths, one task (the data's), the same horizon and
-    episodes. -> each checkpoint's meta."""
-    _check_settings(n_episodes, horizon)
+    alone (nothing compiled): 2+ distinct paths, one task (the data's), the same horizon.
+    -> each checkpoint's meta."""
+    setting = EvalSetting.from_flags(n_episodes, horizon)
     if len(ckpts) < 2:
         raise ValueError(f"ckpt: several simulators need 2 or more checkpoints, got {len(ckpts)}")
     seen: dict[str, str] = {}
@@ -238,15 +243,11 @@ def check_checkpoints(ckpts: list[str], data_path: str, n_episodes: int | None =
     if ds.meta.get("task") != tasks[0]:
         raise ValueError(f"data: {data_path} is task {ds.meta.get('task')!r} but the "
                          f"checkpoints model {tasks[0]!r}")
-    settings = [checkpoint_settings(m.get("config") or {}, ds, n_episodes, horizon)
-                for m in metas]
-    for name, key, flag in (("horizon", "horizon", "--horizon"),
-                            ("episodes", "n_episodes", "--episodes")):
-        values = [s[key] for s in settings]
-        if len(set(values)) > 1:
-            raise ValueError(f"{name}: the checkpoints' own defaults differ ("
-                             + ", ".join(f"{c}: {v}" for c, v in zip(ckpts, values, strict=True))
-                             + f"); pass {flag} so that all simulators score the same thing")
+    values = [checkpoint_setting(m.get("config") or {}, ds, setting).horizon for m in metas]
+    if len(set(values)) > 1:
+        raise ValueError("horizon: the checkpoints' own defaults differ ("
+                         + ", ".join(f"{c}: {v}" for c, v in zip(ckpts, values, strict=True))
+                         + "); pass --horizon so that all simulators score the same thing")
     return metas
 
 
@@ -284,7 +285,8 @@ def format_agreement(result: dict) -> str:
     r0 = reports[0]
     lines = [f"{len(reports)} simulators on {r0.get('data', '')}: {len(r0['vd'])} policies, "
              f"horizon {r0['horizon']} ({r0.get('horizon_source', '?')}), {r0['n_episodes']} "
-             f"episodes ({r0.get('episodes_source', '?')}), gamma {r0['gamma']:g}"]
+             f"episodes ({r0.get('episodes_source', '?')}), gamma {r0['gamma']:g}, seed "
+             f"{r0.get('seed', '?')}, true values: {_truth(r0)}"]
     for r in reports:
         m = {k: v for k, v in r["metrics"].items() if k in SUMMARY_METRICS}
         nll = f"  heldout_nll {r['heldout_nll']:.3f}" if "heldout_nll" in r else ""

@@ -26,6 +26,7 @@ from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.evaluate.setting import EvalSetting
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
 from rl2s_jax.improve.recipes import recipe_settings
@@ -61,12 +62,12 @@ def collect_dataset(task_name: str, split: str, transitions_per_policy: int, *, 
 
 PROFILES = {
     "cpu": dict(transitions_per_policy=2000, value_episodes=4, steps=300, eval_every=50,
-                eval_episodes=8, improve_iterations=300,
+                improve_iterations=300,
                 sac=dict(n_envs=4, hidden=(64, 64), batch_size=128, critic_warmup_updates=200,
                          buffer_size=20_000),
                 improve_recipe=dict(branch_length=None, uncertainty_penalty=0.0)),
     "gpu": dict(transitions_per_policy=100_000, value_episodes=32, steps=3000, eval_every=250,
-                eval_episodes=16, improve_iterations=5000,
+                improve_iterations=5000,
                 sac=dict(n_envs=16, critic_warmup_updates=2000),
                 improve_recipe=dict(branch_length=None, uncertainty_penalty=0.0)),
 }
@@ -222,6 +223,14 @@ def pipeline_sizes(args, profile: str) -> dict:
     return sizes
 
 
+def evaluate_run(run_dir: str, test_path: str, setting: EvalSetting) -> dict:
+    """The pipeline's evaluation of one method's run: its final checkpoint on the test data
+    in ``setting`` (``app.evaluate.evaluate_checkpoint``: the numbers of the run's own
+    summary.json and of `rl2s evaluate` in the same setting)."""
+    return evaluate_checkpoint(os.path.join(run_dir, "checkpoints"), test_path,
+                               setting=setting)
+
+
 def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
     """The whole pipeline for one task: collect, train the four methods, evaluate, fine-tune
     the test policies in each simulator through the deployment guard (``guard_margin``; None:
@@ -274,6 +283,10 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
     with open(state_path, "w") as f:
         json.dump(summary, f, indent=1)
     evals, curves, runs = {}, {}, {}
+    setting = EvalSetting.from_flags(getattr(args, "eval_episodes", None),
+                                     getattr(args, "eval_horizon", None),
+                                     getattr(args, "eval_seed", None), getattr(args, "truth", None))
+    summary["setting"] = setting.to_dict()
     for method in methods:
         run_dir = os.path.join(out, method)
         print(f"\n[pipeline] training {method} -> {run_dir}")
@@ -281,11 +294,8 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             summary["datasets"]["train"]["path"], method, sizes["steps"], run_dir,
             profile=profile, seed=args.seed, save_every=sizes["eval_every"],
             eval_data=summary["datasets"]["test"]["path"], eval_every=sizes["eval_every"],
-            eval_episodes=sizes["eval_episodes"], progress=not args.quiet)
-        evals[method] = evaluate_checkpoint(os.path.join(run_dir, "checkpoints"),
-                                            summary["datasets"]["test"]["path"],
-                                            seed=args.seed, n_episodes=sizes["eval_episodes"],
-                                            horizon=runs[method]["config"]["vd_horizon"])
+            setting=setting, progress=not args.quiet)
+        evals[method] = evaluate_run(run_dir, summary["datasets"]["test"]["path"], setting)
         curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
     summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
                                                    "mvd_train")} for m, r in runs.items()}
@@ -304,7 +314,9 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
     summary["seconds"] = round(time.perf_counter() - t_start, 1)
     text = write_report(out, summary, evals, curves)
     imp = improvement_text(evals)
+    st = next(iter(evals.values()))
     print(f"\n[pipeline] test policies ({profile} profile, {backend}), "
-          f"{summary['seconds']:.0f}s:\n{text}\n{imp}\n-> {out}/report.md, report.json, "
-          "*.png")
+          f"{summary['seconds']:.0f}s, "
+          f"{EvalSetting(**st['setting']).describe(st['true_value_source'])}:\n{text}\n{imp}"
+          f"\n-> {out}/report.md, report.json, *.png")
     return 0

@@ -22,7 +22,7 @@ import numpy as np
 from rl2s_jax.app.pipeline import collect_dataset
 from rl2s_jax.app.protocol_fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.data.dataset import load_dataset, save_dataset
-from rl2s_jax.data.values import true_values, true_values_se
+from rl2s_jax.data.values import true_values, true_values_se, truth_used
 from rl2s_jax.evaluate.lanes import (
     EVAL_METRICS,
     evaluate_lanes,
@@ -413,6 +413,11 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
                 true_values_se(test_ds, cfg.vd_horizon, cfg.gamma), sizes["bootstrap"])
     result["true_value"] = np.asarray(truth).tolist()
+    # The paper's sizes are its own evaluation setting (evaluate/setting.py's fields), stored
+    # beside its numbers; each lane draws its episodes with PRNGKey(1000 + its seed).
+    result["setting"] = {"episodes": sizes["eval_episodes"], "horizon": cfg.vd_horizon,
+                         "seed": "1000 + the lane's seed", "truth": "auto",
+                         "true_value_source": truth_used(test_ds, cfg.vd_horizon, cfg.gamma)}
     result["train_true_value"] = select_truth.tolist()
     result.setdefault("train_config", {})[family] = cfg.to_dict()
     result["timings"][f"eval_{family}"] = round(t_eval, 1)

@@ -237,9 +237,12 @@ def write_report(out: str, summary: dict, evals: dict[str, dict],
              f"Profile `{summary.get('profile')}` on `{summary.get('backend')}`{where}; "
              f"command: `{summary.get('command', '')}`.", ""]
     if first is not None:
+        st = first.get("setting") or {}
         lines += [f"Test policies: {len(first['vd'])}; each simulated for "
                   f"{first['n_episodes']} episodes of {first['horizon']} steps (gamma "
-                  f"{first['gamma']}); true values from the test data.", "",
+                  f"{first['gamma']}, evaluation seed {st.get('seed', '?')}); true values "
+                  f"from the test data ({first.get('true_value_source', '?')}, --truth "
+                  f"{st.get('truth', 'auto')}).", "",
                   markdown_table(methods), ""]
     imp = improvement_text(evals)
     if imp:

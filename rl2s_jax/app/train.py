@@ -12,7 +12,8 @@ import numpy as np
 
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import load_dataset
-from rl2s_jax.envs.tasks import TASKS
+from rl2s_jax.envs.tasks import TASKS, data_task
+from rl2s_jax.evaluate.setting import EvalSetting, profile_horizon
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.train.checkpoint import Checkpointer
 from rl2s_jax.train.config import TrainConfig
@@ -29,7 +30,7 @@ CPU_MODEL = dict(gen_hidden=(128, 128, 128), gen_activation="silu", batch_size=2
 
 
 def make_config(ds, method: str, profile: str, eps: float | None = None,
-                overrides: dict | None = None):
+                overrides: dict | None = None, no_task: bool = False):
     """The TrainConfig for ``ds``: 'gpu' = the paper's sizes with the ensemble model family
     (7 members of 4x512 SiLU, 5 elites, batch 1024, 1000 pre-training steps; TrainConfig's
     defaults), 'cpu' = ``TrainConfig.small`` with the members fitted as the gpu profile fits
@@ -37,22 +38,24 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
     docs/RESULTS.md, "make hopper"), 100 pre-training steps and 5 critic warm-up steps.
     ``overrides``: field -> value (``--set``).
 
-    Data of no registered task (``meta.task`` null, or a name this process has not
-    registered): the reward is learned from the data's rewards (``reward`` "learned") and
-    episodes end by the hazard learned from its done flags (``termination`` "hazard"), unless
-    ``overrides`` say otherwise; its time limit is ``data_episode_length``."""
+    Data of no registered task (``meta.task`` null) or ``no_task`` (--no-task): the reward is
+    learned from the data's rewards (``reward`` "learned") and episodes end by the hazard
+    learned from its done flags (``termination`` "hazard"), unless ``overrides`` say
+    otherwise; its time limit is ``data_episode_length``. A ``meta.task`` that is not
+    registered is refused without ``no_task`` (``envs.tasks.data_task``)."""
 
+    data_task(ds.meta["task"], no_task)
     ep_len = ds.meta.get("episode_length") or 1000
     base = dict(task=ds.meta["task"], method=method, eps=eps,
                 gamma=float(ds.meta.get("gamma") or 0.999))
-    if ds.meta["task"] not in TASKS:
+    if ds.meta["task"] not in TASKS or no_task:
         base.update(reward="learned", termination="hazard",
                     data_episode_length=ds.meta.get("episode_length"))
     if profile == "cpu":
-        cfg = TrainConfig.small(vd_horizon=min(100, ep_len), pretrain_steps=100,
+        cfg = TrainConfig.small(vd_horizon=profile_horizon("cpu", ep_len), pretrain_steps=100,
                                 disc_warmup_steps=5, **CPU_MODEL, **base)
     elif profile == "gpu":
-        cfg = TrainConfig(vd_horizon=ep_len, **base)
+        cfg = TrainConfig(vd_horizon=profile_horizon("gpu", ep_len), **base)
     else:
         raise ValueError(f"profile: expected 'cpu' or 'gpu', got {profile!r}")
     if overrides:
@@ -69,9 +72,9 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                  profile: str = "auto", seed: int = 0, eps: float | None = None,
                  save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
                  progress: bool = True, log=print, eval_data: str | None = None,
-                 eval_every: int | None = None, eval_episodes: int = 8,
+                 eval_every: int | None = None, setting: EvalSetting | None = None,
                  resume_step: int | None = None, policy_file: str | None = None,
-                 eval_policies: str | None = None) -> dict:
+                 eval_policies: str | None = None, no_task: bool = False) -> dict:
     """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
     holds one), and return a summary dict (also written to out/summary.json).
 
@@ -81,8 +84,11 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     (intact), since the run saves those steps anew.
 
     ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
-    with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve);
-    its policies from ``eval_policies`` (a policy file, checked as ``policy_file`` is, before
+    with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve),
+    and at the last step: the summary's test numbers are the final checkpoint's, in
+    ``setting`` (default ``EvalSetting()``, its horizon the config's vd_horizon), the numbers
+    `rl2s evaluate` gives that checkpoint in the same setting; its policies
+    from ``eval_policies`` (a policy file, checked as ``policy_file`` is, before
     any training work), else from ``zoo`` or what its meta.source names. The training
     policies: from ``zoo``, ``policy_file`` or what the data's meta.source names
     (``zoo.policies_for``). The summary's ``learned`` block holds the simulator's reward and
@@ -97,10 +103,10 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     ds = load_dataset(data_path)
     if profile == "auto":
         profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
-    cfg = make_config(ds, method, profile, eps, overrides)
-    if not cfg.registered:
-        log(f"[train] {data_path} is data of no registered task (meta.task "
-            f"{ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
+    cfg = make_config(ds, method, profile, eps, overrides, no_task)
+    if not cfg.registered or no_task:
+        log(f"[train] {data_path}: {'--no-task' if no_task else 'data of no registered task'} "
+            f"(meta.task {ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
             f"{cfg.termination!r} (a reward head r(s, a, s') fitted on its rewards, the hazard "
             f"h(s, a) on its done flags; their held-out errors are in the summary)")
     if cfg.pretrains and steps <= cfg.pretrain_steps:
@@ -113,7 +119,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     eval_path = os.path.join(out, "eval.jsonl")
     on_eval, last_test = None, {}
     if eval_data is not None:  # its data and policies checked before any training work
-        on_eval = _test_evaluator(eval_data, cfg, eval_path, eval_episodes, seed, zoo,
+        on_eval = _test_evaluator(eval_data, cfg, eval_path, setting or EvalSetting(), zoo,
                                   last_test, eval_policies)
         eval_every = eval_every or save_every or max(1, steps // 10)
     data = make_train_data(ds, policies, cfg)
@@ -164,6 +170,11 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                              on_warning=lambda text: (jumps.append(text), log(text)))
     finally:
         ck.close()
+    if on_eval is not None and last_test.get("step_test") != int(state.step):
+        # the final checkpoint's test numbers, when no chunk here ended on an evaluation (a
+        # rerun of a finished run replaces its row of that step)
+        _truncate_metrics(eval_path, int(state.step) - 1)
+        on_eval(state)
     seconds = time.perf_counter() - t0
     names = ds.meta.get("policy_names") or [str(i) for i in range(ds.n_policies)]
     vd = np.asarray(state.vd)
@@ -191,7 +202,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
     return summary
 
 
-def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
+def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
                     zoo: str | None, last: dict, policy_file: str | None = None):
     """on_eval callback: VD and ranking of the eval Dataset's policies, appended to ``path``;
     the latest also in ``last`` (keys ending ``_test``, for summary.json) and returned (for
@@ -211,20 +222,24 @@ def _test_evaluator(eval_data: str, cfg, path: str, n_episodes: int, seed: int,
             pols = policies_for(ds, zoo, data_path=eval_data, flag="eval-policies")
         except ValueError as err:  # say which Dataset's policies are unknown
             raise ValueError(f"eval_data: {eval_data}: {err}") from None
-    key = jax.random.PRNGKey(seed + 1)
+    setting = setting.resolve(ds.meta.get("episode_length"), cfg.vd_horizon)
+    key = setting.key()
 
     def on_eval(state):
-        r = evaluate_simulator(simulator(state), ds, pols, key=key, n_episodes=n_episodes,
-                               horizon=cfg.vd_horizon, gamma=cfg.gamma)
-        row = {"step": int(state.step), **r["metrics"], "vd": r["vd"]}
+        r = evaluate_simulator(simulator(state), ds, pols, key=key, n_episodes=setting.episodes,
+                               horizon=setting.horizon, truth=setting.truth)  # data's gamma
+        row = {"step": int(state.step), **r["metrics"], "vd": r["vd"],
+               "setting": setting.to_dict(), "true_value_source": r["true_value_source"]}
         with open(path, "a") as f:
             f.write(json.dumps(row) + "\n")
         last.clear()
         last.update({f"{k}_test": v for k, v in r["metrics"].items()})
         last.update(step_test=int(state.step), eval_data=eval_data,
-                    eval_policies=policy_file, measured_by_test={
-            "source": "simulated vs the eval data's true values", "episodes": n_episodes,
-            "horizon": cfg.vd_horizon, "gamma": cfg.gamma})
+                    eval_policies=policy_file, setting_test=setting.to_dict(), measured_by_test={
+            "source": f"simulated vs the eval data's {r['true_value_source']} true values",
+            "episodes": setting.episodes, "horizon": setting.horizon, "gamma": r["gamma"],
+            "seed": setting.seed, "truth": setting.truth,
+            "true_value_source": r["true_value_source"]})
         return {f"{k}_test": r["metrics"][k] for k in ("avd", "mvd", "kendall_tau")
                 if k in r["metrics"]}
 
@@ -242,8 +257,12 @@ def train_command(args) -> int:
                                save_every=args.save_every, chunk=args.chunk,
                                overrides=parse_overrides(args.set), progress=not args.quiet,
                                eval_data=args.eval_data, eval_every=args.eval_every,
+                               setting=EvalSetting.from_flags(
+                                   args.eval_episodes, args.eval_horizon, args.eval_seed,
+                                   args.truth),
                                resume_step=args.resume_step, policy_file=args.policy_file,
-                               eval_policies=args.eval_policies)
+                               eval_policies=args.eval_policies,
+                               no_task=getattr(args, "no_task", False))
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1
@@ -291,7 +310,9 @@ def _by(m: dict | None) -> str:
     """How a number was measured, in words: episodes x horizon, discount, source."""
     if not m:
         return "settings unknown"
-    return f"{m['episodes']} episodes x {m['horizon']} steps, gamma {m['gamma']:g}"
+    extra = "".join(f", {word} {m[k]}" for k, word in (("seed", "seed"), (
+        "true_value_source", "true values:")) if k in m)
+    return f"{m['episodes']} episodes x {m['horizon']} steps, gamma {m['gamma']:g}{extra}"
 
 
 def parse_overrides(items: list[str] | None) -> dict:

@@ -31,7 +31,7 @@ from rl2s_jax.data.dataset import (
     TaskSizes,
     validate_dataset,
 )
-from rl2s_jax.envs.tasks import BUILT_IN, TASKS
+from rl2s_jax.envs.tasks import BUILT_IN, TASKS, data_task
 
 __all__ = ["from_minari", "to_minari", "task_env_spec", "POLICY_KEYS"]
 
@@ -78,6 +78,8 @@ def from_minari(source, *, task: str | None = None, gamma: float | None = None,
     a step both terminated and truncated becomes ``done`` (our rows never carry both).
     Raises DatasetError naming what is wrong.
     """
+    data_task(task, where="task", remedy="or leave --task out (data of no task: the reward "
+              "and termination are learned from it)")  # before any work
     minari = _minari()[0]
     label = str(source) if not isinstance(source, minari.MinariDataset) else source.id
     mds = source if isinstance(source, minari.MinariDataset) else _open(source)

@@ -13,22 +13,42 @@ def _measured_values_apply(ds, horizon: int, gamma: float) -> bool:
     return bool(ds.has_values and full and abs(float(meta.get("gamma") or 0) - gamma) < 1e-9)
 
 
-def true_values_se(ds, horizon: int, gamma: float) -> np.ndarray | None:
-    """Standard errors [P] of ``true_values`` where the data measured them, else None."""
+def truth_used(ds, horizon: int, gamma: float, truth: str = "auto") -> str:
+    """Which true value ``true_values`` gives for ``truth`` ("auto": measured where they
+    apply, else logged; "measured": refused where they do not apply; "logged"): "measured"
+    (the data's fresh-episode values) or "logged" (the logged episodes' discounted return)."""
+    if truth not in ("auto", "measured", "logged"):
+        raise ValueError(f"truth: expected auto, measured or logged, got {truth!r}")
+    if truth == "logged":
+        return "logged"
     if _measured_values_apply(ds, horizon, gamma):
+        return "measured"
+    if truth == "measured":
+        raise ValueError(
+            f"truth: 'measured' values are of whole episodes ({ds.meta.get('episode_length')} "
+            f"steps) at gamma {ds.meta.get('gamma')} and need the data's value episodes "
+            f"(has_values {ds.has_values}); this is horizon {horizon}, gamma {gamma}: use "
+            f"--truth logged or auto, or a horizon of the whole episode")
+    return "logged"
+
+
+def true_values_se(ds, horizon: int, gamma: float, truth: str = "auto") -> np.ndarray | None:
+    """Standard errors [P] of ``true_values`` where the data measured them, else None."""
+    if truth_used(ds, horizon, gamma, truth) == "measured":
         return np.asarray(ds.value_discounted_se, np.float64)
     return None
 
 
-def true_values(ds, horizon: int, gamma: float, strict: bool = True) -> np.ndarray:
+def true_values(ds, horizon: int, gamma: float, strict: bool = True,
+                truth: str = "auto") -> np.ndarray:
     """True discounted value [P] of each policy of ``ds`` over ``horizon`` steps.
 
     The Dataset's measured ``value_discounted`` when the horizon covers the whole episode and
     gamma matches; otherwise the logged episodes' discounted return over the first ``horizon``
-    steps (``data_values``). ``strict``: a policy without a usable episode is an error
-    (else NaN).
+    steps (``data_values``); ``truth`` picks one (``truth_used``). ``strict``: a policy
+    without a usable episode is an error (else NaN).
     """
-    if _measured_values_apply(ds, horizon, gamma):
+    if truth_used(ds, horizon, gamma, truth) == "measured":
         return np.asarray(ds.value_discounted, np.float32)
     ended = np.asarray(ds.done) | np.asarray(ds.truncated)
     values, _ = data_values(np.asarray(ds.reward), ended, np.asarray(ds.policy_id),

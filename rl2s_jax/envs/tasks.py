@@ -45,6 +45,7 @@ Overrides passed to ``make_env`` that change the reward or termination (weights,
 from __future__ import annotations
 
 import dataclasses
+import difflib
 import xml.etree.ElementTree as ET
 from collections.abc import Callable
 from typing import NamedTuple
@@ -460,3 +461,20 @@ def get_task(name: str) -> Task:
         return TASKS[name]
     except KeyError:
         raise ValueError(f"unknown task {name!r}; known tasks: {', '.join(task_names())}") from None
+
+
+def data_task(name: str | None, no_task: bool = False, where: str = "data",
+              remedy: str = "or pass --no-task to learn both from the data") -> str | None:
+    """The task a Dataset's ``meta.task`` names, checked: a registered name, or None (data
+    of no registered task: the reward and termination are learned from it). A name that is
+    not registered is refused (a misspelt task must not silently turn into learned rules),
+    naming the field, the name, the registered ones and the nearest, unless ``no_task`` (the
+    command's --no-task) says to learn the reward and termination from the data; ``remedy``
+    ends the error."""
+    if name is None or name in TASKS or no_task:
+        return name
+    near = difflib.get_close_matches(str(name), task_names(), n=1, cutoff=0.6)
+    hint = f" (did you mean {near[0]!r}?)" if near else ""
+    raise ValueError(f"{where}: meta.task {name!r} is not a registered task{hint}; registered: "
+                     f"{', '.join(task_names())}. Register it (rl2s_jax.register) for its "
+                     f"reward and termination rules, {remedy}")

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.data.values import true_values, true_values_se
+from rl2s_jax.data.values import true_values, true_values_se, truth_used
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import bootstrap_intervals, ranking_metrics
 from rl2s_jax.evaluate.oracle import oracle_dynamics
@@ -42,15 +42,18 @@ def _protocol(ds, policies, n_episodes, horizon, gamma) -> tuple[int, float]:
 
 
 def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 5, 10),
-                 n_boot: int = 0, boot_seed: int = 0) -> dict:
+                 n_boot: int = 0, boot_seed: int = 0, truth: str = "auto") -> dict:
     """The report of simulated episodes against the data's true values.
 
     returns, lengths: [P, n] each simulated episode's discounted return and length
     ("sim_return_sd": [P] the spread of one episode's return, the evaluation noise). n_boot > 0
     adds "intervals" (``evaluate.bootstrap_intervals`` over the episodes, with the true values'
-    standard errors when the data measured them).
+    standard errors when the data measured them). ``truth``: which true value
+    (``data.values.truth_used``; the one used is "true_value_source").
     """
-    truth = true_values(ds, horizon, gamma)
+    source = truth_used(ds, horizon, gamma, truth)
+    se = true_values_se(ds, horizon, gamma, truth)
+    truth = true_values(ds, horizon, gamma, truth=truth)
     returns = np.asarray(returns, np.float64)
     sim_value = returns.mean(1)
     out = {"true_value": truth.tolist(), "sim_value": sim_value.tolist(),
@@ -58,13 +61,12 @@ def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 
            "sim_return_sd": (returns.std(1, ddof=1) if returns.shape[1] > 1
                              else np.zeros(returns.shape[0])).tolist(),
            "vd": np.abs(truth - sim_value).tolist(), "horizon": horizon, "gamma": gamma,
-           "n_episodes": int(returns.shape[1]),
+           "n_episodes": int(returns.shape[1]), "true_value_source": source,
            "policy_names": list(ds.meta.get("policy_names") or range(ds.n_policies))}
     if ds.n_policies >= 2:
         out["metrics"] = ranking_metrics(truth, sim_value, ks=ks)
         if n_boot and np.all(np.isfinite(returns)):
-            out["intervals"] = bootstrap_intervals(truth, returns,
-                                                   true_values_se(ds, horizon, gamma),
+            out["intervals"] = bootstrap_intervals(truth, returns, se,
                                                    n_boot=n_boot, seed=boot_seed, ks=ks)
     else:
         vd = float(abs(truth[0] - sim_value[0]))
@@ -75,7 +77,7 @@ def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 
 def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
                        n_episodes: int = 16, horizon: int | None = None,
                        gamma: float | None = None, ks=(1, 3, 5, 10), n_boot: int = 0,
-                       policy_fn: Callable | None = None) -> dict:
+                       policy_fn: Callable | None = None, truth: str = "auto") -> dict:
     """Simulated vs true discounted value of every policy of ``ds`` (stacked ``policies``;
     ``policy_fn(params, obs [n, o], key) -> action [n, a]`` applies one policy's params when
     they are not the project's policy format: any JAX function, e.g. your own network).
@@ -83,16 +85,18 @@ def evaluate_simulator(sim: Simulator, ds, policies: Params, *, key: jax.Array,
     horizon: steps per simulated episode (default: the data's episode_length); gamma: default
     the data's. -> {"true_value", "sim_value", "sim_length", "vd" (lists [P]), "metrics": {avd,
     mvd, kendall_tau, spearman, ndcg@k, regret@k}, "horizon", "gamma", "n_episodes"} and, with
-    n_boot > 0, "intervals" (``value_report``). The one-step errors are ``one_step_errors``.
+    n_boot > 0, "intervals" (``value_report``; ``truth`` as there). The one-step errors are
+    ``one_step_errors``.
     Rewards and terminations: the simulator's ``task_fns`` (its registered task's, or its
     learned reward and hazard).
     """
     sim.task_fns()  # a simulator of no registered task without a learned reward: refused here
     horizon, gamma = _protocol(ds, policies, n_episodes, horizon, gamma)
+    truth_used(ds, horizon, gamma, truth)  # a true value it cannot give: refused first
     returns, lengths = _sim_returns(sim, policies, start_pool(ds), key, n_episodes=n_episodes,
                                     horizon=horizon, gamma=gamma, policy_fn=policy_fn)
     return value_report(ds, returns, lengths, horizon=horizon, gamma=gamma, ks=ks,
-                        n_boot=n_boot)
+                        n_boot=n_boot, truth=truth)
 
 
 ONE_STEP_ROWS = 20_000  # rows that one-step errors are measured on (evenly spread)
@@ -154,15 +158,16 @@ def oracle_returns(task: str, env=None):
 
 def evaluate_oracle(task: str, ds, policies: Params, *, key: jax.Array, n_episodes: int = 16,
                     horizon: int | None = None, gamma: float | None = None, ks=(1, 3, 5, 10),
-                    n_boot: int = 0, env=None) -> dict:
+                    n_boot: int = 0, env=None, truth: str = "auto") -> dict:
     """``evaluate_simulator`` with the real dynamics in place of a learned simulator: the
     ceiling of any simulator of this observation under this protocol (same start states,
     horizon, gamma, reward_fn / done_fn and number of episodes)."""
     horizon, gamma = _protocol(ds, policies, n_episodes, horizon, gamma)
+    truth_used(ds, horizon, gamma, truth)  # a true value it cannot give: refused first
     returns, lengths = oracle_returns(task, env)(policies, start_pool=start_pool(ds), key=key,
                                                  n_episodes=n_episodes, horizon=horizon,
                                                  gamma=gamma)
     return value_report(ds, returns, lengths, horizon=horizon, gamma=gamma, ks=ks,
-                        n_boot=n_boot)
+                        n_boot=n_boot, truth=truth)
 
 

@@ -138,19 +138,21 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
                      f"{after:.4g} at step {step + i + 1} ({after / before:.1f}x): the "
                      f"simulator got much worse on some training policy; a checkpoint "
                      f"before it may be the better simulator")
+            if on_chunk is not None:
+                on_chunk(state, metrics)
+            # The evaluation before the bar's update, so that the bar shows this step's
+            # numbers (not the previous evaluation's) beside this step's training VD.
+            if on_eval is not None and eval_every and int(state.step) % eval_every == 0:
+                row = on_eval(state)
+                if isinstance(row, dict):
+                    shown = {k: f"{v:.3g}" for k, v in row.items()
+                             if isinstance(v, int | float) and k != "step"}
             if bar is not None:
                 bar.update(n)
                 bar.set_postfix({"steps_s": f"{n / seconds:.2f}",
                                  "avd": f"{float(metrics['avd_train'][-1]):.3g}",
                                  "mvd": f"{float(metrics['mvd_train'][-1]):.3g}", **shown},
                                 refresh=False)  # on_eval's keys may repeat these: last wins
-            if on_chunk is not None:
-                on_chunk(state, metrics)
-            if on_eval is not None and eval_every and int(state.step) % eval_every == 0:
-                row = on_eval(state)
-                if isinstance(row, dict):
-                    shown = {k: f"{v:.3g}" for k, v in row.items()
-                             if isinstance(v, int | float) and k != "step"}
     finally:
         if bar is not None:
             bar.close()

@@ -21,6 +21,7 @@ from rl2s_jax.policy.policy import (
     num_policies,
     unflatten_params,
 )
+from rl2s_jax.zoo.likelihood import warn_if_mismatched
 
 ZOO_ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "shipped")
 # The "validation" split: every VALIDATION_EVERY-th training policy by return (from the
@@ -184,7 +185,9 @@ def policies_for(ds, zoo: str | None = None, *, policy_file: str | None = None,
 
 def _file_policies(ds, path: str, label: str) -> Params:
     """The policies of policy file ``path`` for ``ds``: as many as the data's, of its sizes,
-    not its own names in another order. ``label`` (the flag or field) starts every error."""
+    not its own names in another order. ``label`` (the flag or field) starts every error; a
+    PolicyFileWarning where its policies do not explain the data's actions
+    (``likelihood.policy_file_mismatch``)."""
     try:
         params, names = load_policies(path)
     except FileNotFoundError as err:
@@ -205,4 +208,5 @@ def _file_policies(ds, path: str, label: str) -> Params:
         raise ValueError(f"{label}: {path} names the Dataset's policies in another order "
                          f"({names[:3]}... against its policy_names {data_names[:3]}...): "
                          f"the file must list them in the data's policy_id order")
+    warn_if_mismatched(ds, params, label, path, names)  # the logged actions' likelihood
     return params

@@ -308,8 +308,8 @@ def _sim_env_options(p, default: str = "whole episodes from its start states") -
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from rl2s_jax.envs.tasks import task_names
-    from rl2s_jax.improve.recipes import IMPROVE_RECIPES
+    from rl2s_jax._names import IMPROVE_RECIPE_NAMES as IMPROVE_RECIPES
+    from rl2s_jax._names import task_names
 
     parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -570,12 +570,11 @@ def _main(argv: list[str] | None) -> int:
     # brax warns on every env it builds that it is unmaintained; we use only its envs.
     warnings.filterwarnings("ignore", category=UserWarning, module="brax")
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
-    from rl2s_jax.train.checkpoint import CheckpointWarning
-
     parser = build_parser()
     args = parser.parse_args(argv)
     check_outputs(parser, args)
     from rl2s_jax import compile_cache
+    from rl2s_jax.train.checkpoint import CheckpointWarning
 
     compile_cache.enable()
     default_show = warnings.showwarning

@@ -51,12 +51,15 @@ def test_unknown_public_name_is_an_attribute_error():
 
 
 def test_light_names_match_the_registries():
-    from rl2s_jax import _names
+    from rl2s_jax import _gym, _names
     from rl2s_jax.envs.tasks import BUILT_IN
+    from rl2s_jax.improve import gym_env
     from rl2s_jax.improve.recipes import IMPROVE_RECIPES
 
     assert _names.BUILT_IN_TASKS == BUILT_IN
     assert sorted(_names.IMPROVE_RECIPE_NAMES) == sorted(IMPROVE_RECIPES)
+    assert _gym.SIMULATOR_ENV_ID == gym_env.SIMULATOR_ENV_ID
+    assert _gym._GYM_ENV == gym_env.__name__
 
 
 def test_a_registered_task_is_a_parser_choice():

@@ -556,17 +556,25 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    import warnings
-
-    # brax warns on every env it builds that it is unmaintained; we use only its envs.
-    warnings.filterwarnings("ignore", category=UserWarning, module="brax")
-    warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
     parser = build_parser()
     args = parser.parse_args(argv)
     started = time.time()
     error = outputs_error(args)  # before any work: app/paths.py
     if error:
         parser.exit(2, f"rl2s {args.command}: error: {error}\n")
+    try:  # from here on Ctrl-C is one line, the stack's imports included
+        return _run(args)
+    except KeyboardInterrupt:
+        print(f"\nrl2s {args.command}: {stopped_message(args, started)}", file=sys.stderr)
+        return 130
+
+
+def _run(args) -> int:
+    import warnings
+
+    # brax warns on every env it builds that it is unmaintained; we use only its envs.
+    warnings.filterwarnings("ignore", category=UserWarning, module="brax")
+    warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
     from rl2s_jax import compile_cache
     from rl2s_jax.train.checkpoint import CheckpointWarning
 
@@ -587,10 +595,6 @@ def _main(argv: list[str] | None) -> int:
         except (ValueError, FileNotFoundError, FloatingPointError) as err:
             print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
             return 2
-        except KeyboardInterrupt:
-            print(f"\nrl2s {args.command}: {stopped_message(args, started)}", file=sys.stderr)
-            return 130
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -339,7 +339,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--env-steps", type=_positive("env-steps"),
                    help="env steps per seed and learner (default: ZOO_SAC / ZOO_PPO); a larger "
-                   "value extends a finished run")
+                   "value extends a finished run (its zoo at --out replaced with --force)")
     p.add_argument("--snapshots", type=_positive("snapshots"),
                    help="snapshots per seed along training (fixed when a run starts; default: "
                    "the task's plan, 40 for the MJX tasks)")

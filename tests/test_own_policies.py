@@ -233,7 +233,7 @@ def test_evaluate_defaults_to_the_checkpoints_settings_and_says_so(run, short_ch
     assert max(r["sim_length"]) <= 20  # simulated so, not only reported
     assert ("horizon 20 (the checkpoint's vd_horizon), 3 episodes (the checkpoint's "
             "vd_episodes)") in printed
-    assert cli.main(base + ["--horizon", "10", "--episodes", "2"]) == 0
+    assert cli.main(base + ["--horizon", "10", "--episodes", "2", "--force"]) == 0
     r = json.loads(path.read_text())
     assert (r["horizon"], r["horizon_source"], r["n_episodes"], r["episodes_source"]) == (
         10, "--horizon", 2, "--episodes")

@@ -64,7 +64,7 @@ def train_and_evaluate(args, train_path: str, held_path: str, out: str, seed: in
          *[x for s in sets for x in ("--set", s)])
     rl2s("evaluate", "--ckpt", os.path.join(out, "checkpoints"), "--data", held_path,
          "--episodes", str(args.sim_episodes), "--horizon", str(get_task("hopper").episode_length),
-         "--json", os.path.join(out, "evaluate.json"))
+         "--json", os.path.join(out, "evaluate.json"), "--force")  # a rerun re-scores
 
 
 def paired(a: list[float], b: list[float]) -> dict:
@@ -133,7 +133,7 @@ def doors(ckpt: str, data: str, out: str) -> dict:
     from rl2s_jax.improve.gym_env import SimulatorGymEnv  # local: gymnasium only here
 
     rl2s("improve", "--ckpt", ckpt, "--data", data, "--out", out, "--iterations", "20",
-         "--policies", "0", "--episodes", "2", "--quiet")
+         "--policies", "0", "--episodes", "2", "--quiet", "--force")
     env = SimulatorGymEnv.from_checkpoint(ckpt, data)
     obs, _ = env.reset(seed=0)
     total = 0.0

@@ -5,47 +5,56 @@ call the pure ``train_step(state, data) -> (state, metrics)`` (jit / scan / vmap
 checkpoint with ``Checkpointer`` and load a trained ``Simulator`` with ``load_simulator``;
 ``SimulatorGymEnv`` / ``SimulatorVectorEnv`` put it behind the Gymnasium API. Your own
 policies: ``save_policies`` / ``load_policies``; your own system's rules: ``register``.
-"""
-# First: imports mujoco.mjx without its lines about the optional Warp backend (rl2s_jax/_quiet.py).
-import rl2s_jax._quiet  # noqa: F401
-from rl2s_jax.app.train import run_training
-from rl2s_jax.data.dataset import Dataset, load_dataset, save_dataset
-from rl2s_jax.envs.tasks import register
-from rl2s_jax.improve.finetune import improve_policies, improvement_metrics, measure_improvement
-from rl2s_jax.improve.sim_env import SimulatorEnv
-from rl2s_jax.model.simulator import Simulator, simulated_values
-from rl2s_jax.policy.policy import load_policies, save_policies
-from rl2s_jax.policy.sac import SACConfig, make_sac
-from rl2s_jax.train.checkpoint import (
-    Checkpointer,
-    CheckpointError,
-    CheckpointWarning,
-    load_checkpoint,
-    load_meta,
-    load_simulator,
-)
-from rl2s_jax.train.config import TrainConfig
-from rl2s_jax.train.cvar import n_worst, select_worst
-from rl2s_jax.train.data import TrainData, make_train_data
-from rl2s_jax.train.loop import TrainingDiverged, fit
-from rl2s_jax.train.step import TrainState, init, simulator, train_step, train_steps
-from rl2s_jax.zoo.zoo import load_zoo, policies_for
+Importing the package registers ``gymnasium.make("rl2s/Simulator-v0", ckpt=..., data=...)``
+(rl2s_jax/_gym.py).
 
-__all__ = [
-    "CheckpointError", "CheckpointWarning", "Checkpointer", "Dataset", "SACConfig", "Simulator",
-    "SimulatorEnv", "SimulatorGymEnv", "SimulatorVectorEnv", "TrainConfig", "TrainData",
-    "TrainState", "TrainingDiverged", "fit", "improve_policies", "improvement_metrics", "init",
-    "load_checkpoint", "load_dataset", "load_meta", "load_policies", "load_simulator",
-    "load_zoo", "make_sac", "make_train_data", "measure_improvement", "n_worst",
-    "policies_for", "register", "run_training", "save_dataset", "save_policies",
-    "select_worst", "simulated_values", "simulator", "train_step", "train_steps",
-]
+The names load on first use (module ``__getattr__``): ``import rl2s_jax`` and the ``rl2s``
+command's parser load no JAX, brax or MuJoCo (seconds on a small CPU).
+"""
+from __future__ import annotations
+
+import importlib
+
+from rl2s_jax import _gym
+
+_gym.install()
+
+# public name -> the module that defines it
+_PUBLIC = {
+    "run_training": "rl2s_jax.app.train",
+    **dict.fromkeys(("Dataset", "load_dataset", "save_dataset"), "rl2s_jax.data.dataset"),
+    "register": "rl2s_jax.envs.tasks",
+    **dict.fromkeys(("improve_policies", "improvement_metrics", "measure_improvement"),
+                    "rl2s_jax.improve.finetune"),
+    "SimulatorEnv": "rl2s_jax.improve.sim_env",
+    **dict.fromkeys(("SimulatorGymEnv", "SimulatorVectorEnv"), "rl2s_jax.improve.gym_env"),
+    **dict.fromkeys(("Simulator", "simulated_values"), "rl2s_jax.model.simulator"),
+    **dict.fromkeys(("load_policies", "save_policies"), "rl2s_jax.policy.policy"),
+    **dict.fromkeys(("SACConfig", "make_sac"), "rl2s_jax.policy.sac"),
+    **dict.fromkeys(("Checkpointer", "CheckpointError", "CheckpointWarning", "load_checkpoint",
+                     "load_meta", "load_simulator"), "rl2s_jax.train.checkpoint"),
+    "TrainConfig": "rl2s_jax.train.config",
+    **dict.fromkeys(("n_worst", "select_worst"), "rl2s_jax.train.cvar"),
+    **dict.fromkeys(("TrainData", "make_train_data"), "rl2s_jax.train.data"),
+    **dict.fromkeys(("TrainingDiverged", "fit"), "rl2s_jax.train.loop"),
+    **dict.fromkeys(("TrainState", "init", "simulator", "train_step", "train_steps"),
+                    "rl2s_jax.train.step"),
+    **dict.fromkeys(("load_zoo", "policies_for"), "rl2s_jax.zoo.zoo"),
+}
+
+__all__ = sorted(_PUBLIC)
 
 
 def __getattr__(name: str):
-    """The Gymnasium envs, imported on first use (gymnasium is not needed otherwise)."""
-    if name in ("SimulatorGymEnv", "SimulatorVectorEnv"):
-        from rl2s_jax.improve import gym_env
+    """A public name, imported from its module on first use (then cached in this module)."""
+    module = _PUBLIC.get(name)
+    if module is None:
+        raise AttributeError(f"module 'rl2s_jax' has no attribute {name!r}")
+    importlib.import_module("rl2s_jax._quiet")  # first: MJX without its Warp lines
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
 
-        return getattr(gym_env, name)
-    raise AttributeError(f"module 'rl2s_jax' has no attribute {name!r}")
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_PUBLIC))

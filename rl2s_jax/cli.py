@@ -4,16 +4,22 @@ improve | pipeline | diagnose.
 Argument parsing only; each command's work is in ``rl2s_jax.app``. The app modules are
 imported inside the command functions, on purpose: importing them loads JAX, brax and MuJoCo
 (seconds), which ``rl2s --help`` and a bad argument should not wait for. The outputs a
-command names are checked right after parsing, before any work (``OUTPUTS``, app/paths.py).
+command names are checked right after parsing, before any work, and earlier results there are
+replaced only with ``--force`` (``OUTPUTS``, ``FORCED``, app/paths.py); Ctrl-C ends a command
+with one line and status 130.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
 import os
+import shutil
 import sys
+import tempfile
 import time
+
+from rl2s_jax._files import write_json
+from rl2s_jax.app.paths import FORCED, outputs_error, stopped_message
 
 
 def _positive(name):
@@ -143,10 +149,20 @@ def cmd_import(args) -> int:
 def cmd_export(args) -> int:
     """Our Dataset file -> a Minari dataset directory."""
     from rl2s_jax.data.dataset import load_dataset
-    from rl2s_jax.data.minari import to_minari
+    from rl2s_jax.data.minari import _default_id, to_minari
 
     ds = load_dataset(args.data)
-    mds = to_minari(ds, args.out, dataset_id=args.dataset_id)
+    out = os.path.abspath(args.out)
+    # Written beside its place, then moved in: a stop or an error leaves --out as it was.
+    staging = tempfile.mkdtemp(dir=os.path.dirname(out), prefix=f".{os.path.basename(out)}.")
+    try:
+        mds = to_minari(ds, os.path.join(staging, "new"), dataset_id=args.dataset_id
+                        or _default_id(os.path.basename(out)))
+        if os.path.lexists(out):  # empty, or replaced with --force (checked at the door)
+            os.replace(out, os.path.join(staging, "old"))
+        os.replace(os.path.join(staging, "new"), out)
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
     print(f"exported {args.data} ({mds.total_episodes} episodes, {mds.total_steps} steps) -> "
           f"Minari dataset {mds.id!r} in {args.out}")
     return 0
@@ -176,8 +192,7 @@ def cmd_evaluate(args) -> int:
         print(ev.format_report(report))
     if args.json:
         os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        with open(args.json, "w") as f:
-            json.dump(report, f, indent=1)
+        write_json(args.json, report)
         print(f"-> {args.json}")
     return 0
 
@@ -311,9 +326,9 @@ def _sim_env_options(p, default: str = "whole episodes from its start states") -
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from rl2s_jax.envs.tasks import task_names
+    from rl2s_jax._names import IMPROVE_RECIPE_NAMES as IMPROVE_RECIPES
+    from rl2s_jax._names import task_names
     from rl2s_jax.evaluate.setting import setting_flags
-    from rl2s_jax.improve.recipes import IMPROVE_RECIPES
 
     parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -328,7 +343,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--env-steps", type=_positive("env-steps"),
                    help="env steps per seed and learner (default: ZOO_SAC / ZOO_PPO); a larger "
-                   "value extends a finished run")
+                   "value extends a finished run (its zoo at --out replaced with --force)")
     p.add_argument("--snapshots", type=_positive("snapshots"),
                    help="snapshots per seed along training (fixed when a run starts; default: "
                    "the task's plan, 40 for the MJX tasks)")
@@ -524,34 +539,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="split and test seed")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_diagnose)
+    for name in FORCED:
+        sub.choices[name].add_argument("--force", action="store_true", help="replace the "
+                                       "outputs an earlier run left there (default: refused)")
     return parser
-
-
-# The files and directories each command writes, as (option, "file" | "dir"); main checks
-# them right after parsing, before any work (rl2s_jax/app/paths.py).
-OUTPUTS = {
-    "zoo": (("--out", "dir"), ("--work", "dir"), ("--export", "file")),
-    "collect": (("--out", "file"),),
-    "import": (("--out", "file"),),
-    "export": (("--out", "dir"),),
-    "train": (("--out", "dir"),),
-    "evaluate": (("--json", "file"),),
-    "improve": (("--out", "dir"),),
-    "pipeline": (("--out", "dir"),),
-    "diagnose": (("--out", "dir"),),
-}
-
-
-def check_outputs(parser: argparse.ArgumentParser, args) -> None:
-    """Exit with one line and argparse's usage-error status 2 when an output the command
-    names cannot be written (before it loads data, compiles or collects anything)."""
-    from rl2s_jax.app.paths import output_error
-
-    for option, kind in OUTPUTS.get(args.command, ()):
-        path = getattr(args, option.lstrip("-").replace("-", "_"))
-        error = None if path is None else output_error(option, path, kind)
-        if error:
-            parser.exit(2, f"rl2s {args.command}: error: {error}\n")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -567,17 +558,27 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    started = time.time()
+    error = outputs_error(args)  # before any work: app/paths.py
+    if error:
+        parser.exit(2, f"rl2s {args.command}: error: {error}\n")
+    try:  # from here on Ctrl-C is one line, the stack's imports included
+        return _run(args)
+    except KeyboardInterrupt:
+        print(f"\nrl2s {args.command}: {stopped_message(args, started)}", file=sys.stderr)
+        return 130
+
+
+def _run(args) -> int:
     import warnings
 
     # brax warns on every env it builds that it is unmaintained; we use only its envs.
     warnings.filterwarnings("ignore", category=UserWarning, module="brax")
     warnings.filterwarnings("ignore", category=DeprecationWarning, module="brax")
-    from rl2s_jax.train.checkpoint import CheckpointWarning
-
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    check_outputs(parser, args)
     from rl2s_jax import compile_cache
+    from rl2s_jax.train.checkpoint import CheckpointWarning
 
     compile_cache.enable()
     default_show = warnings.showwarning
@@ -597,7 +598,6 @@ def _main(argv: list[str] | None) -> int:
         except (ValueError, FileNotFoundError, FloatingPointError) as err:
             print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
             return 2
-
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -98,6 +98,6 @@ def test_broken_latest_checkpoint_evaluate_and_resume_fall_back(pm_files, tmp_pa
     assert (out / "checkpoints" / "corrupt" / "4").is_dir()
     rows = [json.loads(x) for x in (out / "metrics.jsonl").read_text().splitlines()]
     assert [r["step"] for r in rows] == [1, 2, 3, 4]
-    assert main(evaluate + ["--json", str(report)]) == 0
+    assert main(evaluate + ["--json", str(report), "--force"]) == 0
     assert "warning" not in capsys.readouterr().err
     assert json.loads(report.read_text())["step"] == 4

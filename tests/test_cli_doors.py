@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from rl2s_jax import cli
-from rl2s_jax.app.paths import output_error, output_problem
+from rl2s_jax.app.paths import OUTPUTS, output_error, output_problem
 from rl2s_jax.data.dataset import Dataset, save_dataset
 
 
@@ -123,13 +123,13 @@ def test_output_problem_creates_nothing(tmp_path, a_file):
 
 
 def test_every_output_option_is_checked():
-    """Each subcommand's output options (by name) are in cli.OUTPUTS, with a real dest."""
+    """Each subcommand's output options (by name) are in paths.OUTPUTS, with a real dest."""
     parser = cli.build_parser()
     subs = next(a for a in parser._actions if a.dest == "command").choices
     for command, p in subs.items():
         names = {s for a in p._actions for s in a.option_strings}
         outputs = {"--out", "--json", "--export", "--work", "--report"} & names
-        assert outputs == {o for o, _ in cli.OUTPUTS.get(command, ())}, command
+        assert outputs == {o for o, _ in OUTPUTS.get(command, ())}, command
         dests = {a.dest for a in p._actions}
         assert {o.lstrip("-").replace("-", "_") for o in outputs} <= dests
 

@@ -12,7 +12,8 @@ PKG = pathlib.Path(__file__).resolve().parents[1] / "rl2s_jax"
 MAX_LINES, MAX_SCRIPT_LINES = 600, 400
 # Lower layers first; a module may import only from its own layer or lower ones.
 LAYERS = [
-    {"_quiet", "compile_cache", "sharding", "envs", "policy"},
+    {"_quiet", "_names", "_files", "_gym", "compile_cache", "sharding", "envs",
+     "policy"},
     {"data"},
     {"zoo", "model"},
     {"evaluate"},

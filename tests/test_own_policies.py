@@ -237,7 +237,7 @@ def test_evaluate_defaults_to_the_checkpoints_horizon_and_says_so(run, short_che
     assert max(r["sim_length"]) <= 20  # simulated so, not only reported
     assert (f"horizon 20 (the checkpoint's vd_horizon), {EVAL_EPISODES} episodes (the default "
             f"{EVAL_EPISODES})") in printed and "seed 0, true values: logged" in printed
-    assert cli.main(base + ["--horizon", "10", "--episodes", "2"]) == 0
+    assert cli.main(base + ["--horizon", "10", "--episodes", "2", "--force"]) == 0
     r = json.loads(path.read_text())
     assert (r["horizon"], r["horizon_source"], r["n_episodes"], r["episodes_source"]) == (
         10, "--horizon", 2, "--episodes")

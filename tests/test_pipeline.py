@@ -71,10 +71,14 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
     assert "| predicted gain (every member at least) |" in md
     assert imp["iterations"] == 2 and ("Fine-tuned by SAC for 2 iterations per policy in whole "
                                        "episodes from the data's start states.") in md
-    # a rerun with the same sizes reuses the data and the finished runs
+    # a rerun with the same sizes reuses the data and the finished runs; its report replaces
+    # the earlier one only with --force (refused at the door without it)
     rerun = [a if a != "2" or args[i - 1] != "--improve-iterations" else "0"
              for i, a in enumerate(args)]
-    assert main([*rerun, "--no-guard"]) == 0
+    with pytest.raises(SystemExit):
+        main([*rerun, "--no-guard"])
+    assert "--force replaces them" in capsys.readouterr().err
+    assert main([*rerun, "--no-guard", "--force"]) == 0
     assert "reusing" in capsys.readouterr().out
     assert json.loads((out / "report.json").read_text())["guard_margin"] is None
     # a training MVD measured at another horizon is no floor at the guard's: the pipeline

@@ -331,7 +331,7 @@ def test_cli_zoo_end_to_end(tmp_path, capsys):
     assert len(rows) == zoo.size and all("measured_return" in r for r in rows)
     assert sum(r["zoo"] == "train" for r in rows) == 17
     # bad settings are refused before any work, naming the field
-    assert cli.main(argv[:-len(sets)] + ["--set", "sac.nope=1"]) == 2
+    assert cli.main(argv[:-len(sets)] + ["--set", "sac.nope=1", "--force"]) == 2
     assert "nope" in capsys.readouterr().err
     assert cli.main(["zoo", "--task", "pointmass", "--plots-only", "--out", str(out)]) == 0
 

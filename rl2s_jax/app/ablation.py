@@ -14,6 +14,7 @@ import os
 
 import numpy as np
 
+from rl2s_jax._files import write_json, write_text
 from rl2s_jax.app.pipeline import collect_dataset
 from rl2s_jax.app.train import parse_overrides
 from rl2s_jax.data.dataset import load_dataset
@@ -198,13 +199,11 @@ def write_summary(out: str, task: str, paths: list[str]) -> str:
             results.append(json.load(f))
     table = summarize_rows(results)
     md = markdown(table, task)
-    with open(os.path.join(out, f"ablation_{task}.json"), "w") as f:
-        json.dump({"task": task, "rows": table, "sources": paths,
-                   "runs": [{k: r[k] for k in ("variant", "hardware", "jax_version", "command",
-                                               "timings", "complete")} for r in results]},
-                  f, indent=1)
-    with open(os.path.join(out, f"ablation_{task}.md"), "w") as f:
-        f.write(md + "\n")
+    write_json(os.path.join(out, f"ablation_{task}.json"),
+               {"task": task, "rows": table, "sources": paths,
+                "runs": [{k: r[k] for k in ("variant", "hardware", "jax_version", "command",
+                                            "timings", "complete")} for r in results]})
+    write_text(os.path.join(out, f"ablation_{task}.md"), md + "\n")
     return md
 
 

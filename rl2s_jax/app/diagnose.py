@@ -6,7 +6,6 @@ measured gain, written as report.json, report.md and plots.
 """
 from __future__ import annotations
 
-import json
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -14,6 +13,7 @@ from collections.abc import Callable, Sequence
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_json, write_text
 from rl2s_jax.data.dataset import Dataset
 from rl2s_jax.data.episodes import Episodes, from_dataset, pool_episodes, split_episodes
 from rl2s_jax.data.values import true_values
@@ -329,10 +329,9 @@ def diagnose(ds: Dataset, out_dir: str | None = None, *, ckpt: str | None = None
         if plots:
             figs += plot_gain(out_dir, gain)
         report["plots"] = [os.path.basename(f) for f in figs]
-        with open(os.path.join(out_dir, "report.json"), "w") as f:
-            json.dump(jsonable(report), f, indent=1)
-        with open(os.path.join(out_dir, "report.md"), "w") as f:
-            f.write(report_markdown(report, gaps_markdown(gaps, figs)))
+        write_json(os.path.join(out_dir, "report.json"), jsonable(report))
+        write_text(os.path.join(out_dir, "report.md"),
+                   report_markdown(report, gaps_markdown(gaps, figs)))
         log(f"[diagnose] wrote {out_dir}/report.json, report.md and {len(figs)} plots "
             f"({report['seconds']:.0f}s in all)")
     return report

@@ -42,6 +42,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_json, write_text
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.improve.finetune import (
@@ -332,10 +333,8 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                "mpi": None if measured is None else measured["mpi"],
                "api": None if measured is None else measured["api"], "zoo": out,
                "guard": guard}
-    with open(os.path.join(out, "summary.json"), "w") as f:
-        json.dump(summary, f, indent=1)
-    with open(os.path.join(out, "summary.md"), "w") as f:
-        f.write(summary_markdown(summary) + "\n")
+    write_json(os.path.join(out, "summary.json"), summary)
+    write_text(os.path.join(out, "summary.md"), summary_markdown(summary) + "\n")
     summary["plots"] = plot_policies(out, summary) if measured is not None else []
     return summary
 

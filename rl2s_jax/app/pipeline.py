@@ -11,6 +11,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.evaluate import evaluate_checkpoint
 from rl2s_jax.app.improve import (
     GUARD_MARGIN,
@@ -280,8 +281,7 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
         summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,
                                       "policies": ds.n_policies}
     summary["data_key"] = data_key
-    with open(state_path, "w") as f:
-        json.dump(summary, f, indent=1)
+    write_json(state_path, summary)
     evals, curves, runs = {}, {}, {}
     setting = EvalSetting.from_flags(getattr(args, "eval_episodes", None),
                                      getattr(args, "eval_horizon", None),

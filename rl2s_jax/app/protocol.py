@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.pipeline import collect_dataset
 from rl2s_jax.app.protocol_fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.data.dataset import load_dataset, save_dataset
@@ -150,8 +151,7 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
                                "zoo_ids": [int(i) for i in ids]}
         save_dataset(path, part)
         out[split] = part
-    with open(key_path, "w") as f:
-        json.dump(data_key, f)
+    write_json(key_path, data_key, indent=None)
     return out, False
 
 
@@ -478,10 +478,7 @@ def write_result(path: str, result: dict) -> None:
     summarise(result)
     if not is_writer():
         return
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(result, f, indent=1)
-    os.replace(tmp, path)
+    write_json(path, result)
 
 
 def table(result: dict) -> str:

@@ -8,6 +8,8 @@ import jax
 import jaxlib
 import numpy as np
 
+from rl2s_jax._files import write_json, write_text
+
 TABLE_KEYS = ("avd", "mvd", "kendall_tau", "spearman", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10",
               "regret@1", "mpi", "api")
 
@@ -227,8 +229,7 @@ def write_report(out: str, summary: dict, evals: dict[str, dict],
     plots = plot_all(out, evals, curves)
     report = {**summary, "methods": methods, "curves": curves, "evaluations": evals,
               "plots": plots}
-    with open(os.path.join(out, "report.json"), "w") as f:
-        json.dump(report, f, indent=1)
+    write_json(os.path.join(out, "report.json"), report)
     first = next(iter(evals.values()), None)
     mach = summary.get("machine") or {}
     where = (f" ({mach.get('device')}, CPU {mach.get('cpu')} with {mach.get('cpu_isa')}, jax "
@@ -250,6 +251,5 @@ def write_report(out: str, summary: dict, evals: dict[str, dict],
     for k, v in summary.get("notes", {}).items():
         lines.append(f"- **{k}**: {v}")
     lines += [""] + [f"![{p}]({p})" for p in plots]
-    with open(os.path.join(out, "report.md"), "w") as f:
-        f.write("\n".join(lines) + "\n")
+    write_text(os.path.join(out, "report.md"), "\n".join(lines) + "\n")
     return table(methods)

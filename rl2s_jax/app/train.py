@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import sys
 import time
 
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_json, write_text
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS, data_task
@@ -197,9 +199,43 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                      for n, t, s, v in zip(names, np.asarray(data.true_value),
                                            np.asarray(state.sim_value), vd, strict=True)},
         "config": state.config.to_dict()}
-    with open(os.path.join(out, "summary.json"), "w") as f:
-        json.dump(summary, f, indent=1)
+    if start > 0:  # resumed: what the earlier summary held stays
+        keep_earlier(summary, os.path.join(out, "summary.json"), start)
+    write_json(os.path.join(out, "summary.json"), summary)
     return summary
+
+
+def keep_earlier(summary: dict, path: str, resumed_from: int) -> None:
+    """Keep in ``summary`` (of a run resumed from step ``resumed_from``) what the run's
+    earlier summary at ``path`` held up to that step and this one would drop: the last test
+    evaluation (``--eval-data``'s keys, when this invocation made none) and the worst-VD
+    warnings (earlier ones first). Their keys go in ``kept_from_earlier``. A rerun without
+    the earlier flags must not erase results, and resuming stays a feature, so nothing is
+    refused."""
+    try:
+        with open(path) as f:
+            earlier = json.load(f)
+    except (OSError, ValueError):
+        return
+    if not isinstance(earlier, dict):
+        return
+    if earlier.get("step_test", 0) > resumed_from:  # of steps set aside since: not kept
+        earlier = {"worst_vd_jumps": earlier.get("worst_vd_jumps")}
+    kept = [k for k in earlier if k not in summary and k != "kept_from_earlier"]
+    summary.update({k: earlier[k] for k in kept})
+    jumps = [j for j in earlier.get("worst_vd_jumps") or []
+             if j not in summary["worst_vd_jumps"] and _jump_step(j) <= resumed_from]
+    if jumps:
+        summary["worst_vd_jumps"] = jumps + summary["worst_vd_jumps"]
+        kept.append("worst_vd_jumps")
+    if kept:
+        summary["kept_from_earlier"] = kept
+
+
+def _jump_step(text: str) -> int:
+    """The step a worst-VD warning names ("... at step N ..."); 0 if it names none."""
+    match = re.search(r"at step (\d+)", text)
+    return int(match.group(1)) if match else 0
 
 
 def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
@@ -276,8 +312,7 @@ def _truncate_metrics(path: str, step: int) -> None:
         return
     with open(path) as f:
         rows = [line for line in f if line.strip() and json.loads(line)["step"] <= step]
-    with open(path, "w") as f:
-        f.writelines(rows)
+    write_text(path, "".join(rows))
 
 
 def format_summary(s: dict) -> str:

@@ -21,6 +21,8 @@ from typing import Any
 import numpy as np
 from flax import struct
 
+from rl2s_jax._files import atomic_open
+
 __all__ = [
     "FORMAT_VERSION",
     "TRANSITION_FIELDS",
@@ -225,14 +227,8 @@ def save_dataset(path: str | os.PathLike, ds: Dataset, *,
     arrays = ds.arrays()
     arrays["meta"] = np.array(json.dumps(ds.meta))
     arrays["format_version"] = np.array(FORMAT_VERSION, dtype=np.int64)
-    tmp = f"{path}.tmp-{os.getpid()}"
-    try:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with atomic_open(path, "wb") as f:
+        np.savez_compressed(f, **arrays)
     return path
 
 

@@ -26,7 +26,8 @@ is absent otherwise (a dynamics function, or one elite, whose disagreement is 0 
 renderer on the task's MjModel (the MJX tasks; qpos from the observation, the "track"
 camera). Headless machines need ``MUJOCO_GL=egl`` (or ``osmesa``) set before Python starts.
 
-Importing this module registers with Gymnasium (once; importing again does not re-register):
+Importing this module registers with Gymnasium (once; importing again does not re-register;
+``import rl2s_jax`` registers the first id already, rl2s_jax/_gym.py):
 ``"rl2s/Simulator-v0"`` (``gymnasium.make(id, ckpt=..., data=..., **kwargs)`` is
 :meth:`SimulatorGymEnv.from_checkpoint`; ``gymnasium.make_vec(id, num_envs, ckpt=...,
 data=...)`` the vector env) and ``"rl2s/<task>-v0"`` for every registered task: the task's

@@ -30,6 +30,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax._files import atomic_open
+
 Params = dict[str, Any]
 MIN_SCALE = 1e-3
 DEFAULT_HIDDEN = (64, 64)
@@ -264,14 +266,8 @@ def save_policies(path: str | os.PathLike, params: Params, names: Sequence[str])
     meta = {"format_version": POLICY_FILE_FORMAT, "policy_names": names}
     path = os.fspath(path)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
-    tmp = f"{path}.tmp{os.getpid()}"
-    try:
-        with open(tmp, "wb") as f:  # a file object: savez adds no .npz suffix
-            np.savez_compressed(f, meta=np.array(json.dumps(meta)), **flat)
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
+    with atomic_open(path, "wb") as f:  # a file object: savez adds no .npz suffix
+        np.savez_compressed(f, meta=np.array(json.dumps(meta)), **flat)
 
 
 def load_policies(path: str | os.PathLike) -> tuple[Params, list[str]]:

@@ -21,6 +21,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax._files import atomic_open, write_text
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.policy.ppo import PPOConfig
@@ -482,7 +483,8 @@ def _measure(env, params, origins, task, seed, value_episodes, work_dir, log):
                             n_episodes=value_episodes, episode_length=task.episode_length,
                             gamma=0.999)
     seconds = round(time.time() - t0, 1)
-    np.savez(path, fingerprint=finger, seconds=seconds, **values)
+    with atomic_open(path, "wb") as f:  # a file object: savez adds no .npz suffix
+        np.savez(f, fingerprint=finger, seconds=seconds, **values)
     log(f"[zoo] measured {len(origins)} snapshots x {value_episodes} episodes in {seconds:.0f}s;"
         f" returns {values['value'].min():.1f} .. {values['value'].max():.1f}")
     return values, seconds
@@ -507,9 +509,8 @@ def write_zoo_outputs(zoo: Zoo, rows: list[dict], directory: str) -> list[str]:
     """zoo.npz + zoo.json (policies.save_zoo), train_log.jsonl and the two plots."""
 
     save_zoo(zoo, directory)
-    with open(os.path.join(directory, "train_log.jsonl"), "w") as f:
-        for row in rows:
-            f.write(json.dumps(row) + "\n")
+    write_text(os.path.join(directory, "train_log.jsonl"),
+               "".join(json.dumps(row) + "\n" for row in rows))
     return ["zoo.npz", "zoo.json", "train_log.jsonl"] + write_zoo_plots(directory)
 
 

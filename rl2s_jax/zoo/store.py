@@ -25,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax._files import atomic_open
+
 FORMAT = 1
 EXPORT_MAX_BYTES = 15 * 2**20
 
@@ -172,13 +174,13 @@ def write_export(path: str, runs: dict[str, dict], max_bytes: int = EXPORT_MAX_B
         os.remove(old)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     if len(data) <= max_bytes:
-        with open(path, "wb") as f:
+        with atomic_open(path, "wb") as f:
             f.write(data)
         return [path]
     files = []
     for i in range(math.ceil(len(data) / max_bytes)):
         files.append(f"{path}.part{i:02d}")
-        with open(files[-1], "wb") as f:
+        with atomic_open(files[-1], "wb") as f:
             f.write(data[i * max_bytes:(i + 1) * max_bytes])
     log(f"[zoo] export: {len(data) / 2**20:.1f} MiB split into {len(files)} files {path}.partNN")
     return files

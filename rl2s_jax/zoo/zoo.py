@@ -13,6 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from rl2s_jax._files import atomic_open, write_json
 from rl2s_jax.policy.policy import (
     Params,
     flatten_params,
@@ -91,14 +92,14 @@ def save_zoo(zoo: Zoo, directory: str) -> None:
     if set(zoo.train_ids) & set(zoo.test_ids):
         raise ValueError("train_ids and test_ids must be disjoint")
     os.makedirs(directory, exist_ok=True)
-    np.savez_compressed(os.path.join(directory, "zoo.npz"), **flatten_params(zoo.params))
+    with atomic_open(os.path.join(directory, "zoo.npz"), "wb") as f:
+        np.savez_compressed(f, **flatten_params(zoo.params))
     meta = {"task": zoo.task, "size": zoo.size,
             "returns": [float(r) for r in zoo.returns],
             "return_se": [float(r) for r in zoo.return_se],
             "origins": zoo.origins, "train_ids": [int(i) for i in zoo.train_ids],
             "test_ids": [int(i) for i in zoo.test_ids], "info": zoo.info}
-    with open(os.path.join(directory, "zoo.json"), "w") as f:
-        json.dump(meta, f, indent=1)
+    write_json(os.path.join(directory, "zoo.json"), meta)
 
 
 def load_zoo(task_or_dir: str) -> Zoo:

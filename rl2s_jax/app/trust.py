@@ -97,7 +97,7 @@ def calibration_data(zoo_dir: str, out: str, *, n: int, seed: int = 0, noise: fl
     task = get_task(zoo.task)
     params, origins = tr.perturbed_policies(index_params(zoo.params, np.asarray(ids)),
                                             jax.random.PRNGKey(seed), n, noise=noise)
-    names = [f"{zoo.task}-perturbed-{i:03d}" for i in range(n)]
+    names = [f"{zoo.task}-{split}-perturbed-{i:03d}" for i in range(n)]
     pol_path = os.path.splitext(out)[0] + ".policies.npz"
     save_policies(pol_path, params, names)
     ds = collect(task.make_env(), params, key=jax.random.PRNGKey(seed + 1),

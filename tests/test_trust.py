@@ -191,3 +191,29 @@ def test_calibration_data_of_perturbed_policies(pm_files, tmp_path):
     assert ds.n_policies == 4 and np.all(np.isfinite(ds.value_discounted))
     assert num_policies(policies_for(ds, data_path=path)) == 4
     assert ds.meta["source"]["perturbed_from"]["zoo_ids"] == [0, 1, 2]
+
+
+def test_level_flag_refused_at_parsing(capsys):
+    from rl2s_jax.cli import build_parser
+
+    p = build_parser()
+    assert p.parse_args(["evaluate", "--data", "d.npz", "--oracle"]).level == 0.9
+    assert p.parse_args(["evaluate", "--data", "d.npz", "--level", "0"]).level == 0.0
+    for bad in ("1", "-0.1", "ninety"):
+        with pytest.raises(SystemExit):
+            p.parse_args(["evaluate", "--data", "d.npz", "--level", bad])
+        assert "level: expected a coverage level in [0, 1)" in capsys.readouterr().err
+
+
+def test_pipeline_report_lines():
+    from rl2s_jax.app.report import trust_lines
+
+    f = _features([0.0, 5.0, 9.0], [0.5, 0.5, 10.0], [1.0, 1.0, 1.0])
+    cal = tr.calibrate(_features(np.arange(9.0), np.full(9, 0.5)), np.arange(9.0) + 0.2,
+                       ["train"] * 9, 0.9)
+    t = tr.trust_report(f, cal, ["a", "b", "c"], truth=[0.1, 5.1, 1.0])
+    assert t["worst"] == {"name": "c", "flagged": True}  # |9 - 1| is the largest error
+    (line, blank) = trust_lines({"bc": {"trust": t}, "gail": {"trust": {"skipped": "x"}}})
+    assert line.startswith("- bc: 90% value intervals cover 67% of the test policies")
+    assert "1 untrusted" in line and "c flagged" in line and "training (optimistic)" in line
+    assert blank == "" and trust_lines({"bc": {}}) == []

@@ -217,3 +217,35 @@ def test_pipeline_report_lines():
     assert line.startswith("- bc: 90% value intervals cover 67% of the test policies")
     assert "1 untrusted" in line and "c flagged" in line and "training (optimistic)" in line
     assert blank == "" and trust_lines({"bc": {}}) == []
+
+
+@pytest.mark.slow
+def test_default_calibration_is_the_training_data(pm_files, tmp_path):
+    """Without --calibration: the checkpoint's training data (3 policies: too few for a finite
+    q at 0.9, so every interval is infinite and untrusted, and the report says optimistic);
+    evaluating that training data itself skips the intervals with the reason."""
+    import os
+
+    from rl2s_jax.app.evaluate import evaluate_checkpoint
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.train.checkpoint import Checkpointer
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.step import init
+    from rl2s_jax.zoo.zoo import policies_for
+
+    ds = load_dataset(pm_files["train"])
+    cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=20)
+    ck = Checkpointer(tmp_path / "checkpoints")
+    ck.save(init(jax.random.PRNGKey(0), cfg, make_train_data(ds, policies_for(ds), cfg)),
+            {"data": {"obs_size": ds.obs_size, "action_size": ds.action_size,
+                      "path": os.path.abspath(pm_files["train"])}})
+    ck.close()
+    ckpt = str(tmp_path / "checkpoints")
+    r = evaluate_checkpoint(ckpt, pm_files["test"], level=0.9, n_episodes=4)
+    c = r["trust"]["calibration"]
+    assert (c["n"], c["n_train"], c["used"], c["optimistic"]) == (3, 3, "all", True)
+    assert c["q"] == math.inf and r["trusted"] == [False] * 3
+    assert all(p["why"].startswith("wide") for p in r["trust"]["policies"])
+    own = evaluate_checkpoint(ckpt, pm_files["train"], level=0.9, n_episodes=4)
+    assert "training data" in own["trust"]["skipped"] and "interval" not in own

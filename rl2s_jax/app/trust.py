@@ -52,6 +52,10 @@ def trust_for(ckpts: list[str], data_path: str, report: dict, *, level: float,
                           "not on this machine; pass --calibration DATA (policies with known "
                           "true values, not the evaluated ones)"}}
     if os.path.realpath(data_path) in {os.path.realpath(p) for p in paths}:
+        if not calibration:  # the training policies evaluated: nothing else to calibrate on
+            return {"trust": {"skipped": "the evaluated data is the checkpoint's training data "
+                              "(calibration never uses the evaluated policies); pass "
+                              "--calibration DATA"}}
         raise ValueError(f"calibration: {data_path} is the evaluated data itself; calibrate "
                          f"on other policies (training / validation / perturbed)")
     kw = dict(key=jax.random.PRNGKey(report["seed"]), n_episodes=report["n_episodes"],
@@ -68,7 +72,14 @@ def trust_for(ckpts: list[str], data_path: str, report: dict, *, level: float,
     cal_feats, cal_truth, kinds = [], [], []
     for p in paths:
         ds = load_dataset(p)
-        cal_feats.append(features(ds, policies_for(ds, data_path=p)))
+        try:
+            policies = policies_for(ds, data_path=p)
+        except (ValueError, FileNotFoundError) as err:
+            if calibration:  # asked for: an error; the default training data: a note
+                raise ValueError(f"calibration: {p}: {err}") from None
+            return {"trust": {"skipped": f"the training data {p} does not name its policies "
+                              f"({err}); pass --calibration DATA"}}
+        cal_feats.append(features(ds, policies))
         cal_truth.append(true_values(ds, kw["horizon"], kw["gamma"], truth=truth_kind))
         kinds += ["train" if os.path.realpath(p) in train else "heldout"] * ds.n_policies
     cal = tr.calibrate({k: np.concatenate([f[k] for f in cal_feats]) for k in cal_feats[0]},

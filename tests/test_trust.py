@@ -236,12 +236,13 @@ def test_default_calibration_is_the_training_data(pm_files, tmp_path):
 
     ds = load_dataset(pm_files["train"])
     cfg = TrainConfig.small(task="pointmass", method="bc", vd_horizon=20)
-    ck = Checkpointer(tmp_path / "checkpoints")
-    ck.save(init(jax.random.PRNGKey(0), cfg, make_train_data(ds, policies_for(ds), cfg)),
-            {"data": {"obs_size": ds.obs_size, "action_size": ds.action_size,
-                      "path": os.path.abspath(pm_files["train"])}})
-    ck.close()
-    ckpt = str(tmp_path / "checkpoints")
+    for seed in (0, 1):
+        ck = Checkpointer(tmp_path / f"s{seed}" / "checkpoints")
+        ck.save(init(jax.random.PRNGKey(seed), cfg, make_train_data(ds, policies_for(ds), cfg)),
+                {"data": {"obs_size": ds.obs_size, "action_size": ds.action_size,
+                          "path": os.path.abspath(pm_files["train"])}})
+        ck.close()
+    ckpt, ckpt1 = (str(tmp_path / f"s{seed}" / "checkpoints") for seed in (0, 1))
     r = evaluate_checkpoint(ckpt, pm_files["test"], level=0.9, n_episodes=4)
     c = r["trust"]["calibration"]
     assert (c["n"], c["n_train"], c["used"], c["optimistic"]) == (3, 3, "all", True)
@@ -249,3 +250,13 @@ def test_default_calibration_is_the_training_data(pm_files, tmp_path):
     assert all(p["why"].startswith("wide") for p in r["trust"]["policies"])
     own = evaluate_checkpoint(ckpt, pm_files["train"], level=0.9, n_episodes=4)
     assert "training data" in own["trust"]["skipped"] and "interval" not in own
+    # two seeds: one interval per policy around their mean, with the seeds' spread in sigma
+    from rl2s_jax.app.evaluate import evaluate_checkpoints, format_agreement
+
+    two = evaluate_checkpoints([ckpt, ckpt1], pm_files["test"], level=0.5, n_episodes=4,
+                               calibration=[pm_files["train"]])
+    sims = np.array([c["sim_value"] for c in two["checkpoints"]])
+    for p, v, sd in zip(two["trust"]["policies"], sims.mean(0), sims.std(0, ddof=1),
+                        strict=True):
+        assert p["sim_value"] == pytest.approx(v, rel=1e-5) and p["seed_sd"] == pytest.approx(sd)
+    assert "50% interval" in format_agreement(two)

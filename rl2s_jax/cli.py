@@ -182,7 +182,8 @@ def cmd_evaluate(args) -> int:
     if (args.ckpt is None) == (not args.oracle):
         raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
     kw = dict(zoo=args.zoo, policy_file=args.policy_file, seed=args.seed, truth=args.truth,
-              n_episodes=args.episodes, horizon=args.horizon, n_boot=args.bootstrap)
+              n_episodes=args.episodes, horizon=args.horizon, n_boot=args.bootstrap,
+              level=args.level, calibration=args.calibration)
     if args.ckpt and len(args.ckpt) > 1:  # several simulators: where they disagree
         report = ev.evaluate_checkpoints(args.ckpt, args.data, step=args.step, **kw)
         print(ev.format_agreement(report))
@@ -328,7 +329,7 @@ def _sim_env_options(p, default: str = "whole episodes from its start states") -
 def build_parser() -> argparse.ArgumentParser:
     from rl2s_jax._names import IMPROVE_RECIPE_NAMES as IMPROVE_RECIPES
     from rl2s_jax._names import task_names
-    from rl2s_jax.evaluate.setting import setting_flags
+    from rl2s_jax.evaluate.setting import setting_flags, trust_flags
 
     parser = argparse.ArgumentParser(prog="rl2s", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -464,6 +465,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--step", type=int, help="checkpoint step (default: the newest intact one; "
                    "broken newer steps are skipped with a warning)")
     p.add_argument("--json", help="write the report here")
+    trust_flags(p)
     p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("improve", help="fine-tune a Dataset's policies with SAC inside a "

@@ -140,7 +140,9 @@ def test_two_or_more_checkpoints_json_and_table(seeds):
 
 
 def test_one_ckpt_gives_the_old_report(seeds):
-    assert set(seeds["single"]) == SINGLE_KEYS
+    # and "trust" (value intervals, issue 64): skipped, these checkpoints name no training data
+    assert set(seeds["single"]) == SINGLE_KEYS | {"trust"}
+    assert "no calibration data" in seeds["single"]["trust"]["skipped"]
     assert seeds["single"]["checkpoint"] == seeds["ckpts"][1]
 
 

@@ -45,6 +45,11 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
     assert [r["step"] for r in report["curves"]["rl2s"]] == [1, 2]
     n_test = len(small.test_ids)
     assert len(report["evaluations"]["bc"]["vd"]) == n_test == 6  # the --zoo's test split
+    # each test policy's 90% value interval, calibrated on the 17 training policies (issue 64)
+    trust = report["evaluations"]["bc"]["trust"]
+    assert len(report["evaluations"]["bc"]["interval"]) == n_test and "coverage" in trust
+    assert trust["calibration"]["n_train"] == 17 and trust["calibration"]["optimistic"]
+    assert "bc: 90% value intervals cover" in (out / "report.md").read_text()
     imp = report["evaluations"]["rl2s"]["improvement"]
     assert len(imp["I"]) == n_test and imp["mpi"] == min(imp["I"])
     np.testing.assert_allclose(imp["I"], (np.asarray(imp["c1"]) - imp["c0"])

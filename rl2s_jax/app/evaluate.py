@@ -12,11 +12,13 @@ import os
 import jax
 import numpy as np
 
+from rl2s_jax.app.trust import trust_for
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.metrics import spearman
 from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
 from rl2s_jax.evaluate.simulator import evaluate_oracle, evaluate_simulator, one_step_errors
+from rl2s_jax.evaluate.trust import format_trust
 from rl2s_jax.train.checkpoint import Checkpointer, load_checkpoint
 from rl2s_jax.zoo.zoo import policies_for
 
@@ -52,13 +54,17 @@ def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None,
                         policy_file: str | None = None, seed: int | None = None,
                         n_episodes: int | None = None, horizon: int | None = None,
                         step: int | None = None, n_boot: int = 0,
-                        setting: EvalSetting | None = None, truth: str | None = None) -> dict:
+                        setting: EvalSetting | None = None, truth: str | None = None,
+                        level: float | None = None, calibration: list[str] | None = None
+                        ) -> dict:
     """Load a checkpoint's simulator and a Dataset (policies from ``zoo``, ``policy_file`` or
     the data's meta.source: ``zoo.policies_for``) and evaluate; no training data needed.
     ``setting`` (or the flags ``n_episodes``, ``horizon``, ``seed``, ``truth``; None: the
     defaults, ``EvalSetting``), its horizon by default the checkpoint's
     (``checkpoint_setting``); the report stores the setting used ("setting") and where the
-    horizon and episodes came from (``horizon_source``, ``episodes_source``)."""
+    horizon and episodes came from (``horizon_source``, ``episodes_source``). ``level``: each
+    policy's value interval at that level ("trust", "interval", "trusted": app/trust.py
+    ``trust_for``, calibrated on ``calibration`` files or the checkpoint's training data)."""
 
     setting = _setting(setting, n_episodes, horizon, seed, truth)
     ds = load_dataset(data_path)
@@ -75,6 +81,9 @@ def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None,
     report.update(checkpoint=ckpt, step=meta["step"], method=meta["config"]["method"],
                   data=data_path, seed=setting.seed, backend=jax.default_backend(),
                   **_sources(setting, n_episodes))
+    if level:
+        report.update(trust_for([ckpt], data_path, report, level=level, step=step, zoo=zoo,
+                                calibration=calibration, policy_file=policy_file))
     return report
 
 
@@ -82,9 +91,11 @@ def evaluate_oracle_data(data_path: str, *, zoo: str | None = None,
                          policy_file: str | None = None, seed: int | None = None,
                          n_episodes: int | None = None, horizon: int | None = None,
                          n_boot: int = 0, setting: EvalSetting | None = None,
-                         truth: str | None = None) -> dict:
+                         truth: str | None = None, level: float | None = None,
+                         calibration: list[str] | None = None) -> dict:
     """``evaluate_checkpoint`` with the task's real dynamics (``evaluate_oracle``): the control,
-    in the same ``EvalSetting``; with no checkpoint its default horizon is the one training on
+    in the same ``EvalSetting`` (no value intervals: ``level`` / ``calibration`` unused);
+    with no checkpoint its default horizon is the one training on
     this backend measures VD with (``EvalSetting.resolve``), so that the oracle and a
     simulator trained here score the same horizon."""
     setting = _setting(setting, n_episodes, horizon, seed, truth)
@@ -143,11 +154,34 @@ def format_report(r: dict) -> str:
                                 if k in iv["metrics"])
                     + f"; evaluation noise alone moves tau by "
                       f"{iv['sim_only']['kendall_tau']['std']:.3f} (std)")
-    rows = [f"{'policy':<14}{'true value':>12}{'sim value':>12}{'VD':>10}{'sim len':>9}"]
-    for name, t, s, v, n in zip(r["policy_names"], r["true_value"], r["sim_value"], r["vd"],
-                                r["sim_length"], strict=True):
-        rows.append(f"{str(name):<14}{t:>12.2f}{s:>12.2f}{v:>10.2f}{n:>9.1f}")
-    return "\n".join(head + rows)
+    rows = [f"{'policy':<14}{'true value':>12}{'sim value':>12}{'VD':>10}{'sim len':>9}"
+            + _interval_head(r)]
+    for i, (name, t, s, v, n) in enumerate(zip(r["policy_names"], r["true_value"],
+                                               r["sim_value"], r["vd"], r["sim_length"],
+                                               strict=True)):
+        rows.append(f"{str(name):<14}{t:>12.2f}{s:>12.2f}{v:>10.2f}{n:>9.1f}"
+                    + _interval_cell(r, i))
+    return "\n".join(head + rows + _trust_lines(r))
+
+
+def _interval_head(r: dict) -> str:
+    return (f"  {r['trust']['level']:.0%} interval{'':>12}trusted" if "interval" in r
+            else "")
+
+
+def _interval_cell(r: dict, i: int) -> str:
+    """Policy i's value interval and flag (empty without intervals)."""
+    if "interval" not in r:
+        return ""
+    lo, hi = r["interval"][i]
+    return f"  [{_num(lo):>9}, {_num(hi):>9}]  {'yes' if r['trusted'][i] else 'NO'}"
+
+
+def _trust_lines(r: dict) -> list[str]:
+    t = r.get("trust")
+    if t is None:
+        return []
+    return [f"value intervals skipped: {t['skipped']}"] if "skipped" in t else [format_trust(t)]
 
 
 # ------------------------------------------------------------ several simulators of one data set
@@ -256,18 +290,25 @@ def evaluate_checkpoints(ckpts: list[str], data_path: str, *, top_k: int = 3,
     """``evaluate_checkpoint`` of each of several checkpoints of one task (same data,
     policies, seed and settings; ``kw`` as there, without ``step``) and their
     ``simulator_agreement``. Refused before any evaluation by ``check_checkpoints``.
-    -> {"checkpoints": [each single report], "agreement": {...}}."""
+    -> {"checkpoints": [each single report], "agreement": {...}} and with ``level`` the
+    intervals of all the checkpoints together ("trust", "interval", "trusted": ``trust_for``,
+    the seeds' spread in them)."""
     if kw.get("step") is not None:
         raise ValueError("step: --step with several checkpoints is ambiguous (their steps "
                          "differ); leave it out to use each one's newest intact step")
     kw.pop("step", None)
+    level, calibration = kw.pop("level", None), kw.pop("calibration", None)
     check_checkpoints(ckpts, data_path, kw.get("n_episodes"), kw.get("horizon"))
     reports = [evaluate_checkpoint(c, data_path, **kw) for c in ckpts]
     truth = np.asarray(reports[0]["true_value"], np.float64)
     agreement = simulator_agreement([r["sim_value"] for r in reports],
                                     truth if np.all(np.isfinite(truth)) else None,
                                     reports[0]["policy_names"], top_k=min(top_k, len(truth)))
-    return {"checkpoints": reports, "agreement": agreement}
+    out = {"checkpoints": reports, "agreement": agreement}
+    if level:  # one interval per policy from all the seeds together
+        out.update(trust_for(ckpts, data_path, reports[0], level=level, calibration=calibration,
+                             zoo=kw.get("zoo"), policy_file=kw.get("policy_file")))
+    return out
 
 
 SUMMARY_METRICS = ("kendall_tau", "spearman", "ndcg@1", "regret@1", "avd", "mvd")
@@ -294,17 +335,19 @@ def format_agreement(result: dict) -> str:
                      f"{_metrics_line(m)}{nll}")
     known = a["worst"] is not None
     head = f"{'policy':<16}{'sim mean':>11}{'spread':>10}{'min .. max':>22}"
-    lines.append(head + (f"{'true':>11}{'mean |err|':>12}" if known else ""))
+    lines.append(head + (f"{'true':>11}{'mean |err|':>12}" if known else "")
+                 + _interval_head(result))
+    names = [p["name"] for p in a["policies"]]
     for p in sorted(a["policies"], key=lambda p: p["spread_rank"]):
         row = (f"{p['name'][:15]:<16}{_num(p['mean']):>11}{_num(p['spread']):>10}"
                f"{_num(p['min']):>10} .. {_num(p['max']):<8}")
         if known:
             row += f"{_num(p['true_value']):>11}{_num(p['mean_abs_error']):>12}"
-        lines.append(row)
+        lines.append(row + _interval_cell(result, names.index(p["name"])))
     lines += [f"most disputed: {', '.join(a['most_disputed'])}", AGREEMENT_NOTE]
     if known:
         rho = a["spearman_spread_error"]
         lines.append(f"largest |error| of any simulator: {a['worst']} (spread rank "
                      f"{a['worst_rank']} of {len(a['policies'])}); Spearman of spread and "
                      f"mean |error|: {'n/a' if rho is None else f'{rho:.2f}'}")
-    return "\n".join(lines)
+    return "\n".join(lines + _trust_lines(result))

@@ -29,6 +29,7 @@ from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.setting import EvalSetting
 from rl2s_jax.evaluate.simulator import evaluate_simulator
+from rl2s_jax.evaluate.trust import DEFAULT_LEVEL
 from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
 from rl2s_jax.improve.recipes import recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
@@ -224,12 +225,15 @@ def pipeline_sizes(args, profile: str) -> dict:
     return sizes
 
 
-def evaluate_run(run_dir: str, test_path: str, setting: EvalSetting) -> dict:
+def evaluate_run(run_dir: str, test_path: str, setting: EvalSetting,
+                 level: float | None = DEFAULT_LEVEL) -> dict:
     """The pipeline's evaluation of one method's run: its final checkpoint on the test data
     in ``setting`` (``app.evaluate.evaluate_checkpoint``: the numbers of the run's own
-    summary.json and of `rl2s evaluate` in the same setting)."""
+    summary.json and of `rl2s evaluate` in the same setting), with each test policy's value
+    interval at ``level`` calibrated on the training policies ("trust": optimistic, the
+    simulator was fitted on their data; None: none)."""
     return evaluate_checkpoint(os.path.join(run_dir, "checkpoints"), test_path,
-                               setting=setting)
+                               setting=setting, level=level)
 
 
 def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
@@ -295,7 +299,8 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             profile=profile, seed=args.seed, save_every=sizes["eval_every"],
             eval_data=summary["datasets"]["test"]["path"], eval_every=sizes["eval_every"],
             setting=setting, progress=not args.quiet)
-        evals[method] = evaluate_run(run_dir, summary["datasets"]["test"]["path"], setting)
+        evals[method] = evaluate_run(run_dir, summary["datasets"]["test"]["path"], setting,
+                                     getattr(args, "level", DEFAULT_LEVEL))
         curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
     summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
                                                    "mvd_train")} for m, r in runs.items()}

@@ -222,6 +222,24 @@ def plot_improvement(out: str, imps: dict[str, dict], names: list[str], order) -
     return "improvement.png"
 
 
+def trust_lines(evals: dict[str, dict]) -> list[str]:
+    """report.md's lines on each method's value intervals (evaluate/trust.py), if any."""
+    lines = []
+    for name, r in evals.items():
+        t = r.get("trust") or {}
+        if "coverage" in t:
+            c, wor = t["calibration"], t["width_over_range"]
+            lines.append(f"- {name}: {t['level']:.0%} value intervals cover "
+                         f"{t['coverage']:.0%} of the test policies, width/range "
+                         f"{'n/a' if wor is None else f'{wor:.3f}'}, "
+                         f"{sum(not p['trusted'] for p in t['policies'])} untrusted; largest "
+                         f"error {t['worst']['name']} "
+                         f"{'flagged' if t['worst']['flagged'] else 'not flagged'} (calibrated "
+                         f"on {c['n']} {'training (optimistic)' if c['optimistic'] else 'held-out'}"
+                         f" policies)")
+    return lines + [""] if lines else []
+
+
 def write_report(out: str, summary: dict, evals: dict[str, dict],
                  curves: dict[str, list[dict]]) -> str:
     """report.json + report.md + plots in ``out``. -> the terminal table."""
@@ -245,6 +263,7 @@ def write_report(out: str, summary: dict, evals: dict[str, dict],
                   f"from the test data ({first.get('true_value_source', '?')}, --truth "
                   f"{st.get('truth', 'auto')}).", "",
                   markdown_table(methods), ""]
+    lines += trust_lines(evals)
     imp = improvement_text(evals)
     if imp:
         lines += [imp.lstrip("\n"), ""]

@@ -125,4 +125,25 @@ def setting_flags(p: argparse.ArgumentParser, prefix: str = "") -> None:
                    "over the horizon) or auto (default: measured where they apply)")
 
 
-__all__ = ["EVAL_EPISODES", "EvalSetting", "profile_horizon", "setting_flags"]
+def _level(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = None
+    if value is None or not 0 <= value < 1:
+        raise argparse.ArgumentTypeError(f"level: expected a coverage level in [0, 1) such "
+                                         f"as 0.9 (0: no intervals), got {text!r}")
+    return value
+
+
+def trust_flags(p: argparse.ArgumentParser) -> None:
+    """`rl2s evaluate`'s value-interval flags: --level (0: none) and --calibration DATA."""
+    p.add_argument("--level", type=_level, default=0.9, help="each policy's value interval at "
+                   "this coverage level, split conformal over calibration policies (default "
+                   "0.9; 0: no intervals; evaluate/trust.py)")
+    p.add_argument("--calibration", action="append", metavar="DATA", help="a Dataset of "
+                   "policies with known true values to calibrate the intervals on, never the "
+                   "evaluated ones; repeatable (default: the checkpoint's training data)")
+
+
+__all__ = ["EVAL_EPISODES", "EvalSetting", "profile_horizon", "setting_flags", "trust_flags"]

@@ -209,9 +209,31 @@ def cmd_improve(args) -> int:
     return 0
 
 
+def cmd_diagnose_physics(args) -> int:
+    """Diagnose the physics model of a Dataset: the wrong physical quantity, with its value."""
+    from rl2s_jax.app.physics import PhysicsSpec, diagnose_physics
+
+    report = diagnose_physics(PhysicsSpec(
+        data=args.data, out=args.out, sim_xml=args.sim_xml, sim_frames=args.sim_frames,
+        max_params=args.max_params, alpha=args.alpha, k=args.k_max, seed=args.seed,
+        quiet=args.quiet))
+    ph = report["physics"]
+    top = ph["top_cause"]
+    print("top cause: " + (f"{top['name']}[{top['element']}] {top['nominal']:.4g} -> "
+                           f"{top['value']:.4g} (95% {top['interval']})" if top else "none"))
+    print(f"unexplained: {100 * ph['unexplained']:.1f}% of the held-out one-step error")
+    print(f"calibrated simulator: {ph['command']}")
+    return 0
+
+
 def cmd_diagnose(args) -> int:
     """Diagnose a simulator of a Dataset: where it is wrong, why, and the extension's gain."""
     import dataclasses
+
+    if args.physics:
+        return cmd_diagnose_physics(args)
+    if args.sim_xml is not None:
+        raise ValueError("sim_xml: expected only with --physics")
 
     from rl2s_jax.app.diagnose import diagnose
     from rl2s_jax.data.dataset import load_dataset
@@ -520,6 +542,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--alpha", type=float, default=0.01, help="significance level")
     p.add_argument("--zoo", help="zoo of the data's policies, for the value views")
     p.add_argument("--seed", type=int, default=0, help="split and test seed")
+    p.add_argument("--physics", action="store_true",
+                   help="diagnose the MuJoCo physics model instead (the data's task, or "
+                   "--sim-xml): the wrong physical quantity, with its value")
+    p.add_argument("--sim-xml", help="with --physics: your MJCF model (obs = qpos ++ qvel)")
+    p.add_argument("--sim-frames", type=_positive("sim-frames"),
+                   help="with --sim-xml: physics steps per control step (default 1)")
+    p.add_argument("--max-params", type=_positive("max-params"), default=3,
+                   help="with --physics: most quantities named")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_diagnose)
     return parser

@@ -22,7 +22,7 @@ from rl2s_jax.physics.errors import physics_errors
 from rl2s_jax.physics.identify import FitConfig, identify
 from rl2s_jax.physics.mjx_model import PHYSICS_TASKS, physics_model
 
-__all__ = ["PhysicsSpec", "diagnose_physics", "load_calibrated"]
+__all__ = ["PhysicsSpec", "diagnose_physics", "load_calibrated", "physics_command"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +52,14 @@ class PhysicsSpec:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected a positive int, got {getattr(self, name)}")
         return self
+
+
+def physics_command(args) -> int:
+    """`rl2s diagnose --physics`'s flags -> :class:`PhysicsSpec` -> :func:`diagnose_physics`."""
+    diagnose_physics(PhysicsSpec(data=args.data, out=args.out, sim_xml=args.sim_xml,
+                                 sim_frames=args.sim_frames, alpha=args.alpha, k=args.k_max,
+                                 seed=args.seed, quiet=args.quiet))
+    return 0
 
 
 def load_calibrated(path: str):

@@ -177,3 +177,14 @@ def test_cli_writes_the_physics_report(tmp_path, pm, zoo_params, datasets):
     assert (out / "physics_one_step.png").exists() and (out / "report.md").exists()
     err = report["errors"]
     assert err["calibrated"]["kstep"][-1] < err["nominal"]["kstep"][-1]
+
+
+def test_sysid_path_fits_the_chosen_quantity(pm, zoo_params, datasets):
+    from rl2s_jax.physics.identify import fit_sysid
+
+    ds = _get(datasets, pm, zoo_params, "gear")
+    truth = ds.meta["source"]["planted"][0]
+    out = fit_sysid(pm, ds, [(truth["name"], truth["element"])])
+    value = out["values"][f"{truth['name']}[{truth['element']}]"]
+    assert value == pytest.approx(truth["value"], rel=0.1)
+    assert out["seconds"] > 0

@@ -35,7 +35,7 @@ from scipy import stats
 
 from rl2s_jax.physics.mjx_model import PhysicsModel, actuator_names, delayed_actions
 
-__all__ = ["FitConfig", "identify", "compiled", "split_rows", "Rows"]
+__all__ = ["FitConfig", "identify", "fit_sysid", "compiled", "c_backend", "split_rows", "Rows"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -372,3 +372,32 @@ def _describe(pm, entry, active, theta, boot, wald) -> dict:
         ival, wald_ival = None, None
     return {"name": c.name, "element": c.element, "nominal": c.nominal, "value": c.value(th),
             "interval": ival, "wald": wald_ival, **base}
+
+
+def fit_sysid(pm: PhysicsModel, ds, chosen: list[tuple[str, str]], delays=None,
+              cfg: FitConfig = FitConfig()) -> dict:
+    """The same quantities fitted with ``mujoco.sysid.optimize`` (scipy least squares,
+    finite differences over the same C-MuJoCo one-step residuals of the same fit half), for
+    timing against :func:`identify`. chosen: [(name, element)] -> {"values": {label: value},
+    "theta" [K], "seconds"}."""
+    from mujoco import sysid  # local: the optional mujoco[sysid] extra, only needed here
+
+    fit_rows, _ = split_rows(ds, cfg.rows, cfg.seed)
+    fit = _Fit(pm, fit_rows, obs_scale(ds), "mujoco")
+    idx = [pm.index(n, e) for n, e in chosen]
+    delays = np.zeros(pm.action_size, int) if delays is None else np.asarray(delays)
+    params = sysid.ParameterDict()
+    for k in idx:
+        params.add(sysid.Parameter(pm.candidates[k].label, 0.0, -3.0, 3.0))
+
+    def residual_fn(x, _params):
+        theta = np.zeros(len(pm.candidates))
+        theta[idx] = x
+        return [fit.residual(theta, delays).reshape(-1)], None, None
+
+    start = time.perf_counter()
+    opt, _ = sysid.optimize(params, residual_fn, optimizer="scipy", verbose=False)
+    theta = np.zeros(len(pm.candidates))
+    theta[idx] = opt.as_vector()
+    return {"values": {pm.candidates[k].label: pm.candidates[k].value(theta[k]) for k in idx},
+            "theta": theta.tolist(), "seconds": time.perf_counter() - start}

@@ -177,6 +177,13 @@ def test_cli_writes_the_physics_report(tmp_path, pm, zoo_params, datasets):
     assert (out / "physics_one_step.png").exists() and (out / "report.md").exists()
     err = report["errors"]
     assert err["calibrated"]["kstep"][-1] < err["nominal"]["kstep"][-1]
+    # the calibrated simulator the report's command loads carries the identified gear
+    from rl2s_jax.app.physics import load_calibrated
+
+    pm2, theta, delays = load_calibrated(str(out / "calibrated.json"))
+    k = pm2.index("actuator_gear", "leg_joint")
+    assert pm2.candidates[k].value(theta[k]) == pytest.approx(ph["top_cause"]["value"])
+    assert "load_calibrated" in ph["command"] and delays.tolist() == [0, 0, 0]
 
 
 def test_sysid_path_fits_the_chosen_quantity(pm, zoo_params, datasets):

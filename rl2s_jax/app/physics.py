@@ -170,11 +170,11 @@ def physics_markdown(report: dict, figs: list[str]) -> str:
     lines += ["", "| error (normalised RMSE) | nominal | calibrated |", "|---|---|---|",
               f"| one-step | {err['nominal']['one_step']['rmse']:.4g} | "
               f"{err['calibrated']['one_step']['rmse']:.4g} |"]
-    for where in ("in", "out"):
+    for where, label in (("in", "in contact"), ("out", "out of contact")):
         a, b = err["nominal"]["one_step"]["contact"][where], \
             err["calibrated"]["one_step"]["contact"][where]
         if a is not None:
-            lines.append(f"| one-step, {where} of contact | {a:.4g} | {b:.4g} |")
+            lines.append(f"| one-step, {label} | {a:.4g} | {b:.4g} |")
     if err["nominal"]["kstep"]:
         k = len(err["nominal"]["kstep"])
         lines.append(f"| {k}-step open loop | {err['nominal']['kstep'][-1]:.4g} | "

@@ -195,3 +195,20 @@ def test_sysid_path_fits_the_chosen_quantity(pm, zoo_params, datasets):
     value = out["values"][f"{truth['name']}[{truth['element']}]"]
     assert value == pytest.approx(truth["value"], rel=0.1)
     assert out["seconds"] > 0
+
+
+@pytest.mark.slow
+def test_clean_mjx_data_names_nothing(pm, zoo_params, env_cache):
+    """Data from the MJX env itself (float32, brax's stepping) against the C-MuJoCo float64
+    model: the engines' differences must not be named as a physical cause."""
+    import jax
+
+    from rl2s_jax.data.collect import collect
+    from rl2s_jax.physics.identify import FitConfig, identify
+
+    ds = collect(env_cache("hopper"), zoo_params, key=jax.random.PRNGKey(0),
+                 transitions_per_policy=300, envs_per_policy=3, episode_length=100,
+                 task="hopper", value_episodes=0, progress=False)
+    found = identify(pm, ds, FitConfig(rows=256))
+    assert found["top_cause"] is None, f"named {found['top_cause']}"
+    assert 0 < found["error_nominal"] < 1e-4  # float32 round-off, not a physical change

@@ -157,6 +157,11 @@ def test_no_physics_model_fails_fast(tmp_path, pm_files):
     with pytest.raises(ValueError, match="no physics model.*--sim-xml"):
         diagnose_physics(PhysicsSpec(data=pm_files["train"], out=str(tmp_path / "o")))
     assert not (tmp_path / "o").exists()
+    from rl2s_jax.physics.mjx_model import task_xml
+
+    with pytest.raises(ValueError, match="obs_size 12"):  # a user's model of other sizes
+        diagnose_physics(PhysicsSpec(data=pm_files["train"], out=str(tmp_path / "o"),
+                                     sim_xml=task_xml("hopper")))
 
 
 @pytest.mark.slow

@@ -21,6 +21,12 @@ Intervals: a linearised bootstrap over fit episodes at the optimum (resample epi
 Gauss-Newton step from the optimum with their rows), percentile ``[2.5, 97.5]``, mapped to the
 value scale; episode resampling keeps the time correlation that a Wald interval
 ``sigma^2 (J^T J)^-1`` (also computed, ``wald``) ignores. A delay's interval is its value.
+
+Backends (``FitConfig.backend``): "mujoco" (default) steps C MuJoCo in float64 with
+forward-difference Jacobians (:func:`c_backend`); "mjx" steps MJX with ``jax.jacfwd``
+(:func:`compiled`), whose batched Jacobian compiled in 92 s once on the 2-core CPU and then
+stalled in later runs (docs/DIAGNOSIS.md, "Physics"). :func:`fit_sysid` fits chosen
+quantities with ``mujoco.sysid.optimize`` on the same residuals, for timing side by side.
 """
 
 from __future__ import annotations

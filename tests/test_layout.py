@@ -18,6 +18,7 @@ LAYERS = [
     {"zoo", "model"},
     {"evaluate"},
     {"train"},
+    {"physics"},
     {"improve", "diagnose"},
     {"app"},
     {"cli", "__init__"},

@@ -1,0 +1,312 @@
+"""A MuJoCo model as a parametrised one-step simulator of observations, through MJX.
+
+:func:`physics_model` builds a :class:`PhysicsModel` for a registered locomotion task (the same
+XML, options and ``n_frames`` as its brax MJX env) or for a user's MJCF file. Its ``step``::
+
+    step(theta [K], obs [O], action [A]) -> next_obs [O]
+
+sets (qpos, qvel) from the observation, runs ``n_frames`` ``mjx.step``s with the action as
+``ctrl`` and maps the state back to an observation. It is pure, so ``jax.jit``, ``jax.vmap``
+over transitions and ``jax.jacfwd`` over ``theta`` all apply. ``theta`` is one flat vector over
+the model's candidate quantities (:class:`Candidate`), zero at the nominal model:
+
+========================  =======================================  ========================
+name                      element                                  value
+========================  =======================================  ========================
+``body_mass``             a body (its inertia scaled alike)        nominal * exp(theta)
+``dof_damping``           a joint below the root                   nominal * exp(theta)
+``dof_armature``          a joint below the root                   nominal * exp(theta)
+``geom_friction``         a colliding geom (sliding friction)      nominal * exp(theta)
+``actuator_gear``         an actuator (unnamed: its joint's name)  nominal * exp(theta)
+``obs_bias``              an observation dim (``obs[i]``)          nominal + theta (0)
+========================  =======================================  ========================
+
+MuJoCo combines a contact pair's friction by the larger of its two geoms' values, so only the
+larger geom of a pair moves the simulation. A dof quantity whose nominal value is 0 is left
+out (a log factor cannot move it; MJX also builds frictionloss constraint rows only where the
+nominal model has frictionloss, so frictionloss is not a candidate). A per-actuator action
+delay of ``d`` control steps is not a continuous parameter: :func:`delayed_actions` shifts the
+logged actions within each episode (zeros before the episode's start) before ``step`` sees them.
+
+The observation map. Registered tasks: obs = qpos ++ qvel, except that hopper's and walker2d's
+``obs[1]`` is brax's torso height ``x.pos[0, 2]``, the kinematics one physics substep back
+(tasks.py's docstring): ``obs[1] = z0 + q[1] - h qd[1]`` (``z0`` the torso's rest height, ``h``
+the substep; exact for a slide joint under semi-implicit Euler). A user's MJCF
+(``xml_path``): obs = qpos ++ qvel, nothing lagged.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+__all__ = ["Candidate", "PhysicsModel", "physics_model", "delayed_actions", "PHYSICS_TASKS",
+           "LOG_QUANTITIES"]
+
+PHYSICS_TASKS = {"hopper": "hopper.xml", "walker2d": "walker2d.xml",
+                 "halfcheetah": "half_cheetah.xml", "ant": "ant.xml"}
+LOG_QUANTITIES = ("body_mass", "dof_damping", "dof_armature", "geom_friction", "actuator_gear")
+_LAGGED_HEIGHT = ("hopper", "walker2d")  # obs[1] = lagged torso height (module docstring)
+
+
+@dataclasses.dataclass(frozen=True)
+class Candidate:
+    """One scalar model quantity: ``name`` (the MuJoCo field, or ``obs_bias``), ``element`` (the
+    MuJoCo name of the body / joint / geom / actuator, or ``obs[i]``), ``index`` (its row in
+    the field), ``nominal`` (its value in the nominal model)."""
+
+    name: str
+    element: str
+    index: int
+    nominal: float
+
+    @property
+    def log_scale(self) -> bool:
+        return self.name in LOG_QUANTITIES
+
+    def value(self, theta: float) -> float:
+        """The quantity's value at parameter ``theta``."""
+        return self.nominal * float(np.exp(theta)) if self.log_scale else self.nominal + theta
+
+    def to_theta(self, value: float) -> float:
+        """The parameter giving ``value`` (inverse of :meth:`value`)."""
+        return float(np.log(value / self.nominal)) if self.log_scale else value - self.nominal
+
+    @property
+    def label(self) -> str:
+        return f"{self.name}[{self.element}]"
+
+
+@dataclasses.dataclass(frozen=True)
+class PhysicsModel:
+    """A MuJoCo model as ``step(theta, obs, action) -> next_obs`` (module docstring).
+
+    mj: the nominal C model (``mujoco.MjModel``); mjx_model: its MJX twin (float32); task: the
+    registered task or None; xml_path: the MJCF it was built from; n_frames: physics substeps
+    per control step; candidates: the K quantities ``theta`` indexes; lag: (obs dim, qpos
+    index, qvel index, rest offset) for each lagged observation dim.
+    """
+
+    mj: object
+    mjx_model: object
+    task: str | None
+    xml_path: str
+    n_frames: int
+    candidates: tuple[Candidate, ...]
+    lag: tuple[tuple[int, int, int, float], ...] = ()
+
+    @property
+    def nq(self) -> int:
+        return int(self.mj.nq)
+
+    @property
+    def nv(self) -> int:
+        return int(self.mj.nv)
+
+    @property
+    def obs_size(self) -> int:
+        return self.nq + self.nv
+
+    @property
+    def action_size(self) -> int:
+        return int(self.mj.nu)
+
+    @property
+    def substep(self) -> float:
+        return float(self.mj.opt.timestep)
+
+    def index(self, name: str, element: str) -> int:
+        """Position in ``theta`` of quantity ``name`` of ``element``; KeyError if absent."""
+        for i, c in enumerate(self.candidates):
+            if c.name == name and c.element == element:
+                return i
+        raise KeyError(f"no candidate {name}[{element}]; have "
+                       f"{[c.label for c in self.candidates]}")
+
+    def obs_to_state(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        """obs [O] -> (qpos [nq], qvel [nv])."""
+        q, v = obs[: self.nq], obs[self.nq: self.nq + self.nv]
+        for o, iq, iv, z0 in self.lag:
+            q = q.at[iq].set(obs[o] - z0 + self.substep * v[iv])
+        return q, v
+
+    def state_to_obs(self, q: jax.Array, v: jax.Array) -> jax.Array:
+        """(qpos [nq], qvel [nv]) -> obs [O]."""
+        obs = jnp.concatenate([q, v])
+        for o, iq, iv, z0 in self.lag:
+            obs = obs.at[o].set(z0 + q[iq] - self.substep * v[iv])
+        return obs
+
+    def obs_to_state_np(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`obs_to_state` in NumPy float64."""
+        q, v = obs[: self.nq].copy(), obs[self.nq: self.nq + self.nv]
+        for o, iq, iv, z0 in self.lag:
+            q[iq] = obs[o] - z0 + self.substep * v[iv]
+        return q, v
+
+    def state_to_obs_np(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """:meth:`state_to_obs` in NumPy float64."""
+        obs = np.concatenate([q, v])
+        for o, iq, iv, z0 in self.lag:
+            obs[o] = z0 + q[iq] - self.substep * v[iv]
+        return obs
+
+    def apply(self, theta: jax.Array):
+        """The MJX model with ``theta`` [K] applied (obs bias excluded)."""
+        m = self.mjx_model
+        fields = {}
+        for name in LOG_QUANTITIES:
+            pos = [i for i, c in enumerate(self.candidates) if c.name == name]
+            if not pos:
+                continue
+            rows = np.array([self.candidates[i].index for i in pos])
+            field = getattr(m, "body_mass" if name == "body_mass" else name)
+            factor = jnp.ones(field.shape[0], theta.dtype).at[rows].set(
+                jnp.exp(theta[np.array(pos)]))
+            if name == "body_mass":
+                fields["body_mass"] = m.body_mass * factor
+                fields["body_inertia"] = m.body_inertia * factor[:, None]
+            elif name in ("geom_friction", "actuator_gear"):
+                fields[name] = field.at[:, 0].set(field[:, 0] * factor)
+            else:
+                fields[name] = field * factor
+        return m.replace(**fields)
+
+    def obs_bias(self, theta: jax.Array) -> jax.Array:
+        """The observation bias [O] that ``theta`` [K] holds (0 where it has none)."""
+        bias = jnp.zeros((self.obs_size,), theta.dtype)
+        pos = [i for i, c in enumerate(self.candidates) if c.name == "obs_bias"]
+        if pos:
+            rows = np.array([self.candidates[i].index for i in pos])
+            bias = bias.at[rows].set(theta[np.array(pos)])
+        return bias
+
+    def step(self, theta: jax.Array, obs: jax.Array, action: jax.Array) -> jax.Array:
+        """One control step: theta [K], obs [O], action [A] -> next_obs [O] (module docstring)."""
+        return self.step_with_contact(theta, obs, action)[0]
+
+    def step_with_contact(self, theta: jax.Array, obs: jax.Array, action: jax.Array
+                          ) -> tuple[jax.Array, jax.Array]:
+        """:meth:`step` plus whether any contact is active in the first substep (bool [])."""
+        from mujoco import mjx  # local: keeps `import rl2s_jax.physics` free of MuJoCo
+
+        m = self.apply(theta)
+        bias = self.obs_bias(theta)
+        q, v = self.obs_to_state(obs - bias)
+        data = mjx.make_data(m).replace(qpos=q, qvel=v, ctrl=action)
+        data = mjx.step(m, data)
+        dist = data._impl.contact.dist if hasattr(data, "_impl") else data.contact.dist
+        touching = jnp.any(dist < 0) if dist.size else jnp.zeros((), bool)
+        data = jax.lax.fori_loop(0, self.n_frames - 1, lambda _, d: mjx.step(m, d), data)
+        return self.state_to_obs(data.qpos, data.qvel) + bias, touching
+
+    def batch_step(self) -> Callable[[jax.Array, jax.Array, jax.Array], jax.Array]:
+        """jit(vmap(step)) over transitions: theta [K], obs [N, O], action [N, A] -> [N, O]."""
+        return jax.jit(jax.vmap(self.step, in_axes=(None, 0, 0)))
+
+
+def _name(mj, obj, i: int) -> str:
+    import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
+
+    return mujoco.mj_id2name(mj, obj, i) or ""
+
+
+def candidates_of(mj) -> tuple[Candidate, ...]:
+    """The candidate quantities of a C model (module docstring's table), in that order."""
+    import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
+
+    ob = mujoco.mjtObj
+    out = [Candidate("body_mass", _name(mj, ob.mjOBJ_BODY, b) or f"body{b}", b,
+                     float(mj.body_mass[b])) for b in range(1, mj.nbody) if mj.body_mass[b] > 0]
+    root_bodies = {b for b in range(mj.nbody) if mj.body_parentid[b] == 0}
+    for field in ("dof_damping", "dof_armature"):
+        for d in range(mj.nv):
+            j = int(mj.dof_jntid[d])
+            if mj.jnt_bodyid[j] in root_bodies or getattr(mj, field)[d] <= 0:
+                continue
+            out.append(Candidate(field, _name(mj, ob.mjOBJ_JOINT, j) or f"joint{j}", d,
+                                 float(getattr(mj, field)[d])))
+    for g in range(mj.ngeom):
+        if (mj.geom_contype[g] or mj.geom_conaffinity[g]) and mj.geom_friction[g, 0] > 0:
+            out.append(Candidate("geom_friction", _name(mj, ob.mjOBJ_GEOM, g) or f"geom{g}", g,
+                                 float(mj.geom_friction[g, 0])))
+    for a in range(mj.nu):
+        name = _name(mj, ob.mjOBJ_ACTUATOR, a) or _name(mj, ob.mjOBJ_JOINT, mj.actuator_trnid[a, 0])
+        out.append(Candidate("actuator_gear", name or f"actuator{a}", a,
+                             float(mj.actuator_gear[a, 0])))
+    out += [Candidate("obs_bias", f"obs[{i}]", i, 0.0) for i in range(mj.nq + mj.nv)]
+    return tuple(out)
+
+
+def actuator_names(mj) -> list[str]:
+    """Each actuator's name (an unnamed one by the joint it drives)."""
+    return [c.element for c in candidates_of(mj) if c.name == "actuator_gear"]
+
+
+def task_xml(task: str) -> str:
+    """Path of a registered locomotion task's MJCF (brax's asset)."""
+    from etils import epath  # local: keeps `import rl2s_jax.physics` light
+
+    if task not in PHYSICS_TASKS:
+        raise ValueError(f"task: expected one of {sorted(PHYSICS_TASKS)} (a task with a "
+                         f"physics model) or --sim-xml FILE, got {task!r}")
+    return str(epath.resource_path("brax") / "envs" / "assets" / PHYSICS_TASKS[task])
+
+
+def load_mj(task: str | None, xml_path: str | None = None):
+    """The nominal C model (``mujoco.MjModel``) of a task, as its MJX env runs it, or of an
+    MJCF file."""
+    import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
+
+    from rl2s_jax.envs.tasks import ANT_SOLVER_ITERATIONS
+
+    mj = mujoco.MjModel.from_xml_path(xml_path or task_xml(task))
+    if task == "ant" and xml_path is None:
+        mj.opt.iterations = ANT_SOLVER_ITERATIONS
+    return mj
+
+
+def physics_model(task: str | None = None, *, xml_path: str | None = None,
+                  n_frames: int | None = None) -> PhysicsModel:
+    """The physics model of a registered task (its MJX env's XML, options, ``n_frames``) or of
+    a user's MJCF (``xml_path``; obs = qpos ++ qvel; ``n_frames`` default 1)."""
+    from mujoco import mjx  # local: keeps `import rl2s_jax.physics` free of MuJoCo
+
+    from rl2s_jax.envs.tasks import _LOCO
+
+    if xml_path is None:
+        task_xml(task)  # a clear error for a task without a physics model
+        n_frames = n_frames or _LOCO[task].n_frames
+    elif n_frames is not None and n_frames < 1:
+        raise ValueError(f"n_frames: expected a positive integer, got {n_frames}")
+    mj = load_mj(task if xml_path is None else None, xml_path)
+    lag = ()
+    if xml_path is None and task in _LAGGED_HEIGHT:
+        lag = ((1, 1, 1, float(mj.body_pos[1, 2])),)
+    return PhysicsModel(mj=mj, mjx_model=mjx.put_model(mj), task=task if xml_path is None
+                        else None, xml_path=xml_path or task_xml(task),
+                        n_frames=int(n_frames or 1), candidates=candidates_of(mj), lag=lag)
+
+
+def delayed_actions(action: np.ndarray, episode_id: np.ndarray, t: np.ndarray,
+                    delays) -> np.ndarray:
+    """The actions a system with per-actuator delays applied: column ``j`` of row ``i`` is the
+    logged action ``delays[j]`` steps earlier in the same episode (0 before its start).
+
+    action [N, A], episode_id [N], t [N] (rows of an episode contiguous, t = 0, 1, ...),
+    delays [A] ints >= 0 -> [N, A].
+    """
+    delays = np.asarray(delays, dtype=int)
+    if delays.shape != (action.shape[1],) or (delays < 0).any():
+        raise ValueError(f"delays: expected {action.shape[1]} non-negative ints, got {delays}")
+    out = np.zeros_like(action)
+    for j, d in enumerate(delays):
+        src = np.arange(len(action)) - d
+        ok = (t >= d) & (src >= 0)
+        ok[ok] &= episode_id[src[ok]] == episode_id[ok]
+        out[ok, j] = action[src[ok], j]
+    return out

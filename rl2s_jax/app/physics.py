@@ -16,6 +16,7 @@ import time
 
 import numpy as np
 
+from rl2s_jax._files import write_json, write_text
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.diagnose.gaps import jsonable
 from rl2s_jax.physics.errors import physics_errors
@@ -92,10 +93,10 @@ def diagnose_physics(spec: PhysicsSpec) -> dict:
                                 seed=spec.seed)
     os.makedirs(spec.out, exist_ok=True)
     cal_path = os.path.join(spec.out, "calibrated.json")
-    with open(cal_path, "w") as f:
-        json.dump({"task": pm.task, "xml": pm.xml_path, "n_frames": pm.n_frames,
-                   "theta": found["theta"], "delays": found["delays"],
-                   "labels": [c.label for c in pm.candidates]}, f, indent=1)
+    write_json(cal_path, jsonable({"task": pm.task, "xml": pm.xml_path,
+                                   "n_frames": pm.n_frames, "theta": found["theta"],
+                                   "delays": found["delays"],
+                                   "labels": [c.label for c in pm.candidates]}))
     command = ("python -c " + shlex.quote(
         f"from rl2s_jax.app.physics import load_calibrated; "
         f"pm, theta, delays = load_calibrated({cal_path!r})"))
@@ -106,11 +107,9 @@ def diagnose_physics(spec: PhysicsSpec) -> dict:
     report = jsonable({"physics": physics, "errors": {"nominal": nominal,
                                                      "calibrated": calibrated},
                        "data": spec.data, "task": task, "sim_xml": spec.sim_xml})
-    with open(os.path.join(spec.out, "report.json"), "w") as f:
-        json.dump(report, f, indent=1)
+    write_json(os.path.join(spec.out, "report.json"), report)
     figs = plot_physics(spec.out, nominal, calibrated)
-    with open(os.path.join(spec.out, "report.md"), "w") as f:
-        f.write(physics_markdown(report, figs))
+    write_text(os.path.join(spec.out, "report.md"), physics_markdown(report, figs))
     log(f"[physics] wrote {spec.out}/report.json, report.md, calibrated.json and "
         f"{len(figs)} plot(s) in {physics['seconds']:.1f} s")
     return report

@@ -43,7 +43,7 @@ import numpy as np
 
 from rl2s_jax.evaluate.metrics import mean_per_unit
 
-METHODS = ("rl2s", "gail", "bc", "rl2s-bc")  # rl2s_jax.app.protocol.METHODS (no JAX here)
+METHODS = ("rl2s", "gail", "bc", "rl2s-bc")  # rl2s_jax.paper.protocol.METHODS (no JAX here)
 ADVERSARIAL = ("rl2s", "gail")  # the methods the NLL anchor (adv_nll_on) enters
 BAR_CONFIG = {"adv_nll_on": "all"}  # TrainConfig's defaults since 2026-11-27: the bars' runs
 MIN_SEEDS, MIN_DATA_SEEDS, N_BOOT = 5, 2, 2000

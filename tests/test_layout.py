@@ -23,8 +23,8 @@ LONG_FUNCTIONS = {
     "app/improve.py::run_improve": 168,
     "app/pipeline.py::improve_in_simulators": 74,
     "app/pipeline.py::run_pipeline": 82,
-    "app/protocol.py::train_family": 115,
-    "app/protocol_improve.py::run_improvement": 88,
+    "paper/protocol.py::train_family": 115,
+    "paper/improvement.py::run_improvement": 88,
     "app/train.py::run_training": 106,
     "cli.py::build_parser": 217,
     "data/minari.py::to_minari": 62,
@@ -52,7 +52,7 @@ LAYERS = [
     {"train"},
     {"improve", "diagnose"},
     {"app"},
-    {"cli", "__init__"},
+    {"paper", "cli", "__init__"},
 ]
 
 

@@ -3,7 +3,7 @@ once, as ``evaluate_simulator`` scores one; the oracle through the same path, on
 
 A lane's simulator is ``train.simulator(states)`` of a vmapped ``TrainState`` (``train.lanes``);
 here it is a ``Simulator`` whose array leaves carry a leading lane axis L. The paper protocol
-(``rl2s_jax.app.protocol``), the ablations and the sharding tests use these."""
+(``rl2s_jax.paper.protocol``), the ablations and the sharding tests use these."""
 from __future__ import annotations
 
 from functools import partial

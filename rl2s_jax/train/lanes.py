@@ -115,7 +115,7 @@ _fork_lanes = jax.jit(jax.vmap(fork))
 
 
 def fork_lanes(trunk: TrainState, starts: TrainState) -> TrainState:
-    """``fork`` of every lane: trunk [L] pre-trained lanes (``protocol_fork.take_lanes`` repeats a
+    """``fork`` of every lane: trunk [L] pre-trained lanes (``paper.fork.take_lanes`` repeats a
     trunk lane for each lane forked from it), starts [L] their fresh ``init_lanes`` -> [L].
     ValueError when a start is not at step 0 or the trunk is past its pre-training."""
     cfg = starts.config

@@ -2,9 +2,9 @@
 train / test data, the oracle row, one vmapped training program per model family with its
 evaluation curves (the adversarial family pre-trains once per seed and forks its methods'
 lanes from there, ``train.lanes.fork``; the likelihood family's BC lanes join from that
-pre-training, ``app.protocol_fork``), model selection and bootstrap intervals, and the
+pre-training, ``paper.fork``), model selection and bootstrap intervals, and the
 result JSON (the summary over seeds, the printed table, the atomic write). The improvement
-phases are ``app.protocol_improve``; the lanes themselves (vmapped runs: training,
+phases are ``paper.improvement``; the lanes themselves (vmapped runs: training,
 evaluation, fine-tuning) ``train.lanes``, ``evaluate.lanes`` and ``improve.lanes``."""
 from __future__ import annotations
 
@@ -21,7 +21,6 @@ import numpy as np
 
 from rl2s_jax._files import write_json
 from rl2s_jax.app.pipeline import collect_dataset
-from rl2s_jax.app.protocol_fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.values import true_values, true_values_se, truth_used
 from rl2s_jax.evaluate.lanes import (
@@ -34,6 +33,7 @@ from rl2s_jax.evaluate.lanes import (
 from rl2s_jax.evaluate.metrics import bootstrap_intervals
 from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.paper.fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.sharding import is_writer, lane_mesh, replicate, shard_lanes
 from rl2s_jax.train.config import DEFAULT_EPS, TrainConfig
 from rl2s_jax.train.cvar import n_worst

@@ -2,7 +2,7 @@
 test policies inside every lane's simulator (``improve.lanes``: all methods x seeds x policies
 as one vmapped program), once per variant of the simulated env, the fine-tuned policies' real
 returns are measured paired with the start policies', and the same fine-tuning in the real
-env is the control. Everything lands in the result dict of ``app.protocol``."""
+env is the control. Everything lands in the result dict of ``paper.protocol``."""
 from __future__ import annotations
 
 import dataclasses
@@ -14,15 +14,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from rl2s_jax.app.improve import check_floor_scale, guard_floor
-from rl2s_jax.app.protocol import (
-    IMPROVE_METRICS,
-    METHODS,
-    fmt_ms,
-    log,
-    method_means,
-    none_if_nan,
-    take_lanes,
-)
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import Task, get_task
 from rl2s_jax.evaluate.oracle import oracle_dynamics
@@ -37,6 +28,15 @@ from rl2s_jax.improve.finetune import (
 from rl2s_jax.improve.lanes import finite_mean, guard_lanes, improve_in_lanes, pick_policies
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.paper.protocol import (
+    IMPROVE_METRICS,
+    METHODS,
+    fmt_ms,
+    log,
+    method_means,
+    none_if_nan,
+    take_lanes,
+)
 from rl2s_jax.policy.policy import Params, index_params
 from rl2s_jax.policy.sac import SACConfig, episode_returns
 from rl2s_jax.train.step import simulator

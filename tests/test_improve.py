@@ -831,47 +831,6 @@ def test_select_by_members_values_every_snapshot_and_deploys_the_choice():
                           pool, key, **roll)
 
 
-def test_median_ci95_brackets_the_median_and_repeats():
-    """median_ci95: a constant sample's interval is that constant; 0..100's brackets its
-    median 50 within +-10; one seed gives one interval, a median far from the mean (one huge
-    ratio, as a start near 0 gives) moves it not at all."""
-    from rl2s_jax.improve.finetune import median_ci95
-
-    assert median_ci95(np.full(7, 0.3), 200) == pytest.approx([0.3, 0.3])
-    lo, hi = median_ci95(np.arange(101.0), 500)
-    assert 40 <= lo <= 50 <= hi <= 60
-    assert median_ci95(np.arange(101.0), 500) == [lo, hi]
-    skewed = np.arange(101.0)
-    skewed[-1] = 1e9
-    assert median_ci95(skewed, 500) == [lo, hi]
-
-
-def test_paired_gain_difference_by_hand():
-    """paired_gain_difference: the pairs over the seeds both methods ran (seed 9 only A has),
-    the per-seed median difference and its t-interval against a plain loop; one common seed
-    gives no interval; different policy counts per seed are refused."""
-    from rl2s_jax.improve.finetune import paired_gain_difference
-
-    a = {0: np.array([0.5, 0.1, 0.3]), 1: np.array([0.2, 0.9, 0.0]), 9: np.array([9.0] * 3)}
-    b = {0: np.array([0.4, 0.3, 0.1]), 1: np.array([0.1, 0.1, 0.1])}
-    got = paired_gain_difference(a, b, n_boot=300)
-    d = [x - y for k in (0, 1) for x, y in zip(a[k], b[k], strict=True)]
-    assert got["seeds"] == [0, 1] and got["pairs"] == 6
-    assert got["median"] == pytest.approx(np.median(d))
-    assert got["rl2s_higher"] == sum(x > 0 for x in d)          # 4: 0.1, 0.2, 0.1, 0.8
-    per = [np.median(a[k]) - np.median(b[k]) for k in (0, 1)]   # 0.0, +0.1
-    assert got["over_seeds"]["per_seed"] == pytest.approx(per)
-    half = 12.706 * np.std(per, ddof=1) / np.sqrt(2)             # t(0.975; 1 dof)
-    assert got["over_seeds"]["mean"] == pytest.approx(np.mean(per))
-    assert got["over_seeds"]["t95"] == pytest.approx([np.mean(per) - half,
-                                                      np.mean(per) + half], rel=1e-4)
-    one = paired_gain_difference({0: a[0]}, b, n_boot=100)
-    assert one["over_seeds"]["mean"] is None and one["pairs"] == 3
-    assert paired_gain_difference({9: a[9]}, b) is None
-    with pytest.raises(ValueError, match="same policies"):
-        paired_gain_difference({0: a[0][:2]}, b)
-
-
 def test_median_gain_counts_the_policies_below_the_zoos_top_quartile():
     zoo = np.arange(1.0, 101.0)  # top quartile from 75.25
     start = np.array([10.0, 50.0, 80.0, 90.0, 70.0])

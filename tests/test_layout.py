@@ -44,7 +44,7 @@ LONG_FUNCTIONS = {
 }
 # Lower layers first; a module may import only from its own layer or lower ones.
 LAYERS = [
-    {"_quiet", "_names", "_files", "_gym", "compile_cache", "sharding", "envs",
+    {"_quiet", "_names", "_files", "_gym", "compile_cache", "sharding", "stats", "envs",
      "policy"},
     {"data"},
     {"zoo", "model"},
@@ -234,3 +234,22 @@ def test_function_local_imports_say_why():
                         if "Imported here" not in near and "# local:" not in near:
                             unexplained.append(f"{rel}:{s.lineno}")
     assert not unexplained, f"function-local imports without a reason: {unexplained}"
+
+
+# The statistics shared by every stage (issue 65 item 6): defined in rl2s_jax/stats.py alone.
+STATS_NAMES = {"t_interval", "mean_per_unit", "bootstrap_ci", "median_ci95",
+               "paired_gain_difference", "sign_flip_p", "rank_sum_p"}
+
+
+def test_statistics_live_in_one_module():
+    """No package module or experiments/ script but rl2s_jax/stats.py defines one of the shared
+    statistics, or imports SciPy's statistics for an interval of its own."""
+    where = []
+    for p in sorted([*PKG.rglob("*.py"), *(PKG.parent / "experiments").rglob("*.py")]):
+        if p == PKG / "stats.py":
+            continue
+        for node in ast.walk(ast.parse(p.read_text())):
+            if (isinstance(node, ast.FunctionDef) and node.name in STATS_NAMES
+                    or isinstance(node, ast.ImportFrom) and node.module == "scipy.stats"):
+                where.append(f"{p.relative_to(PKG.parent)}:{node.lineno}")
+    assert not where, f"statistics outside rl2s_jax/stats.py: {where}"

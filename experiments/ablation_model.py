@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.train import make_config, parse_overrides
+from rl2s_jax.app.training import make_config, parse_overrides
 from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.data.values import true_values
 from rl2s_jax.envs.tasks import get_task, task_names
@@ -55,7 +55,7 @@ from rl2s_jax.evaluate.errors import (
     termination_causes,
     visited_error_check,
 )
-from rl2s_jax.evaluate.lanes import lane_returns
+from rl2s_jax.evaluate.lane_scores import lane_returns
 from rl2s_jax.evaluate.metrics import ranking_metrics
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.model.termination import LEARNED

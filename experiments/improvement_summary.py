@@ -16,8 +16,8 @@ raw and guarded (means over seeds), deployed count, ``budget_env_steps``, comman
 per (seed, policy below the top quartile) and per seed). ``bars`` (--control): ``issue_bars``.
 ``guard_rules``: what other rules would have deployed, from the members' predicted gains:
 "every member predicts a gain" and, on the lanes that recorded them, the "training-error range
-floor" (``paper.improvement.lane_error_range``) and the "discordant-pair floor"
-(``paper.improvement.pair_floor_verdict``), beside the protocol's guard (``lanes``: how many
+floor" (``paper.improvement_phases.lane_error_range``) and the "discordant-pair floor"
+(``paper.improvement_phases.pair_floor_verdict``), beside the protocol's guard (``lanes``: how many
 (method, seed) lanes). They read the test policies' real gains: they explain the guard, they
 must not choose it. ``controls``: the same median gain for the runs' own controls (``paper.py
 --improve-oracle-seeds``: the oracle's physics; ``--control``: the real env with the runs'
@@ -38,7 +38,7 @@ import sys
 import numpy as np
 
 from rl2s_jax.improve.finetune import median_gain
-from rl2s_jax.paper.improvement import pair_floor_verdict
+from rl2s_jax.paper.improvement_phases import pair_floor_verdict
 from rl2s_jax.paper.tables import PAPER
 from rl2s_jax.stats import paired_gain_difference
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids

@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.train import make_config
+from rl2s_jax.app.training import make_config
 from rl2s_jax.envs.tasks import task_names
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.paper.ablation import VARIANTS, check_variants, parse_variant

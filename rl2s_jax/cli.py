@@ -169,13 +169,13 @@ def cmd_export(args) -> int:
 
 
 def cmd_train(args) -> int:
-    from rl2s_jax.app.train import train_command
+    from rl2s_jax.app.training import train_command
 
     return train_command(args)
 
 
 def cmd_evaluate(args) -> int:
-    from rl2s_jax.app import evaluate as ev
+    from rl2s_jax.app import evaluation as ev
 
     if not os.path.exists(args.data):
         raise FileNotFoundError(f"data: no such file {args.data}")
@@ -206,7 +206,7 @@ def _policy_ids(text):
 
 
 def cmd_improve(args) -> int:
-    from rl2s_jax.app.improve import guard_margin, run_improve, summary_markdown
+    from rl2s_jax.app.improvement import guard_margin, run_improve, summary_markdown
 
     s = run_improve(args.ckpt, args.data, args.out, policy_ids=args.policies,
                     iterations=args.iterations, overrides=_set(args.set), seed=args.seed,
@@ -228,7 +228,7 @@ def cmd_diagnose(args) -> int:
     """Diagnose a simulator of a Dataset: where it is wrong, why, and the extension's gain."""
     import dataclasses
 
-    from rl2s_jax.app.diagnose import diagnose
+    from rl2s_jax.app.diagnosis import diagnose
     from rl2s_jax.data.dataset import load_dataset
     from rl2s_jax.diagnose.extension import train_command
     from rl2s_jax.diagnose.model import ModelSpec
@@ -282,14 +282,14 @@ def cmd_diagnose(args) -> int:
 
 def cmd_pipeline(args) -> int:
     """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
-    from rl2s_jax.app.improve import guard_margin
+    from rl2s_jax.app.improvement import guard_margin
     from rl2s_jax.app.pipeline import run_pipeline
 
     return run_pipeline(args, guard_margin=guard_margin(args))
 
 
 def _set(items):
-    from rl2s_jax.app.train import parse_overrides
+    from rl2s_jax.app.training import parse_overrides
 
     return parse_overrides(items)
 
@@ -302,7 +302,7 @@ def _policy_source(p) -> None:
 
 def _recipe_and_guard_options(p, recipes) -> None:
     """--recipe (one of ``recipes``) and the deployment guard's options (on by default:
-    rl2s_jax/app/improve.py says why)."""
+    rl2s_jax/app/improvement.py says why)."""
     p.add_argument("--recipe", choices=sorted(recipes), help="a measured fine-tuning recipe "
                    "for the task as the defaults, flags given win (improve/recipes.py)")
     p.add_argument("--guard-margin", type=float, metavar="M",

@@ -39,7 +39,7 @@ def test_an_unregistered_task_name_is_refused_naming_the_nearest(misspelt, tmp_p
 
 
 def test_no_task_learns_reward_and_termination_from_the_data(misspelt):
-    from rl2s_jax.app.train import make_config
+    from rl2s_jax.app.training import make_config
     from rl2s_jax.envs.tasks import data_task
 
     cfg = make_config(load_dataset(misspelt), "bc", "cpu", no_task=True)

@@ -11,8 +11,8 @@ import os
 import numpy as np
 import pytest
 
-from rl2s_jax.app.diagnose import diagnose
-from rl2s_jax.app.train import parse_overrides
+from rl2s_jax.app.diagnosis import diagnose
+from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.data.episodes import from_dataset, half_split, pool_episodes, split_episodes
 from rl2s_jax.diagnose.causes import (
     CAUSES,

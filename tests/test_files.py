@@ -203,7 +203,7 @@ SMALL = {"vd_horizon": 50, "vd_episodes": 2, "updates_per_step": 2, "gen_hidden"
 def test_rerun_into_a_finished_run_keeps_its_results(pm_files, tmp_path):
     """Rerunning `rl2s train` without --eval-data (the same or more steps) keeps the test
     evaluation and the warnings the earlier summary held, and says it kept them."""
-    from rl2s_jax.app.train import run_training
+    from rl2s_jax.app.training import run_training
     from rl2s_jax.evaluate.setting import EvalSetting
 
     run = tmp_path / "run"

@@ -767,7 +767,7 @@ def test_deployment_guard_floor_needs_every_member_gain_above_the_known_error():
 
 
 def test_pipeline_guard_floor_is_the_training_mvd_at_the_guards_horizon_and_gamma():
-    from rl2s_jax.app.improve import guard_floor, training_error_floor
+    from rl2s_jax.app.improvement import guard_floor, training_error_floor
     run = {"mvd_train": 15.7, "config": {"vd_horizon": 100, "gamma": 0.999}}
     f = training_error_floor(run)
     assert f == {"mvd": 15.7, "horizon": 100, "gamma": 0.999, "step": None}
@@ -846,14 +846,14 @@ def test_median_gain_counts_the_policies_below_the_zoos_top_quartile():
 
 
 def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
-    """The protocol's guard (improve.lanes.guard_lanes) applies each lane's own floor: lane 0
-    at floor 0 decides as deployment_guard on the members' values, lane 1 at a floor no gain
+    """The protocol's guard (improve.lane_finetune.guard_lanes) applies each lane's own floor:
+    lane 0 at floor 0 decides as deployment_guard on the members' values, lane 1 at a floor no gain
     clears keeps every start; lane_training_mvd gives each lane's max training VD in
     lane_simulators' order."""
     from types import SimpleNamespace
 
-    from rl2s_jax.improve.lanes import guard_lanes
-    from rl2s_jax.paper.improvement import lane_training_mvd
+    from rl2s_jax.improve.lane_finetune import guard_lanes
+    from rl2s_jax.paper.improvement_phases import lane_training_mvd
 
     sim = _ensemble_simulator().replace(noise_scale=0.0)
     sims = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), sim)
@@ -891,7 +891,7 @@ def test_lane_error_range_is_the_spread_of_the_signed_training_errors():
     """lane_error_range: max(e) - min(e), e = train_sim_value - train_true_value (by hand:
     e = [2, -1, 0] -> 3, where the training MVD would read 2), only at the guard's horizon
     and gamma, None without the values or with a non-finite one."""
-    from rl2s_jax.paper.improvement import lane_error_range
+    from rl2s_jax.paper.improvement_phases import lane_error_range
 
     result = {"lanes": {"rl2s/0": {"family": "adversarial", "train_sim_value": [10, 5, 3]},
                         "gail/0": {"family": "adversarial"}},
@@ -911,7 +911,7 @@ def test_discordant_pair_floor_against_a_loop_over_pairs():
     (s_j > s_i, v_j <= v_i), against a plain loop on random values (ties in truth included);
     0 when every pair is ordered right; pair_floor_verdict: every member's gain above the
     floor and the margin of the lane's simulated start value."""
-    from rl2s_jax.paper.improvement import discordant_pair_floor, pair_floor_verdict
+    from rl2s_jax.paper.improvement_phases import discordant_pair_floor, pair_floor_verdict
 
     rng = np.random.default_rng(3)
     for _ in range(20):
@@ -947,8 +947,8 @@ def test_lane_floors_measure_where_training_did_not(pm_files):
     from types import SimpleNamespace
 
     from rl2s_jax.data.dataset import load_dataset
-    from rl2s_jax.evaluate.simulator import evaluate_simulator
-    from rl2s_jax.paper.improvement import lane_floors
+    from rl2s_jax.evaluate.scores import evaluate_simulator
+    from rl2s_jax.paper.improvement_phases import lane_floors
     from rl2s_jax.zoo.zoo import policies_for
 
     ds = load_dataset(pm_files["train"])
@@ -972,7 +972,7 @@ def test_lane_floors_measure_where_training_did_not(pm_files):
 def _pointmass_fine_tuning(pointmass_ppo):
     """The protocol's fine-tuning of the zoo's snapshots 1 (mediocre) and 4 (near-optimal) on
     pointmass. -> (ids, FineTuning)."""
-    from rl2s_jax.paper.improvement import FineTuning
+    from rl2s_jax.paper.improvement_phases import FineTuning
 
     ids = [1, 4]
     cfg = SACConfig.fine_tuning(n_envs=8, batch_size=128, hidden=(64, 64), warmup_steps=16,
@@ -985,13 +985,13 @@ def _pointmass_fine_tuning(pointmass_ppo):
 
 
 def test_oracle_improvement_matches_the_real_env_on_pointmass(pointmass_ppo):
-    """paper.improvement.run_oracle_improvement: fine-tuning inside the oracle (pointmass's
+    """paper.improvement_phases.run_oracle_improvement: fine-tuning inside the oracle (pointmass's
     is exact) through the simulated env gains what the real env gives (the control above:
     18 -> 42 for the mediocre snapshot), keeps the near-optimal one, and records per seed the
     paired C0 / C1 and the I, MPI and API they give."""
     from types import SimpleNamespace
 
-    from rl2s_jax.paper.improvement import run_oracle_improvement
+    from rl2s_jax.paper.improvement_phases import run_oracle_improvement
 
     ids, ft = _pointmass_fine_tuning(pointmass_ppo)
     data = SimpleNamespace(obs=_pool(64), t=np.zeros(64, np.int32))  # every row a start
@@ -1010,10 +1010,10 @@ def test_oracle_improvement_matches_the_real_env_on_pointmass(pointmass_ppo):
 
 
 def test_run_control_gains_in_the_real_env_on_pointmass(pointmass_ppo):
-    """paper.improvement.run_control: the same fine-tuning in the real env, one seed; the
+    """paper.improvement_phases.run_control: the same fine-tuning in the real env, one seed; the
     mediocre snapshot gains (18 -> 42 as above), and the entry's I, MPI and API are its own
     paired C0 / C1's."""
-    from rl2s_jax.paper.improvement import run_control
+    from rl2s_jax.paper.improvement_phases import run_control
 
     ids, ft = _pointmass_fine_tuning(pointmass_ppo)
     result, phases = {}, []

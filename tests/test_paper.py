@@ -633,7 +633,7 @@ def test_improve_recipe_guard_floor_scale_reaches_both_front_ends(monkeypatch):
 
 
 def test_no_task_changes_the_recipe_margin():
-    """``app.improve.guard_margin`` gives a recipe's margin from IMPROVE_RECIPES before the
+    """``app.improvement.guard_margin`` gives a recipe's margin from IMPROVE_RECIPES before the
     task is known (rl2s improve reads it from the checkpoint later), so a per-task margin would
     reach paper.py but not rl2s improve or rl2s pipeline: none may exist until that is built."""
     from rl2s_jax.improve import recipes

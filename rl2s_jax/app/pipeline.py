@@ -12,8 +12,8 @@ import jax
 import numpy as np
 
 from rl2s_jax._files import write_json
-from rl2s_jax.app.evaluate import evaluate_checkpoint
-from rl2s_jax.app.improve import (
+from rl2s_jax.app.evaluation import evaluate_checkpoint
+from rl2s_jax.app.improvement import (
     GUARD_MARGIN,
     check_floor_scale,
     deploy_through_guard,
@@ -22,13 +22,13 @@ from rl2s_jax.app.improve import (
     training_error_floor,
 )
 from rl2s_jax.app.report import improvement_text, load_curve, machine_info, write_report
-from rl2s_jax.app.train import parse_overrides, run_training
+from rl2s_jax.app.training import parse_overrides, run_training
 from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.evaluate.setting import EvalSetting
-from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
 from rl2s_jax.improve.recipes import recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
@@ -226,7 +226,7 @@ def pipeline_sizes(args, profile: str) -> dict:
 
 def evaluate_run(run_dir: str, test_path: str, setting: EvalSetting) -> dict:
     """The pipeline's evaluation of one method's run: its final checkpoint on the test data
-    in ``setting`` (``app.evaluate.evaluate_checkpoint``: the numbers of the run's own
+    in ``setting`` (``app.evaluation.evaluate_checkpoint``: the numbers of the run's own
     summary.json and of `rl2s evaluate` in the same setting)."""
     return evaluate_checkpoint(os.path.join(run_dir, "checkpoints"), test_path,
                                setting=setting)

@@ -15,8 +15,8 @@ import numpy as np
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.metrics import spearman
+from rl2s_jax.evaluate.scores import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
-from rl2s_jax.evaluate.simulator import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.train.checkpoint import Checkpointer, load_checkpoint
 from rl2s_jax.zoo.zoo import policies_for
 

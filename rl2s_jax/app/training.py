@@ -15,8 +15,8 @@ from rl2s_jax._files import write_json, write_text
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS, data_task
+from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.evaluate.setting import EvalSetting, profile_horizon
-from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.train.checkpoint import Checkpointer
 from rl2s_jax.train.config import TrainConfig
 from rl2s_jax.train.data import make_train_data

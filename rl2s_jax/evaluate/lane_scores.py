@@ -15,7 +15,7 @@ import numpy as np
 from rl2s_jax.data.values import true_values_se
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import noise_ceiling, ranking_metrics
-from rl2s_jax.evaluate.simulator import evaluate_oracle
+from rl2s_jax.evaluate.scores import evaluate_oracle
 from rl2s_jax.model.simulator import Simulator, simulator_returns
 
 # The ranking and value metrics of a lane's evaluation (``ranking_metrics`` at ks 1, 3, 5, 10).

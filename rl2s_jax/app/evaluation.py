@@ -12,6 +12,8 @@ import os
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_json
+from rl2s_jax.app.specs import EvaluateSpec
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.metrics import spearman
@@ -308,3 +310,26 @@ def format_agreement(result: dict) -> str:
                      f"{a['worst_rank']} of {len(a['policies'])}); Spearman of spread and "
                      f"mean |error|: {'n/a' if rho is None else f'{rho:.2f}'}")
     return "\n".join(lines)
+
+
+def run_evaluate(spec: EvaluateSpec) -> int:
+    """`rl2s evaluate`'s body: one checkpoint's (or the oracle's) report, or several
+    checkpoints' and where they disagree; printed, and written to ``spec.json`` if given."""
+    if not os.path.exists(spec.data):
+        raise FileNotFoundError(f"data: no such file {spec.data}")
+    if (spec.ckpt is None) == (not spec.oracle):
+        raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
+    kw = dict(zoo=spec.zoo, policy_file=spec.policy_file, seed=spec.seed, truth=spec.truth,
+              n_episodes=spec.episodes, horizon=spec.horizon, n_boot=spec.bootstrap)
+    if spec.ckpt and len(spec.ckpt) > 1:  # several simulators: where they disagree
+        report = evaluate_checkpoints(spec.ckpt, spec.data, step=spec.step, **kw)
+        print(format_agreement(report))
+    else:
+        report = (evaluate_oracle_data(spec.data, **kw) if spec.oracle
+                  else evaluate_checkpoint(spec.ckpt[0], spec.data, step=spec.step, **kw))
+        print(format_report(report))
+    if spec.json:
+        os.makedirs(os.path.dirname(os.path.abspath(spec.json)), exist_ok=True)
+        write_json(spec.json, report)
+        print(f"-> {spec.json}")
+    return 0

@@ -19,9 +19,11 @@ from rl2s_jax.app.improvement import (
     deploy_through_guard,
     fine_tuning_overrides,
     guard_floor,
+    guard_margin,
     training_error_floor,
 )
 from rl2s_jax.app.report import improvement_text, load_curve, machine_info, write_report
+from rl2s_jax.app.specs import PipelineSpec
 from rl2s_jax.app.training import parse_overrides, run_training
 from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
@@ -232,33 +234,32 @@ def evaluate_run(run_dir: str, test_path: str, setting: EvalSetting) -> dict:
                                setting=setting)
 
 
-def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
+def run_pipeline(spec: PipelineSpec) -> int:
     """The whole pipeline for one task: collect, train the four methods, evaluate, fine-tune
-    the test policies in each simulator through the deployment guard (``guard_margin``; None:
-    none), report."""
-
-
+    the test policies in each simulator through the deployment guard (``guard_margin(spec)``:
+    the flag's margin, the recipe's or the default; none with ``no_guard``), report."""
+    margin = guard_margin(spec)
     t_start = time.perf_counter()
     backend = jax.default_backend()
-    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
-    sizes = pipeline_sizes(args, profile)
-    methods = args.methods.split(",")
+    profile = spec.profile if spec.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    sizes = pipeline_sizes(spec, profile)
+    methods = spec.methods.split(",")
     bad = [m for m in methods if m not in ("rl2s", "gail", "bc", "rl2s-bc")]
     if bad:
         raise ValueError(f"methods: expected a comma list of rl2s, gail, bc, rl2s-bc; got {bad}")
-    out = args.out or os.path.join("results", args.task)
+    out = spec.out or os.path.join("results", spec.task)
     os.makedirs(out, exist_ok=True)
-    print(f"[pipeline] task {args.task}, backend {backend}, profile {profile} -> {out}\n"
+    print(f"[pipeline] task {spec.task}, backend {backend}, profile {profile} -> {out}\n"
           f"[pipeline] {sizes}")
     data_key = {k: sizes[k] for k in ("transitions_per_policy", "value_episodes")}
-    data_key.update(seed=args.seed, task=args.task)
-    if args.zoo:
-        data_key["zoo"] = args.zoo
-    if args.episode_length is not None:
-        data_key["episode_length"] = args.episode_length
-    summary = {"task": args.task, "profile": profile, "backend": backend,
+    data_key.update(seed=spec.seed, task=spec.task)
+    if spec.zoo:
+        data_key["zoo"] = spec.zoo
+    if spec.episode_length is not None:
+        data_key["episode_length"] = spec.episode_length
+    summary = {"task": spec.task, "profile": profile, "backend": backend,
                "machine": machine_info(), "sizes": sizes,
-               "guard_margin": guard_margin, "guard_floor_scale": sizes["guard_floor_scale"],
+               "guard_margin": margin, "guard_floor_scale": sizes["guard_floor_scale"],
                "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
                "datasets": {}}
     state_path = os.path.join(out, "pipeline.json")
@@ -272,10 +273,10 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             ds = load_dataset(path)
             print(f"[pipeline] {split} data: reusing {path}")
         else:
-            ds = collect_dataset(args.task, split, sizes["transitions_per_policy"],
-                                 seed=args.seed, value_episodes=sizes["value_episodes"],
-                                 episode_length=args.episode_length, progress=not args.quiet,
-                                 zoo_path=args.zoo)
+            ds = collect_dataset(spec.task, split, sizes["transitions_per_policy"],
+                                 seed=spec.seed, value_episodes=sizes["value_episodes"],
+                                 episode_length=spec.episode_length, progress=not spec.quiet,
+                                 zoo_path=spec.zoo)
             save_dataset(path, ds)
             print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
         summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,
@@ -283,28 +284,27 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
     summary["data_key"] = data_key
     write_json(state_path, summary)
     evals, curves, runs = {}, {}, {}
-    setting = EvalSetting.from_flags(getattr(args, "eval_episodes", None),
-                                     getattr(args, "eval_horizon", None),
-                                     getattr(args, "eval_seed", None), getattr(args, "truth", None))
+    setting = EvalSetting.from_flags(spec.eval_episodes, spec.eval_horizon, spec.eval_seed,
+                                     spec.truth)
     summary["setting"] = setting.to_dict()
     for method in methods:
         run_dir = os.path.join(out, method)
         print(f"\n[pipeline] training {method} -> {run_dir}")
         runs[method] = run_training(
             summary["datasets"]["train"]["path"], method, sizes["steps"], run_dir,
-            profile=profile, seed=args.seed, save_every=sizes["eval_every"],
+            profile=profile, seed=spec.seed, save_every=sizes["eval_every"],
             eval_data=summary["datasets"]["test"]["path"], eval_every=sizes["eval_every"],
-            setting=setting, progress=not args.quiet)
+            setting=setting, progress=not spec.quiet)
         evals[method] = evaluate_run(run_dir, summary["datasets"]["test"]["path"], setting)
         curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
     summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
                                                    "mvd_train")} for m, r in runs.items()}
     if sizes["improve_iterations"]:
         improvement = improve_in_simulators(
-            args.task, summary["datasets"]["test"]["path"],
+            spec.task, summary["datasets"]["test"]["path"],
             {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
-            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed,
-            guard_margin=guard_margin, guard_episodes=getattr(args, "guard_episodes", 16),
+            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=spec.seed,
+            guard_margin=margin, guard_episodes=spec.guard_episodes,
             guard_floors={m: training_error_floor(r) for m, r in runs.items()},
             guard_floor_scale=sizes["guard_floor_scale"],
             train_path=summary["datasets"]["train"]["path"])

@@ -269,3 +269,12 @@ def test_module_names_do_not_clash():
     shadow = [str(p.relative_to(PKG)) for d in ("app", "paper") for p in (PKG / d).glob("*.py")
               if p.stem in packages]
     assert not shadow, f"app/ or paper/ modules named after a subpackage: {shadow}"
+
+
+def test_every_experiment_script_is_listed():
+    """experiments/README.md names each script with the table or benchmark it makes."""
+    folder = PKG.parent / "experiments"
+    listed = (folder / "README.md").read_text()
+    missing = [p.name for p in sorted(folder.iterdir())
+               if p.suffix in (".py", ".sh") and f"`{p.name}`" not in listed]
+    assert not missing, f"experiments/ scripts missing from experiments/README.md: {missing}"

@@ -73,22 +73,22 @@ from rl2s_jax.zoo.zoo import Zoo, policies_for, policy_source, save_zoo
 GUARD_MARGIN = 0.02
 
 
-def guard_margin(args) -> float | None:
-    """The guard's margin from the command line's --guard-margin (None: the --recipe's, else
-    the default, ``GUARD_MARGIN``) and --no-guard (-> None: no guard); --no-guard with
-    --guard-margin, --guard-snapshots or --guard-floor-scale is refused, and so is a
-    --guard-floor-scale below 0 (before any work)."""
-    scale = check_floor_scale(getattr(args, "guard_floor_scale", None))
-    if args.no_guard:
-        given = [o for o, on in (("--guard-margin", args.guard_margin is not None),
-                                 ("--guard-snapshots", getattr(args, "guard_snapshots", False)),
+def guard_margin(spec) -> float | None:
+    """The guard's margin from a spec's (``ImproveSpec``, ``PipelineSpec``) --guard-margin (None:
+    the --recipe's, else the default, ``GUARD_MARGIN``) and --no-guard (-> None: no guard);
+    --no-guard with --guard-margin, --guard-snapshots or --guard-floor-scale is refused, and so
+    is a --guard-floor-scale below 0 (before any work)."""
+    scale = check_floor_scale(getattr(spec, "guard_floor_scale", None))
+    if spec.no_guard:
+        given = [o for o, on in (("--guard-margin", spec.guard_margin is not None),
+                                 ("--guard-snapshots", getattr(spec, "guard_snapshots", False)),
                                  ("--guard-floor-scale", scale is not None)) if on]
         if given:
             raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
         return None
-    if args.guard_margin is None and getattr(args, "recipe", None):
-        return IMPROVE_RECIPES[args.recipe]["guard_margin"]
-    return GUARD_MARGIN if args.guard_margin is None else args.guard_margin
+    if spec.guard_margin is None and getattr(spec, "recipe", None):
+        return IMPROVE_RECIPES[spec.recipe]["guard_margin"]
+    return GUARD_MARGIN if spec.guard_margin is None else spec.guard_margin
 
 
 def fine_tuning_overrides(overrides: dict | None, flag: str = "set") -> dict:

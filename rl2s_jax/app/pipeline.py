@@ -195,17 +195,17 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     return out
 
 
-def pipeline_sizes(args, profile: str) -> dict:
-    """The profile's sizes with the command line's: ``--recipe`` (``improve.recipes``: the
-    task's SAC iterations, SAC fields, simulated env and guard floor scale), then what is given:
-    the sizes, SAC fields (``--set``, checked by ``fine_tuning_overrides``), the fine-tuning's
-    simulated env (``--branch-length``, ``--uncertainty-penalty``) and
-    ``guard_floor_scale`` (else 1). ValueError before any work."""
+def pipeline_sizes(spec, profile: str) -> dict:
+    """The profile's sizes with the spec's (a ``PipelineSpec``, or an object with its fields):
+    ``--recipe`` (``improve.recipes``: the task's SAC iterations, SAC fields, simulated env and
+    guard floor scale), then what is given: the sizes, SAC fields (``--set``, checked by
+    ``fine_tuning_overrides``), the fine-tuning's simulated env (``--branch-length``,
+    ``--uncertainty-penalty``) and ``guard_floor_scale`` (else 1). ValueError before any work."""
     sizes = dict(PROFILES[profile])
-    recipe = getattr(args, "recipe", None)
-    scale = check_floor_scale(getattr(args, "guard_floor_scale", None))
+    recipe = getattr(spec, "recipe", None)
+    scale = check_floor_scale(getattr(spec, "guard_floor_scale", None))
     if recipe is not None:
-        rs = recipe_settings(recipe, args.task)  # checks the name
+        rs = recipe_settings(recipe, spec.task)  # checks the name
         sizes.update(recipe=recipe, improve_iterations=rs["iterations"],
                      sac={**sizes["sac"], **rs["sac"]}, improve_recipe={
                          k: rs[k] for k in ("branch_length", "uncertainty_penalty")})
@@ -213,16 +213,16 @@ def pipeline_sizes(args, profile: str) -> dict:
     sizes["guard_floor_scale"] = 1.0 if scale is None else scale
     for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every",
               "improve_iterations"):
-        if getattr(args, k, None) is not None:
-            sizes[k] = getattr(args, k)
+        if getattr(spec, k, None) is not None:
+            sizes[k] = getattr(spec, k)
     sizes["sac"] = {**sizes["sac"],
-                    **fine_tuning_overrides(parse_overrides(getattr(args, "set", None)))}
-    penalty = getattr(args, "uncertainty_penalty", None)
+                    **fine_tuning_overrides(parse_overrides(getattr(spec, "set", None)))}
+    penalty = getattr(spec, "uncertainty_penalty", None)
     if penalty is not None and not (np.isfinite(penalty) and penalty >= 0):
         raise ValueError(f"uncertainty-penalty: expected a finite float >= 0, got {penalty}")
     sizes["improve_recipe"] = {**sizes["improve_recipe"], **{
-        k: getattr(args, k) for k in ("branch_length", "uncertainty_penalty")
-        if getattr(args, k, None) is not None}}
+        k: getattr(spec, k) for k in ("branch_length", "uncertainty_penalty")
+        if getattr(spec, k, None) is not None}}
     return sizes
 
 

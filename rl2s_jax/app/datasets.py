@@ -11,7 +11,6 @@ import time
 
 from rl2s_jax.app.specs import CollectSpec, ExportSpec, ImportSpec, InspectSpec
 from rl2s_jax.data.dataset import DatasetError, load_dataset, save_dataset
-from rl2s_jax.data.minari import _default_id, from_minari, to_minari
 from rl2s_jax.data.summary import dataset_summary
 
 
@@ -45,6 +44,9 @@ def run_inspect(spec: InspectSpec) -> int:
 
 def run_import(spec: ImportSpec) -> int:
     """A local Minari dataset -> our Dataset file (validated)."""
+    # local: the task registry (brax, MJX) that minari.py loads, which inspect need not
+    from rl2s_jax.data.minari import from_minari
+
     ds = from_minari(spec.minari, task=spec.task, gamma=spec.gamma, policy_key=spec.policy_key)
     os.makedirs(os.path.dirname(os.path.abspath(spec.out)), exist_ok=True)
     save_dataset(spec.out, ds)
@@ -55,6 +57,9 @@ def run_import(spec: ImportSpec) -> int:
 
 def run_export(spec: ExportSpec) -> int:
     """Our Dataset file -> a Minari dataset directory."""
+    # local: the task registry (brax, MJX) that minari.py loads, which inspect need not
+    from rl2s_jax.data.minari import _default_id, to_minari
+
     ds = load_dataset(spec.data)
     out = os.path.abspath(spec.out)
     # Written beside its place, then moved in: a stop or an error leaves --out as it was.

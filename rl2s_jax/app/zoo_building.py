@@ -7,16 +7,18 @@ import os
 import time
 
 from rl2s_jax.app.specs import ZooSpec
-from rl2s_jax.app.training import parse_overrides
-from rl2s_jax.zoo import build as zb
-from rl2s_jax.zoo.store import load_runs, read_export, write_export
-from rl2s_jax.zoo.zoo import zoo_dir
 
 
 def run_zoo(spec: ZooSpec) -> int:
     """Train (or continue) a task's zoo learners, then measure, choose and split the zoo into
     ``spec.out`` (default: the shipped zoo's directory); 0 also when the time limit stops."""
     started = time.time()
+    # local: after the clock starts, so that --time-limit counts the stack's import (seconds)
+    from rl2s_jax.app.training import parse_overrides
+    from rl2s_jax.zoo import build as zb
+    from rl2s_jax.zoo.store import load_runs, read_export, write_export
+    from rl2s_jax.zoo.zoo import zoo_dir
+
     out = spec.out or zoo_dir(spec.task)
     if spec.plots_only:
         files = zb.write_zoo_plots(out)

@@ -18,7 +18,7 @@ import numpy as np
 import rl2s_jax as rl2s
 from rl2s_jax.data.dataset import Dataset
 from rl2s_jax.envs.tasks import register
-from rl2s_jax.evaluate.simulator import evaluate_simulator
+from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.policy import policy as policies
 
 DT, GRAVITY, DAMPING, GAIN = 0.05, 9.8, 0.3, 4.0

@@ -21,8 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 
 import rl2s_jax as rl2s
-from rl2s_jax.app.evaluate import evaluate_checkpoint
-from rl2s_jax.app.train import format_summary
+from rl2s_jax.app.evaluation import evaluate_checkpoint
+from rl2s_jax.app.training import format_summary
 from rl2s_jax.policy import policy as policies
 
 DT, GRAVITY, DAMPING, GAIN = 0.05, 9.8, 0.2, 5.0  # torque below gravity: it must pump

@@ -24,8 +24,8 @@ own settings, "bc:multistep_steps=5+multistep_weight=0.5" (its row is that whole
 last variant also writes OUT/ablation_<task>.json and .md, the table of
 every variant's JSON found in OUT. ``--summarize`` rebuilds that table from the JSONs of
 several directories (variants run in separate device calls). Data: the zoo's train / test split
-as experiments/paper.py collects it (``app.protocol.load_or_collect``, reused from
---data-dir). The variants, the rollout settings and the table are ``rl2s_jax.app.ablation``;
+as experiments/paper.py collects it (``paper.protocol.load_or_collect``, reused from
+--data-dir). The variants, the rollout settings and the table are ``rl2s_jax.paper.ablation``;
 the diagnostics (--open-loop, --visited-error, the hazard and termination checks)
 ``rl2s_jax.evaluate.errors``.
 """
@@ -43,24 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.ablation import (
-    METRICS,
-    VARIANTS,
-    check_variants,
-    parse_rollouts,
-    parse_variant,
-    rollout_row,
-    split_validation,
-    write_summary,
-)
-from rl2s_jax.app.protocol import (
-    TASK_SIZES,
-    load_or_collect,
-    log,
-    positive_int,
-    profile_sizes,
-)
-from rl2s_jax.app.train import make_config, parse_overrides
+from rl2s_jax.app.training import make_config, parse_overrides
 from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.data.values import true_values
 from rl2s_jax.envs.tasks import get_task, task_names
@@ -72,10 +55,27 @@ from rl2s_jax.evaluate.errors import (
     termination_causes,
     visited_error_check,
 )
-from rl2s_jax.evaluate.lanes import lane_returns
+from rl2s_jax.evaluate.lane_scores import lane_returns
 from rl2s_jax.evaluate.metrics import ranking_metrics
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.model.termination import LEARNED
+from rl2s_jax.paper.ablation import (
+    METRICS,
+    VARIANTS,
+    check_variants,
+    parse_rollouts,
+    parse_variant,
+    rollout_row,
+    split_validation,
+    write_summary,
+)
+from rl2s_jax.paper.protocol import (
+    TASK_SIZES,
+    load_or_collect,
+    log,
+    positive_int,
+    profile_sizes,
+)
 from rl2s_jax.train.data import make_train_data
 from rl2s_jax.train.lanes import heldout_start_pool, init_lanes, train_lanes
 from rl2s_jax.train.step import simulator

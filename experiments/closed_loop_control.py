@@ -28,12 +28,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.ablation import load_test_split, parse_noise
 from rl2s_jax.envs.tasks import get_task, task_names
 from rl2s_jax.evaluate.errors import noisy, one_step_std
 from rl2s_jax.evaluate.metrics import kendall_tau
 from rl2s_jax.evaluate.oracle import oracle_dynamics
 from rl2s_jax.model.simulator import simulated_returns, start_pool
+from rl2s_jax.paper.ablation import load_test_split, parse_noise
 
 
 def run(ds, task, policies, *, scales, n_episodes: int, horizon: int, gamma: float,

@@ -26,7 +26,7 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax.app.diagnose import diagnose
+from rl2s_jax.app.diagnosis import diagnose
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.diagnose.model import ModelSpec
 from rl2s_jax.diagnose.planted_mjx import EFFECTS, collect_planted

@@ -12,7 +12,7 @@ import os
 
 import jax
 
-from rl2s_jax.app.diagnose import diagnose
+from rl2s_jax.app.diagnosis import diagnose
 from rl2s_jax.diagnose.planted import make_planted
 
 EFFECTS = ("clean", "delay", "episode_param", "noise", "unobserved", "drift")

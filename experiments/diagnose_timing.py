@@ -23,7 +23,7 @@ import time
 
 import jax
 
-from rl2s_jax.app.diagnose import diagnose
+from rl2s_jax.app.diagnosis import diagnose
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.diagnose.planted_mjx import collect_planted
 from rl2s_jax.envs.tasks import get_task

@@ -31,7 +31,7 @@ import sys
 
 import numpy as np
 
-from rl2s_jax.evaluate.metrics import mean_per_unit
+from rl2s_jax.stats import bootstrap_ci, mean_per_unit
 
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
 DEFAULT_EPS, N_BOOT, GAIL = 0.25, 2000, "GAIL (eps 1)"
@@ -80,10 +80,7 @@ def check_rows(doc, task: str, variant: str | None = None) -> list[dict]:
 
 def _ci(x: np.ndarray) -> list[float] | None:
     """95% bootstrap interval of the mean of x (N_BOOT replicates, rng seed 0)."""
-    if not len(x):
-        return None
-    boot = x[np.random.default_rng(0).integers(0, len(x), (N_BOOT, len(x)))].mean(axis=1)
-    return [float(v) for v in np.percentile(boot, [2.5, 97.5])]
+    return bootstrap_ci(x, n_boot=N_BOOT, seed=0)
 
 
 def _mean(x: np.ndarray) -> float | None:

@@ -17,9 +17,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.train import make_config, parse_overrides
+from rl2s_jax.app.training import make_config, parse_overrides
 from rl2s_jax.data.dataset import load_dataset
-from rl2s_jax.evaluate.simulator import evaluate_simulator
+from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.sharding import initialize_distributed, is_writer, lane_mesh, shard_lanes
 from rl2s_jax.train.data import make_train_data
 from rl2s_jax.train.step import init, simulator, train_steps

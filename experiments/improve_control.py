@@ -50,7 +50,7 @@ import numpy as np
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from rl2s_jax.app.report import machine_info  # noqa: E402
-from rl2s_jax.app.train import parse_overrides  # noqa: E402
+from rl2s_jax.app.training import parse_overrides  # noqa: E402
 from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
 from rl2s_jax.improve.finetune import (
     improve_in_real_env,

@@ -12,13 +12,12 @@ paired with C1), raw (all deployed) and through the protocol's guard (a kept sta
 per seed, and through a perfect guard (``median_gain_perfect_guard``: each policy deployed
 exactly where it gains in reality, the most any guard could keep of the raw gain); MPI / API
 raw and guarded (means over seeds), deployed count, ``budget_env_steps``, commands.
-``paired``: RL2S's raw (and guarded) gain minus GAIL's and BC's
-(``finetune.paired_gain_difference``: per (seed, policy below the top quartile) and per
-seed). ``bars`` (with --control): ``issue_bars``.
+``paired``: RL2S's raw (and guarded) gain minus GAIL's and BC's (``stats.paired_gain_difference``:
+per (seed, policy below the top quartile) and per seed). ``bars`` (--control): ``issue_bars``.
 ``guard_rules``: what other rules would have deployed, from the members' predicted gains:
 "every member predicts a gain" and, on the lanes that recorded them, the "training-error range
-floor" (``protocol_improve.lane_error_range``) and the "discordant-pair floor"
-(``protocol_improve.pair_floor_verdict``), beside the protocol's guard (``lanes``: how many
+floor" (``paper.improvement_phases.lane_error_range``) and the "discordant-pair floor"
+(``paper.improvement_phases.pair_floor_verdict``), beside the protocol's guard (``lanes``: how many
 (method, seed) lanes). They read the test policies' real gains: they explain the guard, they
 must not choose it. ``controls``: the same median gain for the runs' own controls (``paper.py
 --improve-oracle-seeds``: the oracle's physics; ``--control``: the real env with the runs'
@@ -38,9 +37,10 @@ import sys
 
 import numpy as np
 
-from rl2s_jax.app.protocol_improve import pair_floor_verdict
-from rl2s_jax.app.results_tables import PAPER
-from rl2s_jax.improve.finetune import median_gain, paired_gain_difference
+from rl2s_jax.improve.finetune import median_gain
+from rl2s_jax.paper.improvement_phases import pair_floor_verdict
+from rl2s_jax.paper.tables import PAPER
+from rl2s_jax.stats import paired_gain_difference
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
 
 KEEP = ("task", "command", "hardware", "jax_version", "sizes", "seed_ids", "test_policy_names",

@@ -32,9 +32,9 @@ import sys
 
 import numpy as np
 
-from rl2s_jax.app.protocol import summarise
-from rl2s_jax.evaluate.lanes import intervals_over_seeds
+from rl2s_jax.evaluate.lane_scores import intervals_over_seeds
 from rl2s_jax.improve.finetune import median_gain
+from rl2s_jax.paper.protocol import summarise
 from rl2s_jax.zoo.zoo import load_zoo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

@@ -32,11 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.ablation import VARIANTS, check_variants, parse_variant
-from rl2s_jax.app.protocol import load_or_collect, log, profile_sizes
-from rl2s_jax.app.train import make_config
+from rl2s_jax.app.training import make_config
 from rl2s_jax.envs.tasks import task_names
 from rl2s_jax.model import dynamics as dyn
+from rl2s_jax.paper.ablation import VARIANTS, check_variants, parse_variant
+from rl2s_jax.paper.protocol import load_or_collect, log, profile_sizes
 from rl2s_jax.train.data import make_train_data
 from rl2s_jax.train.lanes import train_lanes
 from rl2s_jax.train.step import init

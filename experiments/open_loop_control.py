@@ -32,11 +32,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.ablation import load_test_split, parse_noise
 from rl2s_jax.envs.tasks import get_task, task_names
 from rl2s_jax.evaluate.errors import noisy, one_step_std, open_loop_inputs, open_loop_summary
 from rl2s_jax.evaluate.oracle import oracle_dynamics
 from rl2s_jax.model.simulator import mean_square, open_loop_returns, step_errors
+from rl2s_jax.paper.ablation import load_test_split, parse_noise
 
 
 def oracle_step_check(ds, task, n_rows: int = 4096, seed: int = 0) -> dict:

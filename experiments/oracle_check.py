@@ -24,7 +24,7 @@ import numpy as np
 
 from rl2s_jax.app.pipeline import collect_dataset
 from rl2s_jax.envs.tasks import get_task
-from rl2s_jax.evaluate.simulator import evaluate_oracle
+from rl2s_jax.evaluate.scores import evaluate_oracle
 from rl2s_jax.zoo.zoo import policies_for
 
 

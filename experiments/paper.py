@@ -12,8 +12,8 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
         [--set field=value ...] [--families adversarial,mle] [--first-seed K] [--no-fork]
 
-This script parses and checks the flags; the phases are ``rl2s_jax.app.protocol`` (data,
-oracle, training and evaluation) and ``rl2s_jax.app.protocol_improve`` (improvement and its
+This script parses and checks the flags; the phases are ``rl2s_jax.paper.protocol`` (data,
+oracle, training and evaluation) and ``rl2s_jax.paper.improvement_phases`` (improvement and its
 controls). Each prints its wall time and rewrites OUT/<task>.json, so a run cut off by a time
 limit keeps what it finished ("complete": false). What each phase and flag does:
 docs/EVALUATION.md, "The paper's protocol (`make paper`)".
@@ -29,8 +29,22 @@ from functools import partial
 import jax
 import numpy as np
 
-from rl2s_jax.app.improve import fine_tuning_overrides
-from rl2s_jax.app.protocol import (
+from rl2s_jax.app.improvement import fine_tuning_overrides
+from rl2s_jax.app.report import machine_info
+from rl2s_jax.app.training import make_config, parse_overrides
+from rl2s_jax.data.summary import episode_lengths
+from rl2s_jax.envs.tasks import task_names
+from rl2s_jax.improve.lane_finetune import parse_variants, uses_uncertainty, variant_settings
+from rl2s_jax.improve.recipes import IMPROVE_RECIPES, paper_flags
+from rl2s_jax.paper.improvement_phases import (
+    lane_floors,
+    lane_simulators,
+    run_control,
+    run_improvement,
+    run_oracle_improvement,
+    setup_fine_tuning,
+)
+from rl2s_jax.paper.protocol import (
     FAMILIES,
     METHODS,
     METRICS,
@@ -46,20 +60,6 @@ from rl2s_jax.app.protocol import (
     write_result,
     zoo_sha256,
 )
-from rl2s_jax.app.protocol_improve import (
-    lane_floors,
-    lane_simulators,
-    run_control,
-    run_improvement,
-    run_oracle_improvement,
-    setup_fine_tuning,
-)
-from rl2s_jax.app.report import machine_info
-from rl2s_jax.app.train import make_config, parse_overrides
-from rl2s_jax.data.summary import episode_lengths
-from rl2s_jax.envs.tasks import task_names
-from rl2s_jax.improve.lanes import parse_variants, uses_uncertainty, variant_settings
-from rl2s_jax.improve.recipes import IMPROVE_RECIPES, paper_flags
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.sharding import initialize_distributed
 from rl2s_jax.train.config import LEGACY_MODEL

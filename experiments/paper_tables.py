@@ -22,7 +22,7 @@ several --improve-variants), the fine-tuned policies, an AVD / MVD table (each c
 (n seeds) [95% interval]" beside the paper's published number, ../shared/PAPER.md Tables 1-2),
 the model selection on the training policies, and the quality bars per task (met / MISSED) with
 the MVD bar as paired differences over seeds. The row builders are in
-rl2s_jax/app/results_tables.py. Run logs (experiments/gpu_runs, experiments/cpu_runs, docs/logs)
+rl2s_jax/paper/tables.py. Run logs (experiments/gpu_runs, experiments/cpu_runs, docs/logs)
 are not tracked: a path into them is printed with "in git history at bf0c7b2". Runs no JAX
 program (importing the package loads JAX, nothing more).
 """
@@ -32,7 +32,7 @@ import argparse
 import os
 import sys
 
-from rl2s_jax.app.results_tables import (
+from rl2s_jax.paper.tables import (
     PAPER_NOTE,
     TABLE1,
     TABLE2,

@@ -22,7 +22,7 @@ import time
 
 import jax
 
-from rl2s_jax.app.physics import PhysicsSpec, diagnose_physics
+from rl2s_jax.app.physics_diagnosis import PhysicsSpec, diagnose_physics
 from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.physics.identify import FitConfig, fit_sysid, identify
 from rl2s_jax.physics.measured import Planted, collect_measured

@@ -1,9 +1,9 @@
 """Measure the value intervals of `rl2s evaluate --level` (issue 64, evaluate/trust.py) at CPU
 sizes: collect a zoo's train and test data, a held-out calibration set of perturbed training
-policies (app/trust.py ``calibration_data``), train simulators over seeds, and evaluate the
-test policies with intervals calibrated (a) on the perturbed policies, (b) on the training
-policies alone (optimistic), (c) with all seeds together, and (d) a set of perturbed test
-policies evaluated like the test policies. Every command is printed; the
+policies (app/value_intervals.py ``calibration_data``), train simulators over seeds, and
+evaluate the test policies with intervals calibrated (a) on the perturbed policies, (b) on the
+training policies alone (optimistic), (c) with all seeds together, and (d) a set of perturbed
+test policies evaluated like the test policies. Every command is printed; the
 reports land in OUT/*.json and a summary in OUT/summary.json.
 
     python experiments/trust_intervals.py --task pointmass --out runs/trust_pm
@@ -25,7 +25,7 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax.app.trust import calibration_data
+from rl2s_jax.app.value_intervals import calibration_data
 from rl2s_jax.policy import policy as pol
 from rl2s_jax.zoo import zoo as zoo_mod
 

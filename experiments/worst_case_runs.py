@@ -41,9 +41,9 @@ import sys
 
 import numpy as np
 
-from rl2s_jax.evaluate.metrics import mean_per_unit
+from rl2s_jax.stats import bootstrap_ci, mean_per_unit, t_interval
 
-METHODS = ("rl2s", "gail", "bc", "rl2s-bc")  # rl2s_jax.app.protocol.METHODS (no JAX here)
+METHODS = ("rl2s", "gail", "bc", "rl2s-bc")  # rl2s_jax.paper.protocol.METHODS (no JAX here)
 ADVERSARIAL = ("rl2s", "gail")  # the methods the NLL anchor (adv_nll_on) enters
 BAR_CONFIG = {"adv_nll_on": "all"}  # TrainConfig's defaults since 2026-11-27: the bars' runs
 MIN_SEEDS, MIN_DATA_SEEDS, N_BOOT = 5, 2, 2000
@@ -233,14 +233,9 @@ def paired_difference(a: list[dict], b: list[dict], seed: int = 0) -> dict:
            "ci95_t": None}
     if not len(d):
         return out
-    boot = d[np.random.default_rng(seed).integers(0, len(d), (N_BOOT, len(d)))].mean(axis=1)
-    out.update(mean_diff=float(d.mean()),
-               ci95_bootstrap=[float(x) for x in np.percentile(boot, [2.5, 97.5])])
-    if len(d) > 1:
-        from scipy.stats import t
-
-        half = float(t.ppf(0.975, len(d) - 1) * d.std(ddof=1) / math.sqrt(len(d)))
-        out["ci95_t"] = [float(d.mean()) - half, float(d.mean()) + half]
+    out.update(mean_diff=float(d.mean()), ci95_bootstrap=bootstrap_ci(d, n_boot=N_BOOT, seed=seed))
+    if (t := t_interval(d)) is not None:
+        out["ci95_t"] = list(t[1:])
     return out
 
 

@@ -51,12 +51,12 @@ def lane_worst(result: dict, source: str = "") -> list[dict]:
 
 def seed_spread(result: dict, source: str = "") -> list[dict]:
     """Whether the seeds' disagreement points at the worst policy: per method with 2+ seeds,
-    ``app.evaluate.simulator_agreement`` of its seeds' simulated values (each test policy's
+    ``app.evaluation.simulator_agreement`` of its seeds' simulated values (each test policy's
     spread, the std over the seeds, against its errors). -> [{source, method, seeds, rho
     (Spearman of spread and mean |error| over the policies), worst (the policy of the largest
     error), worst_rank (its rank by spread, 1 = the most disputed), top_spread (the most
     disputed policy)}]."""
-    from rl2s_jax.app.evaluate import simulator_agreement
+    from rl2s_jax.app.evaluation import simulator_agreement
 
     truth = np.asarray(result["true_value"], np.float64)
     names = result.get("test_policy_names") or [f"test-{i}" for i in range(len(truth))]

@@ -21,7 +21,7 @@ _gym.install()
 
 # public name -> the module that defines it
 _PUBLIC = {
-    "run_training": "rl2s_jax.app.train",
+    "run_training": "rl2s_jax.app.training",
     **dict.fromkeys(("Dataset", "load_dataset", "save_dataset"), "rl2s_jax.data.dataset"),
     "register": "rl2s_jax.envs.tasks",
     **dict.fromkeys(("improve_policies", "improvement_metrics", "measure_improvement"),

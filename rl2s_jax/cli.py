@@ -1,8 +1,9 @@
 """The `rl2s` command line: zoo | collect | inspect | import | export | train | evaluate |
 improve | pipeline | diagnose.
 
-Argument parsing only; each command's work is in ``rl2s_jax.app``. The app modules are
-imported inside the command functions, on purpose: importing them loads JAX, brax and MuJoCo
+Argument parsing only: each command's flags become its typed spec (``app.specs``:
+``spec_from_args``), and the command's one app function runs it (``app.specs.COMMANDS``). The
+app modules are imported only then, on purpose: importing them loads JAX, brax and MuJoCo
 (seconds), which ``rl2s --help`` and a bad argument should not wait for. The outputs a
 command names are checked right after parsing, before any work, and earlier results there are
 replaced only with ``--force`` (``OUTPUTS``, ``FORCED``, app/paths.py); Ctrl-C ends a command
@@ -12,14 +13,13 @@ with one line and status 130.
 from __future__ import annotations
 
 import argparse
+import importlib
 import os
-import shutil
 import sys
-import tempfile
 import time
 
-from rl2s_jax._files import write_json
 from rl2s_jax.app.paths import FORCED, outputs_error, stopped_message
+from rl2s_jax.app.specs import COMMANDS, SPECS, spec_from_args
 
 
 def _positive(name):
@@ -42,260 +42,12 @@ def _gamma(text):
     return value
 
 
-def cmd_zoo(args) -> int:
-    """Train (or continue) a task's zoo learners, then measure, choose and split the zoo."""
-    started = time.time()
-    from rl2s_jax.zoo import build as zb
-    from rl2s_jax.zoo.store import load_runs, read_export, write_export
-    from rl2s_jax.zoo.zoo import zoo_dir
-
-    out = args.out or zoo_dir(args.task)
-    if args.plots_only:
-        files = zb.write_zoo_plots(out)
-        print(f"zoo plots: {', '.join(files)} -> {out}")
-        return 0
-    if args.time_limit is not None and args.time_limit <= 0:
-        raise ValueError(f"time-limit: expected seconds > 0, got {args.time_limit}")
-    overrides: dict = {}
-    for k, v in _set(args.set).items():
-        learner, _, field = k.partition(".")
-        if not field:
-            raise ValueError(f"set: expected sac.FIELD=VALUE or ppo.FIELD=VALUE, got {k!r}")
-        overrides.setdefault(learner, {})[field] = v
-    algo = args.algo or zb.DEFAULT_ALGO.get(args.task, "sac")
-    plans = zb.learner_plans(args.task, algo, args.env_steps, args.snapshots, overrides)
-    work = args.work or os.path.join("runs", "zoo", args.task)
-    imported = read_export(args.import_file) if args.import_file else None
-    deadline = started + args.time_limit if args.time_limit else None
-    base, base_log = zb.zoo_with_log(args.extend) if args.extend else (None, [])
-    zoo, extras = zb.build_zoo(
-        args.task, algo=algo, seeds=args.seeds, seed=args.seed, plans=plans, work_dir=work,
-        deadline=deadline, imported=imported, value_episodes=args.value_episodes,
-        zoo_size=args.zoo_size, min_test=args.min_test if base is not None else None,
-        checkpoint_every_s=args.checkpoint_every, final=args.final, extend=base,
-        progress=not args.quiet)
-    if args.export:
-        files = write_export(args.export, load_runs(work, plans),
-                             max_bytes=int(args.export_max_mib * 2**20))
-        print(f"[zoo] exported the run for resuming: {', '.join(files)}")
-    if zoo is None:
-        print(f"zoo: training stopped at the time limit ({time.time() - started:.0f}s); the "
-              f"same command continues from {work}")
-        return 0
-    files = zb.write_zoo_outputs(zoo, base_log + extras["log"], out)
-    info = zoo.info
-    if base is not None:
-        print(f"zoo: extended {args.extend}: {len(extras['added'])} of {len(extras['log'])} new "
-              f"snapshots join the test split as ids {base.size}..{zoo.size - 1}")
-    bar = info["expert_bar"]
-    print(f"zoo: {zoo.size} policies from {info['snapshots_measured']} snapshots, returns "
-          f"{zoo.returns.min():.1f} .. {zoo.returns.max():.1f}"
-          + (f" (expert bar {bar:g}: {'met' if info['expert_bar_met'] else 'MISSED'})"
-             if bar is not None else "")
-          + f"; train {len(zoo.train_ids)}, test {len(zoo.test_ids)}")
-    for name, lr in info["learners"].items():
-        print(f"  {name}: {lr['env_steps_per_seed']:,} of {lr['env_steps_target']:,} env steps "
-              f"per seed" + ("" if lr["complete"] else " (stopped at the time limit)"))
-    for split in ("train", "test"):
-        print("  spread " + zb.format_spread(split, info["spread"][split]))
-    print(f"-> {out}: {', '.join(files)} ({time.time() - started:.0f}s)")
-    return 0
-
-
-def cmd_collect(args) -> int:
-    from rl2s_jax.app.pipeline import collect_dataset
-    from rl2s_jax.data.dataset import save_dataset
-    from rl2s_jax.data.summary import dataset_summary
-
-    t0 = time.time()
-    ds = collect_dataset(args.task, args.split, args.transitions_per_policy, seed=args.seed,
-                         envs_per_policy=args.envs_per_policy, gamma=args.gamma,
-                         value_episodes=args.value_episodes, episode_length=args.episode_length,
-                         zoo_path=args.zoo)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    save_dataset(args.out, ds)
-    print(dataset_summary(ds))
-    print(f"collected in {time.time() - t0:.0f}s -> {args.out}")
-    return 0
-
-
-def cmd_inspect(args) -> int:
-    from rl2s_jax.data.dataset import DatasetError, load_dataset
-    from rl2s_jax.data.summary import dataset_summary
-
-    try:
-        ds = load_dataset(args.data)
-    except DatasetError as err:
-        print(f"rl2s inspect: {err}", file=sys.stderr)
-        return 1
-    print(dataset_summary(ds))
-    return 0
-
-
-def cmd_import(args) -> int:
-    """A local Minari dataset -> our Dataset file (validated)."""
-    from rl2s_jax.data.dataset import save_dataset
-    from rl2s_jax.data.minari import from_minari
-    from rl2s_jax.data.summary import dataset_summary
-
-    ds = from_minari(args.minari, task=args.task, gamma=args.gamma, policy_key=args.policy_key)
-    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    save_dataset(args.out, ds)
-    print(dataset_summary(ds))
-    print(f"imported {args.minari} -> {args.out}")
-    return 0
-
-
-def cmd_export(args) -> int:
-    """Our Dataset file -> a Minari dataset directory."""
-    from rl2s_jax.data.dataset import load_dataset
-    from rl2s_jax.data.minari import _default_id, to_minari
-
-    ds = load_dataset(args.data)
-    out = os.path.abspath(args.out)
-    # Written beside its place, then moved in: a stop or an error leaves --out as it was.
-    staging = tempfile.mkdtemp(dir=os.path.dirname(out), prefix=f".{os.path.basename(out)}.")
-    try:
-        mds = to_minari(ds, os.path.join(staging, "new"), dataset_id=args.dataset_id
-                        or _default_id(os.path.basename(out)))
-        if os.path.lexists(out):  # empty, or replaced with --force (checked at the door)
-            os.replace(out, os.path.join(staging, "old"))
-        os.replace(os.path.join(staging, "new"), out)
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
-    print(f"exported {args.data} ({mds.total_episodes} episodes, {mds.total_steps} steps) -> "
-          f"Minari dataset {mds.id!r} in {args.out}")
-    return 0
-
-
-def cmd_train(args) -> int:
-    from rl2s_jax.app.train import train_command
-
-    return train_command(args)
-
-
-def cmd_evaluate(args) -> int:
-    from rl2s_jax.app import evaluate as ev
-
-    if not os.path.exists(args.data):
-        raise FileNotFoundError(f"data: no such file {args.data}")
-    if (args.ckpt is None) == (not args.oracle):
-        raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
-    kw = dict(zoo=args.zoo, policy_file=args.policy_file, seed=args.seed, truth=args.truth,
-              n_episodes=args.episodes, horizon=args.horizon, n_boot=args.bootstrap,
-              level=args.level, calibration=args.calibration)
-    if args.ckpt and len(args.ckpt) > 1:  # several simulators: where they disagree
-        report = ev.evaluate_checkpoints(args.ckpt, args.data, step=args.step, **kw)
-        print(ev.format_agreement(report))
-    else:
-        report = (ev.evaluate_oracle_data(args.data, **kw) if args.oracle
-                  else ev.evaluate_checkpoint(args.ckpt[0], args.data, step=args.step, **kw))
-        print(ev.format_report(report))
-    if args.json:
-        os.makedirs(os.path.dirname(os.path.abspath(args.json)), exist_ok=True)
-        write_json(args.json, report)
-        print(f"-> {args.json}")
-    return 0
-
-
 def _policy_ids(text):
     try:
         return [int(x) for x in text.split(",") if x.strip()]
     except ValueError:
         raise argparse.ArgumentTypeError(
             f"policies: expected comma-separated indices such as 0,3,5, got {text!r}") from None
-
-
-def cmd_improve(args) -> int:
-    from rl2s_jax.app.improve import guard_margin, run_improve, summary_markdown
-
-    s = run_improve(args.ckpt, args.data, args.out, policy_ids=args.policies,
-                    iterations=args.iterations, overrides=_set(args.set), seed=args.seed,
-                    n_episodes=args.episodes, zoo=args.zoo, policy_file=args.policy_file,
-                    step=args.step, guard_snapshots=args.guard_snapshots,
-                    measure=not args.no_measure, branch_length=args.branch_length,
-                    uncertainty_penalty=args.uncertainty_penalty,
-                    uncertainty_threshold=args.uncertainty_threshold,
-                    halt_penalty=args.halt_penalty, guard_margin=guard_margin(args),
-                    guard_episodes=args.guard_episodes, recipe=args.recipe,
-                    floor_scale=args.guard_floor_scale, progress=not args.quiet)
-    print(summary_markdown(s))
-    print(f"-> {args.out}: zoo.npz, zoo.json, summary.json, summary.md"
-          + (f", {len(s['plots'])} PNGs" if s["plots"] else ""))
-    return 0
-
-
-def cmd_diagnose(args) -> int:
-    """Diagnose a simulator of a Dataset: where it is wrong, why, and the extension's gain."""
-    import dataclasses
-
-    if args.physics:  # the MuJoCo model's diagnosis: app/physics.py maps its flags
-        from rl2s_jax.app.physics import physics_command
-        return physics_command(args)
-    from rl2s_jax.app.diagnose import diagnose
-    from rl2s_jax.data.dataset import load_dataset
-    from rl2s_jax.diagnose.extension import train_command
-    from rl2s_jax.diagnose.model import ModelSpec
-    from rl2s_jax.train.checkpoint import load_meta
-
-    if not 0.0 < args.heldout < 1.0:
-        raise ValueError(f"heldout: expected a fraction in (0, 1), got {args.heldout}")
-    if args.seeds < 1:
-        raise ValueError(f"seeds: expected an int >= 1, got {args.seeds}")
-    if args.ckpt is not None and not os.path.isdir(args.ckpt):
-        raise ValueError(f"ckpt: expected a checkpoint directory, got {args.ckpt!r}")
-    if args.reference is not None and not os.path.isfile(args.reference):
-        raise ValueError(f"reference: expected a Dataset file (.npz), got {args.reference!r}")
-    ds = load_dataset(args.data)
-    reference = None
-    if args.reference is not None:
-        reference = load_dataset(args.reference)
-        for name in ("obs_size", "action_size"):
-            if reference.meta.get(name) != ds.meta.get(name):
-                raise ValueError(f"reference: its {name} {reference.meta.get(name)} differs "
-                                 f"from the data's {ds.meta.get(name)}")
-    spec = ModelSpec()
-    if args.model_steps is not None:
-        spec = dataclasses.replace(spec, steps=args.model_steps)
-    report = diagnose(ds, args.out, ckpt=args.ckpt, seeds=tuple(range(args.seeds)),
-                      reference=reference,
-                      heldout_frac=args.heldout, split_seed=args.seed, lags=args.lags,
-                      k_max=args.k_max, base_spec=spec.validate(), zoo=args.zoo,
-                      value_episodes=args.value_episodes, alpha=args.alpha,
-                      progress=not args.quiet)
-    g = report["gain"]
-    print(f"\ntop cause: {report['top_cause']} (confidence {report['confidence']:.2f})")
-    for c in report["causes"][:4]:
-        print(f"  {c['name']:<26} score {c['score']:8.4f}  p {c['p_value']:.2g}")
-    if g["after"]:
-        for k in ("heldout_nll", "heldout_mse", f"kstep_rmse@{g['k_max']}"):
-            d = g["difference"][k]
-            print(f"  {k:<16} {g['before'][k]:9.4f} -> {g['after'][k]:9.4f}  "
-                  f"({d['mean']:+.4f} +- {d['std']:.4f} over {len(g['seeds'])} seeds)")
-    ext = report["extension"]
-    steps = (load_meta(args.ckpt)["step"] if args.ckpt is not None else None) or None
-    command = train_command(report, args.data, os.path.join(args.out, "extended"),
-                            **({"steps": int(steps)} if steps else {}))
-    if command:
-        print(f"build the extended simulator (extension.train_set in report.json):\n  {command}")
-    for n in ext.get("not_trainable", []):
-        print(f"  not built by rl2s train yet: {n['change']} ({n['why']})")
-    print(f"-> {args.out}/report.md, report.json")
-    return 0
-
-
-def cmd_pipeline(args) -> int:
-    """The whole pipeline for one task: collect, train the four methods, evaluate, report."""
-    from rl2s_jax.app.improve import guard_margin
-    from rl2s_jax.app.pipeline import run_pipeline
-
-    return run_pipeline(args, guard_margin=guard_margin(args))
-
-
-def _set(items):
-    from rl2s_jax.app.train import parse_overrides
-
-    return parse_overrides(items)
 
 
 def _policy_source(p) -> None:
@@ -306,7 +58,7 @@ def _policy_source(p) -> None:
 
 def _recipe_and_guard_options(p, recipes) -> None:
     """--recipe (one of ``recipes``) and the deployment guard's options (on by default:
-    rl2s_jax/app/improve.py says why)."""
+    rl2s_jax/app/improvement.py says why)."""
     p.add_argument("--recipe", choices=sorted(recipes), help="a measured fine-tuning recipe "
                    "for the task as the defaults, flags given win (improve/recipes.py)")
     p.add_argument("--guard-margin", type=float, metavar="M",
@@ -380,7 +132,6 @@ def build_parser() -> argparse.ArgumentParser:
                    help="only redraw curves.png / returns_hist.png from --out's zoo.json and "
                    "train_log.jsonl")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_zoo)
 
     p = sub.add_parser("collect", help="collect a Dataset from a zoo split")
     p.add_argument("--task", required=True, choices=task_names())
@@ -395,11 +146,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--zoo", help="zoo directory (default: the shipped one)")
     p.add_argument("--out", required=True)
-    p.set_defaults(func=cmd_collect)
 
     p = sub.add_parser("inspect", help="validate a dataset file and print its summary")
     p.add_argument("--data", required=True)
-    p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("import", help="convert a local Minari dataset into a Dataset file")
     p.add_argument("--minari", required=True, metavar="PATH",
@@ -411,7 +160,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gamma", type=_gamma, help="discount recorded in meta")
     p.add_argument("--policy-key", help="episode-metadata key naming each episode's policy "
                    "(default: policy_id, policy_name or policy; none: one policy)")
-    p.set_defaults(func=cmd_import)
 
     p = sub.add_parser("export", help="write a Dataset file as a Minari dataset")
     p.add_argument("--minari", action="store_true", required=True,
@@ -420,7 +168,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="new directory for the Minari dataset")
     p.add_argument("--dataset-id", help="Minari id, (namespace/)name-vN (default: the "
                    "directory name, -v0 added)")
-    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("train", help="learn a simulator from a dataset (rl2s|gail|bc|rl2s-bc)")
     p.add_argument("--data", required=True, help="training Dataset (.npz)")
@@ -451,7 +198,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume-step", type=int, help="resume from this saved step (default: "
                    "the newest intact one); later steps are moved to checkpoints/superseded/")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_train)
 
     p = sub.add_parser("evaluate", help="VD and ranking of a checkpoint's simulator on a "
                        "dataset's policies (fresh process, no training data)")
@@ -469,7 +215,6 @@ def build_parser() -> argparse.ArgumentParser:
                    "broken newer steps are skipped with a warning)")
     p.add_argument("--json", help="write the report here")
     trust_flags(p)
-    p.set_defaults(func=cmd_evaluate)
 
     p = sub.add_parser("improve", help="fine-tune a Dataset's policies with SAC inside a "
                        "saved simulator; write them as a zoo, measure the real gain")
@@ -497,7 +242,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-measure", action="store_true", help="skip the real returns")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=cmd_improve)
 
     p = sub.add_parser("pipeline", help="the whole pipeline for one task (make <task>)")
     p.add_argument("--task", required=True, choices=task_names())
@@ -520,7 +264,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--episode-length", type=_positive("episode-length"),
                    help="shorter episodes than the task's (smoke runs)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.set_defaults(func=cmd_pipeline)
 
     p = sub.add_parser("diagnose", help="where a simulator is wrong, why, and the fix's gain")
     p.add_argument("--data", required=True, help="Dataset (.npz), any task or none")
@@ -541,7 +284,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sim-xml")
     p.add_argument("--sim-frames", type=_positive("sim-frames"))  # MJCF steps per step
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    p.set_defaults(func=cmd_diagnose)
     for name in FORCED:
         sub.choices[name].add_argument("--force", action="store_true", help="replace the "
                                        "outputs an earlier run left there (default: refused)")
@@ -597,7 +339,9 @@ def _run(args) -> int:
         warnings.showwarning = show
         warnings.simplefilter("always", CheckpointWarning)
         try:
-            return args.func(args)
+            spec = spec_from_args(SPECS[args.command], args)  # checked: errors name the field
+            _, module, function = COMMANDS[args.command]
+            return getattr(importlib.import_module(module), function)(spec)
         except (ValueError, FileNotFoundError, FloatingPointError) as err:
             print(f"rl2s {args.command}: error: {err}", file=sys.stderr)
             return 2

@@ -1,4 +1,4 @@
-"""experiments/ablation_model.py and its package parts (rl2s_jax.app.ablation,
+"""experiments/ablation_model.py and its package parts (rl2s_jax.paper.ablation,
 rl2s_jax.evaluate.errors): the evaluation point is chosen on the training policies only
 (highest selection tau, ties to the lower selection AVD, non-finite last), the table reports
 the TEST metrics at that point and at the last one, averaged over seeds; the diagnostics and
@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from experiment_scripts import load_script
 
-from rl2s_jax.app import ablation as abl
 from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.evaluate import errors
+from rl2s_jax.paper import ablation as abl
 from rl2s_jax.train.lanes import select_point
 from rl2s_jax.train.step import simulator
 

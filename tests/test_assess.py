@@ -46,7 +46,7 @@ def test_value_report_states_the_spread_of_one_episode(pm_files):
     """value_report's sim_return_sd is each policy's sample std over its episodes (the noise
     that noise_ceiling needs), 0 with one episode."""
     from rl2s_jax.data.dataset import load_dataset
-    from rl2s_jax.evaluate.simulator import value_report
+    from rl2s_jax.evaluate.scores import value_report
     ds = load_dataset(pm_files["test"])
     rng = np.random.default_rng(0)
     returns = rng.normal(10.0, 3.0, size=(ds.n_policies, 7))

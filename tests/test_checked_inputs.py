@@ -39,7 +39,7 @@ def test_an_unregistered_task_name_is_refused_naming_the_nearest(misspelt, tmp_p
 
 
 def test_no_task_learns_reward_and_termination_from_the_data(misspelt):
-    from rl2s_jax.app.train import make_config
+    from rl2s_jax.app.training import make_config
     from rl2s_jax.envs.tasks import data_task
 
     cfg = make_config(load_dataset(misspelt), "bc", "cpu", no_task=True)
@@ -128,11 +128,11 @@ def test_the_right_file_passes_silently_and_a_permuted_one_warns(pm_files, tmp_p
 
 
 def test_the_command_line_prints_the_warning_as_one_line(pm_files, monkeypatch, capsys):
-    def warns(args):
+    def warns(spec):
         warnings.warn("policy-file: f.npz: 1 of 3 policies do not explain ...",
                       PolicyFileWarning, stacklevel=1)
         return 0
-    monkeypatch.setattr(cli, "cmd_inspect", warns)
+    monkeypatch.setattr("rl2s_jax.app.datasets.run_inspect", warns)
     assert cli.main(["inspect", "--data", pm_files["train"]]) == 0
     err = capsys.readouterr().err
     assert err == "rl2s inspect: warning: policy-file: f.npz: 1 of 3 policies do not explain ...\n"

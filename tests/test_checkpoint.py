@@ -262,7 +262,7 @@ def test_cli_train_bad_input(hopper_train_npz, tmp_path, capsys):
 
 def test_diagnose_a_saved_simulator(pm, tmp_path):
     """`diagnose(ckpt=...)` tests the causes on the checkpoint's residuals, not the base model's."""
-    from rl2s_jax.app.diagnose import diagnose
+    from rl2s_jax.app.diagnosis import diagnose
     from rl2s_jax.diagnose.model import ModelSpec
 
     ds, _, data = pm

@@ -13,7 +13,7 @@ from test_train import _policies as _pm_policies
 
 from rl2s_jax.data.collect import collect
 from rl2s_jax.envs.tasks import POINTMASS_DT, PointMass, get_task
-from rl2s_jax.evaluate.simulator import one_step_errors
+from rl2s_jax.evaluate.scores import one_step_errors
 from rl2s_jax.improve.sim_env import SimulatorEnv
 from rl2s_jax.model import history as H
 from rl2s_jax.model.dynamics import DynamicsSpec, Normalizer, init_member

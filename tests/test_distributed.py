@@ -35,7 +35,7 @@ LANES_PROGRAM = textwrap.dedent("""
     distributed = sharding.initialize_distributed()  # before any other JAX work
     import jax.numpy as jnp
     from test_train import _policies
-    from rl2s_jax.evaluate.lanes import lane_returns
+    from rl2s_jax.evaluate.lane_scores import lane_returns
     from rl2s_jax.train.lanes import train_lanes
     from rl2s_jax import train as T
 

@@ -14,7 +14,6 @@ from rl2s_jax.evaluate.metrics import (
     ranking_metrics,
     regret_at_k,
     spearman,
-    t_interval,
     value_differences,
 )
 
@@ -424,19 +423,3 @@ def test_noise_ceiling_rejects_bad_input(kwargs, match):
     from rl2s_jax.evaluate.metrics import noise_ceiling
     with pytest.raises(ValueError, match=match):
         noise_ceiling([0.0, 1.0], **kwargs)
-
-
-# ----------------------------------------------------------------------------- over seeds
-def test_t_interval_by_hand():
-    """Mean and Student-t interval over seeds against the textbook quantiles (t(0.975; 1) =
-    12.706, t(0.975; 2) = 4.303); fewer than two values give None; bad input raises."""
-    mid, lo, hi = t_interval([1.0, 2.0, 3.0])      # mean 2, sd 1
-    assert mid == 2.0 and hi - mid == pytest.approx(4.3027 / math.sqrt(3), rel=1e-4)
-    assert mid - lo == pytest.approx(hi - mid)
-    mid, lo, hi = t_interval([-0.01, 0.01])        # sd sqrt(2) * 0.01, n 2
-    assert mid == pytest.approx(0.0) and hi == pytest.approx(12.706 * 0.01, rel=1e-4)
-    assert t_interval([0.3]) is None and t_interval([]) is None
-    with pytest.raises(ValueError, match="values"):
-        t_interval([1.0, float("nan")])
-    with pytest.raises(ValueError, match="level"):
-        t_interval([1.0, 2.0], level=1.0)

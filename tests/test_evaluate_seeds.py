@@ -1,5 +1,5 @@
 """`rl2s evaluate` with several `--ckpt` (independently trained simulators of one task): each
-scored alike, and per policy how far they disagree (app/evaluate.simulator_agreement), the
+scored alike, and per policy how far they disagree (app/evaluation.simulator_agreement), the
 refusals before any work, and one `--ckpt` giving the report it always gave."""
 import contextlib
 import io
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from rl2s_jax import cli
-from rl2s_jax.app import evaluate as ev
+from rl2s_jax.app import evaluation as ev
 
 QUICK = ["--episodes", "2", "--horizon", "10", "--bootstrap", "0"]
 # The top-level keys of one checkpoint's report (its JSON before several --ckpt existed).

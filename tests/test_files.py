@@ -155,27 +155,28 @@ def test_unwritable_places_are_found_by_trying(tmp_path, capsys):
 # --------------------------------------------------------------------------- Ctrl-C
 
 def _interrupt(monkeypatch, name, before=None):
-    def stop(args):
+    """Ctrl-C inside the command's app function ``rl2s_jax.app.<name>`` (it gets the spec)."""
+    def stop(spec):
         if before:
-            before(args)
+            before(spec)
         raise KeyboardInterrupt
-    monkeypatch.setattr(cli, name, stop)
+    monkeypatch.setattr(f"rl2s_jax.app.{name}", stop)
 
 
 def test_ctrl_c_one_line_and_130(tmp_path, monkeypatch, capsys):
     data = tiny_dataset(tmp_path / "d.npz")
-    _interrupt(monkeypatch, "cmd_collect")
+    _interrupt(monkeypatch, "datasets.run_collect")
     assert cli.main(["collect", "--task", "pointmass", "--transitions-per-policy", "5",
                      "--out", str(tmp_path / "new.npz")]) == 130
     err = capsys.readouterr().err
     assert err.strip() == "rl2s collect: stopped; nothing was written"
     assert "Traceback" not in err
 
-    def half_report(args):
-        os.makedirs(args.out)
+    def half_report(spec):
+        os.makedirs(spec.out)
         time.sleep(0.01)
-        pathlib.Path(args.out, "report.json").write_text("{}")
-    _interrupt(monkeypatch, "cmd_diagnose", half_report)
+        pathlib.Path(spec.out, "report.json").write_text("{}")
+    _interrupt(monkeypatch, "diagnosis.run_diagnose", half_report)
     out = tmp_path / "diag"
     assert cli.main(["diagnose", "--data", data, "--out", str(out)]) == 130
     assert capsys.readouterr().err.strip() == \
@@ -184,11 +185,11 @@ def test_ctrl_c_one_line_and_130(tmp_path, monkeypatch, capsys):
     run = tmp_path / "run"
     for step in ("50", "100", "150.orbax-checkpoint-tmp-1"):
         (run / "checkpoints" / step).mkdir(parents=True)
-    _interrupt(monkeypatch, "cmd_train")
+    _interrupt(monkeypatch, "training.run_train")
     assert cli.main(["train", "--data", data, "--steps", "9", "--out", str(run)]) == 130
     assert capsys.readouterr().err.strip() == \
         "rl2s train: stopped (its newest checkpoint is step 100); the same command resumes"
-    _interrupt(monkeypatch, "cmd_zoo")
+    _interrupt(monkeypatch, "zoo_building.run_zoo")
     assert cli.main(["zoo", "--task", "pointmass", "--out", str(tmp_path / "z"), "--work",
                      str(tmp_path / "w")]) == 130
     assert "the same command continues from" in capsys.readouterr().err
@@ -203,7 +204,7 @@ SMALL = {"vd_horizon": 50, "vd_episodes": 2, "updates_per_step": 2, "gen_hidden"
 def test_rerun_into_a_finished_run_keeps_its_results(pm_files, tmp_path):
     """Rerunning `rl2s train` without --eval-data (the same or more steps) keeps the test
     evaluation and the warnings the earlier summary held, and says it kept them."""
-    from rl2s_jax.app.train import run_training
+    from rl2s_jax.app.training import run_training
     from rl2s_jax.evaluate.setting import EvalSetting
 
     run = tmp_path / "run"

@@ -1,7 +1,7 @@
 """Forking adversarial lanes off one pre-trained trunk (issue 40, item 3): ``train.lanes.fork``
 gives the state a separate run of the other eps has at the same step, bit for bit, and the
 protocol's ``train_family`` with the fork reports what it reports without it; the likelihood
-family's BC lanes join from the same pre-training (``protocol_fork.join_trunk``), with the same
+family's BC lanes join from the same pre-training (``paper.fork.join_trunk``), with the same
 result as BC trained from step 0."""
 
 import jax
@@ -125,11 +125,11 @@ def test_fork_lanes_checks_and_vmaps(pm_small):
 def test_bc_lane_runs_the_trunks_pre_training(pm_small):
     """BC (eps 1, the likelihood family's config) from the same key takes the same likelihood
     steps as an adversarial lane's pre-training: every field the pre-training writes
-    (protocol_fork.JOINED: the members, their optimiser, best weights and moving average, held-out
+    (paper.fork.JOINED: the members, their optimiser, best weights and moving average, held-out
     scores and early-stopping bookkeeping, the value measurement, the key and step) is bitwise
     equal after PRE steps, so ``join_trunk`` (the BC init with those fields of the trunk) is
     leaf for leaf the BC lane's own state, and so are the BC steps after it."""
-    from rl2s_jax.app.protocol_fork import JOINED, join_trunk
+    from rl2s_jax.paper.fork import JOINED, join_trunk
 
     ds, policies = pm_small
     cfg = _cfg()
@@ -165,8 +165,8 @@ def test_protocol_forked_family_reports_as_the_separate_one(pm_files):
     second evaluation chunk) writes the result of the separate lanes: the same structure and
     the same numbers to round-off (vmap over 2 vs 4 lanes), "fork" saying where it forked.
     Heavy: ~25 s with the compilation cache, ~2 min without (five lane programs)."""
-    from rl2s_jax.app.protocol import METRICS, train_family
     from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.paper.protocol import METRICS, train_family
     from rl2s_jax.zoo.zoo import policies_for
 
     train_ds, test_ds = load_dataset(pm_files["train"]), load_dataset(pm_files["test"])
@@ -221,8 +221,8 @@ def _close(a, b, where="result"):
 def _mle_run(pm_files, steps=4, eval_every=2):
     """Inputs of a train_family run on pm_files' data (the same objects for every family, as
     paper.py passes them) and a fresh result for some methods."""
-    from rl2s_jax.app.protocol import METRICS
     from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.paper.protocol import METRICS
     from rl2s_jax.zoo.zoo import policies_for
 
     train_ds, test_ds = load_dataset(pm_files["train"]), load_dataset(pm_files["test"])
@@ -246,7 +246,7 @@ def test_bc_lanes_join_from_the_adversarial_trunk(pm_files, steps, every):
     evaluations until then are the trunk's, and the family's result is the one of bc trained
     from step 0 (no share): the same structure, the same numbers to round-off (vmap over 2 vs
     4 lanes), "fork" saying where it joined. Heavy: ~15 s each with the compilation cache."""
-    from rl2s_jax.app.protocol import train_family
+    from rl2s_jax.paper.protocol import train_family
 
     inputs, fresh = _mle_run(pm_files, steps=steps, eval_every=every)
     share = {}
@@ -295,8 +295,8 @@ def test_incompatible_trunk_is_refused(pm_files, capsys):
     reason; the family then trains its bc lanes from step 0 and records no join."""
     import dataclasses
 
-    from rl2s_jax.app.protocol import train_family
-    from rl2s_jax.app.protocol_fork import join_refusal
+    from rl2s_jax.paper.fork import join_refusal
+    from rl2s_jax.paper.protocol import train_family
 
     inputs, fresh = _mle_run(pm_files)
     cfg = _cfg(vd_horizon=10, method="rl2s-bc")

@@ -15,7 +15,7 @@ from rl2s_jax.data.dataset import concat_datasets
 from rl2s_jax.data.episodes import from_dataset
 from rl2s_jax.diagnose.planted_mjx import make_planted_env
 from rl2s_jax.envs.tasks import POINTMASS_DT, PointMass, get_task
-from rl2s_jax.evaluate.simulator import one_step_errors
+from rl2s_jax.evaluate.scores import one_step_errors
 from rl2s_jax.improve.sim_env import SimulatorEnv
 from rl2s_jax.model import history as H
 from rl2s_jax.model.simulator import simulator_returns, start_pool

@@ -767,7 +767,7 @@ def test_deployment_guard_floor_needs_every_member_gain_above_the_known_error():
 
 
 def test_pipeline_guard_floor_is_the_training_mvd_at_the_guards_horizon_and_gamma():
-    from rl2s_jax.app.improve import guard_floor, training_error_floor
+    from rl2s_jax.app.improvement import guard_floor, training_error_floor
     run = {"mvd_train": 15.7, "config": {"vd_horizon": 100, "gamma": 0.999}}
     f = training_error_floor(run)
     assert f == {"mvd": 15.7, "horizon": 100, "gamma": 0.999, "step": None}
@@ -831,47 +831,6 @@ def test_select_by_members_values_every_snapshot_and_deploys_the_choice():
                           pool, key, **roll)
 
 
-def test_median_ci95_brackets_the_median_and_repeats():
-    """median_ci95: a constant sample's interval is that constant; 0..100's brackets its
-    median 50 within +-10; one seed gives one interval, a median far from the mean (one huge
-    ratio, as a start near 0 gives) moves it not at all."""
-    from rl2s_jax.improve.finetune import median_ci95
-
-    assert median_ci95(np.full(7, 0.3), 200) == pytest.approx([0.3, 0.3])
-    lo, hi = median_ci95(np.arange(101.0), 500)
-    assert 40 <= lo <= 50 <= hi <= 60
-    assert median_ci95(np.arange(101.0), 500) == [lo, hi]
-    skewed = np.arange(101.0)
-    skewed[-1] = 1e9
-    assert median_ci95(skewed, 500) == [lo, hi]
-
-
-def test_paired_gain_difference_by_hand():
-    """paired_gain_difference: the pairs over the seeds both methods ran (seed 9 only A has),
-    the per-seed median difference and its t-interval against a plain loop; one common seed
-    gives no interval; different policy counts per seed are refused."""
-    from rl2s_jax.improve.finetune import paired_gain_difference
-
-    a = {0: np.array([0.5, 0.1, 0.3]), 1: np.array([0.2, 0.9, 0.0]), 9: np.array([9.0] * 3)}
-    b = {0: np.array([0.4, 0.3, 0.1]), 1: np.array([0.1, 0.1, 0.1])}
-    got = paired_gain_difference(a, b, n_boot=300)
-    d = [x - y for k in (0, 1) for x, y in zip(a[k], b[k], strict=True)]
-    assert got["seeds"] == [0, 1] and got["pairs"] == 6
-    assert got["median"] == pytest.approx(np.median(d))
-    assert got["rl2s_higher"] == sum(x > 0 for x in d)          # 4: 0.1, 0.2, 0.1, 0.8
-    per = [np.median(a[k]) - np.median(b[k]) for k in (0, 1)]   # 0.0, +0.1
-    assert got["over_seeds"]["per_seed"] == pytest.approx(per)
-    half = 12.706 * np.std(per, ddof=1) / np.sqrt(2)             # t(0.975; 1 dof)
-    assert got["over_seeds"]["mean"] == pytest.approx(np.mean(per))
-    assert got["over_seeds"]["t95"] == pytest.approx([np.mean(per) - half,
-                                                      np.mean(per) + half], rel=1e-4)
-    one = paired_gain_difference({0: a[0]}, b, n_boot=100)
-    assert one["over_seeds"]["mean"] is None and one["pairs"] == 3
-    assert paired_gain_difference({9: a[9]}, b) is None
-    with pytest.raises(ValueError, match="same policies"):
-        paired_gain_difference({0: a[0][:2]}, b)
-
-
 def test_median_gain_counts_the_policies_below_the_zoos_top_quartile():
     zoo = np.arange(1.0, 101.0)  # top quartile from 75.25
     start = np.array([10.0, 50.0, 80.0, 90.0, 70.0])
@@ -887,14 +846,14 @@ def test_median_gain_counts_the_policies_below_the_zoos_top_quartile():
 
 
 def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
-    """The protocol's guard (improve.lanes.guard_lanes) applies each lane's own floor: lane 0
-    at floor 0 decides as deployment_guard on the members' values, lane 1 at a floor no gain
+    """The protocol's guard (improve.lane_finetune.guard_lanes) applies each lane's own floor:
+    lane 0 at floor 0 decides as deployment_guard on the members' values, lane 1 at a floor no gain
     clears keeps every start; lane_training_mvd gives each lane's max training VD in
     lane_simulators' order."""
     from types import SimpleNamespace
 
-    from rl2s_jax.app.protocol_improve import lane_training_mvd
-    from rl2s_jax.improve.lanes import guard_lanes
+    from rl2s_jax.improve.lane_finetune import guard_lanes
+    from rl2s_jax.paper.improvement_phases import lane_training_mvd
 
     sim = _ensemble_simulator().replace(noise_scale=0.0)
     sims = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), sim)
@@ -932,7 +891,7 @@ def test_lane_error_range_is_the_spread_of_the_signed_training_errors():
     """lane_error_range: max(e) - min(e), e = train_sim_value - train_true_value (by hand:
     e = [2, -1, 0] -> 3, where the training MVD would read 2), only at the guard's horizon
     and gamma, None without the values or with a non-finite one."""
-    from rl2s_jax.app.protocol_improve import lane_error_range
+    from rl2s_jax.paper.improvement_phases import lane_error_range
 
     result = {"lanes": {"rl2s/0": {"family": "adversarial", "train_sim_value": [10, 5, 3]},
                         "gail/0": {"family": "adversarial"}},
@@ -952,7 +911,7 @@ def test_discordant_pair_floor_against_a_loop_over_pairs():
     (s_j > s_i, v_j <= v_i), against a plain loop on random values (ties in truth included);
     0 when every pair is ordered right; pair_floor_verdict: every member's gain above the
     floor and the margin of the lane's simulated start value."""
-    from rl2s_jax.app.protocol_improve import discordant_pair_floor, pair_floor_verdict
+    from rl2s_jax.paper.improvement_phases import discordant_pair_floor, pair_floor_verdict
 
     rng = np.random.default_rng(3)
     for _ in range(20):
@@ -987,9 +946,9 @@ def test_lane_floors_measure_where_training_did_not(pm_files):
     (evaluate_simulator with the lane's key)."""
     from types import SimpleNamespace
 
-    from rl2s_jax.app.protocol_improve import lane_floors
     from rl2s_jax.data.dataset import load_dataset
-    from rl2s_jax.evaluate.simulator import evaluate_simulator
+    from rl2s_jax.evaluate.scores import evaluate_simulator
+    from rl2s_jax.paper.improvement_phases import lane_floors
     from rl2s_jax.zoo.zoo import policies_for
 
     ds = load_dataset(pm_files["train"])
@@ -1013,7 +972,7 @@ def test_lane_floors_measure_where_training_did_not(pm_files):
 def _pointmass_fine_tuning(pointmass_ppo):
     """The protocol's fine-tuning of the zoo's snapshots 1 (mediocre) and 4 (near-optimal) on
     pointmass. -> (ids, FineTuning)."""
-    from rl2s_jax.app.protocol_improve import FineTuning
+    from rl2s_jax.paper.improvement_phases import FineTuning
 
     ids = [1, 4]
     cfg = SACConfig.fine_tuning(n_envs=8, batch_size=128, hidden=(64, 64), warmup_steps=16,
@@ -1026,13 +985,13 @@ def _pointmass_fine_tuning(pointmass_ppo):
 
 
 def test_oracle_improvement_matches_the_real_env_on_pointmass(pointmass_ppo):
-    """app.protocol_improve.run_oracle_improvement: fine-tuning inside the oracle (pointmass's
+    """paper.improvement_phases.run_oracle_improvement: fine-tuning inside the oracle (pointmass's
     is exact) through the simulated env gains what the real env gives (the control above:
     18 -> 42 for the mediocre snapshot), keeps the near-optimal one, and records per seed the
     paired C0 / C1 and the I, MPI and API they give."""
     from types import SimpleNamespace
 
-    from rl2s_jax.app.protocol_improve import run_oracle_improvement
+    from rl2s_jax.paper.improvement_phases import run_oracle_improvement
 
     ids, ft = _pointmass_fine_tuning(pointmass_ppo)
     data = SimpleNamespace(obs=_pool(64), t=np.zeros(64, np.int32))  # every row a start
@@ -1051,10 +1010,10 @@ def test_oracle_improvement_matches_the_real_env_on_pointmass(pointmass_ppo):
 
 
 def test_run_control_gains_in_the_real_env_on_pointmass(pointmass_ppo):
-    """app.protocol_improve.run_control: the same fine-tuning in the real env, one seed; the
+    """paper.improvement_phases.run_control: the same fine-tuning in the real env, one seed; the
     mediocre snapshot gains (18 -> 42 as above), and the entry's I, MPI and API are its own
     paired C0 / C1's."""
-    from rl2s_jax.app.protocol_improve import run_control
+    from rl2s_jax.paper.improvement_phases import run_control
 
     ids, ft = _pointmass_fine_tuning(pointmass_ppo)
     result, phases = {}, []

@@ -357,7 +357,7 @@ def test_improve_guard_floor_comes_from_the_training_summary(pointmass_checkpoin
 
 
 def test_checkpoint_floor_reads_the_summary_beside_the_checkpoint(tmp_path):
-    from rl2s_jax.app.improve import checkpoint_floor
+    from rl2s_jax.app.improvement import checkpoint_floor
 
     ckpt = tmp_path / "run" / "checkpoints"
     ckpt.mkdir(parents=True)

@@ -36,7 +36,7 @@ def test_the_setting_checks_its_fields_and_fills_its_horizon_in_one_place():
 def test_the_training_profile_takes_its_horizon_from_the_setting_module(pm_files):
     """The oracle's default horizon and a trained checkpoint's vd_horizon are one rule
     (``profile_horizon``), so `--oracle` and a simulator trained here score one horizon."""
-    from rl2s_jax.app.train import make_config
+    from rl2s_jax.app.training import make_config
     from rl2s_jax.data.dataset import load_dataset
 
     ds = load_dataset(pm_files["test"])
@@ -150,8 +150,8 @@ def test_the_oracle_scores_the_horizon_a_simulator_trained_here_does(pm_files, m
     """`rl2s evaluate --oracle` on 300-step episodes: the cpu profile's 100 steps, the
     vd_horizon `rl2s train` gives a checkpoint of this data on this backend (it took the
     data's 300 before)."""
-    from rl2s_jax.app import evaluate as ev
-    from rl2s_jax.app.train import make_config
+    from rl2s_jax.app import evaluation as ev
+    from rl2s_jax.app.training import make_config
     from rl2s_jax.data.dataset import load_dataset
 
     ds = load_dataset(pm_files["test"])

@@ -8,7 +8,7 @@ from test_train import _policies as _pm_policies  # biased pointmass policies
 from rl2s_jax.data.collect import collect
 from rl2s_jax.envs.tasks import get_task, pointmass_dynamics
 from rl2s_jax.evaluate.oracle import oracle_dynamics
-from rl2s_jax.evaluate.simulator import evaluate_oracle
+from rl2s_jax.evaluate.scores import evaluate_oracle
 from rl2s_jax.policy import policy as pol
 from rl2s_jax.zoo import zoo as zoo_mod
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from rl2s_jax import cli
-from rl2s_jax.app.evaluate import checkpoint_setting
+from rl2s_jax.app.evaluation import checkpoint_setting
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
 from rl2s_jax.policy import policy as pol
@@ -281,7 +281,7 @@ def test_any_jax_policy_function_is_evaluated_from_python(run):
     values follow what its actions do."""
     import jax.numpy as jnp
 
-    from rl2s_jax.evaluate.simulator import evaluate_simulator
+    from rl2s_jax.evaluate.scores import evaluate_simulator
     from rl2s_jax.train.checkpoint import load_simulator
 
     sim, ds = load_simulator(run["ckpt"]), load_dataset(run["data"])

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from experiment_scripts import load_script
 
-from rl2s_jax.app import results_tables
 from rl2s_jax.improve.finetune import deployment_guard
 from rl2s_jax.improve.recipes import recipe_settings
+from rl2s_jax.paper import tables as results_tables
 from rl2s_jax.zoo.zoo import load_zoo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -534,7 +534,7 @@ def test_paper_families_flag():
 def test_paper_eps_lanes_flag():
     """--eps-lanes adds rl2s@EPS lanes to the adversarial family after its rl2s lanes (the
     fork's trunk stays first); bad values, no adversarial family or fine-tuning are refused."""
-    from rl2s_jax.app.protocol import lane_eps
+    from rl2s_jax.paper.protocol import lane_eps
     paper = _load("paper")
     fams = paper.add_eps_lanes(paper.parse_families("adversarial,mle"), "0.05, 0.5,0.05", 0)
     assert fams[0][2] == ("rl2s", "rl2s@0.05", "rl2s@0.5", "gail")
@@ -633,7 +633,7 @@ def test_improve_recipe_guard_floor_scale_reaches_both_front_ends(monkeypatch):
 
 
 def test_no_task_changes_the_recipe_margin():
-    """``app.improve.guard_margin`` gives a recipe's margin from IMPROVE_RECIPES before the
+    """``app.improvement.guard_margin`` gives a recipe's margin from IMPROVE_RECIPES before the
     task is known (rl2s improve reads it from the checkpoint later), so a per-task margin would
     reach paper.py but not rl2s improve or rl2s pipeline: none may exist until that is built."""
     from rl2s_jax.improve import recipes

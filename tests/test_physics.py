@@ -107,7 +107,7 @@ def test_collector_records_planted_truth(pm, zoo_params, datasets):
 def test_step_reproduces_the_task_env(pm, env_cache):
     import jax
 
-    from rl2s_jax.physics.errors import predict
+    from rl2s_jax.physics.residuals import predict
 
     env = env_cache("hopper")
     step = jax.jit(env.step)
@@ -152,7 +152,7 @@ def test_planted_change_is_named_with_its_value(pm, zoo_params, datasets, case):
 
 
 def test_no_physics_model_fails_fast(tmp_path, pm_files):
-    from rl2s_jax.app.physics import PhysicsSpec, diagnose_physics
+    from rl2s_jax.app.physics_diagnosis import PhysicsSpec, diagnose_physics
 
     with pytest.raises(ValueError, match="no physics model.*--sim-xml"):
         diagnose_physics(PhysicsSpec(data=pm_files["train"], out=str(tmp_path / "o")))
@@ -183,7 +183,7 @@ def test_cli_writes_the_physics_report(tmp_path, pm, zoo_params, datasets):
     err = report["errors"]
     assert err["calibrated"]["kstep"][-1] < err["nominal"]["kstep"][-1]
     # the calibrated simulator the report's command loads carries the identified gear
-    from rl2s_jax.app.physics import load_calibrated
+    from rl2s_jax.app.physics_diagnosis import load_calibrated
 
     pm2, theta, delays = load_calibrated(str(out / "calibrated.json"))
     k = pm2.index("actuator_gear", "leg_joint")

@@ -88,7 +88,7 @@ def test_hopper_pipeline_smoke(tmp_path, capsys):
     assert json.loads((out / "report.json").read_text())["guard_margin"] is None
     # a training MVD measured at another horizon is no floor at the guard's: the pipeline
     # measures the simulator's MVD on the training policies at the real episodes' length
-    from rl2s_jax.app.evaluate import evaluate_checkpoint
+    from rl2s_jax.app.evaluation import evaluate_checkpoint
     from rl2s_jax.app.pipeline import PROFILES, improve_in_simulators
     ckpt, train = str(out / "rl2s" / "checkpoints"), str(out / "train.npz")
     sizes = {**PROFILES["cpu"], "improve_iterations": 2, "value_episodes": 16}
@@ -133,7 +133,7 @@ def test_pipeline_recipe_gives_the_defaults_and_flags_win():
     improve --recipe` and paper.py --improve-recipe do: ``recipe_settings``): its iterations,
     SAC fields, branches, penalty, guard margin and floor scale (Walker2d's 0); flags given
     win; without a recipe the floor scale is 1."""
-    from rl2s_jax.app.improve import guard_margin
+    from rl2s_jax.app.improvement import guard_margin
     from rl2s_jax.app.pipeline import PROFILES, pipeline_sizes
     from rl2s_jax.cli import build_parser
     from rl2s_jax.improve.recipes import recipe_settings

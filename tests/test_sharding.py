@@ -21,7 +21,7 @@ SHARDED_VS_PLAIN = textwrap.dedent("""
     import jax, jax.numpy as jnp, numpy as np
     assert jax.device_count() == 4, jax.devices()
     from test_train import _policies
-    from rl2s_jax.evaluate.lanes import lane_returns
+    from rl2s_jax.evaluate.lane_scores import lane_returns
     from rl2s_jax.train.lanes import train_lanes
     from rl2s_jax import train as T
     from rl2s_jax.data.collect import collect

@@ -784,7 +784,7 @@ def test_make_config_profiles():
     overrides win; bad profiles and unknown fields are refused by name."""
     from types import SimpleNamespace
 
-    from rl2s_jax.app.train import CPU_MODEL, make_config
+    from rl2s_jax.app.training import CPU_MODEL, make_config
 
     ds = SimpleNamespace(meta={"task": "hopper", "episode_length": 1000, "gamma": 0.99})
     gpu = make_config(ds, "rl2s", "gpu")

@@ -3,7 +3,7 @@ inside pre-training says so; test-data results reach summary.json and the table 
 were measured; inspect tells the logged return from the true discounted value."""
 import json
 
-from rl2s_jax.app.train import format_summary, run_training
+from rl2s_jax.app.training import format_summary, run_training
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.evaluate.setting import EvalSetting

@@ -147,7 +147,7 @@ def test_evaluate_level_on_pointmass(pm_files, pm_checkpoint, tmp_path):
     """The plumbing: evaluate_checkpoint(level=) gives each policy an interval around its
     simulated value, features of the right shapes, calibration on the given file only; the
     evaluated data as calibration is refused; the CLI prints the interval column."""
-    from rl2s_jax.app.evaluate import evaluate_checkpoint, format_report
+    from rl2s_jax.app.evaluation import evaluate_checkpoint, format_report
 
     r = evaluate_checkpoint(pm_checkpoint, pm_files["test"], level=0.5, n_episodes=4,
                             horizon=20, calibration=[pm_files["train"]])
@@ -179,7 +179,7 @@ def test_evaluate_level_on_pointmass(pm_files, pm_checkpoint, tmp_path):
 def test_calibration_data_of_perturbed_policies(pm_files, tmp_path):
     """calibration_data writes a Dataset of perturbed zoo policies with true values whose
     policies policies_for finds through its policy file."""
-    from rl2s_jax.app.trust import calibration_data
+    from rl2s_jax.app.value_intervals import calibration_data
     from rl2s_jax.data.dataset import load_dataset
     from rl2s_jax.policy.policy import num_policies
     from rl2s_jax.zoo.zoo import policies_for
@@ -226,7 +226,7 @@ def test_default_calibration_is_the_training_data(pm_files, tmp_path):
     evaluating that training data itself skips the intervals with the reason."""
     import os
 
-    from rl2s_jax.app.evaluate import evaluate_checkpoint
+    from rl2s_jax.app.evaluation import evaluate_checkpoint
     from rl2s_jax.data.dataset import load_dataset
     from rl2s_jax.train.checkpoint import Checkpointer
     from rl2s_jax.train.config import TrainConfig
@@ -251,7 +251,7 @@ def test_default_calibration_is_the_training_data(pm_files, tmp_path):
     own = evaluate_checkpoint(ckpt, pm_files["train"], level=0.9, n_episodes=4)
     assert "training data" in own["trust"]["skipped"] and "interval" not in own
     # two seeds: one interval per policy around their mean, with the seeds' spread in sigma
-    from rl2s_jax.app.evaluate import evaluate_checkpoints, format_agreement
+    from rl2s_jax.app.evaluation import evaluate_checkpoints, format_agreement
 
     two = evaluate_checkpoints([ckpt, ckpt1], pm_files["test"], level=0.5, n_episodes=4,
                                calibration=[pm_files["train"]])

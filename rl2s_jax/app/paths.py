@@ -103,7 +103,7 @@ OUTPUTS = {
 }
 # The outputs that an earlier run's results may hold, replaced only with --force: option ->
 # the file names inside a "dir" output that count (None: the file, or the directory whole).
-# `rl2s train --out` is not here: a run directory resumes (app/train.py keeps its summary).
+# `rl2s train --out` is not here: a run directory resumes (app/training.py keeps its summary).
 FORCED = {
     "zoo": {"--out": ("zoo.npz", "zoo.json")},
     "collect": {"--out": None},

@@ -12,23 +12,25 @@ import jax
 import numpy as np
 
 from rl2s_jax._files import write_json
-from rl2s_jax.app.evaluate import evaluate_checkpoint
-from rl2s_jax.app.improve import (
+from rl2s_jax.app.evaluation import evaluate_checkpoint
+from rl2s_jax.app.improvement import (
     GUARD_MARGIN,
     check_floor_scale,
     deploy_through_guard,
     fine_tuning_overrides,
     guard_floor,
+    guard_margin,
     training_error_floor,
 )
 from rl2s_jax.app.report import improvement_text, load_curve, machine_info, write_report
-from rl2s_jax.app.train import parse_overrides, run_training
+from rl2s_jax.app.specs import PipelineSpec
+from rl2s_jax.app.training import parse_overrides, run_training
 from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.summary import dataset_summary
 from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.evaluate.setting import EvalSetting
-from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.evaluate.trust import DEFAULT_LEVEL
 from rl2s_jax.improve.finetune import improve_policies, paired_episode_returns, paired_returns
 from rl2s_jax.improve.recipes import recipe_settings
@@ -194,17 +196,17 @@ def improve_in_simulators(task_name: str, test_path: str, ckpts: dict[str, str],
     return out
 
 
-def pipeline_sizes(args, profile: str) -> dict:
-    """The profile's sizes with the command line's: ``--recipe`` (``improve.recipes``: the
-    task's SAC iterations, SAC fields, simulated env and guard floor scale), then what is given:
-    the sizes, SAC fields (``--set``, checked by ``fine_tuning_overrides``), the fine-tuning's
-    simulated env (``--branch-length``, ``--uncertainty-penalty``) and
-    ``guard_floor_scale`` (else 1). ValueError before any work."""
+def pipeline_sizes(spec, profile: str) -> dict:
+    """The profile's sizes with the spec's (a ``PipelineSpec``, or an object with its fields):
+    ``--recipe`` (``improve.recipes``: the task's SAC iterations, SAC fields, simulated env and
+    guard floor scale), then what is given: the sizes, SAC fields (``--set``, checked by
+    ``fine_tuning_overrides``), the fine-tuning's simulated env (``--branch-length``,
+    ``--uncertainty-penalty``) and ``guard_floor_scale`` (else 1). ValueError before any work."""
     sizes = dict(PROFILES[profile])
-    recipe = getattr(args, "recipe", None)
-    scale = check_floor_scale(getattr(args, "guard_floor_scale", None))
+    recipe = getattr(spec, "recipe", None)
+    scale = check_floor_scale(getattr(spec, "guard_floor_scale", None))
     if recipe is not None:
-        rs = recipe_settings(recipe, args.task)  # checks the name
+        rs = recipe_settings(recipe, spec.task)  # checks the name
         sizes.update(recipe=recipe, improve_iterations=rs["iterations"],
                      sac={**sizes["sac"], **rs["sac"]}, improve_recipe={
                          k: rs[k] for k in ("branch_length", "uncertainty_penalty")})
@@ -212,23 +214,23 @@ def pipeline_sizes(args, profile: str) -> dict:
     sizes["guard_floor_scale"] = 1.0 if scale is None else scale
     for k in ("transitions_per_policy", "value_episodes", "steps", "eval_every",
               "improve_iterations"):
-        if getattr(args, k, None) is not None:
-            sizes[k] = getattr(args, k)
+        if getattr(spec, k, None) is not None:
+            sizes[k] = getattr(spec, k)
     sizes["sac"] = {**sizes["sac"],
-                    **fine_tuning_overrides(parse_overrides(getattr(args, "set", None)))}
-    penalty = getattr(args, "uncertainty_penalty", None)
+                    **fine_tuning_overrides(parse_overrides(getattr(spec, "set", None)))}
+    penalty = getattr(spec, "uncertainty_penalty", None)
     if penalty is not None and not (np.isfinite(penalty) and penalty >= 0):
         raise ValueError(f"uncertainty-penalty: expected a finite float >= 0, got {penalty}")
     sizes["improve_recipe"] = {**sizes["improve_recipe"], **{
-        k: getattr(args, k) for k in ("branch_length", "uncertainty_penalty")
-        if getattr(args, k, None) is not None}}
+        k: getattr(spec, k) for k in ("branch_length", "uncertainty_penalty")
+        if getattr(spec, k, None) is not None}}
     return sizes
 
 
 def evaluate_run(run_dir: str, test_path: str, setting: EvalSetting,
                  level: float | None = DEFAULT_LEVEL) -> dict:
     """The pipeline's evaluation of one method's run: its final checkpoint on the test data
-    in ``setting`` (``app.evaluate.evaluate_checkpoint``: the numbers of the run's own
+    in ``setting`` (``app.evaluation.evaluate_checkpoint``: the numbers of the run's own
     summary.json and of `rl2s evaluate` in the same setting), with each test policy's value
     interval at ``level`` calibrated on the training policies ("trust": optimistic, the
     simulator was fitted on their data; None: none)."""
@@ -236,33 +238,32 @@ def evaluate_run(run_dir: str, test_path: str, setting: EvalSetting,
                                setting=setting, level=level)
 
 
-def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
+def run_pipeline(spec: PipelineSpec) -> int:
     """The whole pipeline for one task: collect, train the four methods, evaluate, fine-tune
-    the test policies in each simulator through the deployment guard (``guard_margin``; None:
-    none), report."""
-
-
+    the test policies in each simulator through the deployment guard (``guard_margin(spec)``:
+    the flag's margin, the recipe's or the default; none with ``no_guard``), report."""
+    margin = guard_margin(spec)
     t_start = time.perf_counter()
     backend = jax.default_backend()
-    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
-    sizes = pipeline_sizes(args, profile)
-    methods = args.methods.split(",")
+    profile = spec.profile if spec.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    sizes = pipeline_sizes(spec, profile)
+    methods = spec.methods.split(",")
     bad = [m for m in methods if m not in ("rl2s", "gail", "bc", "rl2s-bc")]
     if bad:
         raise ValueError(f"methods: expected a comma list of rl2s, gail, bc, rl2s-bc; got {bad}")
-    out = args.out or os.path.join("results", args.task)
+    out = spec.out or os.path.join("results", spec.task)
     os.makedirs(out, exist_ok=True)
-    print(f"[pipeline] task {args.task}, backend {backend}, profile {profile} -> {out}\n"
+    print(f"[pipeline] task {spec.task}, backend {backend}, profile {profile} -> {out}\n"
           f"[pipeline] {sizes}")
     data_key = {k: sizes[k] for k in ("transitions_per_policy", "value_episodes")}
-    data_key.update(seed=args.seed, task=args.task)
-    if args.zoo:
-        data_key["zoo"] = args.zoo
-    if args.episode_length is not None:
-        data_key["episode_length"] = args.episode_length
-    summary = {"task": args.task, "profile": profile, "backend": backend,
+    data_key.update(seed=spec.seed, task=spec.task)
+    if spec.zoo:
+        data_key["zoo"] = spec.zoo
+    if spec.episode_length is not None:
+        data_key["episode_length"] = spec.episode_length
+    summary = {"task": spec.task, "profile": profile, "backend": backend,
                "machine": machine_info(), "sizes": sizes,
-               "guard_margin": guard_margin, "guard_floor_scale": sizes["guard_floor_scale"],
+               "guard_margin": margin, "guard_floor_scale": sizes["guard_floor_scale"],
                "methods_run": methods, "command": " ".join(["rl2s"] + sys.argv[1:]),
                "datasets": {}}
     state_path = os.path.join(out, "pipeline.json")
@@ -276,10 +277,10 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
             ds = load_dataset(path)
             print(f"[pipeline] {split} data: reusing {path}")
         else:
-            ds = collect_dataset(args.task, split, sizes["transitions_per_policy"],
-                                 seed=args.seed, value_episodes=sizes["value_episodes"],
-                                 episode_length=args.episode_length, progress=not args.quiet,
-                                 zoo_path=args.zoo)
+            ds = collect_dataset(spec.task, split, sizes["transitions_per_policy"],
+                                 seed=spec.seed, value_episodes=sizes["value_episodes"],
+                                 episode_length=spec.episode_length, progress=not spec.quiet,
+                                 zoo_path=spec.zoo)
             save_dataset(path, ds)
             print(f"\n== {split} data: {path}\n{dataset_summary(ds)}")
         summary["datasets"][split] = {"path": path, "transitions": ds.n_transitions,
@@ -287,29 +288,27 @@ def run_pipeline(args, guard_margin: float | None = GUARD_MARGIN) -> int:
     summary["data_key"] = data_key
     write_json(state_path, summary)
     evals, curves, runs = {}, {}, {}
-    setting = EvalSetting.from_flags(getattr(args, "eval_episodes", None),
-                                     getattr(args, "eval_horizon", None),
-                                     getattr(args, "eval_seed", None), getattr(args, "truth", None))
+    setting = EvalSetting.from_flags(spec.eval_episodes, spec.eval_horizon, spec.eval_seed,
+                                     spec.truth)
     summary["setting"] = setting.to_dict()
     for method in methods:
         run_dir = os.path.join(out, method)
         print(f"\n[pipeline] training {method} -> {run_dir}")
         runs[method] = run_training(
             summary["datasets"]["train"]["path"], method, sizes["steps"], run_dir,
-            profile=profile, seed=args.seed, save_every=sizes["eval_every"],
+            profile=profile, seed=spec.seed, save_every=sizes["eval_every"],
             eval_data=summary["datasets"]["test"]["path"], eval_every=sizes["eval_every"],
-            setting=setting, progress=not args.quiet)
-        evals[method] = evaluate_run(run_dir, summary["datasets"]["test"]["path"], setting,
-                                     getattr(args, "level", DEFAULT_LEVEL))
+            setting=setting, progress=not spec.quiet)
+        evals[method] = evaluate_run(run_dir, summary["datasets"]["test"]["path"], setting)
         curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
     summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
                                                    "mvd_train")} for m, r in runs.items()}
     if sizes["improve_iterations"]:
         improvement = improve_in_simulators(
-            args.task, summary["datasets"]["test"]["path"],
+            spec.task, summary["datasets"]["test"]["path"],
             {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
-            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=args.seed,
-            guard_margin=guard_margin, guard_episodes=getattr(args, "guard_episodes", 16),
+            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=spec.seed,
+            guard_margin=margin, guard_episodes=spec.guard_episodes,
             guard_floors={m: training_error_floor(r) for m, r in runs.items()},
             guard_floor_scale=sizes["guard_floor_scale"],
             train_path=summary["datasets"]["train"]["path"])

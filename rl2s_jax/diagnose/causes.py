@@ -22,17 +22,16 @@ from __future__ import annotations
 import numpy as np
 
 from rl2s_jax.data.episodes import Episodes, half_split
-from rl2s_jax.diagnose.stats import (
+from rl2s_jax.diagnose.crossfit import (
     _random_features,
     crossfit_ridge,
     episode_folds,
     episode_sums,
     gaussian_nll,
     knn_distance,
-    rank_sum_p,
-    sign_flip_p,
     variance_from_log,
 )
+from rl2s_jax.stats import rank_sum_p, sign_flip_p
 
 MEAN_CAUSES = {  # cause -> the feature block that would explain the residuals' mean
     "actuation_delay": "past_actions",

@@ -74,7 +74,7 @@ def _ant_z(o):
 
 def terminal_states(sims: Simulator, policies, pool, keys, *, task, n_episodes, horizon):
     """Each lane's simulated episodes (sims: leading lane axis L, keys [L, 2]; the stacked
-    ``policies`` [P] from ``pool`` [S, o]), run as ``evaluate.lanes.lane_returns`` runs them
+    ``policies`` [P] from ``pool`` [S, o]), run as ``evaluate.lane_scores.lane_returns`` runs them
     (``simulate.start_values`` + ``advance_values``, whose frozen state of an ended episode is
     the one it terminated in). -> (terminal obs [L, P, n, o] (the last state where none),
     ended [L, P, n])"""

@@ -3,8 +3,8 @@
 Pure NumPy, host-side. Every function takes two 1-D arrays over the same P policies,
 ``true_values`` (returns measured in the real environment) and ``sim_values`` (returns the
 learned simulator predicts), and returns Python floats (``value_differences`` also returns the
-per-policy array); but ``t_interval``: a mean over seeds and its Student-t interval (scipy's t
-quantile). Bad input raises ``ValueError`` naming the offending argument.
+per-policy array); intervals over seeds are ``rl2s_jax.stats``'. Bad input raises
+``ValueError`` naming the offending argument.
 
 Ties. Values are compared exactly (no tolerance). Where a metric needs an ordering of the
 policies by simulated value (nDCG@k, regret@k), policies with equal simulated values are
@@ -18,7 +18,6 @@ import math
 from collections.abc import Iterable
 
 import numpy as np
-from scipy.stats import t as student_t  # jax's own dependency
 
 __all__ = [
     "kendall_tau",
@@ -28,7 +27,6 @@ __all__ = [
     "spearman",
     "bootstrap_intervals",
     "value_differences",
-    "t_interval",
 ]
 
 
@@ -318,30 +316,3 @@ def bootstrap_intervals(true_values, sim_returns, true_se=None, *, n_boot: int =
 
     return {"level": level, "n_boot": n_boot, "n_episodes": n, "metrics": summary(both),
             "sim_only": summary(sim_only)}
-
-
-def mean_per_unit(values) -> tuple[np.ndarray, list]:
-    """[(unit, value)] -> (the mean value per unit [U], the units in first-seen order). A
-    unit is e.g. a (data seed, seed): its reruns share data and seed, so they are averaged
-    before any interval over units."""
-    units: dict = {}
-    for unit, v in values:
-        units.setdefault(unit, []).append(v)
-    return np.array([np.mean(v) for v in units.values()], np.float64), list(units)
-
-
-def t_interval(values, level: float = 0.95) -> tuple[float, float, float] | None:
-    """The mean of ``values`` [N] (e.g. one paired difference per seed, each seed a draw of
-    the whole pipeline) and its Student-t interval (N - 1 degrees of freedom):
-    (mean, lo, hi), or None with fewer than 2 values. Non-finite values raise."""
-    x = np.asarray(values, np.float64).ravel()
-    if not np.all(np.isfinite(x)):
-        raise ValueError(f"values: expected finite numbers, got {x.tolist()}")
-    if not 0 < level < 1:
-        raise ValueError(f"level: expected a probability in (0, 1), got {level!r}")
-    if x.size < 2:
-        return None
-    mid = float(x.mean())
-    half = float(student_t.ppf(0.5 + level / 2, x.size - 1)) * float(x.std(ddof=1)) / math.sqrt(
-        x.size)
-    return mid, mid - half, mid + half

@@ -35,7 +35,6 @@ from tqdm.auto import tqdm
 
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import Task, get_task
-from rl2s_jax.evaluate.metrics import t_interval
 from rl2s_jax.improve.sim_env import SimulatorEnv
 from rl2s_jax.model.simulator import Simulator, simulator_returns
 from rl2s_jax.policy.policy import Params, num_policies
@@ -389,36 +388,6 @@ def median_gain(c0, c1, start_returns, zoo_returns, quantile: float = 0.75) -> d
     med = float(np.median(gain[below])) if below.any() else float("nan")
     return {"median_gain": med, "n_below": int(below.sum()), "below": below.tolist(),
             "gain": gain.tolist()}
-
-
-def median_ci95(x, n_boot: int = 2000, seed: int = 0) -> list[float]:
-    """95% bootstrap interval [lo, hi] of the median of x [N] (gains: those of policies that
-    start near 0 are ratios of thousands, so a mean would be theirs alone)."""
-    x = np.asarray(x, np.float64)
-    meds = np.median(x[np.random.default_rng(seed).integers(0, len(x), (n_boot, len(x)))], 1)
-    return [float(np.quantile(meds, 0.025)), float(np.quantile(meds, 0.975))]
-
-
-def paired_gain_difference(a: dict, b: dict, n_boot: int = 2000) -> dict | None:
-    """Method A's real gain minus B's, paired: a, b {seed: [N] gains of the same N policies
-    (e.g. those below the zoo's top quartile)}, over the seeds both have (None without one).
-    -> {"median", "ci95" (``median_ci95``), "rl2s_higher" (A gained more), "pairs" (seed,
-    policy), "seeds", "over_seeds": {"per_seed": the difference of the two medians on each seed
-    (``median_gain`` of one seed), "mean", "t95" (``metrics.t_interval``; None with one seed)}}.
-    """
-    common = sorted(set(a) & set(b))
-    if not common:
-        return None
-    if any(np.shape(a[k]) != np.shape(b[k]) for k in common):
-        raise ValueError(f"a, b: expected the same policies per seed, got shapes "
-                         f"{[(np.shape(a[k]), np.shape(b[k])) for k in common]}")
-    d = np.concatenate([np.asarray(a[k], np.float64) - b[k] for k in common])
-    by_seed = [float(np.median(a[k]) - np.median(b[k])) for k in common]
-    t = t_interval(by_seed)
-    return {"median": float(np.median(d)), "ci95": median_ci95(d, n_boot),
-            "rl2s_higher": int((d > 0).sum()), "pairs": int(d.size), "seeds": common,
-            "over_seeds": {"per_seed": by_seed, "mean": None if t is None else t[0],
-                           "t95": None if t is None else list(t[1:])}}
 
 
 def measure_improvement(real_env: Env, before: Params, after: Params, key: jax.Array, *,

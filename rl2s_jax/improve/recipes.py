@@ -12,7 +12,7 @@ recipe: 128k SAC updates per policy (HalfCheetah 256k).
 """
 from __future__ import annotations
 
-from rl2s_jax.improve.lanes import parse_variants, variant_settings
+from rl2s_jax.improve.lane_finetune import parse_variants, variant_settings
 from rl2s_jax.zoo.build import fine_tuning_recipe
 
 # paper.py's argument names, but "sac" (SACConfig fields, paper.py's --sac-set)

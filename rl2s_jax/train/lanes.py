@@ -3,7 +3,7 @@
 Every lane is a ``TrainState`` stacked on a leading axis; one jitted ``vmap(train_steps)``
 advances all of them. ``rl2s diagnose`` (its base and extended fits over seeds), the paper
 protocol and the ablations use these; ``train.loop.fit`` is the single-lane host loop. The
-lanes' evaluation is ``evaluate.lanes``; ``select_point`` chooses a lane's evaluation point
+lanes' evaluation is ``evaluate.lane_scores``; ``select_point`` chooses a lane's evaluation point
 without the test policies, from the training policies' held-out episodes
 (``heldout_start_pool``). ``fork`` / ``fork_lanes`` continue one pre-trained lane as several
 adversarial lanes (issue 40: RL2S and GAIL of a seed pre-train once)."""
@@ -115,7 +115,7 @@ _fork_lanes = jax.jit(jax.vmap(fork))
 
 
 def fork_lanes(trunk: TrainState, starts: TrainState) -> TrainState:
-    """``fork`` of every lane: trunk [L] pre-trained lanes (``protocol_fork.take_lanes`` repeats a
+    """``fork`` of every lane: trunk [L] pre-trained lanes (``paper.fork.take_lanes`` repeats a
     trunk lane for each lane forked from it), starts [L] their fresh ``init_lanes`` -> [L].
     ValueError when a start is not at step 0 or the trunk is past its pre-training."""
     cfg = starts.config

@@ -6,6 +6,7 @@ measured gain, written as report.json, report.md and plots.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import time
 from collections.abc import Callable, Sequence
@@ -14,11 +15,12 @@ import jax
 import numpy as np
 
 from rl2s_jax._files import write_json, write_text
-from rl2s_jax.data.dataset import Dataset
+from rl2s_jax.app.specs import DiagnoseSpec
+from rl2s_jax.data.dataset import Dataset, load_dataset
 from rl2s_jax.data.episodes import Episodes, from_dataset, pool_episodes, split_episodes
 from rl2s_jax.data.values import true_values
 from rl2s_jax.diagnose.causes import diagnose_causes
-from rl2s_jax.diagnose.extension import extension_for, train_set
+from rl2s_jax.diagnose.extension import extension_for, train_command, train_set
 from rl2s_jax.diagnose.gap_views import gaps_markdown, plot_gaps
 from rl2s_jax.diagnose.gaps import error_breakdown, jsonable
 from rl2s_jax.diagnose.model import (
@@ -529,3 +531,51 @@ def report_markdown(report: dict, gaps_md: str) -> str:
     lines += [f"Took {report['seconds']:.0f}s: " + ", ".join(f"{k} {v:.0f}s" for k, v in
                                                           report["timings"].items()) + "."]
     return "\n".join(lines) + "\n"
+
+
+def run_diagnose(spec: DiagnoseSpec) -> int:
+    """`rl2s diagnose`'s body: ``diagnose`` the data (and ``spec.ckpt``'s simulator), print
+    the top causes, the extension's gain and the `rl2s train` command that builds it; with
+    ``spec.physics``, the MuJoCo model's diagnosis (app/physics_diagnosis.py) instead."""
+    if spec.physics:
+        from rl2s_jax.app.physics_diagnosis import physics_command  # local: MuJoCo only when asked
+
+        return physics_command(spec)
+    if spec.ckpt is not None and not os.path.isdir(spec.ckpt):
+        raise ValueError(f"ckpt: expected a checkpoint directory, got {spec.ckpt!r}")
+    if spec.reference is not None and not os.path.isfile(spec.reference):
+        raise ValueError(f"reference: expected a Dataset file (.npz), got {spec.reference!r}")
+    ds = load_dataset(spec.data)
+    reference = None
+    if spec.reference is not None:
+        reference = load_dataset(spec.reference)
+        for name in ("obs_size", "action_size"):
+            if reference.meta.get(name) != ds.meta.get(name):
+                raise ValueError(f"reference: its {name} {reference.meta.get(name)} differs "
+                                 f"from the data's {ds.meta.get(name)}")
+    model = ModelSpec()
+    if spec.model_steps is not None:
+        model = dataclasses.replace(model, steps=spec.model_steps)
+    report = diagnose(ds, spec.out, ckpt=spec.ckpt, seeds=tuple(range(spec.seeds)),
+                      reference=reference, heldout_frac=spec.heldout, split_seed=spec.seed,
+                      lags=spec.lags, k_max=spec.k_max, base_spec=model.validate(),
+                      zoo=spec.zoo, value_episodes=spec.value_episodes, alpha=spec.alpha,
+                      progress=not spec.quiet)
+    g = report["gain"]
+    print(f"\ntop cause: {report['top_cause']} (confidence {report['confidence']:.2f})")
+    for c in report["causes"][:4]:
+        print(f"  {c['name']:<26} score {c['score']:8.4f}  p {c['p_value']:.2g}")
+    if g["after"]:
+        for k in ("heldout_nll", "heldout_mse", f"kstep_rmse@{g['k_max']}"):
+            d = g["difference"][k]
+            print(f"  {k:<16} {g['before'][k]:9.4f} -> {g['after'][k]:9.4f}  "
+                  f"({d['mean']:+.4f} +- {d['std']:.4f} over {len(g['seeds'])} seeds)")
+    steps = (load_meta(spec.ckpt)["step"] if spec.ckpt is not None else None) or None
+    command = train_command(report, spec.data, os.path.join(spec.out, "extended"),
+                            **({"steps": int(steps)} if steps else {}))
+    if command:
+        print(f"build the extended simulator (extension.train_set in report.json):\n  {command}")
+    for n in report["extension"].get("not_trainable", []):
+        print(f"  not built by rl2s train yet: {n['change']} ({n['why']})")
+    print(f"-> {spec.out}/report.md, report.json")
+    return 0

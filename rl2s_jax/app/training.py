@@ -13,10 +13,11 @@ import numpy as np
 
 from rl2s_jax._files import write_json, write_text
 from rl2s_jax.app.report import machine_info
+from rl2s_jax.app.specs import TrainSpec
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS, data_task
+from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.evaluate.setting import EvalSetting, profile_horizon
-from rl2s_jax.evaluate.simulator import evaluate_simulator
 from rl2s_jax.train.checkpoint import Checkpointer
 from rl2s_jax.train.config import TrainConfig
 from rl2s_jax.train.data import make_train_data
@@ -282,23 +283,22 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
     return on_eval
 
 
-def train_command(args) -> int:
-    """`rl2s train`'s body (rl2s_jax/cli.py parses its arguments): ``run_training``, then
-    its summary table; 1 where training diverged."""
-    if not os.path.exists(args.data):
-        raise FileNotFoundError(f"data: no such file {args.data}")
+def run_train(spec: TrainSpec) -> int:
+    """`rl2s train`'s body: ``run_training`` with the spec's options, then its summary table;
+    1 where training diverged."""
+    if not os.path.exists(spec.data):
+        raise FileNotFoundError(f"data: no such file {spec.data}")
     try:
-        summary = run_training(args.data, args.method, args.steps, args.out, zoo=args.zoo,
-                               profile=args.profile, seed=args.seed, eps=args.eps,
-                               save_every=args.save_every, chunk=args.chunk,
-                               overrides=parse_overrides(args.set), progress=not args.quiet,
-                               eval_data=args.eval_data, eval_every=args.eval_every,
+        summary = run_training(spec.data, spec.method, spec.steps, spec.out, zoo=spec.zoo,
+                               profile=spec.profile, seed=spec.seed, eps=spec.eps,
+                               save_every=spec.save_every, chunk=spec.chunk,
+                               overrides=parse_overrides(spec.set), progress=not spec.quiet,
+                               eval_data=spec.eval_data, eval_every=spec.eval_every,
                                setting=EvalSetting.from_flags(
-                                   args.eval_episodes, args.eval_horizon, args.eval_seed,
-                                   args.truth),
-                               resume_step=args.resume_step, policy_file=args.policy_file,
-                               eval_policies=args.eval_policies,
-                               no_task=getattr(args, "no_task", False))
+                                   spec.eval_episodes, spec.eval_horizon, spec.eval_seed,
+                                   spec.truth),
+                               resume_step=spec.resume_step, policy_file=spec.policy_file,
+                               eval_policies=spec.eval_policies, no_task=spec.no_task)
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1

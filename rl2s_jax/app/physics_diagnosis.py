@@ -19,9 +19,9 @@ import numpy as np
 from rl2s_jax._files import write_json, write_text
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.diagnose.gaps import jsonable
-from rl2s_jax.physics.errors import physics_errors
 from rl2s_jax.physics.identify import FitConfig, identify
 from rl2s_jax.physics.mjx_model import PHYSICS_TASKS, physics_model
+from rl2s_jax.physics.residuals import physics_errors
 
 __all__ = ["PhysicsSpec", "diagnose_physics", "load_calibrated", "physics_command"]
 
@@ -55,11 +55,12 @@ class PhysicsSpec:
         return self
 
 
-def physics_command(args) -> int:
-    """`rl2s diagnose --physics`'s flags -> :class:`PhysicsSpec` -> :func:`diagnose_physics`."""
-    diagnose_physics(PhysicsSpec(data=args.data, out=args.out, sim_xml=args.sim_xml,
-                                 sim_frames=args.sim_frames, alpha=args.alpha, k=args.k_max,
-                                 seed=args.seed, quiet=args.quiet))
+def physics_command(spec) -> int:
+    """`rl2s diagnose --physics`: its DiagnoseSpec (app/specs.py) -> :class:`PhysicsSpec` ->
+    :func:`diagnose_physics`."""
+    diagnose_physics(PhysicsSpec(data=spec.data, out=spec.out, sim_xml=spec.sim_xml,
+                                 sim_frames=spec.sim_frames, alpha=spec.alpha, k=spec.k_max,
+                                 seed=spec.seed, quiet=spec.quiet))
     return 0
 
 
@@ -98,7 +99,7 @@ def diagnose_physics(spec: PhysicsSpec) -> dict:
                                    "delays": found["delays"],
                                    "labels": [c.label for c in pm.candidates]}))
     command = ("python -c " + shlex.quote(
-        f"from rl2s_jax.app.physics import load_calibrated; "
+        f"from rl2s_jax.app.physics_diagnosis import load_calibrated; "
         f"pm, theta, delays = load_calibrated({cal_path!r})"))
     physics = {k: found[k] for k in ("top_cause", "parameters", "unexplained")}
     physics.update(seconds=time.perf_counter() - start, command=command,

@@ -7,7 +7,7 @@ A lane's simulator is a ``Simulator`` whose array leaves carry a leading lane ax
 (``parse_variants``): ``full`` whole episodes from the data's start states, ``branched`` (MBPO)
 short rollouts from every real state, ``penalty`` (MOPO) r - lambda * u, ``stop`` (MOReL) an
 episode ended when u passes a threshold; u is the ensemble's disagreement
-(``sim_env.scaled_env_options``). The paper protocol (``rl2s_jax.app.protocol_improve``) uses
+(``sim_env.scaled_env_options``). The paper protocol (``rl2s_jax.paper.improvement_phases``) uses
 these."""
 from __future__ import annotations
 

@@ -12,12 +12,14 @@ import os
 import jax
 import numpy as np
 
-from rl2s_jax.app.trust import trust_for
+from rl2s_jax._files import write_json
+from rl2s_jax.app.specs import EvaluateSpec
+from rl2s_jax.app.value_intervals import trust_for
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.metrics import spearman
+from rl2s_jax.evaluate.scores import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
-from rl2s_jax.evaluate.simulator import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.evaluate.trust import format_trust
 from rl2s_jax.train.checkpoint import Checkpointer, load_checkpoint
 from rl2s_jax.zoo.zoo import policies_for
@@ -63,7 +65,7 @@ def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None,
     defaults, ``EvalSetting``), its horizon by default the checkpoint's
     (``checkpoint_setting``); the report stores the setting used ("setting") and where the
     horizon and episodes came from (``horizon_source``, ``episodes_source``). ``level``: each
-    policy's value interval at that level ("trust", "interval", "trusted": app/trust.py
+    policy's value interval at that level ("trust", "interval", "trusted": app/value_intervals.py
     ``trust_for``, calibrated on ``calibration`` files or the checkpoint's training data)."""
 
     setting = _setting(setting, n_episodes, horizon, seed, truth)
@@ -351,3 +353,27 @@ def format_agreement(result: dict) -> str:
                      f"{a['worst_rank']} of {len(a['policies'])}); Spearman of spread and "
                      f"mean |error|: {'n/a' if rho is None else f'{rho:.2f}'}")
     return "\n".join(lines + _trust_lines(result))
+
+
+def run_evaluate(spec: EvaluateSpec) -> int:
+    """`rl2s evaluate`'s body: one checkpoint's (or the oracle's) report, or several
+    checkpoints' and where they disagree; printed, and written to ``spec.json`` if given."""
+    if not os.path.exists(spec.data):
+        raise FileNotFoundError(f"data: no such file {spec.data}")
+    if (spec.ckpt is None) == (not spec.oracle):
+        raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
+    kw = dict(zoo=spec.zoo, policy_file=spec.policy_file, seed=spec.seed, truth=spec.truth,
+              n_episodes=spec.episodes, horizon=spec.horizon, n_boot=spec.bootstrap,
+              level=spec.level or None, calibration=spec.calibration)
+    if spec.ckpt and len(spec.ckpt) > 1:  # several simulators: where they disagree
+        report = evaluate_checkpoints(spec.ckpt, spec.data, step=spec.step, **kw)
+        print(format_agreement(report))
+    else:
+        report = (evaluate_oracle_data(spec.data, **kw) if spec.oracle
+                  else evaluate_checkpoint(spec.ckpt[0], spec.data, step=spec.step, **kw))
+        print(format_report(report))
+    if spec.json:
+        os.makedirs(os.path.dirname(os.path.abspath(spec.json)), exist_ok=True)
+        write_json(spec.json, report)
+        print(f"-> {spec.json}")
+    return 0

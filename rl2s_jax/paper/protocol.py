@@ -2,10 +2,10 @@
 train / test data, the oracle row, one vmapped training program per model family with its
 evaluation curves (the adversarial family pre-trains once per seed and forks its methods'
 lanes from there, ``train.lanes.fork``; the likelihood family's BC lanes join from that
-pre-training, ``app.protocol_fork``), model selection and bootstrap intervals, and the
+pre-training, ``paper.fork``), model selection and bootstrap intervals, and the
 result JSON (the summary over seeds, the printed table, the atomic write). The improvement
-phases are ``app.protocol_improve``; the lanes themselves (vmapped runs: training,
-evaluation, fine-tuning) ``train.lanes``, ``evaluate.lanes`` and ``improve.lanes``."""
+phases are ``paper.improvement_phases``; the lanes themselves (vmapped runs: training,
+evaluation, fine-tuning) ``train.lanes``, ``evaluate.lane_scores`` and ``improve.lane_finetune``."""
 from __future__ import annotations
 
 import argparse
@@ -21,10 +21,9 @@ import numpy as np
 
 from rl2s_jax._files import write_json
 from rl2s_jax.app.pipeline import collect_dataset
-from rl2s_jax.app.protocol_fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.values import true_values, true_values_se, truth_used
-from rl2s_jax.evaluate.lanes import (
+from rl2s_jax.evaluate.lane_scores import (
     EVAL_METRICS,
     evaluate_lanes,
     intervals_over_seeds,
@@ -32,8 +31,9 @@ from rl2s_jax.evaluate.lanes import (
     oracle_rows,
 )
 from rl2s_jax.evaluate.metrics import bootstrap_intervals
-from rl2s_jax.evaluate.simulator import evaluate_simulator
+from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.paper.fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.sharding import is_writer, lane_mesh, replicate, shard_lanes
 from rl2s_jax.train.config import DEFAULT_EPS, TrainConfig
 from rl2s_jax.train.cvar import n_worst
@@ -186,7 +186,7 @@ def zoo_sha256(task: str) -> str | None:
 def run_oracle(result: dict, task: str, test_ds, test_pols, seeds, cfg: TrainConfig,
                sizes: dict, *, phase: Callable[[str, float], None],
                save: Callable[[], None]) -> None:
-    """The control row (``evaluate.lanes.oracle_rows``: the real dynamics through the lanes'
+    """The control row (``evaluate.lane_scores.oracle_rows``: the real dynamics through the lanes'
     evaluation path, per seed, at cfg's horizon and gamma) and the noise ceiling of these
     sizes, into ``result``; ``phase("oracle", t0)`` records its time, ``save()`` writes."""
     t0 = time.perf_counter()

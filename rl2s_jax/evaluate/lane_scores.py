@@ -3,7 +3,7 @@ once, as ``evaluate_simulator`` scores one; the oracle through the same path, on
 
 A lane's simulator is ``train.simulator(states)`` of a vmapped ``TrainState`` (``train.lanes``);
 here it is a ``Simulator`` whose array leaves carry a leading lane axis L. The paper protocol
-(``rl2s_jax.app.protocol``), the ablations and the sharding tests use these."""
+(``rl2s_jax.paper.protocol``), the ablations and the sharding tests use these."""
 from __future__ import annotations
 
 from functools import partial
@@ -15,7 +15,7 @@ import numpy as np
 from rl2s_jax.data.values import true_values_se
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import noise_ceiling, ranking_metrics
-from rl2s_jax.evaluate.simulator import evaluate_oracle
+from rl2s_jax.evaluate.scores import evaluate_oracle
 from rl2s_jax.model.simulator import Simulator, simulator_returns
 
 # The ranking and value metrics of a lane's evaluation (``ranking_metrics`` at ks 1, 3, 5, 10).

@@ -1,8 +1,8 @@
 """The paper protocol's improvement phases (``experiments/paper.py``, phase 3): SAC fine-tunes
-test policies inside every lane's simulator (``improve.lanes``: all methods x seeds x policies
-as one vmapped program), once per variant of the simulated env, the fine-tuned policies' real
-returns are measured paired with the start policies', and the same fine-tuning in the real
-env is the control. Everything lands in the result dict of ``app.protocol``."""
+test policies inside every lane's simulator (``improve.lane_finetune``: all methods x seeds x
+policies as one vmapped program), once per variant of the simulated env, the fine-tuned
+policies' real returns are measured paired with the start policies', and the same fine-tuning
+in the real env is the control. Everything lands in the result dict of ``paper.protocol``."""
 from __future__ import annotations
 
 import dataclasses
@@ -13,8 +13,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.improve import check_floor_scale, guard_floor
-from rl2s_jax.app.protocol import (
+from rl2s_jax.app.improvement import check_floor_scale, guard_floor
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.envs.tasks import Task, get_task
+from rl2s_jax.evaluate.oracle import oracle_dynamics
+from rl2s_jax.evaluate.scores import evaluate_simulator
+from rl2s_jax.improve.finetune import (
+    deployment_guard,
+    improve_in_real_env,
+    improve_policies,
+    improvement_metrics,
+    paired_returns,
+)
+from rl2s_jax.improve.lane_finetune import finite_mean, guard_lanes, improve_in_lanes, pick_policies
+from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
+from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.paper.protocol import (
     IMPROVE_METRICS,
     METHODS,
     fmt_ms,
@@ -23,20 +37,6 @@ from rl2s_jax.app.protocol import (
     none_if_nan,
     take_lanes,
 )
-from rl2s_jax.data.collect import measure_values
-from rl2s_jax.envs.tasks import Task, get_task
-from rl2s_jax.evaluate.oracle import oracle_dynamics
-from rl2s_jax.evaluate.simulator import evaluate_simulator
-from rl2s_jax.improve.finetune import (
-    deployment_guard,
-    improve_in_real_env,
-    improve_policies,
-    improvement_metrics,
-    paired_returns,
-)
-from rl2s_jax.improve.lanes import finite_mean, guard_lanes, improve_in_lanes, pick_policies
-from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
-from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import Params, index_params
 from rl2s_jax.policy.sac import SACConfig, episode_returns
 from rl2s_jax.train.step import simulator
@@ -95,7 +95,7 @@ def lane_training_mvd(finals: dict, last_seed: int, horizon: int, gamma: float
     """Each lane's MVD on the training policies at its final state (the last completed VD
     measurement, ``TrainState.vd``), in ``lane_simulators``' lane order: the guard's floor
     (``finetune.deployment_guard``) where comparable with the guard's ``horizon`` and
-    ``gamma`` (``app.improve.guard_floor``: else 0, and 0 where not yet measured)."""
+    ``gamma`` (``app.improvement.guard_floor``: else 0, and 0 where not yet measured)."""
     out = []
     for fam_lanes, states in finals.values():
         vd = np.asarray(states.vd, np.float64)  # [L, P_train]
@@ -112,7 +112,7 @@ def lane_error_range(result: dict, lane: str, horizon: int, gamma: float) -> flo
     within the training errors' range, the error of a predicted gain (tuned minus start) is at
     most this spread, so a gain predicted above it is real; the training-MVD floor bounds the
     gain's error only where the errors share a sign (issue 39's alternative guard floor).
-    Comparable as ``app.improve.guard_floor`` judges it (a zero spread reads as None too)."""
+    Comparable as ``app.improvement.guard_floor`` judges it (a zero spread reads as None too)."""
     entry = result.get("lanes", {}).get(lane) or {}
     sim, truth = entry.get("train_sim_value"), result.get("train_true_value")
     if sim is None or truth is None:

@@ -1,24 +1,26 @@
 """`rl2s improve`: fine-tune chosen policies of a Dataset inside a saved simulator, write them
 as a zoo, and measure the real gain.
 
-``run_improve(ckpt, data, out, ...)`` checks every input first (checkpoint, data of the same
+``fine_tune(ImproveSpec(ckpt=..., data=..., out=...))`` (``run_improve(spec)``: the command,
+which prints its summary) checks every input first (checkpoint, data of the same
 task, policy indices, SAC fields, the policies: a zoo or a policy file), then fine-tunes the
 chosen policies with SAC inside the checkpoint's simulator as one vmapped program
 (``improve.improve_policies``), writes them to ``out`` in the zoo format
 (``zoo.save_zoo``: ``load_zoo(out)``, ``rl2s collect --zoo out`` and ``measure_values``
-take them), and, unless ``measure=False``, measures their real return before and after
+take them), and, unless ``no_measure``, measures their real return before and after
 (``improve.paired_episode_returns``) with one PNG per policy and a summary (``summary.json``,
 ``summary.md``).
 
-The deployment guard is on by default (``guard_margin=GUARD_MARGIN``, 0.02; ``None`` turns
-it off, as ``rl2s improve --no-guard``): a fine-tuned policy is deployed only where every elite
-member of the simulator, alone and on the same simulated episodes, predicts a gain larger than
-that fraction of the start's simulated value (``improve.deployment_guard``); elsewhere the
-start policy is kept and written to the zoo (improvement 0 by definition). Only the simulator
-decides, never the real system. The real returns then also give the deployed policies' MPI /
-API (``summary["guard"]``), and every policy's row says deployed or kept, the members'
-predicted gain (``predicted_gain``: the smallest over the members, the guard's criterion, and
-``predicted_gain_mean``) and the real gain of what was deployed (``real_gain``).
+The deployment guard is on by default (margin ``GUARD_MARGIN``, 0.02, or the recipe's;
+``no_guard=True`` turns it off, as ``rl2s improve --no-guard``): a fine-tuned policy is deployed
+only where every elite member of the simulator, alone and on the same simulated episodes,
+predicts a gain larger than that fraction of the start's simulated value
+(``improve.deployment_guard``); elsewhere the start policy is kept and written to the zoo
+(improvement 0 by definition). Only the simulator decides, never the real system. The real
+returns then also give the deployed policies' MPI / API (``summary["guard"]``), and every
+policy's row says deployed or kept, the members' predicted gain (``predicted_gain``: the
+smallest over the members, the guard's criterion, and ``predicted_gain_mean``) and the real gain
+of what was deployed (``real_gain``).
 
 Why these defaults (the section "The guard, paired, and over snapshots" of RESULTS@bf0c7b2,
 measured on the four MuJoCo tasks, 2 seeds each of RL2S and GAIL): at margin 0.02 the
@@ -43,6 +45,8 @@ import jax
 import numpy as np
 
 from rl2s_jax._files import write_json, write_text
+from rl2s_jax.app.specs import ImproveSpec
+from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.improve.finetune import (
@@ -56,7 +60,7 @@ from rl2s_jax.improve.finetune import (
     select_by_members,
     training_return_curve,
 )
-from rl2s_jax.improve.recipes import IMPROVE_RECIPES, check_recipe, recipe_settings
+from rl2s_jax.improve.recipes import IMPROVE_RECIPES, recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
@@ -69,22 +73,22 @@ from rl2s_jax.zoo.zoo import Zoo, policies_for, policy_source, save_zoo
 GUARD_MARGIN = 0.02
 
 
-def guard_margin(args) -> float | None:
-    """The guard's margin from the command line's --guard-margin (None: the --recipe's, else
-    the default, ``GUARD_MARGIN``) and --no-guard (-> None: no guard); --no-guard with
-    --guard-margin, --guard-snapshots or --guard-floor-scale is refused, and so is a
-    --guard-floor-scale below 0 (before any work)."""
-    scale = check_floor_scale(getattr(args, "guard_floor_scale", None))
-    if args.no_guard:
-        given = [o for o, on in (("--guard-margin", args.guard_margin is not None),
-                                 ("--guard-snapshots", getattr(args, "guard_snapshots", False)),
+def guard_margin(spec) -> float | None:
+    """The guard's margin from a spec's (``ImproveSpec``, ``PipelineSpec``) --guard-margin (None:
+    the --recipe's, else the default, ``GUARD_MARGIN``) and --no-guard (-> None: no guard);
+    --no-guard with --guard-margin, --guard-snapshots or --guard-floor-scale is refused, and so
+    is a --guard-floor-scale below 0 (before any work)."""
+    scale = check_floor_scale(getattr(spec, "guard_floor_scale", None))
+    if spec.no_guard:
+        given = [o for o, on in (("--guard-margin", spec.guard_margin is not None),
+                                 ("--guard-snapshots", getattr(spec, "guard_snapshots", False)),
                                  ("--guard-floor-scale", scale is not None)) if on]
         if given:
             raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
         return None
-    if args.guard_margin is None and getattr(args, "recipe", None):
-        return IMPROVE_RECIPES[args.recipe]["guard_margin"]
-    return GUARD_MARGIN if args.guard_margin is None else args.guard_margin
+    if spec.guard_margin is None and getattr(spec, "recipe", None):
+        return IMPROVE_RECIPES[spec.recipe]["guard_margin"]
+    return GUARD_MARGIN if spec.guard_margin is None else spec.guard_margin
 
 
 def fine_tuning_overrides(overrides: dict | None, flag: str = "set") -> dict:
@@ -149,59 +153,51 @@ def check_inputs(ckpt: str, data_path: str, policy_ids: list[int] | None):
     return meta, ds, ids
 
 
-def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | None = None,
-                iterations: int | None = None, overrides: dict | None = None, seed: int = 0,
-                n_episodes: int = 16, zoo: str | None = None, policy_file: str | None = None,
-                step: int | None = None, measure: bool = True, chunk: int | None = None,
-                branch_length: int | None = None, uncertainty_penalty: float | None = None,
-                uncertainty_threshold: float | None = None, halt_penalty: float = 0.0,
-                guard_margin: float | None = GUARD_MARGIN, guard_episodes: int = 16,
-                guard_snapshots: bool = False, floor: float | None = None,
-                floor_scale: float | None = None, recipe: str | None = None,
-                progress: bool = True, log=print) -> dict:
-    """Fine-tune policies ``policy_ids`` (indices into the Dataset's policies; default all)
-    inside the simulator of checkpoint ``ckpt`` and write the zoo, plots and summary into
-    ``out`` (module docstring). The policies come from ``zoo``, ``policy_file`` or what the
-    data's meta.source names (``zoo.policies_for``). -> the summary dict (also
-    out/summary.json). ``floor``: the guard's floor in value units (``deployment_guard``);
-    None: the checkpoint's training MVD where comparable (``checkpoint_floor``), else 0; the
-    guard uses ``floor_scale`` x it (None: the recipe's, else 1).
-    ``recipe``: a measured recipe (``improve.recipes``) for the simulator's task gives the
-    iterations (else 1000), branch length, penalty (else 0) and SAC fields not given here."""
+def run_improve(spec: ImproveSpec) -> int:
+    """`rl2s improve`'s body: ``fine_tune``, then its summary and the files written."""
+    s = fine_tune(spec)
+    print(summary_markdown(s))
+    print(f"-> {spec.out}: zoo.npz, zoo.json, summary.json, summary.md"
+          + (f", {len(s['plots'])} PNGs" if s["plots"] else ""))
+    return 0
 
-    if recipe is not None:
-        check_recipe(recipe)
-    if iterations is not None and (not isinstance(iterations, int) or iterations < 1):
-        raise ValueError(f"iterations: expected an int >= 1, got {iterations!r}")
-    if n_episodes < 2 and measure:
-        raise ValueError(f"episodes: expected >= 2 (for standard errors), got {n_episodes}")
-    if guard_margin is not None and not (np.isfinite(guard_margin) and guard_margin >= 0):
-        raise ValueError(f"guard-margin: expected a finite float >= 0, got {guard_margin!r}")
+
+def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | None = None,
+              log=print) -> dict:
+    """Fine-tune the policies ``spec.policies`` (indices into the Dataset's policies; default
+    all) inside the simulator of checkpoint ``spec.ckpt`` and write the zoo, plots and summary
+    into ``spec.out`` (module docstring). The policies come from ``spec.zoo``,
+    ``spec.policy_file`` or what the data's meta.source names (``zoo.policies_for``). -> the
+    summary dict (also out/summary.json). ``floor``: the guard's floor in value units
+    (``deployment_guard``); None: the checkpoint's training MVD where comparable
+    (``checkpoint_floor``), else 0; the guard uses ``spec.guard_floor_scale`` x it (None: the
+    recipe's, else 1). ``spec.recipe``: a measured recipe (``improve.recipes``) for the
+    simulator's task gives the iterations (else 1000), branch length, penalty (else 0) and SAC
+    fields not given. ``chunk``: SAC iterations per compiled chunk (default a tenth)."""
+    margin = guard_margin(spec)  # the spec checked the flags; this resolves the recipe's
     if floor is not None and not (np.isfinite(floor) and floor >= 0):
         raise ValueError(f"floor: expected a finite float >= 0 (value units) or None, got "
                          f"{floor!r}")
-    check_floor_scale(floor_scale)
-    if not isinstance(guard_episodes, int) or guard_episodes < 1:
-        raise ValueError(f"guard-episodes: expected an int >= 1, got {guard_episodes!r}")
-    if guard_snapshots and guard_margin is None:
-        raise ValueError("guard-snapshots: needs the guard (a margin; --no-guard turns it "
-                         "off)")
-    meta, ds, ids = check_inputs(ckpt, data_path, policy_ids)
-    sim = load_simulator(ckpt, step)
+    iterations, overrides, floor_scale = spec.iterations, parse_overrides(spec.set), \
+        spec.guard_floor_scale
+    measure, branch_length, uncertainty_penalty = (not spec.no_measure, spec.branch_length,
+                                                   spec.uncertainty_penalty)
+    meta, ds, ids = check_inputs(spec.ckpt, spec.data, spec.policies)
+    sim = load_simulator(spec.ckpt, spec.step)
     task = sim.task_fns()  # the registered task's rules, or the learned reward and hazard
     if measure and sim.task not in TASKS:
-        log(f"[improve] {data_path} is data of no registered task (meta.task "
+        log(f"[improve] {spec.data} is data of no registered task (meta.task "
             f"{ds.meta.get('task')!r}): no real system to measure the fine-tuned policies in, "
             f"so the real returns are skipped (as --no-measure)")
         measure = False
-    if recipe is not None:  # what the caller gave wins over the recipe
-        rs = recipe_settings(recipe, sim.task)
+    if spec.recipe is not None:  # what the caller gave wins over the recipe
+        rs = recipe_settings(spec.recipe, sim.task)
         if not rs["zoo_recipe"]:
-            log(f"[improve] recipe {recipe}: task {sim.task!r} has no zoo learner to take the "
-                f"discount, reward scale and batch from; SAC keeps the fine-tuning defaults")
+            log(f"[improve] recipe {spec.recipe}: task {sim.task!r} has no zoo learner to take "
+                f"the discount, reward scale and batch from; SAC keeps the fine-tuning defaults")
         iterations = rs["iterations"] if iterations is None else iterations
         if branch_length is None and rs["branch_length"] is not None and not sim.markov:
-            raise ValueError(f"recipe: {recipe} fine-tunes in branches from the data's logged "
+            raise ValueError(f"recipe: {spec.recipe} fine-tunes in branches from the data's logged "
                              "states, and this simulator's members see the episode's past "
                              "(history inputs), which those states lack; run without --recipe")
         branch_length = rs["branch_length"] if branch_length is None else branch_length
@@ -213,9 +209,9 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
     uncertainty_penalty = 0.0 if uncertainty_penalty is None else uncertainty_penalty
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
     cfg = sac_config(overrides, episode_length, iterations)
-    where = policy_source(ds, zoo, policy_file=policy_file, data_path=data_path)
-    policies = index_params(policies_for(ds, zoo, policy_file=policy_file,
-                                         data_path=data_path), np.asarray(ids))
+    where = policy_source(ds, spec.zoo, policy_file=spec.policy_file, data_path=spec.data)
+    policies = index_params(policies_for(ds, spec.zoo, policy_file=spec.policy_file,
+                                         data_path=spec.data), np.asarray(ids))
     names_all = ds.meta.get("policy_names") or [f"policy-{i}" for i in range(ds.n_policies)]
     names = [names_all[i] for i in ids]
     if branch_length is not None and not sim.markov:
@@ -223,44 +219,44 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                          "states without their past, and this simulator's members see the "
                          "episode's past (history inputs); fine-tune from episode starts")
     pool = (start_pool(ds) if branch_length is None
-            else branch_pool(ds, max_states=100_000, seed=seed))
-    env_options = scaled_env_options(sim, *real_rows(ds, seed=seed),
+            else branch_pool(ds, max_states=100_000, seed=spec.seed))
+    env_options = scaled_env_options(sim, *real_rows(ds, seed=spec.seed),
                                      rollout_length=branch_length,
                                      uncertainty_penalty=uncertainty_penalty,
-                                     uncertainty_threshold=uncertainty_threshold,
-                                     halt_penalty=halt_penalty)
-    os.makedirs(out, exist_ok=True)
+                                     uncertainty_threshold=spec.uncertainty_threshold,
+                                     halt_penalty=spec.halt_penalty)
+    os.makedirs(spec.out, exist_ok=True)
 
-    log(f"[improve] {len(ids)} policies of {data_path} (task {task.name}) x {iterations} SAC "
-        f"iterations inside {ckpt}")
+    log(f"[improve] {len(ids)} policies of {spec.data} (task {task.name}) x {iterations} SAC "
+        f"iterations inside {spec.ckpt}")
     t0 = time.perf_counter()
-    k_sac, k_measure = jax.random.split(jax.random.PRNGKey(seed))
+    k_sac, k_measure = jax.random.split(jax.random.PRNGKey(spec.seed))
     chunk = chunk or max(1, iterations // 10)
     after, metrics = improve_policies(sim, task, pool, policies, k_sac, cfg,
                                       n_iterations=iterations, chunk_iterations=chunk,
-                                      env_options=env_options, progress=progress,
-                                      snapshots=guard_snapshots)
+                                      env_options=env_options, progress=not spec.quiet,
+                                      snapshots=spec.guard_snapshots)
     snapshots = None  # [C + 1, P, ...]: the start, then the actor after every chunk
-    if guard_snapshots:
+    if spec.guard_snapshots:
         snapshots, after = after, jax.tree_util.tree_map(lambda x: x[-1], after)
     sac_seconds = time.perf_counter() - t0
     curve_x, curve = training_return_curve(metrics)
     gamma = float(ds.meta.get("gamma") or 0.999)
 
     guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
-    if guard_margin is not None:  # the simulator's own verdict, start vs fine-tuned
-        floor, floor_source = (checkpoint_floor(ckpt, step, episode_length, gamma)
+    if margin is not None:  # the simulator's own verdict, start vs fine-tuned
+        floor, floor_source = (checkpoint_floor(spec.ckpt, spec.step, episode_length, gamma)
                                if floor is None else (float(floor), "given"))
         scale = 1.0 if floor_scale is None else float(floor_scale)
         floor, floor_source = scale * floor, (floor_source if scale == 1 else
                                               f"{scale:g} x {floor_source}")
         guard, deployed = deploy_through_guard(
             sim, None, start_pool(ds), policies, after, snapshots,
-            jax.random.fold_in(k_measure, 1), margin=guard_margin, n_episodes=guard_episodes,
+            jax.random.fold_in(k_measure, 1), margin=margin, n_episodes=spec.guard_episodes,
             horizon=episode_length, gamma=gamma, chunk=chunk, iterations=iterations,
             floor=floor)
         guard.update(floor_source=floor_source, floor_scale=scale)
-        log(f"[improve] guard (margin {guard_margin}, floor {floor:.3g}: {floor_source}"
+        log(f"[improve] guard (margin {margin}, floor {floor:.3g}: {floor_source}"
             + (f", over snapshots every {chunk} iterations" if snapshots is not None else "")
             + f"): {int(np.sum(guard['accepted']))} of {len(ids)} fine-tuned policies kept, "
             "every elite member predicting a gain")
@@ -272,7 +268,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         # start states and noise draws; the key of measure_improvement
         r0, rs = paired_episode_returns(task.make_env(), policies,
                                         [after] + ([deployed] if snapshots is not None else []),
-                                        k_measure, n_episodes=n_episodes,
+                                        k_measure, n_episodes=spec.episodes,
                                         episode_length=episode_length, gamma=gamma)
         measured = paired_returns(r0, rs[0])
         deployed_measured = paired_returns(r0, rs[-1]) if snapshots is not None else None
@@ -282,7 +278,7 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
                 "zoo_id": where["zoo_ids"][i] if "zoo_ids" in where else None,
                 "policy_file": (os.path.abspath(where["policy_file"])
                                 if "policy_file" in where else None),
-                "finetuned_in": os.path.abspath(ckpt), "sac_iterations": iterations,
+                "finetuned_in": os.path.abspath(spec.ckpt), "sac_iterations": iterations,
                 "return_before": None if measured is None else float(measured["c0"][j]),
                 **({} if guard is None else {"deployed": _deployed_text(guard, j)})}
                for j, (n, i) in enumerate(zip(names, ids, strict=True))]
@@ -302,10 +298,10 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
             f"everywhere: MPI {measured['mpi']:.3f}  API {measured['api']:.3f})")
     save_zoo(Zoo(task=task.name, params=jax.device_get(deployed), returns=returns,
                  return_se=return_se, origins=origins, train_ids=[], test_ids=list(range(P)),
-                 info={"made_by": "rl2s improve", "checkpoint": os.path.abspath(ckpt),
-                       "data": os.path.abspath(data_path), "sac": _jsonable(cfg),
+                 info={"made_by": "rl2s improve", "checkpoint": os.path.abspath(spec.ckpt),
+                       "data": os.path.abspath(spec.data), "sac": _jsonable(cfg),
                        "env_options": {k: v for k, v in env_options.items()
-                                       if k != "uncertainty_fn"}}), out)
+                                       if k != "uncertainty_fn"}}), spec.out)
 
     rows = []
     for j, (n, i) in enumerate(zip(names, ids, strict=True)):
@@ -323,19 +319,19 @@ def run_improve(ckpt: str, data_path: str, out: str, *, policy_ids: list[int] | 
         elif measured is not None:  # no guard: every fine-tuned policy deployed
             row["real_gain"] = row["I"]
         rows.append(row)
-    summary = {"task": task.name, "checkpoint": os.path.abspath(ckpt),
-               "data": os.path.abspath(data_path), "iterations": iterations, "recipe": recipe,
+    summary = {"task": task.name, "checkpoint": os.path.abspath(spec.ckpt),
+               "data": os.path.abspath(spec.data), "iterations": iterations, "recipe": spec.recipe,
                "sac": _jsonable(cfg), "env_options": {k: v for k, v in env_options.items()
                                                       if k != "uncertainty_fn"},
                "sac_seconds": round(sac_seconds, 1), "backend": jax.default_backend(),
-               "n_episodes": n_episodes if measured is not None else None,
+               "n_episodes": spec.episodes if measured is not None else None,
                "curve_iterations": curve_x.tolist(), "policies": rows,
                "mpi": None if measured is None else measured["mpi"],
-               "api": None if measured is None else measured["api"], "zoo": out,
+               "api": None if measured is None else measured["api"], "zoo": spec.out,
                "guard": guard}
-    write_json(os.path.join(out, "summary.json"), summary)
-    write_text(os.path.join(out, "summary.md"), summary_markdown(summary) + "\n")
-    summary["plots"] = plot_policies(out, summary) if measured is not None else []
+    write_json(os.path.join(spec.out, "summary.json"), summary)
+    write_text(os.path.join(spec.out, "summary.md"), summary_markdown(summary) + "\n")
+    summary["plots"] = plot_policies(spec.out, summary) if measured is not None else []
     return summary
 
 
@@ -552,5 +548,5 @@ def _jsonable(cfg: SACConfig) -> dict:
 
 
 __all__ = ["GUARD_MARGIN", "check_inputs", "deploy_through_guard", "deployment_table",
-           "fine_tuning_overrides",
+           "fine_tune", "fine_tuning_overrides",
            "guard_margin", "predicted_gains", "run_improve", "sac_config", "summary_markdown"]

@@ -1,5 +1,6 @@
-"""The statistics behind the cause tests: cross-fitted ridge over episode folds, Gaussian NLL,
-per-episode sums and their sign-flip and rank-sum tests (NumPy)."""
+"""The fits behind the cause tests: cross-fitted ridge over episode folds, random features,
+nearest-neighbour distances, Gaussian NLL, per-episode sums, variances from predicted log
+errors (NumPy). The tests on their results (sign flips, rank sums) are ``rl2s_jax.stats``'."""
 
 from __future__ import annotations
 
@@ -87,24 +88,6 @@ def episode_sums(values: np.ndarray, episode: np.ndarray) -> np.ndarray:
     return np.bincount(inverse, weights=values)
 
 
-def sign_flip_p(per_episode: np.ndarray) -> float:
-    """One-sided p-value that the per-episode gains [E] are positive: the sign-flip
-    randomisation test on their ranks (Wilcoxon's signed-rank test), with the normal
-    approximation to its null. Ranks keep one wild episode from deciding the answer."""
-    x = per_episode[per_episode != 0]
-    if x.size == 0:
-        return 1.0
-    order = np.argsort(np.abs(x))
-    ranks = np.empty(x.size)
-    ranks[order] = np.arange(1, x.size + 1)
-    _, inv, counts = np.unique(np.abs(x), return_inverse=True, return_counts=True)
-    if (counts > 1).any():  # average ranks over ties
-        ranks = (np.bincount(inv, weights=ranks) / counts)[inv]
-    stat = float(ranks[x > 0].sum() - ranks.sum() / 2)
-    z = stat / math.sqrt(float((ranks ** 2).sum()) / 4)
-    return 0.5 * math.erfc(z / math.sqrt(2.0))
-
-
 def variance_from_log(pred: np.ndarray, log_u2: np.ndarray, u2: np.ndarray) -> np.ndarray:
     """Relative variances [n, o] from predicted log squared errors pred [n, o]: each
     prediction clipped to the range of its dim's log_u2 [n, o], exponentiated and rescaled
@@ -116,24 +99,3 @@ def variance_from_log(pred: np.ndarray, log_u2: np.ndarray, u2: np.ndarray) -> n
     pred = np.clip(pred, log_u2.min(0), log_u2.max(0))
     v = np.exp(pred - pred.max(0))
     return v * (u2.mean(0) / v.mean(0))
-
-
-def rank_sum_p(x: np.ndarray, y: np.ndarray) -> float:
-    """One-sided p-value that the values x [n] tend to exceed y [m]: the Wilcoxon rank-sum
-    (Mann-Whitney) test with average ranks for ties and the normal approximation to its null,
-    tie-corrected."""
-    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    n, m = x.size, y.size
-    if n == 0 or m == 0:
-        return 1.0
-    both = np.concatenate([x, y])
-    _, inv, counts = np.unique(both, return_inverse=True, return_counts=True)
-    first = np.cumsum(counts) - counts  # 0-based rank of each distinct value's first copy
-    ranks = (first + (counts + 1) / 2.0)[inv]
-    u = ranks[:n].sum() - n * (n + 1) / 2.0
-    N = n + m
-    var = n * m / 12.0 * ((N + 1) - (counts ** 3 - counts).sum() / (N * (N - 1)))
-    if var <= 0:
-        return 1.0
-    z = (u - n * m / 2.0) / math.sqrt(var)
-    return 0.5 * math.erfc(z / math.sqrt(2.0))

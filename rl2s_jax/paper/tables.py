@@ -9,7 +9,7 @@ import math
 import os
 import statistics
 
-from rl2s_jax.evaluate.metrics import t_interval
+from rl2s_jax.stats import t_interval
 
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")

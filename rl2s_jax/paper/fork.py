@@ -1,4 +1,4 @@
-"""The protocol's fork and join (issue 40, item 3; ``app.protocol.train_family``): the
+"""The protocol's fork and join (issue 40, item 3; ``paper.protocol.train_family``): the
 adversarial family's lanes of a seed are identical through pre-training, so its first
 method's lanes (the trunk) pre-train for all and the others fork off them (``Trunk``); the
 likelihood family's BC lanes take the same pre-training steps, so they join from the trunk

@@ -16,7 +16,7 @@ import numpy as np
 
 from rl2s_jax._files import write_json, write_text
 from rl2s_jax.app.pipeline import collect_dataset
-from rl2s_jax.app.train import parse_overrides
+from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.model.dynamics import MEMBER_MODES
 from rl2s_jax.model.termination import TERMINATIONS

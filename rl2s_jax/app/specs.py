@@ -1,0 +1,344 @@
+"""One typed spec per `rl2s` command: a frozen dataclass of exactly the command's options (the
+flags' dests, with the flags' defaults), checked when it is made, naming the field as its flag.
+``rl2s_jax.cli`` builds one from the parsed flags (``spec_from_args``) and hands it to the
+command's one app function (``COMMANDS``); from Python, make the spec and call the same
+function, e.g. ``run_collect(CollectSpec(task="pointmass", transitions_per_policy=50,
+out="d.npz"))``. ``--force`` is not a spec field: it is the door's (app/paths.py), checked
+before any spec is made.
+
+Standard library only: ``import rl2s_jax.cli`` loads this and must load no JAX.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+
+from rl2s_jax._names import IMPROVE_RECIPE_NAMES
+
+# command -> (its spec class's name, the app module, the function that runs it -> exit status)
+COMMANDS = {
+    "zoo": ("ZooSpec", "rl2s_jax.app.zoo_building", "run_zoo"),
+    "collect": ("CollectSpec", "rl2s_jax.app.datasets", "run_collect"),
+    "inspect": ("InspectSpec", "rl2s_jax.app.datasets", "run_inspect"),
+    "import": ("ImportSpec", "rl2s_jax.app.datasets", "run_import"),
+    "export": ("ExportSpec", "rl2s_jax.app.datasets", "run_export"),
+    "train": ("TrainSpec", "rl2s_jax.app.training", "run_train"),
+    "evaluate": ("EvaluateSpec", "rl2s_jax.app.evaluation", "run_evaluate"),
+    "improve": ("ImproveSpec", "rl2s_jax.app.improvement", "run_improve"),
+    "pipeline": ("PipelineSpec", "rl2s_jax.app.pipeline", "run_pipeline"),
+    "diagnose": ("DiagnoseSpec", "rl2s_jax.app.diagnosis", "run_diagnose"),
+}
+
+
+def _flag(name: str) -> str:
+    return name.replace("_", "-")
+
+
+def _check_ints(spec, names, low: int = 1) -> None:
+    """Each named field None or an int >= ``low``, else ValueError naming its flag."""
+    for name in names:
+        v = getattr(spec, name)
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < low):
+            raise ValueError(f"{_flag(name)}: expected an int >= {low}, got {v!r}")
+
+
+def _check_required(spec, names) -> None:
+    for name in names:
+        if getattr(spec, name) is None:
+            raise ValueError(f"{_flag(name)}: required")
+
+
+def _check_guard(spec) -> None:
+    """The deployment guard's flags (improve, pipeline): --guard-floor-scale finite and >= 0,
+    --no-guard alone, a known --recipe, --guard-margin finite and >= 0."""
+    scale = spec.guard_floor_scale
+    if scale is not None and not (math.isfinite(scale) and scale >= 0):
+        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got {scale!r}")
+    if spec.no_guard:
+        given = [o for o, on in (("--guard-margin", spec.guard_margin is not None),
+                                 ("--guard-snapshots", getattr(spec, "guard_snapshots", False)),
+                                 ("--guard-floor-scale", scale is not None)) if on]
+        if given:
+            raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
+    if spec.recipe is not None and spec.recipe not in IMPROVE_RECIPE_NAMES:
+        raise ValueError(f"recipe: expected one of {sorted(IMPROVE_RECIPE_NAMES)}, got "
+                         f"{spec.recipe!r}")
+    m = spec.guard_margin
+    if m is not None and not (math.isfinite(m) and m >= 0):
+        raise ValueError(f"guard-margin: expected a finite float >= 0, got {m!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ZooSpec:
+    """`rl2s zoo`: train (or continue) a task's zoo learners, then measure, choose, split."""
+
+    task: str
+    algo: str | None = None
+    seeds: int = 4
+    seed: int = 0
+    env_steps: int | None = None
+    snapshots: int | None = None
+    set: list[str] | None = None
+    work: str | None = None
+    time_limit: float | None = None
+    final: bool = False
+    checkpoint_every: float = 120.0
+    export: str | None = None
+    export_max_mib: float = 15.0
+    import_file: str | None = None
+    value_episodes: int = 16
+    zoo_size: int = 60
+    extend: str | None = None
+    min_test: int = 20
+    out: str | None = None
+    plots_only: bool = False
+    quiet: bool = False
+
+    def __post_init__(self):
+        _check_ints(self, ("seeds", "env_steps", "snapshots", "value_episodes", "zoo_size",
+                           "min_test"))
+        if self.time_limit is not None and self.time_limit <= 0 and not self.plots_only:
+            raise ValueError(f"time-limit: expected seconds > 0, got {self.time_limit}")
+
+
+@dataclasses.dataclass(frozen=True)
+class CollectSpec:
+    """`rl2s collect`: a Dataset from a zoo split, written to ``out``."""
+
+    task: str
+    transitions_per_policy: int
+    out: str
+    split: str = "train"
+    envs_per_policy: int | None = None
+    episode_length: int | None = None
+    gamma: float = 0.999
+    value_episodes: int = 16
+    seed: int = 0
+    zoo: str | None = None
+
+    def __post_init__(self):
+        _check_ints(self, ("transitions_per_policy", "envs_per_policy", "episode_length"))
+        _check_ints(self, ("value_episodes",), low=0)
+        if self.split not in ("train", "test", "all"):
+            raise ValueError(f"split: expected train, test or all, got {self.split!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class InspectSpec:
+    """`rl2s inspect`: validate a Dataset file and print its summary."""
+
+    data: str
+
+
+@dataclasses.dataclass(frozen=True)
+class ImportSpec:
+    """`rl2s import`: a local Minari dataset -> a Dataset file."""
+
+    minari: str
+    out: str
+    task: str | None = None
+    gamma: float | None = None
+    policy_key: str | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class ExportSpec:
+    """`rl2s export --minari`: a Dataset file -> a new Minari dataset directory."""
+
+    data: str
+    out: str
+    minari: bool = True
+    dataset_id: str | None = None
+
+    def __post_init__(self):
+        if self.minari is not True:
+            raise ValueError("minari: the one format export writes; expected True")
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainSpec:
+    """`rl2s train`: learn a simulator from a Dataset into the run directory ``out``."""
+
+    data: str
+    steps: int
+    out: str
+    method: str = "rl2s"
+    eps: float | None = None
+    no_task: bool = False
+    zoo: str | None = None
+    policy_file: str | None = None
+    profile: str = "auto"
+    seed: int = 0
+    save_every: int | None = None
+    chunk: int = 10
+    set: list[str] | None = None
+    eval_data: str | None = None
+    eval_policies: str | None = None
+    eval_every: int | None = None
+    eval_episodes: int | None = None
+    eval_horizon: int | None = None
+    eval_seed: int | None = None
+    truth: str | None = None
+    resume_step: int | None = None
+    quiet: bool = False
+
+    def __post_init__(self):
+        _check_ints(self, ("steps", "save_every", "chunk", "eval_every", "eval_episodes",
+                           "eval_horizon"))
+        if self.method not in ("rl2s", "gail", "bc", "rl2s-bc"):
+            raise ValueError(f"method: expected rl2s, gail, bc or rl2s-bc, got {self.method!r}")
+        if self.profile not in ("auto", "cpu", "gpu"):
+            raise ValueError(f"profile: expected auto, cpu or gpu, got {self.profile!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class EvaluateSpec:
+    """`rl2s evaluate`: VD and ranking of one or more checkpoints' simulators (or, with
+    ``oracle``, the real dynamics) on a Dataset's policies."""
+
+    data: str
+    ckpt: list[str] | None = None
+    oracle: bool = False
+    bootstrap: int = 1000
+    zoo: str | None = None
+    policy_file: str | None = None
+    episodes: int | None = None
+    horizon: int | None = None
+    seed: int | None = None
+    truth: str | None = None
+    step: int | None = None
+    json: str | None = None
+    level: float = 0.9  # each policy's value interval at this level (0: none; evaluate/trust.py)
+    calibration: list[str] | None = None  # Datasets the intervals are calibrated on
+
+    def __post_init__(self):
+        _check_ints(self, ("episodes", "horizon"))
+        _check_ints(self, ("bootstrap",), low=0)
+        if isinstance(self.level, bool) or not isinstance(self.level, int | float) \
+                or not 0 <= self.level < 1:
+            raise ValueError(f"level: expected a coverage level in [0, 1) such as 0.9 (0: no "
+                             f"intervals), got {self.level!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class ImproveSpec:
+    """`rl2s improve`: fine-tune a Dataset's policies with SAC inside a saved simulator, deploy
+    them through the guard, write them as a zoo and measure the real gain."""
+
+    ckpt: str
+    data: str
+    out: str
+    policies: list[int] | None = None
+    iterations: int | None = None
+    set: list[str] | None = None
+    episodes: int = 16
+    branch_length: int | None = None
+    uncertainty_penalty: float | None = None
+    uncertainty_threshold: float | None = None
+    halt_penalty: float = 0.0
+    recipe: str | None = None
+    guard_margin: float | None = None
+    guard_floor_scale: float | None = None
+    guard_episodes: int = 16
+    no_guard: bool = False
+    guard_snapshots: bool = False
+    zoo: str | None = None
+    policy_file: str | None = None
+    step: int | None = None
+    seed: int = 0
+    no_measure: bool = False
+    quiet: bool = False
+
+    def __post_init__(self):
+        _check_guard(self)
+        _check_ints(self, ("iterations", "episodes", "branch_length", "guard_episodes"))
+        if self.episodes < 2 and not self.no_measure:
+            raise ValueError(f"episodes: expected >= 2 (for standard errors), got "
+                             f"{self.episodes}")
+
+
+@dataclasses.dataclass(frozen=True)
+class PipelineSpec:
+    """`rl2s pipeline`: collect, train the methods, evaluate, fine-tune, report, for a task."""
+
+    task: str
+    profile: str = "auto"
+    seed: int = 0
+    out: str | None = None
+    methods: str = "rl2s,gail,bc,rl2s-bc"
+    zoo: str | None = None
+    steps: int | None = None
+    eval_every: int | None = None
+    eval_episodes: int | None = None
+    eval_horizon: int | None = None
+    eval_seed: int | None = None
+    truth: str | None = None
+    transitions_per_policy: int | None = None
+    value_episodes: int | None = None
+    improve_iterations: int | None = None
+    set: list[str] | None = None
+    branch_length: int | None = None
+    uncertainty_penalty: float | None = None
+    recipe: str | None = None
+    guard_margin: float | None = None
+    guard_floor_scale: float | None = None
+    guard_episodes: int = 16
+    no_guard: bool = False
+    episode_length: int | None = None
+    quiet: bool = False
+
+    def __post_init__(self):
+        _check_ints(self, ("steps", "eval_every", "eval_episodes", "eval_horizon",
+                           "transitions_per_policy", "value_episodes", "branch_length",
+                           "guard_episodes", "episode_length"))
+        _check_ints(self, ("improve_iterations",), low=0)
+        _check_guard(self)
+        if self.profile not in ("auto", "cpu", "gpu"):
+            raise ValueError(f"profile: expected auto, cpu or gpu, got {self.profile!r}")
+
+
+@dataclasses.dataclass(frozen=True)
+class DiagnoseSpec:
+    """`rl2s diagnose`: where a simulator of a Dataset is wrong, why, and the extension's
+    gain, into the directory ``out``."""
+
+    data: str
+    out: str
+    ckpt: str | None = None
+    reference: str | None = None
+    seeds: int = 3
+    heldout: float = 0.3
+    lags: int = 5
+    k_max: int = 20
+    model_steps: int | None = None
+    value_episodes: int = 8
+    alpha: float = 0.01
+    zoo: str | None = None
+    seed: int = 0
+    physics: bool = False  # the MuJoCo model's diagnosis instead (app/physics_diagnosis.py)
+    sim_xml: str | None = None
+    sim_frames: int | None = None
+    quiet: bool = False
+
+    def __post_init__(self):
+        _check_ints(self, ("sim_frames",))
+        if not 0.0 < self.heldout < 1.0:
+            raise ValueError(f"heldout: expected a fraction in (0, 1), got {self.heldout}")
+        if isinstance(self.seeds, bool) or not isinstance(self.seeds, int) or self.seeds < 1:
+            raise ValueError(f"seeds: expected an int >= 1, got {self.seeds}")
+        _check_ints(self, ("lags", "k_max", "model_steps", "value_episodes"))
+
+
+SPECS = {name: globals()[cls] for name, (cls, _, _) in COMMANDS.items()}
+
+
+def spec_from_args(spec_class, args: argparse.Namespace):
+    """The spec of a parsed command: each field from the Namespace attribute of its name
+    (every field is one of the command's flags' dests)."""
+    return spec_class(**{f.name: getattr(args, f.name)
+                         for f in dataclasses.fields(spec_class)})
+
+
+__all__ = ["COMMANDS", "SPECS", "spec_from_args", *(cls for cls, _, _ in COMMANDS.values())]

@@ -73,9 +73,7 @@ SUB = re.compile(r'"((?:[^"\\]|\\.)*)"\s*->\s*"((?:[^"\\]|\\.)*)"')
 SHELL_TAGS = {"bash", "sh", "shell", "console"}
 COMMAND = re.compile(r"^(rl2s|make|python3?|bash|srun|sbatch|[A-Z_]+=\S*)\b")
 # Files another branch edits: what they lack is an expected failure here, named with the fix.
-ELSEWHERE = {"docs/DIAGNOSIS.md": "docs/DIAGNOSIS.md is edited on another branch: its python "
-             "block needs `from rl2s_jax.data.dataset import load_dataset` and a not-run mark "
-             "(a diagnosis trains for minutes), its rl2s synopsis a not-run mark"}
+ELSEWHERE: dict[str, str] = {}  # file -> why its blocks may fail for now (none today)
 
 
 class Block(typing.NamedTuple):

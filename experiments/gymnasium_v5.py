@@ -1,0 +1,212 @@
+"""The MJX tasks' physics against Gymnasium's MuJoCo v5 envs (issue 62, item 5): data the
+project did not make (C MuJoCo, float64, v5's own XML and solver), recorded with zoo policies.
+
+For each task: the table of model differences (``gymnasium_v5.model_differences``); v5 data of
+the zoo's policies (``collect_gymnasium``) and, as a control, C-MuJoCo data of the same
+policies on the MJX task's own XML (``measured.collect_measured``: what float32 MJX vs float64
+C alone costs); the one-step and open-loop k-step error of the nominal MJX physics
+(``mjx_model.PhysicsModel.step``, theta = 0) on both, per observation dim, in and out of
+contact and per policy, each as an RMSE over the RMS of the data's own change over that many
+steps (1.0 = no better than predicting no change); the policies' true values in v5 against
+their values in the MJX task (the zoo's, 16 MJX episodes each; ``--mjx-values`` re-measures
+them with as many episodes as v5's) and the Kendall tau between the two rankings.
+
+    python experiments/gymnasium_v5.py [--tasks hopper ...] [--split test] [--policies 0]
+        [--transitions 1000] [--value-episodes 16] [--k 10] [--no-control] [--mjx-values]
+        [--out FILE.json]
+
+Measured (2-core CPU shared with three other sessions, 2026-11-28; ``--tasks hopper``,
+defaults: the 20 test policies, 1000 transitions and 16 value episodes each): see the
+"Results" block at the end of this docstring, written from the run's printout.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.evaluate.metrics import kendall_tau, value_differences
+from rl2s_jax.physics.gymnasium_v5 import V5_ENVS, collect_gymnasium, print_differences
+from rl2s_jax.physics.measured import collect_measured
+from rl2s_jax.physics.mjx_model import physics_model
+from rl2s_jax.policy.policy import index_params
+from rl2s_jax.zoo.zoo import load_zoo
+
+CHUNK = 1024  # transitions per MJX call (one compiled shape; the last chunk is padded)
+
+
+def _chunked(fn, *arrays):
+    """fn over rows of ``arrays`` in CHUNK-row pieces (padded to one shape) -> its outputs."""
+    n = len(arrays[0])
+    outs = []
+    for lo in range(0, n, CHUNK):
+        part = [a[lo:lo + CHUNK] for a in arrays]
+        pad = CHUNK - len(part[0])
+        part = [np.concatenate([p, np.repeat(p[-1:], pad, 0)]) if pad else p for p in part]
+        out = jax.device_get(fn(*part))
+        outs.append(jax.tree_util.tree_map(lambda x, m=CHUNK - pad: np.asarray(x)[:m], out))
+    return jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *outs)
+
+
+def _windows(ds, k: int, stride: int) -> np.ndarray:
+    """Start rows i (every ``stride``-th) whose episode holds rows i .. i + k - 1 -> [W]."""
+    ep, n = np.asarray(ds.episode_id), ds.n_transitions
+    starts = np.arange(0, n - k + 1, stride)
+    return starts[ep[starts + k - 1] == ep[starts]]
+
+
+def physics_errors(pm, ds, k: int, stride: int) -> dict:
+    """One-step and open-loop k-step error of ``pm``'s nominal physics on ``ds``.
+
+    Each error is an RMSE over the RMS of the data's own change over the same steps, per
+    observation dim [O] and its mean over dims; one-step also in and out of contact and per
+    policy [P]; k-step by step 1..k (mean over dims).
+    """
+    theta = jnp.zeros(len(pm.candidates), jnp.float32)
+    one = jax.jit(jax.vmap(lambda o, a: pm.step_with_contact(theta, o, a)))
+    obs, act, nxt = (np.asarray(x) for x in (ds.obs, ds.action, ds.next_obs))
+    t0 = time.time()
+    pred, touching = _chunked(one, obs, act)
+    seconds_one = time.time() - t0
+    err2, change2 = (pred - nxt) ** 2, (nxt - obs) ** 2
+    rel = lambda e2, c2: np.sqrt(e2.mean(0)) / np.maximum(np.sqrt(c2.mean(0)), 1e-8)
+    pid = np.asarray(ds.policy_id)
+    out = {"one_step": rel(err2, change2).tolist(),
+           "one_step_mean": float(rel(err2, change2).mean()),
+           "one_step_rmse": np.sqrt(err2.mean(0)).tolist(),
+           "contact_share": float(touching.mean()),
+           "one_step_by_policy": [float(rel(err2[pid == p], change2[pid == p]).mean())
+                                  for p in range(ds.n_policies)],
+           "seconds_one_step": seconds_one}
+    for name, m in (("in_contact", touching), ("no_contact", ~touching)):
+        out[f"one_step_{name}"] = float(rel(err2[m], change2[m]).mean()) if m.any() else None
+
+    starts = _windows(ds, k, stride)
+    rows = starts[:, None] + np.arange(k)[None, :]  # [W, k]
+
+    def rollout(o0, actions):  # o0 [O], actions [k, A] -> [k, O]
+        def body(o, a):
+            o2 = pm.step(theta, o, a)
+            return o2, o2
+        return jax.lax.scan(body, o0, actions)[1]
+
+    t0 = time.time()
+    roll = _chunked(jax.jit(jax.vmap(rollout)), obs[starts], act[rows])  # [W, k, O]
+    truth = nxt[rows]  # [W, k, O]
+    e2 = (roll - truth) ** 2
+    c2 = (truth - obs[starts][:, None, :]) ** 2
+    by_step = [float(rel(e2[:, j], c2[:, j]).mean()) for j in range(k)]
+    out.update({"k": k, "windows": len(starts), "k_step": rel(e2[:, -1], c2[:, -1]).tolist(),
+                "k_step_mean": by_step[-1], "k_step_by_step": by_step,
+                "k_step_finite": float(np.isfinite(roll).all(axis=(1, 2)).mean()),
+                "seconds_k_step": time.time() - t0})
+    return out
+
+
+def run_task(task: str, args) -> dict:
+    zoo = load_zoo(task)
+    ids = zoo.split_ids(args.split)
+    if args.policies:  # evenly spaced by return
+        by_return = sorted(ids, key=lambda i: zoo.returns[i])
+        ids = sorted(by_return[j] for j in np.linspace(0, len(ids) - 1, args.policies)
+                     .round().astype(int))
+    params = index_params(zoo.params, np.asarray(ids))
+    names = zoo.policy_names(ids)
+    rec = {"task": task, "env_id": V5_ENVS[task], "split": args.split, "zoo_ids": ids}
+    rec["differences"] = print_differences(task)
+    t0 = time.time()
+    v5 = collect_gymnasium(task, params, transitions_per_policy=args.transitions,
+                           value_episodes=args.value_episodes, seed=args.seed,
+                           policy_names=names, source={"zoo": task, "zoo_ids": ids})
+    rec["seconds_collect_v5"] = time.time() - t0
+    pm = physics_model(task)
+    data = {"v5": v5}
+    if args.control:
+        t0 = time.time()
+        data["mjx_xml_c"] = collect_measured(pm, params, transitions_per_policy=args.transitions,
+                                             episode_length=get_task(task).episode_length,
+                                             seed=args.seed,
+                                             policy_names=names)
+        rec["seconds_collect_control"] = time.time() - t0
+    for name, ds in data.items():
+        rec[name] = physics_errors(pm, ds, args.k, args.stride)
+        rec[name]["transitions"] = ds.n_transitions
+        rec[name]["done_share"] = float(np.mean(ds.done))
+        e = rec[name]
+        print(f"{task} {name}: {ds.n_transitions} transitions, {e['contact_share']:.2f} in "
+              f"contact; one-step {e['one_step_mean']:.4g} (in contact "
+              f"{e['one_step_in_contact']:.4g}, out {e['one_step_no_contact']:.4g}), "
+              f"{args.k}-step {e['k_step_mean']:.4g}")
+        print("  one-step by dim " + " ".join(f"{x:.3g}" for x in e["one_step"]))
+        print("  one-step RMSE   " + " ".join(f"{x:.3g}" for x in e["one_step_rmse"]))
+        print(f"  {args.k}-step by dim " + " ".join(f"{x:.3g}" for x in e["k_step"]))
+
+    mjx_values = np.asarray(zoo.returns)[ids]
+    rec["mjx_values_from"] = "zoo.json returns (collect.measure_values, 16 MJX episodes)"
+    if args.mjx_values:
+        t0 = time.time()
+        mjx_values = measure_values(get_task(task).make_env(), params,
+                                    key=jax.random.PRNGKey(args.seed),
+                                    n_episodes=args.value_episodes,
+                                    episode_length=get_task(task).episode_length)["value"]
+        rec["mjx_values_from"] = f"measure_values, {args.value_episodes} MJX episodes"
+        rec["seconds_mjx_values"] = time.time() - t0
+    v5_values = np.asarray(v5.value, np.float64)
+    mjx_values = np.asarray(mjx_values, np.float64)
+    vd = value_differences(mjx_values, v5_values)
+    rec["values"] = {"v5": v5_values.tolist(), "v5_se": np.asarray(v5.value_se).tolist(),
+                     "mjx": mjx_values.tolist(), "kendall_tau": kendall_tau(mjx_values, v5_values),
+                     "avd": vd["avd"], "mvd": vd["mvd"],
+                     "mean_v5_minus_mjx": float(np.mean(v5_values - mjx_values)),
+                     "gymnasium_value": v5.meta["source"]["gymnasium_value"],
+                     "gymnasium_reward_gap": v5.meta["source"]["gymnasium_reward_gap"],
+                     "gymnasium_termination_differs":
+                         v5.meta["source"]["gymnasium_termination_differs"]}
+    tau = rec["values"]["kendall_tau"]
+    print(f"{task} values: Kendall tau (MJX vs v5) {tau:.3f}, AVD {vd['avd']:.1f}, MVD "
+          f"{vd['mvd']:.1f}, mean v5 - MJX {rec['values']['mean_v5_minus_mjx']:+.1f} over "
+          f"{len(ids)} policies")
+    own, se = rec["values"]["gymnasium_value"], rec["values"]["v5_se"]
+    for i, name in enumerate(names):
+        print(f"  {name}: MJX {mjx_values[i]:8.1f}  v5 {v5_values[i]:8.1f} +- {se[i]:.1f}  "
+              f"(v5's own reward {own[i]:8.1f})")
+    return rec
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--tasks", nargs="+", default=["hopper"], choices=sorted(V5_ENVS))
+    ap.add_argument("--split", default="test", help="the zoo's split whose policies run")
+    ap.add_argument("--policies", type=int, default=0,
+                    help="that many of the split's policies, evenly spaced by return (0: all)")
+    ap.add_argument("--transitions", type=int, default=1000, help="per policy")
+    ap.add_argument("--value-episodes", type=int, default=16)
+    ap.add_argument("--k", type=int, default=10, help="open-loop steps")
+    ap.add_argument("--stride", type=int, default=10, help="rows between k-step windows")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--no-control", dest="control", action="store_false",
+                    help="skip the C-MuJoCo control on the MJX task's own XML")
+    ap.add_argument("--mjx-values", action="store_true",
+                    help="re-measure the MJX values (else the zoo's)")
+    ap.add_argument("--out", default=None, help="write the record as JSON here")
+    args = ap.parse_args(argv)
+    if args.k < 1 or args.transitions < args.k or args.value_episodes < 2:
+        ap.error("expected --k >= 1, --transitions >= --k, --value-episodes >= 2")
+    t0 = time.time()
+    record = {"args": vars(args), "tasks": [run_task(t, args) for t in args.tasks]}
+    record["seconds"] = time.time() - t0
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(record, f, indent=1)
+    print(f"done in {record['seconds']:.0f} s")
+    return record
+
+
+if __name__ == "__main__":
+    main()

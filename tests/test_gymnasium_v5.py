@@ -156,3 +156,55 @@ def test_mjx_step_from_v5_states():
     # Measured: same <= 1e-6 (float32 round-off), v5 up to 0.19 (a joint velocity).
     assert np.all(errors["same"] <= 1e-5 + 1e-5 * scale), errors["same"]
     assert errors["v5"].max() > 100 * errors["same"].max(), errors
+
+
+class _LinearPhysics:
+    """A stand-in for PhysicsModel: next = 0.9 obs + action (obs and action of size 2), in
+    contact where obs[0] > 0."""
+
+    candidates = ()
+
+    def step(self, theta, obs, action):
+        return 0.9 * obs + action
+
+    def step_with_contact(self, theta, obs, action):
+        return self.step(theta, obs, action), obs[0] > 0
+
+
+def test_script_errors_are_rmse_over_the_datas_change():
+    """experiments/gymnasium_v5.py: the one-step and k-step errors against plain NumPy, on
+    data whose next observation is the stand-in's plus a known offset."""
+    from experiment_scripts import load_script
+
+    from rl2s_jax.data.dataset import Dataset
+
+    script = load_script("gymnasium_v5")
+    rng = np.random.default_rng(0)
+    n, bias = 30, np.array([0.1, -0.2])
+    obs, act = np.zeros((n, 2)), rng.normal(size=(n, 2))
+    obs[0] = rng.normal(size=2)
+    for i in range(n - 1):  # one episode of true dynamics 0.9 o + a + bias
+        obs[i + 1] = 0.9 * obs[i] + act[i] + bias
+    nxt = 0.9 * obs + act + bias
+    ds = Dataset.from_arrays({
+        "obs": obs.astype(np.float32), "action": act.astype(np.float32),
+        "next_obs": nxt.astype(np.float32), "reward": np.zeros(n, np.float32),
+        "done": np.zeros(n, bool), "truncated": np.zeros(n, bool),
+        "policy_id": np.zeros(n, np.int32), "episode_id": np.zeros(n, np.int32),
+        "t": np.arange(n, dtype=np.int32)},
+        {"task": None, "obs_size": 2, "action_size": 2, "n_policies": 1, "gamma": None,
+         "episode_length": None, "policy_names": ["p"], "source": {}})
+    k = 3
+    got = script.physics_errors(_LinearPhysics(), ds, k, stride=4)
+    change = np.sqrt(((nxt - obs) ** 2).mean(0))
+    np.testing.assert_allclose(got["one_step"], np.abs(bias) / change, rtol=1e-4)
+    contact = obs[:, 0] > 0
+    err_in = np.sqrt(np.tile(bias ** 2, (contact.sum(), 1)).mean(0))
+    change_in = np.sqrt(((nxt - obs)[contact] ** 2).mean(0))
+    assert got["one_step_in_contact"] == pytest.approx(np.mean(err_in / change_in), rel=1e-4)
+    starts = np.arange(0, n - k + 1, 4)
+    # Open loop, the model misses the bias every step: after k steps by sum 0.9^j bias.
+    miss = np.abs(bias) * sum(0.9 ** j for j in range(k))
+    change_k = np.sqrt(((nxt[starts + k - 1] - obs[starts]) ** 2).mean(0))
+    np.testing.assert_allclose(got["k_step"], miss / change_k, rtol=1e-4)
+    assert got["windows"] == len(starts)

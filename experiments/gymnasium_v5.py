@@ -12,8 +12,12 @@ their values in the MJX task (the zoo's, 16 MJX episodes each; ``--mjx-values`` 
 them with as many episodes as v5's) and the Kendall tau between the two rankings.
 
     python experiments/gymnasium_v5.py [--tasks hopper ...] [--split test] [--policies 0]
-        [--transitions 1000] [--value-episodes 16] [--k 10] [--no-control] [--mjx-values]
-        [--out FILE.json]
+        [--transitions 1000] [--value-episodes 16] [--k 10] [--no-control] [--ablate]
+        [--mjx-values] [--out FILE.json]
+
+``--ablate``: also v5 with its XML's <option> moved toward the MJX task's (Euler instead of
+RK4; then also the MJX task's solver iterations), to see which difference the error comes
+from.
 
 Measured (2-core CPU shared with three other sessions, 2026-11-28; ``--tasks hopper``,
 defaults: the 20 test policies, 1000 transitions and 16 value episodes each): see the
@@ -23,7 +27,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import tempfile
 import time
+import xml.etree.ElementTree as ET
 
 import jax
 import jax.numpy as jnp
@@ -32,7 +39,12 @@ import numpy as np
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import kendall_tau, value_differences
-from rl2s_jax.physics.gymnasium_v5 import V5_ENVS, collect_gymnasium, print_differences
+from rl2s_jax.physics.gymnasium_v5 import (
+    V5_ENVS,
+    collect_gymnasium,
+    make_v5,
+    print_differences,
+)
 from rl2s_jax.physics.measured import collect_measured
 from rl2s_jax.physics.mjx_model import physics_model
 from rl2s_jax.policy.policy import index_params
@@ -109,6 +121,28 @@ def physics_errors(pm, ds, k: int, stride: int) -> dict:
     return out
 
 
+def option_variants(task: str, directory: str) -> dict[str, dict]:
+    """v5's XML with its <option> moved toward the MJX task's, one step at a time, written to
+    ``directory`` -> {name: env_kwargs}: "euler" (integrator Euler, where v5 says RK4) and
+    "euler_iter" (also the MJX task's solver iterations)."""
+    mjx_iterations = str(physics_model(task).mj.opt.iterations)
+    env = make_v5(task)
+    tree = ET.parse(env.unwrapped.fullpath)
+    env.close()
+    option = tree.getroot().find("option")
+    out = {}
+    for name, edits in (("euler", {"integrator": "Euler"}),
+                        ("euler_iter", {"integrator": "Euler", "iterations": mjx_iterations})):
+        if name == "euler" and option.get("integrator", "Euler") == "Euler":
+            continue
+        for key, value in edits.items():
+            option.set(key, value)
+        path = os.path.join(directory, f"{task}_{name}.xml")
+        tree.write(path)
+        out[name] = {"xml_file": path}
+    return out
+
+
 def run_task(task: str, args) -> dict:
     zoo = load_zoo(task)
     ids = zoo.split_ids(args.split)
@@ -134,6 +168,12 @@ def run_task(task: str, args) -> dict:
                                              seed=args.seed,
                                              policy_names=names)
         rec["seconds_collect_control"] = time.time() - t0
+    if args.ablate:  # which of v5's options the one-step error comes from
+        for name, kwargs in option_variants(task, tempfile.mkdtemp()).items():
+            data[f"v5_{name}"] = collect_gymnasium(task, params,
+                                                   transitions_per_policy=args.transitions,
+                                                   value_episodes=0, seed=args.seed,
+                                                   policy_names=names, env_kwargs=kwargs)
     for name, ds in data.items():
         rec[name] = physics_errors(pm, ds, args.k, args.stride)
         rec[name]["transitions"] = ds.n_transitions
@@ -192,6 +232,8 @@ def main(argv=None):
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--no-control", dest="control", action="store_false",
                     help="skip the C-MuJoCo control on the MJX task's own XML")
+    ap.add_argument("--ablate", action="store_true",
+                    help="also v5 with the integrator / solver iterations of the MJX task")
     ap.add_argument("--mjx-values", action="store_true",
                     help="re-measure the MJX values (else the zoo's)")
     ap.add_argument("--out", default=None, help="write the record as JSON here")

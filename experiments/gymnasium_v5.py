@@ -115,6 +115,7 @@ def physics_errors(pm, ds, k: int, stride: int) -> dict:
     c2 = (truth - obs[starts][:, None, :]) ** 2
     by_step = [float(rel(e2[:, j], c2[:, j]).mean()) for j in range(k)]
     out.update({"k": k, "windows": len(starts), "k_step": rel(e2[:, -1], c2[:, -1]).tolist(),
+                "k_step_rmse": np.sqrt(e2[:, -1].mean(0)).tolist(),
                 "k_step_mean": by_step[-1], "k_step_by_step": by_step,
                 "k_step_finite": float(np.isfinite(roll).all(axis=(1, 2)).mean()),
                 "seconds_k_step": time.time() - t0})
@@ -187,9 +188,9 @@ def run_task(task: str, args) -> dict:
         print("  one-step RMSE   " + " ".join(f"{x:.3g}" for x in e["one_step_rmse"]))
         print(f"  {args.k}-step by dim " + " ".join(f"{x:.3g}" for x in e["k_step"]))
 
-    mjx_values = np.asarray(zoo.returns)[ids]
+    zoo_values = mjx_values = np.asarray(zoo.returns, np.float64)[ids]
     rec["mjx_values_from"] = "zoo.json returns (collect.measure_values, 16 MJX episodes)"
-    if args.mjx_values:
+    if args.mjx_values:  # and MJX against itself: the ranking noise of two measurements
         t0 = time.time()
         mjx_values = measure_values(get_task(task).make_env(), params,
                                     key=jax.random.PRNGKey(args.seed),
@@ -197,6 +198,10 @@ def run_task(task: str, args) -> dict:
                                     episode_length=get_task(task).episode_length)["value"]
         rec["mjx_values_from"] = f"measure_values, {args.value_episodes} MJX episodes"
         rec["seconds_mjx_values"] = time.time() - t0
+        rec["mjx_remeasured_vs_zoo_tau"] = kendall_tau(zoo_values, mjx_values)
+        rec["v5_vs_zoo_tau"] = kendall_tau(zoo_values, np.asarray(v5.value, np.float64))
+        print(f"{task}: Kendall tau, MJX re-measured vs the zoo's MJX values "
+              f"{rec['mjx_remeasured_vs_zoo_tau']:.3f}; v5 vs the zoo's {rec['v5_vs_zoo_tau']:.3f}")
     v5_values = np.asarray(v5.value, np.float64)
     mjx_values = np.asarray(mjx_values, np.float64)
     vd = value_differences(mjx_values, v5_values)

@@ -213,6 +213,9 @@ def cmd_diagnose(args) -> int:
     """Diagnose a simulator of a Dataset: where it is wrong, why, and the extension's gain."""
     import dataclasses
 
+    if args.physics:  # the MuJoCo model's diagnosis: app/physics.py maps its flags
+        from rl2s_jax.app.physics import physics_command
+        return physics_command(args)
     from rl2s_jax.app.diagnose import diagnose
     from rl2s_jax.data.dataset import load_dataset
     from rl2s_jax.diagnose.extension import train_command
@@ -500,26 +503,24 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_pipeline)
 
-    p = sub.add_parser("diagnose", help="show where a simulator is wrong, name the cause, "
-                       "fit the extension and measure the gain")
+    p = sub.add_parser("diagnose", help="where a simulator is wrong, why, and the fix's gain")
     p.add_argument("--data", required=True, help="Dataset (.npz), any task or none")
-    p.add_argument("--ckpt", help="a trained simulator's checkpoint directory to diagnose "
-                   "(default: fit the base model here)")
-    p.add_argument("--reference", help="a Dataset of the same system without the effects "
-                   "sought (e.g. a clean recording): name only what the data shows beyond it")
+    p.add_argument("--ckpt", help="a simulator's checkpoint (default: fit the base model)")
+    p.add_argument("--reference", help="a clean Dataset: name only what goes beyond it")
     p.add_argument("--out", required=True, help="directory for report.md, report.json, PNGs")
     p.add_argument("--seeds", type=int, default=3, help="model seeds for the gain (>= 1)")
     p.add_argument("--heldout", type=float, default=0.3, help="fraction of episodes held out")
-    p.add_argument("--lags", type=_positive("lags"), default=5,
-                   help="past steps the delay / unobserved-state tests look at")
-    p.add_argument("--k-max", type=_positive("k-max"), default=20,
-                   help="open-loop steps for the k-step error")
-    p.add_argument("--model-steps", type=_positive("model-steps"),
-                   help="training steps of each model (default: ModelSpec's)")
+    p.add_argument("--lags", type=_positive("lags"), default=5, help="past steps tests see")
+    p.add_argument("--k-max", type=_positive("k-max"), default=20, help="k-step error's k")
+    p.add_argument("--model-steps", type=_positive("model-steps"), help="steps of each model")
     p.add_argument("--value-episodes", type=_positive("value-episodes"), default=8)
     p.add_argument("--alpha", type=float, default=0.01, help="significance level")
     p.add_argument("--zoo", help="zoo of the data's policies, for the value views")
     p.add_argument("--seed", type=int, default=0, help="split and test seed")
+    p.add_argument("--physics", action="store_true", help="name the wrong MuJoCo quantity "
+                   "(the data's task, or --sim-xml FILE: your MJCF, obs = qpos ++ qvel)")
+    p.add_argument("--sim-xml")
+    p.add_argument("--sim-frames", type=_positive("sim-frames"))  # MJCF steps per step
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.set_defaults(func=cmd_diagnose)
     return parser
@@ -529,8 +530,7 @@ def build_parser() -> argparse.ArgumentParser:
 # them right after parsing, before any work (rl2s_jax/app/paths.py).
 OUTPUTS = {
     "zoo": (("--out", "dir"), ("--work", "dir"), ("--export", "file")),
-    "collect": (("--out", "file"),),
-    "import": (("--out", "file"),),
+    "collect": (("--out", "file"),), "import": (("--out", "file"),),
     "export": (("--out", "dir"),),
     "train": (("--out", "dir"),),
     "evaluate": (("--json", "file"),),

@@ -101,7 +101,7 @@ def _episode(pm, mj, data, params, delays, rng, length, done_fn):
     data.qpos[:] = mj.qpos0 + rng.uniform(-5e-3, 5e-3, mj.nq)
     data.qvel[:] = rng.uniform(-5e-3, 5e-3, mj.nv)
     mujoco.mj_forward(mj, data)
-    obs = np.asarray(pm.state_to_obs(data.qpos.copy(), data.qvel.copy()), np.float64)
+    obs = pm.state_to_obs_np(data.qpos.copy(), data.qvel.copy())
     rec = {"obs": [], "action": [], "next_obs": [], "done": []}
     for _ in range(length):
         action = numpy_policy_action(params, obs.astype(np.float32), rng).astype(np.float32)
@@ -109,7 +109,7 @@ def _episode(pm, mj, data, params, delays, rng, length, done_fn):
         late = np.array(rec["action"])
         data.ctrl[:] = [late[-1 - d, j] if len(late) > d else 0.0 for j, d in enumerate(delays)]
         mujoco.mj_step(mj, data, nstep=pm.n_frames)
-        nxt = np.asarray(pm.state_to_obs(data.qpos.copy(), data.qvel.copy()), np.float64)
+        nxt = pm.state_to_obs_np(data.qpos.copy(), data.qvel.copy())
         done = bool(done_fn(nxt))
         rec["obs"].append(obs)
         rec["next_obs"].append(nxt)

@@ -141,6 +141,20 @@ class PhysicsModel:
             obs = obs.at[o].set(z0 + q[iq] - self.substep * v[iv])
         return obs
 
+    def obs_to_state_np(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`obs_to_state` in NumPy float64."""
+        q, v = obs[: self.nq].copy(), obs[self.nq: self.nq + self.nv]
+        for o, iq, iv, z0 in self.lag:
+            q[iq] = obs[o] - z0 + self.substep * v[iv]
+        return q, v
+
+    def state_to_obs_np(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        """:meth:`state_to_obs` in NumPy float64."""
+        obs = np.concatenate([q, v])
+        for o, iq, iv, z0 in self.lag:
+            obs[o] = z0 + q[iq] - self.substep * v[iv]
+        return obs
+
     def apply(self, theta: jax.Array):
         """The MJX model with ``theta`` [K] applied (obs bias excluded)."""
         m = self.mjx_model

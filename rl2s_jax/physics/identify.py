@@ -1,0 +1,403 @@
+"""Which physical quantities explain the physics model's error, and their values (MJX gradients).
+
+Residuals are one-step: ``(step(theta, obs, a_delayed) - next_obs) / scale`` per obs dim, with
+``scale`` the dim's standard deviation of ``next_obs - obs`` in the data. The data's episodes
+are split in two halves (``fit`` and ``test``, alternately within each policy), each
+subsampled to ``FitConfig.rows`` transitions (padded to that fixed size, so one compiled
+step and one compiled Jacobian serve every dataset of a model).
+
+Selection, forward stepwise (:func:`identify`). At the current fit:
+
+1. screen every candidate: a continuous one by the linearised drop of the fit half's sum of
+   squares were it added (its Jacobian column made orthogonal to the chosen ones'); an action
+   delay (per actuator, 1..``max_delay`` steps) by the exact drop with the actions shifted;
+2. refine the best (Levenberg-Marquardt on the chosen set plus it, ``jax.jacfwd`` Jacobians);
+3. keep it only if it is significant on the *test* half: the per-episode mean squared error
+   drops, in a one-sided paired t-test over test episodes (episodes, not transitions, are
+   the independent units: one episode's residuals are correlated in time), at level
+   ``alpha``, and by at least ``min_gain`` of the current test error. Otherwise stop.
+
+Intervals: a linearised bootstrap over fit episodes at the optimum (resample episodes, one
+Gauss-Newton step from the optimum with their rows), percentile ``[2.5, 97.5]``, mapped to the
+value scale; episode resampling keeps the time correlation that a Wald interval
+``sigma^2 (J^T J)^-1`` (also computed, ``wald``) ignores. A delay's interval is its value.
+"""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import time
+
+import jax
+import numpy as np
+from scipy import stats
+
+from rl2s_jax.physics.mjx_model import PhysicsModel, actuator_names, delayed_actions
+
+__all__ = ["FitConfig", "identify", "fit_sysid", "compiled", "c_backend", "split_rows", "Rows"]
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+    """rows: transitions per half (fixed: one compile); max_params: most quantities named;
+    lm_iterations: refinement steps per candidate; alpha, min_gain: the significance rule
+    (module docstring); max_delay: action delays screened, in control steps; bootstrap:
+    resamples for the intervals; seed: the split and subsample."""
+
+    rows: int = 256  # a multiple of JAC_ROWS
+    max_params: int = 3
+    lm_iterations: int = 4
+    alpha: float = 0.01
+    min_gain: float = 0.1
+    max_delay: int = 3
+    bootstrap: int = 200
+    seed: int = 0
+    backend: str = "mujoco"
+
+
+@dataclasses.dataclass(frozen=True)
+class Rows:
+    """One half's transitions, padded to ``FitConfig.rows``: obs [R, O], actions [R, A] per
+    delay vector via ``actions(delays)``, next_obs [R, O], episode [R] (-1 = padding)."""
+
+    obs: np.ndarray
+    next_obs: np.ndarray
+    episode: np.ndarray
+    index: np.ndarray  # row in the dataset, for the delayed actions
+    action_all: np.ndarray
+    episode_all: np.ndarray
+    t_all: np.ndarray
+
+    def actions(self, delays) -> np.ndarray:
+        return delayed_actions(self.action_all, self.episode_all, self.t_all, delays)[self.index]
+
+    @property
+    def weight(self) -> np.ndarray:
+        return (self.episode >= 0).astype(np.float32)
+
+
+_COMPILED: dict[int, tuple] = {}
+# The Jacobian runs on chunks of this many rows: on the 2-core CPU a [64]-row Jacobian compiled
+# in ~90 s while a [256]-row one had not finished after 7 minutes.
+JAC_ROWS = 64
+
+
+def c_backend(pm: PhysicsModel, fd_step: float = 1e-5):
+    """(pred, pred_jac) as :func:`compiled`'s, in C MuJoCo (float64): each row stepped from its
+    measured state, the Jacobian by forward differences over theta (no compilation)."""
+    import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
+
+    mj = copy.deepcopy(pm.mj)
+    data = mujoco.MjData(mj)
+    nominal = {n: np.array(getattr(pm.mj, n)) for n in
+               ("body_mass", "body_inertia", "dof_damping", "dof_armature", "geom_friction",
+                "actuator_gear")}
+
+    def set_theta(theta):
+        for n, v in nominal.items():
+            getattr(mj, n)[:] = v
+        for c, th in zip(pm.candidates, np.asarray(theta, np.float64), strict=True):
+            if c.name == "body_mass":
+                mj.body_mass[c.index] *= np.exp(th)
+                mj.body_inertia[c.index] *= np.exp(th)
+            elif c.name in ("geom_friction", "actuator_gear"):
+                getattr(mj, c.name)[c.index, 0] *= np.exp(th)
+            elif c.name != "obs_bias":
+                getattr(mj, c.name)[c.index] *= np.exp(th)
+
+    def pred(theta, obs, action):
+        set_theta(theta)
+        bias = np.zeros(pm.obs_size)
+        for c, th in zip(pm.candidates, np.asarray(theta, np.float64), strict=True):
+            if c.name == "obs_bias":
+                bias[c.index] = th
+        out = np.empty(obs.shape, np.float64)
+        for i in range(len(obs)):
+            mujoco.mj_resetData(mj, data)
+            q, v = pm.obs_to_state_np(np.asarray(obs[i], np.float64) - bias)
+            data.qpos[:], data.qvel[:], data.ctrl[:] = q, v, action[i]
+            mujoco.mj_step(mj, data, nstep=pm.n_frames)
+            out[i] = pm.state_to_obs_np(data.qpos, data.qvel) + bias
+        return out
+
+    def pred_jac(theta, obs, action):
+        theta = np.asarray(theta, np.float64)
+        base = pred(theta, obs, action)
+        jac = np.empty(base.shape + (len(theta),))
+        for k in range(len(theta)):
+            t = theta.copy()
+            t[k] += fd_step
+            jac[..., k] = (pred(t, obs, action) - base) / fd_step
+        return base, jac
+
+    return pred, pred_jac
+
+
+def compiled(pm: PhysicsModel):
+    """(pred, pred_and_jac) for ``pm``, compiled once per model:
+    pred(theta [K], obs [R, O], action [R, A]) -> [R, O];
+    pred_and_jac(...) -> ([R, O], d pred / d theta [R, O, K])."""
+    if id(pm) not in _COMPILED:
+        pred = jax.jit(jax.vmap(pm.step, in_axes=(None, 0, 0)))
+        jac = jax.jit(jax.vmap(jax.jacfwd(pm.step), in_axes=(None, 0, 0)))
+
+        def pred_jac(theta, obs, action):  # the Jacobian in chunks of JAC_ROWS rows
+            js = [jac(theta, obs[s: s + JAC_ROWS], action[s: s + JAC_ROWS])
+                  for s in range(0, len(obs), JAC_ROWS)]
+            return pred(theta, obs, action), np.concatenate([np.asarray(j) for j in js])
+
+        _COMPILED[id(pm)] = (pm, pred, pred_jac)
+    return _COMPILED[id(pm)][1:]
+
+
+def split_rows(ds, rows: int, seed: int) -> tuple[Rows, Rows]:
+    """The fit and test halves of a Dataset (module docstring)."""
+    rng = np.random.default_rng(seed)
+    episodes = np.unique(ds.episode_id)
+    pol = np.array([ds.policy_id[np.argmax(ds.episode_id == e)] for e in episodes])
+    test_eps = np.concatenate([episodes[pol == p][1::2] for p in np.unique(pol)])
+    if len(test_eps) < 3 or len(episodes) - len(test_eps) < 1:
+        raise ValueError(f"data: expected at least 6 episodes (3 to test on), got "
+                         f"{len(episodes)}")
+    is_test = np.isin(ds.episode_id, test_eps)
+    halves = []
+    for mask in (~is_test, is_test):
+        idx = np.flatnonzero(mask)
+        idx = np.sort(rng.choice(idx, rows, replace=False)) if len(idx) > rows else idx
+        pad = rows - len(idx)
+        episode = np.concatenate([ds.episode_id[idx], -np.ones(pad, int)])
+        idx = np.concatenate([idx, np.full(pad, idx[0])])
+        halves.append(Rows(np.asarray(ds.obs[idx]), np.asarray(ds.next_obs[idx]), episode, idx,
+                           np.asarray(ds.action), np.asarray(ds.episode_id),
+                           np.asarray(ds.t)))
+    return halves[0], halves[1]
+
+
+def obs_scale(ds) -> np.ndarray:
+    """Per-dim std of next_obs - obs [O], floored at 1e-3 of its mean."""
+    s = np.std(np.asarray(ds.next_obs, np.float64) - np.asarray(ds.obs, np.float64), axis=0)
+    return np.maximum(s, 1e-3 * s.mean() + 1e-12)
+
+
+class _Fit:
+    """Residuals of one dataset half under a model, theta and delays."""
+
+    def __init__(self, pm, rows: Rows, scale, backend: str = "mujoco"):
+        self.pred, self.pred_jac = compiled(pm) if backend == "mjx" else c_backend(pm)
+        self.rows, self.scale = rows, scale
+        self.w = rows.weight[:, None]
+
+    def residual(self, theta, delays) -> np.ndarray:
+        """Weighted normalised residuals [R, O] (0 on padding)."""
+        p = np.asarray(self.pred(np.asarray(theta, np.float64), self.rows.obs,
+                                 self.rows.actions(delays)))
+        return (p - self.rows.next_obs) / self.scale * self.w
+
+    def residual_jac(self, theta, delays) -> tuple[np.ndarray, np.ndarray]:
+        """([R * O] residuals, [R * O, K] their Jacobian), float64."""
+        p, j = self.pred_jac(np.asarray(theta, np.float64), self.rows.obs,
+                             self.rows.actions(delays))
+        r = (np.asarray(p, np.float64) - self.rows.next_obs) / self.scale * self.w
+        jac = np.asarray(j, np.float64) / self.scale[None, :, None] * self.w[:, :, None]
+        return r.reshape(-1), jac.reshape(-1, jac.shape[-1])
+
+    def episode_errors(self, theta, delays) -> dict[int, float]:
+        """Mean squared normalised residual per episode of the half."""
+        se = np.sum(self.residual(theta, delays) ** 2, axis=1)
+        return {int(e): float(se[self.rows.episode == e].mean())
+                for e in np.unique(self.rows.episode) if e >= 0}
+
+
+def _refine(fit: _Fit, theta, active, delays, iterations) -> np.ndarray:
+    """Levenberg-Marquardt over theta[active] on the fit half."""
+    theta = np.array(theta, np.float64)
+    if not active:
+        return theta
+    lam = 1e-3
+    for _ in range(iterations):
+        r, jac = fit.residual_jac(theta, delays)
+        ja = jac[:, active]
+        jtj, g = ja.T @ ja, ja.T @ r
+        cost = r @ r
+        for _ in range(6):
+            step = -np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-9), g)
+            trial = theta.copy()
+            trial[active] += np.clip(step, -1.0, 1.0)
+            if np.sum(fit.residual(trial, delays) ** 2) < cost:
+                theta, lam = trial, lam / 10
+                break
+            lam *= 10
+        else:
+            break
+    return theta
+
+
+def _screen(fit: _Fit, theta, active, delays, max_delay):
+    """The best next candidate: ("param", k, gain) or ("delay", (actuator, d), gain)."""
+    r, jac = fit.residual_jac(theta, delays)
+    ja = jac[:, active]
+    if active:
+        jac = jac - ja @ np.linalg.lstsq(ja, jac, rcond=None)[0]
+    norm = np.sum(jac**2, axis=0)
+    usable = norm > 1e-12 * max(norm.max(), 1e-30)
+    gain = np.where(usable, (r @ jac) ** 2 / np.where(usable, norm, 1.0), 0.0)
+    gain[active] = 0.0
+    best = ("param", int(np.argmax(gain)), float(gain.max()), r, jac)
+    cost = r @ r
+    for a in np.flatnonzero(np.asarray(delays) == 0):
+        for d in range(1, max_delay + 1):
+            trial = np.array(delays)
+            trial[a] = d
+            drop = cost - np.sum(fit.residual(theta, trial) ** 2)
+            if drop > best[2]:
+                best = ("delay", (int(a), d), float(drop), r, jac)
+    return best[:3]
+
+
+def _paired_test(before: dict, after: dict) -> tuple[float, float, float]:
+    """(p-value of a one-sided paired t-test that after < before, mean drop, mean before)."""
+    eps = sorted(before)
+    drop = np.array([before[e] - after[e] for e in eps])
+    base = float(np.mean([before[e] for e in eps]))
+    if np.all(drop == drop[0]):
+        return (0.0 if drop[0] > 0 else 1.0), float(drop.mean()), base
+    return float(stats.ttest_1samp(drop, 0.0, alternative="greater").pvalue), \
+        float(drop.mean()), base
+
+
+def _bootstrap(fit: _Fit, theta, active, delays, n, seed) -> np.ndarray:
+    """Linearised episode bootstrap of theta[active] -> [n, len(active)]."""
+    if not active or n < 1:
+        return np.zeros((0, len(active)))
+    r, jac = fit.residual_jac(theta, delays)
+    width = fit.rows.obs.shape[1]
+    eps = fit.rows.episode
+    ids = np.unique(eps[eps >= 0])
+    ja = jac[:, active].reshape(len(eps), width, len(active))
+    rr = r.reshape(len(eps), width)
+    jtj = {e: np.einsum("roa,rob->ab", ja[eps == e], ja[eps == e]) for e in ids}
+    jtr = {e: np.einsum("roa,ro->a", ja[eps == e], rr[eps == e]) for e in ids}
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        pick = rng.choice(ids, len(ids))
+        a = sum(jtj[e] for e in pick)
+        b = sum(jtr[e] for e in pick)
+        out.append(theta[active] - np.linalg.lstsq(a, b, rcond=None)[0])
+    return np.array(out)
+
+
+def _wald(fit: _Fit, theta, active, delays) -> np.ndarray:
+    """Wald standard errors of theta[active] from sigma^2 (J^T J)^-1 (rows independent)."""
+    r, jac = fit.residual_jac(theta, delays)
+    ja = jac[:, active]
+    n = int(fit.rows.weight.sum()) * fit.rows.obs.shape[1]
+    sigma2 = r @ r / max(n - len(active), 1)
+    return np.sqrt(np.diag(sigma2 * np.linalg.pinv(ja.T @ ja)))
+
+
+def identify(pm: PhysicsModel, ds, cfg: FitConfig = FitConfig()) -> dict:
+    """Forward stepwise identification (module docstring) -> the report's ``physics`` object
+    minus ``command``: {"top_cause", "parameters", "unexplained", "error_nominal",
+    "error_calibrated", "seconds", "delays", "theta", "scale"} (errors: mean squared normalised
+    one-step residual over test episodes)."""
+    if ds.obs_size != pm.obs_size or ds.action_size != pm.action_size:
+        raise ValueError(f"data: expected obs_size {pm.obs_size} and action_size "
+                         f"{pm.action_size} (the physics model's), got {ds.obs_size}, "
+                         f"{ds.action_size}")
+    start = time.perf_counter()
+    fit_rows, test_rows = split_rows(ds, cfg.rows, cfg.seed)
+    scale = obs_scale(ds)
+    if cfg.backend not in ("mujoco", "mjx"):
+        raise ValueError(f"backend: expected 'mujoco' or 'mjx', got {cfg.backend!r}")
+    fit, test = (_Fit(pm, fit_rows, scale, cfg.backend), _Fit(pm, test_rows, scale, cfg.backend))
+    K, A = len(pm.candidates), pm.action_size
+    theta, delays, active = np.zeros(K), np.zeros(A, int), []
+    chosen, screened = [], []
+    nominal_test = test.episode_errors(theta, delays)
+    current = nominal_test
+    for _ in range(cfg.max_params):
+        kind, what, gain = _screen(fit, theta, active, delays, cfg.max_delay)
+        if gain <= 0:
+            break
+        t_delays, t_active = delays.copy(), list(active)
+        if kind == "param":
+            t_active.append(what)
+        else:
+            t_delays[what[0]] = what[1]
+        t_theta = _refine(fit, theta, t_active, t_delays, cfg.lm_iterations)
+        after = test.episode_errors(t_theta, t_delays)
+        p, drop, base = _paired_test(current, after)
+        significant = bool(p < cfg.alpha and drop >= cfg.min_gain * base)
+        entry = {"kind": kind, "what": what, "theta": t_theta, "p_value": p,
+                 "gain": drop / max(base, 1e-30), "significant": significant}
+        screened.append(entry)
+        if not significant:
+            break
+        theta, delays, active, current = t_theta, t_delays, t_active, after
+        chosen.append(entry)
+    boot = _bootstrap(fit, theta, active, delays, cfg.bootstrap, cfg.seed)
+    wald = _wald(fit, theta, active, delays) if active else np.zeros(0)
+    params = [_describe(pm, e, active, theta, boot, wald) for e in screened]
+    tot = lambda errs: float(np.mean(list(errs.values())))  # noqa: E731
+    top = next((p for p in params if p["significant"]), None)
+    return {"top_cause": None if top is None else {k: top[k] for k in
+                                                    ("name", "element", "nominal", "value",
+                                                     "interval")},
+            "parameters": params,
+            "unexplained": tot(current) / max(tot(nominal_test), 1e-30),
+            "error_nominal": tot(nominal_test), "error_calibrated": tot(current),
+            "seconds": time.perf_counter() - start,
+            "delays": delays.tolist(), "theta": theta.tolist(), "scale": scale.tolist()}
+
+
+def _describe(pm, entry, active, theta, boot, wald) -> dict:
+    """One screened quantity in the report's form."""
+    base = {"p_value": entry["p_value"], "gain": entry["gain"],
+            "significant": entry["significant"]}
+    if entry["kind"] == "delay":
+        a, d = entry["what"]
+        return {"name": "action_delay", "element": actuator_names(pm.mj)[a], "nominal": 0,
+                "value": d, "interval": [d, d], **base}
+    k = entry["what"]
+    c = pm.candidates[k]
+    th = theta[k] if entry["significant"] else entry["theta"][k]
+    if entry["significant"] and k in active and len(boot):
+        col = active.index(k)
+        lo, hi = np.percentile(boot[:, col], [2.5, 97.5])
+        ival = sorted([c.value(lo), c.value(hi)])
+        wald_ival = sorted([c.value(th - 1.96 * wald[col]), c.value(th + 1.96 * wald[col])])
+    else:
+        ival, wald_ival = None, None
+    return {"name": c.name, "element": c.element, "nominal": c.nominal, "value": c.value(th),
+            "interval": ival, "wald": wald_ival, **base}
+
+
+def fit_sysid(pm: PhysicsModel, ds, chosen: list[tuple[str, str]], delays=None,
+              cfg: FitConfig = FitConfig()) -> dict:
+    """The same quantities fitted with ``mujoco.sysid.optimize`` (scipy least squares,
+    finite differences over the same C-MuJoCo one-step residuals of the same fit half), for
+    timing against :func:`identify`. chosen: [(name, element)] -> {"values": {label: value},
+    "theta" [K], "seconds"}."""
+    from mujoco import sysid  # local: the optional mujoco[sysid] extra, only needed here
+
+    fit_rows, _ = split_rows(ds, cfg.rows, cfg.seed)
+    fit = _Fit(pm, fit_rows, obs_scale(ds), "mujoco")
+    idx = [pm.index(n, e) for n, e in chosen]
+    delays = np.zeros(pm.action_size, int) if delays is None else np.asarray(delays)
+    params = sysid.ParameterDict()
+    for k in idx:
+        params.add(sysid.Parameter(pm.candidates[k].label, 0.0, -3.0, 3.0))
+
+    def residual_fn(x, _params):
+        theta = np.zeros(len(pm.candidates))
+        theta[idx] = x
+        return [fit.residual(theta, delays).reshape(-1)], None, None
+
+    start = time.perf_counter()
+    opt, _ = sysid.optimize(params, residual_fn, optimizer="scipy", verbose=False)
+    theta = np.zeros(len(pm.candidates))
+    theta[idx] = opt.as_vector()
+    return {"values": {pm.candidates[k].label: pm.candidates[k].value(theta[k]) for k in idx},
+            "theta": theta.tolist(), "seconds": time.perf_counter() - start}

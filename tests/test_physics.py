@@ -1,0 +1,219 @@
+"""Physics diagnosis (issue 62): the MJX step against the task env, the C-MuJoCo collector,
+and planted changes in C-MuJoCo Hopper data named with their element and value.
+
+The planted amounts live only here; the library sees the data, and the tests compare its
+answer with the truth the collector recorded in meta (``source.planted``)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from rl2s_jax.physics.mjx_model import delayed_actions
+
+CASES = {
+    "clean": [],
+    "mass": [("body_mass", "torso", 1.3)],
+    "friction": [("geom_friction", "foot_geom", 0.6)],
+    "gear": [("actuator_gear", "leg_joint", 0.7)],
+    "damping": [("dof_damping", "foot_joint", 3.0)],
+    "delay": [("action_delay", "thigh_joint", 2)],
+}
+POLICIES = [4, 7, 16, 21]  # shipped Hopper zoo: training policies that hop for 100 steps
+
+
+def test_delayed_actions_shift_within_episodes():
+    action = np.arange(12, dtype=np.float32).reshape(6, 2)
+    episode = np.array([0, 0, 0, 1, 1, 1])
+    t = np.array([0, 1, 2, 0, 1, 2])
+    out = delayed_actions(action, episode, t, [0, 2])
+    expect = action.copy()
+    expect[:, 1] = [0, 0, action[0, 1], 0, 0, action[3, 1]]
+    np.testing.assert_array_equal(out, expect)
+    with pytest.raises(ValueError, match="delays"):
+        delayed_actions(action, episode, t, [0, -1])
+
+
+@pytest.fixture(scope="module")
+def pm():
+    from rl2s_jax.physics.mjx_model import physics_model
+
+    return physics_model("hopper")
+
+
+@pytest.fixture(scope="module")
+def zoo_params():
+    from rl2s_jax.policy import policy as pol
+    from rl2s_jax.zoo import zoo as zoo_mod
+
+    return pol.index_params(zoo_mod.load_zoo("hopper").params, POLICIES)
+
+
+def test_candidates_carry_mujoco_names(pm):
+    labels = {c.label for c in pm.candidates}
+    for want in ("body_mass[torso]", "geom_friction[foot_geom]", "dof_damping[foot_joint]",
+                 "actuator_gear[leg_joint]", "dof_armature[thigh_joint]", "obs_bias[obs[3]]"):
+        assert want in labels
+    # root joints (rootx/z/y) have no damping in hopper.xml: not a candidate
+    assert not any(c.element.startswith("root") for c in pm.candidates)
+    c = pm.candidates[pm.index("body_mass", "torso")]
+    assert c.nominal == pytest.approx(float(pm.mj.body_mass[1]))
+
+
+def test_obs_state_round_trip(pm):
+    import jax.numpy as jnp
+
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=pm.obs_size)
+    q, v = pm.obs_to_state_np(obs)
+    # the lagged torso height: q[1] = obs[1] - z0 + h qd[1] (mjx_model's docstring)
+    assert q[1] == pytest.approx(obs[1] - pm.mj.body_pos[1, 2] + pm.substep * obs[7])
+    np.testing.assert_allclose(pm.state_to_obs_np(q, v), obs, atol=1e-12)
+    qj, vj = pm.obs_to_state(jnp.asarray(obs, jnp.float32))
+    np.testing.assert_allclose(np.asarray(qj), q, atol=1e-6)
+    np.testing.assert_allclose(np.asarray(pm.state_to_obs(qj, vj)), obs, atol=1e-6)
+
+
+def _dataset(pm, zoo_params, case, seed=1):
+    from rl2s_jax.physics.measured import Planted, collect_measured
+
+    return collect_measured(pm, zoo_params, transitions_per_policy=300, episode_length=100,
+                            changes=[Planted(*c) for c in CASES[case]], seed=seed)
+
+
+@pytest.fixture(scope="module")
+def datasets(pm, zoo_params):
+    return {}
+
+
+def _get(datasets, pm, zoo_params, case):
+    if case not in datasets:
+        datasets[case] = _dataset(pm, zoo_params, case)
+    return datasets[case]
+
+
+def test_collector_records_planted_truth(pm, zoo_params, datasets):
+    ds = _get(datasets, pm, zoo_params, "mass")
+    truth = ds.meta["source"]["planted"]
+    assert truth[0]["name"] == "body_mass" and truth[0]["element"] == "torso"
+    assert truth[0]["value"] == pytest.approx(1.3 * truth[0]["nominal"])
+    assert ds.n_transitions == 300 * len(POLICIES)
+    # the recorded next obs is the next row's obs within an episode
+    same = ds.episode_id[1:] == ds.episode_id[:-1]
+    np.testing.assert_array_equal(ds.next_obs[:-1][same], ds.obs[1:][same])
+
+
+@pytest.mark.slow
+def test_step_reproduces_the_task_env(pm, env_cache):
+    import jax
+
+    from rl2s_jax.physics.errors import predict
+
+    env = env_cache("hopper")
+    step = jax.jit(env.step)
+    state = jax.jit(env.reset)(jax.random.PRNGKey(0))
+    rng = np.random.default_rng(0)
+    obs, act, nxt = [], [], []
+    for _ in range(20):
+        a = rng.uniform(-1, 1, 3).astype(np.float32)
+        new = step(state, a)
+        obs.append(np.asarray(state.obs))
+        act.append(a)
+        nxt.append(np.asarray(new.obs))
+        state = new
+    pred = predict(pm, np.zeros(len(pm.candidates)), np.array(obs), np.array(act),
+                   backend="mjx")
+    # row 0 is excluded: brax's reset height is not lagged (tasks.py's docstring)
+    np.testing.assert_allclose(pred[1:], np.array(nxt)[1:], atol=2e-5, rtol=1e-5)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("case", list(CASES))
+def test_planted_change_is_named_with_its_value(pm, zoo_params, datasets, case):
+    from rl2s_jax.physics.identify import FitConfig, identify
+
+    ds = _get(datasets, pm, zoo_params, case)
+    found = identify(pm, ds, FitConfig(rows=256))
+    truth = ds.meta["source"]["planted"]
+    top = found["top_cause"]
+    if not truth:
+        assert top is None, f"clean data, named {top}"
+        assert found["unexplained"] == pytest.approx(1.0)
+        return
+    assert top is not None, f"nothing named; screened {found['parameters']}"
+    assert (top["name"], top["element"]) == (truth[0]["name"], truth[0]["element"])
+    if top["name"] == "action_delay":
+        assert top["value"] == truth[0]["value"]
+    else:
+        assert top["value"] == pytest.approx(truth[0]["value"], rel=0.1)
+        lo, hi = top["interval"]
+        assert lo <= top["value"] <= hi
+    assert found["unexplained"] < 0.5
+
+
+def test_no_physics_model_fails_fast(tmp_path, pm_files):
+    from rl2s_jax.app.physics import PhysicsSpec, diagnose_physics
+
+    with pytest.raises(ValueError, match="no physics model.*--sim-xml"):
+        diagnose_physics(PhysicsSpec(data=pm_files["train"], out=str(tmp_path / "o")))
+    assert not (tmp_path / "o").exists()
+    from rl2s_jax.physics.mjx_model import task_xml
+
+    with pytest.raises(ValueError, match="obs_size 12"):  # a user's model of other sizes
+        diagnose_physics(PhysicsSpec(data=pm_files["train"], out=str(tmp_path / "o"),
+                                     sim_xml=task_xml("hopper")))
+
+
+@pytest.mark.slow
+def test_cli_writes_the_physics_report(tmp_path, pm, zoo_params, datasets):
+    from rl2s_jax.cli import main
+    from rl2s_jax.data.dataset import save_dataset
+
+    path = str(tmp_path / "gear.npz")
+    save_dataset(path, _get(datasets, pm, zoo_params, "gear"))
+    out = tmp_path / "report"
+    assert main(["diagnose", "--data", path, "--physics", "--out", str(out), "--quiet",
+                 "--k-max", "3"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    ph = report["physics"]
+    assert set(ph) >= {"top_cause", "parameters", "unexplained", "seconds", "command"}
+    assert ph["top_cause"]["element"] == "leg_joint"
+    assert all("significant" in p for p in ph["parameters"])
+    assert (out / "physics_one_step.png").exists() and (out / "report.md").exists()
+    err = report["errors"]
+    assert err["calibrated"]["kstep"][-1] < err["nominal"]["kstep"][-1]
+    # the calibrated simulator the report's command loads carries the identified gear
+    from rl2s_jax.app.physics import load_calibrated
+
+    pm2, theta, delays = load_calibrated(str(out / "calibrated.json"))
+    k = pm2.index("actuator_gear", "leg_joint")
+    assert pm2.candidates[k].value(theta[k]) == pytest.approx(ph["top_cause"]["value"])
+    assert "load_calibrated" in ph["command"] and delays.tolist() == [0, 0, 0]
+
+
+def test_sysid_path_fits_the_chosen_quantity(pm, zoo_params, datasets):
+    from rl2s_jax.physics.identify import fit_sysid
+
+    ds = _get(datasets, pm, zoo_params, "gear")
+    truth = ds.meta["source"]["planted"][0]
+    out = fit_sysid(pm, ds, [(truth["name"], truth["element"])])
+    value = out["values"][f"{truth['name']}[{truth['element']}]"]
+    assert value == pytest.approx(truth["value"], rel=0.1)
+    assert out["seconds"] > 0
+
+
+@pytest.mark.slow
+def test_clean_mjx_data_names_nothing(pm, zoo_params, env_cache):
+    """Data from the MJX env itself (float32, brax's stepping) against the C-MuJoCo float64
+    model: the engines' differences must not be named as a physical cause."""
+    import jax
+
+    from rl2s_jax.data.collect import collect
+    from rl2s_jax.physics.identify import FitConfig, identify
+
+    ds = collect(env_cache("hopper"), zoo_params, key=jax.random.PRNGKey(0),
+                 transitions_per_policy=300, envs_per_policy=3, episode_length=100,
+                 task="hopper", value_episodes=0, progress=False)
+    found = identify(pm, ds, FitConfig(rows=256))
+    assert found["top_cause"] is None, f"named {found['top_cause']}"
+    assert 0 < found["error_nominal"] < 1e-4  # float32 round-off, not a physical change

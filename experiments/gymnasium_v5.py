@@ -55,6 +55,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax import compile_cache
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import kendall_tau, value_differences
@@ -92,6 +93,26 @@ def _windows(ds, k: int, stride: int) -> np.ndarray:
     return starts[ep[starts + k - 1] == ep[starts]]
 
 
+_PROGRAMS = {}  # (id(pm), k) -> its jitted programs: every dataset of a task reuses them
+
+
+def _programs(pm, k: int):
+    """jit(vmap) of ``pm``'s nominal one step (with contact) and of its k-step rollout."""
+    if (id(pm), k) not in _PROGRAMS:
+        theta = jnp.zeros(len(pm.candidates), jnp.float32)
+
+        def rollout(o0, actions):  # o0 [O], actions [k, A] -> [k, O]
+            def body(o, a):
+                o2 = pm.step(theta, o, a)
+                return o2, o2
+            return jax.lax.scan(body, o0, actions)[1]
+
+        _PROGRAMS[(id(pm), k)] = (
+            jax.jit(jax.vmap(lambda o, a: pm.step_with_contact(theta, o, a))),
+            jax.jit(jax.vmap(rollout)))
+    return _PROGRAMS[(id(pm), k)]
+
+
 def physics_errors(pm, ds, k: int, stride: int) -> dict:
     """One-step and open-loop k-step error of ``pm``'s nominal physics on ``ds``.
 
@@ -99,8 +120,7 @@ def physics_errors(pm, ds, k: int, stride: int) -> dict:
     observation dim [O] and its mean over dims; one-step also in and out of contact and per
     policy [P]; k-step by step 1..k (mean over dims).
     """
-    theta = jnp.zeros(len(pm.candidates), jnp.float32)
-    one = jax.jit(jax.vmap(lambda o, a: pm.step_with_contact(theta, o, a)))
+    one, rollouts = _programs(pm, k)
     obs, act, nxt = (np.asarray(x) for x in (ds.obs, ds.action, ds.next_obs))
     t0 = time.time()
     pred, touching = _chunked(one, obs, act)
@@ -121,14 +141,8 @@ def physics_errors(pm, ds, k: int, stride: int) -> dict:
     starts = _windows(ds, k, stride)
     rows = starts[:, None] + np.arange(k)[None, :]  # [W, k]
 
-    def rollout(o0, actions):  # o0 [O], actions [k, A] -> [k, O]
-        def body(o, a):
-            o2 = pm.step(theta, o, a)
-            return o2, o2
-        return jax.lax.scan(body, o0, actions)[1]
-
     t0 = time.time()
-    roll = _chunked(jax.jit(jax.vmap(rollout)), obs[starts], act[rows])  # [W, k, O]
+    roll = _chunked(rollouts, obs[starts], act[rows])  # [W, k, O]
     truth = nxt[rows]  # [W, k, O]
     e2 = (roll - truth) ** 2
     c2 = (truth - obs[starts][:, None, :]) ** 2
@@ -262,6 +276,7 @@ def main(argv=None):
                     help="re-measure the MJX values (else the zoo's)")
     ap.add_argument("--out", default=None, help="write the record as JSON here")
     args = ap.parse_args(argv)
+    compile_cache.enable()
     if args.k < 1 or args.transitions < args.k or args.value_episodes < 2:
         ap.error("expected --k >= 1, --transitions >= --k, --value-episodes >= 2")
     t0 = time.time()

@@ -13,11 +13,11 @@ them with as many episodes as v5's) and the Kendall tau between the two rankings
 
     python experiments/gymnasium_v5.py [--tasks hopper ...] [--split test] [--policies 0]
         [--transitions 1000] [--value-episodes 16] [--k 10] [--no-control] [--ablate]
-        [--mjx-values] [--out FILE.json]
+        [--mjx-values] [--diagnose DIR] [--out FILE.json]
 
 ``--ablate``: also v5 with its XML's <option> moved toward the MJX task's (Euler instead of
 RK4; then also the MJX task's solver iterations), to see which difference the error comes
-from.
+from. ``--diagnose DIR``: also ``rl2s diagnose --physics`` (app/physics.py) on the v5 data.
 
 Results (2-core CPU shared with three other sessions, 2026-11-28; gymnasium 1.4.0, mujoco
 4.0.0). Errors: RMSE / RMS of the data's change, mean over the observation dims.
@@ -56,7 +56,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from rl2s_jax import compile_cache
+from rl2s_jax.app.physics import PhysicsSpec, diagnose_physics
 from rl2s_jax.data.collect import measure_values
+from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import kendall_tau, value_differences
 from rl2s_jax.physics.gymnasium_v5 import (
@@ -221,6 +223,21 @@ def run_task(task: str, args) -> dict:
         print("  one-step RMSE   " + " ".join(f"{x:.3g}" for x in e["one_step_rmse"]))
         print(f"  {args.k}-step by dim " + " ".join(f"{x:.3g}" for x in e["k_step"]))
 
+    if args.diagnose:  # the physics diagnosis (rl2s diagnose --physics) of the v5 data
+        out_dir = os.path.join(args.diagnose, task)
+        os.makedirs(out_dir, exist_ok=True)
+        path = save_dataset(os.path.join(out_dir, "v5.npz"), v5)
+        report = diagnose_physics(PhysicsSpec(data=path, out=out_dir, k=args.k, quiet=True))
+        ph = report["physics"]
+        rec["physics_diagnosis"] = {k: ph[k] for k in ("top_cause", "parameters", "unexplained",
+                                                       "seconds", "error_nominal",
+                                                       "error_calibrated")}
+        print(f"{task} physics diagnosis ({ph['seconds']:.0f} s): top cause {ph['top_cause']}; "
+              f"unexplained {ph['unexplained']:.3f}; parameters "
+              + "; ".join(f"{p['name']}[{p['element']}] {p['nominal']:.4g} -> {p['value']:.4g} "
+                          f"(gain {p['gain']:.3f}, p {p['p_value']:.2g}, "
+                          f"{'kept' if p['significant'] else 'not kept'})"
+                          for p in ph["parameters"]))
     zoo_values = mjx_values = np.asarray(zoo.returns, np.float64)[ids]
     rec["mjx_values_from"] = "zoo.json returns (collect.measure_values, 16 MJX episodes)"
     if args.mjx_values:  # and MJX against itself: the ranking noise of two measurements
@@ -272,6 +289,8 @@ def main(argv=None):
                     help="skip the C-MuJoCo control on the MJX task's own XML")
     ap.add_argument("--ablate", action="store_true",
                     help="also v5 with the integrator / solver iterations of the MJX task")
+    ap.add_argument("--diagnose", metavar="DIR",
+                    help="run the physics diagnosis on the v5 data; reports in DIR/<task>")
     ap.add_argument("--mjx-values", action="store_true",
                     help="re-measure the MJX values (else the zoo's)")
     ap.add_argument("--out", default=None, help="write the record as JSON here")

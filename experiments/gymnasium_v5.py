@@ -58,7 +58,15 @@ import tempfile
 import time
 import xml.etree.ElementTree as ET
 
-import jax
+# XLA CPU's Eigen thread pool wedged here (every thread parked on a futex, the main one in
+# BlockUntilReady) on the vmapped Walker2d MJX step, twice, at the same point; single-threaded
+# Eigen ran it (PyAutoLabs/PyAutoFit#1530 describes the same wedge and workaround). Set before
+# JAX starts its backend; the CPU flag does nothing on a GPU.
+if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
+                               + " --xla_cpu_multi_thread_eigen=false").strip()
+
+import jax  # noqa: E402
 import jax.numpy as jnp
 import numpy as np
 

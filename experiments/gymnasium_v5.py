@@ -75,7 +75,8 @@ HalfCheetah (``--tasks halfcheetah --policies 5 --transitions 200 --value-episod
 --ablate``): v5 one-step 0.0013 (in contact 0.0025, out 3.9e-6), 10-step 0.0038; the
 C-MuJoCo control 3.5e-6 one-step, 10-step 0.0039: v5's only physical differences (RK4 is not
 used; more geoms collide; 100 iterations) cost little, and over 10 steps the float32 MJX
-drifts from C MuJoCo as much on the MJX XML as on v5's.
+drifts from C MuJoCo as much on the MJX XML as on v5's. That run wedged in its third
+dataset (XLA, above): no HalfCheetah values or diagnosis. Ant: not measured (out of time).
 """
 from __future__ import annotations
 
@@ -86,10 +87,10 @@ import tempfile
 import time
 import xml.etree.ElementTree as ET
 
-# XLA CPU's Eigen thread pool wedged here (every thread parked on a futex, the main one in
-# BlockUntilReady) on the vmapped Walker2d MJX step, twice, at the same point; single-threaded
-# Eigen ran it (PyAutoLabs/PyAutoFit#1530 describes the same wedge and workaround). Set before
-# JAX starts its backend; the CPU flag does nothing on a GPU.
+# XLA CPU wedged here (every thread parked on a futex, the main one in BlockUntilReady) on
+# the vmapped Walker2d and HalfCheetah MJX steps. Single-threaded Eigen (the workaround of
+# PyAutoLabs/PyAutoFit#1530) made it rarer, not gone: with it, runs still wedged at the third
+# or fourth dataset. Not understood. Set before JAX starts its backend; no effect on a GPU.
 if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
                                + " --xla_cpu_multi_thread_eigen=false").strip()

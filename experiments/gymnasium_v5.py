@@ -32,7 +32,7 @@ Hopper, ``--tasks hopper`` (the 20 test policies, 1000 transitions and 16 value 
     C MuJoCo on the MJX XML        3.8e-6    (4.1e-6 / 3.3e-6)      6.2e-6
 
     RK4 is most of the error (0.059 -> 0.0096); the rest is v5's other XML settings (every
-    geom colliding, condim 1 on the body geoms, rootz ref, joint ranges 1.5e-6 rad apart).
+    geom colliding, condim 1 on the body geoms, rootz ref, joint ranges 3.9e-6 rad apart).
     The largest one-step error is in the torso's vertical velocity (obs[7], 0.16 of its
     change), RMSE 0.019 m/s; joint velocities 0.03-0.07 rad/s.
     Values (20 test policies): Kendall tau v5 vs MJX re-measured (16 episodes each) 1.000,

@@ -17,7 +17,8 @@ them with as many episodes as v5's) and the Kendall tau between the two rankings
 
 ``--ablate``: also v5 with its XML's <option> moved toward the MJX task's (Euler instead of
 RK4; then also the MJX task's solver iterations), to see which difference the error comes
-from. ``--diagnose DIR``: also ``rl2s diagnose --physics`` (app/physics.py) on the v5 data.
+from. ``--diagnose DIR``: also ``rl2s diagnose --physics`` (app/physics_diagnosis.py) on the
+v5 data.
 
 Results (2-core CPU shared with three other sessions, 2026-11-28; gymnasium 1.4.0, mujoco
 4.0.0). Errors: RMSE / RMS of the data's change, mean over the observation dims.
@@ -100,7 +101,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rl2s_jax import compile_cache
-from rl2s_jax.app.physics import PhysicsSpec, diagnose_physics
+from rl2s_jax.app.physics_diagnosis import PhysicsSpec, diagnose_physics
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.envs.tasks import get_task

@@ -145,6 +145,23 @@ def _values(env, omap, task, done_fn, params_of, n_pol, n_episodes, length, gamm
              "gymnasium_termination_differs": int(differs)})
 
 
+def _checked_sizes(task, task_name: str, transitions_per_policy, episode_length,
+                   value_episodes, gamma) -> int:
+    """collect_gymnasium's arguments checked, each bad one named -> the episode length."""
+    if task is None:
+        raise ValueError(f"task_name: expected one of {sorted(V5_ENVS)}, got {task_name!r}")
+    episode_length = task.episode_length if episode_length is None else episode_length
+    for name, v, lo, hi in (("transitions_per_policy", transitions_per_policy, 1, None),
+                            ("episode_length", episode_length, 1, task.episode_length),
+                            ("value_episodes", value_episodes, 0, None)):
+        if (not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < lo
+                or (hi is not None and v > hi)):
+            raise ValueError(f"{name}: expected an int in [{lo}, {hi or 'inf'}], got {v!r}")
+    if not 0 < gamma <= 1:
+        raise ValueError(f"gamma: expected a float in (0, 1], got {gamma!r}")
+    return episode_length
+
+
 def collect_gymnasium(task_name: str, params, *, transitions_per_policy: int,
                       episode_length: int | None = None, value_episodes: int = 16,
                       gamma: float = 0.999, seed: int = 0,
@@ -164,17 +181,8 @@ def collect_gymnasium(task_name: str, params, *, transitions_per_policy: int,
     from rl2s_jax.envs.tasks import get_task  # local: keeps `import rl2s_jax.physics` light
 
     task = get_task(task_name) if task_name in V5_ENVS else None
-    if task is None:
-        raise ValueError(f"task_name: expected one of {sorted(V5_ENVS)}, got {task_name!r}")
-    episode_length = task.episode_length if episode_length is None else episode_length
-    for name, v, lo, hi in (("transitions_per_policy", transitions_per_policy, 1, None),
-                            ("episode_length", episode_length, 1, task.episode_length),
-                            ("value_episodes", value_episodes, 0, None)):
-        if (not isinstance(v, (int, np.integer)) or isinstance(v, bool) or v < lo
-                or (hi is not None and v > hi)):
-            raise ValueError(f"{name}: expected an int in [{lo}, {hi or 'inf'}], got {v!r}")
-    if not 0 < gamma <= 1:
-        raise ValueError(f"gamma: expected a float in (0, 1], got {gamma!r}")
+    episode_length = _checked_sizes(task, task_name, transitions_per_policy, episode_length,
+                                    value_episodes, gamma)
     n_pol = jax.tree_util.tree_leaves(params)[0].shape[0]
     if policy_names is not None and len(policy_names) != n_pol:
         raise ValueError(f"policy_names: expected {n_pol} names, got {len(policy_names)}")

@@ -29,7 +29,7 @@ from rl2s_jax.model.simulator import simulated_returns, start_values
 from rl2s_jax.physics.mjx_model import PhysicsModel
 from rl2s_jax.policy.policy import sample_action
 
-__all__ = ["physics_dynamics", "physics_values", "calibrated_mj", "c_values"]
+__all__ = ["physics_dynamics", "physics_values", "calibrated_mj", "obs_bias_of", "c_values"]
 
 
 def _theta_delays(pm: PhysicsModel, theta, delays) -> tuple[np.ndarray, np.ndarray]:

@@ -48,11 +48,11 @@ import numpy as np
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import kendall_tau, value_differences
 from rl2s_jax.model.simulator import start_pool
-from rl2s_jax.physics.errors import physics_errors
+from rl2s_jax.physics.calibrated import c_values, calibrated_mj, obs_bias_of
 from rl2s_jax.physics.identify import FitConfig, identify
 from rl2s_jax.physics.measured import Planted, collect_measured, plant
 from rl2s_jax.physics.mjx_model import physics_model
-from rl2s_jax.physics.simulator import c_values, calibrated_mj, obs_bias_of
+from rl2s_jax.physics.residuals import physics_errors
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.zoo.zoo import load_zoo
 

@@ -30,7 +30,7 @@ def _theta(pm, name="body_mass", element="torso", factor=1.3):
 
 
 def test_bad_theta_and_delays_fail_fast(pm):
-    from rl2s_jax.physics.simulator import c_values, physics_dynamics
+    from rl2s_jax.physics.calibrated import c_values, physics_dynamics
 
     with pytest.raises(ValueError, match="theta: expected shape"):
         physics_dynamics(pm, np.zeros(3))
@@ -47,7 +47,7 @@ def test_dynamics_is_the_mjx_step_with_delayed_actions(pm):
     import jax.numpy as jnp
 
     from rl2s_jax.model.history import push_history
-    from rl2s_jax.physics.simulator import physics_dynamics
+    from rl2s_jax.physics.calibrated import physics_dynamics
 
     theta = _theta(pm)
     dynamics, new_history = physics_dynamics(pm, theta, DELAYS)
@@ -73,7 +73,7 @@ def test_c_values_equal_the_jax_values(pm, zoo):
     import jax
 
     from rl2s_jax.envs.tasks import get_task
-    from rl2s_jax.physics.simulator import c_values, calibrated_mj, physics_values
+    from rl2s_jax.physics.calibrated import c_values, calibrated_mj, physics_values
     from rl2s_jax.policy.policy import index_params
 
     params = index_params(zoo.params, [4, 7])
@@ -97,9 +97,9 @@ def test_calibrated_values_are_closer_to_the_planted_truth(pm, zoo):
     from rl2s_jax.envs.tasks import get_task
     from rl2s_jax.evaluate.metrics import value_differences
     from rl2s_jax.model.simulator import start_pool
+    from rl2s_jax.physics.calibrated import c_values, calibrated_mj
     from rl2s_jax.physics.identify import FitConfig, identify
     from rl2s_jax.physics.measured import Planted, collect_measured, plant
-    from rl2s_jax.physics.simulator import c_values, calibrated_mj
     from rl2s_jax.policy.policy import index_params
 
     changes = [Planted("actuator_gear", "leg_joint", 0.7)]

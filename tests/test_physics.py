@@ -217,3 +217,30 @@ def test_clean_mjx_data_names_nothing(pm, zoo_params, env_cache):
     found = identify(pm, ds, FitConfig(rows=256))
     assert found["top_cause"] is None, f"named {found['top_cause']}"
     assert 0 < found["error_nominal"] < 1e-4  # float32 round-off, not a physical change
+
+
+def test_split_tests_on_every_second_episode_even_with_one_per_policy():
+    """Held-out episodes alternate within each policy; where policies have one episode each
+    (HalfCheetah never terminates: one per policy in a short recording) they alternate over
+    all episodes instead of leaving too few to test on (Gymnasium-v5 HalfCheetah found it)."""
+    from types import SimpleNamespace
+
+    from rl2s_jax.physics.identify import split_rows
+
+    def data(policy_of_episode, rows_per_episode=4):
+        episode = np.repeat(np.arange(len(policy_of_episode)), rows_per_episode)
+        n = episode.size
+        return SimpleNamespace(episode_id=episode,
+                               policy_id=np.repeat(policy_of_episode, rows_per_episode),
+                               obs=np.zeros((n, 2)), next_obs=np.zeros((n, 2)),
+                               action=np.zeros((n, 1)), t=np.tile(np.arange(rows_per_episode),
+                                                                   len(policy_of_episode)))
+
+    fit, test = split_rows(data(np.arange(8)), rows=32, seed=0)  # one episode per policy
+    tested = set(test.episode[test.episode >= 0].tolist())
+    assert tested == {1, 3, 5, 7}, tested
+    assert set(fit.episode[fit.episode >= 0].tolist()) == {0, 2, 4, 6}
+    fit, test = split_rows(data(np.repeat(np.arange(3), 2)), rows=32, seed=0)  # two each
+    assert set(test.episode[test.episode >= 0].tolist()) == {1, 3, 5}
+    with pytest.raises(ValueError, match="at least 6 episodes"):
+        split_rows(data(np.arange(4)), rows=32, seed=0)

@@ -163,9 +163,11 @@ def split_rows(ds, rows: int, seed: int) -> tuple[Rows, Rows]:
     episodes = np.unique(ds.episode_id)
     pol = np.array([ds.policy_id[np.argmax(ds.episode_id == e)] for e in episodes])
     test_eps = np.concatenate([episodes[pol == p][1::2] for p in np.unique(pol)])
+    if len(test_eps) < 3:  # few episodes per policy (e.g. one each): every second overall
+        test_eps = episodes[np.lexsort((episodes, pol))][1::2]
     if len(test_eps) < 3 or len(episodes) - len(test_eps) < 1:
-        raise ValueError(f"data: expected at least 6 episodes (3 to test on), got "
-                         f"{len(episodes)}")
+        raise ValueError(f"data: expected at least 6 episodes (every second one is tested "
+                         f"on), got {len(episodes)}")
     is_test = np.isin(ds.episode_id, test_eps)
     halves = []
     for mask in (~is_test, is_test):

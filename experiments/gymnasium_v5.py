@@ -77,7 +77,19 @@ HalfCheetah (``--tasks halfcheetah --policies 5 --transitions 200 --value-episod
 C-MuJoCo control 3.5e-6 one-step, 10-step 0.0039: v5's only physical differences (RK4 is not
 used; more geoms collide; 100 iterations) cost little, and over 10 steps the float32 MJX
 drifts from C MuJoCo as much on the MJX XML as on v5's. That run wedged in its third
-dataset (XLA, above): no HalfCheetah values or diagnosis. Ant: not measured (out of time).
+dataset (XLA, above): no HalfCheetah values or diagnosis.
+
+On one H200 host (MJX on the GPU: no wedge), ``--tasks T --transitions 500 --value-episodes 8
+--mjx-values --no-control --diagnose DIR`` for the 20 test policies, one process per task:
+    walker2d  one-step 0.077 (in / out of contact 0.083 / 0.066), 10-step 0.072; tau v5 vs
+              MJX 0.895 (MJX re-measured vs the zoo's own values: 0.937), AVD 169, MVD 702;
+              diagnosis: foot friction 0.9 -> 1.895 first but p 0.024 > 0.01, nothing kept.
+    ant       one-step 0.214 (0.246 / 0.208), 10-step 0.591; tau v5 vs MJX 0.600 (noise floor
+              0.705 at 8 episodes), AVD 942, MVD 1703, v5 - MJX +528 on average (weak
+              policies gain most); diagnosis names nothing (unexplained 1.000): v5's margin
+              0.01 and contype on every geom, and the absent foot spheres, are not candidates.
+    halfcheetah  one-step 0.0082, 10-step 0.060; its diagnosis stopped on a split of one
+              episode per policy (fixed since in identify.split_rows); values not measured.
 """
 from __future__ import annotations
 

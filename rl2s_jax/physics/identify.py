@@ -390,6 +390,10 @@ def fit_sysid(pm: PhysicsModel, ds, chosen: list[tuple[str, str]], delays=None,
     "theta" [K], "seconds"}."""
     from mujoco import sysid  # local: the optional mujoco[sysid] extra, only needed here
 
+    if not hasattr(sysid, "optimize"):  # mujoco.sysid imports without its extra, empty
+        raise ImportError("fit_sysid needs MuJoCo's system identification extra: "
+                          "pip install 'mujoco[sysid]' (or this package's [sysid] extra)")
+
     fit_rows, _ = split_rows(ds, cfg.rows, cfg.seed)
     fit = _Fit(pm, fit_rows, obs_scale(ds), "mujoco")
     idx = [pm.index(n, e) for n, e in chosen]

@@ -80,7 +80,7 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     report = diagnose_physics(PhysicsSpec(data=data, out=os.path.join(args.out, "report"),
-                                          rows=args.rows, quiet=True))
+                                          fit=FitConfig(rows=args.rows), quiet=True))
     out["diagnose_physics_s"] = round(time.perf_counter() - t0, 1)
     out["diagnose_physics_named"] = report["physics"]["top_cause"]
     print(f"[physics-timing] diagnose --physics: {out['diagnose_physics_s']} s, "

@@ -24,11 +24,16 @@ def run_collect(spec: CollectSpec) -> int:
                          envs_per_policy=spec.envs_per_policy, gamma=spec.gamma,
                          value_episodes=spec.value_episodes, episode_length=spec.episode_length,
                          zoo_path=spec.zoo)
-    os.makedirs(os.path.dirname(os.path.abspath(spec.out)), exist_ok=True)
-    save_dataset(spec.out, ds)
-    print(dataset_summary(ds))
-    print(f"collected in {time.time() - t0:.0f}s -> {spec.out}")
+    _write(ds, spec.out, f"collected in {time.time() - t0:.0f}s -> {spec.out}")
     return 0
+
+
+def _write(ds, out: str, done: str) -> None:
+    """Save ``ds`` at ``out`` (its directories made), then print its summary and ``done``."""
+    os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
+    save_dataset(out, ds)
+    print(dataset_summary(ds))
+    print(done)
 
 
 def run_inspect(spec: InspectSpec) -> int:
@@ -48,10 +53,7 @@ def run_import(spec: ImportSpec) -> int:
     from rl2s_jax.data.minari import from_minari
 
     ds = from_minari(spec.minari, task=spec.task, gamma=spec.gamma, policy_key=spec.policy_key)
-    os.makedirs(os.path.dirname(os.path.abspath(spec.out)), exist_ok=True)
-    save_dataset(spec.out, ds)
-    print(dataset_summary(ds))
-    print(f"imported {spec.minari} -> {spec.out}")
+    _write(ds, spec.out, f"imported {spec.minari} -> {spec.out}")
     return 0
 
 

@@ -45,7 +45,7 @@ import jax
 import numpy as np
 
 from rl2s_jax._files import write_json, write_text
-from rl2s_jax.app.specs import ImproveSpec
+from rl2s_jax.app.specs import ImproveSpec, check_floor_scale, check_no_guard_alone
 from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
@@ -78,13 +78,9 @@ def guard_margin(spec) -> float | None:
     the --recipe's, else the default, ``GUARD_MARGIN``) and --no-guard (-> None: no guard);
     --no-guard with --guard-margin, --guard-snapshots or --guard-floor-scale is refused, and so
     is a --guard-floor-scale below 0 (before any work)."""
-    scale = check_floor_scale(getattr(spec, "guard_floor_scale", None))
+    check_floor_scale(getattr(spec, "guard_floor_scale", None))
+    check_no_guard_alone(spec)
     if spec.no_guard:
-        given = [o for o, on in (("--guard-margin", spec.guard_margin is not None),
-                                 ("--guard-snapshots", getattr(spec, "guard_snapshots", False)),
-                                 ("--guard-floor-scale", scale is not None)) if on]
-        if given:
-            raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
         return None
     if spec.guard_margin is None and getattr(spec, "recipe", None):
         return IMPROVE_RECIPES[spec.recipe]["guard_margin"]
@@ -382,14 +378,6 @@ def training_error_floor(run: dict) -> dict:
     return {"mvd": float(run["mvd_train"]),
             "horizon": int(by.get("horizon", cfg.get("vd_horizon"))),
             "gamma": float(by.get("gamma", cfg.get("gamma"))), "step": run.get("steps")}
-
-
-def check_floor_scale(scale: float | None) -> float | None:
-    """``scale`` (the guard's floor as a multiple of the training MVD; None: not given), or a
-    ValueError naming --guard-floor-scale unless it is finite and >= 0."""
-    if scale is not None and not (np.isfinite(scale) and scale >= 0):
-        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got {scale!r}")
-    return scale
 
 
 def guard_floor(floor: dict | None, horizon: int, gamma: float) -> float:

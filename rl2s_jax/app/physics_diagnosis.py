@@ -29,29 +29,27 @@ __all__ = ["PhysicsSpec", "diagnose_physics", "load_calibrated", "physics_comman
 @dataclasses.dataclass(frozen=True)
 class PhysicsSpec:
     """data: Dataset (.npz); out: report directory; sim_xml: a user's MJCF (obs = qpos ++
-    qvel) instead of the data's task; sim_frames: its physics steps per control step; rows,
-    max_params, alpha, min_gain, seed: identify.FitConfig's; k: open-loop steps."""
+    qvel) instead of the data's task; sim_frames: its physics steps per control step; fit:
+    the identification's settings (its seed also draws the error breakdowns' windows); k:
+    open-loop steps."""
 
     data: str
     out: str
     sim_xml: str | None = None
     sim_frames: int | None = None
-    rows: int = 256
-    max_params: int = 3
-    alpha: float = 0.01
-    min_gain: float = 0.1
+    fit: FitConfig = FitConfig()
     k: int = 10
-    seed: int = 0
     quiet: bool = False
 
     def validate(self) -> PhysicsSpec:
         if self.sim_xml is not None and not os.path.isfile(self.sim_xml):
             raise ValueError(f"sim_xml: expected an MJCF file, got {self.sim_xml!r}")
-        if not 0.0 < self.alpha < 1.0:
-            raise ValueError(f"alpha: expected a level in (0, 1), got {self.alpha}")
-        for name in ("rows", "max_params", "k"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name}: expected a positive int, got {getattr(self, name)}")
+        if not 0.0 < self.fit.alpha < 1.0:
+            raise ValueError(f"alpha: expected a level in (0, 1), got {self.fit.alpha}")
+        for name, value in (("rows", self.fit.rows), ("max_params", self.fit.max_params),
+                            ("k", self.k)):
+            if value < 1:
+                raise ValueError(f"{name}: expected a positive int, got {value}")
         return self
 
 
@@ -59,8 +57,8 @@ def physics_command(spec) -> int:
     """`rl2s diagnose --physics`: its DiagnoseSpec (app/specs.py) -> :class:`PhysicsSpec` ->
     :func:`diagnose_physics`."""
     diagnose_physics(PhysicsSpec(data=spec.data, out=spec.out, sim_xml=spec.sim_xml,
-                                 sim_frames=spec.sim_frames, alpha=spec.alpha, k=spec.k_max,
-                                 seed=spec.seed, quiet=spec.quiet))
+                                 sim_frames=spec.sim_frames, k=spec.k_max, quiet=spec.quiet,
+                                 fit=FitConfig(alpha=spec.alpha, seed=spec.seed)))
     return 0
 
 
@@ -85,13 +83,12 @@ def diagnose_physics(spec: PhysicsSpec) -> dict:
     start = time.perf_counter()
     pm = physics_model(task if spec.sim_xml is None else None, xml_path=spec.sim_xml,
                        n_frames=spec.sim_frames)
-    cfg = FitConfig(rows=spec.rows, max_params=spec.max_params, alpha=spec.alpha,
-                    min_gain=spec.min_gain, seed=spec.seed)
+    cfg = spec.fit
     log(f"[physics] {ds.n_transitions} transitions, {len(pm.candidates)} candidate quantities")
     found = identify(pm, ds, cfg)
-    nominal = physics_errors(pm, ds, k=spec.k, seed=spec.seed)
+    nominal = physics_errors(pm, ds, k=spec.k, seed=cfg.seed)
     calibrated = physics_errors(pm, ds, found["theta"], found["delays"], k=spec.k,
-                                seed=spec.seed)
+                                seed=cfg.seed)
     os.makedirs(spec.out, exist_ok=True)
     cal_path = os.path.join(spec.out, "calibrated.json")
     write_json(cal_path, jsonable({"task": pm.task, "xml": pm.xml_path,

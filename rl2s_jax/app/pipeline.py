@@ -15,7 +15,6 @@ from rl2s_jax._files import write_json
 from rl2s_jax.app.evaluation import evaluate_checkpoint
 from rl2s_jax.app.improvement import (
     GUARD_MARGIN,
-    check_floor_scale,
     deploy_through_guard,
     fine_tuning_overrides,
     guard_floor,
@@ -23,7 +22,7 @@ from rl2s_jax.app.improvement import (
     training_error_floor,
 )
 from rl2s_jax.app.report import improvement_text, load_curve, machine_info, write_report
-from rl2s_jax.app.specs import PipelineSpec
+from rl2s_jax.app.specs import PipelineSpec, check_floor_scale
 from rl2s_jax.app.training import parse_overrides, run_training
 from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset

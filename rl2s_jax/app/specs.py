@@ -50,18 +50,31 @@ def _check_required(spec, names) -> None:
             raise ValueError(f"{_flag(name)}: required")
 
 
+def check_floor_scale(scale: float | None) -> float | None:
+    """``scale`` (the guard's floor as a multiple of the training MVD; None: not given), or a
+    ValueError naming --guard-floor-scale unless it is finite and >= 0."""
+    if scale is not None and not (math.isfinite(scale) and scale >= 0):
+        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got {scale!r}")
+    return scale
+
+
+def check_no_guard_alone(spec) -> None:
+    """--no-guard with --guard-margin, --guard-snapshots or --guard-floor-scale is refused
+    (``spec``: a spec or parsed flags of improve / pipeline)."""
+    if spec.no_guard:
+        given = [o for o, on in (
+            ("--guard-margin", spec.guard_margin is not None),
+            ("--guard-snapshots", getattr(spec, "guard_snapshots", False)),
+            ("--guard-floor-scale", getattr(spec, "guard_floor_scale", None) is not None)) if on]
+        if given:
+            raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
+
+
 def _check_guard(spec) -> None:
     """The deployment guard's flags (improve, pipeline): --guard-floor-scale finite and >= 0,
     --no-guard alone, a known --recipe, --guard-margin finite and >= 0."""
-    scale = spec.guard_floor_scale
-    if scale is not None and not (math.isfinite(scale) and scale >= 0):
-        raise ValueError(f"guard-floor-scale: expected a finite float >= 0, got {scale!r}")
-    if spec.no_guard:
-        given = [o for o, on in (("--guard-margin", spec.guard_margin is not None),
-                                 ("--guard-snapshots", getattr(spec, "guard_snapshots", False)),
-                                 ("--guard-floor-scale", scale is not None)) if on]
-        if given:
-            raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
+    check_floor_scale(spec.guard_floor_scale)
+    check_no_guard_alone(spec)
     if spec.recipe is not None and spec.recipe not in IMPROVE_RECIPE_NAMES:
         raise ValueError(f"recipe: expected one of {sorted(IMPROVE_RECIPE_NAMES)}, got "
                          f"{spec.recipe!r}")
@@ -341,4 +354,5 @@ def spec_from_args(spec_class, args: argparse.Namespace):
                          for f in dataclasses.fields(spec_class)})
 
 
-__all__ = ["COMMANDS", "SPECS", "spec_from_args", *(cls for cls, _, _ in COMMANDS.values())]
+__all__ = ["COMMANDS", "SPECS", "check_floor_scale", "check_no_guard_alone", "spec_from_args",
+           *(cls for cls, _, _ in COMMANDS.values())]

@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from rl2s_jax.app.improvement import check_floor_scale, guard_floor
+from rl2s_jax.app.improvement import guard_floor
+from rl2s_jax.app.specs import check_floor_scale
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import Task, get_task
 from rl2s_jax.evaluate.oracle import oracle_dynamics

@@ -206,6 +206,9 @@ def build_parser() -> argparse.ArgumentParser:
                    "policies whose values they disagree on most")
     p.add_argument("--oracle", action="store_true", help="evaluate the task's real dynamics "
                    "through the same path instead of a checkpoint (the ceiling)")
+    p.add_argument("--physics", metavar="SRC", help="a physics model instead of a checkpoint: "
+                   "a calibrated.json of `rl2s diagnose --physics`, or 'nominal' (the data's "
+                   "task's MuJoCo model)")
     p.add_argument("--data", required=True, help="Dataset of the policies to evaluate")
     p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
                    "95%% intervals over episodes (0: none)")

@@ -1,5 +1,6 @@
-"""`rl2s evaluate`: a checkpoint (or the oracle) scored on a Dataset file; several checkpoints
-of one task (independently trained simulators) scored alike, with where they disagree.
+"""`rl2s evaluate`: a checkpoint (or the oracle, or a physics model: ``evaluate_physics``)
+scored on a Dataset file; several checkpoints of one task (independently trained simulators)
+scored alike, with where they disagree.
 
 Every evaluation here runs with one ``EvalSetting`` (evaluate/setting.py: episodes, horizon,
 seed, which true value), the one `rl2s train` scores its test policies with, so the two agree
@@ -21,6 +22,7 @@ from rl2s_jax.evaluate.metrics import spearman
 from rl2s_jax.evaluate.scores import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
 from rl2s_jax.evaluate.trust import format_trust
+from rl2s_jax.physics.physics_simulator import one_step_mse, physics_simulator
 from rl2s_jax.train.checkpoint import Checkpointer, load_checkpoint
 from rl2s_jax.zoo.zoo import policies_for
 
@@ -89,6 +91,41 @@ def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None,
     return report
 
 
+PHYSICS_NO_INTERVALS = ("a physics model is one deterministic model: no ensemble of seeds whose "
+                        "spread gives value intervals (the identification's parameter "
+                        "intervals are not carried into the values); pass --level 0")
+
+
+def evaluate_physics(physics: str, data_path: str, *, zoo: str | None = None,
+                     policy_file: str | None = None, seed: int | None = None,
+                     n_episodes: int | None = None, horizon: int | None = None,
+                     n_boot: int = 0, setting: EvalSetting | None = None,
+                     truth: str | None = None, level: float | None = None,
+                     calibration: list[str] | None = None) -> dict:
+    """``evaluate_checkpoint`` with a physics model in place of a learned simulator: ``physics``
+    is a calibrated.json of `rl2s diagnose --physics` or "nominal" (the data's task's MJX
+    model; physics/physics_simulator.py). The same ``EvalSetting``, start states, rollout
+    (``evaluate_simulator``), metrics against the data's true values and report, plus the
+    physics' ``heldout_mse`` (``one_step_mse``); its default horizon is the oracle's
+    (``EvalSetting.resolve``). No value intervals: with ``level`` the report's "trust" says
+    why (``PHYSICS_NO_INTERVALS``); ``calibration`` unused."""
+    setting = _setting(setting, n_episodes, horizon, seed, truth)
+    ds = load_dataset(data_path)
+    sim = physics_simulator(physics, ds.meta.get("task"), ds.obs_size, ds.action_size)
+    policies = policies_for(ds, zoo, policy_file=policy_file, data_path=data_path)
+    setting = setting.resolve(ds.meta.get("episode_length"))
+    report = evaluate_simulator(sim, ds, policies, key=setting.key(),
+                                n_episodes=setting.episodes, horizon=setting.horizon,
+                                n_boot=n_boot, truth=setting.truth)
+    report.update(one_step_mse(sim, ds))
+    report.update(method="physics", physics=physics, delays=list(sim.delays),
+                  data=data_path, seed=setting.seed, backend=jax.default_backend(),
+                  **_sources(setting, n_episodes))
+    if level:
+        report["trust"] = {"skipped": PHYSICS_NO_INTERVALS}
+    return report
+
+
 def evaluate_oracle_data(data_path: str, *, zoo: str | None = None,
                          policy_file: str | None = None, seed: int | None = None,
                          n_episodes: int | None = None, horizon: int | None = None,
@@ -133,8 +170,9 @@ def _truth(r: dict) -> str:
 def format_report(r: dict) -> str:
     """A one-screen table of an evaluate report."""
     m = r["metrics"]
-    what = ("the real dynamics (oracle)" if r.get("method") == "oracle"
-            else f"{r.get('method', '?')} checkpoint step {r.get('step', '?')}")
+    what = {"oracle": "the real dynamics (oracle)",
+            "physics": f"the physics model {r.get('physics')}"}.get(
+        r.get("method"), f"{r.get('method', '?')} checkpoint step {r.get('step', '?')}")
 
     def source(key):
         return f" ({r[key]})" if key in r else ""
@@ -147,6 +185,9 @@ def format_report(r: dict) -> str:
         head.append(f"one-step error on these {r['one_step_rows']} transitions: heldout_nll "
                     f"{r['heldout_nll']:.3f} nats (s' - s, data units), heldout_mse "
                     f"{r['heldout_mse']:.4f} (per dim, in this data's std of s' - s)")
+    elif "heldout_mse" in r:  # a physics model: deterministic, no NLL
+        head.append(f"one-step error on these {r['one_step_rows']} transitions: heldout_mse "
+                    f"{r['heldout_mse']:.3g} (per dim, in this data's std of s' - s)")
     if "intervals" in r:
         iv = r["intervals"]
         head.append(f"{iv['level']:.0%} bootstrap intervals over {iv['n_episodes']} episodes: "
@@ -360,8 +401,9 @@ def run_evaluate(spec: EvaluateSpec) -> int:
     checkpoints' and where they disagree; printed, and written to ``spec.json`` if given."""
     if not os.path.exists(spec.data):
         raise FileNotFoundError(f"data: no such file {spec.data}")
-    if (spec.ckpt is None) == (not spec.oracle):
-        raise ValueError("ckpt: give either --ckpt DIR or --oracle (the real dynamics)")
+    if (spec.ckpt is not None) + spec.oracle + (spec.physics is not None) != 1:
+        raise ValueError("ckpt: give one of --ckpt DIR, --oracle (the real dynamics) or "
+                         "--physics SRC (a physics model)")
     kw = dict(zoo=spec.zoo, policy_file=spec.policy_file, seed=spec.seed, truth=spec.truth,
               n_episodes=spec.episodes, horizon=spec.horizon, n_boot=spec.bootstrap,
               level=spec.level or None, calibration=spec.calibration)
@@ -370,6 +412,7 @@ def run_evaluate(spec: EvaluateSpec) -> int:
         print(format_agreement(report))
     else:
         report = (evaluate_oracle_data(spec.data, **kw) if spec.oracle
+                  else evaluate_physics(spec.physics, spec.data, **kw) if spec.physics
                   else evaluate_checkpoint(spec.ckpt[0], spec.data, step=spec.step, **kw))
         print(format_report(report))
     if spec.json:

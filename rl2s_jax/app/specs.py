@@ -83,6 +83,19 @@ def _check_guard(spec) -> None:
         raise ValueError(f"guard-margin: expected a finite float >= 0, got {m!r}")
 
 
+def _check_physics(spec) -> None:
+    """--physics (evaluate, improve) in place of --ckpt / --oracle, not beside them."""
+    if spec.physics is None:
+        return
+    given = [f for f, on in (("--ckpt", spec.ckpt), ("--oracle", getattr(spec, "oracle", False)),
+                             ("--step", spec.step is not None)) if on]
+    if given:
+        raise ValueError(f"physics: the physics model is the simulator in place of a "
+                         f"checkpoint; drop {given[0]}")
+    if not spec.physics:
+        raise ValueError("physics: expected a calibrated.json path or 'nominal', got ''")
+
+
 @dataclasses.dataclass(frozen=True)
 class ZooSpec:
     """`rl2s zoo`: train (or continue) a task's zoo learners, then measure, choose, split."""
@@ -225,8 +238,10 @@ class EvaluateSpec:
     json: str | None = None
     level: float = 0.9  # each policy's value interval at this level (0: none; evaluate/trust.py)
     calibration: list[str] | None = None  # Datasets the intervals are calibrated on
+    physics: str | None = None  # a calibrated.json or "nominal" in place of a checkpoint
 
     def __post_init__(self):
+        _check_physics(self)
         _check_ints(self, ("episodes", "horizon"))
         _check_ints(self, ("bootstrap",), low=0)
         if isinstance(self.level, bool) or not isinstance(self.level, int | float) \

@@ -81,14 +81,15 @@ class Candidate:
         return f"{self.name}[{self.element}]"
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass(frozen=True, eq=False)
 class PhysicsModel:
     """A MuJoCo model as ``step(theta, obs, action) -> next_obs`` (module docstring).
 
     mj: the nominal C model (``mujoco.MjModel``); mjx_model: its MJX twin (float32); task: the
     registered task or None; xml_path: the MJCF it was built from; n_frames: physics substeps
     per control step; candidates: the K quantities ``theta`` indexes; lag: (obs dim, qpos
-    index, qvel index, rest offset) for each lagged observation dim.
+    index, qvel index, rest offset) for each lagged observation dim. Compared and hashed by
+    identity (it holds arrays), so a jitted function may take it as a static argument.
     """
 
     mj: object

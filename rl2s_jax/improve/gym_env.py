@@ -30,9 +30,11 @@ Importing this module registers with Gymnasium (once; importing again does not r
 ``import rl2s_jax`` registers the first id already, rl2s_jax/_gym.py):
 ``"rl2s/Simulator-v0"`` (``gymnasium.make(id, ckpt=..., data=..., **kwargs)`` is
 :meth:`SimulatorGymEnv.from_checkpoint`; ``gymnasium.make_vec(id, num_envs, ckpt=...,
-data=...)`` the vector env) and ``"rl2s/<task>-v0"`` for every registered task: the task's
-real brax env as a Gymnasium env (:class:`TaskGymEnv`), which Minari exports name as their
-``env_spec``.
+data=...)`` the vector env; ``physics="calibrated.json"`` or ``physics="nominal"`` in place of
+``ckpt``: the physics model of `rl2s diagnose --physics`, :meth:`SimulatorGymEnv.from_physics`,
+deterministic, with no ``info["uncertainty"]``) and ``"rl2s/<task>-v0"`` for every
+registered task: the task's real brax env as a Gymnasium env (:class:`TaskGymEnv`), which
+Minari exports name as their ``env_spec``.
 """
 from __future__ import annotations
 
@@ -52,8 +54,10 @@ from gymnasium.vector.utils import batch_space
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.checks import tree_where
 from rl2s_jax.envs.tasks import Task, get_task, task_names
+from rl2s_jax.improve.physics_env import PhysicsEnv, is_physics
 from rl2s_jax.improve.sim_env import Dynamics, SimulatorEnv
 from rl2s_jax.model.simulator import Simulator, start_pool
+from rl2s_jax.physics.physics_simulator import PhysicsSimulator, physics_simulator
 from rl2s_jax.train.checkpoint import load_simulator
 
 __all__ = ["SIMULATOR_ENV_ID", "SimulatorGymEnv", "SimulatorVectorEnv", "TaskGymEnv",
@@ -77,7 +81,8 @@ def task_env_id(task: str) -> str:
 def _brax_env(sim, starts, task, deterministic) -> SimulatorEnv:
     """The SimulatorEnv; ``starts`` is a start pool [S, o] or a Dataset (its t == 0 rows)."""
     pool = start_pool(starts) if hasattr(starts, "episode_id") else starts
-    return SimulatorEnv(sim, pool, task, deterministic=deterministic)
+    env = PhysicsEnv if is_physics(sim) else SimulatorEnv
+    return env(sim, pool, task, deterministic=deterministic)
 
 
 def _limit(max_episode_steps, task: Task) -> int | None:
@@ -93,11 +98,22 @@ def _spaces(task: Task) -> tuple[gym.spaces.Box, gym.spaces.Box]:
     return obs, action
 
 
-def _from_files(ckpt: str | os.PathLike, data, step: int | None):
-
-    sim = load_simulator(ckpt, step)
+def _from_files(ckpt: str | os.PathLike | None, data, step: int | None, physics=None):
+    """(simulator, Dataset): the checkpoint's, or with ``physics`` (a calibrated.json or
+    "nominal") the physics model for the data's task (``physics_simulator``)."""
+    if data is None:
+        raise ValueError("data: required (the Dataset, or its .npz path, whose start states "
+                         "the episodes start from)")
+    if (ckpt is None) == (physics is None):
+        raise ValueError("physics: give ckpt= (a learned simulator's checkpoint) or physics= "
+                         "(a calibrated.json or 'nominal'), one of them")
     ds = load_dataset(data) if isinstance(data, str | os.PathLike) else data
-    return sim, ds
+    if physics is not None:
+        if step is not None:
+            raise ValueError("step: a checkpoint's step; a physics model has none")
+        return physics_simulator(str(physics), ds.meta.get("task"), ds.obs_size,
+                                 ds.action_size), ds
+    return load_simulator(ckpt, step), ds
 
 
 def _disagreement_fn(sim):
@@ -268,7 +284,8 @@ class SimulatorGymEnv(_BraxGymEnv):
     """A learned (or any) dynamics model as a Gymnasium env.
 
     Args:
-      sim: a ``Simulator`` or any ``dynamics(obs [..., o], action [..., a], key) -> [..., o]``.
+      sim: a ``Simulator``, a ``PhysicsSimulator`` (the calibrated or nominal physics:
+        :meth:`from_physics`) or any ``dynamics(obs [..., o], action [..., a], key) -> [..., o]``.
       starts: real episode start observations [S, o], or a Dataset (its rows with t == 0).
       task: a ``Task`` or its name (reward_fn, done_fn, sizes); default ``sim.task_fns()``.
       deterministic: step with the simulator's mean instead of a sample.
@@ -282,8 +299,9 @@ class SimulatorGymEnv(_BraxGymEnv):
     Simulator of >= 2 elites, else it is empty.
     """
 
-    def __init__(self, sim: Simulator | Dynamics, starts, task: Task | str | None = None, *,
-                 deterministic: bool = False, max_episode_steps: int | None | str = _TASK_LIMIT,
+    def __init__(self, sim: Simulator | PhysicsSimulator | Dynamics, starts,
+                 task: Task | str | None = None, *, deterministic: bool = False,
+                 max_episode_steps: int | None | str = _TASK_LIMIT,
                  render_mode: str | None = None):
         env = _brax_env(sim, starts, task, deterministic)
         super().__init__(env, env.task, max_episode_steps, render_mode, _disagreement_fn(sim))
@@ -294,6 +312,13 @@ class SimulatorGymEnv(_BraxGymEnv):
         """The simulator of checkpoint directory ``ckpt`` (newest intact step unless ``step``)
         with start states from ``data`` (a Dataset or its .npz path)."""
         sim, ds = _from_files(ckpt, data, step)
+        return cls(sim, ds, **kwargs)
+
+    @classmethod
+    def from_physics(cls, physics: str | os.PathLike, data, **kwargs) -> SimulatorGymEnv:
+        """The physics model ``physics`` (a calibrated.json of `rl2s diagnose --physics`, or
+        "nominal": the data's task's MuJoCo model) with start states from ``data``."""
+        sim, ds = _from_files(None, data, None, physics)
         return cls(sim, ds, **kwargs)
 
 
@@ -403,6 +428,13 @@ class SimulatorVectorEnv(VectorEnv):
         sim, ds = _from_files(ckpt, data, step)
         return cls(sim, ds, num_envs, **kwargs)
 
+    @classmethod
+    def from_physics(cls, physics: str | os.PathLike, data, num_envs: int,
+                     **kwargs) -> SimulatorVectorEnv:
+        """As :meth:`SimulatorGymEnv.from_physics`, with ``num_envs`` envs."""
+        sim, ds = _from_files(None, data, None, physics)
+        return cls(sim, ds, num_envs, **kwargs)
+
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
         super().reset(seed=seed)
         self._key = _episode_key(self, seed)
@@ -429,17 +461,24 @@ class SimulatorVectorEnv(VectorEnv):
 # --------------------------------------------------------------------------- registration
 
 
-def make_simulator_env(ckpt: str | os.PathLike, data, **kwargs) -> SimulatorGymEnv:
+def make_simulator_env(ckpt: str | os.PathLike | None = None, data=None, *,
+                       physics: str | os.PathLike | None = None, step: int | None = None,
+                       **kwargs) -> SimulatorGymEnv:
     """The entry point of ``gymnasium.make("rl2s/Simulator-v0", ckpt=..., data=...,
-    **kwargs)``: :meth:`SimulatorGymEnv.from_checkpoint`."""
-    return SimulatorGymEnv.from_checkpoint(ckpt, data, **kwargs)
+    **kwargs)``: :meth:`SimulatorGymEnv.from_checkpoint`; with ``physics=`` in place of
+    ``ckpt``, :meth:`SimulatorGymEnv.from_physics`."""
+    sim, ds = _from_files(ckpt, data, step, physics)
+    return SimulatorGymEnv(sim, ds, **kwargs)
 
 
-def make_simulator_vector_env(ckpt: str | os.PathLike, data, num_envs: int = 1,
-                              **kwargs) -> SimulatorVectorEnv:
+def make_simulator_vector_env(ckpt: str | os.PathLike | None = None, data=None,
+                              num_envs: int = 1, *, physics: str | os.PathLike | None = None,
+                              step: int | None = None, **kwargs) -> SimulatorVectorEnv:
     """The vector entry point of ``gymnasium.make_vec("rl2s/Simulator-v0", num_envs,
-    ckpt=..., data=...)``: :meth:`SimulatorVectorEnv.from_checkpoint`."""
-    return SimulatorVectorEnv.from_checkpoint(ckpt, data, num_envs, **kwargs)
+    ckpt=..., data=...)`` (or ``physics=...`` in place of ``ckpt``): as
+    :func:`make_simulator_env`."""
+    sim, ds = _from_files(ckpt, data, step, physics)
+    return SimulatorVectorEnv(sim, ds, num_envs, **kwargs)
 
 
 def register_envs() -> None:

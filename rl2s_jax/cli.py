@@ -81,6 +81,13 @@ def _sim_env_options(p, default: str = "whole episodes from its start states") -
                    "units of its mean on the data (needs >= 2 elites)")
 
 
+_EVALUATE_CKPT_HELP = ("checkpoint directory (DIR/checkpoints); repeat it for several simulators "
+                       "of one task: each scored, and the policies whose values they disagree "
+                       "on most")
+_PHYSICS_HELP = ("a physics model in place of --ckpt: a calibrated.json of `rl2s diagnose "
+                 "--physics`, or 'nominal' (the data's task's MuJoCo model)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     from rl2s_jax._names import IMPROVE_RECIPE_NAMES as IMPROVE_RECIPES
     from rl2s_jax._names import task_names
@@ -201,14 +208,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("evaluate", help="VD and ranking of a checkpoint's simulator on a "
                        "dataset's policies (fresh process, no training data)")
-    p.add_argument("--ckpt", action="append", help="checkpoint directory (DIR/checkpoints); "
-                   "repeat it for several simulators of one task: each scored, and the "
-                   "policies whose values they disagree on most")
+    p.add_argument("--ckpt", action="append", help=_EVALUATE_CKPT_HELP)
     p.add_argument("--oracle", action="store_true", help="evaluate the task's real dynamics "
                    "through the same path instead of a checkpoint (the ceiling)")
-    p.add_argument("--physics", metavar="SRC", help="a physics model instead of a checkpoint: "
-                   "a calibrated.json of `rl2s diagnose --physics`, or 'nominal' (the data's "
-                   "task's MuJoCo model)")
+    p.add_argument("--physics", metavar="SRC", help=_PHYSICS_HELP)
     p.add_argument("--data", required=True, help="Dataset of the policies to evaluate")
     p.add_argument("--bootstrap", type=int, default=1000, help="bootstrap replicates for the "
                    "95%% intervals over episodes (0: none)")
@@ -221,7 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = sub.add_parser("improve", help="fine-tune a Dataset's policies with SAC inside a "
                        "saved simulator; write them as a zoo, measure the real gain")
-    p.add_argument("--ckpt", required=True, help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--ckpt", help="checkpoint directory (DIR/checkpoints)")
+    p.add_argument("--physics", metavar="SRC", help=_PHYSICS_HELP)
     p.add_argument("--data", required=True, help="Dataset whose policies are fine-tuned (its "
                    "zoo or policy file gives the policies, its states the simulated starts)")
     p.add_argument("--policies", type=_policy_ids, help="indices into the data's policies, "

@@ -60,9 +60,11 @@ from rl2s_jax.improve.finetune import (
     select_by_members,
     training_return_curve,
 )
+from rl2s_jax.improve.physics_env import PhysicsEnv, is_physics
 from rl2s_jax.improve.recipes import IMPROVE_RECIPES, recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.physics.physics_simulator import NOMINAL, physics_simulator
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_meta, load_simulator
@@ -136,6 +138,11 @@ def check_inputs(ckpt: str, data_path: str, policy_ids: list[int] | None):
         raise ValueError(f"data: obs/action sizes ({ds.obs_size}, {ds.action_size}) differ from "
                          f"the checkpoint's ({sizes.get('obs_size')}, "
                          f"{sizes.get('action_size')})")
+    return meta, ds, policy_indices(ds, data_path, policy_ids)
+
+
+def policy_indices(ds, data_path: str, policy_ids: list[int] | None) -> list[int]:
+    """The chosen indices into the data's policies (None: all), checked: in range, distinct."""
     P = ds.n_policies
     ids = list(range(P)) if policy_ids is None else [int(i) for i in policy_ids]
     if not ids:
@@ -146,7 +153,44 @@ def check_inputs(ckpt: str, data_path: str, policy_ids: list[int] | None):
                          f"policies (0..{P - 1})")
     if len(set(ids)) != len(ids):
         raise ValueError(f"policies: expected distinct indices, got {ids}")
-    return meta, ds, ids
+    return ids
+
+
+def simulator_of(spec: ImproveSpec) -> tuple:
+    """The simulator `rl2s improve` fine-tunes in, checked with the data and policy indices
+    before any work: the checkpoint's (``check_inputs``), or ``spec.physics``'s
+    (``physics_simulator``: a calibrated.json or "nominal", for the data's task).
+    -> (simulator, Dataset, policy indices, what it is in words)."""
+    if spec.physics is None:
+        _, ds, ids = check_inputs(spec.ckpt, spec.data, spec.policies)
+        return load_simulator(spec.ckpt, spec.step), ds, ids, os.path.abspath(spec.ckpt)
+    if not os.path.exists(spec.data):
+        raise FileNotFoundError(f"data: no such file {spec.data}")
+    ds = load_dataset(spec.data)
+    sim = physics_simulator(spec.physics, ds.meta.get("task"), ds.obs_size, ds.action_size)
+    where = spec.physics if spec.physics == NOMINAL else os.path.abspath(spec.physics)
+    return sim, ds, policy_indices(ds, spec.data, spec.policies), f"the physics model {where}"
+
+
+def apply_recipe(spec: ImproveSpec, sim, log, settings: dict) -> dict:
+    """``settings`` (iterations, branch_length, uncertainty_penalty, floor_scale, overrides:
+    the flags') with ``spec.recipe``'s for the simulator's task where a flag is not given."""
+    if spec.recipe is None:
+        return settings
+    rs = recipe_settings(spec.recipe, sim.task)
+    if not rs["zoo_recipe"]:
+        log(f"[improve] recipe {spec.recipe}: task {sim.task!r} has no zoo learner to take "
+            f"the discount, reward scale and batch from; SAC keeps the fine-tuning defaults")
+    if settings["branch_length"] is None and rs["branch_length"] is not None and not sim.markov:
+        raise ValueError(f"recipe: {spec.recipe} fine-tunes in branches from the data's logged "
+                         "states, and this simulator's members see the episode's past "
+                         "(history inputs), which those states lack; run without --recipe")
+    out = {k: rs[k] if settings[k] is None else settings[k]
+           for k in ("iterations", "branch_length", "uncertainty_penalty")}
+    out["floor_scale"] = (rs["guard_floor_scale"] if settings["floor_scale"] is None
+                          else settings["floor_scale"])
+    out["overrides"] = {**rs["sac"], **(settings["overrides"] or {})}
+    return out
 
 
 def run_improve(spec: ImproveSpec) -> int:
@@ -161,8 +205,9 @@ def run_improve(spec: ImproveSpec) -> int:
 def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | None = None,
               log=print) -> dict:
     """Fine-tune the policies ``spec.policies`` (indices into the Dataset's policies; default
-    all) inside the simulator of checkpoint ``spec.ckpt`` and write the zoo, plots and summary
-    into ``spec.out`` (module docstring). The policies come from ``spec.zoo``,
+    all) inside the simulator of checkpoint ``spec.ckpt`` (or the physics model
+    ``spec.physics``: ``simulator_of``) and write the zoo, plots and summary into ``spec.out``
+    (module docstring). The policies come from ``spec.zoo``,
     ``spec.policy_file`` or what the data's meta.source names (``zoo.policies_for``). -> the
     summary dict (also out/summary.json). ``floor``: the guard's floor in value units
     (``deployment_guard``); None: the checkpoint's training MVD where comparable
@@ -174,33 +219,21 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
     if floor is not None and not (np.isfinite(floor) and floor >= 0):
         raise ValueError(f"floor: expected a finite float >= 0 (value units) or None, got "
                          f"{floor!r}")
-    iterations, overrides, floor_scale = spec.iterations, parse_overrides(spec.set), \
-        spec.guard_floor_scale
-    measure, branch_length, uncertainty_penalty = (not spec.no_measure, spec.branch_length,
-                                                   spec.uncertainty_penalty)
-    meta, ds, ids = check_inputs(spec.ckpt, spec.data, spec.policies)
-    sim = load_simulator(spec.ckpt, spec.step)
+    measure = not spec.no_measure
+    sim, ds, ids, inside = simulator_of(spec)
     task = sim.task_fns()  # the registered task's rules, or the learned reward and hazard
     if measure and sim.task not in TASKS:
         log(f"[improve] {spec.data} is data of no registered task (meta.task "
             f"{ds.meta.get('task')!r}): no real system to measure the fine-tuned policies in, "
             f"so the real returns are skipped (as --no-measure)")
         measure = False
-    if spec.recipe is not None:  # what the caller gave wins over the recipe
-        rs = recipe_settings(spec.recipe, sim.task)
-        if not rs["zoo_recipe"]:
-            log(f"[improve] recipe {spec.recipe}: task {sim.task!r} has no zoo learner to take "
-                f"the discount, reward scale and batch from; SAC keeps the fine-tuning defaults")
-        iterations = rs["iterations"] if iterations is None else iterations
-        if branch_length is None and rs["branch_length"] is not None and not sim.markov:
-            raise ValueError(f"recipe: {spec.recipe} fine-tunes in branches from the data's logged "
-                             "states, and this simulator's members see the episode's past "
-                             "(history inputs), which those states lack; run without --recipe")
-        branch_length = rs["branch_length"] if branch_length is None else branch_length
-        if uncertainty_penalty is None:
-            uncertainty_penalty = rs["uncertainty_penalty"]
-        floor_scale = rs["guard_floor_scale"] if floor_scale is None else floor_scale
-        overrides = {**rs["sac"], **(overrides or {})}
+    settings = apply_recipe(spec, sim, log, dict(  # what the caller gave wins over the recipe
+        iterations=spec.iterations, branch_length=spec.branch_length,
+        uncertainty_penalty=spec.uncertainty_penalty, floor_scale=spec.guard_floor_scale,
+        overrides=parse_overrides(spec.set)))
+    iterations, branch_length, uncertainty_penalty, floor_scale, overrides = (
+        settings[k] for k in ("iterations", "branch_length", "uncertainty_penalty",
+                              "floor_scale", "overrides"))
     iterations = 1000 if iterations is None else iterations
     uncertainty_penalty = 0.0 if uncertainty_penalty is None else uncertainty_penalty
     episode_length = int(ds.meta.get("episode_length") or task.episode_length)
@@ -224,11 +257,12 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
     os.makedirs(spec.out, exist_ok=True)
 
     log(f"[improve] {len(ids)} policies of {spec.data} (task {task.name}) x {iterations} SAC "
-        f"iterations inside {spec.ckpt}")
+        f"iterations inside {inside}")
     t0 = time.perf_counter()
     k_sac, k_measure = jax.random.split(jax.random.PRNGKey(spec.seed))
     chunk = chunk or max(1, iterations // 10)
-    after, metrics = improve_policies(sim, task, pool, policies, k_sac, cfg,
+    env = PhysicsEnv(sim, pool, task, **env_options) if is_physics(sim) else sim
+    after, metrics = improve_policies(env, task, pool, policies, k_sac, cfg,
                                       n_iterations=iterations, chunk_iterations=chunk,
                                       env_options=env_options, progress=not spec.quiet,
                                       snapshots=spec.guard_snapshots)
@@ -241,8 +275,11 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
 
     guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
     if margin is not None:  # the simulator's own verdict, start vs fine-tuned
-        floor, floor_source = (checkpoint_floor(spec.ckpt, spec.step, episode_length, gamma)
-                               if floor is None else (float(floor), "given"))
+        floor, floor_source = ((float(floor), "given") if floor is not None
+                               else (0.0, "a physics model has no training MVD")
+                               if is_physics(sim)
+                               else checkpoint_floor(spec.ckpt, spec.step, episode_length,
+                                                     gamma))
         scale = 1.0 if floor_scale is None else float(floor_scale)
         floor, floor_source = scale * floor, (floor_source if scale == 1 else
                                               f"{scale:g} x {floor_source}")
@@ -274,7 +311,7 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
                 "zoo_id": where["zoo_ids"][i] if "zoo_ids" in where else None,
                 "policy_file": (os.path.abspath(where["policy_file"])
                                 if "policy_file" in where else None),
-                "finetuned_in": os.path.abspath(spec.ckpt), "sac_iterations": iterations,
+                "finetuned_in": inside, "sac_iterations": iterations,
                 "return_before": None if measured is None else float(measured["c0"][j]),
                 **({} if guard is None else {"deployed": _deployed_text(guard, j)})}
                for j, (n, i) in enumerate(zip(names, ids, strict=True))]
@@ -294,7 +331,7 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
             f"everywhere: MPI {measured['mpi']:.3f}  API {measured['api']:.3f})")
     save_zoo(Zoo(task=task.name, params=jax.device_get(deployed), returns=returns,
                  return_se=return_se, origins=origins, train_ids=[], test_ids=list(range(P)),
-                 info={"made_by": "rl2s improve", "checkpoint": os.path.abspath(spec.ckpt),
+                 info={"made_by": "rl2s improve", "checkpoint": inside,
                        "data": os.path.abspath(spec.data), "sac": _jsonable(cfg),
                        "env_options": {k: v for k, v in env_options.items()
                                        if k != "uncertainty_fn"}}), spec.out)
@@ -315,7 +352,7 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
         elif measured is not None:  # no guard: every fine-tuned policy deployed
             row["real_gain"] = row["I"]
         rows.append(row)
-    summary = {"task": task.name, "checkpoint": os.path.abspath(spec.ckpt),
+    summary = {"task": task.name, "checkpoint": inside, "physics": spec.physics,
                "data": os.path.abspath(spec.data), "iterations": iterations, "recipe": spec.recipe,
                "sac": _jsonable(cfg), "env_options": {k: v for k, v in env_options.items()
                                                       if k != "uncertainty_fn"},
@@ -435,7 +472,8 @@ def summary_markdown(s: dict) -> str:
     """The summary as a markdown table: real return before / after ± SE, I, simulated return."""
     recipe = f" (recipe {s['recipe']})" if s.get("recipe") else ""
     lines = [f"# rl2s improve: {s['task']}, {s['iterations']} SAC iterations{recipe}",
-             "", f"checkpoint `{s['checkpoint']}`, data `{s['data']}`", ""]
+             "", f"{'in' if s.get('physics') else 'checkpoint'} `{s['checkpoint']}`, data "
+             f"`{s['data']}`", ""]
     measured = s["mpi"] is not None
     if measured:
         lines += [f"MPI {s['mpi']:.3f}, API {s['api']:.3f} (real returns over "
@@ -535,6 +573,7 @@ def _jsonable(cfg: SACConfig) -> dict:
             for k, v in dataclasses.asdict(cfg).items()}
 
 
-__all__ = ["GUARD_MARGIN", "check_inputs", "deploy_through_guard", "deployment_table",
-           "fine_tune", "fine_tuning_overrides",
-           "guard_margin", "predicted_gains", "run_improve", "sac_config", "summary_markdown"]
+__all__ = ["GUARD_MARGIN", "apply_recipe", "check_inputs", "deploy_through_guard",
+           "deployment_table", "fine_tune", "fine_tuning_overrides", "guard_margin",
+           "policy_indices", "predicted_gains", "run_improve", "sac_config", "simulator_of",
+           "summary_markdown"]

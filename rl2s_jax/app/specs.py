@@ -94,6 +94,14 @@ def _check_physics(spec) -> None:
                          f"checkpoint; drop {given[0]}")
     if not spec.physics:
         raise ValueError("physics: expected a calibrated.json path or 'nominal', got ''")
+    given = [f for f, on in (("--uncertainty-penalty", getattr(spec, "uncertainty_penalty", 0)),
+                             ("--uncertainty-threshold",
+                              getattr(spec, "uncertainty_threshold", None) is not None),
+                             ("--recipe", getattr(spec, "recipe", None))) if on]
+    if given:
+        raise ValueError(f"physics: {given[0]} uses a learned ensemble's disagreement (MOPO's "
+                         f"penalty, MOReL's stop rule; --recipe control penalises it), and a "
+                         f"physics model has none; drop it")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -255,9 +263,10 @@ class ImproveSpec:
     """`rl2s improve`: fine-tune a Dataset's policies with SAC inside a saved simulator, deploy
     them through the guard, write them as a zoo and measure the real gain."""
 
-    ckpt: str
     data: str
     out: str
+    ckpt: str | None = None
+    physics: str | None = None  # a calibrated.json or "nominal" in place of the checkpoint
     policies: list[int] | None = None
     iterations: int | None = None
     set: list[str] | None = None
@@ -280,6 +289,9 @@ class ImproveSpec:
     quiet: bool = False
 
     def __post_init__(self):
+        _check_physics(self)
+        if self.ckpt is None and self.physics is None:
+            raise ValueError("ckpt: required (a checkpoint directory), or --physics SRC")
         _check_guard(self)
         _check_ints(self, ("iterations", "episodes", "branch_length", "guard_episodes"))
         if self.episodes < 2 and not self.no_measure:

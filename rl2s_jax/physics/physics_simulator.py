@@ -9,8 +9,9 @@ actions a delay needs), ``task_fns()`` (the registered task's reward_fn / done_f
 ``sample`` are the same step, the key is unused. It has no ensemble, so no disagreement:
 ``uncertainty_fn`` / ``disagreement`` are absent, and what needs them (MOPO's penalty, the
 stop rule, `rl2s evaluate --level`'s value intervals, the Gymnasium env's
-``info["uncertainty"]``) is refused or left out. ``n_members`` is 1: the deployment guard of
-`rl2s improve` reads the physics' own values as its one member's.
+``info["uncertainty"]``) is refused or left out. ``n_members`` is 1 (``replace`` of the
+ensemble's fields returns it as it is): the deployment guard of `rl2s improve` reads the
+physics' own values as its one member's.
 
 :func:`physics_simulator` makes one from ``"nominal"`` (the data's registered task's MJX model)
 or a ``calibrated.json`` (`rl2s diagnose --physics` writes it)::
@@ -63,7 +64,17 @@ class PhysicsSimulator:
     task: str
     source: str = NOMINAL
 
-    n_members = 1  # one deterministic model: no ensemble
+    n_members = 1  # one deterministic model: no ensemble (the guard's one member)
+    rank = None
+    n_elites = None
+
+    def replace(self, **fields) -> PhysicsSimulator:
+        """Itself for the ensemble's fields (``rank``, ``member_mode``, ``n_elites``: one
+        member, nothing to pick, as the deployment guard's ``member_values`` sets them);
+        ``dataclasses.replace`` for its own."""
+        for k in ("rank", "member_mode", "n_elites"):
+            fields.pop(k, None)
+        return dataclasses.replace(self, **fields) if fields else self
 
     @functools.cached_property
     def _dynamics(self):

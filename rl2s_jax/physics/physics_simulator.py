@@ -28,7 +28,6 @@ takes the data's registered task for its rewards and terminations.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import os
 
@@ -76,8 +75,9 @@ class PhysicsSimulator:
             fields.pop(k, None)
         return dataclasses.replace(self, **fields) if fields else self
 
-    @functools.cached_property
     def _dynamics(self):
+        # made at every call, not cached: its arrays are constants of the trace that calls it
+        # (one kept from an earlier trace would leak into the next)
         return physics_dynamics(self.pm, np.asarray(self.theta), np.asarray(self.delays))
 
     @property
@@ -87,18 +87,18 @@ class PhysicsSimulator:
 
     def new_history(self, batch_shape: tuple[int, ...]):
         """The empty past of actions of episodes starting now (None without a delay)."""
-        return None if self.markov else self._dynamics[1](tuple(batch_shape))
+        return None if self.markov else self._dynamics()[1](tuple(batch_shape))
 
     def dynamics(self, obs: jax.Array, action: jax.Array, key: jax.Array | None = None,
                  hist=None) -> jax.Array:
         """One control step of the physics: obs [..., O], action [..., A] -> next obs [..., O]
         (``hist``: the episode's past, required with a delay; ``key`` unused)."""
         if self.markov:
-            return self._dynamics[0](obs, action, key)
+            return self._dynamics()[0](obs, action, key)
         if hist is None:
             raise ValueError(f"hist: this physics delays actuators by {list(self.delays)} "
                              f"steps; pass the episode's past (new_history at its start)")
-        return self._dynamics[0](obs, action, key, hist)
+        return self._dynamics()[0](obs, action, key, hist)
 
     def sample(self, obs, action, key=None, hist=None) -> jax.Array:
         """The step (deterministic: the same as ``mean``)."""

@@ -160,16 +160,19 @@ def simulator_of(spec: ImproveSpec) -> tuple:
     """The simulator `rl2s improve` fine-tunes in, checked with the data and policy indices
     before any work: the checkpoint's (``check_inputs``), or ``spec.physics``'s
     (``physics_simulator``: a calibrated.json or "nominal", for the data's task).
-    -> (simulator, Dataset, policy indices, what it is in words)."""
+    -> (simulator, Dataset, policy indices, {"checkpoint": its absolute path or None,
+    "physics": the physics' calibrated.json (absolute) or "nominal", or None})."""
     if spec.physics is None:
         _, ds, ids = check_inputs(spec.ckpt, spec.data, spec.policies)
-        return load_simulator(spec.ckpt, spec.step), ds, ids, os.path.abspath(spec.ckpt)
+        return (load_simulator(spec.ckpt, spec.step), ds, ids,
+                {"checkpoint": os.path.abspath(spec.ckpt), "physics": None})
     if not os.path.exists(spec.data):
         raise FileNotFoundError(f"data: no such file {spec.data}")
     ds = load_dataset(spec.data)
     sim = physics_simulator(spec.physics, ds.meta.get("task"), ds.obs_size, ds.action_size)
     where = spec.physics if spec.physics == NOMINAL else os.path.abspath(spec.physics)
-    return sim, ds, policy_indices(ds, spec.data, spec.policies), f"the physics model {where}"
+    return (sim, ds, policy_indices(ds, spec.data, spec.policies),
+            {"checkpoint": None, "physics": where})
 
 
 def apply_recipe(spec: ImproveSpec, sim, log, settings: dict) -> dict:
@@ -255,9 +258,8 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
                                      uncertainty_threshold=spec.uncertainty_threshold,
                                      halt_penalty=spec.halt_penalty)
     os.makedirs(spec.out, exist_ok=True)
-
     log(f"[improve] {len(ids)} policies of {spec.data} (task {task.name}) x {iterations} SAC "
-        f"iterations inside {inside}")
+        f"iterations inside {inside['checkpoint'] or 'the physics model ' + inside['physics']}")
     t0 = time.perf_counter()
     k_sac, k_measure = jax.random.split(jax.random.PRNGKey(spec.seed))
     chunk = chunk or max(1, iterations // 10)
@@ -311,7 +313,8 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
                 "zoo_id": where["zoo_ids"][i] if "zoo_ids" in where else None,
                 "policy_file": (os.path.abspath(where["policy_file"])
                                 if "policy_file" in where else None),
-                "finetuned_in": inside, "sac_iterations": iterations,
+                "finetuned_in": inside["checkpoint"] or inside["physics"],
+                "sac_iterations": iterations,
                 "return_before": None if measured is None else float(measured["c0"][j]),
                 **({} if guard is None else {"deployed": _deployed_text(guard, j)})}
                for j, (n, i) in enumerate(zip(names, ids, strict=True))]
@@ -331,7 +334,7 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
             f"everywhere: MPI {measured['mpi']:.3f}  API {measured['api']:.3f})")
     save_zoo(Zoo(task=task.name, params=jax.device_get(deployed), returns=returns,
                  return_se=return_se, origins=origins, train_ids=[], test_ids=list(range(P)),
-                 info={"made_by": "rl2s improve", "checkpoint": inside,
+                 info={"made_by": "rl2s improve", **inside,
                        "data": os.path.abspath(spec.data), "sac": _jsonable(cfg),
                        "env_options": {k: v for k, v in env_options.items()
                                        if k != "uncertainty_fn"}}), spec.out)
@@ -352,7 +355,7 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
         elif measured is not None:  # no guard: every fine-tuned policy deployed
             row["real_gain"] = row["I"]
         rows.append(row)
-    summary = {"task": task.name, "checkpoint": inside, "physics": spec.physics,
+    summary = {"task": task.name, **inside,
                "data": os.path.abspath(spec.data), "iterations": iterations, "recipe": spec.recipe,
                "sac": _jsonable(cfg), "env_options": {k: v for k, v in env_options.items()
                                                       if k != "uncertainty_fn"},
@@ -472,8 +475,8 @@ def summary_markdown(s: dict) -> str:
     """The summary as a markdown table: real return before / after ± SE, I, simulated return."""
     recipe = f" (recipe {s['recipe']})" if s.get("recipe") else ""
     lines = [f"# rl2s improve: {s['task']}, {s['iterations']} SAC iterations{recipe}",
-             "", f"{'in' if s.get('physics') else 'checkpoint'} `{s['checkpoint']}`, data "
-             f"`{s['data']}`", ""]
+             "", (f"physics model `{s['physics']}`" if s.get("physics")
+                  else f"checkpoint `{s['checkpoint']}`") + f", data `{s['data']}`", ""]
     measured = s["mpi"] is not None
     if measured:
         lines += [f"MPI {s['mpi']:.3f}, API {s['api']:.3f} (real returns over "

@@ -11,7 +11,7 @@ import pytest
 
 HORIZON = 20
 THETA_CHANGE = ("body_mass", "torso", 1.3)
-DELAYS = [0, 2, 0]
+DELAYS = [0, 2, 0]  # hopper's actuators: thigh_joint, leg_joint, foot_joint
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +87,7 @@ def test_evaluate_physics_is_physics_values_and_ranks_as_the_truth(pm, data_path
 
 @pytest.mark.slow
 def test_gym_env_steps_the_calibrated_physics(pm, data_path, tmp_path):
-    """Hopper with a heavier torso and the thigh's action two steps late: each step of the
+    """Hopper with a heavier torso and the leg's action two steps late: each step of the
     Gymnasium env is ``pm.step`` at that theta with the action its actuators apply."""
     import gymnasium
     import jax
@@ -121,6 +121,24 @@ def test_calibrated_json_gives_its_theta_and_delays(pm, data_path, tmp_path):
     assert list(sim.delays) == DELAYS and not sim.markov
     nominal = physics_simulator("nominal", "hopper")
     assert nominal.markov and not any(nominal.theta) and nominal.new_history((2,)) is None
+
+
+def test_one_step_error_is_that_of_the_file_s_theta_and_delays(pm, tmp_path):
+    """On data of Hopper with the file's heavier torso and late leg, the calibrated physics
+    steps every transition as the system did; the nominal one does not."""
+    from rl2s_jax.physics.measured import Planted, collect_measured
+    from rl2s_jax.physics.physics_simulator import one_step_mse, physics_simulator
+    from rl2s_jax.policy.policy import index_params
+    from rl2s_jax.zoo.zoo import load_zoo
+
+    planted = [Planted(*THETA_CHANGE), Planted("action_delay", "leg_joint", DELAYS[1])]
+    ds = collect_measured(pm, index_params(load_zoo("hopper").params, [4, 7]),
+                          transitions_per_policy=60, episode_length=30, changes=planted)
+    calibrated = one_step_mse(physics_simulator(_calibrated(pm, tmp_path / "c.json"),
+                                                "hopper"), ds)
+    nominal = one_step_mse(physics_simulator("nominal", "hopper"), ds)
+    assert calibrated["one_step_rows"] == ds.n_transitions == 120
+    assert calibrated["heldout_mse"] < 1e-8 < 1e-3 < nominal["heldout_mse"]
 
 
 def test_bad_physics_input_is_refused_naming_the_field(pm, data_path, tmp_path):

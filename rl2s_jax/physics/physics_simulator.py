@@ -42,6 +42,7 @@ from rl2s_jax.physics.mjx_model import (
     delayed_actions,
     physics_model,
 )
+from rl2s_jax.physics.residuals import predict
 
 __all__ = ["NOMINAL", "PhysicsSimulator", "one_step_mse", "physics_simulator"]
 
@@ -203,24 +204,25 @@ def physics_simulator(source: str, data_task: str | None, obs_size: int | None =
 
 
 
-def one_step_mse(sim: PhysicsSimulator, ds, max_rows: int = 20_000) -> dict:
+def one_step_mse(sim: PhysicsSimulator, ds, max_rows: int = 20_000,
+                 backend: str = "mujoco") -> dict:
     """The physics' one-step error on the transitions of ``ds``, as ``one_step_errors``
     measures a learned simulator's ``heldout_mse``: the squared error of the next state per
     dim, in units of this data's std of s' - s, averaged over dims and up to ``max_rows`` rows
     evenly spread (each row's action delayed as the physics applies it, from its logged
-    episode). There is no NLL: the physics is deterministic. -> {"heldout_mse",
+    episode). Stepped in C MuJoCo by default (``residuals.predict``: float64, nothing to
+    compile; the MJX step the rollouts take differs from it by float32 round-off), or
+    ``backend="mjx"``. No NLL: the physics is deterministic. -> {"heldout_mse",
     "one_step_rows"}."""
     n = ds.n_transitions
     rows = (np.arange(n) if n <= max_rows
             else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
-    action = np.asarray(ds.action, np.float32)
+    action = np.asarray(ds.action, np.float64)
     if not sim.markov:
         action = delayed_actions(action, np.asarray(ds.episode_id), np.asarray(ds.t),
                                  sim.delays)
     obs, nxt = np.asarray(ds.obs, np.float64), np.asarray(ds.next_obs, np.float64)
-    step = sim.pm.batch_step()
-    pred = np.asarray(step(np.asarray(sim.theta, np.float32), obs[rows].astype(np.float32),
-                           action[rows]), np.float64)
+    pred = predict(sim.pm, np.asarray(sim.theta), obs[rows], action[rows], backend=backend)
     scale = np.maximum((nxt - obs).std(0), 1e-6)
     return {"heldout_mse": float(np.mean(((pred - nxt[rows]) / scale) ** 2)),
             "one_step_rows": int(rows.size)}

@@ -141,6 +141,30 @@ def test_one_step_error_is_that_of_the_file_s_theta_and_delays(pm, tmp_path):
     assert calibrated["heldout_mse"] < 1e-8 < 1e-3 < nominal["heldout_mse"]
 
 
+SLIDER = """<mujoco><option timestep="0.05"/><worldbody><body name="mass">
+<joint name="x" type="slide" axis="1 0 0" damping="0.1"/><geom size="0.1" mass="1"/></body>
+</worldbody><actuator><motor joint="x" gear="2"/></actuator></mujoco>"""
+
+
+def test_a_users_mjcf_takes_the_data_s_task(tmp_path):
+    """A calibrated.json of no registered task ("task": null) names the MJCF; the data's task
+    (pointmass: obs (p, v), one action) gives the rewards, its sizes checked."""
+    from rl2s_jax.physics.physics_simulator import physics_simulator
+
+    xml = tmp_path / "slider.xml"
+    xml.write_text(SLIDER)
+    path = tmp_path / "c.json"
+    path.write_text(json.dumps({"task": None, "xml": str(xml), "n_frames": 2}))
+    sim = physics_simulator(str(path), "pointmass", 2, 1)
+    assert (sim.pm.task, sim.pm.n_frames, sim.task, sim.delays) == (None, 2, "pointmass", (0,))
+    assert sim.theta == (0.0,) * len(sim.pm.candidates) and sim.markov
+    with pytest.raises(ValueError, match=r"sizes \(2, 1\) differ from the data's \(4, 1\)"):
+        physics_simulator(str(path), "pointmass", 4, 1)
+    path.write_text(json.dumps({"task": None, "xml": str(tmp_path / "none.xml")}))
+    with pytest.raises(ValueError, match="physics: .*xml: expected the MJCF file"):
+        physics_simulator(str(path), "pointmass", 2, 1)
+
+
 def test_bad_physics_input_is_refused_naming_the_field(pm, data_path, tmp_path):
     from rl2s_jax.app.specs import EvaluateSpec, ImproveSpec
     from rl2s_jax.improve.gym_env import make_simulator_env
@@ -168,6 +192,8 @@ def test_bad_physics_input_is_refused_naming_the_field(pm, data_path, tmp_path):
          "physics: .*drop --ckpt"),
         (lambda: EvaluateSpec(data=data_path, physics="nominal", oracle=True),
          "physics: .*drop --oracle"),
+        (lambda: EvaluateSpec(data=data_path, physics="nominal", calibration=["c.npz"]),
+         "physics: .*drop --calibration"),
         (lambda: ImproveSpec(data=data_path, out="o", physics="nominal", ckpt="c"),
          "physics: .*drop --ckpt"),
         (lambda: ImproveSpec(data=data_path, out="o", physics="nominal",

@@ -88,7 +88,8 @@ def _check_physics(spec) -> None:
     if spec.physics is None:
         return
     given = [f for f, on in (("--ckpt", spec.ckpt), ("--oracle", getattr(spec, "oracle", False)),
-                             ("--step", spec.step is not None)) if on]
+                             ("--step", spec.step is not None),
+                             ("--calibration", getattr(spec, "calibration", None))) if on]
     if given:
         raise ValueError(f"physics: the physics model is the simulator in place of a "
                          f"checkpoint; drop {given[0]}")

@@ -11,6 +11,12 @@ take them), and, unless ``no_measure``, measures their real return before and af
 (``improve.paired_episode_returns``) with one PNG per policy and a summary (``summary.json``,
 ``summary.md``).
 
+``ImproveSpec(physics=..., data=..., out=...)`` (``rl2s improve --physics SRC``) fine-tunes in a
+physics model instead (a calibrated.json of `rl2s diagnose --physics`, or "nominal":
+``simulator_of``, ``improve.physics_env.PhysicsEnv``): deterministic, one model, so the guard
+reads its values as its one member's with a floor of 0, and nothing that needs an ensemble's
+disagreement (the MOPO penalty, the stop rule, ``--recipe``) is taken.
+
 The deployment guard is on by default (margin ``GUARD_MARGIN``, 0.02, or the recipe's;
 ``no_guard=True`` turns it off, as ``rl2s improve --no-guard``): a fine-tuned policy is deployed
 only where every elite member of the simulator, alone and on the same simulated episodes,

@@ -141,6 +141,32 @@ def test_one_step_error_is_that_of_the_file_s_theta_and_delays(pm, tmp_path):
     assert calibrated["heldout_mse"] < 1e-8 < 1e-3 < nominal["heldout_mse"]
 
 
+def test_the_calibrated_json_of_rl2s_diagnose_is_the_simulator(pm, tmp_path):
+    """`rl2s diagnose --physics` on Hopper data with the leg's gear planted at 0.7 x writes a
+    calibrated.json that ``physics_simulator`` takes as it is: the gear it names, and the
+    planted system's one-step error (~0, where the nominal model's is not)."""
+    from rl2s_jax.app.physics_diagnosis import PhysicsSpec, diagnose_physics
+    from rl2s_jax.data.dataset import save_dataset
+    from rl2s_jax.physics.identify import FitConfig
+    from rl2s_jax.physics.measured import Planted, collect_measured
+    from rl2s_jax.physics.physics_simulator import one_step_mse, physics_simulator
+    from rl2s_jax.policy.policy import index_params
+    from rl2s_jax.zoo.zoo import load_zoo
+
+    ds = collect_measured(pm, index_params(load_zoo("hopper").params, [4, 7, 16, 21]),
+                          transitions_per_policy=200, episode_length=100, seed=2,
+                          changes=[Planted("actuator_gear", "leg_joint", 0.7)])
+    save_dataset(str(tmp_path / "gear.npz"), ds)
+    diagnose_physics(PhysicsSpec(data=str(tmp_path / "gear.npz"), out=str(tmp_path / "diag"),
+                                 fit=FitConfig(rows=128, bootstrap=20), k=3, quiet=True))
+    sim = physics_simulator(str(tmp_path / "diag" / "calibrated.json"), "hopper", 12, 3)
+    assert np.exp(sim.theta[pm.index("actuator_gear", "leg_joint")]) == pytest.approx(0.7,
+                                                                                     rel=0.01)
+    calibrated = one_step_mse(sim, ds)["heldout_mse"]
+    assert calibrated < 1e-3 * one_step_mse(physics_simulator("nominal", "hopper"),
+                                            ds)["heldout_mse"]
+
+
 SLIDER = """<mujoco><option timestep="0.05"/><worldbody><body name="mass">
 <joint name="x" type="slide" axis="1 0 0" damping="0.1"/><geom size="0.1" mass="1"/></body>
 </worldbody><actuator><motor joint="x" gear="2"/></actuator></mujoco>"""

@@ -191,6 +191,31 @@ def test_a_users_mjcf_takes_the_data_s_task(tmp_path):
         physics_simulator(str(path), "pointmass", 2, 1)
 
 
+def test_improve_takes_the_physics_as_its_simulator(pm, data_path, tmp_path):
+    """What `rl2s improve --physics` builds before SAC (nothing compiled here; the whole command
+    ran by hand, docs/DIAGNOSIS.md): the physics for the data, its env carrying the delay's
+    past, one member for the guard, and no disagreement to penalise."""
+    import jax
+
+    from rl2s_jax.app.improvement import simulator_of
+    from rl2s_jax.app.specs import ImproveSpec
+    from rl2s_jax.improve.physics_env import PhysicsEnv
+    from rl2s_jax.physics.physics_simulator import PhysicsSimulator
+
+    path = _calibrated(pm, tmp_path / "c.json")
+    sim, ds, ids, inside = simulator_of(ImproveSpec(data=data_path, out=str(tmp_path / "o"),
+                                                    physics=path, policies=[1, 3]))
+    assert isinstance(sim, PhysicsSimulator) and list(sim.delays) == DELAYS
+    assert ids == [1, 3] and ds.n_policies == 6
+    assert inside == {"checkpoint": None, "physics": path}
+    assert sim.n_members == 1 and sim.replace(member_mode="fixed", rank=None) is sim
+    env = PhysicsEnv(sim, np.asarray(ds.obs)[:4])
+    state = env.reset(jax.random.PRNGKey(0))
+    assert state.pipeline_state[1].past_act.shape == (2, 3)  # max delay 2, 3 actuators
+    with pytest.raises(ValueError, match="uncertainty_penalty / uncertainty_threshold: u is"):
+        PhysicsEnv(sim, np.asarray(ds.obs)[:4], uncertainty_penalty=1.0)
+
+
 def test_bad_physics_input_is_refused_naming_the_field(pm, data_path, tmp_path):
     from rl2s_jax.app.specs import EvaluateSpec, ImproveSpec
     from rl2s_jax.improve.gym_env import make_simulator_env

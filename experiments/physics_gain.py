@@ -1,4 +1,5 @@
-"""The gain of calibrating the physics (issue 62, item 4), side by side, on CPU sizes.
+"""The gain of calibrating the physics (issue 62, item 4): nominal and calibrated physics beside
+the learned simulators (BC, RL2S) and the hybrid, on planted C-MuJoCo Hopper cases.
 
 Planted C-MuJoCo Hopper cases (amounts fixed in CASES before any result was looked at). Per
 case and collection seed: training data from the shipped Hopper zoo's TRAINING policies
@@ -9,14 +10,33 @@ for every simulator). ``identify`` calibrates on the training data; then, for th
 the calibrated physics: one-step and open-loop k-step normalised RMSE on the held-out
 episodes (``physics_errors``), value error AVD / MVD and Kendall tau on the test policies
 (values from ``c_values``: C MuJoCo with the identified quantities, equal to the MJX
-simulator's on a short horizon, tests/test_physics_simulator.py). Cells: mean [min, max]
-over the seeds. Not measured here: the hybrid (physics + learned residual) and the learned
-simulators (RL2S, BC).
+simulator's on a short horizon, tests/test_physics_simulator.py).
 
-    PYTHONPATH=. python experiments/physics_gain.py --seeds 0 1 2 --out /tmp/physics_gain.json
+The learned simulators (``--learned bc rl2s``) are trained on the same training data (saved
+as ``--work``/<case>_<seed>/train.npz) by the project's own training, ``rl2s train``'s
+``app.training.run_training`` (``paper.simulator_gain.train_learned``; the training profile
+``--train-profile``, ``--steps`` steps, VD at this script's gamma and horizon) and scored
+alike (``paper.simulator_gain``: the same held-out rows and windows, their mean next state
+fed the logged actions; values from the same start states and policy draws). The hybrid's
+slot: where ``rl2s_jax.physics.hybrid`` imports and has ``gain_simulator`` (``hybrid_row``
+says the contract), it is trained and scored too; else skipped with a printed note. The
+table: mean over seeds with a 95% t interval (``stats.t_interval``).
 
-Measured with the command above (2-core AMD EPYC CPU, shared; jax 0.10.2, mujoco 4.0.0;
-about 6 min; every run named the planted quantity, element and value; docs/DIAGNOSIS.md,
+Profiles (explicit flags override them; PROFILES):
+
+- ``cpu``: to check the code end to end on a 2-core CPU: 300 transitions per policy, 150
+  training steps (100 of them BC pre-training for RL2S), 5 value episodes;
+- ``gpu``: the table, one H200 and 16 host cores, ``--jobs 15`` (one process per case and
+  seed: C MuJoCo is single-threaded): 1000 transitions per policy, 600 training steps of the
+  ``cpu`` training profile's members (3 of 3x128; the paper's 7 of 4x512 with 1000
+  pre-training steps do not fit 15 units into one 9-minute call), 16 value episodes:
+
+    PYTHONPATH=. python experiments/physics_gain.py --profile gpu --jobs 15 \
+        --out docs/results/physics_gain.json
+
+Measured before the learned simulators were added, with ``python experiments/physics_gain.py
+--seeds 0 1 2 --out /tmp/physics_gain.json`` (2-core AMD EPYC CPU, shared; jax 0.10.2,
+mujoco 4.0.0; about 6 min; every run named the planted quantity, element and value; docs/DIAGNOSIS.md,
 "Physics", "The gain", says why the calibrated rows are round-off: the data come from
 the same C engine):
 
@@ -38,21 +58,34 @@ with [min, max] over seeds in the docs' table.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
+import os
 import sys
+import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
+from multiprocessing import get_context
 
 import jax
 import numpy as np
 
+from rl2s_jax.app.report import machine_info
+from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.envs.tasks import get_task
-from rl2s_jax.evaluate.metrics import kendall_tau, value_differences
 from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.paper.simulator_gain import (
+    gain_rows,
+    learned_scores,
+    seed_summary,
+    train_learned,
+    value_scores,
+)
 from rl2s_jax.physics.calibrated import c_values, calibrated_mj, obs_bias_of
 from rl2s_jax.physics.identify import FitConfig, identify
 from rl2s_jax.physics.measured import Planted, collect_measured, plant
-from rl2s_jax.physics.mjx_model import physics_model
-from rl2s_jax.physics.residuals import physics_errors
+from rl2s_jax.physics.mjx_model import delayed_actions, physics_model
+from rl2s_jax.physics.residuals import physics_errors, prediction_errors
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.zoo.zoo import load_zoo
 
@@ -63,18 +96,62 @@ CASES = {
     "damping": [("dof_damping", "foot_joint", 3.0)],
     "delay": [("action_delay", "thigh_joint", 2)],
 }
-METRICS = ("one_step", "kstep", "avd", "mvd", "tau")
+PROFILES = {
+    "cpu": dict(transitions=300, episode_length=100, rows=256, k=10, episodes=5, horizon=100,
+                steps=150, train_profile="cpu"),
+    "gpu": dict(transitions=1000, episode_length=100, rows=256, k=10, episodes=16, horizon=100,
+                steps=600, train_profile="cpu"),
+}
+SIMULATORS = ("nominal", "calibrated", "hybrid", "bc", "rl2s")
 
 
-def run_case(pm, task, zoo, case: str, seed: int, args) -> dict:
-    """One planted case and seed -> {"found": top_cause, "nominal": {...}, "calibrated": {...}}."""
+@functools.cache
+def _models():
+    return physics_model("hopper"), get_task("hopper"), load_zoo("hopper")
+
+
+def hybrid_row(found: dict, train_path: str, ctx: dict, args, out: str) -> dict | None:
+    """The hybrid's slot: ``rl2s_jax.physics.hybrid.gain_simulator(pm, train_path, theta,
+    delays, *, out, steps, profile, seed) -> (step, values)`` with ``step(obs [N, O], action
+    [N, A]) -> next_obs`` fed the actions delayed by ``delays`` (as the calibrated physics is)
+    and ``values(policy_params, start_pool, key, *, n_episodes, horizon, gamma) -> [P]``.
+    None (with a note printed once by main) when that module or function is absent."""
+    try:
+        from rl2s_jax.physics import hybrid  # local: another branch's module, optional
+    except ImportError:
+        return None
+    make = getattr(hybrid, "gain_simulator", None)
+    if make is None:
+        return None
+    pm, held = ctx["pm"], ctx["held"]
+    step, values = make(pm, train_path, found["theta"], found["delays"], out=out,
+                        steps=args.steps, profile=args.train_profile, seed=ctx["seed"])
+    action = delayed_actions(np.asarray(held.action), np.asarray(held.episode_id),
+                             np.asarray(held.t), np.asarray(found["delays"]))
+    err = prediction_errors(step, held, action=action, k=args.k, seed=ctx["seed"])
+    sim = values(ctx["test_p"], ctx["pool"], ctx["key"], n_episodes=args.episodes,
+                 horizon=args.horizon, gamma=args.gamma)
+    return {"one_step": err["one_step"], "kstep": err["kstep"][-1],
+            **value_scores(ctx["true"], np.asarray(sim))}
+
+
+def run_case(case: str, seed: int, args) -> dict:
+    """One planted case and seed -> {"truth", "found", "identify_s", and a row per simulator:
+    {"one_step", "kstep", "avd", "mvd", "tau"} (None where skipped)}."""
+    pm, task, zoo = _models()
     changes = [Planted(*c) for c in CASES[case]]
     train_p, test_p = index_params(zoo.params, zoo.train_ids), index_params(zoo.params,
                                                                             zoo.test_ids)
+    ids = list(zoo.train_ids)
     sizes = dict(transitions_per_policy=args.transitions, episode_length=args.episode_length,
-                 changes=changes)
+                 changes=changes, policy_names=zoo.policy_names(ids),
+                 source={"zoo": "hopper", "zoo_ids": ids})
     train = collect_measured(pm, train_p, seed=seed, **sizes)
     held = collect_measured(pm, train_p, seed=1000 + seed, **sizes)
+    folder = os.path.join(args.work, f"{case}_{seed}")
+    os.makedirs(folder, exist_ok=True)
+    train_path = os.path.join(folder, "train.npz")
+    save_dataset(train_path, train)
     t0 = time.perf_counter()
     found = identify(pm, train, FitConfig(rows=args.rows, seed=seed))
     seconds = time.perf_counter() - t0
@@ -82,63 +159,106 @@ def run_case(pm, task, zoo, case: str, seed: int, args) -> dict:
     pool, key = start_pool(held), jax.random.PRNGKey(seed)
     vals = dict(n_episodes=args.episodes, horizon=args.horizon, gamma=args.gamma)
     true, _ = c_values(pm, mj_true, d_true, test_p, task, pool, key, **vals)
-    out = {"truth": truth, "found": found["top_cause"], "identify_s": seconds}
+    out = {"truth": truth, "found": found["top_cause"], "identify_s": seconds, "seconds": {}}
     zero = np.zeros(len(pm.candidates))
     for name, (theta, delays) in {"nominal": (zero, None),
                                   "calibrated": (found["theta"], found["delays"])}.items():
         err = physics_errors(pm, held, theta, delays, k=args.k, seed=seed)
         sim, _ = c_values(pm, calibrated_mj(pm, theta), delays, test_p, task, pool, key,
                           bias=obs_bias_of(pm, theta), **vals)
-        vd = value_differences(true, sim)
         out[name] = {"one_step": err["one_step"]["rmse"], "kstep": err["kstep"][-1],
-                     "avd": vd["avd"], "mvd": vd["mvd"], "tau": kendall_tau(true, sim)}
+                     **value_scores(true, sim)}
+    ctx = dict(pm=pm, held=held, test_p=test_p, pool=pool, key=key, true=true, seed=seed)
+    t0 = time.perf_counter()
+    out["hybrid"] = hybrid_row(found, train_path, ctx, args, os.path.join(folder, "hybrid"))
+    out["seconds"]["hybrid"] = time.perf_counter() - t0
+    for method in args.learned:
+        t0 = time.perf_counter()
+        sim = train_learned(train_path, method, os.path.join(folder, method), steps=args.steps,
+                            profile=args.train_profile, seed=seed, gamma=args.gamma,
+                            horizon=args.horizon, log=lambda s: None)
+        out[method] = learned_scores(sim, held, task, test_p, pool, key, true, k=args.k,
+                                     seed=seed, **vals)
+        out["seconds"][method] = time.perf_counter() - t0
     return out
 
 
-def table(results: dict) -> str:
-    """Markdown: per case and simulator, each metric's mean [min, max] over seeds."""
-    head = ("| case | simulator | one-step RMSE | k-step RMSE | AVD | MVD | Kendall tau |\n"
-            "|---|---|---|---|---|---|---|")
-    lines = [head]
-    for case, runs in results.items():
-        for sim in ("nominal", "calibrated"):
-            cells = []
-            for m in METRICS:
-                x = np.array([r[sim][m] for r in runs])
-                cells.append(f"{x.mean():.3g} [{x.min():.3g}, {x.max():.3g}]")
-            lines.append(f"| {case} | {sim} | " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+def _unit(unit: tuple[str, int], args) -> tuple[str, int, dict]:
+    case, seed = unit
+    return case, seed, run_case(case, seed, args)
+
+
+def _report(case: str, seed: int, r: dict) -> None:
+    f = r["found"]
+    rows = "; ".join(f"{s} " + " ".join(f"{m} {v:.3g}" for m, v in r[s].items())
+                     for s in SIMULATORS if r.get(s))
+    print(f"{case} seed {seed}: found "
+          f"{None if f is None else (f['name'], f['element'], round(f['value'], 4))}"
+          f" (truth {r['truth'][0]['value']:.4g}) in {r['identify_s']:.1f} s; {rows}; "
+          f"seconds {({k: round(v, 1) for k, v in r['seconds'].items()})}", flush=True)
+
+
+def parse(argv) -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--profile", default="cpu", choices=list(PROFILES))
+    ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--transitions", type=int, help="per training policy")
+    ap.add_argument("--episode-length", type=int)
+    ap.add_argument("--rows", type=int, help="identify's rows per half")
+    ap.add_argument("--k", type=int, help="open-loop steps of the k-step error")
+    ap.add_argument("--episodes", type=int, help="value episodes per test policy")
+    ap.add_argument("--horizon", type=int)
+    ap.add_argument("--gamma", type=float, default=0.99)
+    ap.add_argument("--learned", nargs="*", default=["bc", "rl2s"], choices=["bc", "rl2s"])
+    ap.add_argument("--steps", type=int, help="training steps of each learned simulator")
+    ap.add_argument("--train-profile", choices=["cpu", "gpu"], help="rl2s train's --profile")
+    ap.add_argument("--jobs", type=int, default=1, help="processes, one (case, seed) each")
+    ap.add_argument("--work", default=None, help="folder for the data and checkpoints")
+    ap.add_argument("--out", default=None, help="write every run as JSON here")
+    args = ap.parse_args(argv)
+    for name, value in PROFILES[args.profile].items():
+        if getattr(args, name) is None:
+            setattr(args, name, value)
+    args.work = args.work or tempfile.mkdtemp(prefix="physics_gain_")
+    return args
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    ap.add_argument("--transitions", type=int, default=300, help="per training policy")
-    ap.add_argument("--episode-length", type=int, default=100)
-    ap.add_argument("--rows", type=int, default=256, help="identify's rows per half")
-    ap.add_argument("--k", type=int, default=10, help="open-loop steps of the k-step error")
-    ap.add_argument("--episodes", type=int, default=5, help="value episodes per test policy")
-    ap.add_argument("--horizon", type=int, default=100)
-    ap.add_argument("--gamma", type=float, default=0.99)
-    ap.add_argument("--out", default=None, help="write every run as JSON here")
-    args = ap.parse_args(argv)
-    pm, task, zoo = physics_model("hopper"), get_task("hopper"), load_zoo("hopper")
-    results = {}
-    for case in args.cases:
-        results[case] = []
-        for seed in args.seeds:
-            r = run_case(pm, task, zoo, case, seed, args)
-            results[case].append(r)
-            f = r["found"]
-            print(f"{case} seed {seed}: found "
-                  f"{None if f is None else (f['name'], f['element'], round(f['value'], 4))}"
-                  f" (truth {r['truth'][0]['value']:.4g}) in {r['identify_s']:.1f} s; "
-                  f"nominal {r['nominal']}; calibrated {r['calibrated']}", flush=True)
-    print(table(results))
+    argv = list(sys.argv[1:] if argv is None else argv)
+    args = parse(argv)
+    # several processes share one GPU: each takes the memory it needs, not 75% of it
+    os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+    try:
+        from rl2s_jax.physics import hybrid  # local: another branch's module, optional
+        if not hasattr(hybrid, "gain_simulator"):
+            print("hybrid: skipped (rl2s_jax.physics.hybrid has no gain_simulator; "
+                  "hybrid_row says the contract)", flush=True)
+    except ImportError as e:
+        print(f"hybrid: skipped (rl2s_jax.physics.hybrid does not import: {e})", flush=True)
+    units = [(c, s) for c in args.cases for s in args.seeds]
+    t0 = time.perf_counter()
+    results = {c: {} for c in args.cases}
+    if args.jobs > 1:
+        with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
+            done = pool.map(_unit, units, [args] * len(units))
+            for case, seed, r in done:
+                results[case][seed] = r
+                _report(case, seed, r)
+    else:
+        for unit in units:
+            case, seed, r = _unit(unit, args)
+            results[case][seed] = r
+            _report(case, seed, r)
+    runs = {c: [results[c][s] for s in args.seeds] for c in args.cases}
+    summary = {c: seed_summary(runs[c], list(SIMULATORS)) for c in args.cases}
+    print("\n".join(gain_rows(summary)))
     if args.out:
+        doc = {"command": "PYTHONPATH=. python experiments/physics_gain.py " + " ".join(argv),
+               "machine": machine_info(), "seconds": time.perf_counter() - t0,
+               "args": vars(args), "summary": summary, "results": runs}
         with open(args.out, "w") as fh:
-            json.dump({"args": vars(args), "results": results}, fh, indent=1, default=float)
+            json.dump(doc, fh, indent=1, default=float)
     return 0
 
 

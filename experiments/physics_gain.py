@@ -36,9 +36,9 @@ Profiles (explicit flags override them; PROFILES):
 
 Measured before the learned simulators were added, with ``python experiments/physics_gain.py
 --seeds 0 1 2 --out /tmp/physics_gain.json`` (2-core AMD EPYC CPU, shared; jax 0.10.2,
-mujoco 4.0.0; about 6 min; every run named the planted quantity, element and value; docs/DIAGNOSIS.md,
-"Physics", "The gain", says why the calibrated rows are round-off: the data come from
-the same C engine):
+mujoco 4.0.0; about 6 min; every run named the planted quantity, element and value;
+docs/DIAGNOSIS.md, "Physics", "The gain", says why the calibrated rows are round-off: the data
+come from the same C engine):
 
     case       simulator   one-step  k-step    AVD       MVD       tau   (means of 3 seeds)
     mass       nominal     0.0727    0.403     1.13      6.21      0.958
@@ -68,6 +68,7 @@ from concurrent.futures import ProcessPoolExecutor
 from multiprocessing import get_context
 
 import jax
+import mujoco
 import numpy as np
 
 from rl2s_jax.app.report import machine_info
@@ -255,7 +256,8 @@ def main(argv=None) -> int:
     print("\n".join(gain_rows(summary)))
     if args.out:
         doc = {"command": "PYTHONPATH=. python experiments/physics_gain.py " + " ".join(argv),
-               "machine": machine_info(), "seconds": time.perf_counter() - t0,
+               "machine": {**machine_info(), "cpu_count": os.cpu_count(),
+                           "mujoco": mujoco.__version__}, "seconds": time.perf_counter() - t0,
                "args": vars(args), "summary": summary, "results": runs}
         with open(args.out, "w") as fh:
             json.dump(doc, fh, indent=1, default=float)

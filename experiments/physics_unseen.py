@@ -35,6 +35,8 @@ import subprocess
 import sys
 import time
 
+import mujoco
+
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.physics.measured import Planted, collect_measured
@@ -118,12 +120,11 @@ def main(argv=None) -> int:
         rows.append(row)
         print(f"{case}: truth {row['truth']}; found {row['found']}; passed {row['passed']} "
               f"({row['command_seconds']:.1f} s)", flush=True)
+        machine = {**machine_info(), "cpu_count": os.cpu_count(), "mujoco": mujoco.__version__}
+        sizes = {"transitions_per_policy": args.transitions, "episode_length": args.episode_length,
+                 "policies": len(zoo.train_ids), "seed": args.seed}
         doc = {"command": "PYTHONPATH=. python experiments/physics_unseen.py " + " ".join(argv),
-               "machine": machine_info(), "sizes": {"transitions_per_policy": args.transitions,
-                                                    "episode_length": args.episode_length,
-                                                    "policies": len(zoo.train_ids),
-                                                    "seed": args.seed},
-               "cases": rows}
+               "machine": machine, "sizes": sizes, "cases": rows}
         with open(args.out, "w") as f:
             json.dump(doc, f, indent=1)
     failed = [r["case"] for r in rows if not r["passed"]]

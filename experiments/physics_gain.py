@@ -64,7 +64,7 @@ import os
 import sys
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from multiprocessing import get_context
 
 import jax
@@ -225,6 +225,25 @@ def parse(argv) -> argparse.Namespace:
     return args
 
 
+def summarise(results: dict) -> dict:
+    """{case: {seed: run}} -> {case: seed_summary over its seeds so far}."""
+    return {c: seed_summary([runs[s] for s in sorted(runs)], list(SIMULATORS))
+            for c, runs in results.items() if runs}
+
+
+def write(args, argv, results: dict, seconds: float, n_units: int) -> None:
+    """The JSON of the units done so far ("complete" once all ``n_units`` are)."""
+    done = sum(len(r) for r in results.values())
+    doc = {"command": "PYTHONPATH=. python experiments/physics_gain.py " + " ".join(argv),
+           "machine": {**machine_info(), "cpu_count": os.cpu_count(),
+                       "mujoco": mujoco.__version__},
+           "seconds": seconds, "complete": done == n_units, "units_done": done,
+           "args": vars(args), "summary": summarise(results),
+           "results": {c: [runs[s] for s in sorted(runs)] for c, runs in results.items()}}
+    with open(args.out, "w") as fh:
+        json.dump(doc, fh, indent=1, default=float)
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse(argv)
@@ -240,27 +259,21 @@ def main(argv=None) -> int:
     units = [(c, s) for c in args.cases for s in args.seeds]
     t0 = time.perf_counter()
     results = {c: {} for c in args.cases}
+
+    def record(case, seed, r):  # the JSON rewritten after every unit: a cut-off run keeps them
+        results[case][seed] = r
+        _report(case, seed, r)
+        if args.out:
+            write(args, argv, results, time.perf_counter() - t0, len(units))
+
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
-            done = pool.map(_unit, units, [args] * len(units))
-            for case, seed, r in done:
-                results[case][seed] = r
-                _report(case, seed, r)
+            for f in as_completed([pool.submit(_unit, u, args) for u in units]):
+                record(*f.result())
     else:
         for unit in units:
-            case, seed, r = _unit(unit, args)
-            results[case][seed] = r
-            _report(case, seed, r)
-    runs = {c: [results[c][s] for s in args.seeds] for c in args.cases}
-    summary = {c: seed_summary(runs[c], list(SIMULATORS)) for c in args.cases}
-    print("\n".join(gain_rows(summary)))
-    if args.out:
-        doc = {"command": "PYTHONPATH=. python experiments/physics_gain.py " + " ".join(argv),
-               "machine": {**machine_info(), "cpu_count": os.cpu_count(),
-                           "mujoco": mujoco.__version__}, "seconds": time.perf_counter() - t0,
-               "args": vars(args), "summary": summary, "results": runs}
-        with open(args.out, "w") as fh:
-            json.dump(doc, fh, indent=1, default=float)
+            record(*_unit(unit, args))
+    print("\n".join(gain_rows(summarise(results))))
     return 0
 
 

@@ -135,7 +135,11 @@ def test_physics_block_from_the_json(tmp_path):
     assert ("| thigh_mass | body_mass[thigh] | body_mass[thigh] | 3.01 (3) | [2.9, 3.1] | yes "
             "| 9.0 |") in block
     assert "| clean | nothing | dof_damping[leg_joint] | 1.2 | - | NO | 8.0 |" in block
-    assert "Not measured yet (`R/gymnasium_v5.json`)" in block
+    assert "Not measured yet (`R/gymnasium_v5.json`)" in block and "INCOMPLETE" not in block
+    gain = json.loads((res / "physics_gain.json").read_text())
+    (res / "physics_gain.json").write_text(json.dumps({**gain, "complete": False,
+                                                       "units_done": 1}))
+    assert "INCOMPLETE run (1 case-seed units done)" in pt.physics_block(str(res), "R")
     pt.merge_v5_row(str(res / "gymnasium_v5.json"),
                     pt.v5_row(_v5_record(), "python experiments/gymnasium_v5.py", "one H200"))
     block = pt.physics_block(str(res), "R")

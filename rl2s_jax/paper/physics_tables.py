@@ -47,7 +47,9 @@ def _gain_lines(doc: dict | None, source: str) -> list[str]:
         return [f"Not measured yet (`{source}/physics_gain.json`, from "
                 "`experiments/physics_gain.py --out`)."]
     args = doc.get("args", {})
-    return [f"`{doc['command']}` on {_machine(doc.get('machine'))}, "
+    cut = ("" if doc.get("complete", True) else
+           f"INCOMPLETE run ({doc.get('units_done', '?')} case-seed units done). ")
+    return [f"{cut}`{doc['command']}` on {_machine(doc.get('machine'))}, "
             f"{doc.get('seconds', 0):.0f} s; profile {args.get('profile', '?')}: "
             f"{args.get('transitions', '?')} transitions per training policy, "
             f"{args.get('steps', '?')} training steps ({args.get('train_profile', '?')} "

@@ -25,14 +25,24 @@ table: mean over seeds with a 95% t interval (``stats.t_interval``).
 Profiles (explicit flags override them; PROFILES):
 
 - ``cpu``: to check the code end to end on a 2-core CPU: 300 transitions per policy, 150
-  training steps (100 of them BC pre-training for RL2S), 5 value episodes;
-- ``gpu``: the table, one H200 and 16 host cores, ``--jobs 15`` (one process per case and
-  seed: C MuJoCo is single-threaded): 1000 transitions per policy, 600 training steps of the
-  ``cpu`` training profile's members (3 of 3x128; the paper's 7 of 4x512 with 1000
-  pre-training steps do not fit 15 units into one 9-minute call), 16 value episodes:
+  training steps (100 of them BC pre-training for RL2S), 5 value episodes. One case and seed
+  (``--profile cpu --cases mass --seeds 0``) took 373 s wall on the shared 2-core CPU (the
+  process got 41% of it; 150 s of CPU): collection, identification and the physics' values
+  ~36 s, BC 74 s, RL2S 263 s (compilation included); with ``--learned`` (none) and ``--jobs
+  2``, two cases in 153 s.
+- ``gpu``: the table, on one H200 host (16 cores) in one device call, ``--jobs 15`` (one
+  process per case and seed: C MuJoCo is single-threaded; every process allocates GPU memory
+  as it needs it): 1000 transitions per policy, 600 training steps of the ``cpu`` training
+  profile's members (3 of 3x128; the paper's 7 of 4x512 with 1000 pre-training steps do not
+  fit 15 units into one 9-minute call), 16 value episodes. Estimated, not measured: the C
+  MuJoCo work grows ~3.3x to ~2 min per unit on a host core, each training's compilation
+  (~1 min, 15 at once on 16 cores) and 600 GPU steps (~20 s) twice: 5-7 min for the 15 units
+  side by side. The JSON is rewritten after every unit, so a call cut short keeps what
+  finished, and ``--resume`` (same command) runs only the rest:
 
-    PYTHONPATH=. python experiments/physics_gain.py --profile gpu --jobs 15 \
-        --out docs/results/physics_gain.json
+    timeout 540 env PYTHONPATH=. python experiments/physics_gain.py --profile gpu --jobs 15 \
+        --out docs/results/physics_gain.json [--resume]
+    python experiments/paper_tables.py   # RESULTS' block from the JSON
 
 Measured before the learned simulators were added, with ``python experiments/physics_gain.py
 --seeds 0 1 2 --out /tmp/physics_gain.json`` (2-core AMD EPYC CPU, shared; jax 0.10.2,
@@ -71,6 +81,7 @@ import jax
 import mujoco
 import numpy as np
 
+from rl2s_jax import compile_cache
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.envs.tasks import get_task
@@ -108,6 +119,7 @@ SIMULATORS = ("nominal", "calibrated", "hybrid", "bc", "rl2s")
 
 @functools.cache
 def _models():
+    compile_cache.enable()  # as the CLI: each --jobs process reuses what another compiled
     return physics_model("hopper"), get_task("hopper"), load_zoo("hopper")
 
 
@@ -160,7 +172,8 @@ def run_case(case: str, seed: int, args) -> dict:
     pool, key = start_pool(held), jax.random.PRNGKey(seed)
     vals = dict(n_episodes=args.episodes, horizon=args.horizon, gamma=args.gamma)
     true, _ = c_values(pm, mj_true, d_true, test_p, task, pool, key, **vals)
-    out = {"truth": truth, "found": found["top_cause"], "identify_s": seconds, "seconds": {}}
+    out = {"case": case, "seed": seed, "truth": truth, "found": found["top_cause"],
+           "identify_s": seconds, "seconds": {}}
     zero = np.zeros(len(pm.candidates))
     for name, (theta, delays) in {"nominal": (zero, None),
                                   "calibrated": (found["theta"], found["delays"])}.items():
@@ -217,6 +230,8 @@ def parse(argv) -> argparse.Namespace:
     ap.add_argument("--jobs", type=int, default=1, help="processes, one (case, seed) each")
     ap.add_argument("--work", default=None, help="folder for the data and checkpoints")
     ap.add_argument("--out", default=None, help="write every run as JSON here")
+    ap.add_argument("--resume", action="store_true", help="keep the (case, seed) units that "
+                    "--out already holds (the same sizes: yours to keep) and run the rest")
     args = ap.parse_args(argv)
     for name, value in PROFILES[args.profile].items():
         if getattr(args, name) is None:
@@ -259,6 +274,16 @@ def main(argv=None) -> int:
     units = [(c, s) for c in args.cases for s in args.seeds]
     t0 = time.perf_counter()
     results = {c: {} for c in args.cases}
+    if args.resume and args.out and os.path.exists(args.out):  # the units a cut run finished
+        with open(args.out) as fh:
+            for case, runs in json.load(fh)["results"].items():
+                for r in runs:
+                    if (case, r["seed"]) in units:
+                        results[case][r["seed"]] = r
+        print(f"resumed: {sum(map(len, results.values()))} unit(s) from {args.out}")
+        units_left = [(c, s) for c, s in units if s not in results[c]]
+    else:
+        units_left = units
 
     def record(case, seed, r):  # the JSON rewritten after every unit: a cut-off run keeps them
         results[case][seed] = r
@@ -268,11 +293,13 @@ def main(argv=None) -> int:
 
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs, mp_context=get_context("spawn")) as pool:
-            for f in as_completed([pool.submit(_unit, u, args) for u in units]):
+            for f in as_completed([pool.submit(_unit, u, args) for u in units_left]):
                 record(*f.result())
     else:
-        for unit in units:
+        for unit in units_left:
             record(*_unit(unit, args))
+    if args.out:
+        write(args, argv, results, time.perf_counter() - t0, len(units))
     print("\n".join(gain_rows(summarise(results))))
     return 0
 

@@ -45,7 +45,8 @@ Profiles (explicit flags override them; PROFILES):
     python experiments/paper_tables.py   # RESULTS' block from the JSON
 
 Measured before the learned simulators were added, with ``python experiments/physics_gain.py
---seeds 0 1 2 --out /tmp/physics_gain.json`` (2-core AMD EPYC CPU, shared; jax 0.10.2,
+--seeds 0 1 2 --out /tmp/physics_gain.json`` (today: add ``--learned`` with no method; the
+``cpu`` profile has these sizes) (2-core AMD EPYC CPU, shared; jax 0.10.2,
 mujoco 4.0.0; about 6 min; every run named the planted quantity, element and value;
 docs/DIAGNOSIS.md, "Physics", "The gain", says why the calibrated rows are round-off: the data
 come from the same C engine):

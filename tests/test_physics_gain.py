@@ -197,3 +197,19 @@ def test_learned_simulator_scored_on_the_physics_rows(pm_files, tmp_path):
                                gamma=0.95)
     vals = np.asarray(ret.mean(1))
     assert got["avd"] == pytest.approx(np.mean(np.abs(vals - true)), rel=1e-5)
+
+
+def test_unseen_check_names_element_and_value():
+    """experiments/physics_unseen.py's check: quantity and element named, value within 10% (a
+    delay exactly); on clean data, nothing named."""
+    check = load_script("physics_unseen").check
+    truth = [{"name": "body_mass", "element": "thigh", "value": 3.0}]
+    top = {"name": "body_mass", "element": "thigh", "value": 3.25}
+    assert check(truth, top)["passed"] and not check(truth, {**top, "value": 3.35})["passed"]
+    assert check(truth, {**top, "element": "leg"}) == {"named": False, "value_ok": False,
+                                                       "passed": False}
+    delay = [{"name": "action_delay", "element": "foot_joint", "value": 1}]
+    assert check(delay, {**delay[0]})["passed"]
+    assert not check(delay, {**delay[0], "value": 2})["passed"]
+    assert check([], None)["passed"] and not check([], top)["passed"]
+    assert not check(truth, None)["passed"]

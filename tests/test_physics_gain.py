@@ -140,6 +140,9 @@ def test_physics_block_from_the_json(tmp_path):
     (res / "physics_gain.json").write_text(json.dumps({**gain, "complete": False,
                                                        "units_done": 1}))
     assert "INCOMPLETE run (1 case-seed units done)" in pt.physics_block(str(res), "R")
+    assert "not the table" not in block
+    (res / "physics_gain.json").write_text(json.dumps({**gain, "args": {"profile": "cpu"}}))
+    assert "A check of the code at CPU sizes, not the table" in pt.physics_block(str(res), "R")
     pt.merge_v5_row(str(res / "gymnasium_v5.json"),
                     pt.v5_row(_v5_record(), "python experiments/gymnasium_v5.py", "one H200"))
     block = pt.physics_block(str(res), "R")

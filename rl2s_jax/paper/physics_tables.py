@@ -49,6 +49,9 @@ def _gain_lines(doc: dict | None, source: str) -> list[str]:
     args = doc.get("args", {})
     cut = ("" if doc.get("complete", True) else
            f"INCOMPLETE run ({doc.get('units_done', '?')} case-seed units done). ")
+    if args.get("profile") == "cpu":
+        cut += ("A check of the code at CPU sizes, not the table (the `gpu` profile makes it: "
+                "experiments/physics_gain.py's docstring). ")
     return [f"{cut}`{doc['command']}` on {_machine(doc.get('machine'))}, "
             f"{doc.get('seconds', 0):.0f} s; profile {args.get('profile', '?')}: "
             f"{args.get('transitions', '?')} transitions per training policy, "

@@ -185,6 +185,9 @@ def test_learned_simulator_scored_on_the_physics_rows(pm_files, tmp_path):
     sim = sg.train_learned(pm_files["train"], "bc", str(tmp_path / "bc"), steps=2,
                            profile="cpu", seed=0, gamma=0.95, horizon=20, log=lambda s: None)
     assert (tmp_path / "bc" / "checkpoints").is_dir()
+    with open(tmp_path / "bc" / "summary.json") as f:
+        config = json.load(f)["config"]
+    assert (config["method"], config["gamma"], config["vd_horizon"]) == ("bc", 0.95, 20)
     held = load_dataset(pm_files["test"])
     task, params = get_task("pointmass"), policies_for(held)
     pool, key = start_pool(held), jax.random.PRNGKey(3)

@@ -18,8 +18,9 @@ as ``--work``/<case>_<seed>/train.npz) by the project's own training, ``rl2s tra
 ``--train-profile``, ``--steps`` steps, VD at this script's gamma and horizon) and scored
 alike (``paper.simulator_gain``: the same held-out rows and windows, their mean next state
 fed the logged actions; values from the same start states and policy draws). The hybrid's
-slot: where ``rl2s_jax.physics.hybrid`` imports and has ``gain_simulator`` (``hybrid_row``
-says the contract), it is trained and scored too; else skipped with a printed note. The
+column: where ``rl2s_jax.physics.hybrid`` imports and has ``fit_hybrid`` (branch ``hybrid``,
+not merged when this was written: ``hybrid_row`` says what it calls), it is trained on the
+calibrated physics' residual and scored alike; else skipped with a printed note. The
 table: mean over seeds with a 95% t interval (``stats.t_interval``).
 
 Profiles (explicit flags override them; PROFILES):
@@ -84,6 +85,7 @@ import numpy as np
 
 from rl2s_jax import compile_cache
 from rl2s_jax.app.report import machine_info
+from rl2s_jax.app.training import make_config
 from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.model.simulator import start_pool
@@ -97,8 +99,8 @@ from rl2s_jax.paper.simulator_gain import (
 from rl2s_jax.physics.calibrated import c_values, calibrated_mj, obs_bias_of
 from rl2s_jax.physics.identify import FitConfig, identify
 from rl2s_jax.physics.measured import Planted, collect_measured, plant
-from rl2s_jax.physics.mjx_model import delayed_actions, physics_model
-from rl2s_jax.physics.residuals import physics_errors, prediction_errors
+from rl2s_jax.physics.mjx_model import physics_model
+from rl2s_jax.physics.residuals import physics_errors
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.zoo.zoo import load_zoo
 
@@ -124,29 +126,31 @@ def _models():
     return physics_model("hopper"), get_task("hopper"), load_zoo("hopper")
 
 
-def hybrid_row(found: dict, train_path: str, ctx: dict, args, out: str) -> dict | None:
-    """The hybrid's slot: ``rl2s_jax.physics.hybrid.gain_simulator(pm, train_path, theta,
-    delays, *, out, steps, profile, seed) -> (step, values)`` with ``step(obs [N, O], action
-    [N, A]) -> next_obs`` fed the actions delayed by ``delays`` (as the calibrated physics is)
-    and ``values(policy_params, start_pool, key, *, n_episodes, horizon, gamma) -> [P]``.
-    None (with a note printed once by main) when that module or function is absent."""
+def hybrid_row(found: dict, train, ctx: dict, args) -> dict | None:
+    """The hybrid's column (branch ``hybrid``'s ``physics/hybrid.py``): ``fit_hybrid(train,
+    policies, calibrated, steps=, config=, seed=)`` learns what the calibrated physics (this
+    run's identified theta and delays, as calibrated.json holds them) leaves of the training
+    data, with the BC members' settings; scored as the learned simulators are (its members
+    read the logged past actions its delays need). None (main prints why, once) when that
+    module or function is absent."""
     try:
         from rl2s_jax.physics import hybrid  # local: another branch's module, optional
     except ImportError:
         return None
-    make = getattr(hybrid, "gain_simulator", None)
-    if make is None:
+    if not hasattr(hybrid, "fit_hybrid"):
         return None
-    pm, held = ctx["pm"], ctx["held"]
-    step, values = make(pm, train_path, found["theta"], found["delays"], out=out,
-                        steps=args.steps, profile=args.train_profile, seed=ctx["seed"])
-    action = delayed_actions(np.asarray(held.action), np.asarray(held.episode_id),
-                             np.asarray(held.t), np.asarray(found["delays"]))
-    err = prediction_errors(step, held, action=action, k=args.k, seed=ctx["seed"])
-    sim = values(ctx["test_p"], ctx["pool"], ctx["key"], n_episodes=args.episodes,
-                 horizon=args.horizon, gamma=args.gamma)
-    return {"one_step": err["one_step"], "kstep": err["kstep"][-1],
-            **value_scores(ctx["true"], np.asarray(sim))}
+    pm = ctx["pm"]
+    calibrated = {"task": pm.task, "xml": pm.xml_path, "n_frames": pm.n_frames,
+                  "theta": [float(x) for x in found["theta"]],
+                  "delays": [int(d) for d in found["delays"]],
+                  "labels": [c.label for c in pm.candidates]}
+    config = make_config(train, "bc", args.train_profile,
+                         overrides={"gamma": args.gamma, "vd_horizon": args.horizon})
+    sim = hybrid.fit_hybrid(train, ctx["train_p"], calibrated, steps=args.steps, config=config,
+                            seed=ctx["seed"])
+    return learned_scores(sim, ctx["held"], ctx["task"], ctx["test_p"], ctx["pool"],
+                          ctx["key"], ctx["true"], k=args.k, seed=ctx["seed"],
+                          n_episodes=args.episodes, horizon=args.horizon, gamma=args.gamma)
 
 
 def run_case(case: str, seed: int, args) -> dict:
@@ -183,9 +187,10 @@ def run_case(case: str, seed: int, args) -> dict:
                           bias=obs_bias_of(pm, theta), **vals)
         out[name] = {"one_step": err["one_step"]["rmse"], "kstep": err["kstep"][-1],
                      **value_scores(true, sim)}
-    ctx = dict(pm=pm, held=held, test_p=test_p, pool=pool, key=key, true=true, seed=seed)
+    ctx = dict(pm=pm, task=task, held=held, train_p=train_p, test_p=test_p, pool=pool, key=key,
+               true=true, seed=seed)
     t0 = time.perf_counter()
-    out["hybrid"] = hybrid_row(found, train_path, ctx, args, os.path.join(folder, "hybrid"))
+    out["hybrid"] = hybrid_row(found, train, ctx, args)
     out["seconds"]["hybrid"] = time.perf_counter() - t0
     for method in args.learned:
         t0 = time.perf_counter()
@@ -267,9 +272,9 @@ def main(argv=None) -> int:
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     try:
         from rl2s_jax.physics import hybrid  # local: another branch's module, optional
-        if not hasattr(hybrid, "gain_simulator"):
-            print("hybrid: skipped (rl2s_jax.physics.hybrid has no gain_simulator; "
-                  "hybrid_row says the contract)", flush=True)
+        if not hasattr(hybrid, "fit_hybrid"):
+            print("hybrid: skipped (rl2s_jax.physics.hybrid has no fit_hybrid; hybrid_row "
+                  "says what it calls)", flush=True)
     except ImportError as e:
         print(f"hybrid: skipped (rl2s_jax.physics.hybrid does not import: {e})", flush=True)
     units = [(c, s) for c in args.cases for s in args.seeds]

@@ -55,6 +55,18 @@ def test_prediction_errors_match_numpy():
         np.sqrt(np.mean(((0.9 * ds.obs - ds.next_obs) / scale) ** 2)))
     with pytest.raises(ValueError, match="action: expected shape"):
         prediction_errors(step, ds, action=np.zeros((3, 2)))
+    # with_rows: the model is told which logged rows it steps (where it reads their past)
+    seen = []
+
+    def by_rows(o, a, rows):
+        seen.append(np.asarray(rows))
+        return 0.9 * o + ds.action[rows]
+    again = prediction_errors(by_rows, ds, k=k, with_rows=True)
+    assert again["one_step"] == pytest.approx(got["one_step"])
+    assert again["kstep"] == pytest.approx(got["kstep"])
+    np.testing.assert_array_equal(seen[0], np.arange(16))  # one-step: every row
+    for j in range(k):  # window step j: the rows starts + j
+        np.testing.assert_array_equal(seen[1 + j], np.array(starts) + j)
 
 
 def test_value_scores_and_seed_intervals():

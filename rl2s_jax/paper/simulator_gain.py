@@ -5,7 +5,8 @@ Every simulator gets the same held-out rows and open-loop windows
 (``physics.residuals.prediction_errors``) and the same start states and policy draws for the
 values (one key; ``simulated_returns``' key stream, which ``calibrated.c_values`` follows). A
 learned simulator's step there is its mean next state (``Simulator.mean``: the elites'
-average), fed the logged actions; its values are sampled rollouts (``simulator_returns``).
+average), fed the logged actions (and the episode's logged past actions where it reads them:
+a hybrid, an extended simulator); its values are sampled rollouts (``simulator_returns``).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ import jax
 import numpy as np
 
 from rl2s_jax.evaluate.metrics import kendall_tau, value_differences
+from rl2s_jax.model.history import logged_history
 from rl2s_jax.model.simulator import Simulator, simulator_returns
 from rl2s_jax.physics.residuals import prediction_errors
 from rl2s_jax.stats import t_interval
@@ -38,16 +40,29 @@ def learned_scores(sim: Simulator, held, task, policy_params, pool, key, true, *
                    seed: int, n_episodes: int, horizon: int, gamma: float) -> dict:
     """A learned simulator's row: one-step / k-step error on the held-out Dataset ``held`` and
     value scores of ``policy_params`` [P, ...] against ``true`` [P] (module docstring)."""
-    if not sim.markov:
-        raise ValueError("sim: expected a Markov simulator (no history inputs); the open-loop "
-                         "windows here carry no episode past")
-    mean = jax.jit(sim.mean)
-    err = prediction_errors(lambda o, a: mean(o.astype(np.float32), a.astype(np.float32)),
-                            held, k=k, seed=seed)
+    err = prediction_errors(_mean_step(sim, held), held, k=k, seed=seed, with_rows=True)
     ret, _ = simulator_returns(sim, task, policy_params, pool, key, n_episodes=n_episodes,
                                horizon=horizon, gamma=gamma)
     return {"one_step": err["one_step"], "kstep": err["kstep"][-1],
             **value_scores(true, np.asarray(ret.mean(1)))}
+
+
+def _mean_step(sim: Simulator, held):
+    """``step(obs [N, O], action [N, A], rows [N]) -> sim.mean`` [N, O]: a simulator with
+    past-action or time inputs sees the held-out episode's logged past at ``rows``, as it
+    would have seen its own actions in a rollout (a hybrid's delayed physics reads them)."""
+    mean = jax.jit(sim.mean)
+    if sim.obs_history:
+        raise ValueError(f"sim: obs_history {sim.obs_history}: an open-loop window would need "
+                         f"the model's own past observations, not the logged ones; expected "
+                         f"obs_history 0")
+
+    def step(obs, action, rows):
+        hist = None if sim.markov else logged_history(
+            held, rows, obs_history=0, action_history=sim.action_history,
+            time_inputs=sim.time_inputs, episode_length=sim.episode_length)
+        return mean(np.asarray(obs, np.float32), np.asarray(action, np.float32), hist)
+    return step
 
 
 def train_learned(train_path: str, method: str, out: str, *, steps: int, profile: str,

@@ -67,9 +67,11 @@ def _joint_dims(pm: PhysicsModel) -> list[dict]:
     return out
 
 
-def _kstep(step, ds, action, k: int, max_windows: int, scale) -> list[float]:
+def _kstep(step, ds, action, k: int, max_windows: int, scale, with_rows: bool = False
+           ) -> list[float]:
     """Normalised RMSE after 1..k open-loop steps of ``step(obs [N, O], action [N, A]) ->
-    next_obs [N, O]``, over up to max_windows windows (the same for any ``step``)."""
+    next_obs [N, O]`` (``with_rows``: ``step(obs, action, rows)``, rows [N] the dataset rows
+    whose logged actions are fed), over up to max_windows windows (the same for any ``step``)."""
     starts = [i for i in range(len(ds.obs) - k)
               if ds.episode_id[i] == ds.episode_id[i + k - 1] and ds.t[i] % k == 0]
     if not starts:
@@ -79,7 +81,8 @@ def _kstep(step, ds, action, k: int, max_windows: int, scale) -> list[float]:
     obs = np.asarray(ds.obs[starts])
     out = []
     for j in range(k):
-        obs = np.asarray(step(obs, action[starts + j]))
+        rows = (starts + j,) if with_rows else ()
+        obs = np.asarray(step(obs, action[starts + j], *rows))
         out.append(float(_rmse((obs - ds.next_obs[starts + j]) / scale, axis=None)))
     return out
 
@@ -93,10 +96,12 @@ def _error_rows(n: int, max_rows: int, seed: int) -> np.ndarray:
 
 
 def prediction_errors(step, ds, *, action=None, k: int = 10, max_rows: int = 2048,
-                      max_windows: int = 64, seed: int = 0) -> dict:
+                      max_windows: int = 64, seed: int = 0, with_rows: bool = False) -> dict:
     """Any one-step model's errors on a Dataset, on the rows and windows ``physics_errors``
     uses: ``step(obs [N, O], action [N, A]) -> next_obs [N, O]`` (a learned simulator's mean,
-    a physics model) fed ``action`` [N, A] (default the logged actions).
+    a physics model) fed ``action`` [N, A] (default the logged actions); ``with_rows``:
+    ``step(obs, action, rows)`` with rows [N] the dataset rows whose actions are fed (a model
+    that reads the episode's logged past there, e.g. its past actions).
     -> {"one_step": normalised RMSE, "kstep": [k] normalised RMSEs}."""
     action = np.asarray(ds.action if action is None else action)
     if action.shape != np.shape(ds.action):
@@ -104,9 +109,11 @@ def prediction_errors(step, ds, *, action=None, k: int = 10, max_rows: int = 204
                          f"{action.shape}")
     rows = _error_rows(len(ds.obs), max_rows, seed)
     scale = obs_scale(ds)
-    z = (np.asarray(step(np.asarray(ds.obs[rows]), action[rows])) - ds.next_obs[rows]) / scale
+    extra = (rows,) if with_rows else ()
+    z = (np.asarray(step(np.asarray(ds.obs[rows]), action[rows], *extra))
+         - ds.next_obs[rows]) / scale
     return {"one_step": float(_rmse(z, axis=None)),
-            "kstep": _kstep(step, ds, action, k, max_windows, scale)}
+            "kstep": _kstep(step, ds, action, k, max_windows, scale, with_rows)}
 
 
 def physics_errors(pm: PhysicsModel, ds, theta=None, delays=None, *, k: int = 10,

@@ -30,15 +30,19 @@ Profiles (explicit flags override them; PROFILES):
   (``--profile cpu --cases mass --seeds 0``) took 373 s wall on the shared 2-core CPU (the
   process got 41% of it; 150 s of CPU): collection, identification and the physics' values
   ~36 s, BC 74 s, RL2S 263 s (compilation included); with ``--learned`` (none) and ``--jobs
-  2``, two cases in 153 s.
+  2``, two cases in 153 s. The hybrid column, run in an export of branch ``hybrid`` (050e734)
+  with this script and ``paper/simulator_gain.py``, ``physics/residuals.py`` copied in
+  (``--cases delay --seeds 0 --learned --episodes 2 --horizon 30 --k 3``): 294 s on the CPU
+  (its MJX base compiles), one-step 5.4e-6, k-step 6.9e-6, AVD 9e-6, tau 1 (the calibration
+  is exact here, so the residual it learns is ~0; nominal 0.466, 1.15, 2.97, 0.789).
 - ``gpu``: the table, on one H200 host (16 cores) in one device call, ``--jobs 15`` (one
   process per case and seed: C MuJoCo is single-threaded; every process allocates GPU memory
   as it needs it): 1000 transitions per policy, 600 training steps of the ``cpu`` training
   profile's members (3 of 3x128; the paper's 7 of 4x512 with 1000 pre-training steps do not
   fit 15 units into one 9-minute call), 16 value episodes. Estimated, not measured: the C
   MuJoCo work grows ~3.3x to ~2 min per unit on a host core, each training's compilation
-  (~1 min, 15 at once on 16 cores) and 600 GPU steps (~20 s) twice: 5-7 min for the 15 units
-  side by side. The JSON is rewritten after every unit, so a call cut short keeps what
+  (~1 min, 15 at once on 16 cores) and 600 GPU steps (~20 s) twice (three times once the
+  hybrid is merged): 5-7 min for the 15 units side by side, 6-9 with the hybrid. The JSON is rewritten after every unit, so a call cut short keeps what
   finished, and ``--resume`` (same command) runs only the rest:
 
     timeout 540 env PYTHONPATH=. python experiments/physics_gain.py --profile gpu --jobs 15 \

@@ -42,8 +42,9 @@ Profiles (explicit flags override them; PROFILES):
   fit 15 units into one 9-minute call), 16 value episodes. Estimated, not measured: the C
   MuJoCo work grows ~3.3x to ~2 min per unit on a host core, each training's compilation
   (~1 min, 15 at once on 16 cores) and 600 GPU steps (~20 s) twice (three times once the
-  hybrid is merged): 5-7 min for the 15 units side by side, 6-9 with the hybrid. The JSON is rewritten after every unit, so a call cut short keeps what
-  finished, and ``--resume`` (same command) runs only the rest:
+  hybrid is merged): 5-7 min for the 15 units side by side, 6-9 with the hybrid. The JSON is
+  rewritten after every unit, so a call cut short keeps what finished, and ``--resume`` (same
+  command) runs only the rest:
 
     timeout 540 env PYTHONPATH=. python experiments/physics_gain.py --profile gpu --jobs 15 \
         --out docs/results/physics_gain.json [--resume]

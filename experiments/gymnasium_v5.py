@@ -13,12 +13,16 @@ them with as many episodes as v5's) and the Kendall tau between the two rankings
 
     python experiments/gymnasium_v5.py [--tasks hopper ...] [--split test] [--policies 0]
         [--transitions 1000] [--value-episodes 16] [--k 10] [--no-control] [--ablate]
-        [--mjx-values] [--diagnose DIR] [--out FILE.json]
+        [--mjx-values] [--diagnose DIR] [--out FILE.json] [--results FILE.json]
 
 ``--ablate``: also v5 with its XML's <option> moved toward the MJX task's (Euler instead of
 RK4; then also the MJX task's solver iterations), to see which difference the error comes
 from. ``--diagnose DIR``: also ``rl2s diagnose --physics`` (app/physics_diagnosis.py) on the
-v5 data.
+v5 data. ``--results FILE``: each task's row (``paper.physics_tables.v5_row``: errors, tau and
+its noise floor, AVD / MVD, the diagnosis) with this command and machine, merged into RESULTS'
+``docs/results/gymnasium_v5.json``. HalfCheetah's values (never measured), on one H200 host:
+``python experiments/gymnasium_v5.py --tasks halfcheetah --transitions 500 --value-episodes 8
+--mjx-values --no-control --diagnose DIR --results docs/results/gymnasium_v5.json``.
 
 Results (2-core CPU shared with three other sessions, 2026-11-28; gymnasium 1.4.0, mujoco
 4.0.0). Errors: RMSE / RMS of the data's change, mean over the observation dims.
@@ -96,6 +100,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import tempfile
 import time
 import xml.etree.ElementTree as ET
@@ -110,14 +115,17 @@ if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
 
 import jax  # noqa: E402
 import jax.numpy as jnp
+import mujoco
 import numpy as np
 
 from rl2s_jax import compile_cache
 from rl2s_jax.app.physics_diagnosis import PhysicsSpec, diagnose_physics
+from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import kendall_tau, value_differences
+from rl2s_jax.paper.physics_tables import merge_v5_row, v5_row
 from rl2s_jax.physics.gymnasium_v5 import (
     V5_ENVS,
     collect_gymnasium,
@@ -355,6 +363,8 @@ def main(argv=None):
     ap.add_argument("--mjx-values", action="store_true",
                     help="re-measure the MJX values (else the zoo's)")
     ap.add_argument("--out", default=None, help="write the record as JSON here")
+    ap.add_argument("--results", metavar="FILE", help="add each task's row, with this command "
+                    "and machine, to RESULTS' JSON (docs/results/gymnasium_v5.json)")
     args = ap.parse_args(argv)
     compile_cache.enable()
     if args.k < 1 or args.transitions < args.k or args.value_episodes < 2:
@@ -365,6 +375,12 @@ def main(argv=None):
     if args.out:
         with open(args.out, "w") as f:
             json.dump(record, f, indent=1)
+    if args.results:  # RESULTS' "Physics diagnosis (issue 62)" table: paper.physics_tables
+        command = "python experiments/gymnasium_v5.py " + " ".join(sys.argv[1:] if argv is None
+                                                                     else argv)
+        machine = {**machine_info(), "cpu_count": os.cpu_count(), "mujoco": mujoco.__version__}
+        for rec in record["tasks"]:
+            merge_v5_row(args.results, v5_row(rec, command, machine))
     print(f"done in {record['seconds']:.0f} s")
     return record
 

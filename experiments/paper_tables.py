@@ -25,6 +25,11 @@ the MVD bar as paired differences over seeds. The row builders are in
 rl2s_jax/paper/tables.py. Run logs (experiments/gpu_runs, experiments/cpu_runs, docs/logs)
 are not tracked: a path into them is printed with "in git history at bf0c7b2". Runs no JAX
 program (importing the package loads JAX, nothing more).
+
+A second block, between PHYSICS_BEGIN and PHYSICS_END, is issue 62's "Physics diagnosis"
+section, from physics_gain.json, physics_unseen.json and gymnasium_v5.json
+(``paper.physics_tables``); written and checked alike wherever the results folder holds one of
+them (``with_physics``).
 """
 from __future__ import annotations
 
@@ -32,6 +37,7 @@ import argparse
 import os
 import sys
 
+from rl2s_jax.paper.physics_tables import PHYSICS_BEGIN, PHYSICS_END, physics_block
 from rl2s_jax.paper.tables import (
     PAPER_NOTE,
     TABLE1,
@@ -157,12 +163,12 @@ def render(results: dict, source: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def with_block(text: str, block: str) -> str:
-    """``text`` with its marked block replaced by ``block`` (appended when absent); the text
-    outside the markers is kept as it is."""
-    start, end = text.find(BEGIN), text.find(END)
+def with_block(text: str, block: str, begin: str = BEGIN, end_mark: str = END) -> str:
+    """``text`` with its block marked by ``begin`` / ``end_mark`` replaced by ``block``
+    (appended when absent); the text outside the markers is kept as it is."""
+    start, end = text.find(begin), text.find(end_mark)
     if start >= 0 and end > start:
-        end += len(END)
+        end += len(end_mark)
         if text[end:end + 1] == "\n":
             end += 1
         return text[:start] + block + text[end:]
@@ -178,9 +184,12 @@ def read(path: str) -> str:
         return f.read()
 
 
-def write_block(path: str, block: str) -> None:
-    """Replace the marked block of ``path`` (append it when absent; create the file)."""
+def write_block(path: str, block: str, results: str | None = None) -> None:
+    """Replace the marked block of ``path`` (append it when absent; create the file), and the
+    physics block where ``results`` holds its JSON (``with_physics``)."""
     text = with_block(read(path), block)
+    if results is not None:
+        text = with_physics(text, results)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     with open(path, "w", encoding="utf-8") as f:
         f.write(text)
@@ -223,17 +232,30 @@ def main(argv=None) -> int:
     block = render(results, shown(args.results))
     if args.check:
         text = read(args.out)
-        if with_block(text, block) != text:
+        if with_physics(with_block(text, block), args.results) != text:
             print(f"{shown(args.out)}: the generated block is not what {shown(args.results)}/"
                   f"<task>.json gives; run: {regen_command(args.results, args.out)}",
                   file=sys.stderr)
             return 1
         print(f"{shown(args.out)}: up to date ({len(text.splitlines())} lines)")
         return 0
-    write_block(args.out, block)
+    write_block(args.out, block, args.results)
     print(block)
     print(f"-> {args.out} ({len(results)} task(s): {', '.join(results) or 'none'})")
     return 0
+
+
+# ------------------------------------------------------------------ issue 62's physics block
+PHYSICS_FILES = ("physics_gain.json", "physics_unseen.json", "gymnasium_v5.json")
+
+
+def with_physics(text: str, results: str) -> str:
+    """``text`` with the "Physics diagnosis (issue 62)" block (``paper.physics_tables``)
+    rewritten from ``results``; unchanged where ``results`` holds none of PHYSICS_FILES (a
+    protocol-only results folder)."""
+    if not any(os.path.exists(os.path.join(results, f)) for f in PHYSICS_FILES):
+        return text
+    return with_block(text, physics_block(results, shown(results)), PHYSICS_BEGIN, PHYSICS_END)
 
 
 if __name__ == "__main__":

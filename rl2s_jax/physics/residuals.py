@@ -15,7 +15,7 @@ import numpy as np
 from rl2s_jax.physics.identify import c_backend, compiled, obs_scale
 from rl2s_jax.physics.mjx_model import PhysicsModel, delayed_actions
 
-__all__ = ["physics_errors", "predict", "in_contact"]
+__all__ = ["physics_errors", "prediction_errors", "predict", "in_contact"]
 
 
 def predict(pm: PhysicsModel, theta, obs: np.ndarray, action: np.ndarray,
@@ -67,8 +67,11 @@ def _joint_dims(pm: PhysicsModel) -> list[dict]:
     return out
 
 
-def _kstep(pm, theta, ds, action, k: int, max_windows: int, scale) -> list[float]:
-    """Normalised RMSE after 1..k open-loop steps, over up to max_windows windows."""
+def _kstep(step, ds, action, k: int, max_windows: int, scale, with_rows: bool = False
+           ) -> list[float]:
+    """Normalised RMSE after 1..k open-loop steps of ``step(obs [N, O], action [N, A]) ->
+    next_obs [N, O]`` (``with_rows``: ``step(obs, action, rows)``, rows [N] the dataset rows
+    whose logged actions are fed), over up to max_windows windows (the same for any ``step``)."""
     starts = [i for i in range(len(ds.obs) - k)
               if ds.episode_id[i] == ds.episode_id[i + k - 1] and ds.t[i] % k == 0]
     if not starts:
@@ -78,9 +81,39 @@ def _kstep(pm, theta, ds, action, k: int, max_windows: int, scale) -> list[float
     obs = np.asarray(ds.obs[starts])
     out = []
     for j in range(k):
-        obs = predict(pm, theta, obs, action[starts + j])
+        rows = (starts + j,) if with_rows else ()
+        obs = np.asarray(step(obs, action[starts + j], *rows))
         out.append(float(_rmse((obs - ds.next_obs[starts + j]) / scale, axis=None)))
     return out
+
+
+def _error_rows(n: int, max_rows: int, seed: int) -> np.ndarray:
+    """The rows [<= max_rows] the one-step error is measured on (the same for any model)."""
+    rows = np.arange(n)
+    if n > max_rows:
+        rows = np.sort(np.random.default_rng(seed).choice(rows, max_rows, replace=False))
+    return rows
+
+
+def prediction_errors(step, ds, *, action=None, k: int = 10, max_rows: int = 2048,
+                      max_windows: int = 64, seed: int = 0, with_rows: bool = False) -> dict:
+    """Any one-step model's errors on a Dataset, on the rows and windows ``physics_errors``
+    uses: ``step(obs [N, O], action [N, A]) -> next_obs [N, O]`` (a learned simulator's mean,
+    a physics model) fed ``action`` [N, A] (default the logged actions); ``with_rows``:
+    ``step(obs, action, rows)`` with rows [N] the dataset rows whose actions are fed (a model
+    that reads the episode's logged past there, e.g. its past actions).
+    -> {"one_step": normalised RMSE, "kstep": [k] normalised RMSEs}."""
+    action = np.asarray(ds.action if action is None else action)
+    if action.shape != np.shape(ds.action):
+        raise ValueError(f"action: expected shape {np.shape(ds.action)} (one per row), got "
+                         f"{action.shape}")
+    rows = _error_rows(len(ds.obs), max_rows, seed)
+    scale = obs_scale(ds)
+    extra = (rows,) if with_rows else ()
+    z = (np.asarray(step(np.asarray(ds.obs[rows]), action[rows], *extra))
+         - ds.next_obs[rows]) / scale
+    return {"one_step": float(_rmse(z, axis=None)),
+            "kstep": _kstep(step, ds, action, k, max_windows, scale, with_rows)}
 
 
 def physics_errors(pm: PhysicsModel, ds, theta=None, delays=None, *, k: int = 10,
@@ -92,10 +125,7 @@ def physics_errors(pm: PhysicsModel, ds, theta=None, delays=None, *, k: int = 10
     delays = np.zeros(pm.action_size, int) if delays is None else np.asarray(delays)
     action = delayed_actions(np.asarray(ds.action), np.asarray(ds.episode_id),
                              np.asarray(ds.t), delays)
-    rng = np.random.default_rng(seed)
-    rows = np.arange(len(ds.obs))
-    if len(rows) > max_rows:
-        rows = np.sort(rng.choice(rows, max_rows, replace=False))
+    rows = _error_rows(len(ds.obs), max_rows, seed)
     scale = obs_scale(ds)
     resid = predict(pm, theta, np.asarray(ds.obs[rows]), action[rows]) - ds.next_obs[rows]
     z = resid / scale
@@ -116,5 +146,6 @@ def physics_errors(pm: PhysicsModel, ds, theta=None, delays=None, *, k: int = 10
             "by_policy": [{"policy": names[p], "rmse_normalised":
                            float(_rmse(z[pol == p], axis=None))} for p in np.unique(pol)],
         },
-        "kstep": _kstep(pm, theta, ds, action, k, max_windows, scale),
+        "kstep": _kstep(lambda o, a: predict(pm, theta, o, a), ds, action, k, max_windows,
+                        scale),
     }

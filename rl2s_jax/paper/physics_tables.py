@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 
+from rl2s_jax._files import write_json
 from rl2s_jax.paper.simulator_gain import gain_rows
 
 __all__ = ["PHYSICS_BEGIN", "PHYSICS_END", "physics_block", "v5_row", "merge_v5_row"]
@@ -158,6 +159,4 @@ def merge_v5_row(path: str, row: dict) -> None:
             doc = json.load(f)
     same = lambda r: all(r.get(k) == row[k] for k in ("task", "command", "hardware"))  # noqa: E731
     doc["rows"] = [r for r in doc["rows"] if not same(r)] + [row]
-    with open(path, "w", encoding="utf-8") as f:
-        json.dump(doc, f, indent=1)
-        f.write("\n")
+    write_json(path, doc)

@@ -167,3 +167,105 @@ def test_paper_tables_renders_the_data_seed_table(tmp_path):
     assert "| hopper | rl2s | 0.900 (1 seed) | 0.900 (1 data seed) |" in table
     assert "### Ranking over data seeds" not in pt.render({"hopper": {**r, "by_data_seed": {}}},
                                                           "x")
+
+
+# ------------------------------------------------------------------ ranking_analysis.py
+
+
+def test_swaps_split_discordant_pairs_by_the_truths_noise():
+    """A hand-made case: truth [0, 1, 10, 20], se 1 each (noise band 2 sqrt(2) = 2.83): the
+    simulator swaps (0, 1) (|dV| 1: within noise) and (2, 3) (|dV| 10: real); 6 pairs, tau
+    (4 - 2) / 6, each swap costs 2 / 6. Checked against a plain NumPy double loop."""
+    ra = load_script("ranking_analysis")
+    truth, se, sim = [0.0, 1.0, 10.0, 20.0], [1.0, 1.0, 1.0, 1.0], [1.0, 0.0, 21.0, 19.0]
+    sw = ra.swaps(truth, se, sim)
+    assert sw["noise"] == [(0, 1)] and sw["real"] == [(2, 3)]
+    assert sw["pairs"] == 6 and sw["tau"] == pytest.approx(2 / 6)
+    assert sw["tau_lost_noise"] == pytest.approx(2 / 6)
+    assert sw["tau_lost_real"] == pytest.approx(2 / 6)
+    rng = np.random.default_rng(3)
+    t, e, s = rng.normal(0, 5, 9), rng.uniform(0.5, 3, 9), rng.normal(0, 5, 9)
+    noise, real = [], []
+    for i in range(9):
+        for j in range(i + 1, 9):
+            if (t[i] - t[j]) * (s[i] - s[j]) < 0:
+                band = 2 * np.sqrt(e[i] ** 2 + e[j] ** 2)
+                (noise if abs(t[i] - t[j]) < band else real).append((i, j))
+    sw = ra.swaps(t, e, s)
+    assert sw["noise"] == noise and sw["real"] == real
+    assert 1 - sw["tau"] == pytest.approx(sw["tau_lost_noise"] + sw["tau_lost_real"])
+    tied = ra.swaps(truth, se, [0.0, 0.0, 20.0, 20.0])  # a tie is no swap (tau-a)
+    assert tied["noise"] == [] and tied["real"] == []
+    with pytest.raises(ValueError, match="truth, se, sim: expected equal shapes"):
+        ra.swaps(truth, se[:3], sim)
+    with pytest.raises(ValueError, match="se >= 0"):
+        ra.swaps(truth, [-1.0, 1.0, 1.0, 1.0], sim)
+
+
+def test_ranking_analysis_per_data_seed_and_between_truths(tmp_path, capsys):
+    """Two data seeds' results with true_value_se: per method the tau lost to each kind of
+    swap, the swaps per policy, the tau without each policy, and the truths' z between seeds."""
+    ra = load_script("ranking_analysis")
+
+    def result(ds, truth, sims):
+        lanes = {f"rl2s/{s}": {"sim_value": v, "sim_length": [10.0] * 4}
+                 for s, v in enumerate(sims)}
+        return {"task": "hopper", "command": f"paper.py --data-seed {ds}", "lanes": lanes,
+                "true_value": truth, "true_value_se": [1.0] * 4, "true_length": [9.0] * 4,
+                "test_policy_names": ["a", "b", "c", "d"],
+                "sizes": {"eval_episodes": 16, "value_episodes": 16}}
+
+    r0 = result(0, [0.0, 1.0, 10.0, 20.0], [[1.0, 0.0, 21.0, 19.0], [1.0, 0.0, 10.0, 20.0]])
+    r7 = result(7, [0.0, 2.0, 10.0, 23.0], [[0.0, 1.0, 10.0, 20.0]])
+    paths = []
+    for i, r in enumerate((r0, r7)):
+        paths.append(str(tmp_path / f"r{i}.json"))
+        (tmp_path / f"r{i}.json").write_text(json.dumps(r))
+    assert ra.main([*paths, "--methods", "rl2s", "--n-rep", "50", "--json",
+                    str(tmp_path / "a.json")]) == 0
+    out = json.loads((tmp_path / "a.json").read_text())
+    zero = out["data_seeds"]["0"]
+    m = zero["methods"]["rl2s"]
+    assert m["tau"] == pytest.approx((2 / 6 + 4 / 6) / 2)
+    assert m["tau_lost_noise"] == pytest.approx(2 / 6) and m["tau_lost_real"] == pytest.approx(
+        1 / 6)
+    assert zero["noise_swaps_per_policy"] == [2, 2, 0, 0]
+    assert zero["real_swaps_per_policy"] == [0, 0, 1, 1]
+    # without a: the first lane keeps its swap c-d (tau 1/3 of 3 pairs), the second none (1);
+    # without c: each keeps one swap (1/3)
+    assert m["tau_without"][0] == pytest.approx((1 / 3 + 1) / 2)
+    assert m["tau_without"][2] == pytest.approx(1 / 3)
+    assert zero["se_source"].startswith("true_value_se")
+    z = np.array([0.0, -1.0, 0.0, -3.0]) / np.sqrt(2.0)
+    between = out["truth_between_data_seeds"][0]
+    assert between["rms_z"] == pytest.approx(np.sqrt(np.mean(z ** 2)))
+    assert between["tau_truth_vs_truth"] == 1.0
+    printed = capsys.readouterr().out
+    assert "hopper, data seed 0: 4 test policies (6 pairs)" in printed
+    assert "real swaps most often (of 2 lanes): c-d 1" in printed
+    with pytest.raises(SystemExit, match="methods: expected a comma list"):
+        ra.main([paths[0], "--methods", "nope"])
+
+
+def test_zoo_standard_errors_scale_the_zoos_and_check_its_policies():
+    """Without true_value_se: the zoo's return_se x sqrt(16 / value episodes) x |V| / |V
+    undiscounted| (at most 1); a result of another zoo only where its returns agree."""
+    from rl2s_jax.zoo.zoo import load_zoo
+
+    ra = load_script("ranking_analysis")
+    zoo = load_zoo("hopper")
+    ids = list(zoo.test_ids)
+    u = np.asarray(zoo.returns, np.float64)[ids]
+    r = {"task": "hopper", "test_policy_names": zoo.policy_names(ids), "zoo_sha256": "old",
+         "true_value_undiscounted": u.tolist(), "true_value": (0.5 * u).tolist(),
+         "sizes": {"value_episodes": 64}}
+    se, source = ra.standard_errors(r)
+    n_zoo = int(zoo.info.get("value_episodes") or 16)
+    ratio = np.where(np.abs(u) > 1e-9, 0.5, 1.0)
+    want = np.asarray(zoo.return_se, np.float64)[ids] * np.sqrt(n_zoo / 64) * ratio
+    np.testing.assert_allclose(se, want, rtol=1e-6)
+    assert source.startswith("zoo return_se")
+    r["true_value_undiscounted"] = (u + 1e4).tolist()
+    with pytest.raises(ValueError, match="zoo_sha256: the result has no true_value_se"):
+        ra.standard_errors(r)
+    assert ra.standard_errors({**r, "true_value_se": [2.0]})[0].tolist() == [2.0]

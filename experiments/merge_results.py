@@ -34,7 +34,7 @@ import numpy as np
 
 from rl2s_jax.evaluate.lane_scores import intervals_over_seeds
 from rl2s_jax.improve.finetune import median_gain
-from rl2s_jax.paper.data_seeds import oracle_into_data_seed, record_data_seeds
+from rl2s_jax.paper.data_seeds import data_seed_of, oracle_into_data_seed, record_data_seeds
 from rl2s_jax.paper.protocol import summarise
 from rl2s_jax.zoo.zoo import load_zoo
 
@@ -262,9 +262,11 @@ def main(argv=None) -> int:
             oracle_into_data_seed(result, _read(args.oracle))
     except ValueError as err:
         raise SystemExit(f"by-data-seed: {err}") from None
-    if args.oracle and "oracle" not in result.get("per_seed", {}):
-        with open(args.oracle) as f:
-            orc = json.load(f)
+    orc = _read(args.oracle) if args.oracle else None
+    if orc and "data_seed" in orc and (orc.get("policy_names") != result.get("test_policy_names")
+                                       or orc["data_seed"] != data_seed_of(result)):
+        orc = None  # another data seed's (or test split's) oracle: its by_data_seed entry only
+    if orc and "oracle" not in result.get("per_seed", {}):
         row = max(orc["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
         result["per_seed"]["oracle"] = {k: [v] for k, v in row["metrics"].items()}
         result.setdefault("intervals", {})["oracle"] = (row.get("intervals") or {}).get(

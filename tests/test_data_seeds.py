@@ -79,6 +79,16 @@ def test_merge_results_records_each_data_seed(tmp_path):
     assert list(got["by_data_seed"]) == ["0", "7", "23"]
     assert got["by_data_seed"]["23"]["rl2s"]["kendall_tau"] == pytest.approx(0.6)
     assert got["by_data_seed"]["7"] == seven
+    # oracle_check.py --data-seed 7: into data seed 7's entry, not the task's own oracle row
+    orc = {"data_seed": 7, "policy_names": NAMES, "command": "oracle_check.py --data-seed 7",
+           "hardware": "H200", "jax_version": "0.11", "policies": 3,
+           "rows": [{"horizon": 1000, "n_episodes": 64, "metrics": {"kendall_tau": 0.95}}]}
+    (tmp_path / "orc7.json").write_text(json.dumps(orc))
+    assert mr.main(["--task", "hopper", "--keep", "--out", str(out), "--oracle",
+                    str(tmp_path / "orc7.json")]) == 0
+    got = json.loads((out / "hopper.json").read_text())
+    assert got["by_data_seed"]["7"]["oracle"]["kendall_tau"] == 0.95
+    assert "oracle" not in got["per_seed"]  # the task's rows are data seed 23's run
     # another test split is refused, naming the field
     other = _run(("rl2s",), ([0.5, 0.5],), ([1.0, 1.0],), 5, names=["p0", "p1", "q9"])
     (tmp_path / "other.json").write_text(json.dumps(other))

@@ -279,3 +279,13 @@ def test_zoo_standard_errors_scale_the_zoos_and_check_its_policies():
     with pytest.raises(ValueError, match="zoo_sha256: the result has no true_value_se"):
         ra.standard_errors(r)
     assert ra.standard_errors({**r, "true_value_se": [2.0]})[0].tolist() == [2.0]
+
+
+def test_oracle_check_data_seed_takes_the_protocols_test_split_only(tmp_path):
+    """--data-seed measures on the protocol's data: another --split or --zoo is refused before
+    any work. (Run on the CPU at toy sizes, not here: hopper, --data-seed 3, 200 transitions,
+    4 episodes, horizon 50: 20 test policies, its noise ceiling, data_seed 3 in the output.)"""
+    oc = load_script("oracle_check")
+    for extra in (["--split", "train"], ["--zoo", str(tmp_path)]):
+        with pytest.raises(SystemExit, match="data-seed: the protocol's test split"):
+            oc.main(["--tasks", "hopper", "--data-seed", "3", "--out", str(tmp_path), *extra])

@@ -281,11 +281,17 @@ def test_zoo_standard_errors_scale_the_zoos_and_check_its_policies():
     assert ra.standard_errors({**r, "true_value_se": [2.0]})[0].tolist() == [2.0]
 
 
-def test_oracle_check_data_seed_takes_the_protocols_test_split_only(tmp_path):
+def test_oracle_check_data_seed_takes_the_protocols_test_split_only(tmp_path, monkeypatch):
     """--data-seed measures on the protocol's data: another --split or --zoo is refused before
     any work. (Run on the CPU at toy sizes, not here: hopper, --data-seed 3, 200 transitions,
     4 episodes, horizon 50: 20 test policies, its noise ceiling, data_seed 3 in the output.)"""
     oc = load_script("oracle_check")
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("collected data before refusing the flags")
+
+    monkeypatch.setattr(oc, "load_or_collect", no_work)
+    monkeypatch.setattr(oc, "collect_dataset", no_work)
     for extra in (["--split", "train"], ["--zoo", str(tmp_path)]):
         with pytest.raises(SystemExit, match="data-seed: the protocol's test split"):
             oc.main(["--tasks", "hopper", "--data-seed", "3", "--out", str(tmp_path), *extra])

@@ -103,6 +103,13 @@ def test_data_seed_entry_refuses_mixed_runs():
         dseeds.data_seed_entry([a, _run(("bc",), ([0.5, 0.5],), ([1.0, 1.0],), 8)])
     with pytest.raises(ValueError, match="test_policy_names"):
         dseeds.data_seed_entry([a, _run(("bc",), ([0.5],), ([1.0],), 7, names=["x"])])
+    # an oracle row merged from another collection (merge_results' "oracle" provenance) and
+    # its ceiling are not this data seed's
+    other = {**_run(("rl2s", "oracle"), ([0.5], [0.9]), ([1.0], [1.0]), 7),
+             "oracle": {"source": "another run"}, "noise_ceiling": {"kendall_tau": {
+                 "mean": 0.9, "lo": 0.8, "hi": 1.0}}}
+    _, entry = dseeds.data_seed_entry([other])
+    assert "oracle" not in entry and "noise_ceiling" not in entry
     with pytest.raises(ValueError, match="per_seed: no run has any of"):
         dseeds.data_seed_entry([_run(("oracle",), ([0.5],), ([1.0],), 7)])
 

@@ -38,7 +38,8 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
     """One data seed's row of ``by_data_seed`` from paper.py results of that data seed (other
     families, reruns): per method of BY_DATA_SEED_METHODS its Kendall tau and MVD, the means
     over the seeds of the first run that has it; the oracle's tau and the noise ceiling
-    (``{"mean", "lo", "hi"}``) where a run measured them, else absent ("not measured").
+    (``{"mean", "lo", "hi"}``) where a run measured them itself (not an oracle row that
+    merge_results.py took from another collection: ``result["oracle"]``), else absent.
     -> (data seed, entry). ValueError naming the field where the runs differ (data seed,
     task, test policies) or when none has a method."""
     if not runs:
@@ -50,9 +51,11 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
         if any(r.get(k) != runs[0].get(k) for r in runs[1:]):
             raise ValueError(f"{k}: the runs of one data seed differ")
     entry, used = {}, []
+    own = [r for r in runs if not isinstance(r.get("oracle"), dict)]  # else merged from elsewhere
     for m in (*BY_DATA_SEED_METHODS, "oracle"):
-        run = next((r for r in runs if _mean_over_seeds(r.get("per_seed", {}).get(m, {}),
-                                                        "kendall_tau") is not None), None)
+        run = next((r for r in (own if m == "oracle" else runs)
+                    if _mean_over_seeds(r.get("per_seed", {}).get(m, {}), "kendall_tau")
+                    is not None), None)
         if run is None:
             continue
         per = run["per_seed"][m]
@@ -60,10 +63,11 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
                     "seeds": len(per["kendall_tau"])}
         if m != "oracle":
             entry[m]["mvd"] = _mean_over_seeds(per, "mvd")
-        used += [] if any(run is u for u in used) else [run]
+        if not any(run is u for u in used):
+            used.append(run)
     if not set(entry) - {"oracle"}:
         raise ValueError(f"per_seed: no run has any of {', '.join(BY_DATA_SEED_METHODS)}")
-    ceiling = next((r["noise_ceiling"] for r in runs if r.get("noise_ceiling")), None)
+    ceiling = next((r["noise_ceiling"] for r in own if r.get("noise_ceiling")), None)
     if ceiling:
         entry["noise_ceiling"] = {k: ceiling["kendall_tau"][k] for k in ("mean", "lo", "hi")}
         entry["noise_ceiling"].update(n_truth=ceiling.get("n_truth"),

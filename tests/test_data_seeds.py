@@ -302,3 +302,24 @@ def test_oracle_check_data_seed_takes_the_protocols_test_split_only(tmp_path, mo
     for extra in (["--split", "train"], ["--zoo", str(tmp_path)]):
         with pytest.raises(SystemExit, match="data-seed: the protocol's test split"):
             oc.main(["--tasks", "hopper", "--data-seed", "3", "--out", str(tmp_path), *extra])
+
+
+def test_readme_headline_is_the_data_seed_table():
+    """README's headline taus are RL2S's means over the data seeds that docs/results/*.json
+    record (by_data_seed), rounded to 2 digits, and it names those data seeds."""
+    import os
+    import re
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    means, seeds = {}, set()
+    for task in ("hopper", "walker2d", "halfcheetah", "ant"):
+        with open(os.path.join(root, "docs", "results", f"{task}.json")) as f:
+            tab = json.load(f)["by_data_seed"]
+        seeds |= set(tab)
+        means[task] = np.mean([e["rl2s"]["kendall_tau"] for e in tab.values()])
+    readme = " ".join(open(os.path.join(root, "README.md")).read().split())
+    want = (f"tau {means['hopper']:.2f} (Hopper), {means['walker2d']:.2f} (Walker2d), "
+            f"{means['halfcheetah']:.2f} (HalfCheetah) and {means['ant']:.2f} (Ant")
+    assert want in readme
+    named = sorted(seeds, key=int)
+    assert re.search(rf"data seeds {' and '.join(named)}\b", readme)

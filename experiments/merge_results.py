@@ -34,6 +34,7 @@ import numpy as np
 
 from rl2s_jax.evaluate.lane_scores import intervals_over_seeds
 from rl2s_jax.improve.finetune import median_gain
+from rl2s_jax.paper.data_seeds import data_seed_of, oracle_into_data_seed, record_data_seeds
 from rl2s_jax.paper.protocol import summarise
 from rl2s_jax.zoo.zoo import load_zoo
 
@@ -200,6 +201,11 @@ def attach_paper_oracle(result: dict, path: str, sha: str) -> None:
                         "data": "its own collection (another run)"}
 
 
+
+def _read(path: str) -> dict:
+    with open(path) as f:
+        return json.load(f)
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
@@ -209,6 +215,9 @@ def main(argv=None) -> int:
     ap.add_argument("--oracle-paper", help="paper.py's <task>.json of a run with the oracle, "
                     "same test policies and episode counts: its oracle row")
     ap.add_argument("--control")
+    ap.add_argument("--data-seed-run", action="append", default=[], metavar="P.json",
+                    help="paper.py result(s) recorded under by_data_seed only (repeat; the "
+                    "first run of a data seed that has a method gives its numbers)")
     ap.add_argument("--keep", action="store_true", help="without --paper: start from the "
                     "existing OUT/<task>.json (e.g. to replace only its control)")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
@@ -240,10 +249,24 @@ def main(argv=None) -> int:
     else:
         result = {"task": args.task, "methods": {}, "std": {}, "n": {}, "per_seed": {},
                   "note": "the protocol was not re-run on this zoo"}
-    result["zoo_sha256"] = sha
-    if args.oracle and "oracle" not in result.get("per_seed", {}):
-        with open(args.oracle) as f:
-            orc = json.load(f)
+    if not (args.keep and result.get("zoo_sha256")):  # --keep: the zoo it was measured on
+        result["zoo_sha256"] = sha
+    previous = os.path.join(args.out, f"{args.task}.json")
+    if "by_data_seed" not in result and os.path.exists(previous):
+        with open(previous) as f:  # the data seeds recorded before: kept
+            result["by_data_seed"] = json.load(f).get("by_data_seed") or {}
+    try:
+        record_data_seeds(result, [*([result] if args.paper else []),
+                                   *(_read(p) for p in args.data_seed_run)])
+        if args.oracle:
+            oracle_into_data_seed(result, _read(args.oracle))
+    except ValueError as err:
+        raise SystemExit(f"by-data-seed: {err}") from None
+    orc = _read(args.oracle) if args.oracle else None
+    if orc and "data_seed" in orc and (orc.get("policy_names") != result.get("test_policy_names")
+                                       or orc["data_seed"] != data_seed_of(result)):
+        orc = None  # another data seed's (or test split's) oracle: its by_data_seed entry only
+    if orc and "oracle" not in result.get("per_seed", {}):
         row = max(orc["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
         result["per_seed"]["oracle"] = {k: [v] for k, v in row["metrics"].items()}
         result.setdefault("intervals", {})["oracle"] = (row.get("intervals") or {}).get(

@@ -33,6 +33,7 @@ from rl2s_jax.app.improvement import fine_tuning_overrides
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.app.training import make_config, parse_overrides
 from rl2s_jax.data.summary import episode_lengths
+from rl2s_jax.data.values import true_values_se as value_se
 from rl2s_jax.envs.tasks import task_names
 from rl2s_jax.improve.lane_finetune import parse_variants, uses_uncertainty, variant_settings
 from rl2s_jax.improve.recipes import IMPROVE_RECIPES, paper_flags
@@ -291,8 +292,7 @@ def main(argv=None) -> int:
     out, data_dir = args.out, args.data_dir or args.out
     os.makedirs(out, exist_ok=True)
     path = os.path.join(out, f"{args.task}.json")
-    device = jax.devices()[0].device_kind
-    timings: dict[str, float] = {}
+    device, timings = jax.devices()[0].device_kind, {}
 
     def phase(name, t0):
         timings[name] = round(time.perf_counter() - t0, 1)
@@ -302,9 +302,9 @@ def main(argv=None) -> int:
     log(f"[paper] task {args.task} on {device} ({backend}, jax {jax.__version__}), profile "
         f"{profile}, {S} seeds ({seed_ids[0]}..{seed_ids[-1]}) -> {path}\n[paper] sizes {sizes}")
     result = {"task": args.task, "model": args.model, "methods": {}, "std": {}, "n": {},
-              "seeds": S, "seed_ids": seed_ids, "policy_split": args.policy_split,
+              "seeds": S, "seed_ids": seed_ids, "data_seed": args.data_seed,
               "improve_seeds": sizes["improve_seeds"], "hardware": device, "backend": backend,
-              "machine": machine_info(),
+              "machine": machine_info(), "policy_split": args.policy_split,
               "jax_version": jax.__version__, "profile": profile, "sizes": sizes,
               "command": " ".join(["python", "experiments/paper.py", *argv]),
               "families": [f for f, _, _ in families],
@@ -361,6 +361,7 @@ def main(argv=None) -> int:
         phase(f"train_{family}", t0)
         save()
     share = None  # an unused trunk (--families adversarial) need not stay on the device
+    result["true_value_se"] = np.asarray(value_se(test_ds, cfg.vd_horizon, cfg.gamma)).tolist()
 
     # ---- 3. improvement
     it = sizes["improve_iterations"]

@@ -37,6 +37,7 @@ import argparse
 import os
 import sys
 
+from rl2s_jax.paper.data_seeds import data_seed_rows
 from rl2s_jax.paper.physics_tables import PHYSICS_BEGIN, PHYSICS_END, physics_block
 from rl2s_jax.paper.tables import (
     PAPER_NOTE,
@@ -125,6 +126,7 @@ def render(results: dict, source: str) -> str:
             lines += provenance(task, results[task])
     lines += ["", "### Table 1: ranking the test policies", ""]
     lines += metric_table(results, TABLE1)
+    lines += data_seed_section(results)
     lines += ["", "### Table 2: policy improvement (SAC inside each simulator, real return)", ""]
     lines += metric_table(results, TABLE2, with_oracle=False) + control_rows(results)
     lines += ["", "MPI / API: C0 is the test data's true value, C1 measured apart. MPI / API "
@@ -161,6 +163,22 @@ def render(results: dict, source: str) -> str:
               "resolve the difference.", "", *paired_mvd_rows(results)]
     lines.append(END)
     return "\n".join(lines) + "\n"
+
+
+def data_seed_section(results: dict) -> list[str]:
+    """The table "Ranking over data seeds" (issue 66) from the tasks' ``by_data_seed``
+    (``rl2s_jax.paper.data_seeds``); no task has one: nothing."""
+    rows = data_seed_rows(results, TASKS)
+    if not rows:
+        return []
+    return ["", "### Ranking over data seeds", "",
+            "Kendall tau on the test policies per data collection (`--data-seed`; each cell "
+            "the mean over that data seed's seeds), the mean over data seeds with its 95% "
+            "t-interval (each data seed one draw of the whole protocol), the oracle and the "
+            "noise ceiling (an exact simulator's expected tau) of the same data seed, and "
+            "issue 66's bar. Recorded by `experiments/merge_results.py` (by_data_seed; the "
+            "commands are in the task JSONs). \"not measured\": no run measured it.", "",
+            *rows]
 
 
 def with_block(text: str, block: str, begin: str = BEGIN, end_mark: str = END) -> str:

@@ -697,6 +697,7 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     assert r["complete"] and r["seeds"] == 2 and r["hardware"] == "cpu"
     assert r["machine"]["backend"] == "cpu" and "cpu_isa" in r["machine"]
     assert r["seed_ids"] == [1, 2]
+    assert r["data_seed"] == 0 and len(r["true_value_se"]) == n_test  # issue 66's analysis
     assert r["command"].startswith("python experiments/paper.py --task hopper")
     assert set(r["methods"]) == {"rl2s", "gail", "bc", "rl2s-bc", "oracle"}
     assert len(r["zoo_sha256"]) == 64

@@ -1,0 +1,315 @@
+"""Why a task's ranking falls, policy by policy (issue 66, item 2): for one task and one or more
+paper.py results (data seeds), per test policy its true value with its standard error and its
+simulated value per method and seed; which pairs of policies each simulator swaps (discordant
+pairs) and whether each swap lies within the truth's own noise; the share of the tau lost to
+within-noise swaps against real ones; the swaps against the simulated episode lengths
+(termination) and, where a lane records it, a per-policy ``support``.
+
+    python experiments/ranking_analysis.py RESULT.json [RESULT.json ...] [--methods rl2s,gail]
+        [--json OUT.json] [--n-rep 2000]
+
+Results of one data seed (``data_seed`` or the command's --data-seed) are read together (a
+method's lanes from the first file that has them, e.g. the adversarial and mle runs); each data
+seed is analysed on its own, and two or more on the same test policies are compared (their
+truths are independent measurements).
+
+A swap of policies i, j is *within noise* when |V_i - V_j| < 2 sqrt(se_i^2 + se_j^2) (V: the
+true values, se: their standard errors); every other discordant pair is a *real* swap. With P
+policies and N = P (P - 1) / 2 pairs, tau = (C - D) / N (``metrics.kendall_tau``), so a swap
+costs 2 / N: tau lost = 2 D / N = 2 D_noise / N + 2 D_real / N.
+
+The standard errors: the result's ``true_value_se`` (paper.py writes it since issue 66); older
+results have none, and then the zoo's: its ``return_se`` (16 episodes of the undiscounted return,
+``zoo.info["value_episodes"]``) scaled to the result's ``value_episodes`` (x sqrt(16 / n)) and
+to the discounted value (x |V| / |V undiscounted|, at most 1), a proxy, for a result on the
+shipped zoo or on a zoo whose returns of these policies agree with the result's undiscounted
+truth within 6 SE (a zoo grown by ``--extend`` keeps its policies). With two data seeds the
+spread of the truth between them checks the SEs: z = (V_a - V_b) / sqrt(se_a^2 + se_b^2) has
+RMS about 1 when they are right; ``tau_without``: the mean tau over a method's lanes without
+each policy in turn (which policy the ranking's loss hangs on).
+``noise ceiling``: ``metrics.noise_ceiling`` with these SEs on both sides (the simulated side's
+episodes the result's ``eval_episodes``, its per-episode spread assumed the truth's): the tau an
+exact simulator would be measured at.
+
+Needs no GPU: the numbers come from the JSONs (``lanes[<method>/<seed>]["sim_value"]``,
+``true_value``, ``true_length``, ``lanes[...]["sim_length"]``).
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from rl2s_jax.evaluate.metrics import kendall_tau, noise_ceiling, spearman  # noqa: E402
+from rl2s_jax.paper.data_seeds import data_seed_of  # noqa: E402
+
+METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def swaps(truth, se, sim) -> dict:
+    """The discordant pairs of one simulator: truth, se, sim [P]. -> {"pairs": N, "tau",
+    "noise": [(i, j)] swaps within the truth's noise, "real": [(i, j)] the others,
+    "tau_lost_noise", "tau_lost_real" (2 D / N each)}; i < j index the policies."""
+    t, e, s = (np.asarray(x, np.float64) for x in (truth, se, sim))
+    if not (t.shape == e.shape == s.shape and t.ndim == 1 and t.size >= 2):
+        raise ValueError(f"truth, se, sim: expected equal shapes [P >= 2], got {t.shape}, "
+                         f"{e.shape}, {s.shape}")
+    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(s)) and np.all(e >= 0)):
+        raise ValueError("truth, se, sim: expected finite values and se >= 0")
+    i, j = np.triu_indices(t.size, k=1)
+    discordant = np.sign(t[i] - t[j]) * np.sign(s[i] - s[j]) < 0
+    within = np.abs(t[i] - t[j]) < 2.0 * np.sqrt(e[i] ** 2 + e[j] ** 2)
+    n = i.size
+    noise = [(int(a), int(b)) for a, b in zip(i[discordant & within], j[discordant & within],
+                                              strict=True)]
+    real = [(int(a), int(b)) for a, b in zip(i[discordant & ~within], j[discordant & ~within],
+                                             strict=True)]
+    return {"pairs": n, "tau": kendall_tau(t, s), "noise": noise, "real": real,
+            "tau_lost_noise": 2.0 * len(noise) / n, "tau_lost_real": 2.0 * len(real) / n}
+
+
+def zoo_se(result: dict) -> np.ndarray:
+    """The proxy SEs [P] of the result's true values from the shipped zoo (module docstring).
+    ValueError when the result was measured on another zoo or names an unknown policy."""
+    from rl2s_jax.zoo.zoo import load_zoo  # local: loads the zoo only for results without SEs
+
+    task = result["task"]
+    with open(os.path.join(ROOT, "rl2s_jax", "zoo", "shipped", task, "zoo.npz"), "rb") as f:
+        sha = hashlib.sha256(f.read()).hexdigest()
+    zoo = load_zoo(task)
+    every = list(range(len(zoo.returns)))
+    ids = dict(zip(zoo.policy_names(every), every, strict=True))
+    names = result["test_policy_names"]
+    missing = [n for n in names if n not in ids]
+    if missing:
+        raise ValueError(f"test_policy_names: not in the shipped zoo: {missing}")
+    rows = [ids[n] for n in names]
+    n_zoo = int((zoo.info or {}).get("value_episodes") or 16)
+    n_truth = int(result["sizes"]["value_episodes"])
+    v, u = np.asarray(result["true_value"]), np.asarray(result["true_value_undiscounted"])
+    zse = np.asarray(zoo.return_se)[rows]
+    if result.get("zoo_sha256") != sha and np.any(  # a grown zoo keeps its policies: check
+            np.abs(np.asarray(zoo.returns)[rows] - u) > 6.0 * zse * np.sqrt(1 + n_zoo / n_truth)
+            + 1.0):
+        raise ValueError(f"zoo_sha256: the result has no true_value_se and was measured on "
+                         f"zoo {result.get('zoo_sha256')}, whose policies' returns differ from "
+                         f"the shipped zoo's ({sha[:12]})")
+    ratio = np.where(np.abs(u) > 1e-9, np.abs(v) / np.maximum(np.abs(u), 1e-9), 1.0)
+    return zse * np.sqrt(n_zoo / n_truth) * np.minimum(ratio, 1.0)
+
+
+def standard_errors(result: dict) -> tuple[np.ndarray, str]:
+    """(se [P], where it came from): the result's true_value_se, else the zoo's proxy."""
+    se = result.get("true_value_se")
+    if se is not None:
+        return np.asarray(se, np.float64), "true_value_se (the data's)"
+    return zoo_se(result), "zoo return_se, scaled (a proxy)"
+
+
+def lanes_of(results: list[dict], methods) -> dict[str, list[dict]]:
+    """method -> its lanes (dicts with "seed", "sim_value", ...) from the first result that has
+    the method, in seed order."""
+    out = {}
+    for m in methods:
+        for r in results:
+            lanes = [dict(v, seed=int(k.split("/")[1])) for k, v in r.get("lanes", {}).items()
+                     if k.split("/")[0] == m and v.get("sim_value") is not None]
+            if lanes:
+                out[m] = sorted(lanes, key=lambda x: x["seed"])
+                break
+    return out
+
+
+def leave_one_out(truth, sims) -> np.ndarray:
+    """Mean tau over the lanes [L, P] of sims without each policy in turn -> [P]."""
+    t, s = np.asarray(truth, np.float64), np.asarray(sims, np.float64)
+    keep = lambda i: np.arange(t.size) != i
+    return np.array([np.mean([kendall_tau(t[keep(i)], lane[keep(i)]) for lane in s])
+                     for i in range(t.size)])
+
+
+def analyse_seed(results: list[dict], methods=METHODS, n_rep: int = 2000) -> dict:
+    """One data seed's analysis (results: its paper.py JSONs; module docstring)."""
+    first = results[0]
+    for r in results[1:]:
+        if r.get("test_policy_names") != first.get("test_policy_names"):
+            raise ValueError("test_policy_names: the results of one data seed differ")
+    truth = np.asarray(first["true_value"], np.float64)
+    se, source = standard_errors(first)
+    names = list(first["test_policy_names"])
+    lanes = lanes_of(results, methods)
+    if not lanes:
+        raise ValueError(f"lanes: no lane of {', '.join(methods)} with sim_value")
+    n_sim = int(first["sizes"]["eval_episodes"])
+    n_truth = int(first["sizes"]["value_episodes"])
+    ceiling = noise_ceiling(truth, se * np.sqrt(n_truth), n_truth=n_truth, n_sim=n_sim,
+                            n_rep=n_rep)["kendall_tau"]
+    P = truth.size
+    per_method, noise_count, real_count = {}, np.zeros(P, int), np.zeros(P, int)
+    for m, ls in lanes.items():
+        rows = []
+        for lane in ls:
+            sw = swaps(truth, se, lane["sim_value"])
+            for a, b in sw["noise"]:
+                noise_count[[a, b]] += 1
+            for a, b in sw["real"]:
+                real_count[[a, b]] += 1
+            rows.append({"seed": lane["seed"], "tau": sw["tau"], "noise": len(sw["noise"]),
+                         "real": len(sw["real"]), "tau_lost_noise": sw["tau_lost_noise"],
+                         "tau_lost_real": sw["tau_lost_real"], "real_pairs": sw["real"]})
+        sims = np.array([lane["sim_value"] for lane in ls], np.float64)
+        lengths = [lane.get("sim_length") for lane in ls]
+        per_method[m] = {
+            "seeds": rows, "sim_value": sims.tolist(),
+            "tau": float(np.mean([r["tau"] for r in rows])),
+            "tau_lost_noise": float(np.mean([r["tau_lost_noise"] for r in rows])),
+            "tau_lost_real": float(np.mean([r["tau_lost_real"] for r in rows])),
+            "tau_without": leave_one_out(truth, sims).tolist(),
+            "sim_length": (np.mean(np.array(lengths, np.float64), 0).tolist()
+                           if all(x is not None for x in lengths) else None),
+            "support": (np.mean([lane["support"] for lane in ls], 0).tolist()
+                        if all("support" in lane for lane in ls) else None)}
+    return {"data_seed": data_seed_of(first), "task": first.get("task"), "policies": names,
+            "true_value": truth.tolist(), "se": se.tolist(), "se_source": source,
+            "true_length": first.get("true_length"), "n_truth": n_truth, "n_sim": n_sim,
+            "pairs": P * (P - 1) // 2, "noise_ceiling": ceiling, "methods": per_method,
+            "noise_swaps_per_policy": noise_count.tolist(),
+            "real_swaps_per_policy": real_count.tolist(),
+            "commands": [r.get("command") for r in results]}
+
+
+def compare_truths(a: dict, b: dict) -> dict | None:
+    """Two data seeds' truths of the same policies: the z of their differences (RMS ~1 when
+    the SEs are right) and the tau of one truth against the other. None: other policies."""
+    if a["policies"] != b["policies"]:
+        return None
+    va, vb = np.asarray(a["true_value"]), np.asarray(b["true_value"])
+    z = (va - vb) / np.sqrt(np.asarray(a["se"]) ** 2 + np.asarray(b["se"]) ** 2)
+    return {"data_seeds": [a["data_seed"], b["data_seed"]], "rms_z": float(np.sqrt(np.mean(
+        z ** 2))), "max_abs_z": float(np.max(np.abs(z))), "tau_truth_vs_truth": kendall_tau(
+        va, vb)}
+
+
+def group_by_data_seed(results: list[dict]) -> dict[int, list[dict]]:
+    groups: dict[int, list[dict]] = {}
+    for r in results:
+        groups.setdefault(data_seed_of(r), []).append(r)
+    tasks = {r.get("task") for r in results}
+    if len(tasks) > 1:
+        raise ValueError(f"task: expected the results of one task, got {sorted(tasks)}")
+    return dict(sorted(groups.items()))
+
+
+def relations(a: dict) -> dict:
+    """Where the real swaps fall, per policy (summed over methods and seeds), against the
+    simulators' relative value error |sim - V| / max(|V|, 1), their episode-length error
+    |sim length - true length| and, where recorded, their support: Spearman rank correlations
+    (``metrics.spearman``; None where a feature is missing or constant)."""
+    real = np.asarray(a["real_swaps_per_policy"], np.float64)
+    truth = np.asarray(a["true_value"])
+    feats = {}
+    sims = np.concatenate([np.asarray(m["sim_value"]) for m in a["methods"].values()])
+    feats["relative value error"] = np.mean(np.abs(sims - truth), 0) / np.maximum(
+        np.abs(truth), 1.0)
+    lens = [m["sim_length"] for m in a["methods"].values() if m["sim_length"] is not None]
+    if lens and a.get("true_length") is not None:
+        feats["episode length error"] = np.abs(np.mean(lens, 0) - np.asarray(a["true_length"]))
+    sup = [m["support"] for m in a["methods"].values() if m["support"] is not None]
+    if sup:
+        feats["support"] = np.mean(sup, 0)
+    feats["truth SE / value"] = np.asarray(a["se"]) / np.maximum(np.abs(truth), 1.0)
+    out = {}
+    for k, v in feats.items():
+        ok = np.ptp(real) > 0 and np.ptp(v) > 0
+        out[k] = spearman(real, v) if ok else None
+    return out
+
+
+def report(a: dict) -> str:
+    """The printed analysis of one data seed."""
+    nc, ms = a["noise_ceiling"], a["methods"]
+    lines = [f"{a['task']}, data seed {a['data_seed']}: {len(a['policies'])} test policies "
+             f"({a['pairs']} pairs); truth from {a['n_truth']} episodes (SE: {a['se_source']}),"
+             f" simulated from {a['n_sim']}",
+             f"  noise ceiling (an exact simulator at these SEs): tau {nc['mean']:.3f} "
+             f"[{nc['lo']:.3f}, {nc['hi']:.3f}]",
+             "  method   seeds  tau    lost: within-noise swaps / real swaps (mean over seeds)"]
+    for m, r in ms.items():
+        best = int(np.argmax(r["tau_without"]))
+        lines.append(f"  {m:<8} {len(r['seeds']):>5}  {r['tau']:.3f}  {r['tau_lost_noise']:.3f}"
+                     f" / {r['tau_lost_real']:.3f}   without {a['policies'][best]}: tau "
+                     f"{r['tau_without'][best]:.3f}")
+    head = "  ".join(f"{m:>7}" for m in ms)
+    lines += ["", f"  {'policy':<16} {'true':>7} {'se':>5}  {head}  {'len true/sim':>13}  "
+              "swaps noise/real"]
+    order = np.argsort(a["true_value"])
+    rl2s_len = next((r["sim_length"] for r in ms.values() if r["sim_length"]), None)
+    for i in order:
+        sims = "  ".join(f"{np.mean(np.asarray(r['sim_value'])[:, i]):>7.0f}" for r in ms.values())
+        tl = a["true_length"][i] if a.get("true_length") else float("nan")
+        sl = rl2s_len[i] if rl2s_len else float("nan")
+        lines.append(f"  {a['policies'][i]:<16} {a['true_value'][i]:>7.0f} {a['se'][i]:>5.0f}  "
+                     f"{sims}  {tl:>6.0f}/{sl:<6.0f}  {a['noise_swaps_per_policy'][i]:>5}/"
+                     f"{a['real_swaps_per_policy'][i]}")
+    pairs: dict = {}
+    for r in ms.values():
+        for s in r["seeds"]:
+            for p in s["real_pairs"]:
+                pairs[tuple(p)] = pairs.get(tuple(p), 0) + 1
+    lanes = sum(len(r["seeds"]) for r in ms.values())
+    top = sorted(pairs.items(), key=lambda kv: -kv[1])[:8]
+    lines += ["", f"  real swaps most often (of {lanes} lanes): " + ", ".join(
+        f"{a['policies'][i]}-{a['policies'][j]} {n}" for (i, j), n in top)]
+    rel = relations(a)
+    lines.append("  Spearman of real swaps per policy with: " + ", ".join(
+        f"{k} {'n/a' if v is None else format(v, '+.2f')}" for k, v in rel.items()))
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("results", nargs="+", help="paper.py <task>.json files of one task")
+    ap.add_argument("--methods", default=",".join(METHODS))
+    ap.add_argument("--n-rep", type=int, default=2000, help="noise ceiling replicates")
+    ap.add_argument("--json", help="also write the analysis here")
+    args = ap.parse_args(argv)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    if not methods or set(methods) - set(METHODS):
+        raise SystemExit(f"methods: expected a comma list of {', '.join(METHODS)}, got "
+                         f"{args.methods!r}")
+    results = []
+    for p in args.results:
+        with open(p) as f:
+            results.append(json.load(f))
+    try:
+        seeds = {d: analyse_seed(rs, methods, args.n_rep)
+                 for d, rs in group_by_data_seed(results).items()}
+    except ValueError as err:
+        raise SystemExit(str(err)) from None
+    out = {"data_seeds": seeds, "truth_between_data_seeds": []}
+    for d in seeds.values():
+        d["relations"] = relations(d)
+        print(report(d) + "\n")
+    keys = list(seeds)
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            c = compare_truths(seeds[a], seeds[b])
+            if c:
+                out["truth_between_data_seeds"].append(c)
+                print(f"truth, data seed {a} vs {b}: RMS z {c['rms_z']:.2f} (max |z| "
+                      f"{c['max_abs_z']:.2f}; ~1 when the SEs are right), tau of one truth "
+                      f"against the other {c['tau_truth_vs_truth']:.3f}")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(out, f, indent=1)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,325 @@
+"""Ranking over data collections (issue 66): merge_results.py's by_data_seed, the table
+"Ranking over data seeds" and experiments/ranking_analysis.py's swap arithmetic. Pure Python
+and NumPy on tiny synthetic results: no JAX program runs."""
+
+import json
+
+import numpy as np
+import pytest
+from experiment_scripts import load_script
+
+from rl2s_jax.paper import data_seeds as dseeds
+
+NAMES = ["p0", "p1", "p2"]
+
+
+def _run(methods, taus, mvds, data_seed=None, names=NAMES, **extra):
+    """A paper.py result of one data seed: per_seed lists of tau and MVD per method."""
+    cmd = "python experiments/paper.py --task hopper --seeds 2" + (
+        "" if data_seed is None else f" --data-seed {data_seed}")
+    per = {m: {"kendall_tau": list(t), "mvd": list(v)}
+           for m, t, v in zip(methods, taus, mvds, strict=True)}
+    return {"task": "hopper", "command": cmd, "hardware": "H200", "test_policy_names": names,
+            "per_seed": per, "methods": {}, "zoo_sha256": "abc", **extra}
+
+
+def test_data_seed_of_reads_the_field_or_the_command():
+    assert dseeds.data_seed_of({"data_seed": 23, "command": "x --data-seed 7"}) == 23
+    assert dseeds.data_seed_of({"command": "python experiments/paper.py --data-seed 7"}) == 7
+    assert dseeds.data_seed_of({"command": "paper.py --data-seed=9 && paper.py --data-seed 9"}
+                               ) == 9
+    assert dseeds.data_seed_of({"command": "python experiments/paper.py --task ant"}) == 0
+    with pytest.raises(ValueError, match="different --data-seed"):
+        dseeds.data_seed_of({"command": "paper.py --data-seed 7 && paper.py"})
+
+
+def test_merge_results_records_each_data_seed(tmp_path):
+    """--data-seed-run: one entry per data seed, a method's numbers (means over its seeds)
+    from the first run of that data seed that has it, the oracle and noise ceiling only where
+    measured; --keep leaves the zoo the result was measured on; a later --paper run of another
+    data seed is added beside the entries recorded before."""
+    mr = load_script("merge_results")
+    out = tmp_path / "out"
+    out.mkdir()
+    old = {"task": "hopper", "methods": {}, "per_seed": {}, "zoo_sha256": "old-zoo"}
+    (out / "hopper.json").write_text(json.dumps(old))
+    adv7 = _run(("rl2s", "gail"), ([0.8, 0.9], [0.7, 0.7]), ([100.0, 200.0], [50.0, 70.0]), 7)
+    mle7 = _run(("rl2s", "bc", "rl2s-bc"), ([0.1, 0.1], [0.6, 0.8], [0.5, 0.5]),
+                ([1.0, 1.0], [10.0, 30.0], [5.0, 5.0]), 7)
+    mle7["command"] += " --families mle"
+    orc0 = _run(("rl2s", "gail", "bc", "rl2s-bc", "oracle"), ([0.9, 0.9],) * 5,
+                ([1.0, 3.0],) * 5, noise_ceiling={"n_truth": 128, "n_sim": 128, "kendall_tau": {
+                    "mean": 0.97, "lo": 0.9, "hi": 1.0}})
+    paths = []
+    for i, r in enumerate((adv7, mle7, orc0)):
+        paths += ["--data-seed-run", str(tmp_path / f"r{i}.json")]
+        (tmp_path / f"r{i}.json").write_text(json.dumps(r))
+    assert mr.main(["--task", "hopper", "--keep", "--out", str(out), *paths]) == 0
+    got = json.loads((out / "hopper.json").read_text())
+    assert got["zoo_sha256"] == "old-zoo"  # --keep: not the shipped zoo's stamp
+    seven = got["by_data_seed"]["7"]
+    assert seven["rl2s"] == {"kendall_tau": pytest.approx(0.85), "mvd": 150.0, "seeds": 2}
+    assert seven["gail"]["kendall_tau"] == pytest.approx(0.7)
+    assert seven["bc"] == {"kendall_tau": pytest.approx(0.7), "mvd": 20.0, "seeds": 2}
+    assert "oracle" not in seven and "noise_ceiling" not in seven
+    assert seven["command"] == f"{adv7['command']} && {mle7['command']}"
+    assert seven["test_policy_names"] == NAMES
+    zero = got["by_data_seed"]["0"]
+    assert zero["oracle"] == {"kendall_tau": 0.9, "seeds": 2}
+    assert zero["noise_ceiling"] == {"mean": 0.97, "lo": 0.9, "hi": 1.0, "n_truth": 128,
+                                     "n_sim": 128}
+    assert list(got["by_data_seed"]) == ["0", "7"]
+    # a protocol run of data seed 23 through --paper: recorded, the earlier seeds kept
+    run23 = {**_run(("rl2s", "gail"), ([0.5, 0.7], [0.6, 0.6]), ([9.0, 9.0],) * 2, 23),
+             "sizes": {}, "zoo_sha256": mr.zoo_sha256("hopper")}
+    (tmp_path / "p23.json").write_text(json.dumps(run23))
+    assert mr.main(["--task", "hopper", "--paper", str(tmp_path / "p23.json"), "--out",
+                    str(out)]) == 0
+    got = json.loads((out / "hopper.json").read_text())
+    assert list(got["by_data_seed"]) == ["0", "7", "23"]
+    assert got["by_data_seed"]["23"]["rl2s"]["kendall_tau"] == pytest.approx(0.6)
+    assert got["by_data_seed"]["7"] == seven
+    # oracle_check.py --data-seed 7: into data seed 7's entry, not the task's own oracle row
+    orc = {"data_seed": 7, "policy_names": NAMES, "command": "oracle_check.py --data-seed 7",
+           "hardware": "H200", "jax_version": "0.11", "policies": 3,
+           "rows": [{"horizon": 1000, "n_episodes": 64, "metrics": {"kendall_tau": 0.95}}]}
+    (tmp_path / "orc7.json").write_text(json.dumps(orc))
+    assert mr.main(["--task", "hopper", "--keep", "--out", str(out), "--oracle",
+                    str(tmp_path / "orc7.json")]) == 0
+    got = json.loads((out / "hopper.json").read_text())
+    assert got["by_data_seed"]["7"]["oracle"]["kendall_tau"] == 0.95
+    assert "oracle" not in got["per_seed"]  # the task's rows are data seed 23's run
+    # another test split is refused, naming the field
+    other = _run(("rl2s",), ([0.5, 0.5],), ([1.0, 1.0],), 5, names=["p0", "p1", "q9"])
+    (tmp_path / "other.json").write_text(json.dumps(other))
+    with pytest.raises(SystemExit, match="by-data-seed: by_data_seed: data seed 5 has other"):
+        mr.main(["--task", "hopper", "--keep", "--out", str(out), "--data-seed-run",
+                 str(tmp_path / "other.json")])
+
+
+def test_data_seed_entry_refuses_mixed_runs():
+    a = _run(("rl2s",), ([0.5, 0.5],), ([1.0, 1.0],), 7)
+    with pytest.raises(ValueError, match="data_seed: the runs are of different data seeds"):
+        dseeds.data_seed_entry([a, _run(("bc",), ([0.5, 0.5],), ([1.0, 1.0],), 8)])
+    with pytest.raises(ValueError, match="test_policy_names"):
+        dseeds.data_seed_entry([a, _run(("bc",), ([0.5],), ([1.0],), 7, names=["x"])])
+    # an oracle row merged from another collection (merge_results' "oracle" provenance) and
+    # its ceiling are not this data seed's
+    other = {**_run(("rl2s", "oracle"), ([0.5], [0.9]), ([1.0], [1.0]), 7),
+             "oracle": {"source": "another run"}, "noise_ceiling": {"kendall_tau": {
+                 "mean": 0.9, "lo": 0.8, "hi": 1.0}}}
+    _, entry = dseeds.data_seed_entry([other])
+    assert "oracle" not in entry and "noise_ceiling" not in entry
+    with pytest.raises(ValueError, match="per_seed: no run has any of"):
+        dseeds.data_seed_entry([_run(("oracle",), ([0.5],), ([1.0],), 7)])
+
+
+def test_oracle_check_output_fills_its_data_seed():
+    """oracle_check.py --data-seed: its longest-horizon, most-episode row's tau and ceiling."""
+    result = {"by_data_seed": {"7": {"rl2s": {"kendall_tau": 0.8, "seeds": 3},
+                                     "test_policy_names": NAMES}}}
+    row = lambda h, n, tau: {"horizon": h, "n_episodes": n, "metrics": {"kendall_tau": tau},
+                             "noise_ceiling": {"n_truth": 256, "n_sim": n, "kendall_tau": {
+                                 "mean": tau + 0.01, "lo": 0.8, "hi": 1.0}}}
+    orc = {"data_seed": 7, "policy_names": NAMES, "command": "oracle_check.py --data-seed 7",
+           "rows": [row(1000, 64, 0.90), row(1000, 256, 0.93), row(500, 512, 0.50)]}
+    dseeds.oracle_into_data_seed(result, orc)
+    entry = result["by_data_seed"]["7"]
+    assert entry["oracle"]["kendall_tau"] == 0.93
+    assert entry["noise_ceiling"]["mean"] == pytest.approx(0.94)
+    assert entry["noise_ceiling"]["n_sim"] == 256
+    before = json.dumps(result)
+    dseeds.oracle_into_data_seed(result, {k: v for k, v in orc.items() if k != "data_seed"})
+    assert json.dumps(result) == before  # no data seed: its own collection, left out
+    with pytest.raises(ValueError, match="no protocol run of data seed 8"):
+        dseeds.oracle_into_data_seed(result, {**orc, "data_seed": 8})
+    with pytest.raises(ValueError, match="its policies differ"):
+        dseeds.oracle_into_data_seed(result, {**orc, "policy_names": ["p0"]})
+
+
+def test_ranking_over_data_seeds_table():
+    """Per task and method the tau of each data seed, the mean over data seeds with its 95%
+    t-interval (checked against NumPy and the t quantile 12.706 for 2 values), 'not measured'
+    where nothing ran, and the oracle bar at 0.03 (Ant 0.05)."""
+    def entry(tau, oracle=None, ceiling=None):
+        e = {"rl2s": {"kendall_tau": tau, "mvd": 1.0, "seeds": 3},
+             "gail": {"kendall_tau": tau - 0.1, "mvd": 1.0, "seeds": 3}}
+        if oracle is not None:
+            e["oracle"] = {"kendall_tau": oracle, "seeds": 1}
+        if ceiling is not None:
+            e["noise_ceiling"] = {"mean": ceiling, "lo": 0.9, "hi": 1.0}
+        return e
+
+    results = {"hopper": {"by_data_seed": {"0": entry(0.90, 0.94), "7": entry(0.94)}},
+               "ant": {"by_data_seed": {"7": entry(0.80, 0.84, 0.93)}},
+               "walker2d": {"per_seed": {}}}
+    rows = dseeds.data_seed_rows(results, ("hopper", "walker2d", "halfcheetah", "ant"))
+    assert rows[0].startswith("| task | method | data seed 0 | data seed 7 | over data seeds")
+    by = {(r.split(" | ")[0][2:], r.split(" | ")[1]): r for r in rows[2:]}
+    assert not any(k[0] == "walker2d" for k in by)  # no by_data_seed: no rows
+    x = np.array([0.90, 0.94])
+    half = 12.7062047 * x.std(ddof=1) / np.sqrt(2)
+    lo, hi = x.mean() - half, min(x.mean() + half, 1.0)  # clipped to tau's range
+    assert (f"| hopper | rl2s | 0.900 (3 seeds) | 0.940 (3 seeds) | {x.mean():.3f} "
+            f"[{lo:.3f}, {hi:.3f}] (2 data seeds) | 0: MISSED (-0.040 vs -0.03); 7: not "
+            "measured (no oracle) |") == by[("hopper", "rl2s")]
+    assert "| hopper | bc | not measured | not measured | not measured |" in by[("hopper", "bc")]
+    assert by[("hopper", "oracle / noise ceiling")].startswith(
+        "| hopper | oracle / noise ceiling | 0.940 (1 seed) / not measured | not measured / "
+        "not measured | 0.940 (1 data seed) |")
+    # Ant's margin is 0.05: -0.04 meets it
+    assert by[("ant", "rl2s")].endswith("| 7: met (-0.040 vs -0.05) |")
+    assert "| not measured | 0.800 (3 seeds) | 0.800 (1 data seed) |" in by[("ant", "rl2s")]
+    assert "0.840 (1 seed) / 0.930 [0.90, 1.00]" in by[("ant", "oracle / noise ceiling")]
+    assert dseeds.data_seed_rows({"hopper": {}}, ("hopper",)) == []
+
+
+def test_paper_tables_renders_the_data_seed_table(tmp_path):
+    pt = load_script("paper_tables")
+    r = {"task": "hopper", "methods": {}, "per_seed": {"rl2s": {"kendall_tau": [0.9]}},
+         "by_data_seed": {"7": {"rl2s": {"kendall_tau": 0.9, "mvd": 1.0, "seeds": 1}}}}
+    text = pt.render({"hopper": r}, "x")
+    assert "### Ranking over data seeds" in text
+    table = text.split("### Ranking over data seeds")[1].split("###")[0]
+    assert "| hopper | rl2s | 0.900 (1 seed) | 0.900 (1 data seed) |" in table
+    assert "### Ranking over data seeds" not in pt.render({"hopper": {**r, "by_data_seed": {}}},
+                                                          "x")
+
+
+# ------------------------------------------------------------------ ranking_analysis.py
+
+
+def test_swaps_split_discordant_pairs_by_the_truths_noise():
+    """A hand-made case: truth [0, 1, 10, 20], se 1 each (noise band 2 sqrt(2) = 2.83): the
+    simulator swaps (0, 1) (|dV| 1: within noise) and (2, 3) (|dV| 10: real); 6 pairs, tau
+    (4 - 2) / 6, each swap costs 2 / 6. Checked against a plain NumPy double loop."""
+    ra = load_script("ranking_analysis")
+    truth, se, sim = [0.0, 1.0, 10.0, 20.0], [1.0, 1.0, 1.0, 1.0], [1.0, 0.0, 21.0, 19.0]
+    sw = ra.swaps(truth, se, sim)
+    assert sw["noise"] == [(0, 1)] and sw["real"] == [(2, 3)]
+    assert sw["pairs"] == 6 and sw["tau"] == pytest.approx(2 / 6)
+    assert sw["tau_lost_noise"] == pytest.approx(2 / 6)
+    assert sw["tau_lost_real"] == pytest.approx(2 / 6)
+    rng = np.random.default_rng(3)
+    t, e, s = rng.normal(0, 5, 9), rng.uniform(0.5, 3, 9), rng.normal(0, 5, 9)
+    noise, real = [], []
+    for i in range(9):
+        for j in range(i + 1, 9):
+            if (t[i] - t[j]) * (s[i] - s[j]) < 0:
+                band = 2 * np.sqrt(e[i] ** 2 + e[j] ** 2)
+                (noise if abs(t[i] - t[j]) < band else real).append((i, j))
+    sw = ra.swaps(t, e, s)
+    assert sw["noise"] == noise and sw["real"] == real
+    assert 1 - sw["tau"] == pytest.approx(sw["tau_lost_noise"] + sw["tau_lost_real"])
+    tied = ra.swaps(truth, se, [0.0, 0.0, 20.0, 20.0])  # a tie is no swap (tau-a)
+    assert tied["noise"] == [] and tied["real"] == []
+    with pytest.raises(ValueError, match="truth, se, sim: expected equal shapes"):
+        ra.swaps(truth, se[:3], sim)
+    with pytest.raises(ValueError, match="se >= 0"):
+        ra.swaps(truth, [-1.0, 1.0, 1.0, 1.0], sim)
+
+
+def test_ranking_analysis_per_data_seed_and_between_truths(tmp_path, capsys):
+    """Two data seeds' results with true_value_se: per method the tau lost to each kind of
+    swap, the swaps per policy, the tau without each policy, and the truths' z between seeds."""
+    ra = load_script("ranking_analysis")
+
+    def result(ds, truth, sims):
+        lanes = {f"rl2s/{s}": {"sim_value": v, "sim_length": [10.0] * 4}
+                 for s, v in enumerate(sims)}
+        return {"task": "hopper", "command": f"paper.py --data-seed {ds}", "lanes": lanes,
+                "true_value": truth, "true_value_se": [1.0] * 4, "true_length": [9.0] * 4,
+                "test_policy_names": ["a", "b", "c", "d"],
+                "sizes": {"eval_episodes": 16, "value_episodes": 16}}
+
+    r0 = result(0, [0.0, 1.0, 10.0, 20.0], [[1.0, 0.0, 21.0, 19.0], [1.0, 0.0, 10.0, 20.0]])
+    r7 = result(7, [0.0, 2.0, 10.0, 23.0], [[0.0, 1.0, 10.0, 20.0]])
+    paths = []
+    for i, r in enumerate((r0, r7)):
+        paths.append(str(tmp_path / f"r{i}.json"))
+        (tmp_path / f"r{i}.json").write_text(json.dumps(r))
+    assert ra.main([*paths, "--methods", "rl2s", "--n-rep", "50", "--json",
+                    str(tmp_path / "a.json")]) == 0
+    out = json.loads((tmp_path / "a.json").read_text())
+    zero = out["data_seeds"]["0"]
+    m = zero["methods"]["rl2s"]
+    assert m["tau"] == pytest.approx((2 / 6 + 4 / 6) / 2)
+    assert m["tau_lost_noise"] == pytest.approx(2 / 6) and m["tau_lost_real"] == pytest.approx(
+        1 / 6)
+    assert zero["noise_swaps_per_policy"] == [2, 2, 0, 0]
+    assert zero["real_swaps_per_policy"] == [0, 0, 1, 1]
+    # without a: the first lane keeps its swap c-d (tau 1/3 of 3 pairs), the second none (1);
+    # without c: each keeps one swap (1/3)
+    assert m["tau_without"][0] == pytest.approx((1 / 3 + 1) / 2)
+    assert m["tau_without"][2] == pytest.approx(1 / 3)
+    assert zero["se_source"].startswith("true_value_se")
+    z = np.array([0.0, -1.0, 0.0, -3.0]) / np.sqrt(2.0)
+    between = out["truth_between_data_seeds"][0]
+    assert between["rms_z"] == pytest.approx(np.sqrt(np.mean(z ** 2)))
+    assert between["tau_truth_vs_truth"] == 1.0
+    printed = capsys.readouterr().out
+    assert "hopper, data seed 0: 4 test policies (6 pairs)" in printed
+    assert "real swaps most often (of 2 lanes): c-d 1" in printed
+    with pytest.raises(SystemExit, match="methods: expected a comma list"):
+        ra.main([paths[0], "--methods", "nope"])
+
+
+def test_zoo_standard_errors_scale_the_zoos_and_check_its_policies():
+    """Without true_value_se: the zoo's return_se x sqrt(16 / value episodes) x |V| / |V
+    undiscounted| (at most 1); a result of another zoo only where its returns agree."""
+    from rl2s_jax.zoo.zoo import load_zoo
+
+    ra = load_script("ranking_analysis")
+    zoo = load_zoo("hopper")
+    ids = list(zoo.test_ids)
+    u = np.asarray(zoo.returns, np.float64)[ids]
+    r = {"task": "hopper", "test_policy_names": zoo.policy_names(ids), "zoo_sha256": "old",
+         "true_value_undiscounted": u.tolist(), "true_value": (0.5 * u).tolist(),
+         "sizes": {"value_episodes": 64}}
+    se, source = ra.standard_errors(r)
+    n_zoo = int(zoo.info.get("value_episodes") or 16)
+    ratio = np.where(np.abs(u) > 1e-9, 0.5, 1.0)
+    want = np.asarray(zoo.return_se, np.float64)[ids] * np.sqrt(n_zoo / 64) * ratio
+    np.testing.assert_allclose(se, want, rtol=1e-6)
+    assert source.startswith("zoo return_se")
+    r["true_value_undiscounted"] = (u + 1e4).tolist()
+    with pytest.raises(ValueError, match="zoo_sha256: the result has no true_value_se"):
+        ra.standard_errors(r)
+    assert ra.standard_errors({**r, "true_value_se": [2.0]})[0].tolist() == [2.0]
+
+
+def test_oracle_check_data_seed_takes_the_protocols_test_split_only(tmp_path, monkeypatch):
+    """--data-seed measures on the protocol's data: another --split or --zoo is refused before
+    any work. (Run on the CPU at toy sizes, not here: hopper, --data-seed 3, 200 transitions,
+    4 episodes, horizon 50: 20 test policies, its noise ceiling, data_seed 3 in the output.)"""
+    oc = load_script("oracle_check")
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("collected data before refusing the flags")
+
+    monkeypatch.setattr(oc, "load_or_collect", no_work)
+    monkeypatch.setattr(oc, "collect_dataset", no_work)
+    for extra in (["--split", "train"], ["--zoo", str(tmp_path)]):
+        with pytest.raises(SystemExit, match="data-seed: the protocol's test split"):
+            oc.main(["--tasks", "hopper", "--data-seed", "3", "--out", str(tmp_path), *extra])
+
+
+def test_readme_headline_is_the_data_seed_table():
+    """README's headline taus are RL2S's means over the data seeds that docs/results/*.json
+    record (by_data_seed), rounded to 2 digits, and it names those data seeds."""
+    import os
+    import re
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    means, seeds = {}, set()
+    for task in ("hopper", "walker2d", "halfcheetah", "ant"):
+        with open(os.path.join(root, "docs", "results", f"{task}.json")) as f:
+            tab = json.load(f)["by_data_seed"]
+        seeds |= set(tab)
+        means[task] = np.mean([e["rl2s"]["kendall_tau"] for e in tab.values()])
+    readme = " ".join(open(os.path.join(root, "README.md")).read().split())
+    want = (f"tau {means['hopper']:.2f} (Hopper), {means['walker2d']:.2f} (Walker2d), "
+            f"{means['halfcheetah']:.2f} (HalfCheetah) and {means['ant']:.2f} (Ant")
+    assert want in readme
+    named = sorted(seeds, key=int)
+    assert re.search(rf"data seeds {' and '.join(named)}\b", readme)

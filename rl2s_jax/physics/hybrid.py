@@ -108,7 +108,9 @@ def hybrid_config(cfg: TrainConfig, ds, content: dict | None = None) -> TrainCon
         raise ValueError(f"physics: {cfg.physics} has delays {delays.tolist()}; the data has "
                          f"{ds.action_size} actions (expected one delay >= 0 each)")
     history = max(cfg.action_history, int(delays.max()) if delays.size else 0)
-    return dataclasses.replace(cfg, vd_every=0, action_history=history)
+    cfg = dataclasses.replace(cfg, vd_every=0, action_history=history)
+    cfg._check_physics_rules()  # the method first: validate's other rules assume VD
+    return cfg
 
 
 def residual_data(ds, physics: str | dict | None, backend: str = "mujoco"):

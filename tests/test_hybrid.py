@@ -86,6 +86,26 @@ def test_bad_physics_is_refused_at_the_door(files, tmp_path):
     assert not (tmp_path / "run" / "checkpoints").exists()  # refused before any work
 
 
+def test_hybrid_config_carries_the_delays_and_turns_vd_off(files, tmp_path):
+    """A calibrated delay needs the actions that far back in the rollouts' history: the
+    members see at least max(delays) past actions; the VD measurement is off."""
+    from rl2s_jax.app.training import make_config
+    from rl2s_jax.data.dataset import load_dataset
+
+    ds = load_dataset(files["train"])
+    delayed = tmp_path / "delayed.json"
+    content = json.load(open(files["calibrated"]))
+    delayed.write_text(json.dumps({**content, "delays": [0, 2, 0]}))
+    cfg = make_config(ds, "bc", "cpu", overrides={"physics": str(delayed)})
+    assert (cfg.action_history, cfg.vd_every, cfg.physics) == (2, 0, str(delayed))
+    cfg = make_config(ds, "bc", "cpu", overrides={"physics": str(delayed), "action_history": 3})
+    assert cfg.action_history == 3
+    assert make_config(ds, "bc", "cpu").physics is None
+    delayed.write_text(json.dumps({**content, "delays": [0, 2]}))
+    with pytest.raises(ValueError, match=r"physics: .* has delays \[0, 2\]; the data has 3"):
+        make_config(ds, "bc", "cpu", overrides={"physics": str(delayed)})
+
+
 @pytest.fixture(scope="module")
 def hybrid(files):
     """The hybrid trained through the door and loaded back from its checkpoint alone."""

@@ -355,6 +355,10 @@ def format_summary(s: dict) -> str:
         lines.append(f"test policies ({s['eval_data']}{pf}, step {s['step_test']}): AVD "
                      f"{s['avd_test']:.3g}  MVD {s['mvd_test']:.3g}  Kendall tau "
                      f"{s['kendall_tau_test']:.3f}  ({_by(s['measured_by_test'])})")
+    physics = (s.get("config") or {}).get("physics")
+    if physics:
+        lines.append(f"hybrid: the calibrated physics of {physics} + the learned residual (VD "
+                     f"not measured in training; score it with rl2s evaluate --ckpt)")
     if s.get("learned"):
         lines.extend(learned_lines(s["learned"]))
     if s.get("pretrain_steps_left"):

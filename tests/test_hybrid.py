@@ -59,12 +59,18 @@ def files(pm, tmp_path_factory):
     return paths
 
 
-def test_bad_physics_is_refused_at_the_door(files, tmp_path):
+def test_bad_physics_is_refused_at_the_door(files, tmp_path, capsys):
     """Missing calibrated.json, another task's, an adversarial method, a learned reward, test
     evaluation during training: each one line naming the field, before any training work."""
+    from rl2s_jax import cli
     from rl2s_jax.app.training import run_training, train_hybrid
 
     out = str(tmp_path / "run")
+    rc = cli.main(["train", "--data", files["train"], "--physics", str(tmp_path / "none.json"),
+                   "--method", "bc", "--steps", "1", "--out", out, "--quiet"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2 and len(err) == 1, err
+    assert err[0].startswith("rl2s train: error: physics: no such file")
     with pytest.raises(FileNotFoundError, match="physics: no such file .*calibrated.json"):
         train_hybrid(files["train"], str(tmp_path / "none.json"), 1, out)
     other = tmp_path / "walker.json"

@@ -397,22 +397,22 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None, *,
                 **({"reward": init_reward(jax.random.PRNGKey(0), o, a, cfg.reward_hidden)}
                    if cfg.reward == "learned" else {})})
         sim = ck._restore_item(s, "simulator", ocp.args.StandardRestore(template))
-        sim = Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"),
-                        hazard=sim.get("hazard"), reward=sim.get("reward"),
-                        **cfg.simulator_settings())
-        if meta.get("physics") is None:
-            return sim, meta
-        if attach is None:
-            raise CheckpointError(
-                f"ckpt: {directory} is a hybrid (calibrated physics plus a learned residual, "
-                f"meta.physics); its members alone model only the residual: load it with "
-                f"rl2s_jax.physics.hybrid.load_hybrid (rl2s evaluate does)")
-        return attach(sim, meta), meta
+        return Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"),
+                         hazard=sim.get("hazard"), reward=sim.get("reward"),
+                         **cfg.simulator_settings()), meta
 
     try:
-        return ck.load_intact(step, ("meta", "simulator"), load)[1]
+        sim, meta = ck.load_intact(step, ("meta", "simulator"), load)[1]
     finally:
         ck.close()
+    if meta.get("physics") is None:
+        return sim, meta
+    if attach is None:  # after the load: a failing attach is not a broken step
+        raise CheckpointError(
+            f"ckpt: {directory} is a hybrid (calibrated physics plus a learned residual, "
+            f"meta.physics); its members alone model only the residual: load it with "
+            f"rl2s_jax.physics.hybrid.load_hybrid (rl2s evaluate does)")
+    return attach(sim, meta), meta
 
 
 def load_simulator(directory: str | os.PathLike, step: int | None = None) -> Simulator:

@@ -9,6 +9,8 @@ and loaded back from its checkpoint alone (``load_hybrid``)."""
 import copy
 import dataclasses
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -205,3 +207,54 @@ def test_checkpoint_round_trips_as_the_hybrid(files, hybrid):
         with pytest.raises(CheckpointError, match="is a hybrid .*physics.hybrid.load_hybrid"):
             load(summary["checkpoint"])
     assert load_meta(summary["checkpoint"])["physics"] == meta["physics"]
+
+
+@pytest.mark.slow
+def test_fit_hybrid_is_the_door_in_memory(pm, files, hybrid):
+    """fit_hybrid with the door's config and seed fits the same members as `rl2s train
+    --physics`; their normaliser's delta statistics are the residual's (next_obs minus the
+    calibrated physics, over the training rows), not those of next_obs - obs."""
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.physics.hybrid import fit_hybrid
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import heldout_mask
+    from rl2s_jax.zoo.zoo import policies_for
+
+    ds, door = load_dataset(files["train"]), hybrid["sim"]
+    cfg = TrainConfig.from_dict(hybrid["summary"]["config"])
+    sim = fit_hybrid(ds, policies_for(ds), files["calibrated"], steps=40, config=cfg)
+    assert sim.base is not None and sim.action_history == door.action_history
+    for a, b in zip(jax_leaves(sim.gen), jax_leaves(door.gen), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-6)
+    train = ~heldout_mask(ds, cfg.holdout_frac)
+    resid = np.asarray(ds.next_obs, np.float64) - _physics(pm, files, ds)
+    np.testing.assert_allclose(np.asarray(sim.norm.delta_mean), resid[train].mean(0),
+                               atol=1e-5)
+    np.testing.assert_allclose(np.asarray(sim.norm.delta_std),
+                               np.maximum(resid[train].std(0), 1e-6), rtol=1e-3, atol=1e-6)
+
+
+def jax_leaves(tree):
+    import jax
+
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+@pytest.mark.heavy
+def test_rl2s_evaluate_scores_the_hybrid_in_a_fresh_process(files, hybrid, stepped, tmp_path):
+    """`rl2s evaluate --ckpt` on the hybrid's checkpoint in a fresh process: it scores the
+    hybrid, whose one-step error on the held-out rows is the one computed here (not the
+    residual model's alone). Heavy: its MJX rollouts compile for minutes on the CPU."""
+    report = tmp_path / "eval.json"
+    out = subprocess.run([sys.executable, "-m", "rl2s_jax.cli", "evaluate", "--ckpt",
+                          hybrid["summary"]["checkpoint"], "--data", files["held"],
+                          "--episodes", "2", "--horizon", "5", "--bootstrap", "0", "--json",
+                          str(report)], capture_output=True, text=True, timeout=1800)
+    assert out.returncode == 0, out.stderr[-2000:]
+    r = json.loads(report.read_text())
+    held, stepped_rows = stepped
+    delta = np.asarray(held.next_obs, np.float64) - np.asarray(held.obs, np.float64)
+    scale = np.maximum(delta.std(0), 1e-6)
+    want = np.mean(((stepped_rows["mean"] - np.asarray(held.next_obs)) / scale) ** 2)
+    np.testing.assert_allclose(r["heldout_mse"], want, rtol=1e-3)
+    assert r["method"] == "bc" and np.isfinite(r["sim_value"]).all()

@@ -183,6 +183,6 @@ def fit_hybrid(ds, policies, physics: str | dict, *, steps: int, config: TrainCo
     cfg = hybrid_config(dataclasses.replace(base, method="bc", eps=None, physics=name), ds,
                         content).validate()
     data = make_train_data(residual_data(ds, content, backend), policies, cfg)
-    state = init(jax.random.PRNGKey(seed), cfg, data)
+    state = jax.jit(init, static_argnums=1)(jax.random.PRNGKey(seed), cfg, data)
     state, _ = fit(state, data, steps, chunk=chunk, progress=False)
     return attach_physics(simulator(state), {"physics": content})

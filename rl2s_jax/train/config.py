@@ -341,7 +341,8 @@ class TrainConfig:
         if self.method != "bc":
             raise ValueError(f"method: a hybrid (physics {self.physics!r}) learns the "
                              f"physics' residual by likelihood, method 'bc'; {self.method!r} "
-                             f"rolls the learned model alone inside train_step")
+                             f"rolls the learned model alone inside train_step (use --method "
+                             f"bc)")
         if self.vd_every:
             raise ValueError(f"vd_every: a hybrid trains with the VD measurement off (0): it "
                              f"would roll the residual model alone; got {self.vd_every}")

@@ -258,3 +258,39 @@ def test_rl2s_evaluate_scores_the_hybrid_in_a_fresh_process(files, hybrid, stepp
     want = np.mean(((stepped_rows["mean"] - np.asarray(held.next_obs)) / scale) ** 2)
     np.testing.assert_allclose(r["heldout_mse"], want, rtol=1e-3)
     assert r["method"] == "bc" and np.isfinite(r["sim_value"]).all()
+
+
+@pytest.mark.heavy
+def test_a_delayed_hybrid_steps_the_physics_with_the_late_actions(pm, files):
+    """A calibrated delay (thigh actuator, 2 steps): the hybrid's members see 2 past actions,
+    and its physics takes that actuator's action 2 steps back from the rollout's history (0
+    before the episode's start), as the residual's targets had it. Heavy: another MJX
+    program (with a history) to compile."""
+    import jax
+    import jax.numpy as jnp
+
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.model.history import logged_history
+    from rl2s_jax.physics.hybrid import fit_hybrid
+    from rl2s_jax.physics.mjx_model import delayed_actions
+    from rl2s_jax.physics.residuals import predict
+    from rl2s_jax.zoo.zoo import policies_for
+
+    delays = [0, 2, 0]
+    content = {**json.load(open(files["calibrated"])), "delays": delays}
+    ds, held = load_dataset(files["train"]), load_dataset(files["held"])
+    sim = fit_hybrid(ds, policies_for(ds), content, steps=2)
+    assert sim.action_history == 2 and sim.base is not None
+    rows = np.r_[np.flatnonzero(np.asarray(held.t) < 2)[:8], np.arange(2, len(held.t), 13)]
+    hist = logged_history(held, rows, obs_history=0, action_history=2,
+                          episode_length=sim.episode_length)
+    obs, act = (np.asarray(x, np.float32)[rows] for x in (held.obs, held.action))
+    got, members = (np.asarray(x, np.float64) for x in jax.jit(
+        lambda s, p, o, a, h: (s.mean(o, a, h), p.mean(o, a, h)))(
+            sim, sim.replace(base=None), jnp.asarray(obs), jnp.asarray(act), hist))
+    late = delayed_actions(np.asarray(held.action), np.asarray(held.episode_id),
+                           np.asarray(held.t), delays)[rows]
+    physics = predict(pm, np.asarray(content["theta"]), obs.astype(np.float64), late)
+    np.testing.assert_allclose(got, physics + members - obs, atol=2e-4)
+    on_time = predict(pm, np.asarray(content["theta"]), obs.astype(np.float64), act)
+    assert np.abs(got - (on_time + members - obs)).max() > 1e-3  # the delay acts

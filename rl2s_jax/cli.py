@@ -183,9 +183,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="total train_steps (a resumed run continues up to this)")
     p.add_argument("--out", required=True, help="run directory: checkpoints/, metrics.jsonl, "
                    "summary.json; resumes if it holds a checkpoint")
-    p.add_argument("--eps", type=float, help="CVaR fraction (default: 0.25 rl2s/rl2s-bc, 1 "
-                   "gail/bc)")
+    p.add_argument("--eps", type=float, help="CVaR fraction (default 0.25 rl2s/rl2s-bc, 1 gail/bc)")
     p.add_argument("--no-task", action="store_true", help="learn reward and done from the data")
+    p.add_argument("--physics", help="a hybrid: DIR/calibrated.json + a learned residual (bc)")
     _policy_source(p)
     p.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto",
                    help="network and batch sizes: gpu = paper sizes, cpu = small")

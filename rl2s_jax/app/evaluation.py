@@ -22,8 +22,9 @@ from rl2s_jax.evaluate.metrics import spearman
 from rl2s_jax.evaluate.scores import evaluate_oracle, evaluate_simulator, one_step_errors
 from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
 from rl2s_jax.evaluate.trust import format_trust
+from rl2s_jax.physics.hybrid import load_hybrid
 from rl2s_jax.physics.physics_simulator import one_step_mse, physics_simulator
-from rl2s_jax.train.checkpoint import Checkpointer, load_checkpoint
+from rl2s_jax.train.checkpoint import Checkpointer
 from rl2s_jax.zoo.zoo import policies_for
 
 
@@ -72,7 +73,7 @@ def evaluate_checkpoint(ckpt: str, data_path: str, *, zoo: str | None = None,
 
     setting = _setting(setting, n_episodes, horizon, seed, truth)
     ds = load_dataset(data_path)
-    sim, meta = load_checkpoint(ckpt, step)  # the newest intact step unless step is given
+    sim, meta = load_hybrid(ckpt, step)  # newest intact step unless given; a hybrid's physics
     if ds.meta.get("task") != sim.task:
         raise ValueError(f"data: {data_path} is task {ds.meta.get('task')!r} but the "
                          f"checkpoint models {sim.task!r}")

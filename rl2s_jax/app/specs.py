@@ -218,6 +218,7 @@ class TrainSpec:
     truth: str | None = None
     resume_step: int | None = None
     quiet: bool = False
+    physics: str | None = None
 
     def __post_init__(self):
         _check_ints(self, ("steps", "save_every", "chunk", "eval_every", "eval_episodes",

@@ -18,6 +18,7 @@ from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS, data_task
 from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.evaluate.setting import EvalSetting, profile_horizon
+from rl2s_jax.physics.hybrid import hybrid_config, physics_meta, residual_data
 from rl2s_jax.train.checkpoint import Checkpointer
 from rl2s_jax.train.config import TrainConfig
 from rl2s_jax.train.data import make_train_data
@@ -45,7 +46,10 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
     learned from the data's rewards (``reward`` "learned") and episodes end by the hazard
     learned from its done flags (``termination`` "hazard"), unless ``overrides`` say
     otherwise; its time limit is ``data_episode_length``. A ``meta.task`` that is not
-    registered is refused without ``no_task`` (``envs.tasks.data_task``)."""
+    registered is refused without ``no_task`` (``envs.tasks.data_task``).
+
+    ``overrides["physics"]`` (``--physics``): a hybrid of that calibrated.json's physics and a
+    learned residual (``physics.hybrid.hybrid_config``: checked against the data, VD off)."""
 
     data_task(ds.meta["task"], no_task)
     ep_len = ds.meta.get("episode_length") or 1000
@@ -68,6 +72,8 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
             raise ValueError(f"set: unknown config field(s) {unknown}; known: {sorted(d)}")
         d.update(overrides)
         cfg = TrainConfig.from_dict(d)
+    if cfg.physics is not None:
+        cfg = hybrid_config(cfg, ds)
     return cfg.validate()
 
 
@@ -125,7 +131,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
         on_eval = _test_evaluator(eval_data, cfg, eval_path, setting or EvalSetting(), zoo,
                                   last_test, eval_policies)
         eval_every = eval_every or save_every or max(1, steps // 10)
-    data = make_train_data(ds, policies, cfg)
+    data = make_train_data(residual_data(ds, cfg.physics), policies, cfg)  # a hybrid's residual
     os.makedirs(out, exist_ok=True)
     ck = Checkpointer(os.path.join(out, "checkpoints"))
     meta = {"data": {"path": os.path.abspath(data_path), "task": ds.meta["task"],
@@ -133,7 +139,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                      "n_policies": ds.n_policies, "policy_names": ds.meta.get("policy_names"),
                      "gamma": ds.meta.get("gamma"),
                      "true_value": np.asarray(data.true_value).tolist()},
-            "seed": seed, "profile": profile}
+            "seed": seed, "profile": profile, **physics_meta(cfg.physics)}
     metrics_path = os.path.join(out, "metrics.jsonl")
     key = jax.random.PRNGKey(seed)
     if resume_step is not None and ck.latest_step() is None:
@@ -193,7 +199,7 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                            "training policies", "episodes": cfg.vd_episodes,
                            "horizon": cfg.vd_horizon, "gamma": cfg.gamma},
         "worst_vd_jumps": jumps,
-        "learned": heldout_errors(simulator(state), data),
+        "learned": None if cfg.physics else heldout_errors(simulator(state), data),
         **last_test,
         "selected": [n for n, s in zip(names, np.asarray(state.selected), strict=True) if s],
         "policies": {n: {"true_value": float(t), "sim_value": float(s), "vd": float(v)}
@@ -247,6 +253,10 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
     The policies: ``policy_file`` (``--eval-policies``; as ``rl2s evaluate --policy-file``,
     refused unless it holds the eval data's policies), else ``zoo`` or the data's source."""
 
+    if cfg.physics is not None:
+        raise ValueError("eval_data: training's evaluation would roll the residual model "
+                         "alone, not the hybrid; score the hybrid after training with "
+                         "`rl2s evaluate --ckpt OUT/checkpoints`")
     ds = load_dataset(eval_data)
     if ds.meta.get("task") != cfg.task:
         raise ValueError(f"eval_data: {eval_data} is task {ds.meta.get('task')!r}, training is "
@@ -292,7 +302,7 @@ def run_train(spec: TrainSpec) -> int:
         summary = run_training(spec.data, spec.method, spec.steps, spec.out, zoo=spec.zoo,
                                profile=spec.profile, seed=spec.seed, eps=spec.eps,
                                save_every=spec.save_every, chunk=spec.chunk,
-                               overrides=parse_overrides(spec.set), progress=not spec.quiet,
+                               overrides=train_overrides(spec), progress=not spec.quiet,
                                eval_data=spec.eval_data, eval_every=spec.eval_every,
                                setting=EvalSetting.from_flags(
                                    spec.eval_episodes, spec.eval_horizon, spec.eval_seed,
@@ -304,6 +314,24 @@ def run_train(spec: TrainSpec) -> int:
         return 1
     print(format_summary(summary))
     return 0
+
+
+def train_overrides(spec: TrainSpec) -> dict:
+    """The config overrides of `rl2s train`: ``--set`` pairs, and ``--physics`` as the
+    ``physics`` field (a hybrid)."""
+    overrides = parse_overrides(spec.set)
+    if spec.physics is not None:
+        overrides["physics"] = spec.physics
+    return overrides
+
+
+def train_hybrid(data_path: str, physics: str, steps: int, out: str, **kw) -> dict:
+    """`rl2s train --physics PHYSICS --method bc`: the hybrid of a calibrated.json's physics
+    and a residual learned by likelihood (rl2s_jax.physics.hybrid), checkpointed in ``out``;
+    ``kw`` as ``run_training``'s (``overrides`` included). Load it with
+    ``physics.hybrid.load_hybrid`` (as `rl2s evaluate` does). -> the summary."""
+    overrides = {**(kw.pop("overrides", None) or {}), "physics": physics}
+    return run_training(data_path, "bc", steps, out, overrides=overrides, **kw)
 
 
 def _truncate_metrics(path: str, step: int) -> None:
@@ -327,6 +355,10 @@ def format_summary(s: dict) -> str:
         lines.append(f"test policies ({s['eval_data']}{pf}, step {s['step_test']}): AVD "
                      f"{s['avd_test']:.3g}  MVD {s['mvd_test']:.3g}  Kendall tau "
                      f"{s['kendall_tau_test']:.3f}  ({_by(s['measured_by_test'])})")
+    physics = (s.get("config") or {}).get("physics")
+    if physics:
+        lines.append(f"hybrid: the calibrated physics of {physics} + the learned residual (VD "
+                     f"not measured in training; score it with rl2s evaluate --ckpt)")
     if s.get("learned"):
         lines.extend(learned_lines(s["learned"]))
     if s.get("pretrain_steps_left"):

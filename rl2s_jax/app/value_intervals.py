@@ -16,8 +16,8 @@ from rl2s_jax.data.values import true_values
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate import trust as tr
 from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.physics.hybrid import load_hybrid
 from rl2s_jax.policy.policy import index_params, save_policies
-from rl2s_jax.train.checkpoint import load_checkpoint
 from rl2s_jax.zoo.zoo import load_zoo, policies_for
 
 
@@ -44,7 +44,7 @@ def trust_for(ckpts: list[str], data_path: str, report: dict, *, level: float,
     -> {"trust": ``trust_report`` (or {"skipped": why}), "interval": [[lo, hi]] per policy,
     "trusted": [bool]} (the last two absent when skipped)."""
     level = tr.check_level(level)
-    loaded = [load_checkpoint(c, step) for c in ckpts]
+    loaded = [load_hybrid(c, step) for c in ckpts]
     sims, metas = [s for s, _ in loaded], [m for _, m in loaded]
     paths, train = _calibration_paths(metas, calibration)
     if not paths:

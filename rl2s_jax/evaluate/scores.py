@@ -105,10 +105,11 @@ ONE_STEP_ROWS = 20_000  # rows that one-step errors are measured on (evenly spre
 @jax.jit
 def _one_step(sim: Simulator, obs, action, next_obs, hist, scale):
     means, log_stds = sim.member_dists(obs, action, hist)                  # [E, n, o]
-    y = sim.norm.norm_delta(obs, next_obs)
+    start = sim.anchor(obs, action, hist)  # obs, or a hybrid's physics step
+    y = sim.norm.norm_delta(start, next_obs)
     nll = jnp.mean(dyn.gaussian_nll(means, log_stds, y[None]), 1)          # [E]
     nll = nll + jnp.sum(jnp.log(sim.norm.delta_std))  # nats of s' - s in the data's units
-    mean_next = sim.mean_of(obs, means, log_stds)  # the same pass as the NLL's
+    mean_next = sim.mean_of(start, means, log_stds)  # the same pass as the NLL's
     mse = jnp.mean(((mean_next - next_obs) / scale) ** 2)
     return nll, mse
 

@@ -67,6 +67,12 @@ class Simulator:
     takes ``hist`` (``rl2s_jax.model.history.History``; ``new_history`` at an episode start,
     ``push_history`` after each step) and ``dynamics`` is ``(obs, action, key, hist)``. The
     rollouts of this module carry it for any Simulator (``new_history=sim.new_history``).
+
+    base: a deterministic dynamics ``base(obs [..., o], action [..., a], hist) -> [..., o]``
+    that the members' delta is added to (``anchor``): s' = base(s, a) + delta. None (the
+    default): the identity, s' = s + delta. A hybrid (``rl2s_jax.physics.hybrid``) sets it to
+    the calibrated physics, its members having learned the physics' residual; it is not saved
+    in a checkpoint (the checkpoint's meta says how to rebuild it).
     """
 
     gen: Params
@@ -86,6 +92,7 @@ class Simulator:
     action_history: int = struct.field(pytree_node=False, default=0)
     time_inputs: tuple[str, ...] = struct.field(pytree_node=False, default=())
     episode_length: int = struct.field(pytree_node=False, default=1000)
+    base: Callable | None = struct.field(pytree_node=False, default=None)
 
     def __post_init__(self):
         if isinstance(self.gen, list | tuple):  # one generator: an ensemble of one
@@ -130,6 +137,12 @@ class Simulator:
         return dyn.map_members(lambda p: member_step_dist(p, self.norm, obs, action, hist),
                                self.gen)
 
+    def anchor(self, obs: jax.Array, action: jax.Array, hist: History | None = None
+               ) -> jax.Array:
+        """What the members' delta is added to: ``obs`` itself, or ``base(obs, action, hist)``
+        where the simulator has a base dynamics (a hybrid). [..., o], [..., a] -> [..., o]"""
+        return obs if self.base is None else self.base(obs, action, hist)
+
     def _moments(self, means, log_stds, key):
         return dyn.ensemble_moments(means, log_stds, key, rank=self.rank,
                                     n_elites=self.n_elites, mode=self.member_mode)
@@ -146,8 +159,8 @@ class Simulator:
         over the members. -> (next_obs [..., o], u [...])"""
         means, log_stds = self.member_dists(obs, action, hist)
         mean, log_std, k_noise = self._moments(means, log_stds, key)
-        nxt = sample_next(self.norm, obs, mean, log_std, k_noise, self.obs_clip,
-                          self.noise_scale)
+        nxt = sample_next(self.norm, self.anchor(obs, action, hist), mean, log_std, k_noise,
+                          self.obs_clip, self.noise_scale)
         return nxt, self._disagreement(means)
 
     def transition(self, obs: jax.Array, action: jax.Array, key: jax.Array,
@@ -158,34 +171,38 @@ class Simulator:
         key, the elites' disagreement u [...] as ``disagreement``; 0 for one member)."""
         means, log_stds = self.member_dists(obs, action, hist)
         mean, log_std, k_noise = self._moments(means, log_stds, key)
-        nxt = sample_next(self.norm, obs, mean, log_std, k_noise, self.obs_clip,
+        start = self.anchor(obs, action, hist)
+        nxt = sample_next(self.norm, start, mean, log_std, k_noise, self.obs_clip,
                           self.noise_scale)
-        return self.mean_of(obs, means, log_stds), nxt, self._disagreement(means)
+        return self.mean_of(start, means, log_stds), nxt, self._disagreement(means)
 
     def mean(self, obs: jax.Array, action: jax.Array, hist: History | None = None
              ) -> jax.Array:
         """The mean next state: of the best member ("fixed") or the elites' average. -> [..., o]"""
-        return self.mean_of(obs, *self.member_dists(obs, action, hist))
+        return self.mean_of(self.anchor(obs, action, hist),
+                            *self.member_dists(obs, action, hist))
 
-    def mean_of(self, obs: jax.Array, means: jax.Array, log_stds: jax.Array) -> jax.Array:
-        """``mean`` from the members' Gaussians [E, ..., o] already computed at obs [..., o]."""
+    def mean_of(self, start: jax.Array, means: jax.Array, log_stds: jax.Array) -> jax.Array:
+        """``mean`` from the members' Gaussians [E, ..., o] already computed, added to
+        ``start`` [..., o]: the step's ``anchor`` (obs itself unless there is a base)."""
         mode = "fixed" if self.member_mode == "fixed" else "mean"
         avg, _, _ = dyn.ensemble_moments(means, log_stds, None, rank=self.rank,
                                          n_elites=self.n_elites, mode=mode)
-        return self.norm.next_from_delta(obs, avg)
+        return self.norm.next_from_delta(start, avg)
 
     def log_prob(self, obs: jax.Array, action: jax.Array, next_obs: jax.Array,
                  hist: History | None = None) -> jax.Array:
-        """log density of the normalised delta under what ``sample`` draws from (for
-        "random": the uniform mixture of the elites). -> [...]"""
+        """log density of the normalised delta (next_obs - ``anchor``) under what ``sample``
+        draws from (for "random": the uniform mixture of the elites). -> [...]"""
         means, log_stds = self.member_dists(obs, action, hist)
-        return dyn.mixture_log_prob(means, log_stds, self.norm.norm_delta(obs, next_obs),
-                                    rank=self.rank, n_elites=self.n_elites,
+        y = self.norm.norm_delta(self.anchor(obs, action, hist), next_obs)
+        return dyn.mixture_log_prob(means, log_stds, y, rank=self.rank, n_elites=self.n_elites,
                                     mode=self.member_mode)
 
     def predictive(self, obs: jax.Array, action: jax.Array, hist: History | None = None
                    ) -> tuple[jax.Array, jax.Array]:
-        """Mean and std [..., o] of the normalised delta that ``sample`` draws (noise_scale 1):
+        """Mean and std [..., o] of the normalised delta that ``sample`` draws (noise_scale 1;
+        added to ``anchor``):
         for "random", the elite mixture's (std includes the spread of the elites' means)."""
         means, log_stds = self.member_dists(obs, action, hist)
         mode = "mean" if self.member_mode == "random" else self.member_mode

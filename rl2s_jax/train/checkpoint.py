@@ -352,11 +352,17 @@ def _drop_closed_loop_noise() -> None:
     _closed_loop_filter_installed = True
 
 
-def load_checkpoint(directory: str | os.PathLike, step: int | None = None
+def load_checkpoint(directory: str | os.PathLike, step: int | None = None, *,
+                    attach: Callable[[Simulator, dict], Simulator] | None = None
                     ) -> tuple[Simulator, dict]:
     """``(simulator, meta)`` of ``step`` of a checkpoint directory (default: the newest step
     whose meta and simulator are intact; broken newer ones are skipped with a
-    CheckpointWarning). ``meta["step"]`` is the step loaded. No training data needed."""
+    CheckpointWarning). ``meta["step"]`` is the step loaded. No training data needed.
+
+    A hybrid's checkpoint (``meta["physics"]``: calibrated physics plus a learned residual)
+    needs ``attach(simulator, meta) -> simulator`` to rebuild its physics, which lives above
+    this layer (``rl2s_jax.physics.hybrid.load_hybrid`` passes it); without it the load is
+    refused, since its members alone model only the residual."""
     directory = os.fspath(directory)
     if not os.path.isdir(directory):
         raise FileNotFoundError(f"ckpt: no checkpoint directory {directory}")
@@ -396,9 +402,17 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None
                          **cfg.simulator_settings()), meta
 
     try:
-        return ck.load_intact(step, ("meta", "simulator"), load)[1]
+        sim, meta = ck.load_intact(step, ("meta", "simulator"), load)[1]
     finally:
         ck.close()
+    if meta.get("physics") is None:
+        return sim, meta
+    if attach is None:  # after the load: a failing attach is not a broken step
+        raise CheckpointError(
+            f"ckpt: {directory} is a hybrid (calibrated physics plus a learned residual, "
+            f"meta.physics); its members alone model only the residual: load it with "
+            f"rl2s_jax.physics.hybrid.load_hybrid (rl2s evaluate does)")
+    return attach(sim, meta), meta
 
 
 def load_simulator(directory: str | os.PathLike, step: int | None = None) -> Simulator:
@@ -409,5 +423,5 @@ def load_simulator(directory: str | os.PathLike, step: int | None = None) -> Sim
 
 def load_meta(directory: str | os.PathLike, step: int | None = None) -> dict:
     """The JSON meta of a checkpoint: config, data description, step; of the same step that
-    :func:`load_simulator` loads."""
-    return load_checkpoint(directory, step)[1]
+    :func:`load_simulator` loads (a hybrid's too)."""
+    return load_checkpoint(directory, step, attach=lambda sim, _: sim)[1]

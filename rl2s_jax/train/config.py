@@ -133,6 +133,10 @@ class TrainConfig:
     # "bfloat16" rounds their inputs and weights to bf16 and accumulates in float32 (forward
     # and backward; parameters, optimiser state, losses and outputs stay float32;
     # dynamics.matmul). Unmeasured on the GPU so far: docs/BENCHMARKS.md
+    physics: str | None = None     # a hybrid (rl2s_jax.physics.hybrid): the calibrated.json
+    # of `rl2s diagnose --physics` whose physics the members' delta is added to; they learn
+    # its residual by likelihood ("bc"; VD off in training: its rollouts would step the
+    # members alone). None: the plain learned simulator
 
     @property
     def adversarial(self) -> bool:
@@ -304,7 +308,7 @@ class TrainConfig:
         v = self.data_episode_length
         if v is not None and (not isinstance(v, int) or isinstance(v, bool) or v < 1):
             raise ValueError(f"data_episode_length: expected an int >= 1 or None, got {v!r}")
-        self._check_task_rules()
+        self._check_rules()
         if self.n_elites > self.ensemble_size:
             raise ValueError(f"n_elites: expected at most ensemble_size ({self.ensemble_size}), "
                              f"got {self.n_elites}")
@@ -319,6 +323,32 @@ class TrainConfig:
             raise ValueError(f"buffer_size: expected >= batch_size ({self.batch_size}), "
                              f"got {self.buffer_size}")
         return self
+
+    def _check_rules(self) -> None:
+        self._check_task_rules()
+        self._check_physics_rules()
+
+    def _check_physics_rules(self) -> None:
+        """A hybrid (``physics`` set) learns the physics' residual by likelihood: every
+        rollout inside ``train_step`` (the VD measurement, the adversarial samples) would step
+        the members alone, which are not the hybrid, and a learned reward would be fitted to
+        the residual rather than to the next state."""
+        if self.physics is None:
+            return
+        if not isinstance(self.physics, str) or not self.physics:
+            raise ValueError(f"physics: expected the path of a calibrated.json, got "
+                             f"{self.physics!r}")
+        if self.method != "bc":
+            raise ValueError(f"method: a hybrid (physics {self.physics!r}) learns the "
+                             f"physics' residual by likelihood, method 'bc'; {self.method!r} "
+                             f"rolls the learned model alone inside train_step (use --method "
+                             f"bc)")
+        if self.vd_every:
+            raise ValueError(f"vd_every: a hybrid trains with the VD measurement off (0): it "
+                             f"would roll the residual model alone; got {self.vd_every}")
+        if self.reward != "task":
+            raise ValueError(f"reward: a hybrid takes the task's reward_fn ('task'); a learned "
+                             f"reward would be fitted to the residual, got {self.reward!r}")
 
     def _check_task_rules(self) -> None:
         """Without a registered task nothing gives simulated steps a reward or a termination

@@ -381,3 +381,97 @@ def combine_features(per_sim: list[dict]) -> dict:
             "seed_sd": v.std(0, ddof=1) if v.shape[0] > 1 else np.zeros(v.shape[1]),
             "eval_se": np.sqrt(np.mean(se ** 2, 0) / v.shape[0]),
             "support": np.stack([f["support"] for f in per_sim]).mean(0)}
+
+
+# ----------------------------------------------------------------------------- lanes (protocol)
+
+def _member_values(sim: Simulator, policies, pool, key, **roll) -> jax.Array:
+    """Each elite alone (``member_mode`` "fixed" on it), the same key: values [n_elites, P];
+    [0, P] for a simulator without ranked members."""
+    if sim.rank is None or sim.n_members < 2 or (sim.n_elites or sim.n_members) < 2:
+        return jnp.zeros((0, num_policies(policies)), jnp.float32)
+    n_el = min(sim.n_elites or sim.n_members, sim.n_members)
+    best = jnp.nonzero(sim.rank < n_el, size=n_el)[0]  # the elites, as ``elites`` lists them
+    members = jnp.arange(sim.n_members)
+
+    def alone(e):
+        rank = jnp.where(members == e, -1, sim.rank).astype(jnp.int32)
+        ret, _ = simulator_returns(sim.replace(member_mode="fixed", rank=rank), None,
+                                   policies, pool, key, **roll)
+        return ret.mean(-1)
+    return jax.vmap(alone)(best)
+
+
+@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
+def lane_feature_arrays(sims: Simulator, policies: Params, pool: jax.Array, keys: jax.Array,
+                        *, n_episodes: int, horizon: int, gamma: float):
+    """``policy_features``' rollouts for every lane of ``sims`` (a Simulator with a leading
+    lane axis L) in one program: each lane's ensemble returns [L, P, n], its elites' values
+    [L, n_elites, P] (0 elites without ranked members) and the disagreement along its
+    simulated visits [L, P] (raw, not in data units). keys [L, 2]; pool [S, o]."""
+    roll = dict(n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+
+    def one(sim, key):
+        ret, _ = simulator_returns(sim, None, policies, pool, key, **roll)
+        u = visited_disagreement(sim, policies, pool, key, n_episodes=n_episodes,
+                                 horizon=horizon)
+        return ret, _member_values(sim, policies, pool, key, **roll), u
+    return jax.vmap(one)(sims, keys)
+
+
+def lane_data_disagreement(sims: Simulator, ds, max_rows: int = SUPPORT_ROWS) -> np.ndarray:
+    """``data_disagreement`` of every lane of ``sims`` [L] on the rows of ``ds`` (u's unit)."""
+    n = ds.n_transitions
+    rows = (np.arange(n) if n <= max_rows
+            else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
+    obs, action = (jnp.asarray(np.asarray(x, np.float32)[rows]) for x in (ds.obs, ds.action))
+    hist = None if sims.markov else logged_history(
+        ds, rows, obs_history=sims.obs_history, action_history=sims.action_history,
+        time_inputs=sims.time_inputs, episode_length=sims.episode_length)
+    u = jax.jit(jax.vmap(Simulator.disagreement, in_axes=(0, None, None, None)))(
+        sims, obs, action, hist)
+    return np.asarray(jnp.mean(u, -1), np.float64)
+
+
+def lane_features(sims: Simulator, policies: Params, pool: jax.Array, keys: jax.Array,
+                  u_units, **roll) -> list[dict]:
+    """``policy_features`` of every lane (``lane_feature_arrays``), u in units of
+    ``u_units`` [L] (each lane's ``lane_data_disagreement``; support 1 where a lane has fewer
+    than 2 elites). -> L dicts as ``policy_features`` returns."""
+    ret, members, u = (np.asarray(x, np.float64) for x in lane_feature_arrays(
+        sims, policies, pool, keys, **roll))
+    out = []
+    for i in range(ret.shape[0]):
+        n = ret.shape[2]
+        se = ret[i].std(1, ddof=1) / np.sqrt(n) if n > 1 else np.zeros(ret.shape[1])
+        ok = members.shape[1] > 1 and u_units[i] > 0
+        out.append({"sim_value": ret[i].mean(1), "eval_se": se, "member_values": members[i],
+                    "support": u[i] / u_units[i] if ok else np.ones(ret.shape[1])})
+    return out
+
+
+# ----------------------------------------------------------------------------- JSON
+
+def json_safe(x):
+    """``x`` (dicts, lists, NumPy) with every non-finite float as None: JSON without the
+    non-standard Infinity / NaN. Where an infinity means something (an unbounded interval,
+    an infinite quantile) the caller records a flag beside it."""
+    if isinstance(x, dict):
+        return {k: json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple | np.ndarray):
+        return [json_safe(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x)]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def interval_from_json(pair) -> tuple[float, float]:
+    """An interval as ``json_safe`` wrote it ([lo, hi], None for an unbounded end) -> (lo,
+    hi) floats, -inf / +inf for the unbounded ends."""
+    if not isinstance(pair, list | tuple) or len(pair) != 2:
+        raise ValueError(f"interval: expected [lo, hi] (None for an unbounded end), got "
+                         f"{pair!r}")
+    lo, hi = pair
+    return (-math.inf if lo is None else float(lo)), (math.inf if hi is None else float(hi))

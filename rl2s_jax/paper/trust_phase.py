@@ -1,0 +1,219 @@
+"""The protocol's value intervals (issue 64): after training, every lane (method x seed) gives
+each test policy a split-conformal interval at ``level`` (``evaluate.trust``), calibrated on
+held-out policies whose truth is measured here: ``perturbed_policies`` of the training
+policies, run in the real env. Never the test policies; and not the zoo's "validation"
+policies either, which in the protocol's zoo split are training policies of these simulators
+(their errors are optimistic).
+
+Cost: one real-env value measurement of the calibration policies per task, and per family one
+program over its lanes: the ensemble's rollout, each elite's rollout (vmapped over the elites)
+and the disagreement along the visits, on the test and calibration policies
+(``trust.lane_feature_arrays``), i.e. (n_elites + 2) x the test evaluation's rollouts on
+(P_test + n_calibration) policies at ``--trust-episodes`` episodes each.
+
+Writes result["lanes"][lane]["trust"] (each test policy's interval and flag),
+result["trust"][method] (the issue's block: level, coverage, width_over_range, worst_flagged,
+runs, command; the plain seed-spread interval scaled to the same coverage beside it) and
+result["trust_calibration"]. JSON-valid: an infinite quantile (too few calibration policies
+for the level) leaves None with "q_infinite": true, and unbounded intervals None ends."""
+from __future__ import annotations
+
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from rl2s_jax.data.collect import measure_values
+from rl2s_jax.envs.tasks import get_task
+from rl2s_jax.evaluate import trust as tr
+from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.paper.protocol import log
+from rl2s_jax.train.step import simulator
+from rl2s_jax.zoo.zoo import policies_for
+
+PERTURB_NOISE = 0.1  # the calibration policies' noise (trust.perturbed_policies' default)
+
+
+def add_trust_arguments(ap) -> None:
+    """paper.py's --trust-* flags and the deployment guard's --guard-*."""
+    ap.add_argument("--guard-margin", type=float, help="MPI / API of the policies deployed "
+                    "where every elite member predicts a gain above this fraction "
+                    "(ablation '<variant>+guard')")
+    ap.add_argument("--guard-floor-scale", type=float, default=1.0, help="a gain must also "
+                    "exceed this x the lane's training MVD (0: the margin alone)")
+    ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
+                    "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
+    ap.add_argument("--trust-calibration", type=int, default=20, help="perturbed training "
+                    "policies measured in the real env to calibrate the test policies' value "
+                    "intervals (0: no intervals; fewer than trust.min_calibration(level): "
+                    "unbounded intervals)")
+    ap.add_argument("--trust-episodes", type=int, help="simulated episodes per policy for "
+                    "the intervals' features (default: --eval-episodes)")
+    ap.add_argument("--trust-level", type=float, default=tr.DEFAULT_LEVEL)
+
+
+def check_trust_arguments(args) -> None:
+    """SystemExit naming the flag, before any work."""
+    for name, v in (("margin", args.guard_margin), ("floor-scale", args.guard_floor_scale)):
+        if v is not None and not (np.isfinite(v) and v >= 0):
+            raise SystemExit(f"guard-{name}: expected a finite float >= 0, got {v}")
+    if args.guard_snapshots and args.guard_margin is None:
+        raise SystemExit("guard-snapshots: needs --guard-margin (the guard's margin)")
+    if args.trust_calibration < 0:
+        raise SystemExit(f"trust-calibration: expected an int >= 0, got {args.trust_calibration}")
+    if args.trust_episodes is not None and args.trust_episodes < 2:
+        raise SystemExit(f"trust-episodes: expected an int >= 2, got {args.trust_episodes}")
+    try:
+        tr.check_level(args.trust_level)
+    except ValueError as err:
+        raise SystemExit(f"trust-{err}") from None
+
+
+def calibration_policies(task: str, train_pols, *, n: int, seed: int, n_episodes: int,
+                         horizon: int, episode_length: int, gamma: float):
+    """``n`` perturbed training policies and their true discounted values over the first
+    ``horizon`` steps (real env, ``n_episodes`` each; episodes of ``episode_length``).
+    -> (stacked params [n], truth [n], origins)"""
+    params, origins = tr.perturbed_policies(train_pols, jax.random.PRNGKey(seed), n,
+                                            noise=PERTURB_NOISE)
+    v = measure_values(get_task(task).make_env(), params, key=jax.random.PRNGKey(seed + 1),
+                       n_episodes=n_episodes, episode_length=min(horizon, episode_length),
+                       gamma=gamma)
+    return params, np.asarray(v["value_discounted"], np.float64), origins
+
+
+def lane_trust(feats: dict, cal_feats: dict, cal_truth, names, truth, level: float) -> dict:
+    """One lane's report: ``trust_report`` of its test policies calibrated on the
+    calibration policies (all held out), compact, with "q_infinite" and "unbounded"."""
+    cal = tr.calibrate(cal_feats, cal_truth, ["heldout"] * len(cal_truth), level)
+    t = tr.trust_report(feats, cal, names, truth)
+    pol = t["policies"]
+    return {"level": level, "q": cal["q"], "q_infinite": not np.isfinite(cal["q"]),
+            "n_calibration": cal["n"], "sim_value": [p["sim_value"] for p in pol],
+            "interval": [p["interval"] for p in pol], "trusted": [p["trusted"] for p in pol],
+            "why": [p["why"] for p in pol], "sigma": [p["sigma"] for p in pol],
+            "support": [p["support"] for p in pol], "member_sd": [p["member_sd"] for p in pol],
+            "unbounded": [not np.all(np.isfinite(p["interval"])) for p in pol],
+            "coverage": t["coverage"], "mean_width": t["mean_width"],
+            "width_over_range": t["width_over_range"], "worst": t["worst"]}
+
+
+def seed_spread(values, truth, level: float, coverage: float) -> dict:
+    """The plain seed-spread interval of one method's runs: run s's value +- k x the std over
+    the method's seeds (``trust.spread_interval`` pooled over runs; k the normal quantile of
+    ``level``, and k chosen WITH the truth to reach ``coverage``, the conformal intervals'
+    pooled coverage, for the width comparison). values [S, P], truth [P]."""
+    v = np.asarray(values, np.float64)
+    if v.shape[0] < 2:
+        return {"skipped": "one seed: no seed spread"}
+    sd = v.std(0, ddof=1)
+    s = tr.spread_interval(v.ravel(), np.tile(sd, v.shape[0]), np.tile(truth, v.shape[0]),
+                           level, coverage)
+    rng = float(np.ptp(truth)) or np.nan
+    return {"coverage": s["coverage"], "width_over_range": s["mean_width"] / rng, "z": s["z"],
+            "scaled_width_over_range": s["scaled_mean_width"] / rng,
+            "scaled_infinite": not np.isfinite(s["scaled_mean_width"])}
+
+
+def method_block(runs: list[dict], values, truth, level: float, command: str) -> dict:
+    """The issue's per-method "trust" block over ``runs`` (``lane_trust`` of its lanes):
+    means over runs of coverage and width_over_range, worst_flagged (share of runs whose
+    largest-|error| test policy is flagged), and the seed-spread comparison."""
+    cov = float(np.mean([r["coverage"] for r in runs]))
+    wor = [r["width_over_range"] for r in runs]
+    wor = float(np.mean(wor)) if all(w is not None for w in wor) else None
+    spread = seed_spread(values, truth, level, cov)
+    return {"level": level, "coverage": cov, "width_over_range": wor,
+            "worst_flagged": float(np.mean([r["worst"]["flagged"] for r in runs])),
+            "runs": len(runs), "command": command,
+            "mean_width": float(np.mean([r["mean_width"] for r in runs])),
+            "unbounded_runs": int(sum(r["q_infinite"] for r in runs)),
+            "coverage_per_run": [r["coverage"] for r in runs], "seed_spread": spread,
+            "narrower_than_seed_spread": (
+                None if wor is None or "skipped" in spread or spread["scaled_infinite"]
+                else bool(wor < spread["scaled_width_over_range"]))}
+
+
+def format_block(b: dict) -> str:
+    """One line of a method's "trust" block (values as json_safe left them)."""
+    f = lambda x: "n/a" if x is None else f"{x:.3f}"
+    sp = b["seed_spread"]
+    spread = (sp["skipped"] if "skipped" in sp else
+              f"seed-spread interval scaled to it {f(sp['scaled_width_over_range'])}")
+    return (f"level {b['level']:g}, coverage {f(b['coverage'])}, width/range "
+            f"{f(b['width_over_range'])} ({spread}), worst policy flagged in "
+            f"{f(b['worst_flagged'])} of {b['runs']} runs"
+            f"{', unbounded in ' + str(b['unbounded_runs']) if b['unbounded_runs'] else ''}")
+
+
+def _stack(a, b):
+    return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
+
+
+def family_trust(lanes, states, *, policies, n_test: int, pool, u_data, roll: dict) -> list:
+    """Per lane of one family: (its test policies' features, the calibration policies')."""
+    sims = simulator(states)
+    keys = jnp.stack([jax.random.PRNGKey(3000 + s) for _, s in lanes])
+    feats = tr.lane_features(sims, policies, pool, keys, tr.lane_data_disagreement(
+        sims, u_data), **roll)
+    split = lambda f, part: {k: (v[..., :n_test] if part == 0 else v[..., n_test:])
+                             for k, v in f.items()}
+    return [tuple(tr.combine_features([split(f, part)]) for part in (0, 1)) for f in feats]
+
+
+def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, test_ds,
+              test_pols, truth, horizon: int, gamma: float, sizes: dict, n_calibration: int,
+              seed: int, level: float = tr.DEFAULT_LEVEL, episodes: int | None = None,
+              episode_length: int | None = None) -> None:
+    """The value intervals of every lane of ``finals`` ({family: (lanes, TrainState)}) into
+    ``result`` (module docstring). truth [P_test]: the test policies' true values."""
+    t0 = time.perf_counter()
+    ep_len = episode_length or get_task(task).episode_length
+    cal_params, cal_truth, origins = calibration_policies(
+        task, train_pols, n=n_calibration, seed=seed + 4000, n_episodes=sizes["value_episodes"],
+        horizon=horizon, episode_length=ep_len, gamma=gamma)
+    result["trust_calibration"] = {
+        "n": n_calibration, "true_value": cal_truth.tolist(), "origins": origins,
+        "what": f"perturbed training policies (trust.perturbed_policies, noise "
+                f"{PERTURB_NOISE}), true values over {sizes['value_episodes']} real episodes",
+        "min_for_level": tr.min_calibration(level)}
+    result["timings"]["trust_calibration"] = round(time.perf_counter() - t0, 1)
+    truth = np.asarray(truth, np.float64)
+    names = list(test_ds.meta.get("policy_names") or range(len(truth)))
+    roll = dict(n_episodes=episodes or sizes["eval_episodes"], horizon=horizon, gamma=gamma)
+    by_method: dict[str, list] = {}
+    for family, (lanes, states) in finals.items():
+        t0 = time.perf_counter()
+        per_lane = family_trust(lanes, states, policies=_stack(test_pols, cal_params),
+                                n_test=len(truth), pool=start_pool(test_ds), u_data=train_ds,
+                                roll=roll)
+        for (meth, s), (feats, cal_feats) in zip(lanes, per_lane, strict=True):
+            rep = lane_trust(feats, cal_feats, cal_truth, names, truth, level)
+            result["lanes"][f"{meth}/{s}"]["trust"] = tr.json_safe(rep)
+            by_method.setdefault(meth, []).append(rep)
+        result["timings"][f"trust_{family}"] = round(time.perf_counter() - t0, 1)
+    result["trust"] = {m: tr.json_safe(method_block(
+        runs, [r["sim_value"] for r in runs], truth, level, result.get("command", "")))
+        for m, runs in by_method.items()}
+
+
+def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict, sizes: dict,
+                *, phase, save) -> None:
+    """paper.py's step 2b: ``run_trust`` with its flags (nothing with --trust-calibration 0)."""
+    if not args.trust_calibration:
+        return
+    t0 = time.perf_counter()
+    cfg = next(iter(configs.values()))
+    test_ds = datasets["test"]
+    run_trust(result, finals, task=args.task, train_ds=datasets["train"],
+              train_pols=policies_for(datasets["train"]), test_ds=test_ds,
+              test_pols=policies_for(test_ds), truth=result["true_value"],
+              horizon=cfg.vd_horizon, gamma=cfg.gamma, sizes=sizes,
+              n_calibration=args.trust_calibration, seed=args.data_seed,
+              level=args.trust_level, episodes=args.trust_episodes,
+              episode_length=args.episode_length)
+    phase("trust", t0)
+    save()
+    for m, b in result["trust"].items():
+        log(f"[paper] trust {m}: {format_block(b)}")

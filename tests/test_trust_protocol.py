@@ -1,0 +1,158 @@
+"""The protocol's value intervals (issue 64 item 1, paper/trust_phase.py): per lane the
+conformal interval of every test policy, calibrated on perturbed training policies measured
+here (never the test policies), the per-method "trust" block checked against plain NumPy,
+JSON without bare Infinity, on untrained pointmass lanes (pm_files)."""
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from rl2s_jax.evaluate import trust as tr
+
+LEVEL = 0.8  # min_calibration(0.8) == 4
+
+
+@pytest.fixture(scope="module")
+def pm_lanes(pm_files):
+    """Two untrained rl2s lanes (seeds 0, 1) of pm_files' train data and the inputs of
+    run_trust: any simulator will do for the plumbing and the arithmetic."""
+    from rl2s_jax.data.dataset import load_dataset
+    from rl2s_jax.data.values import true_values
+    from rl2s_jax.train.config import TrainConfig
+    from rl2s_jax.train.data import make_train_data
+    from rl2s_jax.train.lanes import init_lanes
+    from rl2s_jax.zoo.zoo import policies_for
+
+    train_ds, test_ds = load_dataset(pm_files["train"]), load_dataset(pm_files["test"])
+    cfg = TrainConfig.small(task="pointmass", method="rl2s", vd_horizon=20)
+    assert cfg.n_elites >= 2
+    data = make_train_data(train_ds, policies_for(train_ds), cfg)
+    lanes = [("rl2s", 0), ("rl2s", 1)]
+    states = init_lanes(jnp.stack([jax.random.PRNGKey(s) for _, s in lanes]), cfg, data,
+                        eps=jnp.asarray([0.25, 0.25], jnp.float32))
+    kw = dict(task="pointmass", train_ds=train_ds, train_pols=policies_for(train_ds),
+              test_ds=test_ds, test_pols=policies_for(test_ds),
+              truth=true_values(test_ds, cfg.vd_horizon, cfg.gamma), horizon=cfg.vd_horizon,
+              gamma=cfg.gamma, sizes={"value_episodes": 4, "eval_episodes": 4}, seed=0,
+              level=LEVEL)
+    return {"adversarial": (lanes, states)}, kw
+
+
+def _run(pm_lanes, n):
+    from rl2s_jax.paper.trust_phase import run_trust
+
+    finals, kw = pm_lanes
+    result = {"lanes": {"rl2s/0": {}, "rl2s/1": {}}, "timings": {}, "command": "cmd"}
+    run_trust(result, finals, n_calibration=n, **kw)
+    return result
+
+
+@pytest.mark.slow
+def test_protocol_trust_block_by_hand(pm_lanes):
+    """The block's numbers from the lanes' stored intervals with NumPy; the seed-spread
+    interval scaled to the same coverage by hand; the JSON is strict (no Infinity)."""
+    r = _run(pm_lanes, 6)
+    truth = np.asarray(pm_lanes[1]["truth"], np.float64)
+    json.dumps(r, allow_nan=False)
+    b = r["trust"]["rl2s"]
+    assert {"level", "coverage", "width_over_range", "worst_flagged", "runs",
+            "command"} <= set(b) and b["runs"] == 2 and b["command"] == "cmd"
+    assert b["level"] == LEVEL and r["trust_calibration"]["n"] == 6
+    covs, wors, flagged, values = [], [], [], []
+    for lane in ("rl2s/0", "rl2s/1"):
+        t = r["lanes"][lane]["trust"]
+        lo, hi = np.asarray(t["interval"], np.float64).T
+        assert not t["q_infinite"] and np.all(hi > lo)
+        np.testing.assert_allclose((lo + hi) / 2, t["sim_value"], rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(hi - lo, 2 * t["q"] * np.asarray(t["sigma"]), rtol=1e-6)
+        covs.append(np.mean((truth >= lo) & (truth <= hi)))
+        wors.append(np.mean(hi - lo) / np.ptp(truth))
+        worst = int(np.argmax(np.abs(np.asarray(t["sim_value"]) - truth)))
+        flagged.append(not t["trusted"][worst])
+        values.append(t["sim_value"])
+    assert b["coverage"] == pytest.approx(np.mean(covs))
+    assert b["width_over_range"] == pytest.approx(np.mean(wors))
+    assert b["worst_flagged"] == pytest.approx(np.mean(flagged))
+    v = np.asarray(values)
+    sd = v.std(0, ddof=1)
+    need = np.sort((np.abs(v - truth) / sd).ravel())[math.ceil(b["coverage"] * v.size) - 1]
+    assert b["seed_spread"]["scaled_width_over_range"] == pytest.approx(
+        np.mean(2 * need * sd) / np.ptp(truth))
+    assert b["narrower_than_seed_spread"] == (
+        b["width_over_range"] < b["seed_spread"]["scaled_width_over_range"])
+
+
+@pytest.mark.slow
+def test_protocol_trust_too_few_calibration_policies_is_valid_json(pm_lanes):
+    """Fewer calibration policies than the level needs: q infinite, flagged, the intervals'
+    ends null (read back as -inf, inf by interval_from_json), never a bare Infinity."""
+    r = _run(pm_lanes, tr.min_calibration(LEVEL) - 1)
+    text = json.dumps(r, allow_nan=False)
+    assert "Infinity" not in text
+    t = r["lanes"]["rl2s/0"]["trust"]
+    assert t["q_infinite"] and t["q"] is None and all(t["unbounded"])
+    assert tr.interval_from_json(t["interval"][0]) == (-math.inf, math.inf)
+    b = r["trust"]["rl2s"]
+    assert b["coverage"] == 1.0 and b["width_over_range"] is None and b["unbounded_runs"] == 2
+
+
+@pytest.mark.slow
+def test_lane_features_equal_the_single_simulator_ones(pm_lanes):
+    """lane_features (one program over lanes and elites) gives each lane what
+    policy_features gives its simulator alone with the same key."""
+    from rl2s_jax.model.simulator import start_pool
+    from rl2s_jax.paper.fork import take_lanes
+    from rl2s_jax.train.step import simulator
+
+    finals, kw = pm_lanes
+    sims = simulator(finals["adversarial"][1])
+    pool = start_pool(kw["test_ds"])
+    keys = jnp.stack([jax.random.PRNGKey(7), jax.random.PRNGKey(8)])
+    units = tr.lane_data_disagreement(sims, kw["train_ds"])
+    roll = dict(n_episodes=3, horizon=10, gamma=kw["gamma"])
+    lanes = tr.lane_features(sims, kw["test_pols"], pool, keys, units, **roll)
+    for i in range(2):
+        one = simulator(take_lanes(finals["adversarial"][1], i))
+        assert units[i] == pytest.approx(tr.data_disagreement(one, kw["train_ds"]), rel=1e-5)
+        ref = tr.policy_features(one, pool, kw["test_pols"], key=keys[i], u_unit=units[i],
+                                 **roll)
+        assert lanes[i]["member_values"].shape == ref["member_values"].shape
+        for k in ref:
+            np.testing.assert_allclose(lanes[i][k], ref[k], rtol=1e-4, atol=1e-5, err_msg=k)
+
+
+def test_json_safe_and_interval_from_json():
+    x = {"a": [1.0, math.inf, np.float32(2.5)], "b": np.array([-np.inf, 3.0]), "c": math.nan}
+    assert tr.json_safe(x) == {"a": [1.0, None, 2.5], "b": [None, 3.0], "c": None}
+    assert tr.interval_from_json([None, 2.0]) == (-math.inf, 2.0)
+    assert tr.interval_from_json([1.0, None]) == (1.0, math.inf)
+    with pytest.raises(ValueError, match="interval: expected"):
+        tr.interval_from_json([1.0])
+
+
+def test_lane_intervals_never_see_the_test_truth():
+    """lane_trust: the intervals and flags depend on the calibration policies only; the test
+    truth changes the measured coverage, nothing else."""
+    from rl2s_jax.paper.trust_phase import lane_trust
+
+    rng = np.random.default_rng(0)
+    feats = {k: rng.uniform(1, 2, 5) for k in ("sim_value", "member_sd", "eval_se", "support")}
+    feats["seed_sd"] = np.zeros(5)
+    cal = {k: rng.uniform(1, 2, 8) for k in feats}
+    cal_truth = cal["sim_value"] + rng.normal(0, 0.3, 8)
+    a = lane_trust(feats, cal, cal_truth, list("abcde"), feats["sim_value"], LEVEL)
+    b = lane_trust(feats, cal, cal_truth, list("abcde"), feats["sim_value"] + 50.0, LEVEL)
+    assert a["interval"] == b["interval"] and a["trusted"] == b["trusted"]
+    assert a["coverage"] == 1.0 and b["coverage"] == 0.0
+    q = _ref_q(np.abs(cal["sim_value"] - cal_truth) / tr.difficulty(
+        cal["member_sd"], cal["seed_sd"], cal["eval_se"], cal["support"], tr.sigma_floor(cal["sim_value"])))
+    assert a["q"] == pytest.approx(q)
+
+
+def _ref_q(scores, level=LEVEL):
+    s = np.sort(scores)
+    return s[math.ceil((len(s) + 1) * level) - 1]

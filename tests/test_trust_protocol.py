@@ -156,3 +156,21 @@ def test_lane_intervals_never_see_the_test_truth():
 def _ref_q(scores, level=LEVEL):
     s = np.sort(scores)
     return s[math.ceil((len(s) + 1) * level) - 1]
+
+
+def test_seed_spread_scaled_to_a_coverage_by_hand():
+    """seed_spread: run s's value +- k sd_over_seeds, k the smallest reaching the coverage
+    (pooled over runs), width over the truth's range; one seed: skipped."""
+    from rl2s_jax.paper.trust_phase import seed_spread
+
+    rng = np.random.default_rng(1)
+    truth = rng.uniform(0, 10, 6)
+    v = truth + rng.normal(0, 1, (3, 6))
+    sd = v.std(0, ddof=1)
+    for cov in (0.5, 0.75):
+        k = np.sort((np.abs(v - truth) / sd).ravel())[math.ceil(cov * v.size) - 1]
+        s = seed_spread(v, truth, 0.9, cov)
+        assert s["scaled_width_over_range"] == pytest.approx(2 * k * sd.mean() / np.ptp(truth))
+        inside = np.abs(v - truth) <= 1.6448536 * sd
+        assert s["coverage"] == pytest.approx(inside.mean())
+    assert "skipped" in seed_spread(v[:1], truth, 0.9, 0.5)

@@ -60,7 +60,12 @@ from rl2s_jax.paper.protocol import (
     write_result,
     zoo_sha256,
 )
-from rl2s_jax.paper.trust_phase import add_trust_arguments, check_trust_arguments, trust_phase
+from rl2s_jax.paper.trust_phase import (
+    add_trust_arguments,
+    check_trust_arguments,
+    guard_phase,
+    trust_phase,
+)
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.sharding import initialize_distributed
 from rl2s_jax.train.config import LEGACY_MODEL
@@ -379,6 +384,7 @@ def main(argv=None) -> int:
         save()
     if it and args.control:
         run_control(result, ft, args.control_seeds, phase)
+    guard_phase(args, result, args.trust_level)  # both guards side by side
     timings["total"] = round(time.perf_counter() - t_start, 1)
     result["complete"] = True
     save()

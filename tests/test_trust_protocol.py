@@ -148,8 +148,9 @@ def test_lane_intervals_never_see_the_test_truth():
     b = lane_trust(feats, cal, cal_truth, list("abcde"), feats["sim_value"] + 50.0, LEVEL)
     assert a["interval"] == b["interval"] and a["trusted"] == b["trusted"]
     assert a["coverage"] == 1.0 and b["coverage"] == 0.0
-    q = _ref_q(np.abs(cal["sim_value"] - cal_truth) / tr.difficulty(
-        cal["member_sd"], cal["seed_sd"], cal["eval_se"], cal["support"], tr.sigma_floor(cal["sim_value"])))
+    sigma = tr.difficulty(cal["member_sd"], cal["seed_sd"], cal["eval_se"], cal["support"],
+                          tr.sigma_floor(cal["sim_value"]))
+    q = _ref_q(np.abs(cal["sim_value"] - cal_truth) / sigma)
     assert a["q"] == pytest.approx(q)
 
 
@@ -174,3 +175,37 @@ def test_seed_spread_scaled_to_a_coverage_by_hand():
         inside = np.abs(v - truth) <= 1.6448536 * sd
         assert s["coverage"] == pytest.approx(inside.mean())
     assert "skipped" in seed_spread(v[:1], truth, 0.9, 0.5)
+
+
+@pytest.mark.slow
+def test_simulated_values_with_intervals(pm_files, pm_checkpoint):
+    """The Python API: values as simulated_values gives them (the same key), intervals
+    value +- q sigma with q the conformal quantile of the calibration policies' scores by
+    hand; bad input named before any work."""
+    import rl2s_jax as rl2s
+    from rl2s_jax.data.values import true_values
+    from rl2s_jax.model.simulator import simulator_returns, start_pool
+
+    sim = rl2s.load_simulator(pm_checkpoint)
+    train, test = rl2s.load_dataset(pm_files["train"]), rl2s.load_dataset(pm_files["test"])
+    key, pool, roll = jax.random.PRNGKey(3), start_pool(test), dict(n_episodes=4, horizon=20,
+                                                                   gamma=0.99)
+    cal = (rl2s.policies_for(train), true_values(train, 20, 0.99))
+    r = rl2s.simulated_values_with_intervals(sim, rl2s.policies_for(test), pool, key,
+                                             calibration=cal, data=train, level=0.5, **roll)
+    ret, _ = simulator_returns(sim, None, rl2s.policies_for(test), pool, key, **roll)
+    np.testing.assert_allclose(r["value"], np.asarray(ret).mean(1), rtol=1e-5)
+    cf = tr.combine_features([tr.policy_features(
+        sim, pool, cal[0], key=key, u_unit=tr.data_disagreement(sim, train), **roll)])
+    sigma = tr.difficulty(cf["member_sd"], cf["seed_sd"], cf["eval_se"], cf["support"],
+                          tr.sigma_floor(cf["sim_value"]))
+    q = _ref_q(np.abs(cf["sim_value"] - np.asarray(cal[1])) / sigma, 0.5)
+    assert r["calibration"]["q"] == pytest.approx(q, rel=1e-6)
+    np.testing.assert_allclose(r["hi"] - r["value"], q * r["sigma"], rtol=1e-6)
+    np.testing.assert_allclose(r["value"] - r["lo"], q * r["sigma"], rtol=1e-6)
+    assert r["trusted"].shape == (3,) and r["calibration"]["n_heldout"] == 3
+    with pytest.raises(ValueError, match="calibration: 3 policies but 2 true values"):
+        rl2s.simulated_values_with_intervals(sim, cal[0], pool, key, level=0.5, **roll,
+                                             calibration=(cal[0], cal[1][:2]))
+    with pytest.raises(ValueError, match="sims: expected a Simulator"):
+        rl2s.simulated_values_with_intervals("x", cal[0], pool, key, calibration=cal, **roll)

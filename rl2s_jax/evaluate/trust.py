@@ -475,3 +475,55 @@ def interval_from_json(pair) -> tuple[float, float]:
                          f"{pair!r}")
     lo, hi = pair
     return (-math.inf if lo is None else float(lo)), (math.inf if hi is None else float(hi))
+
+
+# ----------------------------------------------------------------------------- the Python API
+
+def simulated_values_with_intervals(sims, policies: Params, start_pool: jax.Array,
+                                    key: jax.Array, *, calibration: tuple, n_episodes: int,
+                                    horizon: int, gamma: float, level: float = DEFAULT_LEVEL,
+                                    data=None, calibration_kind: str = "heldout") -> dict:
+    """``simulated_values`` with each policy's conformal interval for its true value at
+    ``level`` (the module docstring's method).
+
+    sims: a ``Simulator`` or a list of them (seeds of one data set: their mean value, and
+    their spread joins the difficulty); policies: stacked [P, ...]; start_pool [S, o];
+    calibration: (stacked params [n, ...], true discounted values [n] over ``horizon`` at
+    ``gamma``) of policies whose truth is known -- never the evaluated ones;
+    calibration_kind "heldout" (the simulators never saw their data) or "train" (their own
+    training policies: optimistic); data: the training Dataset, u's unit for the support
+    (None: support 1). Every policy runs with ``key`` (common random numbers).
+    -> {"value" [P], "lo" [P], "hi" [P], "trusted" [P] bool, "why" [P], "sigma" [P],
+    "support" [P], "calibration": ``calibrate``'s dict} (NumPy; lo / hi infinite when n is
+    below ``min_calibration(level)``)."""
+    sims = list(sims) if isinstance(sims, list | tuple) else [sims]
+    if not sims or not all(isinstance(s, Simulator) for s in sims):
+        raise ValueError(f"sims: expected a Simulator or a non-empty list of them, got "
+                         f"{type(sims[0]).__name__ if sims else 'an empty list'}")
+    if not isinstance(calibration, tuple) or len(calibration) != 2:
+        raise ValueError("calibration: expected (stacked policy params [n], true values [n])")
+    cal_params, cal_truth = calibration
+    cal_truth = np.asarray(cal_truth, np.float64).ravel()
+    if num_policies(cal_params) != cal_truth.size:
+        raise ValueError(f"calibration: {num_policies(cal_params)} policies but "
+                         f"{cal_truth.size} true values")
+    if calibration_kind not in ("heldout", "train"):
+        raise ValueError(f"calibration_kind: expected 'heldout' or 'train', got "
+                         f"{calibration_kind!r}")
+    level = check_level(level)
+    kw = dict(key=key, n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    units = [data_disagreement(s, data) if data is not None and elites(s).size > 1 else None
+             for s in sims]
+
+    def features(params):
+        return combine_features([policy_features(s, start_pool, params, u_unit=u, **kw)
+                                 for s, u in zip(sims, units, strict=True)])
+
+    cal = calibrate(features(cal_params), cal_truth, [calibration_kind] * cal_truth.size,
+                    level)
+    feats = features(policies)
+    iv = intervals(feats, cal)
+    return {"value": feats["sim_value"], "lo": np.asarray(iv["lo"]),
+            "hi": np.asarray(iv["hi"]), "trusted": np.asarray(iv["trusted"]),
+            "why": iv["why"], "sigma": np.asarray(iv["sigma"]), "support": feats["support"],
+            "calibration": cal}

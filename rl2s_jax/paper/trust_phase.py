@@ -18,6 +18,8 @@ result["trust_calibration"]. JSON-valid: an infinite quantile (too few calibrati
 for the level) leaves None with "q_infinite": true, and unbounded intervals None ends."""
 from __future__ import annotations
 
+import json
+import os
 import time
 
 import jax
@@ -27,10 +29,12 @@ import numpy as np
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate import trust as tr
+from rl2s_jax.improve import gain_intervals as gi
+from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.paper.protocol import log
 from rl2s_jax.train.step import simulator
-from rl2s_jax.zoo.zoo import policies_for
+from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids, policies_for
 
 PERTURB_NOISE = 0.1  # the calibration policies' noise (trust.perturbed_policies' default)
 
@@ -44,6 +48,14 @@ def add_trust_arguments(ap) -> None:
                     "exceed this x the lane's training MVD (0: the margin alone)")
     ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
                     "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
+    ap.add_argument("--guard", choices=("floor", "interval"), default="floor", help="the "
+                    "guard whose figures are the result's (both are recorded with "
+                    "--guard-calibration): floor (every member's gain above the floor) or "
+                    "interval (the lower end of the predicted gain's interval above 0)")
+    ap.add_argument("--guard-calibration", nargs="+", metavar="VAL.json", help="results of "
+                    "paper.py --policy-split validation --guard-margin M on this task: the "
+                    "interval guard's conformal calibration (their fine-tuned validation "
+                    "policies' real gains)")
     ap.add_argument("--trust-calibration", type=int, default=20, help="perturbed training "
                     "policies measured in the real env to calibrate the test policies' value "
                     "intervals (0: no intervals; fewer than trust.min_calibration(level): "
@@ -60,6 +72,15 @@ def check_trust_arguments(args) -> None:
             raise SystemExit(f"guard-{name}: expected a finite float >= 0, got {v}")
     if args.guard_snapshots and args.guard_margin is None:
         raise SystemExit("guard-snapshots: needs --guard-margin (the guard's margin)")
+    if args.guard_calibration and args.guard_margin is None:
+        raise SystemExit("guard-calibration: needs --guard-margin (the members' predicted "
+                         "gains the interval guard reads are recorded by the guard)")
+    if args.guard == "interval" and not args.guard_calibration:
+        raise SystemExit("guard: 'interval' needs --guard-calibration VAL.json (fine-tuned "
+                         "validation policies with known real gains)")
+    for p in args.guard_calibration or ():
+        if not os.path.isfile(p):
+            raise SystemExit(f"guard-calibration: no such file {p}")
     if args.trust_calibration < 0:
         raise SystemExit(f"trust-calibration: expected an int >= 0, got {args.trust_calibration}")
     if args.trust_episodes is not None and args.trust_episodes < 2:
@@ -217,3 +238,94 @@ def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict,
     save()
     for m, b in result["trust"].items():
         log(f"[paper] trust {m}: {format_block(b)}")
+
+
+# ------------------------------------------------------------------ the interval guard
+
+def gain_calibration(runs: list[dict], task: str, level: float) -> dict:
+    """The interval guard's calibration (``gain_intervals.calibrate_gains``) from results of
+    ``paper.py --policy-split validation --guard-margin M`` on ``task``: the fine-tuned
+    validation policies of every lane pooled (simulators that learned from the "fit"
+    policies only), their real gain I_paired. ValueError naming what a run lacks."""
+    g, sd, real, sources = [], [], [], []
+    for run in runs:
+        if run.get("task") != task or run.get("policy_split") != "validation":
+            raise ValueError(f"guard-calibration: expected a {task!r} run on the validation "
+                             f"split, got {run.get('task')!r} on {run.get('policy_split')!r}")
+        for lane, e in (run.get("improvement") or {}).items():
+            if "guard_member_gain" not in e or "guard_member_start" not in e:
+                raise ValueError(f"guard-calibration: lane {lane} has no guard_member_gain / "
+                                 f"guard_member_start (a run with --guard-margin)")
+            f = gi.gain_features(e["guard_member_start"], e["guard_member_gain"])
+            ok = np.asarray([x is not None for x in e["I_paired"]])
+            g += f["gain"][ok].tolist()
+            sd += f["member_sd"][ok].tolist()
+            real += [x for x in e["I_paired"] if x is not None]
+        sources.append(run.get("command"))
+    if not g:
+        raise ValueError("guard-calibration: the runs hold no fine-tuned policies")
+    return {**gi.calibrate_gains(g, sd, real, level), "sources": sources,
+            "what": "fine-tuned validation policies (paper.py --policy-split validation), "
+                    "all lanes pooled; real gain I_paired"}
+
+
+def guard_block(entries: list[dict], accepted: list, zoo_returns, names, control=None) -> dict:
+    """One guard's figures for one method's lanes (``entries``: result["improvement"]'s,
+    ``accepted`` [lane][P] its verdicts): "median_gain" (``finetune.median_gain`` over the
+    seeds, kept policies at C0), "mpi" (mean over lanes of the guarded MPI, kept: 0),
+    "deployed", "deployed_losses" (real I_paired < 0 among them), "control_median_gain"
+    (the real-env control's, where ``control``)."""
+    ids = names_to_zoo_ids([names[i] for i in entries[0]["policy_ids"]])
+    zret = np.asarray(zoo_returns, np.float64)
+    c0 = np.stack([np.asarray(e["c0_paired"], np.float64) for e in entries])
+    c1 = np.stack([np.asarray(e["c1"], np.float64) for e in entries])
+    real = np.stack([np.asarray(e["I_paired"], np.float64) for e in entries])
+    acc = np.asarray(accepted, bool)
+    out = {"median_gain": median_gain(c0, np.where(acc, c1, c0), zret[ids], zret)["median_gain"],
+           "mpi": float(np.mean(np.where(acc, real, 0.0).min(1))),
+           "deployed": int(acc.sum()), "deployed_losses": int((acc & (real < 0)).sum()),
+           "lanes_x_policies": int(acc.size), "control_median_gain": None}
+    if control is not None:
+        out["control_median_gain"] = median_gain(control["c0"], control["c1"], zret[ids],
+                                                 zret)["median_gain"]
+    return out
+
+
+def guard_comparison(result: dict, cal: dict, zoo_returns, chosen: str = "floor") -> dict:
+    """Both guards side by side on result["improvement"] (a run with --guard-margin): the
+    floor guard's recorded verdicts ("guard_accepted") and the interval guard's
+    (``gain_intervals.interval_guard`` with ``cal``), written into each lane entry
+    ("guard_accepted_interval", "guard_gain_lower"). -> {"chosen", "calibration",
+    "floor": {method: ``guard_block``}, "interval": {...}} (JSON-safe)."""
+    by_method: dict[str, list] = {}
+    for e in result["improvement"].values():
+        if "guard_member_gain" not in e:
+            raise ValueError("guard: the lanes record no guard_member_gain (--guard-margin)")
+        acc, lower = gi.interval_guard(e["guard_member_start"], e["guard_member_gain"], cal)
+        e["guard_accepted_interval"] = acc.tolist()
+        e["guard_gain_lower"] = tr.json_safe(lower.tolist())
+        by_method.setdefault(e["method"], []).append(e)
+    names, ctl = result["test_policy_names"], result.get("control")
+    out = {"chosen": chosen, "calibration": {**cal, "q_infinite": not np.isfinite(cal["q"])}}
+    for kind, key in (("floor", "guard_accepted"), ("interval", "guard_accepted_interval")):
+        out[kind] = {m: guard_block(es, [e[key] for e in es], zoo_returns, names, ctl)
+                     for m, es in by_method.items()}
+    return tr.json_safe(out)
+
+
+def guard_phase(args, result: dict, level: float) -> None:
+    """paper.py after the improvement: with --guard-calibration, result["guard"]
+    (``guard_comparison``) and a line per guard and method."""
+    if not args.guard_calibration or not result.get("improvement"):
+        return
+    runs = []
+    for path in args.guard_calibration:
+        with open(path) as f:
+            runs.append(json.load(f))
+    cal = gain_calibration(runs, args.task, level)
+    result["guard"] = guard_comparison(result, cal, load_zoo(args.task).returns, args.guard)
+    for kind in ("floor", "interval"):
+        for m, b in result["guard"][kind].items():
+            log(f"[paper] guard {kind} {m}: deployed {b['deployed']} ({b['deployed_losses']} "
+                f"lose), median gain {b['median_gain']}, MPI {b['mpi']:.3f}, control median "
+                f"gain {b['control_median_gain']}")

@@ -35,6 +35,7 @@ import numpy as np
 from rl2s_jax.evaluate.lane_scores import intervals_over_seeds
 from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.paper.protocol import summarise
+from rl2s_jax.paper.trust_phase import trust_from_lanes
 from rl2s_jax.zoo.zoo import load_zoo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -200,6 +201,23 @@ def attach_paper_oracle(result: dict, path: str, sha: str) -> None:
                         "data": "its own collection (another run)"}
 
 
+def carry_trust(merged: dict, parts: list[dict]) -> None:
+    """Issue 64's blocks of joined runs into ``merged``: "trust" per method recomputed from
+    the joined lanes' intervals (a method's seeds may come from several runs), "guard" per
+    guard and method from the run that fine-tuned it, "trust_calibration" the first run's;
+    ValueError where the runs calibrated the intervals on other policies."""
+    cals = [p["trust_calibration"] for p in parts if p.get("trust_calibration")]
+    if any(c["true_value"] != cals[0]["true_value"] for c in cals):
+        raise ValueError("trust_calibration: the runs calibrated on other policies")
+    if cals:
+        merged["trust_calibration"] = cals[0]
+        merged["trust"] = trust_from_lanes(merged)
+    guards = [p["guard"] for p in parts if p.get("guard")]
+    if guards:
+        merged["guard"] = {**guards[0], **{k: {m: b for g in guards for m, b in g[k].items()}
+                                           for k in ("floor", "interval")}}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
@@ -229,6 +247,7 @@ def main(argv=None) -> int:
         else:
             try:
                 result = merge_runs(parts)
+                carry_trust(result, parts)
             except ValueError as err:
                 raise SystemExit(f"paper: {err}") from None
         if result.get("zoo_sha256") not in (None, sha):

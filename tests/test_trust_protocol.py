@@ -209,3 +209,42 @@ def test_simulated_values_with_intervals(pm_files, pm_checkpoint):
                                              calibration=(cal[0], cal[1][:2]))
     with pytest.raises(ValueError, match="sims: expected a Simulator"):
         rl2s.simulated_values_with_intervals("x", cal[0], pool, key, calibration=cal, **roll)
+
+
+def test_merge_results_recomputes_the_trust_block_over_joined_seeds():
+    """Two runs of other seeds (paper.py --first-seed): carry_trust's "trust" block is the one
+    of all the method's lanes together (method_block on the four runs, by seed), the
+    calibration the runs share; runs calibrated on other policies are refused; the guard
+    blocks join per method."""
+    from experiment_scripts import load_script
+
+    from rl2s_jax.paper.trust_phase import lane_trust, method_block
+
+    mr = load_script("merge_results")
+    rng = np.random.default_rng(2)
+    truth = rng.uniform(0, 10, 5)
+    cal = {k: rng.uniform(1, 2, 8) for k in ("sim_value", "member_sd", "eval_se", "support",
+                                              "seed_sd")}
+    reps, parts = [], []
+    for ids in ([0, 1], [2, 3]):
+        lanes = {}
+        for s in ids:
+            f = {k: rng.uniform(0.5, 1.5, 5) for k in ("member_sd", "eval_se", "support")}
+            f.update(sim_value=truth + rng.normal(0, 1, 5), seed_sd=np.zeros(5))
+            reps.append(lane_trust(f, cal, cal["sim_value"] + rng.normal(0, .3, 8),
+                                   list("abcde"), truth, LEVEL))
+            lanes[f"rl2s/{s}"] = {"seed": s, "trust": tr.json_safe(reps[-1])}
+        parts.append({"lanes": lanes, "true_value": truth.tolist(), "command": "c",
+                      "trust_calibration": {"true_value": [1.0]},
+                      "guard": {"chosen": "floor", "floor": {f"m{ids[0]}": 1},
+                                "interval": {f"m{ids[0]}": 2}}})
+    merged = {"lanes": {**parts[0]["lanes"], **parts[1]["lanes"]},
+              "true_value": truth.tolist(), "command": "c && c"}
+    mr.carry_trust(merged, parts)
+    ref = tr.json_safe(method_block(reps, [r["sim_value"] for r in reps], truth, LEVEL,
+                                    "c && c"))
+    assert merged["trust"]["rl2s"] == ref and ref["runs"] == 4
+    assert merged["guard"]["floor"] == {"m0": 1, "m2": 1} and merged["guard"]["chosen"] == "floor"
+    parts[1]["trust_calibration"] = {"true_value": [2.0]}
+    with pytest.raises(ValueError, match="trust_calibration: the runs calibrated"):
+        mr.carry_trust(merged, parts)

@@ -19,6 +19,7 @@ for the level) leaves None with "q_infinite": true, and unbounded intervals None
 from __future__ import annotations
 
 import json
+import math
 import os
 import time
 
@@ -166,6 +167,25 @@ def format_block(b: dict) -> str:
             f"{f(b['width_over_range'])} ({spread}), worst policy flagged in "
             f"{f(b['worst_flagged'])} of {b['runs']} runs"
             f"{', unbounded in ' + str(b['unbounded_runs']) if b['unbounded_runs'] else ''}")
+
+
+def trust_from_lanes(result: dict) -> dict:
+    """result["trust"] recomputed from its lanes' "trust" entries (as ``run_trust`` wrote
+    them, JSON-safe), each method's lanes in seed order: for results joined from several
+    runs (``merge_results.py``), where a method's seeds come from more than one."""
+    by_method: dict[str, list] = {}
+    for lane, e in sorted(result.get("lanes", {}).items(),
+                          key=lambda kv: (kv[0].rsplit("/", 1)[0], int(kv[1]["seed"]))):
+        if e.get("trust"):
+            by_method.setdefault(lane.rsplit("/", 1)[0], []).append(e["trust"])
+    out = {}
+    for m, runs in by_method.items():
+        raw = [{**r, "mean_width": math.inf if r["mean_width"] is None else r["mean_width"]}
+               for r in runs]
+        out[m] = tr.json_safe(method_block(raw, [r["sim_value"] for r in runs],
+                                           np.asarray(result["true_value"], np.float64),
+                                           runs[0]["level"], result.get("command", "")))
+    return out
 
 
 def _stack(a, b):

@@ -123,6 +123,15 @@ def test_lane_features_equal_the_single_simulator_ones(pm_lanes):
         assert lanes[i]["member_values"].shape == ref["member_values"].shape
         for k in ref:
             np.testing.assert_allclose(lanes[i][k], ref[k], rtol=1e-4, atol=1e-5, err_msg=k)
+    # the elites alone from fewer episodes: their values are policy_features' at that many
+    few = tr.lane_features(sims, kw["test_pols"], pool, keys, units, member_episodes=2, **roll)
+    for i in range(2):
+        one = simulator(take_lanes(finals["adversarial"][1], i))
+        ref = tr.policy_features(one, pool, kw["test_pols"], key=keys[i], u_unit=units[i],
+                                 **dict(roll, n_episodes=2))
+        np.testing.assert_allclose(few[i]["member_values"], ref["member_values"], rtol=1e-4,
+                                   atol=1e-5)
+        np.testing.assert_allclose(few[i]["sim_value"], lanes[i]["sim_value"], rtol=1e-6)
 
 
 def test_json_safe_and_interval_from_json():

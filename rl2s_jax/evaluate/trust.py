@@ -296,6 +296,15 @@ def visited_disagreement(sim: Simulator, policies: Params, pool: jax.Array, key:
     """The ensemble's disagreement u(s, a) averaged over the live steps of each policy's
     simulated episodes (as ``simulated_returns`` runs them: same starts and termination).
     policies [P, ...], pool [S, o] -> [P]."""
+    return returns_and_support(sim, policies, pool, key, n_episodes=n_episodes,
+                               horizon=horizon, gamma=1.0)[1]
+
+
+def returns_and_support(sim: Simulator, policies: Params, pool: jax.Array, key: jax.Array,
+                        *, n_episodes: int, horizon: int, gamma: float):
+    """One rollout of the ensemble: each episode's discounted return (``simulator_returns``'
+    episodes, the same key: the same draws) and u averaged over each policy's live steps.
+    -> (returns [P, n], u [P])"""
     task = sim.task_fns()
     done_fn, hazard_fn = sim.terminations(task.done_fn)
     n_pol = num_policies(policies)
@@ -303,22 +312,26 @@ def visited_disagreement(sim: Simulator, policies: Params, pool: jax.Array, key:
     roll = start_values(pool, n_pol, n_episodes, k_start, sim.new_history)
     act = jax.vmap(lambda p, o, k: sample_action(p, o, k)[0])
 
-    def step(carry, key):
-        obs, hist, alive, total, count = carry
+    def step(carry, xs):
+        obs, hist, alive, ret, total, count = carry
+        key, discount = xs
         k_act, k_dyn = jax.random.split(key)
         action = act(policies, obs, jax.random.split(k_act, n_pol))
         k_dyn, k_end = end_key(k_dyn, hazard_fn)
         nxt, u = sim.step(obs, action, k_dyn, hist)
+        reward = task.reward_fn(obs, action, nxt)
         hist = None if hist is None else push_history(hist, obs, action)
         w = alive.astype(jnp.float32)
         done = ends_episode(obs, action, nxt, k_end, done_fn, hazard_fn)
-        return (jnp.where(alive[..., None], nxt, obs), hist, alive & ~done, total + w * u,
-                count + w), None
+        return (jnp.where(alive[..., None], nxt, obs), hist, alive & ~done,
+                ret + jnp.where(alive, discount * reward, 0.0), total + w * u, count + w), None
 
     zeros = jnp.zeros(roll.alive.shape, jnp.float32)
-    carry = (roll.obs, roll.hist, roll.alive, zeros, zeros)
-    (_, _, _, total, count), _ = jax.lax.scan(step, carry, jax.random.split(k_run, horizon))
-    return total.sum(1) / jnp.maximum(count.sum(1), 1.0)
+    discounts = jnp.asarray(gamma, jnp.float32) ** jnp.arange(horizon, dtype=jnp.float32)
+    carry = (roll.obs, roll.hist, roll.alive, zeros, zeros, zeros)
+    (_, _, _, ret, total, count), _ = jax.lax.scan(
+        step, carry, (jax.random.split(k_run, horizon), discounts))
+    return ret, total.sum(1) / jnp.maximum(count.sum(1), 1.0)
 
 
 def data_disagreement(sim: Simulator, ds, max_rows: int = SUPPORT_ROWS) -> float:
@@ -402,20 +415,23 @@ def _member_values(sim: Simulator, policies, pool, key, **roll) -> jax.Array:
     return jax.vmap(alone)(best)
 
 
-@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma"))
+@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma", "member_episodes"))
 def lane_feature_arrays(sims: Simulator, policies: Params, pool: jax.Array, keys: jax.Array,
-                        *, n_episodes: int, horizon: int, gamma: float):
+                        *, n_episodes: int, horizon: int, gamma: float,
+                        member_episodes: int | None = None):
     """``policy_features``' rollouts for every lane of ``sims`` (a Simulator with a leading
-    lane axis L) in one program: each lane's ensemble returns [L, P, n], its elites' values
-    [L, n_elites, P] (0 elites without ranked members) and the disagreement along its
-    simulated visits [L, P] (raw, not in data units). keys [L, 2]; pool [S, o]."""
+    lane axis L) in one program: one rollout of the ensemble gives each lane's returns
+    [L, P, n] and the disagreement along its simulated visits [L, P] (raw, not in data
+    units; ``returns_and_support``), and the elites alone, vmapped over them, their values
+    [L, n_elites, P] (0 elites without ranked members) from ``member_episodes`` episodes
+    each (None: n; common random numbers make few enough for their spread). keys [L, 2];
+    pool [S, o]."""
     roll = dict(n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    members = dict(roll, n_episodes=member_episodes or n_episodes)
 
     def one(sim, key):
-        ret, _ = simulator_returns(sim, None, policies, pool, key, **roll)
-        u = visited_disagreement(sim, policies, pool, key, n_episodes=n_episodes,
-                                 horizon=horizon)
-        return ret, _member_values(sim, policies, pool, key, **roll), u
+        ret, u = returns_and_support(sim, policies, pool, key, **roll)
+        return ret, _member_values(sim, policies, pool, key, **members), u
     return jax.vmap(one)(sims, keys)
 
 

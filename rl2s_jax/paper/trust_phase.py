@@ -8,8 +8,9 @@ policies either, which in the protocol's zoo split are training policies of thes
 Cost: one real-env value measurement of the calibration policies per task, and per family one
 program over its lanes: the ensemble's rollout, each elite's rollout (vmapped over the elites)
 and the disagreement along the visits, on the test and calibration policies
-(``trust.lane_feature_arrays``), i.e. (n_elites + 2) x the test evaluation's rollouts on
-(P_test + n_calibration) policies at ``--trust-episodes`` episodes each.
+(``trust.lane_feature_arrays``): one ensemble rollout (values and support together) at
+``--trust-episodes`` episodes plus n_elites rollouts at ``--trust-member-episodes``, on
+(P_test + n_calibration) policies.
 
 Writes result["lanes"][lane]["trust"] (each test policy's interval and flag),
 result["trust"][method] (the issue's block: level, coverage, width_over_range, worst_flagged,
@@ -63,6 +64,9 @@ def add_trust_arguments(ap) -> None:
                     "unbounded intervals)")
     ap.add_argument("--trust-episodes", type=int, help="simulated episodes per policy for "
                     "the intervals' features (default: --eval-episodes)")
+    ap.add_argument("--trust-member-episodes", type=int, default=16, help="simulated "
+                    "episodes per policy of each elite alone (their spread; common random "
+                    "numbers make a few enough; at most --trust-episodes)")
     ap.add_argument("--trust-level", type=float, default=tr.DEFAULT_LEVEL)
 
 
@@ -84,8 +88,10 @@ def check_trust_arguments(args) -> None:
             raise SystemExit(f"guard-calibration: no such file {p}")
     if args.trust_calibration < 0:
         raise SystemExit(f"trust-calibration: expected an int >= 0, got {args.trust_calibration}")
-    if args.trust_episodes is not None and args.trust_episodes < 2:
-        raise SystemExit(f"trust-episodes: expected an int >= 2, got {args.trust_episodes}")
+    for name in ("trust_episodes", "trust_member_episodes"):
+        v = getattr(args, name)
+        if v is not None and v < 2:
+            raise SystemExit(f"{name.replace('_', '-')}: expected an int >= 2, got {v}")
     try:
         tr.check_level(args.trust_level)
     except ValueError as err:
@@ -206,9 +212,11 @@ def family_trust(lanes, states, *, policies, n_test: int, pool, u_data, roll: di
 def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, test_ds,
               test_pols, truth, horizon: int, gamma: float, sizes: dict, n_calibration: int,
               seed: int, level: float = tr.DEFAULT_LEVEL, episodes: int | None = None,
-              episode_length: int | None = None) -> None:
+              member_episodes: int | None = None, episode_length: int | None = None) -> None:
     """The value intervals of every lane of ``finals`` ({family: (lanes, TrainState)}) into
-    ``result`` (module docstring). truth [P_test]: the test policies' true values."""
+    ``result`` (module docstring). truth [P_test]: the test policies' true values; episodes
+    (None: sizes["eval_episodes"]) and member_episodes (None: as many; at most episodes):
+    ``trust.lane_feature_arrays``'."""
     t0 = time.perf_counter()
     ep_len = episode_length or get_task(task).episode_length
     cal_params, cal_truth, origins = calibration_policies(
@@ -222,7 +230,9 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
     result["timings"]["trust_calibration"] = round(time.perf_counter() - t0, 1)
     truth = np.asarray(truth, np.float64)
     names = list(test_ds.meta.get("policy_names") or range(len(truth)))
-    roll = dict(n_episodes=episodes or sizes["eval_episodes"], horizon=horizon, gamma=gamma)
+    n = episodes or sizes["eval_episodes"]
+    roll = dict(n_episodes=n, horizon=horizon, gamma=gamma,
+                member_episodes=min(member_episodes or n, n))
     by_method: dict[str, list] = {}
     for family, (lanes, states) in finals.items():
         t0 = time.perf_counter()
@@ -253,7 +263,7 @@ def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict,
               horizon=cfg.vd_horizon, gamma=cfg.gamma, sizes=sizes,
               n_calibration=args.trust_calibration, seed=args.data_seed,
               level=args.trust_level, episodes=args.trust_episodes,
-              episode_length=args.episode_length)
+              member_episodes=args.trust_member_episodes, episode_length=args.episode_length)
     phase("trust", t0)
     save()
     for m, b in result["trust"].items():

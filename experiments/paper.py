@@ -11,6 +11,7 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
         [--set field=value ...] [--families adversarial,mle] [--first-seed K] [--no-fork]
+        [--trust-calibration 20] [--guard interval --guard-calibration VAL.json ...]
 
 This script parses and checks the flags; the phases are ``rl2s_jax.paper.protocol`` (data,
 oracle, training and evaluation) and ``rl2s_jax.paper.improvement_phases`` (improvement and its

@@ -3,6 +3,7 @@ fine-tuned policy is deployed where the lower end of its predicted gain's confor
 is above zero; the math against plain NumPy, both guards side by side on a synthetic protocol
 result, the flags refused before any work. No JAX programs: fast."""
 
+import json
 import math
 
 import numpy as np
@@ -130,3 +131,49 @@ def test_paper_guard_and_trust_flags_refused_before_any_work(tmp_path):
                        (["--trust-level", "1.5"], "trust-level: expected")):
         with pytest.raises(SystemExit, match=msg):
             paper.check_arguments(paper.parse_args(base + extra))
+
+
+def test_crossfit_calibrates_each_fold_on_the_others(tmp_path):
+    """crossfit_interval_guard: each policy's verdict from a calibration on the other fold's
+    policies only (by hand with calibrate_gains); |c0| as the scale where the run kept no
+    member starts; the script reads a bundle and writes both guards' blocks."""
+    from experiment_scripts import load_script
+
+    from rl2s_jax.paper.trust_phase import crossfit_interval_guard
+
+    rng = np.random.default_rng(3)
+    entries = []
+    for seed in range(3):
+        gain = rng.normal(5, 3, (2, 4))
+        c0 = np.array([100.0, 80.0, 120.0, 90.0])
+        e = _entry("rl2s", seed, np.zeros((2, 4)), gain, c0, c0 + rng.normal(4, 3, 4),
+                   [True] * 4)
+        del e["guard_member_start"]
+        e.update(c0=c0.tolist(), zoo_ids=[3, 1, 7, 5], policy_ids=[0, 1, 2, 3])
+        entries.append(e)
+    out = crossfit_interval_guard(entries, level=0.5, folds=2)
+    assert out["scale"].startswith("|C0|") and out["n"] == [6, 6]
+    # zoo ids sorted 1, 3, 5, 7 -> folds 0, 1, 0, 1: at positions 1, 3 ([3, 1, 7, 5]) fold 0
+    feats = [gi.gain_features(None, e["guard_member_gain"], np.abs(e["c0"])) for e in entries]
+    for f, cols in ((0, [0, 2]), (1, [1, 3])):  # fold f is calibrated on these positions
+        cal = gi.calibrate_gains([ft["gain"][j] for ft in feats for j in cols],
+                                 [ft["member_sd"][j] for ft in feats for j in cols],
+                                 [e["I_paired"][j] for e in entries for j in cols], 0.5)
+        assert out["q"][f] == pytest.approx(cal["q"])
+        mine = [1, 3] if f == 0 else [0, 2]
+        for e, ft in zip(entries, feats, strict=True):
+            low = gi.gain_lower_bound(ft["gain"], ft["member_sd"], cal)
+            assert [e["guard_gain_lower"][j] for j in mine] == pytest.approx(low[mine].tolist())
+            assert [e["guard_accepted_interval"][j] for j in mine] == (low[mine] > 0).tolist()
+    run = {"task": "hopper", "test_policy_names": [f"hopper-{i:03d}" for i in (3, 1, 7, 5)],
+           "improvement": {f"rl2s/{i}": {k: v for k, v in e.items() if not k.startswith(
+               ("guard_gain", "guard_accepted_i", "zoo"))} for i, e in enumerate(entries)}}
+    (tmp_path / "b.json").write_text(json.dumps({"runs": [run],
+                                                 "summary": {"control": {"median_gain": 0.4}}}))
+    ig = load_script("interval_guard")
+    assert ig.main(["--task", "hopper", "--runs", str(tmp_path / "b.json"), "--level", "0.5",
+                    "--out", str(tmp_path / "o.json")]) == 0
+    o = json.loads((tmp_path / "o.json").read_text())
+    assert o["interval"]["rl2s"]["deployed"] == sum(sum(e["guard_accepted_interval"])
+                                                    for e in entries)
+    assert o["floor"]["rl2s"]["deployed"] == 12 and o["floor"]["rl2s"]["control_median_gain"] == 0.4

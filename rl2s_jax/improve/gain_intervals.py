@@ -25,18 +25,23 @@ import numpy as np
 from rl2s_jax.evaluate import trust as tr
 
 
-def gain_features(member_start, member_gain) -> dict:
+def gain_features(member_start, member_gain, scale=None) -> dict:
     """member_start, member_gain [M, P] (the guard's ``guard_member_start`` /
     ``guard_member_gain``: each elite's value of the start and its predicted gain, value
-    units) -> {"gain" [P] predicted relative gain G, "member_sd" [P] the elites' std of it (0
-    for one elite)}."""
-    v0, g = np.asarray(member_start, np.float64), np.asarray(member_gain, np.float64)
-    if v0.ndim != 2 or v0.shape != g.shape:
+    units; member_start may be None where ``scale`` is given); scale [P]: what a gain is
+    relative to (None: |mean_m member_start|) -> {"gain" [P] predicted relative gain G,
+    "member_sd" [P] the elites' std of it (0 for one elite)}."""
+    g = np.asarray(member_gain, np.float64)
+    v0 = g if member_start is None else np.asarray(member_start, np.float64)
+    if g.ndim != 2 or v0.shape != g.shape:
         raise ValueError(f"member_gain: expected the shape of member_start [M, P] {v0.shape}, "
                          f"got {g.shape}")
     if not (np.all(np.isfinite(v0)) and np.all(np.isfinite(g))):
         raise ValueError("member_start, member_gain: expected finite simulated values")
-    scale = np.maximum(np.abs(v0.mean(0)), 1e-9)
+    if scale is None and member_start is None:
+        raise ValueError("scale: expected [P] values where member_start is None")
+    scale = np.maximum(np.abs(v0.mean(0) if scale is None else np.asarray(scale, np.float64)),
+                       1e-9)
     rel = g / scale
     sd = rel.std(0, ddof=1) if rel.shape[0] > 1 else np.zeros(rel.shape[1])
     return {"gain": rel.mean(0), "member_sd": sd}

@@ -359,3 +359,41 @@ def guard_phase(args, result: dict, level: float) -> None:
             log(f"[paper] guard {kind} {m}: deployed {b['deployed']} ({b['deployed_losses']} "
                 f"lose), median gain {b['median_gain']}, MPI {b['mpi']:.3f}, control median "
                 f"gain {b['control_median_gain']}")
+
+
+def crossfit_interval_guard(entries: list[dict], level: float, folds: int = 2) -> dict:
+    """The interval guard read offline on runs without validation runs: the fine-tuned
+    policies split into ``folds`` folds by their zoo id's rank (every ``folds``-th), each
+    fold's verdicts calibrated on the OTHER folds' policies (all lanes pooled), so that no
+    policy calibrates its own verdict. entries: lane entries of result["improvement"] with
+    "zoo_ids" added (and "guard_member_start" or, before runs kept it, |c0| as the gain's
+    scale). Writes each entry's "guard_accepted_interval", "guard_gain_lower".
+    -> {"folds", "q" per fold, "n" per fold, "scale"}"""
+    feats = []
+    for e in entries:
+        start = e.get("guard_member_start")
+        feats.append(gi.gain_features(start, e["guard_member_gain"],
+                                      None if start is not None else np.abs(e["c0"])))
+    ids = sorted({z for e in entries for z in e["zoo_ids"]})
+    fold_of = {z: i % folds for i, z in enumerate(ids)}
+    out = {"folds": folds, "q": [], "n": [], "scale": (
+        "mean member start" if all(e.get("guard_member_start") for e in entries)
+        else "|C0| where the run kept no guard_member_start")}
+    lowers = [np.full(len(e["zoo_ids"]), -np.inf) for e in entries]
+    for f in range(folds):
+        g, sd, real = [], [], []
+        for e, ft in zip(entries, feats, strict=True):
+            for j, z in enumerate(e["zoo_ids"]):
+                if fold_of[z] != f and e["I_paired"][j] is not None:
+                    g.append(ft["gain"][j]), sd.append(ft["member_sd"][j])
+                    real.append(e["I_paired"][j])
+        cal = gi.calibrate_gains(g, sd, real, level)
+        out["q"].append(cal["q"])
+        out["n"].append(cal["n"])
+        for e, ft, low in zip(entries, feats, lowers, strict=True):
+            mine = np.asarray([fold_of[z] == f for z in e["zoo_ids"]])
+            low[mine] = gi.gain_lower_bound(ft["gain"], ft["member_sd"], cal)[mine]
+    for e, low in zip(entries, lowers, strict=True):
+        e["guard_accepted_interval"] = (low > 0).tolist()
+        e["guard_gain_lower"] = tr.json_safe(low.tolist())
+    return tr.json_safe(out)

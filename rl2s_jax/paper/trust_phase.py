@@ -6,11 +6,12 @@ policies either, which in the protocol's zoo split are training policies of thes
 (their errors are optimistic).
 
 Cost: one real-env value measurement of the calibration policies per task, and per family one
-program over its lanes: the ensemble's rollout, each elite's rollout (vmapped over the elites)
-and the disagreement along the visits, on the test and calibration policies
-(``trust.lane_feature_arrays``): one ensemble rollout (values and support together) at
-``--trust-episodes`` episodes plus n_elites rollouts at ``--trust-member-episodes``, on
-(P_test + n_calibration) policies.
+program over its lanes on the test and calibration policies (``trust.lane_feature_arrays``):
+one ensemble rollout (values and support together) at ``--trust-episodes`` episodes plus
+each elite alone, vmapped over the elites, at ``--trust-member-episodes``.
+
+Also the interval guard beside the floor guard (``guard_phase``, ``improve.gain_intervals``)
+and its offline cross-fit reading (``crossfit_interval_guard``, experiments/interval_guard.py).
 
 Writes result["lanes"][lane]["trust"] (each test policy's interval and flag),
 result["trust"][method] (the issue's block: level, coverage, width_over_range, worst_flagged,

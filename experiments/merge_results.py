@@ -212,6 +212,10 @@ def carry_trust(merged: dict, parts: list[dict]) -> None:
     if cals:
         merged["trust_calibration"] = cals[0]
         merged["trust"] = trust_from_lanes(merged)
+        for m, block in merged["trust"].items():  # a method's seeds all run in one part
+            own = [p["trust"][m] for p in parts if m in p.get("trust", {})]
+            if len(own) == 1 and own[0].get("runs") == block["runs"] and "seeds_combined" in own[0]:
+                block["seeds_combined"] = own[0]["seeds_combined"]
     guards = [p["guard"] for p in parts if p.get("guard")]
     if guards:
         merged["guard"] = {**guards[0], **{k: {m: b for g in guards for m, b in g[k].items()}

@@ -84,6 +84,13 @@ def test_protocol_trust_block_by_hand(pm_lanes):
         np.mean(2 * need * sd) / np.ptp(truth))
     assert b["narrower_than_seed_spread"] == (
         b["width_over_range"] < b["seed_spread"]["scaled_width_over_range"])
+    # the seeds as one estimate: centred on their mean, the seed spread inside sigma
+    c = b["seeds_combined"]
+    lo, hi = np.asarray(c["interval"], np.float64).T
+    np.testing.assert_allclose((lo + hi) / 2, v.mean(0), rtol=1e-6, atol=1e-9)
+    assert np.all(hi - lo >= 2 * c["q"] * v.std(0, ddof=1) - 1e-9) and c["seeds"] == 2
+    assert c["coverage"] == pytest.approx(np.mean((truth >= lo) & (truth <= hi)))
+    assert c["width_over_range"] == pytest.approx(np.mean(hi - lo) / np.ptp(truth))
 
 
 @pytest.mark.slow
@@ -251,6 +258,10 @@ def test_merge_results_recomputes_the_trust_block_over_joined_seeds():
     merged = {"lanes": {**parts[0]["lanes"], **parts[1]["lanes"]},
               "true_value": truth.tolist(), "command": "c && c"}
     mr.carry_trust(merged, parts)
+    assert "seeds_combined" not in merged["trust"]["rl2s"]  # no part had all four seeds
+    parts[0]["trust"] = {"rl2s": {"runs": 4, "seeds_combined": {"seeds": 4}}}
+    mr.carry_trust(merged, parts)
+    assert merged["trust"]["rl2s"].pop("seeds_combined") == {"seeds": 4}
     ref = tr.json_safe(method_block(reps, [r["sim_value"] for r in reps], truth, LEVEL,
                                     "c && c"))
     assert merged["trust"]["rl2s"] == ref and ref["runs"] == 4

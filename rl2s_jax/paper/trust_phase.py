@@ -200,14 +200,31 @@ def _stack(a, b):
 
 
 def family_trust(lanes, states, *, policies, n_test: int, pool, u_data, roll: dict) -> list:
-    """Per lane of one family: (its test policies' features, the calibration policies')."""
+    """Per lane of one family: (its test policies' ``policy_features``, the calibration
+    policies')."""
     sims = simulator(states)
     keys = jnp.stack([jax.random.PRNGKey(3000 + s) for _, s in lanes])
     feats = tr.lane_features(sims, policies, pool, keys, tr.lane_data_disagreement(
         sims, u_data), **roll)
     split = lambda f, part: {k: (v[..., :n_test] if part == 0 else v[..., n_test:])
                              for k, v in f.items()}
-    return [tuple(tr.combine_features([split(f, part)]) for part in (0, 1)) for f in feats]
+    return [(split(f, 0), split(f, 1)) for f in feats]
+
+
+def seeds_combined(per_lane: list, cal_truth, names, truth, level: float) -> dict:
+    """One method's seeds as one estimate (``rl2s evaluate --ckpt A --ckpt B``): their mean
+    value with the seed spread in the difficulty (``combine_features``), calibrated on the
+    same combined calibration policies. per_lane: the method's (test, calibration)
+    ``policy_features``. -> {"seeds", "coverage", "width_over_range", "worst_flagged", "q",
+    "q_infinite", "interval", "trusted"} (raw floats)."""
+    rep = lane_trust(tr.combine_features([t for t, _ in per_lane]),
+                     tr.combine_features([c for _, c in per_lane]), cal_truth, names, truth,
+                     level)
+    return {"seeds": len(per_lane), "coverage": rep["coverage"],
+            "width_over_range": rep["width_over_range"],
+            "worst_flagged": float(rep["worst"]["flagged"]), "q": rep["q"],
+            "q_infinite": rep["q_infinite"], "interval": rep["interval"],
+            "trusted": rep["trusted"]}
 
 
 def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, test_ds,
@@ -241,13 +258,20 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
                                 n_test=len(truth), pool=start_pool(test_ds), u_data=train_ds,
                                 roll=roll)
         for (meth, s), (feats, cal_feats) in zip(lanes, per_lane, strict=True):
-            rep = lane_trust(feats, cal_feats, cal_truth, names, truth, level)
+            rep = lane_trust(tr.combine_features([feats]), tr.combine_features([cal_feats]),
+                             cal_truth, names, truth, level)
             result["lanes"][f"{meth}/{s}"]["trust"] = tr.json_safe(rep)
-            by_method.setdefault(meth, []).append(rep)
+            by_method.setdefault(meth, []).append((rep, (feats, cal_feats)))
         result["timings"][f"trust_{family}"] = round(time.perf_counter() - t0, 1)
-    result["trust"] = {m: tr.json_safe(method_block(
-        runs, [r["sim_value"] for r in runs], truth, level, result.get("command", "")))
-        for m, runs in by_method.items()}
+    result["trust"] = {}
+    for m, runs in by_method.items():
+        reps = [r for r, _ in runs]
+        block = method_block(reps, [r["sim_value"] for r in reps], truth, level,
+                             result.get("command", ""))
+        if len(runs) > 1:
+            block["seeds_combined"] = seeds_combined([f for _, f in runs], cal_truth, names,
+                                                     truth, level)
+        result["trust"][m] = tr.json_safe(block)
 
 
 def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict, sizes: dict,

@@ -257,6 +257,7 @@ def test_merge_results_recomputes_the_trust_block_over_joined_seeds():
                                 "interval": {f"m{ids[0]}": 2}}})
     merged = {"lanes": {**parts[0]["lanes"], **parts[1]["lanes"]},
               "true_value": truth.tolist(), "command": "c && c"}
+    parts[0]["trust"] = {"rl2s": {"runs": 2, "seeds_combined": {"seeds": 2}}}
     mr.carry_trust(merged, parts)
     assert "seeds_combined" not in merged["trust"]["rl2s"]  # no part had all four seeds
     parts[0]["trust"] = {"rl2s": {"runs": 4, "seeds_combined": {"seeds": 4}}}

@@ -173,7 +173,11 @@ def format_block(b: dict) -> str:
     return (f"level {b['level']:g}, coverage {f(b['coverage'])}, width/range "
             f"{f(b['width_over_range'])} ({spread}), worst policy flagged in "
             f"{f(b['worst_flagged'])} of {b['runs']} runs"
-            f"{', unbounded in ' + str(b['unbounded_runs']) if b['unbounded_runs'] else ''}")
+            f"{', unbounded in ' + str(b['unbounded_runs']) if b['unbounded_runs'] else ''}"
+            + ("" if "seeds_combined" not in b else
+               f"; the {b['seeds_combined']['seeds']} seeds as one: coverage "
+               f"{f(b['seeds_combined']['coverage'])}, width/range "
+               f"{f(b['seeds_combined']['width_over_range'])}"))
 
 
 def trust_from_lanes(result: dict) -> dict:

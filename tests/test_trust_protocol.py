@@ -270,3 +270,41 @@ def test_merge_results_recomputes_the_trust_block_over_joined_seeds():
     parts[1]["trust_calibration"] = {"true_value": [2.0]}
     with pytest.raises(ValueError, match="trust_calibration: the runs calibrated"):
         mr.carry_trust(merged, parts)
+
+
+@pytest.mark.slow
+def test_a_diverged_lane_is_skipped_and_a_failure_spares_the_run(pm_lanes, monkeypatch):
+    """A lane whose features are not finite gets no interval and leaves its method's block
+    (the other seed's alone, no seeds_combined); an error in the phase is recorded and
+    logged, the protocol goes on."""
+    import argparse
+    import types
+
+    from rl2s_jax.paper import trust_phase as tp
+
+    real = tp.family_trust
+
+    def diverged(*a, **kw):
+        out = real(*a, **kw)
+        out[1][0]["sim_value"] = np.full_like(out[1][0]["sim_value"], np.nan)
+        return out
+    monkeypatch.setattr(tp, "family_trust", diverged)
+    r = _run(pm_lanes, 6)
+    assert r["lanes"]["rl2s/1"]["trust"] == {"skipped": "non-finite simulated values or support"}
+    b = r["trust"]["rl2s"]
+    assert b["runs"] == 1 and "seeds_combined" not in b and "skipped" in b["seed_spread"]
+    assert tp.trust_from_lanes({**r, "true_value": pm_lanes[1]["truth"].tolist()})["rl2s"][
+        "runs"] == 1
+
+    def broken(*a, **kw):
+        raise RuntimeError("boom")
+    monkeypatch.setattr(tp, "run_trust", broken)
+    monkeypatch.setattr(tp, "policies_for", lambda ds: None)
+    result, phases = {"true_value": [1.0]}, []
+    args = argparse.Namespace(trust_calibration=3, task="pointmass", data_seed=0,
+                              trust_level=0.9, trust_episodes=None, trust_member_episodes=16,
+                              episode_length=None)
+    tp.trust_phase(args, result, {}, {"train": None, "test": None},
+                   {"f": types.SimpleNamespace(vd_horizon=5, gamma=0.9)}, {},
+                   phase=lambda name, t0: phases.append(name), save=lambda: None)
+    assert result["trust"] == {"error": "RuntimeError: boom"} and phases == ["trust"]

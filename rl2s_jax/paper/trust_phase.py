@@ -186,8 +186,9 @@ def trust_from_lanes(result: dict) -> dict:
     runs (``merge_results.py``), where a method's seeds come from more than one."""
     by_method: dict[str, list] = {}
     for lane, e in sorted(result.get("lanes", {}).items(),
-                          key=lambda kv: (kv[0].rsplit("/", 1)[0], int(kv[1]["seed"]))):
-        if e.get("trust"):
+                          key=lambda kv: (kv[0].rsplit("/", 1)[0],
+                                          int(kv[0].rsplit("/", 1)[1]))):  # "<method>/<seed>"
+        if e.get("trust") and "skipped" not in e["trust"]:
             by_method.setdefault(lane.rsplit("/", 1)[0], []).append(e["trust"])
     out = {}
     for m, runs in by_method.items():
@@ -262,6 +263,11 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
                                 n_test=len(truth), pool=start_pool(test_ds), u_data=train_ds,
                                 roll=roll)
         for (meth, s), (feats, cal_feats) in zip(lanes, per_lane, strict=True):
+            if not all(np.all(np.isfinite(v)) for f in (feats, cal_feats) for v in f.values()):
+                # a diverged lane: no interval, and no part in its method's block
+                result["lanes"][f"{meth}/{s}"]["trust"] = {
+                    "skipped": "non-finite simulated values or support"}
+                continue
             rep = lane_trust(tr.combine_features([feats]), tr.combine_features([cal_feats]),
                              cal_truth, names, truth, level)
             result["lanes"][f"{meth}/{s}"]["trust"] = tr.json_safe(rep)
@@ -286,17 +292,23 @@ def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict,
     t0 = time.perf_counter()
     cfg = next(iter(configs.values()))
     test_ds = datasets["test"]
-    run_trust(result, finals, task=args.task, train_ds=datasets["train"],
-              train_pols=policies_for(datasets["train"]), test_ds=test_ds,
-              test_pols=policies_for(test_ds), truth=result["true_value"],
-              horizon=cfg.vd_horizon, gamma=cfg.gamma, sizes=sizes,
-              n_calibration=args.trust_calibration, seed=args.data_seed,
-              level=args.trust_level, episodes=args.trust_episodes,
-              member_episodes=args.trust_member_episodes, episode_length=args.episode_length)
+    try:
+        run_trust(result, finals, task=args.task, train_ds=datasets["train"],
+                  train_pols=policies_for(datasets["train"]), test_ds=test_ds,
+                  test_pols=policies_for(test_ds), truth=result["true_value"],
+                  horizon=cfg.vd_horizon, gamma=cfg.gamma, sizes=sizes,
+                  n_calibration=args.trust_calibration, seed=args.data_seed,
+                  level=args.trust_level, episodes=args.trust_episodes,
+                  member_episodes=args.trust_member_episodes,
+                  episode_length=args.episode_length)
+    except Exception as err:  # the intervals must not cost the run's improvement phase
+        result["trust"] = {"error": f"{type(err).__name__}: {err}"}
+        log(f"[paper] trust: FAILED, the run goes on without intervals: {result['trust']}")
     phase("trust", t0)
     save()
     for m, b in result["trust"].items():
-        log(f"[paper] trust {m}: {format_block(b)}")
+        if m != "error":
+            log(f"[paper] trust {m}: {format_block(b)}")
 
 
 # ------------------------------------------------------------------ the interval guard

@@ -252,7 +252,8 @@ def test_merge_results_recomputes_the_trust_block_over_joined_seeds():
                                    list("abcde"), truth, LEVEL))
             lanes[f"rl2s/{s}"] = {"seed": s, "trust": tr.json_safe(reps[-1])}
         parts.append({"lanes": lanes, "true_value": truth.tolist(), "command": "c",
-                      "trust_calibration": {"true_value": [1.0]},
+                      "trust_calibration": {"true_value": [1.0 + ids[0] / 1e4],
+                                            "origins": [{"i": 0}]},
                       "guard": {"chosen": "floor", "floor": {f"m{ids[0]}": 1},
                                 "interval": {f"m{ids[0]}": 2}}})
     merged = {"lanes": {**parts[0]["lanes"], **parts[1]["lanes"]},
@@ -267,7 +268,8 @@ def test_merge_results_recomputes_the_trust_block_over_joined_seeds():
                                     "c && c"))
     assert merged["trust"]["rl2s"] == ref and ref["runs"] == 4
     assert merged["guard"]["floor"] == {"m0": 1, "m2": 1} and merged["guard"]["chosen"] == "floor"
-    parts[1]["trust_calibration"] = {"true_value": [2.0]}
+    assert merged["trust_calibration"]["truth_differs_by"] == pytest.approx(2e-4)
+    parts[1]["trust_calibration"] = {"true_value": [1.0], "origins": [{"i": 1}]}
     with pytest.raises(ValueError, match="trust_calibration: the runs calibrated"):
         mr.carry_trust(merged, parts)
 

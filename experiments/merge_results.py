@@ -36,6 +36,7 @@ from rl2s_jax.evaluate.lane_scores import intervals_over_seeds
 from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.paper.data_seeds import data_seed_of, oracle_into_data_seed, record_data_seeds
 from rl2s_jax.paper.protocol import summarise
+from rl2s_jax.paper.trust_phase import trust_from_lanes
 from rl2s_jax.zoo.zoo import load_zoo
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -201,10 +202,33 @@ def attach_paper_oracle(result: dict, path: str, sha: str) -> None:
                         "data": "its own collection (another run)"}
 
 
-
 def _read(path: str) -> dict:
     with open(path) as f:
         return json.load(f)
+
+
+def carry_trust(merged: dict, parts: list[dict]) -> None:
+    """Issue 64's blocks of joined runs into ``merged``: "trust" per method recomputed from
+    the joined lanes' intervals (a method's seeds may come from several runs), "guard" per
+    guard and method from the run that fine-tuned it, "trust_calibration" the first run's;
+    ValueError where the runs calibrated the intervals on other policies."""
+    cals = [p["trust_calibration"] for p in parts if p.get("trust_calibration")]
+    if any(c.get("origins") != cals[0].get("origins") for c in cals):
+        raise ValueError("trust_calibration: the runs calibrated on other policies")
+    if cals:  # the same policies; their truths measured again by each run (GPU round-off)
+        merged["trust_calibration"] = dict(cals[0], truth_differs_by=float(max(
+            np.max(np.abs(np.subtract(c["true_value"], cals[0]["true_value"])))
+            for c in cals)))
+        merged["trust"] = trust_from_lanes(merged)
+        for m, block in merged["trust"].items():  # a method's seeds all run in one part
+            own = [p["trust"][m] for p in parts if m in p.get("trust", {})]
+            if len(own) == 1 and own[0].get("runs") == block["runs"] and "seeds_combined" in own[0]:
+                block["seeds_combined"] = own[0]["seeds_combined"]
+    guards = [p["guard"] for p in parts if p.get("guard")]
+    if guards:
+        merged["guard"] = {**guards[0], **{k: {m: b for g in guards for m, b in g[k].items()}
+                                           for k in ("floor", "interval")}}
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -238,6 +262,7 @@ def main(argv=None) -> int:
         else:
             try:
                 result = merge_runs(parts)
+                carry_trust(result, parts)
             except ValueError as err:
                 raise SystemExit(f"paper: {err}") from None
         if result.get("zoo_sha256") not in (None, sha):

@@ -11,6 +11,7 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
         [--branch-length H] [--uncertainty-penalty L] [--uncertainty-threshold U]
         [--out DIR] [--data-dir DIR] [--profile auto|cpu|gpu] [--model ensemble|legacy]
         [--set field=value ...] [--families adversarial,mle] [--first-seed K] [--no-fork]
+        [--trust-calibration 20] [--guard interval --guard-calibration VAL.json ...]
 
 This script parses and checks the flags; the phases are ``rl2s_jax.paper.protocol`` (data,
 oracle, training and evaluation) and ``rl2s_jax.paper.improvement_phases`` (improvement and its
@@ -60,6 +61,12 @@ from rl2s_jax.paper.protocol import (
     train_family,
     write_result,
     zoo_sha256,
+)
+from rl2s_jax.paper.trust_phase import (
+    add_trust_arguments,
+    check_trust_arguments,
+    guard_phase,
+    trust_phase,
 )
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.sharding import initialize_distributed
@@ -123,17 +130,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="TrainConfig's ensemble or train.LEGACY_MODEL; --set overrides either")
     ap.add_argument("--set", action="append", metavar="KEY=VALUE",
                     help="TrainConfig override for all lanes; eps=X sets the robust lanes' eps")
-    ap.add_argument("--guard-margin", type=float, help="MPI / API of the policies deployed "
-                    "where every elite member predicts a gain above this fraction "
-                    "(ablation '<variant>+guard')")
-    ap.add_argument("--guard-floor-scale", type=float, default=1.0, help="a gain must also "
-                    "exceed this x the lane's training MVD (0: the margin alone)")
     ap.add_argument("--zoo-recipe", action="store_true", help="fine-tune at the zoo learner's "
                     "discount, reward scale and batch (zoo.build.fine_tuning_recipe)")
     ap.add_argument("--improve-recipe", choices=sorted(IMPROVE_RECIPES), help="a measured "
                     "recipe's flags, with the task's changes (improve.recipes); flags win")
-    ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
-                    "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
+    add_trust_arguments(ap)  # --trust-*, --guard-*
     ap.add_argument("--families", default="adversarial,mle", help="comma list of programs: "
                     "adversarial (rl2s, gail), mle (rl2s-bc, bc) (merge_results.py joins calls)")
     ap.add_argument("--eps-lanes", help="comma list of extra eps: RL2S lanes rl2s@EPS forked "
@@ -257,11 +258,7 @@ def check_arguments(args) -> tuple:
     families = parse_families(args.families)
     if args.eps_lanes:
         families = add_eps_lanes(families, args.eps_lanes, sizes_improve=args.improve_iterations)
-    for name, v in (("margin", args.guard_margin), ("floor-scale", args.guard_floor_scale)):
-        if v is not None and not (np.isfinite(v) and v >= 0):
-            raise SystemExit(f"guard-{name}: expected a finite float >= 0, got {v}")
-    if args.guard_snapshots and args.guard_margin is None:
-        raise SystemExit("guard-snapshots: needs --guard-margin (the guard's margin)")
+    check_trust_arguments(args)  # --trust-*, --guard-*
     if args.first_seed < 0:
         raise SystemExit(f"first-seed: expected an int >= 0, got {args.first_seed}")
     return variants, ablation_methods, sac_overrides, families
@@ -362,6 +359,7 @@ def main(argv=None) -> int:
         save()
     share = None  # an unused trunk (--families adversarial) need not stay on the device
     result["true_value_se"] = np.asarray(value_se(test_ds, cfg.vd_horizon, cfg.gamma)).tolist()
+    trust_phase(args, result, finals, datasets, configs, sizes, phase=phase, save=save)
 
     # ---- 3. improvement
     it = sizes["improve_iterations"]
@@ -388,6 +386,7 @@ def main(argv=None) -> int:
         save()
     if it and args.control:
         run_control(result, ft, args.control_seeds, phase)
+    guard_phase(args, result, args.trust_level)  # both guards side by side
     timings["total"] = round(time.perf_counter() - t_start, 1)
     result["complete"] = True
     save()

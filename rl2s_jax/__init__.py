@@ -33,6 +33,7 @@ _PUBLIC = {
     **dict.fromkeys(("SACConfig", "make_sac"), "rl2s_jax.policy.sac"),
     **dict.fromkeys(("Checkpointer", "CheckpointError", "CheckpointWarning", "load_checkpoint",
                      "load_meta", "load_simulator"), "rl2s_jax.train.checkpoint"),
+    "simulated_values_with_intervals": "rl2s_jax.evaluate.trust",
     "TrainConfig": "rl2s_jax.train.config",
     **dict.fromkeys(("n_worst", "select_worst"), "rl2s_jax.train.cvar"),
     **dict.fromkeys(("TrainData", "make_train_data"), "rl2s_jax.train.data"),

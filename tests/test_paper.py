@@ -670,6 +670,42 @@ def test_rl2s_improve_recipe_is_paper_py_recipe(task):
 # ------------------------------------------------------------------ paper.py smoke
 
 
+def _validation_run(tmp_path) -> str:
+    """A stand-in for a paper.py --policy-split validation run (the interval guard's
+    calibration): one lane of 3 fine-tuned policies with members' gains and real gains."""
+    start = [[100.0, 50.0, 80.0], [101.0, 52.0, 79.0]]
+    entry = {"method": "rl2s", "seed": 0, "guard_member_start": start,
+             "guard_member_gain": [[5.0, -2.0, 1.0], [6.0, -1.0, 3.0]],
+             "I_paired": [0.04, -0.05, 0.02]}
+    path = tmp_path / "validation.json"
+    path.write_text(json.dumps({"task": "hopper", "policy_split": "validation",
+                                "command": "val", "improvement": {"rl2s/0": entry}}))
+    return str(path)
+
+
+def _check_trust(r: dict, printed: str, n_test: int) -> None:
+    """The smoke run's value intervals (3 calibration policies: too few for level 0.9, so
+    unbounded, flagged, JSON-valid) and both guards side by side."""
+    assert "[paper] trust: " in printed and "Infinity" not in json.dumps(r)
+    assert r["trust_calibration"]["n"] == 3 and len(r["trust_calibration"]["true_value"]) == 3
+    for m in ("rl2s", "gail", "bc", "rl2s-bc"):
+        b = r["trust"][m]
+        assert b["runs"] == 2 and b["level"] == 0.9 and b["command"] == r["command"]
+        assert b["unbounded_runs"] == 2 and b["coverage"] == 1.0 and b["width_over_range"] is None
+        for s in (1, 2):
+            t = r["lanes"][f"{m}/{s}"]["trust"]
+            assert t["q_infinite"] and len(t["interval"]) == n_test and all(t["unbounded"])
+    g = r["guard"]
+    assert g["chosen"] == "floor" and g["calibration"]["n"] == 3
+    for kind in ("floor", "interval"):
+        assert set(g[kind]) == {"rl2s", "gail", "bc", "rl2s-bc"}
+        for b in g[kind].values():
+            assert {"median_gain", "mpi", "deployed", "deployed_losses",
+                    "control_median_gain"} <= set(b) and b["lanes_x_policies"] == 2
+    for e in r["improvement"].values():
+        assert len(e["guard_accepted_interval"]) == 2
+
+
 @pytest.mark.slow
 @pytest.mark.heavy
 def test_paper_smoke_hopper(tmp_path, capsys):
@@ -684,7 +720,8 @@ def test_paper_smoke_hopper(tmp_path, capsys):
             "--value-episodes", "2", "--episode-length", "50", "--improve-policies", "2",
             "--improve-iterations", "2", "--out", str(out), "--check-eval",
             "--guard-margin", "0", "--guard-snapshots", "--sac-chunk", "1",
-            "--guard-floor-scale", "0.5"]
+            "--guard-floor-scale", "0.5", "--trust-calibration", "3", "--trust-episodes", "2",
+            "--guard-calibration", _validation_run(tmp_path)]
     assert paper.main(args) == 0
     printed = capsys.readouterr().out
     for phase in ("data", "oracle", "train_adversarial", "train_mle", "improve_sac",
@@ -695,6 +732,7 @@ def test_paper_smoke_hopper(tmp_path, capsys):
     zoo = load_zoo("hopper")  # the split's sizes come from the shipped zoo
     n_train, n_test = len(zoo.train_ids), len(zoo.test_ids)
     assert r["complete"] and r["seeds"] == 2 and r["hardware"] == "cpu"
+    _check_trust(r, printed, n_test)
     assert r["machine"]["backend"] == "cpu" and "cpu_isa" in r["machine"]
     assert r["seed_ids"] == [1, 2]
     assert r["data_seed"] == 0 and len(r["true_value_se"]) == n_test  # issue 66's analysis

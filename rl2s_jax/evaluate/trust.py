@@ -296,6 +296,15 @@ def visited_disagreement(sim: Simulator, policies: Params, pool: jax.Array, key:
     """The ensemble's disagreement u(s, a) averaged over the live steps of each policy's
     simulated episodes (as ``simulated_returns`` runs them: same starts and termination).
     policies [P, ...], pool [S, o] -> [P]."""
+    return returns_and_support(sim, policies, pool, key, n_episodes=n_episodes,
+                               horizon=horizon, gamma=1.0)[1]
+
+
+def returns_and_support(sim: Simulator, policies: Params, pool: jax.Array, key: jax.Array,
+                        *, n_episodes: int, horizon: int, gamma: float):
+    """One rollout of the ensemble: each episode's discounted return (``simulator_returns``'
+    episodes, the same key: the same draws) and u averaged over each policy's live steps.
+    -> (returns [P, n], u [P])"""
     task = sim.task_fns()
     done_fn, hazard_fn = sim.terminations(task.done_fn)
     n_pol = num_policies(policies)
@@ -303,22 +312,26 @@ def visited_disagreement(sim: Simulator, policies: Params, pool: jax.Array, key:
     roll = start_values(pool, n_pol, n_episodes, k_start, sim.new_history)
     act = jax.vmap(lambda p, o, k: sample_action(p, o, k)[0])
 
-    def step(carry, key):
-        obs, hist, alive, total, count = carry
+    def step(carry, xs):
+        obs, hist, alive, ret, total, count = carry
+        key, discount = xs
         k_act, k_dyn = jax.random.split(key)
         action = act(policies, obs, jax.random.split(k_act, n_pol))
         k_dyn, k_end = end_key(k_dyn, hazard_fn)
         nxt, u = sim.step(obs, action, k_dyn, hist)
+        reward = task.reward_fn(obs, action, nxt)
         hist = None if hist is None else push_history(hist, obs, action)
         w = alive.astype(jnp.float32)
         done = ends_episode(obs, action, nxt, k_end, done_fn, hazard_fn)
-        return (jnp.where(alive[..., None], nxt, obs), hist, alive & ~done, total + w * u,
-                count + w), None
+        return (jnp.where(alive[..., None], nxt, obs), hist, alive & ~done,
+                ret + jnp.where(alive, discount * reward, 0.0), total + w * u, count + w), None
 
     zeros = jnp.zeros(roll.alive.shape, jnp.float32)
-    carry = (roll.obs, roll.hist, roll.alive, zeros, zeros)
-    (_, _, _, total, count), _ = jax.lax.scan(step, carry, jax.random.split(k_run, horizon))
-    return total.sum(1) / jnp.maximum(count.sum(1), 1.0)
+    discounts = jnp.asarray(gamma, jnp.float32) ** jnp.arange(horizon, dtype=jnp.float32)
+    carry = (roll.obs, roll.hist, roll.alive, zeros, zeros, zeros)
+    (_, _, _, ret, total, count), _ = jax.lax.scan(
+        step, carry, (jax.random.split(k_run, horizon), discounts))
+    return ret, total.sum(1) / jnp.maximum(count.sum(1), 1.0)
 
 
 def data_disagreement(sim: Simulator, ds, max_rows: int = SUPPORT_ROWS) -> float:
@@ -381,3 +394,152 @@ def combine_features(per_sim: list[dict]) -> dict:
             "seed_sd": v.std(0, ddof=1) if v.shape[0] > 1 else np.zeros(v.shape[1]),
             "eval_se": np.sqrt(np.mean(se ** 2, 0) / v.shape[0]),
             "support": np.stack([f["support"] for f in per_sim]).mean(0)}
+
+
+# ----------------------------------------------------------------------------- lanes (protocol)
+
+def _member_values(sim: Simulator, policies, pool, key, **roll) -> jax.Array:
+    """Each elite alone (``member_mode`` "fixed" on it), the same key: values [n_elites, P];
+    [0, P] for a simulator without ranked members."""
+    if sim.rank is None or sim.n_members < 2 or (sim.n_elites or sim.n_members) < 2:
+        return jnp.zeros((0, num_policies(policies)), jnp.float32)
+    n_el = min(sim.n_elites or sim.n_members, sim.n_members)
+    best = jnp.nonzero(sim.rank < n_el, size=n_el)[0]  # the elites, as ``elites`` lists them
+    members = jnp.arange(sim.n_members)
+
+    def alone(e):
+        rank = jnp.where(members == e, -1, sim.rank).astype(jnp.int32)
+        ret, _ = simulator_returns(sim.replace(member_mode="fixed", rank=rank), None,
+                                   policies, pool, key, **roll)
+        return ret.mean(-1)
+    return jax.vmap(alone)(best)
+
+
+@partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma", "member_episodes"))
+def lane_feature_arrays(sims: Simulator, policies: Params, pool: jax.Array, keys: jax.Array,
+                        *, n_episodes: int, horizon: int, gamma: float,
+                        member_episodes: int | None = None):
+    """``policy_features``' rollouts for every lane of ``sims`` (a Simulator with a leading
+    lane axis L) in one program: one rollout of the ensemble gives each lane's returns
+    [L, P, n] and the disagreement along its simulated visits [L, P] (raw, not in data
+    units; ``returns_and_support``), and the elites alone, vmapped over them, their values
+    [L, n_elites, P] (0 elites without ranked members) from ``member_episodes`` episodes
+    each (None: n; common random numbers make few enough for their spread). keys [L, 2];
+    pool [S, o]."""
+    roll = dict(n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    members = dict(roll, n_episodes=member_episodes or n_episodes)
+
+    def one(sim, key):
+        ret, u = returns_and_support(sim, policies, pool, key, **roll)
+        return ret, _member_values(sim, policies, pool, key, **members), u
+    return jax.vmap(one)(sims, keys)
+
+
+def lane_data_disagreement(sims: Simulator, ds, max_rows: int = SUPPORT_ROWS) -> np.ndarray:
+    """``data_disagreement`` of every lane of ``sims`` [L] on the rows of ``ds`` (u's unit)."""
+    n = ds.n_transitions
+    rows = (np.arange(n) if n <= max_rows
+            else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
+    obs, action = (jnp.asarray(np.asarray(x, np.float32)[rows]) for x in (ds.obs, ds.action))
+    hist = None if sims.markov else logged_history(
+        ds, rows, obs_history=sims.obs_history, action_history=sims.action_history,
+        time_inputs=sims.time_inputs, episode_length=sims.episode_length)
+    u = jax.jit(jax.vmap(Simulator.disagreement, in_axes=(0, None, None, None)))(
+        sims, obs, action, hist)
+    return np.asarray(jnp.mean(u, -1), np.float64)
+
+
+def lane_features(sims: Simulator, policies: Params, pool: jax.Array, keys: jax.Array,
+                  u_units, **roll) -> list[dict]:
+    """``policy_features`` of every lane (``lane_feature_arrays``), u in units of
+    ``u_units`` [L] (each lane's ``lane_data_disagreement``; support 1 where a lane has fewer
+    than 2 elites). -> L dicts as ``policy_features`` returns."""
+    ret, members, u = (np.asarray(x, np.float64) for x in lane_feature_arrays(
+        sims, policies, pool, keys, **roll))
+    out = []
+    for i in range(ret.shape[0]):
+        n = ret.shape[2]
+        se = ret[i].std(1, ddof=1) / np.sqrt(n) if n > 1 else np.zeros(ret.shape[1])
+        ok = members.shape[1] > 1 and u_units[i] > 0
+        out.append({"sim_value": ret[i].mean(1), "eval_se": se, "member_values": members[i],
+                    "support": u[i] / u_units[i] if ok else np.ones(ret.shape[1])})
+    return out
+
+
+# ----------------------------------------------------------------------------- JSON
+
+def json_safe(x):
+    """``x`` (dicts, lists, NumPy) with every non-finite float as None: JSON without the
+    non-standard Infinity / NaN. Where an infinity means something (an unbounded interval,
+    an infinite quantile) the caller records a flag beside it."""
+    if isinstance(x, dict):
+        return {k: json_safe(v) for k, v in x.items()}
+    if isinstance(x, list | tuple | np.ndarray):
+        return [json_safe(v) for v in (x.tolist() if isinstance(x, np.ndarray) else x)]
+    if isinstance(x, np.generic):
+        x = x.item()
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    return x
+
+
+def interval_from_json(pair) -> tuple[float, float]:
+    """An interval as ``json_safe`` wrote it ([lo, hi], None for an unbounded end) -> (lo,
+    hi) floats, -inf / +inf for the unbounded ends."""
+    if not isinstance(pair, list | tuple) or len(pair) != 2:
+        raise ValueError(f"interval: expected [lo, hi] (None for an unbounded end), got "
+                         f"{pair!r}")
+    lo, hi = pair
+    return (-math.inf if lo is None else float(lo)), (math.inf if hi is None else float(hi))
+
+
+# ----------------------------------------------------------------------------- the Python API
+
+def simulated_values_with_intervals(sims, policies: Params, start_pool: jax.Array,
+                                    key: jax.Array, *, calibration: tuple, n_episodes: int,
+                                    horizon: int, gamma: float, level: float = DEFAULT_LEVEL,
+                                    data=None, calibration_kind: str = "heldout") -> dict:
+    """``simulated_values`` with each policy's conformal interval for its true value at
+    ``level`` (the module docstring's method).
+
+    sims: a ``Simulator`` or a list of them (seeds of one data set: their mean value, and
+    their spread joins the difficulty); policies: stacked [P, ...]; start_pool [S, o];
+    calibration: (stacked params [n, ...], true discounted values [n] over ``horizon`` at
+    ``gamma``) of policies whose truth is known -- never the evaluated ones;
+    calibration_kind "heldout" (the simulators never saw their data) or "train" (their own
+    training policies: optimistic); data: the training Dataset, u's unit for the support
+    (None: support 1). Every policy runs with ``key`` (common random numbers).
+    -> {"value" [P], "lo" [P], "hi" [P], "trusted" [P] bool, "why" [P], "sigma" [P],
+    "support" [P], "calibration": ``calibrate``'s dict} (NumPy; lo / hi infinite when n is
+    below ``min_calibration(level)``)."""
+    sims = list(sims) if isinstance(sims, list | tuple) else [sims]
+    if not sims or not all(isinstance(s, Simulator) for s in sims):
+        raise ValueError(f"sims: expected a Simulator or a non-empty list of them, got "
+                         f"{type(sims[0]).__name__ if sims else 'an empty list'}")
+    if not isinstance(calibration, tuple) or len(calibration) != 2:
+        raise ValueError("calibration: expected (stacked policy params [n], true values [n])")
+    cal_params, cal_truth = calibration
+    cal_truth = np.asarray(cal_truth, np.float64).ravel()
+    if num_policies(cal_params) != cal_truth.size:
+        raise ValueError(f"calibration: {num_policies(cal_params)} policies but "
+                         f"{cal_truth.size} true values")
+    if calibration_kind not in ("heldout", "train"):
+        raise ValueError(f"calibration_kind: expected 'heldout' or 'train', got "
+                         f"{calibration_kind!r}")
+    level = check_level(level)
+    kw = dict(key=key, n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    units = [data_disagreement(s, data) if data is not None and elites(s).size > 1 else None
+             for s in sims]
+
+    def features(params):
+        return combine_features([policy_features(s, start_pool, params, u_unit=u, **kw)
+                                 for s, u in zip(sims, units, strict=True)])
+
+    cal = calibrate(features(cal_params), cal_truth, [calibration_kind] * cal_truth.size,
+                    level)
+    feats = features(policies)
+    iv = intervals(feats, cal)
+    return {"value": feats["sim_value"], "lo": np.asarray(iv["lo"]),
+            "hi": np.asarray(iv["hi"]), "trusted": np.asarray(iv["trusted"]),
+            "why": iv["why"], "sigma": np.asarray(iv["sigma"]), "support": feats["support"],
+            "calibration": cal}

@@ -17,7 +17,6 @@ from rl2s_jax.improve.finetune import (
     guarded,
     improve_in_real_env,
     improve_policies,
-    improvement_intervals,
     improvement_metrics,
     measure_improvement,
     median_gain,
@@ -38,6 +37,7 @@ from rl2s_jax.model.generator import init_generator
 from rl2s_jax.model.simulator import Simulator, simulated_returns
 from rl2s_jax.policy import policy as pol
 from rl2s_jax.policy.sac import FINE_TUNING, Buffer, SACConfig, gaussian_kl, make_sac, q_values
+from rl2s_jax.stats import improvement_intervals
 
 TASK = get_task("pointmass")
 

@@ -239,7 +239,9 @@ def test_function_local_imports_say_why():
 
 # The statistics shared by every stage (issue 65 item 6): defined in rl2s_jax/stats.py alone.
 STATS_NAMES = {"t_interval", "mean_per_unit", "bootstrap_ci", "median_ci95",
-               "paired_gain_difference", "sign_flip_p", "rank_sum_p"}
+               "paired_gain_difference", "sign_flip_p", "rank_sum_p", "bootstrap_intervals",
+               "improvement_intervals", "paired_gain", "_paired_gain",
+               "paired_seed_difference"}
 
 
 def test_statistics_live_in_one_module():

@@ -30,11 +30,12 @@ from rl2s_jax.evaluate.lane_scores import (
     oracle_noise_ceiling,
     oracle_rows,
 )
-from rl2s_jax.evaluate.metrics import bootstrap_intervals
+from rl2s_jax.evaluate.metrics import ranking_metrics
 from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.paper.fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.sharding import is_writer, lane_mesh, replicate, shard_lanes
+from rl2s_jax.stats import bootstrap_intervals
 from rl2s_jax.train.config import DEFAULT_EPS, TrainConfig
 from rl2s_jax.train.cvar import n_worst
 from rl2s_jax.train.data import make_train_data
@@ -277,8 +278,8 @@ def _final_rows(result, family, lanes, eps, points, evals, values, returns, leng
             result["per_seed"][meth][k].append(None if r is None else r[k])
         iv = None
         if r is not None and n_boot and np.all(np.isfinite(returns[i])):
-            iv = bootstrap_intervals(truth, returns[i], truth_se, n_boot=n_boot, seed=s,
-                                     ks=(1, 3, 5, 10))["metrics"]
+            iv = bootstrap_intervals(truth, returns[i], ranking_metrics, truth_se,
+                                     n_boot=n_boot, seed=s)["metrics"]
         result.setdefault("lane_intervals", {}).setdefault(meth, []).append(iv)
         result.setdefault("intervals", {})[meth] = intervals_over_seeds(
             result["lane_intervals"][meth])

@@ -44,7 +44,7 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax._files import write_json, write_text
+from rl2s_jax._files import save_figure, write_json, write_text
 from rl2s_jax.app.specs import ImproveSpec, check_floor_scale, check_no_guard_alone
 from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.data.dataset import load_dataset
@@ -515,7 +515,7 @@ def plot_policies(out: str, s: dict) -> list[str]:
         fig.suptitle(r["policy"])
         fig.tight_layout()
         name = f"policy_{_safe(r['policy'])}.png"
-        fig.savefig(os.path.join(out, name), dpi=100)
+        save_figure(fig, os.path.join(out, name), dpi=100)
         plt.close(fig)
         files.append(name)
     return files

@@ -11,7 +11,7 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax._files import write_json, write_text
+from rl2s_jax._files import read_jsonl, write_json, write_text
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.app.specs import TrainSpec
 from rl2s_jax.data.dataset import load_dataset
@@ -267,7 +267,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
                                horizon=setting.horizon, truth=setting.truth)  # data's gamma
         row = {"step": int(state.step), **r["metrics"], "vd": r["vd"],
                "setting": setting.to_dict(), "true_value_source": r["true_value_source"]}
-        with open(path, "a") as f:
+        with open(path, "a") as f:  # appended: safe as metrics.jsonl is (train.loop.fit)
             f.write(json.dumps(row) + "\n")
         last.clear()
         last.update({f"{k}_test": v for k, v in r["metrics"].items()})
@@ -310,9 +310,8 @@ def _truncate_metrics(path: str, step: int) -> None:
     """Drop logged rows after ``step`` (they belong to a run that went past its checkpoint)."""
     if not os.path.exists(path):
         return
-    with open(path) as f:
-        rows = [line for line in f if line.strip() and json.loads(line)["step"] <= step]
-    write_text(path, "".join(rows))
+    rows = [row for row in read_jsonl(path) if row["step"] <= step]  # a torn last line goes
+    write_text(path, "".join(json.dumps(row) + "\n" for row in rows))
 
 
 def format_summary(s: dict) -> str:

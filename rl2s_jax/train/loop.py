@@ -98,6 +98,8 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     if progress:
         bar = tqdm(total=n_steps, initial=min(start, n_steps), unit="step",
                    desc=f"train {state.config.method}", dynamic_ncols=True)
+    # Appended row by row, not rewritten atomically: a crash can tear only the last line, which
+    # the readers (_files.read_jsonl) skip, and a resumed run rewrites the log before appending.
     log = open(metrics_path, "a") if metrics_path else None
     try:
         while int(state.step) < n_steps:

@@ -107,8 +107,7 @@ def plot(rows: list[dict], summary: dict, task: str, path: str) -> None:
         s = summary["methods"][m]
         ax.set_title(f"{m}: median {s['median_gain_raw']:+.2f} raw, {s['deployed']} deployed",
                      fontsize=8)
-        ax.set_yscale("symlog", linthresh=0.1)
-        ax.set_xlabel("start return (zoo)", fontsize=8)
+        ax.set_yscale("symlog", linthresh=0.1), ax.set_xlabel("start return (zoo)", fontsize=8)
     axes[0][0].set_ylabel("real gain I (open: kept by the guard)", fontsize=8)
     fig.suptitle(f"{task}: fine-tuning inside the learned simulators", fontsize=9)
     fig.tight_layout()

@@ -259,20 +259,20 @@ SMALL = {"vd_horizon": 50, "vd_episodes": 2, "updates_per_step": 2, "gen_hidden"
 def test_rerun_into_a_finished_run_keeps_its_results(pm_files, tmp_path):
     """Rerunning `rl2s train` without --eval-data (the same or more steps) keeps the test
     evaluation and the warnings the earlier summary held, and says it kept them."""
+    from rl2s_jax.app.specs import TrainSpec
     from rl2s_jax.app.training import run_training
-    from rl2s_jax.evaluate.setting import EvalSetting
 
     run = tmp_path / "run"
-    first = run_training(pm_files["train"], "bc", 2, str(run), profile="cpu", overrides=SMALL,
-                         progress=False, log=lambda _: None, eval_data=pm_files["test"],
-                         eval_every=2, setting=EvalSetting(episodes=2))
+    first = run_training(TrainSpec(pm_files["train"], 2, str(run), "bc", profile="cpu",
+                                   set=SMALL, quiet=True, eval_data=pm_files["test"],
+                                   eval_every=2, eval_episodes=2), log=lambda _: None)
     saved = json.loads((run / "summary.json").read_text())
     jump = "[train] warning: the worst training-policy VD rose from 1 to 9 at step 2 (9.0x)"
     later = "[train] warning: ... at step 3 (9.0x)"  # after the step resumed from: dropped
     saved["worst_vd_jumps"] = [jump, later]
     (run / "summary.json").write_text(json.dumps(saved))
-    again = run_training(pm_files["train"], "bc", 2, str(run), profile="cpu",
-                         overrides=SMALL, progress=False, log=lambda _: None)
+    again = run_training(TrainSpec(pm_files["train"], 2, str(run), "bc", profile="cpu",
+                                   set=SMALL, quiet=True), log=lambda _: None)
     on_disk = json.loads((run / "summary.json").read_text())
     assert on_disk == json.loads(json.dumps(again))
     for k in ("avd_test", "mvd_test", "kendall_tau_test", "step_test", "eval_data"):

@@ -22,10 +22,9 @@ LONG_FUNCTIONS = {
     "app/diagnosis.py::report_markdown": 69,
     "app/improvement.py::fine_tune": 159,  # was run_improve (168)
     "app/pipeline.py::improve_in_simulators": 74,
-    "app/pipeline.py::run_pipeline": 82,
+    "app/pipeline.py::run_pipeline": 79,
     "paper/protocol.py::train_family": 115,
     "paper/improvement_phases.py::run_improvement": 88,
-    "app/training.py::run_training": 106,
     "cli.py::build_parser": 206,
     "data/minari.py::to_minari": 62,
     "diagnose/causes.py::_test_causes": 75,

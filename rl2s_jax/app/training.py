@@ -71,15 +71,11 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
     return cfg.validate()
 
 
-def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str | None = None,
-                 profile: str = "auto", seed: int = 0, eps: float | None = None,
-                 save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
-                 progress: bool = True, log=print, eval_data: str | None = None,
-                 eval_every: int | None = None, setting: EvalSetting | None = None,
-                 resume_step: int | None = None, policy_file: str | None = None,
-                 eval_policies: str | None = None, no_task: bool = False) -> dict:
-    """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
-    holds one), and return a summary dict (also written to out/summary.json).
+def run_training(spec: TrainSpec, log=print) -> dict:
+    """`rl2s train` from Python: load ``spec.data``, train a simulator with checkpoints in
+    ``spec.out`` (resuming if it holds one), and return a summary dict (also written to
+    out/summary.json); ``log`` takes its lines. ``spec.set``: "key=value" strings (the
+    flag's) or a {key: value} mapping, TrainConfig's overrides.
 
     A resumed run starts from ``resume_step``, or by default from the newest intact
     checkpoint (broken newer ones are skipped with a CheckpointWarning). Saved steps after the
@@ -88,89 +84,57 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
 
     ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
     with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve),
-    and at the last step: the summary's test numbers are the final checkpoint's, in
-    ``setting`` (default ``EvalSetting()``, its horizon the config's vd_horizon), the numbers
-    `rl2s evaluate` gives that checkpoint in the same setting; its policies
-    from ``eval_policies`` (a policy file, checked as ``policy_file`` is, before
-    any training work), else from ``zoo`` or what its meta.source names. The training
+    and at the last step: the summary's test numbers are the final checkpoint's, in the
+    setting of the eval flags (``EvalSetting.from_flags``; its horizon by default the
+    config's vd_horizon), the numbers `rl2s evaluate` gives that checkpoint in the same
+    setting; its policies from ``eval_policies`` (a policy file, checked as ``policy_file`` is,
+    before any training work), else from ``zoo`` or what its meta.source names. The training
     policies: from ``zoo``, ``policy_file`` or what the data's meta.source names
     (``zoo.policies_for``). The summary's ``learned`` block holds the simulator's reward and
     termination errors on the held-out episodes (``train.learned.heldout_errors``).
     """
-
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
-    if eval_policies is not None and eval_data is None:
+    if not isinstance(spec, TrainSpec):
+        raise TypeError(f"spec: expected a TrainSpec, got {type(spec).__name__}")
+    if spec.eval_policies is not None and spec.eval_data is None:
         raise ValueError("eval-policies: these are the policies of a test Dataset; give it "
                          "with --eval-data TEST")
-    ds = load_dataset(data_path)
+    ds = load_dataset(spec.data)
+    profile = spec.profile
     if profile == "auto":
         profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
-    cfg = make_config(ds, method, profile, eps, overrides, no_task)
-    if not cfg.registered or no_task:
-        log(f"[train] {data_path}: {'--no-task' if no_task else 'data of no registered task'} "
-            f"(meta.task {ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
-            f"{cfg.termination!r} (a reward head r(s, a, s') fitted on its rewards, the hazard "
-            f"h(s, a) on its done flags; their held-out errors are in the summary)")
-    if cfg.pretrains and steps <= cfg.pretrain_steps:
-        log(f"[train] warning: --steps {steps} ends inside the {cfg.pretrain_steps} "
-            f"pre-training steps of {method}: this run is maximum likelihood on every policy "
-            f"(as bc) and never reaches the adversarial phase; "
-            f"{cfg.pretrain_steps - steps + 1} more step(s) reach it (--steps "
-            f"{cfg.pretrain_steps + 1} or more, or --set pretrain_steps=N)")
-    policies = policies_for(ds, zoo, policy_file=policy_file, data_path=data_path)
-    eval_path = os.path.join(out, "eval.jsonl")
-    on_eval, last_test = None, {}
-    if eval_data is not None:  # its data and policies checked before any training work
-        on_eval = _test_evaluator(eval_data, cfg, eval_path, setting or EvalSetting(), zoo,
-                                  last_test, eval_policies)
-        eval_every = eval_every or save_every or max(1, steps // 10)
+    overrides = dict(spec.set) if isinstance(spec.set, dict) else parse_overrides(spec.set)
+    cfg = make_config(ds, spec.method, profile, spec.eps, overrides, spec.no_task)
+    _say_what_runs(spec, ds, cfg, log)
+    policies = policies_for(ds, spec.zoo, policy_file=spec.policy_file, data_path=spec.data)
+    eval_path = os.path.join(spec.out, "eval.jsonl")
+    on_eval, last_test, eval_every = None, {}, spec.eval_every
+    if spec.eval_data is not None:  # its data and policies checked before any training work
+        setting = EvalSetting.from_flags(spec.eval_episodes, spec.eval_horizon, spec.eval_seed,
+                                         spec.truth)
+        on_eval = _test_evaluator(spec.eval_data, cfg, eval_path, setting, spec.zoo,
+                                  last_test, spec.eval_policies)
+        eval_every = eval_every or spec.save_every or max(1, spec.steps // 10)
     data = make_train_data(ds, policies, cfg)
-    os.makedirs(out, exist_ok=True)
-    ck = Checkpointer(os.path.join(out, "checkpoints"))
-    meta = {"data": {"path": os.path.abspath(data_path), "task": ds.meta["task"],
+    os.makedirs(spec.out, exist_ok=True)
+    ck = Checkpointer(os.path.join(spec.out, "checkpoints"))
+    meta = {"data": {"path": os.path.abspath(spec.data), "task": ds.meta["task"],
                      "obs_size": ds.obs_size, "action_size": ds.action_size,
                      "n_policies": ds.n_policies, "policy_names": ds.meta.get("policy_names"),
                      "gamma": ds.meta.get("gamma"),
                      "true_value": np.asarray(data.true_value).tolist()},
-            "seed": seed, "profile": profile}
-    metrics_path = os.path.join(out, "metrics.jsonl")
-    key = jax.random.PRNGKey(seed)
-    if resume_step is not None and ck.latest_step() is None:
-        ck.close()
-        raise FileNotFoundError(f"resume_step: {out}/checkpoints holds no saved step to resume "
-                                f"step {resume_step} from")
-    if ck.latest_step() is not None:
-        template = jax.eval_shape(lambda: init(key, cfg, data))
-        try:
-            state = ck.restore(template, resume_step)
-        except BaseException:
-            ck.close()
-            raise
-        moved = ck.set_aside_after(int(state.step))
-        _truncate_metrics(metrics_path, int(state.step))
-        _truncate_metrics(eval_path, int(state.step))
-        log(f"[train] resuming {out} from step {int(state.step)}")
-        for kind, steps_moved in moved.items():
-            if steps_moved:
-                log(f"[train] moved {kind} step(s) {steps_moved} to {ck.directory}/{kind}/")
-    else:
-        for path in (metrics_path, eval_path):
-            if os.path.exists(path):
-                os.remove(path)
-        t0 = time.perf_counter()
-        state = jax.jit(init, static_argnums=1)(key, cfg, data)
-        log(f"[train] {method} (eps {cfg.initial_eps}, profile {profile}) on {data_path}: "
-            f"{ds.n_transitions} transitions, {ds.n_policies} policies; init "
-            f"{time.perf_counter() - t0:.1f}s")
+            "seed": spec.seed, "profile": profile}
+    metrics_path = os.path.join(spec.out, "metrics.jsonl")
+    state = _start_state(spec, cfg, data, ck, (metrics_path, eval_path), log,
+                         f"profile {profile}) on {spec.data}: {ds.n_transitions} transitions, "
+                         f"{ds.n_policies} policies")
     t0 = time.perf_counter()
     start = int(state.step)
     jumps: list[str] = []
     try:
-        state, metrics = fit(state, data, steps, chunk=chunk, checkpointer=ck,
-                             save_every=save_every, meta=meta, metrics_path=metrics_path,
-                             progress=progress, eval_every=eval_every, on_eval=on_eval,
-                             on_warning=lambda text: (jumps.append(text), log(text)))
+        state, _ = fit(state, data, spec.steps, chunk=spec.chunk, checkpointer=ck,
+                       save_every=spec.save_every, meta=meta, metrics_path=metrics_path,
+                       progress=not spec.quiet, eval_every=eval_every, on_eval=on_eval,
+                       on_warning=lambda text: (jumps.append(text), log(text)))
     finally:
         ck.close()
     if on_eval is not None and last_test.get("step_test") != int(state.step):
@@ -178,15 +142,77 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
         # rerun of a finished run replaces its row of that step)
         _truncate_metrics(eval_path, int(state.step) - 1)
         on_eval(state)
-    seconds = time.perf_counter() - t0
+    summary = _summary(spec, profile, cfg, state, data, ds, start, time.perf_counter() - t0,
+                       jumps, last_test)
+    if start > 0:  # resumed: what the earlier summary held stays
+        keep_earlier(summary, os.path.join(spec.out, "summary.json"), start)
+    write_json(os.path.join(spec.out, "summary.json"), summary)
+    return summary
+
+
+def _say_what_runs(spec: TrainSpec, ds, cfg: TrainConfig, log) -> None:
+    """Log where the reward and termination come from without a registered task, and warn
+    when the run ends inside pre-training."""
+    if not cfg.registered or spec.no_task:
+        log(f"[train] {spec.data}: "
+            f"{'--no-task' if spec.no_task else 'data of no registered task'} "
+            f"(meta.task {ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
+            f"{cfg.termination!r} (a reward head r(s, a, s') fitted on its rewards, the hazard "
+            f"h(s, a) on its done flags; their held-out errors are in the summary)")
+    if cfg.pretrains and spec.steps <= cfg.pretrain_steps:
+        log(f"[train] warning: --steps {spec.steps} ends inside the {cfg.pretrain_steps} "
+            f"pre-training steps of {spec.method}: this run is maximum likelihood on every "
+            f"policy (as bc) and never reaches the adversarial phase; "
+            f"{cfg.pretrain_steps - spec.steps + 1} more step(s) reach it (--steps "
+            f"{cfg.pretrain_steps + 1} or more, or --set pretrain_steps=N)")
+
+
+def _start_state(spec: TrainSpec, cfg: TrainConfig, data, ck: Checkpointer, logs, log,
+                 what: str):
+    """The TrainState to train from: the checkpoint resumed (``spec.resume_step`` or the
+    newest intact one; the logs in ``logs`` cut back to its step), else a fresh ``init``
+    (the logs removed; ``what``: the profile and data, for its log line)."""
+    key = jax.random.PRNGKey(spec.seed)
+    if spec.resume_step is not None and ck.latest_step() is None:
+        ck.close()
+        raise FileNotFoundError(f"resume_step: {spec.out}/checkpoints holds no saved step to "
+                                f"resume step {spec.resume_step} from")
+    if ck.latest_step() is None:
+        for path in logs:
+            if os.path.exists(path):
+                os.remove(path)
+        t0 = time.perf_counter()
+        state = jax.jit(init, static_argnums=1)(key, cfg, data)
+        log(f"[train] {spec.method} (eps {cfg.initial_eps}, {what}; init "
+            f"{time.perf_counter() - t0:.1f}s")
+        return state
+    template = jax.eval_shape(lambda: init(key, cfg, data))
+    try:
+        state = ck.restore(template, spec.resume_step)
+    except BaseException:
+        ck.close()
+        raise
+    moved = ck.set_aside_after(int(state.step))
+    for path in logs:
+        _truncate_metrics(path, int(state.step))
+    log(f"[train] resuming {spec.out} from step {int(state.step)}")
+    for kind, steps_moved in moved.items():
+        if steps_moved:
+            log(f"[train] moved {kind} step(s) {steps_moved} to {ck.directory}/{kind}/")
+    return state
+
+
+def _summary(spec: TrainSpec, profile: str, cfg: TrainConfig, state, data, ds, start: int,
+             seconds: float, jumps: list[str], last_test: dict) -> dict:
+    """summary.json of a run that trained from step ``start`` to ``state.step``."""
     names = ds.meta.get("policy_names") or [str(i) for i in range(ds.n_policies)]
     vd = np.asarray(state.vd)
-    summary = {
-        "method": method, "eps": float(state.eps), "profile": profile, "steps": int(state.step),
-        "steps_run": int(state.step) - start, "seconds": round(seconds, 2),
-        "backend": jax.default_backend(), "machine": machine_info(),
-        "avd_train": float(np.mean(vd)),
-        "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(out, "checkpoints"),
+    return {
+        "method": spec.method, "eps": float(state.eps), "profile": profile,
+        "steps": int(state.step), "steps_run": int(state.step) - start,
+        "seconds": round(seconds, 2), "backend": jax.default_backend(),
+        "machine": machine_info(), "avd_train": float(np.mean(vd)),
+        "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(spec.out, "checkpoints"),
         "pretrain_steps_left": (max(0, cfg.pretrain_steps + 1 - int(state.step))
                                 if cfg.pretrains else 0),
         "vd_measured_by": {"source": "simulated, the last completed VD measurement of the "
@@ -200,10 +226,6 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                      for n, t, s, v in zip(names, np.asarray(data.true_value),
                                            np.asarray(state.sim_value), vd, strict=True)},
         "config": state.config.to_dict()}
-    if start > 0:  # resumed: what the earlier summary held stays
-        keep_earlier(summary, os.path.join(out, "summary.json"), start)
-    write_json(os.path.join(out, "summary.json"), summary)
-    return summary
 
 
 def keep_earlier(summary: dict, path: str, resumed_from: int) -> None:
@@ -284,21 +306,12 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
 
 
 def run_train(spec: TrainSpec) -> int:
-    """`rl2s train`'s body: ``run_training`` with the spec's options, then its summary table;
-    1 where training diverged."""
+    """`rl2s train`'s body: ``run_training(spec)``, then its summary table; 1 where training
+    diverged."""
     if not os.path.exists(spec.data):
         raise FileNotFoundError(f"data: no such file {spec.data}")
     try:
-        summary = run_training(spec.data, spec.method, spec.steps, spec.out, zoo=spec.zoo,
-                               profile=spec.profile, seed=spec.seed, eps=spec.eps,
-                               save_every=spec.save_every, chunk=spec.chunk,
-                               overrides=parse_overrides(spec.set), progress=not spec.quiet,
-                               eval_data=spec.eval_data, eval_every=spec.eval_every,
-                               setting=EvalSetting.from_flags(
-                                   spec.eval_episodes, spec.eval_horizon, spec.eval_seed,
-                                   spec.truth),
-                               resume_step=spec.resume_step, policy_file=spec.policy_file,
-                               eval_policies=spec.eval_policies, no_task=spec.no_task)
+        summary = run_training(spec)
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1

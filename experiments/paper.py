@@ -367,7 +367,7 @@ def main(argv=None) -> int:
     oracle_seeds = max(0, args.improve_oracle_seeds)
     if it and (sizes["improve_seeds"] or args.control or oracle_seeds):
         ft = setup_fine_tuning(result, args.task, test_ds, test_pols, sizes,
-                               next(iter(configs.values())).vd_horizon,
+                               next(iter(configs.values())).vd.horizon,
                                {**PROFILES[profile]["sac"], **sac_overrides})
     settings_of = partial(variant_settings, branch_length=args.branch_length,
                           uncertainty_penalty=args.uncertainty_penalty,

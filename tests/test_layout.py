@@ -23,7 +23,7 @@ LONG_FUNCTIONS = {
     "app/improvement.py::fine_tune": 159,  # was run_improve (168)
     "app/pipeline.py::improve_in_simulators": 74,
     "app/pipeline.py::run_pipeline": 79,
-    "paper/protocol.py::train_family": 115,
+    "paper/protocol.py::train_family": 113,
     "paper/improvement_phases.py::run_improvement": 88,
     "cli.py::build_parser": 206,
     "data/minari.py::to_minari": 62,
@@ -36,7 +36,6 @@ LONG_FUNCTIONS = {
     "diagnose/planted.py::_check_args": 64,
     "policy/ppo.py::make_ppo": 89,
     "policy/sac.py::make_sac": 195,
-    "train/config.py::TrainConfig.validate": 96,
     "train/loop.py::fit": 78,
     "train/step.py::_adversarial_updates": 65,
     "zoo/build.py::build_zoo": 112,

@@ -22,6 +22,7 @@ from rl2s_jax.evaluate.scores import evaluate_oracle, evaluate_simulator, one_st
 from rl2s_jax.evaluate.setting import EVAL_EPISODES, EvalSetting
 from rl2s_jax.evaluate.trust import format_trust
 from rl2s_jax.train.checkpoint import Checkpointer, load_checkpoint
+from rl2s_jax.train.config import saved_field
 from rl2s_jax.zoo.zoo import policies_for
 
 
@@ -37,9 +38,9 @@ def _setting(setting: EvalSetting | None, n_episodes, horizon, seed, truth) -> E
 
 def checkpoint_setting(config: dict, ds, setting: EvalSetting) -> EvalSetting:
     """``setting`` with the horizon filled for a checkpoint of ``config`` on ``ds``: given,
-    else the config's ``vd_horizon`` (at most the data's episode_length: the real episodes end
+    else the config's ``vd.horizon`` (at most the data's episode_length: the real episodes end
     there); the same horizon training measured its VD with."""
-    return setting.resolve(ds.meta.get("episode_length"), config.get("vd_horizon"),
+    return setting.resolve(ds.meta.get("episode_length"), saved_field(config, "vd.horizon"),
                            config.get("profile"))
 
 

@@ -66,6 +66,7 @@ from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_meta, load_simulator
+from rl2s_jax.train.config import saved_field
 from rl2s_jax.zoo.zoo import Zoo, policies_for, policy_source, save_zoo
 
 # The deployment guard's default margin (module docstring: the margin of the guard studies in
@@ -376,7 +377,7 @@ def training_error_floor(run: dict) -> dict:
     by = run.get("vd_measured_by") or {}
     cfg = run.get("config") or {}
     return {"mvd": float(run["mvd_train"]),
-            "horizon": int(by.get("horizon", cfg.get("vd_horizon"))),
+            "horizon": int(by.get("horizon", saved_field(cfg, "vd.horizon"))),
             "gamma": float(by.get("gamma", cfg.get("gamma"))), "step": run.get("steps")}
 
 

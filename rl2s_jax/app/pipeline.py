@@ -38,6 +38,7 @@ from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_simulator
+from rl2s_jax.train.config import saved_field
 from rl2s_jax.zoo.zoo import load_zoo, policies_for
 
 
@@ -315,7 +316,7 @@ def run_pipeline(spec: PipelineSpec) -> int:
         improvement = improve_in_simulators(
             spec.task, summary["datasets"]["test"]["path"],
             {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
-            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=spec.seed,
+            horizon=saved_field(runs[methods[0]]["config"], "vd.horizon"), seed=spec.seed,
             guard_margin=margin, guard_episodes=spec.guard_episodes,
             guard_floors={m: training_error_floor(r) for m, r in runs.items()},
             guard_floor_scale=sizes["guard_floor_scale"],

@@ -28,8 +28,9 @@ from rl2s_jax.zoo.zoo import policies_for
 
 # The cpu profile's members: TrainConfig.small's 2x64 at 5 updates per step had not fitted
 # Hopper (held-out error 0.385 change stds; these: 0.140, experiments/model_fit.py on the CPU).
-CPU_MODEL = dict(gen_hidden=(128, 128, 128), gen_activation="silu", batch_size=256,
-                 updates_per_step=25, early_stop_patience=0, gen_weight_decay=0.0)
+CPU_MODEL = {"dynamics.hidden": (128, 128, 128), "dynamics.activation": "silu",
+             "batch_size": 256, "updates_per_step": 25, "early_stop_patience": 0,
+             "gen_weight_decay": 0.0}
 
 
 def make_config(ds, method: str, profile: str, eps: float | None = None,
@@ -39,36 +40,31 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
     defaults), 'cpu' = ``TrainConfig.small`` with the members fitted as the gpu profile fits
     them (3 of 3x128 SiLU, batch 256, 25 updates per step, no early stopping or weight decay:
     docs/RESULTS.md, "make hopper"), 100 pre-training steps and 5 critic warm-up steps.
-    ``overrides``: field -> value (``--set``).
+    ``overrides``: name -> value (``--set``; ``TrainConfig.override``'s names: dotted
+    "dynamics.obs_history", or for one release the flat format's "obs_history").
 
     Data of no registered task (``meta.task`` null) or ``no_task`` (--no-task): the reward is
-    learned from the data's rewards (``reward`` "learned") and episodes end by the hazard
-    learned from its done flags (``termination`` "hazard"), unless ``overrides`` say
+    learned from the data's rewards (``outcome.reward`` "learned") and episodes end by the
+    hazard learned from its done flags (``outcome.termination`` "hazard"), unless ``overrides`` say
     otherwise; its time limit is ``data_episode_length``. A ``meta.task`` that is not
     registered is refused without ``no_task`` (``envs.tasks.data_task``)."""
 
     data_task(ds.meta["task"], no_task)
     ep_len = ds.meta.get("episode_length") or 1000
-    base = dict(task=ds.meta["task"], method=method, eps=eps,
-                gamma=float(ds.meta.get("gamma") or 0.999))
+    base = {"task": ds.meta["task"], "method": method, "eps": eps,
+            "gamma": float(ds.meta.get("gamma") or 0.999)}
     if ds.meta["task"] not in TASKS or no_task:
-        base.update(reward="learned", termination="hazard",
-                    data_episode_length=ds.meta.get("episode_length"))
+        base.update({"outcome.reward": "learned", "outcome.termination": "hazard",
+                     "data_episode_length": ds.meta.get("episode_length")})
     if profile == "cpu":
-        cfg = TrainConfig.small(vd_horizon=profile_horizon("cpu", ep_len), pretrain_steps=100,
-                                disc_warmup_steps=5, **CPU_MODEL, **base)
+        cfg = TrainConfig.small().override({
+            "vd.horizon": profile_horizon("cpu", ep_len), "adversarial.pretrain_steps": 100,
+            "adversarial.disc_warmup_steps": 5, **CPU_MODEL, **base})
     elif profile == "gpu":
-        cfg = TrainConfig(vd_horizon=profile_horizon("gpu", ep_len), **base)
+        cfg = TrainConfig().override({"vd.horizon": profile_horizon("gpu", ep_len), **base})
     else:
         raise ValueError(f"profile: expected 'cpu' or 'gpu', got {profile!r}")
-    if overrides:
-        d = cfg.to_dict()
-        unknown = sorted(set(overrides) - set(d))
-        if unknown:
-            raise ValueError(f"set: unknown config field(s) {unknown}; known: {sorted(d)}")
-        d.update(overrides)
-        cfg = TrainConfig.from_dict(d)
-    return cfg.validate()
+    return cfg.override(overrides, what="set").validate()
 
 
 def run_training(spec: TrainSpec, log=print) -> dict:
@@ -156,15 +152,16 @@ def _say_what_runs(spec: TrainSpec, ds, cfg: TrainConfig, log) -> None:
     if not cfg.registered or spec.no_task:
         log(f"[train] {spec.data}: "
             f"{'--no-task' if spec.no_task else 'data of no registered task'} "
-            f"(meta.task {ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
-            f"{cfg.termination!r} (a reward head r(s, a, s') fitted on its rewards, the hazard "
-            f"h(s, a) on its done flags; their held-out errors are in the summary)")
-    if cfg.pretrains and spec.steps <= cfg.pretrain_steps:
-        log(f"[train] warning: --steps {spec.steps} ends inside the {cfg.pretrain_steps} "
+            f"(meta.task {ds.meta.get('task')!r}): reward {cfg.outcome.reward!r}, termination "
+            f"{cfg.outcome.termination!r} (a reward head r(s, a, s') fitted on its rewards, the "
+            f"hazard h(s, a) on its done flags; their held-out errors are in the summary)")
+    pretrain = cfg.adversarial.pretrain_steps
+    if cfg.pretrains and spec.steps <= pretrain:
+        log(f"[train] warning: --steps {spec.steps} ends inside the {pretrain} "
             f"pre-training steps of {spec.method}: this run is maximum likelihood on every "
             f"policy (as bc) and never reaches the adversarial phase; "
-            f"{cfg.pretrain_steps - spec.steps + 1} more step(s) reach it (--steps "
-            f"{cfg.pretrain_steps + 1} or more, or --set pretrain_steps=N)")
+            f"{pretrain - spec.steps + 1} more step(s) reach it (--steps "
+            f"{pretrain + 1} or more, or --set adversarial.pretrain_steps=N)")
 
 
 def _start_state(spec: TrainSpec, cfg: TrainConfig, data, ck: Checkpointer, logs, log,
@@ -213,11 +210,11 @@ def _summary(spec: TrainSpec, profile: str, cfg: TrainConfig, state, data, ds, s
         "seconds": round(seconds, 2), "backend": jax.default_backend(),
         "machine": machine_info(), "avd_train": float(np.mean(vd)),
         "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(spec.out, "checkpoints"),
-        "pretrain_steps_left": (max(0, cfg.pretrain_steps + 1 - int(state.step))
+        "pretrain_steps_left": (max(0, cfg.adversarial.pretrain_steps + 1 - int(state.step))
                                 if cfg.pretrains else 0),
         "vd_measured_by": {"source": "simulated, the last completed VD measurement of the "
-                           "training policies", "episodes": cfg.vd_episodes,
-                           "horizon": cfg.vd_horizon, "gamma": cfg.gamma},
+                           "training policies", "episodes": cfg.vd.episodes,
+                           "horizon": cfg.vd.horizon, "gamma": cfg.gamma},
         "worst_vd_jumps": jumps,
         "learned": heldout_errors(simulator(state), data),
         **last_test,
@@ -281,7 +278,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
             pols = policies_for(ds, zoo, data_path=eval_data, flag="eval-policies")
         except ValueError as err:  # say which Dataset's policies are unknown
             raise ValueError(f"eval_data: {eval_data}: {err}") from None
-    setting = setting.resolve(ds.meta.get("episode_length"), cfg.vd_horizon)
+    setting = setting.resolve(ds.meta.get("episode_length"), cfg.vd.horizon)
     key = setting.key()
 
     def on_eval(state):

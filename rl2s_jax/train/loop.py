@@ -110,7 +110,7 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
                 n = min(n, eval_every - step % eval_every)
             phase = state.config.phase(step)
             if phase == "pretrain":
-                n = min(n, state.config.pretrain_steps - step)
+                n = min(n, state.config.adversarial.pretrain_steps - step)
             t0 = time.perf_counter()
             new_state, metrics = _train_chunk(state, data, n_steps=n, phase=phase)
             metrics = jax.device_get(metrics)

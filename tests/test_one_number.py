@@ -98,7 +98,7 @@ def test_the_progress_bar_shows_the_evaluation_of_its_step(monkeypatch):
 
     monkeypatch.setattr(loop, "tqdm", Bar)
     monkeypatch.setattr(loop, "_train_chunk", chunk)
-    cfg = types.SimpleNamespace(method="bc", pretrain_steps=0, phase=lambda step: "main")
+    cfg = types.SimpleNamespace(method="bc", phase=lambda step: "main")  # one phase
     state = State(0, np.zeros(2), cfg)
     loop.fit(state, None, 6, chunk=2, eval_every=2,
              on_eval=lambda s: {"avd_test": float(s.step)})

@@ -32,7 +32,8 @@ ds = collect(task.make_env(), zoo, key=jax.random.PRNGKey(0), transitions_per_po
              value_episodes=16, progress=False)
 
 # 2. Config (static) and device-resident data; the state is a plain pytree.
-config = rl2s.TrainConfig.small(task="pointmass", method="rl2s", vd_horizon=task.episode_length)
+config = rl2s.TrainConfig.small().override(
+    {"task": "pointmass", "method": "rl2s", "vd.horizon": task.episode_length})
 data = rl2s.make_train_data(ds, zoo, config)
 state = jax.jit(rl2s.init, static_argnums=1)(jax.random.PRNGKey(0), config, data)
 

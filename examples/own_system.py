@@ -107,8 +107,8 @@ def main(argv=None) -> dict:
     test_pols = make_policies(6, seed=100, low=-0.8, high=2.0)  # unseen, another spread
     n_ep = 8 if args.quick else 24
     train_ds, test_ds = record(train_pols, n_ep, seed=1), record(test_pols, n_ep, seed=2)
-    config = rl2s.TrainConfig.small(task="damped_pendulum", method="bc", vd_horizon=EPISODE,
-                                    gamma=0.99)
+    config = rl2s.TrainConfig.small().override(
+        {"task": "damped_pendulum", "method": "bc", "vd.horizon": EPISODE, "gamma": 0.99})
     data = rl2s.make_train_data(train_ds, train_pols, config)
     state = jax.jit(rl2s.init, static_argnums=1)(jax.random.PRNGKey(0), config, data)
     steps = 20 if args.quick else 150

@@ -119,10 +119,10 @@ def main(argv=None) -> dict:
     # the cpu profile's model, smaller learned reward and termination heads
     overrides = dict(vd_horizon=EPISODE, hazard_hidden=(64, 64), hazard_steps=1500,
                      reward_hidden=(64, 64), reward_steps=1500)
-    summary = rl2s.run_training(paths["train"], "bc", 40 if args.quick else 150,
-                                os.path.join(out, "run"), profile="cpu",
-                                policy_file=os.path.join(out, "train_policies.npz"),
-                                overrides=overrides, progress=False)
+    summary = rl2s.run_training(rl2s.TrainSpec(
+        paths["train"], 40 if args.quick else 150, os.path.join(out, "run"), "bc",
+        profile="cpu", policy_file=os.path.join(out, "train_policies.npz"), set=overrides,
+        quiet=True))
     print(format_summary(summary))
     report = evaluate_checkpoint(os.path.join(out, "run", "checkpoints"), paths["test"],
                                  policy_file=os.path.join(out, "test_policies.npz"))

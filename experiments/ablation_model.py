@@ -110,7 +110,7 @@ def evaluate(states, seeds, weights: bool, *, test, select, cfg, n_episodes,
     for name, (pols, pool, truth), base in sets:
         keys = jnp.stack([jax.random.PRNGKey(base + s) for s in seeds])
         returns, lengths = lane_returns(sims, pols, pool, keys, n_episodes=n_episodes,
-                                        horizon=cfg.vd_horizon, gamma=cfg.gamma)
+                                        horizon=cfg.vd.horizon, gamma=cfg.gamma)
         lengths = np.asarray(lengths, np.float64).mean(-1)
         for i, v in enumerate(np.asarray(returns, np.float64).mean(-1)):
             out[i][name] = _metrics(truth, v)
@@ -130,18 +130,18 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     cfg = make_config(train_ds, method, profile, overrides=overrides)
     data = make_train_data(train_ds, policies_for(train_ds), cfg)
     test = (policies_for(test_ds), start_pool(test_ds),
-            true_values(test_ds, cfg.vd_horizon, cfg.gamma))
+            true_values(test_ds, cfg.vd.horizon, cfg.gamma))
     select = (data.policies, heldout_start_pool(train_ds), np.asarray(data.true_value))
     validation = None if valid_ds is None else (
         policies_for(valid_ds), start_pool(valid_ds),
-        true_values(valid_ds, cfg.vd_horizon, cfg.gamma))
+        true_values(valid_ds, cfg.vd.horizon, cfg.gamma))
     rows = {(False, None): variant} | ({(True, None): f"{variant}+ema"} if cfg.ema_decay
                                        else {})
     rollouts = parse_rollouts(args.rollouts)
-    if cfg.termination not in LEARNED and any(len(r) > 2 and r[2] in LEARNED
+    if cfg.outcome.termination not in LEARNED and any(len(r) > 2 and r[2] in LEARNED
                                               for r in rollouts):
         raise SystemExit(f"rollouts: a learned termination needs a variant trained with one "
-                         f"({variant!r} has termination {cfg.termination!r}; add "
+                         f"({variant!r} has termination {cfg.outcome.termination!r}; add "
                          f"':termination=both')")
     rows |= {(False, r): rollout_row(variant, r) for r in rollouts}
     seeds = list(range(sizes["seeds"]))
@@ -160,7 +160,8 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     states = jax.block_until_ready(init_lanes(keys, cfg, data))
     res["timings"]["init"] = round(time.perf_counter() - t0, 1)
     log(f"[ablation] {variant}: method {method}, {len(seeds)} seeds, E={cfg.ensemble_size}, "
-        f"pretrain {cfg.pretrain_steps if cfg.adversarial else '-'}, ema {cfg.ema_decay}; "
+        f"pretrain {cfg.adversarial.pretrain_steps if cfg.is_adversarial else '-'}, "
+        f"ema {cfg.ema_decay}; "
         f"init {res['timings']['init']}s")
     compiled, t_train, t_eval = {}, 0.0, 0.0
     n = sizes["eval_every"]
@@ -195,7 +196,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
         log(f"[ablation] {variant} step {step}: train {t_train:.1f}s, eval {t_eval:.1f}s")
         _write(path, res)
     sims = simulator(states, average=False)  # the trained weights, for the diagnostics
-    if cfg.termination in LEARNED:  # the hazard's calibration on the test policies' rows
+    if cfg.outcome.termination in LEARNED:  # the hazard's calibration on the test policies' rows
         res["hazard_check"] = hazard_check(sims, test_ds)
         log(f"[ablation] {variant}: hazard on the test rows {res['hazard_check']}")
     if args.open_loop:
@@ -208,7 +209,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
     if args.visited_error:
         res["visited_error"] = v = visited_error_check(
             sims, test_ds, test, get_task(args.task), n_episodes=args.visited_error,
-            horizon=cfg.vd_horizon, train_ds=train_ds)
+            horizon=cfg.vd.horizon, train_ds=train_ds)
         mean = lambda d, k: [round(float(np.mean(x)), 4) for x in d[k]]
         log(f"[ablation] {variant}: one-step error against the real dynamics (per seed, mean "
             f"over the test policies): visited states rmse {mean(v['visited'], 'rmse')} "
@@ -220,7 +221,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
         keys = jnp.stack([jax.random.PRNGKey(3000 + s) for s in seeds])
         terminal, ended = terminal_states(sims, test[0], test[1], keys, task=task,
                                           n_episodes=sizes["eval_episodes"],
-                                          horizon=cfg.vd_horizon)
+                                          horizon=cfg.vd.horizon)
         done_rows = np.asarray(test_ds.done, bool)
         res["termination"] = {
             "simulated": {str(s): termination_causes(args.task, terminal[i], ended[i])

@@ -21,9 +21,9 @@ The data are random rows of the right shapes: the step's cost does not depend on
 warm-up are switched off, else the timed steps would be the MLE pre-training ones.
 ``--method bc`` times the ensemble's likelihood step (what BC, RL2S-BC and the pre-training
 run).
-``--matmul-dtype float32,bfloat16`` times every row under each ``TrainConfig.matmul_dtype``,
-one after the other in the same process (issue 40 item 3: bf16 matmuls); the FLOP rate stays
-the float32 matmul's.
+``--matmul-dtype float32,bfloat16`` times every row under each
+``TrainConfig.dynamics.matmul_dtype``, one after the other in the same process (issue 40
+item 3: bf16 matmuls); the FLOP rate stays the float32 matmul's.
 
 The race with the official loop (issue 40 item 4; its torch port is
 ../shared/tools/official_port/official_loop.py, run beside this by ``device.sh race``):
@@ -37,7 +37,6 @@ so that the differences say where a step's time goes; ``--official-dir DIR`` rea
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import glob
 import json
 import os
@@ -60,17 +59,18 @@ OBS, ACT, POLICY_HIDDEN = 12, 3, (64, 64)
 # The official RL2S loop's model and updates (exp_specs/l2s_hopper.yaml): one generator of
 # 4x512 ReLU, batch 256, no NLL anchor, held-out scoring or early stop (the critic 4x512, 5
 # updates per generator update, as ours).
-OFFICIAL_SIZES = dict(ensemble_size=1, n_elites=1, batch_size=256, gen_activation="relu",
-                      adv_nll_weight=0.0, holdout_frac=0.0, early_stop_patience=0)
+OFFICIAL_SIZES = {"ensemble_size": 1, "n_elites": 1, "batch_size": 256,
+                  "dynamics.activation": "relu", "adversarial.nll_weight": 0.0,
+                  "holdout_frac": 0.0, "early_stop_patience": 0}
 
 
 def breakdown_configs(cfg: TrainConfig) -> list[tuple[str, TrainConfig]]:
     """(part taken away, config) rows for ``--breakdown``: each row's time subtracted from the
     full step's is that part's share. No VD needs eps 1 (no worst policies to choose)."""
-    return [("no VD", dataclasses.replace(cfg, vd_every=0, eps=1.0)),
-            ("1 sim step", dataclasses.replace(cfg, sim_steps=1)),
-            ("1 critic update", dataclasses.replace(cfg, disc_updates=1)),
-            ("1 gen update", dataclasses.replace(cfg, updates_per_step=1))]
+    return [("no VD", cfg.override({"vd.every": 0, "eps": 1.0})),
+            ("1 sim step", cfg.override({"adversarial.sim_steps": 1})),
+            ("1 critic update", cfg.override({"adversarial.disc_updates": 1})),
+            ("1 gen update", cfg.override({"updates_per_step": 1}))]
 
 
 def race_ratios(rows: list[dict], official: dict[int, dict], horizon: int) -> list[dict]:
@@ -143,22 +143,22 @@ def step_flops(cfg: TrainConfig, P: int, heldout_rows: int = 0) -> dict:
     or a likelihood step (every member's loss on its own batch); then the held-out scoring of
     the members and the rollouts (every member is evaluated at each simulated step)."""
     E = cfg.ensemble_size
-    gen = mlp_flops([OBS + ACT, *cfg.gen_hidden, 2 * OBS])
-    disc = mlp_flops([2 * OBS + ACT, *cfg.disc_hidden, 1])
+    gen = mlp_flops([OBS + ACT, *cfg.dynamics.hidden, 2 * OBS])
+    disc = mlp_flops([2 * OBS + ACT, *cfg.adversarial.disc_hidden, 1])
     pol = mlp_flops([OBS, *POLICY_HIDDEN, 2 * ACT])
     n = cfg.batch_size
-    if cfg.adversarial:
+    if cfg.is_adversarial:
         critic = E * gen * n + 3 * disc * 2 * n            # fake s' + D fwd/bwd on real+fake
         member = 3 * gen * 2 * n + 3 * disc * 2 * n        # through G and D, real+sim (s, a)
-        if cfg.adv_nll_weight:
+        if cfg.adversarial.nll_weight:
             member += 3 * gen * n                          # the NLL anchor on the real batch
-        updates = cfg.updates_per_step * (cfg.disc_updates * critic + E * member)
-        sim_rows = cfg.sim_envs * cfg.sim_steps
+        updates = cfg.updates_per_step * (cfg.adversarial.disc_updates * critic + E * member)
+        sim_rows = cfg.adversarial.sim_envs * cfg.adversarial.sim_steps
     else:
         updates = cfg.updates_per_step * E * 3 * gen * n
         sim_rows = 0
     scoring = E * gen * heldout_rows
-    vd_rows = P * cfg.vd_episodes * -(-cfg.vd_horizon // cfg.vd_every) if cfg.vd_every else 0
+    vd_rows = P * cfg.vd.episodes * -(-cfg.vd.horizon // cfg.vd.every) if cfg.vd.every else 0
     rollouts = (sim_rows + vd_rows) * (E * gen + pol)
     return {"updates": updates, "scoring": scoring, "rollouts": rollouts,
             "total": updates + scoring + rollouts, "sim_rows": sim_rows, "vd_rows": vd_rows}
@@ -189,13 +189,13 @@ def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
     seconds = timed(run, state) / steps / runs  # per train_step of one run
     fl = step_flops(cfg, P, heldout)
     return {"method": cfg.method, "ensemble_size": cfg.ensemble_size, "policies": P,
-            "vd_horizon": cfg.vd_horizon, "sim_steps": cfg.sim_steps,
+            "vd_horizon": cfg.vd.horizon, "sim_steps": cfg.adversarial.sim_steps,
             "vmapped_runs": runs,
             "step_ms": 1e3 * seconds, "steps_per_s": 1 / seconds,
             "gen_updates_per_s": cfg.updates_per_step / seconds,
             "member_updates_per_s": cfg.updates_per_step * cfg.ensemble_size / seconds,
-            "disc_updates_per_s": (cfg.updates_per_step * cfg.disc_updates / seconds
-                                   if cfg.adversarial else 0.0),
+            "disc_updates_per_s": (cfg.updates_per_step * cfg.adversarial.disc_updates / seconds
+                                   if cfg.is_adversarial else 0.0),
             "sim_transitions_per_s": (fl["sim_rows"] + fl["vd_rows"]) / seconds,
             "gflop_per_step": fl["total"] / 1e9, "tflop_s": fl["total"] / seconds / 1e12,
             "compile_s": compile_s}
@@ -213,7 +213,7 @@ def main(argv=None) -> int:
                     "as one program, at P=17")
     ap.add_argument("--steps", type=int, help="train_steps per timed call")
     ap.add_argument("--matmul-dtype", default="float32", help="comma list of "
-                    "TrainConfig.matmul_dtype values: every row is timed under each "
+                    "TrainConfig.dynamics.matmul_dtype values: every row is timed under each "
                     "(float32,bfloat16: the bf16 matmuls beside float32)")
     ap.add_argument("--official-sizes", action="store_true", help="our step at the official "
                     "loop's sizes (OFFICIAL_SIZES): the equal-work race")
@@ -227,17 +227,18 @@ def main(argv=None) -> int:
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
     # the adversarial step itself, not the MLE pre-training that precedes it in a run
-    phase = dict(pretrain_steps=0, disc_warmup_steps=0) if args.method == "rl2s" else {}
+    phase = ({"adversarial.pretrain_steps": 0, "adversarial.disc_warmup_steps": 0}
+             if args.method == "rl2s" else {})
     if profile == "gpu":
-        cfg = TrainConfig(task="hopper", method=args.method, **phase)
+        cfg = TrainConfig().override({"task": "hopper", "method": args.method, **phase})
         policies, horizons, sims = [4, 17, 64, 256], [250, 4000], [64]
         steps, mm, vmaps = 10, 8192, [8]
     else:
-        cfg = TrainConfig.small(task="hopper", method=args.method, **phase)
+        cfg = TrainConfig.small().override({"task": "hopper", "method": args.method, **phase})
         policies, horizons, sims = [4, 17], [400], [16]
         steps, mm, vmaps = 5, 1024, [2]
     if args.official_sizes:
-        cfg = dataclasses.replace(cfg, **OFFICIAL_SIZES)
+        cfg = cfg.override(OFFICIAL_SIZES)
     policies = policies if args.policies is None else args.policies
     horizons = horizons if args.horizons is None else args.horizons
     sims = sims if args.sim_steps is None else args.sim_steps
@@ -245,23 +246,25 @@ def main(argv=None) -> int:
     steps = args.steps or steps
     dtypes = [d.strip() for d in args.matmul_dtype.split(",") if d.strip()]
     runs = [(cfg, P, 1) for P in policies]
-    runs += [(dataclasses.replace(cfg, vd_horizon=h), 17, 1) for h in horizons]
-    runs += [(dataclasses.replace(cfg, sim_steps=s), 17, 1) for s in sims]
+    runs += [(cfg.override({"vd.horizon": h}), 17, 1) for h in horizons]
+    runs += [(cfg.override({"adversarial.sim_steps": s}), 17, 1) for s in sims]
     runs += [(cfg, 17, v) for v in vmaps]
     runs = [("full", c, P, v) for c, P, v in runs]
     if args.breakdown:
         runs += [(part, c, 17, 1) for part, c in breakdown_configs(cfg)]
-    runs = [(part, dataclasses.replace(c, matmul_dtype=d), P, v) for part, c, P, v in runs
+    runs = [(part, c.override({"dynamics.matmul_dtype": d}), P, v) for part, c, P, v in runs
             for d in dtypes]
     for _, c, _, _ in runs:  # refused by name before any measurement
         c.validate()
     rate = matmul_rate(mm)
     print(f"device {jax.devices()[0].device_kind} ({backend}), jax {jax.__version__}; profile "
-          f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen {cfg.gen_hidden}, "
-          f"disc {cfg.disc_hidden}, batch {cfg.batch_size}, "
-          f"{cfg.updates_per_step} gen x {cfg.disc_updates} critic updates/step, "
-          f"{cfg.sim_envs} sim envs x {cfg.sim_steps} steps, VD {cfg.vd_episodes} episodes x "
-          f"{cfg.vd_horizon} steps every {cfg.vd_every}", flush=True)
+          f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen "
+          f"{cfg.dynamics.hidden}, "
+          f"disc {cfg.adversarial.disc_hidden}, batch {cfg.batch_size}, "
+          f"{cfg.updates_per_step} gen x {cfg.adversarial.disc_updates} critic updates/step, "
+          f"{cfg.adversarial.sim_envs} sim envs x {cfg.adversarial.sim_steps} steps, "
+          f"VD {cfg.vd.episodes} episodes x "
+          f"{cfg.vd.horizon} steps every {cfg.vd.every}", flush=True)
     print(f"measured float32 matmul ({mm}^3, default precision): {rate / 1e12:.1f} TFLOP/s",
           flush=True)
     rows = []
@@ -273,15 +276,16 @@ def main(argv=None) -> int:
     for part, c, P, v in runs:
         r = bench(c, P, steps, v)
         r["fraction_of_matmul"] = r["tflop_s"] * 1e12 / rate
-        r["matmul_dtype"] = c.matmul_dtype
+        r["matmul_dtype"] = c.dynamics.matmul_dtype
         r["variant"] = part
         rows.append(r)
-        print(f"{part:>15} {c.matmul_dtype:>8} {P:>4} {c.vd_horizon:>5} {c.sim_steps:>4} {v:>4} "
+        print(f"{part:>15} {c.dynamics.matmul_dtype:>8} {P:>4} {c.vd.horizon:>5} "
+              f"{c.adversarial.sim_steps:>4} {v:>4} "
               f"{r['step_ms']:>9.2f} {r['gen_updates_per_s']:>10.0f} "
               f"{r['sim_transitions_per_s']:>12.0f} "
               f"{r['gflop_per_step']:>11.2f} {r['tflop_s']:>8.2f} "
               f"{r['fraction_of_matmul']:>9.3f} {r['compile_s']:>7.1f}s", flush=True)
-    race = race_ratios(rows, official, cfg.vd_horizon) if official is not None else None
+    race = race_ratios(rows, official, cfg.vd.horizon) if official is not None else None
     for x in race or []:
         print(f"race P={x['policies']} runs={x['vmapped_runs']} ({x['matmul_dtype']}): official "
               f"{x['official_cycle_s']:.2f} s per cycle, ours {x['ours_cycle_s']:.3f} s: "

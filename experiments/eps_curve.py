@@ -31,6 +31,7 @@ import sys
 
 import numpy as np
 
+from rl2s_jax._files import save_figure
 from rl2s_jax.stats import bootstrap_ci, mean_per_unit
 
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
@@ -235,7 +236,7 @@ def plot(tasks: dict, path: str) -> None:
                     ax.legend(fontsize=7)
     fig.tight_layout()
     os.makedirs(os.path.dirname(path) or ".", exist_ok=True)
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

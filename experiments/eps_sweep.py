@@ -70,7 +70,7 @@ def main(argv=None) -> int:
             one = jax.tree_util.tree_map(lambda x, i=i: x[i], states)
             r = evaluate_simulator(simulator(one), test_ds, test_pols,
                                    key=jax.random.PRNGKey(1000 + s),
-                                   n_episodes=args.eval_episodes, horizon=cfg.vd_horizon,
+                                   n_episodes=args.eval_episodes, horizon=cfg.vd.horizon,
                                    gamma=cfg.gamma)
             rows.append({"step": step, "eps": e, "seed": s, **r["metrics"],
                          "n_selected": int(np.asarray(one.selected).sum())})

@@ -36,6 +36,7 @@ import sys
 
 import numpy as np
 
+from rl2s_jax._files import save_figure
 from rl2s_jax.improve.finetune import deployment_guard, median_gain
 from rl2s_jax.improve.recipes import IMPROVE_RECIPES
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
@@ -179,7 +180,7 @@ def plot(by_scale: dict, chosen: float, task: str, path: str) -> None:
     fig.suptitle(f"{task}: the guard's floor, calibrated on held-out training policies",
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

@@ -11,7 +11,7 @@ For each task: C0 and C1 of every chosen test policy (``--policies`` N spread ov
 returns, 0 = all) over ``--episodes`` fresh real episodes, for ``--seeds`` SAC seeds (one
 vmapped program over seeds x policies; ``improve.improve_in_real_env``); per seed
 MPI = min I and API = mean I, their mean over seeds and 95% bootstrap intervals
-(``improve.improvement_intervals``: policies resampled, returns redrawn from their standard
+(``stats.improvement_intervals``: policies resampled, returns redrawn from their standard
 errors). ``--plain`` also runs plain SAC (``SACConfig()``'s from-scratch defaults: alpha from
 1, target entropy -action_size, no KL anchor) with the same budget, for comparison.
 ``--select-episodes E`` (> 0): early stopping on real validation returns: the actor is kept
@@ -54,12 +54,12 @@ from rl2s_jax.app.training import parse_overrides  # noqa: E402
 from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
 from rl2s_jax.improve.finetune import (
     improve_in_real_env,
-    improvement_intervals,
     improvement_metrics,
     median_gain,
 )
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig  # noqa: E402
+from rl2s_jax.stats import improvement_intervals  # noqa: E402
 from rl2s_jax.zoo.build import fine_tuning_recipe  # noqa: E402
 from rl2s_jax.zoo.zoo import load_zoo  # noqa: E402
 

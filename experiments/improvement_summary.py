@@ -37,6 +37,7 @@ import sys
 
 import numpy as np
 
+from rl2s_jax._files import save_figure
 from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.paper.improvement_phases import pair_floor_verdict
 from rl2s_jax.paper.tables import PAPER
@@ -106,12 +107,11 @@ def plot(rows: list[dict], summary: dict, task: str, path: str) -> None:
         s = summary["methods"][m]
         ax.set_title(f"{m}: median {s['median_gain_raw']:+.2f} raw, {s['deployed']} deployed",
                      fontsize=8)
-        ax.set_yscale("symlog", linthresh=0.1)
-        ax.set_xlabel("start return (zoo)", fontsize=8)
+        ax.set_yscale("symlog", linthresh=0.1), ax.set_xlabel("start return (zoo)", fontsize=8)
     axes[0][0].set_ylabel("real gain I (open: kept by the guard)", fontsize=8)
     fig.suptitle(f"{task}: fine-tuning inside the learned simulators", fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
 
 

@@ -358,7 +358,7 @@ def main(argv=None) -> int:
         phase(f"train_{family}", t0)
         save()
     share = None  # an unused trunk (--families adversarial) need not stay on the device
-    result["true_value_se"] = np.asarray(value_se(test_ds, cfg.vd_horizon, cfg.gamma)).tolist()
+    result["true_value_se"] = np.asarray(value_se(test_ds, cfg.vd.horizon, cfg.gamma)).tolist()
     trust_phase(args, result, finals, datasets, configs, sizes, phase=phase, save=save)
 
     # ---- 3. improvement
@@ -366,7 +366,7 @@ def main(argv=None) -> int:
     oracle_seeds = max(0, args.improve_oracle_seeds)
     if it and (sizes["improve_seeds"] or args.control or oracle_seeds):
         ft = setup_fine_tuning(result, args.task, test_ds, test_pols, sizes,
-                               next(iter(configs.values())).vd_horizon,
+                               next(iter(configs.values())).vd.horizon,
                                {**PROFILES[profile]["sac"], **sac_overrides})
     settings_of = partial(variant_settings, branch_length=args.branch_length,
                           uncertainty_penalty=args.uncertainty_penalty,

@@ -150,7 +150,7 @@ def hybrid_row(found: dict, train, ctx: dict, args) -> dict | None:
                   "delays": [int(d) for d in found["delays"]],
                   "labels": [c.label for c in pm.candidates]}
     config = make_config(train, "bc", args.train_profile,
-                         overrides={"gamma": args.gamma, "vd_horizon": args.horizon})
+                         overrides={"gamma": args.gamma, "vd.horizon": args.horizon})
     sim = hybrid.fit_hybrid(train, ctx["train_p"], calibrated, steps=args.steps, config=config,
                             seed=ctx["seed"])
     return learned_scores(sim, ctx["held"], ctx["task"], ctx["test_p"], ctx["pool"],

@@ -18,6 +18,8 @@ import os
 
 import numpy as np
 
+from rl2s_jax._files import save_figure
+
 
 def load_controls(root: str) -> tuple[dict, dict]:
     """{task: open-loop control JSON}, {task: closed-loop control JSON} found below root."""
@@ -105,7 +107,7 @@ def main(argv=None) -> int:
     ax_closed.legend(fontsize=7)
     fig.tight_layout()
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-    fig.savefig(args.out, dpi=110)
+    save_figure(fig, args.out, dpi=110)
     print(f"wrote {args.out}")
     return 0
 

@@ -42,6 +42,7 @@ import sys
 import numpy as np
 
 from rl2s_jax.stats import bootstrap_ci, mean_per_unit, t_interval
+from rl2s_jax.train.config import saved_field
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")  # rl2s_jax.paper.protocol.METHODS (no JAX here)
 ADVERSARIAL = ("rl2s", "gail")  # the methods the NLL anchor (adv_nll_on) enters
@@ -61,16 +62,16 @@ def _flag(result: dict, flag: str, default: int) -> int | None:
 def _variant(result: dict, method: str = "rl2s") -> str | None:
     """How the run's TrainConfig for ``method`` differs from the bars' (BAR_CONFIG, the
     defaults; eps aside): paper.py's ``--set KEY=VALUE`` overrides, and for the adversarial
-    methods the anchor they ran with (``train_config.adversarial.adv_nll_on``, else the --set,
-    else "selected": runs from before the option); sorted "KEY=VALUE" joined by ',', None
-    when none differs."""
+    methods the anchor they ran with (the saved ``train_config["adversarial"]``'s
+    adversarial.nll_on, else the --set, else "selected": runs from before the option);
+    sorted "KEY=VALUE" joined by ',', None when none differs."""
     sets = dict(m.group(1).split("=", 1) for p in result.get("command", "").split("&&")
                 for m in re.finditer(r"--set[= ](\S+=\S+)", p))
     sets.pop("eps", None)
-    anchor = sets.pop("adv_nll_on", None)
+    anchor = sets.pop("adv_nll_on", None) or sets.pop("adversarial.nll_on", None)
     if method.split("@")[0] in ADVERSARIAL:
         config = (result.get("train_config") or {}).get("adversarial") or {}
-        sets["adv_nll_on"] = config.get("adv_nll_on") or anchor or "selected"
+        sets["adv_nll_on"] = saved_field(config, "adversarial.nll_on") or anchor or "selected"
     return ",".join(sorted(f"{k}={v}" for k, v in sets.items()
                            if BAR_CONFIG.get(k) != v)) or None
 

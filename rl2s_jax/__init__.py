@@ -22,6 +22,7 @@ _gym.install()
 # public name -> the module that defines it
 _PUBLIC = {
     "run_training": "rl2s_jax.app.training",
+    "TrainSpec": "rl2s_jax.app.specs",
     **dict.fromkeys(("Dataset", "load_dataset", "save_dataset"), "rl2s_jax.data.dataset"),
     "register": "rl2s_jax.envs.tasks",
     **dict.fromkeys(("improve_policies", "improvement_metrics", "measure_improvement"),

@@ -3,7 +3,12 @@ fsync'ed, then ``os.replace``d onto the path, so an interrupted or failed write 
 file (or none), never half of one. Standard library only.
 
 ``atomic_open(path, "wb")`` for writers that take a file object (``np.savez_compressed(f,
-...)`` adds no ``.npz`` suffix to a file object), ``write_json`` / ``write_text`` for the rest.
+...)`` adds no ``.npz`` suffix to a file object), ``save_figure`` for Matplotlib figures,
+``write_json`` / ``write_text`` for the rest.
+
+Logs that grow row by row (a run's metrics.jsonl and eval.jsonl) are appended instead, one
+JSON object a line: an interrupted append can only tear the last line, which ``read_jsonl``
+skips, and a resumed run rewrites the log whole (atomically) before it appends again.
 """
 
 from __future__ import annotations
@@ -56,3 +61,28 @@ def write_json(path: str | os.PathLike, obj: Any, indent: int | None = 1) -> Non
     """Write ``obj`` as JSON to ``path`` atomically (serialised first: a value JSON cannot
     hold fails before anything is written)."""
     write_text(path, json.dumps(obj, indent=indent))
+
+
+def save_figure(fig, path: str | os.PathLike, **savefig_kwargs) -> None:
+    """``fig.savefig`` to ``path`` atomically, in the format its suffix names (.png, .pdf,
+    .svg; png without one)."""
+    suffix = os.path.splitext(os.fspath(path))[1].lstrip(".").lower()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format=suffix or "png", **savefig_kwargs)
+
+
+def read_jsonl(path: str | os.PathLike) -> list[dict]:
+    """The rows of a JSON-lines log, blank lines skipped. A last line that does not parse is
+    an append torn by a crash and is skipped; one before it raises ValueError naming the file
+    and the line."""
+    with open(path) as f:
+        lines = [(i, line) for i, line in enumerate(f, 1) if line.strip()]
+    rows = []
+    for j, (i, line) in enumerate(lines):
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            if j == len(lines) - 1:
+                break
+            raise ValueError(f"{os.fspath(path)}: line {i} is not JSON ({err})") from None
+    return rows

@@ -194,7 +194,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--chunk", type=_positive("chunk"), default=10,
                    help="train_steps per compiled scan between host logging")
     p.add_argument("--set", action="append", metavar="KEY=VALUE",
-                   help="override a TrainConfig field, e.g. --set vd_horizon=200")
+                   help="override a TrainConfig field, e.g. --set dynamics.obs_history=2")
     p.add_argument("--eval-data", help="Dataset of test policies: VD and ranking every "
                    "--eval-every steps -> OUT/eval.jsonl")
     p.add_argument("--eval-policies", metavar="FILE", help="the --eval-data policies in its "

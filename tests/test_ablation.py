@@ -144,7 +144,7 @@ def test_hazard_check_reads_each_lanes_learned_hazard(pm_falls):
     for lane in range(2):
         lane_state = jax.tree_util.tree_map(lambda x, i=lane: x[i], states)
         h = np.asarray(hazard_prob(lane_state.hazard, lane_state.norm, jnp.asarray(ds.obs),
-                                   jnp.asarray(ds.action), cfg.hazard_window), np.float64)
+                                   jnp.asarray(ds.action), cfg.outcome.hazard_window), np.float64)
         assert res["predicted"][lane] == pytest.approx(h.sum(), abs=0.1)
         p = np.clip(h, 1e-7, 1 - 1e-7)
         bce = -np.mean(done * np.log(p) + (1 - done) * np.log1p(-p))

@@ -1,4 +1,4 @@
-"""bf16 matmuls (``TrainConfig.matmul_dtype``, issue 40 item 3): the default is the float32
+"""bf16 matmuls (``TrainConfig.dynamics.matmul_dtype``, issue 40 item 3): the default is the float32
 model unchanged; "bfloat16" gives what a NumPy forward pass with its matmul inputs and weights
 rounded to bf16 gives (forward and gradient), is refused under other names, survives a
 checkpoint, and still learns the point mass's linear dynamics.
@@ -21,7 +21,9 @@ from rl2s_jax.model import generator as models
 from rl2s_jax.policy import policy as pol
 from rl2s_jax.train import losses
 from rl2s_jax.train.checkpoint import Checkpointer, load_simulator
-from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.config import FLAT_NAMES, TrainConfig
+
+FLAT = {v: k for k, v in FLAT_NAMES.items()}  # dotted name -> the flat format's
 
 OBS, ACT = 5, 2
 META = {"data": {"obs_size": 2, "action_size": 1}}
@@ -85,8 +87,9 @@ def test_default_is_the_float32_model_unchanged():
     """Default spec and config: no marker in the parameters (the checkpoints' trees are those
     of before), no bf16 anywhere in the program, and member_dist equals, bit for bit, the
     plain float32 MLP ``x @ w + b`` it computed before the option."""
-    assert TrainConfig().matmul_dtype == "float32" == TrainConfig.small().matmul_dtype
-    spec = TrainConfig.small(gen_hidden=(16, 16)).dynamics_spec
+    assert TrainConfig().dynamics.matmul_dtype == "float32"
+    assert TrainConfig.small().dynamics.matmul_dtype == "float32"
+    spec = TrainConfig.small().override({"dynamics.hidden": (16, 16)}).dynamics
     p = dyn.init_member(jax.random.PRNGKey(0), spec, OBS, ACT)
     assert "bf16" not in p
     x = jax.random.normal(jax.random.PRNGKey(1), (32, OBS + ACT))
@@ -119,7 +122,7 @@ def test_bf16_member_matches_numpy_with_rounded_inputs_and_weights(activation):
     relative amount (< 1e-2)."""
     cfg = TrainConfig.small(gen_hidden=(32, 32), gen_activation=activation,
                             gen_log_std_bounds="learned", matmul_dtype="bfloat16")
-    spec = cfg.dynamics_spec
+    spec = cfg.dynamics
     assert spec.matmul_dtype == "bfloat16"
     ens = dyn.init_ensemble(jax.random.PRNGKey(0), spec, OBS, ACT, 3)
     assert set(ens) == {"layers", "bf16", "max_log_std", "min_log_std",
@@ -259,11 +262,12 @@ def test_a_bad_matmul_dtype_is_refused_by_name(value):
 def test_the_field_round_trips_and_old_configs_are_float32():
     cfg = TrainConfig.small(matmul_dtype="bfloat16")
     d = json.loads(json.dumps(cfg.to_dict()))
-    assert d["matmul_dtype"] == "bfloat16"
+    assert d["dynamics"]["matmul_dtype"] == "bfloat16"
     assert TrainConfig.from_saved(d) == cfg == TrainConfig.from_dict(d)
-    del d["matmul_dtype"]  # a config saved before the field
-    assert TrainConfig.from_saved(d).matmul_dtype == "float32"
-    assert TrainConfig.from_saved(d) == TrainConfig.small()
+    flat = {FLAT.get(k, k): v for k, v in cfg.to_dotted().items()}  # the flat format of before
+    del flat["matmul_dtype"]  # a config saved before the field
+    assert TrainConfig.from_saved(flat).dynamics.matmul_dtype == "float32"
+    assert TrainConfig.from_saved(flat) == TrainConfig.small()
 
 
 # ------------------------------------------------------------------ training and checkpoints
@@ -369,6 +373,8 @@ def test_checkpoints_keep_the_dtype(tmp_path):
         if dtype == "float32":  # as saved before the field existed
             path = tmp_path / dtype / str(step) / "meta" / "metadata"
             meta = json.loads(path.read_text())
+            meta["config"] = {FLAT.get(k, k): v for k, v in  # the flat format of before
+                              TrainConfig.from_dict(meta["config"]).to_dotted().items()}
             del meta["config"]["matmul_dtype"]
             path.write_text(json.dumps(meta))
         loaded = load_simulator(tmp_path / dtype)

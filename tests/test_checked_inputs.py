@@ -43,7 +43,8 @@ def test_no_task_learns_reward_and_termination_from_the_data(misspelt):
     from rl2s_jax.envs.tasks import data_task
 
     cfg = make_config(load_dataset(misspelt), "bc", "cpu", no_task=True)
-    assert (cfg.task, cfg.reward, cfg.termination) == ("pointmas", "learned", "hazard")
+    assert (cfg.task, cfg.outcome.reward, cfg.outcome.termination) == ("pointmas", "learned",
+                                                                        "hazard")
     assert data_task(None) is None and data_task("pointmass") == "pointmass"
     with pytest.raises(ValueError, match="^data: meta.task 'zzz' is not a registered task; "):
         data_task("zzz")  # nothing near: no did-you-mean

@@ -25,7 +25,7 @@ from rl2s_jax.train.checkpoint import (
     load_meta,
     load_simulator,
 )
-from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.config import FLAT_NAMES, TrainConfig
 from rl2s_jax.train.data import make_train_data
 from rl2s_jax.train.loop import TrainingDiverged, fit
 from rl2s_jax.train.step import init, simulator
@@ -160,11 +160,10 @@ def test_checkpoint_loads_in_fresh_process(pm, tmp_path):
 
 
 def test_a_silu_simulator_loads_as_silu(pm, tmp_path):
-    """gen_activation="silu" survives save and load: the loaded simulator's means are the
+    """dynamics.activation "silu" survives save and load: the loaded simulator's means are the
     trained one's (a load that fell back to ReLU would differ)."""
-    import dataclasses
     _, _, data = pm
-    cfg = dataclasses.replace(CFG, gen_activation="silu", vd_every=0, method="bc")
+    cfg = CFG.override({"dynamics.activation": "silu", "vd.every": 0, "method": "bc"})
     state, _ = fit(init(jax.random.PRNGKey(1), cfg, data), data, 2, chunk=2, progress=False)
     ck = Checkpointer(tmp_path / "ck")
     ck.save(state, META)
@@ -178,17 +177,25 @@ def test_a_silu_simulator_loads_as_silu(pm, tmp_path):
     assert np.abs(np.asarray(relu.mean(obs, act) - loaded.mean(obs, act))).max() > 1e-4
 
 
+
+def flat_config(cfg: TrainConfig) -> dict:
+    """``cfg`` in the flat saved format of before the groups (no "version")."""
+    flat = {v: k for k, v in FLAT_NAMES.items()}
+    return {flat.get(k, k): list(v) if isinstance(v, tuple) else v
+            for k, v in cfg.to_dotted().items()}
+
 def test_a_checkpoint_saved_before_gen_activation_loads_as_relu(pm, tmp_path):
     """A saved config without gen_activation (checkpoints from before the field) is a ReLU
     run: it loads and gives the saved means, although today's default is SiLU."""
     _, _, data = pm
-    assert CFG.gen_activation == "relu" and TrainConfig().gen_activation == "silu"
+    assert CFG.dynamics.activation == "relu" and TrainConfig().dynamics.activation == "silu"
     state = init(jax.random.PRNGKey(1), CFG, data)
     ck = Checkpointer(tmp_path / "ck")
     step = ck.save(state, META)
     ck.close()
     path = tmp_path / "ck" / str(step) / "meta" / "metadata"
     meta = json.loads(path.read_text())
+    meta["config"] = flat_config(CFG)  # the flat format of before, without the field
     del meta["config"]["gen_activation"]
     path.write_text(json.dumps(meta))
     loaded = load_simulator(tmp_path / "ck")

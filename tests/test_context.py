@@ -1,7 +1,6 @@
-"""The per-episode context of the simulator users train (TrainConfig.context_dim;
+"""The per-episode context of the simulator users train (TrainConfig.dynamics.context_dim;
 rl2s_jax.model.history.history_context): inferred online from the episode's recent
 transitions, in training rows and in rollouts alike."""
-import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -24,9 +23,10 @@ from rl2s_jax.train.data import make_train_data
 from rl2s_jax.train.step import init, simulator, train_steps
 
 TASK = get_task("pointmass")
-HISTORY = TrainConfig.small(task="pointmass", method="bc", vd_horizon=50, vd_every=5,
-                            obs_history=2, action_history=2)
-CONTEXT = dataclasses.replace(HISTORY, context_dim=2)
+HISTORY = TrainConfig.small().override({
+    "task": "pointmass", "method": "bc", "vd.horizon": 50, "vd.every": 5,
+    "dynamics.obs_history": 2, "dynamics.action_history": 2})
+CONTEXT = HISTORY.override({"dynamics.context_dim": 2})
 
 
 class EpisodeGain(PointMass):

@@ -218,25 +218,27 @@ def test_train_set_builds_what_the_trained_simulator_lacks():
         change("stochastic_noise", noise="state", nll_beta=0.5),
         change("hidden_episode_parameter", context_dim=2),
         change("time_drift", time_inputs=["order", "step"])])
-    assert items == ["action_history=4", "context_dim=2", "obs_history=4",
-                     'time_inputs=["order", "step"]'], items
-    assert already == ['gen_noise="state"', "nll_beta=1.0"], already
+    assert items == ["dynamics.action_history=4", "dynamics.context_dim=2",
+                     "dynamics.obs_history=4", 'dynamics.time_inputs=["order", "step"]'], items
+    assert already == ['dynamics.noise="state"', "nll_beta=1.0"], already
     assert skipped == []
-    cfg = TrainConfig.from_dict({**TrainConfig().to_dict(), **parse_overrides(items)})
-    assert (cfg.validate().action_history, cfg.context_dim, cfg.time_inputs) == (
-        4, 2, ("order", "step"))
+    cfg = TrainConfig().override(parse_overrides(items), what="set").validate()
+    d = cfg.dynamics
+    assert (d.action_history, d.context_dim, d.time_inputs) == (4, 2, ("order", "step"))
     items, skipped, _ = train_set([change("time_drift", time_inputs=["order"])])
-    assert (items, skipped) == (['time_inputs=["order"]'], []), items
+    assert (items, skipped) == (['dynamics.time_inputs=["order"]'], []), items
     _, _, already = train_set([change("time_drift", time_inputs=["order"])],
-                              TrainConfig(time_inputs=("step", "order")))
-    assert already == ['time_inputs=["order", "step"]'], already
-    legacy = TrainConfig(nll_beta=0.0, gen_noise="global", action_history=3)
+                              TrainConfig().override({"dynamics.time_inputs": ("step", "order")}))
+    assert already == ['dynamics.time_inputs=["order", "step"]'], already
+    legacy = TrainConfig().override({"nll_beta": 0.0, "dynamics.noise": "global",
+                                     "dynamics.action_history": 3})
     items, _, _ = train_set([change("stochastic_noise", noise="state", nll_beta=0.5),
                              change("actuation_delay", action_history=2)], legacy)
-    assert items == ['gen_noise="state"', "nll_beta=0.5"], items  # history 3 already >= 2
-    report = {"extension": {"train_set": ["action_history=2"], "method": "bc"}}
+    assert items == ['dynamics.noise="state"', "nll_beta=0.5"], items  # history 3 >= 2
+    report = {"extension": {"train_set": ["dynamics.action_history=2"], "method": "bc"}}
     assert train_command(report, "d.npz", "out", steps=7) == (
-        "rl2s train --data d.npz --method bc --steps 7 --out out --set action_history=2")
+        "rl2s train --data d.npz --method bc --steps 7 --out out --set "
+        "dynamics.action_history=2")
     assert train_command({"extension": {"train_set": []}}, "d.npz", "out") is None
 
 
@@ -384,4 +386,5 @@ def test_printed_train_command_runs_as_printed(pm_files, tmp_path):
     assert argv[0] == "rl2s", command
     assert main(argv[1:]) == 0
     cfg = load_meta(os.path.join(out, "checkpoints"))["config"]
-    assert (cfg["action_history"], list(cfg["time_inputs"])) == (2, ["step"]), cfg
+    assert (cfg["dynamics"]["action_history"], list(cfg["dynamics"]["time_inputs"])) == (
+        2, ["step"]), cfg

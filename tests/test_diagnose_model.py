@@ -127,8 +127,8 @@ def test_spec_is_fitted_as_the_simulator_users_train():
     inputs as the TrainConfig fields that `rl2s train --set` takes."""
     spec = M.ModelSpec(**{**TINY, "action_history": 2, "noise": "state", "nll_beta": 0.5})
     cfg = spec.train_config(LENGTH, (4,))
-    assert (cfg.method, cfg.ensemble_size, cfg.vd_every, cfg.holdout_frac) == ("bc", 1, 0, 0.0)
-    assert (cfg.action_history, cfg.gen_noise, cfg.nll_beta, cfg.gen_hidden) == (
+    assert (cfg.method, cfg.ensemble_size, cfg.vd.every, cfg.holdout_frac) == ("bc", 1, 0, 0.0)
+    assert (cfg.dynamics.action_history, cfg.dynamics.noise, cfg.nll_beta, cfg.dynamics.hidden) == (
         2, "state", 0.5, (64, 64))
     assert (cfg.episode_length, cfg.ignore_dims, cfg.bc_lr) == (LENGTH, (4,), 3e-3)
 

@@ -132,8 +132,8 @@ def test_silu_member_matches_numpy_and_its_parameters_name_the_activation():
     assert set(dyn.init_member_numpy(0, spec, o, a)) == {"layers", "silu"}
     with pytest.raises(ValueError, match="activation"):
         dyn.DynamicsSpec(activation="tanh").validate()
-    with pytest.raises(ValueError, match="gen_activation"):
-        T.TrainConfig(gen_activation="gelu").validate()
+    with pytest.raises(ValueError, match="dynamics.activation"):
+        T.TrainConfig().override({"gen_activation": "gelu"}).validate()
 
 
 def test_rank_members_matches_numpy():
@@ -283,7 +283,7 @@ def test_one_member_training_reproduces_the_single_generator(pm):
 
     key = jax.random.PRNGKey(3)
     k_gen, *_, key = jax.random.split(key, 7)
-    gen = models.init_generator(k_gen, 2, 1, cfg.gen_hidden)
+    gen = models.init_generator(k_gen, 2, 1, cfg.dynamics.hidden)
     tx = optax.chain(optax.clip(cfg.grad_clip), optax.adam(cfg.bc_lr))
     opt = tx.init(gen)
     everyone = jnp.ones((len(BIASES),), bool)
@@ -534,7 +534,7 @@ def test_multistep_error_matches_numpy(pm):
     cfg = T.TrainConfig.small(task="pointmass", method="bc", multistep_steps=4)
     data = T.make_train_data(ds, policies, cfg)
     norm = data.norm
-    member = dyn.init_member(jax.random.PRNGKey(7), cfg.dynamics_spec, 2, 1)
+    member = dyn.init_member(jax.random.PRNGKey(7), cfg.dynamics, 2, 1)
     obs, act, nxt, valid = T.data._real_windows(jax.random.PRNGKey(2), data,
                                            jnp.ones(data.n_policies, bool), 64, 4)
     assert (~np.asarray(valid)).any() and np.asarray(valid)[:, 0].all()
@@ -615,7 +615,7 @@ def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm, anchor_
     key = jax.random.PRNGKey(9)
     w = 2.5
     _, m0 = T.step._adversarial_updates(state, data, key)
-    anchored = state.replace(config=dataclasses.replace(cfg, adv_nll_weight=w))
+    anchored = state.replace(config=cfg.override({"adversarial.nll_weight": w}))
     _, mw = T.step._adversarial_updates(anchored, data, key)
     k_real = jax.random.split(jax.random.split(key, 1)[0], 4)[1]
     draws = {"selected": [(k_real, state.selected)],
@@ -639,12 +639,12 @@ def test_adversarial_nll_anchor_adds_weight_times_the_real_batch_nll(pm, anchor_
     nll0 = float(np.mean(np.asarray(T.step._heldout_nll(start.gen, start.norm, data))))
     after = {}
     for weight in (0.0, 10.0):
-        adv_cfg = dataclasses.replace(cfg, updates_per_step=20, adv_nll_weight=weight)
+        adv_cfg = cfg.override({"updates_per_step": 20, "adversarial.nll_weight": weight})
         st = T.init(jax.random.PRNGKey(4), adv_cfg, data).replace(gen=start.gen)
         st = T.train_steps(st, data, 10)[0]
         after[weight] = float(np.mean(np.asarray(T.step._heldout_nll(st.gen, st.norm, data))))
     assert after[10.0] - nll0 < 0.5 * (after[0.0] - nll0), (nll0, after)
-    with pytest.raises(ValueError, match="adv_nll_weight"):
+    with pytest.raises(ValueError, match="adversarial.nll_weight"):
         T.TrainConfig.small(task="pointmass", adv_nll_weight=-1.0).validate()
 
 

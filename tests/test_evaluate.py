@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from rl2s_jax.evaluate.metrics import (
-    bootstrap_intervals,
     kendall_tau,
     ndcg_at_k,
     ranking_metrics,
@@ -16,6 +15,7 @@ from rl2s_jax.evaluate.metrics import (
     spearman,
     value_differences,
 )
+from rl2s_jax.stats import bootstrap_intervals
 
 L3 = math.log2(3)  # discount of rank 2 is 1 / log2(3); rank 1 is 1 / log2(2) = 1, rank 3 is 1/2
 
@@ -346,7 +346,7 @@ def test_bootstrap_without_noise_is_the_point_estimate():
     # is the point estimate, so every interval collapses onto it.
     true = np.array([1.0, 2.0, 3.0, 4.0, 5.0])
     sim = np.array([1.5, 1.0, 3.5, 3.0, 6.0])
-    out = bootstrap_intervals(true, np.repeat(sim[:, None], 6, 1), n_boot=50)
+    out = bootstrap_intervals(true, np.repeat(sim[:, None], 6, 1), ranking_metrics, n_boot=50)
     point = ranking_metrics(true, sim)
     for k, v in point.items():
         assert out["metrics"][k]["lo"] == pytest.approx(v)
@@ -361,12 +361,13 @@ def test_bootstrap_eval_noise_shrinks_with_episodes_and_truth_noise_adds():
     stds = {}
     for n in (4, 64):
         returns = true[:, None] + rng.normal(0.0, 3.0, size=(12, n))
-        out = bootstrap_intervals(true, returns, n_boot=300, seed=1)
+        out = bootstrap_intervals(true, returns, ranking_metrics, n_boot=300, seed=1)
         stds[n] = out["sim_only"]["kendall_tau"]["std"]
         tau = out["metrics"]["kendall_tau"]
         assert tau["lo"] <= ranking_metrics(true, returns.mean(1))["kendall_tau"] <= tau["hi"]
     assert stds[64] < 0.7 * stds[4]  # 16x the episodes: the ranking noise falls
-    noisy = bootstrap_intervals(true, returns, true_se=np.full(12, 2.0), n_boot=300, seed=1)
+    noisy = bootstrap_intervals(true, returns, ranking_metrics, true_se=np.full(12, 2.0),
+                                n_boot=300, seed=1)
     assert noisy["metrics"]["kendall_tau"]["std"] > noisy["sim_only"]["kendall_tau"]["std"]
 
 
@@ -378,7 +379,7 @@ def test_bootstrap_eval_noise_shrinks_with_episodes_and_truth_noise_adds():
     (dict(level=1.0), "level"),
 ])
 def test_bootstrap_bad_input(kwargs, field):
-    args = dict(true_values=np.arange(5.0), sim_returns=np.ones((5, 4)))
+    args = dict(true_values=np.arange(5.0), sim_returns=np.ones((5, 4)), score=ranking_metrics)
     args.update(kwargs)
     with pytest.raises(ValueError, match=field):
         bootstrap_intervals(**args)

@@ -12,6 +12,7 @@ import pytest
 
 from rl2s_jax import cli
 from rl2s_jax.app import evaluation as ev
+from rl2s_jax.train.config import TrainConfig
 
 QUICK = ["--episodes", "2", "--horizon", "10", "--bootstrap", "0"]
 # The top-level keys of one checkpoint's report (its JSON before several --ckpt existed).
@@ -43,15 +44,15 @@ def _checkpoint(train_path: str, path, seed: int) -> str:
     return str(path)
 
 
-def _with_config(src: str, dst, **changes) -> str:
-    """A copy of checkpoint ``src`` whose saved config has ``changes`` (only its JSON meta is
-    edited: enough for the refusals, which read nothing else)."""
+def _with_config(src: str, dst, changes: dict) -> str:
+    """A copy of checkpoint ``src`` whose saved config has ``changes`` (``TrainConfig.override``'s
+    names; only its JSON meta is edited: enough for the refusals, which read nothing else)."""
     shutil.copytree(src, dst)
     (meta,) = [os.path.join(r, "metadata") for r, _, fs in os.walk(dst)
                if os.path.basename(r) == "meta" and "metadata" in fs]
     with open(meta) as f:
         m = json.load(f)
-    m["config"].update(changes)
+    m["config"] = TrainConfig.from_saved(m["config"]).override(changes).to_dict()
     with open(meta, "w") as f:
         json.dump(m, f)
     return str(dst)
@@ -151,8 +152,8 @@ def test_refused_before_any_work(seeds, monkeypatch, tmp_path, capsys):
         raise AssertionError("evaluated before refusing")
     monkeypatch.setattr(ev, "evaluate_checkpoint", no_work)
     c0, c1 = seeds["ckpts"][:2]
-    hopper = _with_config(c1, tmp_path / "hopper", task="hopper")
-    longer = _with_config(c1, tmp_path / "longer", vd_horizon=30, vd_episodes=6)
+    hopper = _with_config(c1, tmp_path / "hopper", {"task": "hopper"})
+    longer = _with_config(c1, tmp_path / "longer", {"vd.horizon": 30, "vd.episodes": 6})
 
     def refused(*extra):
         argv = ["evaluate", "--data", seeds["data"], "--bootstrap", "0", *extra]
@@ -169,5 +170,5 @@ def test_refused_before_any_work(seeds, monkeypatch, tmp_path, capsys):
     assert "ckpt:" in err and "--oracle" in err
     err = refused("--ckpt", c0, "--ckpt", longer)
     assert "horizon:" in err and "pass --horizon" in err
-    # episodes are the one setting's, not each checkpoint's vd_episodes: a horizon agrees them
+    # episodes are the one setting's, not each checkpoint's vd.episodes: a horizon agrees them
     assert len(ev.check_checkpoints([c0, longer], seeds["data"], None, 10)) == 2

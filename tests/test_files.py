@@ -42,7 +42,7 @@ def test_atomic_write_replaces_whole_or_not_at_all(tmp_path):
 
 def _raw_writes(tree: ast.AST) -> list[int]:
     """Lines of writes that bypass rl2s_jax/_files.py: open(..., "w"/"wb"), json.dump(...),
-    np.savez*(PATH, ...) with a path rather than a file object."""
+    np.savez*(PATH, ...) with a path rather than a file object, Matplotlib's savefig."""
     lines = []
     for node in ast.walk(tree):
         if not isinstance(node, ast.Call):
@@ -56,6 +56,8 @@ def _raw_writes(tree: ast.AST) -> list[int]:
             lines.append(node.lineno)
         elif name.startswith("savez") and node.args and not isinstance(node.args[0], ast.Name):
             lines.append(node.lineno)
+        elif name == "savefig":  # a figure goes through _files.save_figure
+            lines.append(node.lineno)
     return lines
 
 
@@ -66,7 +68,60 @@ def test_app_and_data_layers_write_atomically():
            if p.name != "_files.py" and (lines := _raw_writes(ast.parse(p.read_text())))}
     assert not raw, f"writes that are not atomic: {raw}"
     assert sorted(_raw_writes(ast.parse("import json\njson.dump(x, open('p', 'w'))\n"
-                                        "np.savez(os.path.join(d, 'z.npz'), a=1)"))) == [2, 2, 3]
+                                        "np.savez(os.path.join(d, 'z.npz'), a=1)\n"
+                                        "fig.savefig('f.png', dpi=9)"))) == [2, 2, 3, 4]
+    experiments = PKG.parent / "experiments"
+    figures = {p.name: [n for n in _raw_writes(ast.parse(p.read_text()))
+                        if "savefig" in p.read_text().splitlines()[n - 1]]
+               for p in sorted(experiments.glob("*.py"))}
+    assert not {k: v for k, v in figures.items() if v}, f"figures not atomic: {figures}"
+
+
+def test_save_figure_is_atomic(tmp_path):
+    """save_figure writes the format the suffix names, whole; a figure that fails half-way
+    through leaves the earlier file as it was and no temporary file."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots()
+    ax.plot([0, 1], [1, 0])
+    path = tmp_path / "f.png"
+    _files.save_figure(fig, path, dpi=20)
+    png = path.read_bytes()
+    assert png.startswith(b"\x89PNG")
+    _files.save_figure(fig, tmp_path / "f.svg")
+    assert b"<svg" in (tmp_path / "f.svg").read_bytes()[:500]
+
+    def torn(f, **kwargs):  # a render that dies half-way through its bytes
+        f.write(b"\x89PNG half")
+        raise RuntimeError("render failed")
+
+    fig.savefig = torn
+    with pytest.raises(RuntimeError):
+        _files.save_figure(fig, path, dpi=20)
+    assert path.read_bytes() == png and sorted(os.listdir(tmp_path)) == ["f.png", "f.svg"]
+    plt.close(fig)
+
+
+def test_jsonl_reader_skips_a_torn_last_line(tmp_path):
+    """An append torn by a crash leaves a partial last line: read_jsonl skips it, the report's
+    curve loader and a resumed run's log truncation too (which rewrites the log whole); a bad
+    line before the last is an error naming the line."""
+    from rl2s_jax.app.report import load_curve
+    from rl2s_jax.app.training import _truncate_metrics
+
+    path = tmp_path / "metrics.jsonl"
+    path.write_text('{"step": 1, "a": 0.5}\n\n{"step": 2, "a": NaN}\n{"step": 3, "a"')
+    rows = _files.read_jsonl(path)
+    assert rows[0] == {"step": 1, "a": 0.5} and rows[1]["step"] == 2 and len(rows) == 2
+    assert [r["step"] for r in load_curve(str(path))] == [1, 2]
+    _truncate_metrics(str(path), 5)
+    assert path.read_text() == '{"step": 1, "a": 0.5}\n{"step": 2, "a": NaN}\n'
+    path.write_text('{"step": 1}\n{"step": 2\n{"step": 3}\n')
+    with pytest.raises(ValueError, match="line 2"):
+        _files.read_jsonl(path)
 
 
 # --------------------------------------------------------------------------- --force
@@ -204,20 +259,20 @@ SMALL = {"vd_horizon": 50, "vd_episodes": 2, "updates_per_step": 2, "gen_hidden"
 def test_rerun_into_a_finished_run_keeps_its_results(pm_files, tmp_path):
     """Rerunning `rl2s train` without --eval-data (the same or more steps) keeps the test
     evaluation and the warnings the earlier summary held, and says it kept them."""
+    from rl2s_jax.app.specs import TrainSpec
     from rl2s_jax.app.training import run_training
-    from rl2s_jax.evaluate.setting import EvalSetting
 
     run = tmp_path / "run"
-    first = run_training(pm_files["train"], "bc", 2, str(run), profile="cpu", overrides=SMALL,
-                         progress=False, log=lambda _: None, eval_data=pm_files["test"],
-                         eval_every=2, setting=EvalSetting(episodes=2))
+    first = run_training(TrainSpec(pm_files["train"], 2, str(run), "bc", profile="cpu",
+                                   set=SMALL, quiet=True, eval_data=pm_files["test"],
+                                   eval_every=2, eval_episodes=2), log=lambda _: None)
     saved = json.loads((run / "summary.json").read_text())
     jump = "[train] warning: the worst training-policy VD rose from 1 to 9 at step 2 (9.0x)"
     later = "[train] warning: ... at step 3 (9.0x)"  # after the step resumed from: dropped
     saved["worst_vd_jumps"] = [jump, later]
     (run / "summary.json").write_text(json.dumps(saved))
-    again = run_training(pm_files["train"], "bc", 2, str(run), profile="cpu",
-                         overrides=SMALL, progress=False, log=lambda _: None)
+    again = run_training(TrainSpec(pm_files["train"], 2, str(run), "bc", profile="cpu",
+                                   set=SMALL, quiet=True), log=lambda _: None)
     on_disk = json.loads((run / "summary.json").read_text())
     assert on_disk == json.loads(json.dumps(again))
     for k in ("avd_test", "mvd_test", "kendall_tau_test", "step_test", "eval_data"):

@@ -293,7 +293,6 @@ def test_incompatible_trunk_is_refused(pm_files, capsys):
     """A shared trunk that differs from the likelihood family (another config field, other
     seeds, evaluation sizes or data, training that ended before the fork) is refused with the
     reason; the family then trains its bc lanes from step 0 and records no join."""
-    import dataclasses
 
     from rl2s_jax.paper.fork import join_refusal
     from rl2s_jax.paper.protocol import train_family
@@ -302,8 +301,8 @@ def test_incompatible_trunk_is_refused(pm_files, capsys):
     cfg = _cfg(vd_horizon=10, method="rl2s-bc")
     lanes = [(m, s) for m in ("rl2s-bc", "bc") for s in (0, 1)]
     ins = tuple(inputs[k] for k in ("train_ds", "test_ds", "train_pols", "test_pols"))
-    ok = {"family": "adversarial", "method": "rl2s", "config": dataclasses.replace(
-        cfg, method="rl2s"), "seeds": [0, 1], "at_step": PRE,
+    ok = {"family": "adversarial", "method": "rl2s", "config": cfg.override(
+        {"method": "rl2s"}), "seeds": [0, 1], "at_step": PRE,
         "sizes": {"eval_every": 2, "eval_episodes": 2}, "inputs": ins, "points": {},
         "fields": {}, "finite_before": None}
     eps = [0.25, 0.25, 1.0, 1.0]
@@ -316,8 +315,8 @@ def test_incompatible_trunk_is_refused(pm_files, capsys):
 
     assert why(ok) is None
     assert "no adversarial trunk" in why(None)
-    assert "differs in vd_episodes" in why({**ok, "config": dataclasses.replace(
-        ok["config"], vd_episodes=3)})
+    assert "differs in vd.episodes" in why({**ok, "config": ok["config"].override(
+        {"vd.episodes": 3})})
     assert "seeds" in why({**ok, "seeds": [0, 2]})
     assert "ended before step" in why({**ok, "fields": None})
     assert "evaluated with" in why({**ok, "sizes": {"eval_every": 1, "eval_episodes": 2}})
@@ -326,7 +325,7 @@ def test_incompatible_trunk_is_refused(pm_files, capsys):
     assert "no other lanes" in why(ok, lanes=lanes[2:], joining=[0, 1], eps=eps[2:])
     assert "fewer than" in why(ok, sizes={**inputs["sizes"], "steps": 2})
     # refused in train_family: bc trains from step 0 beside rl2s-bc, no join recorded
-    share = {"trunk": {**ok, "config": dataclasses.replace(ok["config"], vd_episodes=3)}}
+    share = {"trunk": {**ok, "config": ok["config"].override({"vd.episodes": 3})}}
     result = fresh(("rl2s-bc", "bc"))
     _, states = train_family(result, "mle", cfg, ("rl2s-bc", "bc"), share=share,
                              **{**inputs, "sizes": {**inputs["sizes"], "steps": 2}})

@@ -1,5 +1,6 @@
 """History inputs in the simulator that users train, save, evaluate and fine-tune in
-(rl2s_jax.model.history; TrainConfig.action_history / obs_history / time_inputs)."""
+(rl2s_jax.model.history; TrainConfig.dynamics.action_history / obs_history / time_inputs)."""
+
 import dataclasses
 
 import jax
@@ -25,9 +26,10 @@ from rl2s_jax.train.data import heldout_mask, make_train_data
 from rl2s_jax.train.step import init, simulator, train_steps
 
 TASK = get_task("pointmass")
-MARKOV = TrainConfig.small(task="pointmass", method="bc", vd_horizon=50, vd_every=5)
-DELAYED = dataclasses.replace(MARKOV, action_history=1, time_inputs=("step",))
-ORDERED = dataclasses.replace(MARKOV, time_inputs=("order",))
+MARKOV = TrainConfig.small().override({"task": "pointmass", "method": "bc", "vd.horizon": 50,
+                                       "vd.every": 5})
+DELAYED = MARKOV.override({"dynamics.action_history": 1, "dynamics.time_inputs": ("step",)})
+ORDERED = MARKOV.override({"dynamics.time_inputs": ("order",)})
 DRIFT_GAINS = (0.5, 2.0)  # the actuator gain of the first and the second half of the recording
 _init = jax.jit(init, static_argnums=1)
 _steps = jax.jit(train_steps, static_argnums=2)
@@ -115,8 +117,8 @@ def test_logged_history_matches_diagnosis_and_numpy(delayed):
             want = np.asarray(ds.action)[src] if ok else 0.0
             np.testing.assert_array_equal(np.asarray(h.past_act[i, j]), want)
     np.testing.assert_array_equal(np.asarray(h.t), t[rows])
-    data = make_train_data(ds, policies, dataclasses.replace(DELAYED, action_history=3,
-                                                            holdout_frac=0.0))
+    data = make_train_data(ds, policies, DELAYED.override({"dynamics.action_history": 3,
+                                                           "holdout_frac": 0.0}))
     # with no held-out episodes the training rows are the Dataset's, grouped by policy
     order = np.argsort(pid, kind="stable")
     idx = np.asarray([0, 5, 333, 1999])
@@ -308,13 +310,14 @@ def test_adversarial_step_trains_a_history_simulator(delayed, tmp_path):
     past; a few steps stay finite and the buffer's past is a pushed one (gail, no VD: the
     CVaR measurement's rollouts carry the past as rl2s's do, tested above)."""
     ds, _, policies = delayed
-    cfg = dataclasses.replace(DELAYED, method="gail", vd_every=0, updates_per_step=1,
-                              disc_updates=1, sim_envs=8, sim_steps=2, buffer_size=256,
-                              time_inputs=("step", "order"))
+    cfg = DELAYED.override({
+        "method": "gail", "vd.every": 0, "updates_per_step": 1, "adversarial": {
+            "disc_updates": 1, "sim_envs": 8, "sim_steps": 2, "buffer_size": 256},
+        "dynamics.time_inputs": ("step", "order")})
     data = make_train_data(ds, policies, cfg)
     state, m = _steps(_init(jax.random.PRNGKey(0), cfg, data), data, 4)
     assert bool(np.all(np.asarray(m["finite"])))
-    assert state.buffer_hist.past_act.shape == (cfg.buffer_size, 1, 1)
+    assert state.buffer_hist.past_act.shape == (cfg.adversarial.buffer_size, 1, 1)
     assert int(state.sim.hist.t.max()) >= 1
     # the recording order rides along: the buffer's and the simulated envs' (restarted from
     # real rows, with their logged past) are logged episodes' places in [0, 1]
@@ -335,10 +338,13 @@ def test_adversarial_step_trains_a_history_simulator(delayed, tmp_path):
 
 def test_bad_history_settings_are_refused_by_name():
     for ok in (("order",), ("step",), ("order", "step"), ("step", "order")):
-        assert TrainConfig.small(time_inputs=ok).validate().time_inputs == ok
-    for bad in (("hour",), ("order", "order"), ["order"]):
-        with pytest.raises(ValueError, match="time_inputs"):
+        assert TrainConfig.small(time_inputs=ok).validate().dynamics.time_inputs == ok
+    for bad in (("hour",), ("order", "order")):
+        with pytest.raises(ValueError, match="dynamics.time_inputs"):
             TrainConfig.small(time_inputs=bad).validate()
+    as_list = dataclasses.replace(MARKOV.dynamics, time_inputs=["order"])  # not via override,
+    with pytest.raises(ValueError, match="dynamics.time_inputs"):  # which makes lists tuples
+        dataclasses.replace(MARKOV, dynamics=as_list).validate()
     with pytest.raises(ValueError, match="action_history"):
         TrainConfig.small(action_history=-1).validate()
     with pytest.raises(ValueError, match="termination"):

@@ -65,6 +65,7 @@ def test_bad_physics_is_refused_at_the_door(files, tmp_path, capsys):
     """Missing calibrated.json, another task's, an adversarial method, a learned reward, test
     evaluation during training: each one line naming the field, before any training work."""
     from rl2s_jax import cli
+    from rl2s_jax.app.specs import TrainSpec
     from rl2s_jax.app.training import run_training, train_hybrid
 
     out = str(tmp_path / "run")
@@ -83,8 +84,8 @@ def test_bad_physics_is_refused_at_the_door(files, tmp_path, capsys):
         train_hybrid(files["train"], str(other), 1, out)
     for method in ("rl2s", "gail", "rl2s-bc"):
         with pytest.raises(ValueError, match=f"method: a hybrid .* '{method}' rolls"):
-            run_training(files["train"], method, 1, out,
-                         overrides={"physics": files["calibrated"]})
+            run_training(TrainSpec(data=files["train"], method=method, steps=1, out=out,
+                                   set={"physics": files["calibrated"]}))
     with pytest.raises(ValueError, match="reward: a hybrid takes the task's reward_fn"):
         train_hybrid(files["train"], files["calibrated"], 1, out,
                      overrides={"reward": "learned"})
@@ -105,9 +106,9 @@ def test_hybrid_config_carries_the_delays_and_turns_vd_off(files, tmp_path):
     content = json.load(open(files["calibrated"]))
     delayed.write_text(json.dumps({**content, "delays": [0, 2, 0]}))
     cfg = make_config(ds, "bc", "cpu", overrides={"physics": str(delayed)})
-    assert (cfg.action_history, cfg.vd_every, cfg.physics) == (2, 0, str(delayed))
+    assert (cfg.dynamics.action_history, cfg.vd.every, cfg.physics) == (2, 0, str(delayed))
     cfg = make_config(ds, "bc", "cpu", overrides={"physics": str(delayed), "action_history": 3})
-    assert cfg.action_history == 3
+    assert cfg.dynamics.action_history == 3
     assert make_config(ds, "bc", "cpu").physics is None
     delayed.write_text(json.dumps({**content, "delays": [0, 2]}))
     with pytest.raises(ValueError, match=r"physics: .* has delays \[0, 2\]; the data has 3"):
@@ -121,7 +122,7 @@ def hybrid(files):
     from rl2s_jax.physics.hybrid import load_hybrid
 
     summary = train_hybrid(files["train"], files["calibrated"], 40, files["out"],
-                           profile="cpu", progress=False, log=lambda *_: None)
+                           profile="cpu", quiet=True, log=lambda *_: None)
     sim, meta = load_hybrid(summary["checkpoint"])
     return {"sim": sim, "meta": meta, "summary": summary}
 

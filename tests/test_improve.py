@@ -17,7 +17,6 @@ from rl2s_jax.improve.finetune import (
     guarded,
     improve_in_real_env,
     improve_policies,
-    improvement_intervals,
     improvement_metrics,
     measure_improvement,
     median_gain,
@@ -38,6 +37,7 @@ from rl2s_jax.model.generator import init_generator
 from rl2s_jax.model.simulator import Simulator, simulated_returns
 from rl2s_jax.policy import policy as pol
 from rl2s_jax.policy.sac import FINE_TUNING, Buffer, SACConfig, gaussian_kl, make_sac, q_values
+from rl2s_jax.stats import improvement_intervals
 
 TASK = get_task("pointmass")
 
@@ -875,7 +875,7 @@ def test_guard_lanes_floor_per_lane_and_lane_training_mvd():
     with pytest.raises(ValueError, match="floors"):
         guard_lanes(sims, start, actors, None, "pointmass", pool, margin=0.0, floors=[0.0],
                     **roll)
-    at = SimpleNamespace(vd_horizon=12, gamma=0.9)
+    at = SimpleNamespace(vd=SimpleNamespace(horizon=12), gamma=0.9)
     finals = {"adversarial": ([("rl2s", 0), ("rl2s", 1), ("gail", 0)],
                               SimpleNamespace(vd=np.array([[1.0, 5.0], [9.0, 2.0], [3.0, 4.0]]),
                                               config=at)),
@@ -958,9 +958,10 @@ def test_lane_floors_measure_where_training_did_not(pm_files):
     sims = jax.tree_util.tree_map(lambda x: jnp.stack([x, x]), sim)
     vd = np.array([[1.0, 5.0, 2.0]])
     finals = {"adversarial": ([("rl2s", 0)], SimpleNamespace(
-                  vd=vd, config=SimpleNamespace(vd_horizon=ep, gamma=gamma))),
+                  vd=vd, config=SimpleNamespace(vd=SimpleNamespace(horizon=ep), gamma=gamma))),
               "mle": ([("bc", 0)], SimpleNamespace(
-                  vd=vd, config=SimpleNamespace(vd_horizon=ep // 2, gamma=gamma)))}
+                  vd=vd, config=SimpleNamespace(vd=SimpleNamespace(horizon=ep // 2),
+                                                gamma=gamma)))}
     ft = SimpleNamespace(episode_length=ep, gamma=gamma)
     floors = lane_floors(finals, 1, sims, ds, pols, ft, n_episodes=4)
     ref = evaluate_simulator(sim, ds, pols, key=jax.random.PRNGKey(51), n_episodes=4,

@@ -43,8 +43,8 @@ def test_the_training_profile_takes_its_horizon_from_the_setting_module(pm_files
     ds.meta["episode_length"] = 300
     for profile in ("cpu", "gpu"):
         cfg = make_config(ds, "bc", profile)
-        assert cfg.vd_horizon == profile_horizon(profile, 300)
-        assert EvalSetting().resolve(300, None, profile).horizon == cfg.vd_horizon
+        assert cfg.vd.horizon == profile_horizon(profile, 300)
+        assert EvalSetting().resolve(300, None, profile).horizon == cfg.vd.horizon
 
 
 def test_which_true_value_is_chosen_and_refused_before_any_work(pm_files):
@@ -98,7 +98,7 @@ def test_the_progress_bar_shows_the_evaluation_of_its_step(monkeypatch):
 
     monkeypatch.setattr(loop, "tqdm", Bar)
     monkeypatch.setattr(loop, "_train_chunk", chunk)
-    cfg = types.SimpleNamespace(method="bc", pretrain_steps=0, phase=lambda step: "main")
+    cfg = types.SimpleNamespace(method="bc", phase=lambda step: "main")  # one phase
     state = State(0, np.zeros(2), cfg)
     loop.fit(state, None, 6, chunk=2, eval_every=2,
              on_eval=lambda s: {"avd_test": float(s.step)})
@@ -164,6 +164,6 @@ def test_the_oracle_scores_the_horizon_a_simulator_trained_here_does(pm_files, m
     monkeypatch.setattr(ev, "load_dataset", lambda path: ds)
     monkeypatch.setattr(ev, "evaluate_oracle", oracle)
     r = ev.evaluate_oracle_data(pm_files["test"])
-    assert seen == {"horizon": make_config(ds, "bc", "cpu").vd_horizon, "episodes": 16,
+    assert seen == {"horizon": make_config(ds, "bc", "cpu").vd.horizon, "episodes": 16,
                     "truth": "auto"} and seen["horizon"] == 100
     assert r["setting"]["horizon"] == 100 and r["horizon_source"].startswith("the cpu profile")

@@ -1304,15 +1304,15 @@ def test_bench_train_race_ratios_and_breakdown(tmp_path, monkeypatch):
     with pytest.raises(SystemExit, match="official-dir: expected official_p<P>.json"):
         bt.read_official(str(empty))
     from rl2s_jax.train.config import TrainConfig
-    cfg = dataclasses.replace(TrainConfig(task="hopper", method="rl2s"), **bt.OFFICIAL_SIZES)
+    cfg = TrainConfig(task="hopper", method="rl2s").override(bt.OFFICIAL_SIZES)
     cfg.validate()
-    assert (cfg.ensemble_size, cfg.batch_size, cfg.gen_activation) == (1, 256, "relu")
+    assert (cfg.ensemble_size, cfg.batch_size, cfg.dynamics.activation) == (1, 256, "relu")
     parts = dict(bt.breakdown_configs(cfg))
     assert list(parts) == ["no VD", "1 sim step", "1 critic update", "1 gen update"]
     for c in parts.values():
         c.validate()
-    assert parts["no VD"].vd_every == 0 and parts["1 sim step"].sim_steps == 1
-    assert parts["1 critic update"].disc_updates == 1
+    assert parts["no VD"].vd.every == 0 and parts["1 sim step"].adversarial.sim_steps == 1
+    assert parts["1 critic update"].adversarial.disc_updates == 1
     assert parts["1 gen update"].updates_per_step == 1
     changed = {k for k, c in parts.items()
                for f in dataclasses.fields(cfg) if getattr(c, f.name) != getattr(cfg, f.name)}

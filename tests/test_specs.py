@@ -53,6 +53,22 @@ def test_each_command_has_one_app_function_taking_its_spec(command):
     assert ast.unparse(args.args[0].annotation) == spec_class
 
 
+def test_run_training_takes_the_train_spec():
+    """run_training, the Python door to `rl2s train` (pipeline, examples), takes the same
+    TrainSpec as run_train, not the flags again as keywords: (spec, log) and nothing else; a
+    TrainSpec's ``set`` is the flag's strings or a dict, anything else is refused."""
+    defs = {n.name: n for n in ast.walk(ast.parse((APP / "training.py").read_text()))
+            if isinstance(n, ast.FunctionDef)}
+    args = defs["run_training"].args
+    assert [a.arg for a in args.args + args.kwonlyargs] == ["spec", "log"]
+    assert ast.unparse(args.args[0].annotation) == "TrainSpec"
+    TrainSpec = SPECS["train"]
+    assert TrainSpec("d.npz", 3, "run", set={"vd_horizon": 5}).set == {"vd_horizon": 5}
+    assert TrainSpec("d.npz", 3, "run", set=["vd_horizon=5"]).set == ["vd_horizon=5"]
+    with pytest.raises(ValueError, match="set: expected"):
+        TrainSpec("d.npz", 3, "run", set=5)
+
+
 def test_the_command_line_only_maps_flags():
     """cli.py defines no command bodies: its functions are the parser's helpers and the door."""
     tree = ast.parse(pathlib.Path(cli.__file__).read_text())

@@ -9,8 +9,12 @@ import pytest
 
 from rl2s_jax.stats import (
     bootstrap_ci,
+    bootstrap_intervals,
+    improvement_intervals,
     median_ci95,
+    paired_gain,
     paired_gain_difference,
+    paired_seed_difference,
     rank_sum_p,
     sign_flip_p,
     t_interval,
@@ -86,6 +90,93 @@ def test_paired_gain_difference_by_hand():
     assert paired_gain_difference({9: a[9]}, b) is None
     with pytest.raises(ValueError, match="same policies"):
         paired_gain_difference({0: a[0][:2]}, b)
+
+
+def _spread(reps, q):
+    """{metric: {"lo", "hi", "std"}} of a list of {metric: float}, as a plain loop."""
+    return {k: {"lo": np.quantile([r[k] for r in reps], q),
+                "hi": np.quantile([r[k] for r in reps], 1 - q),
+                "std": np.std([r[k] for r in reps], ddof=1)} for k in reps[0]}
+
+
+def test_bootstrap_intervals_against_a_plain_loop():
+    """bootstrap_intervals: each replicate resamples every policy's episodes (one row of
+    draws per policy) then, with true_se, redraws the truth; the same generator's draws taken
+    one by one in a loop give the same intervals of the score."""
+    rng = np.random.default_rng(1)
+    true, se = rng.normal(size=4), np.abs(rng.normal(size=4))
+    returns = true[:, None] + rng.normal(size=(4, 3))
+
+    def score(t, s):
+        return {"gap": float(np.abs(t - s).max()), "first": float(s[0])}
+
+    draws = np.random.default_rng(7)
+    both, alone = [], []
+    for _ in range(60):
+        idx = draws.integers(0, 3, size=(4, 3))
+        sim = np.array([returns[p, idx[p]].mean() for p in range(4)])
+        alone.append(score(true, sim))
+        both.append(score(true + se * draws.standard_normal(4), sim))
+    got = bootstrap_intervals(true, returns, score, se, n_boot=60, seed=7, level=0.9)
+    for key, reps in (("metrics", both), ("sim_only", alone)):
+        want = _spread(reps, 0.05)
+        for k in want:
+            assert got[key][k] == pytest.approx(want[k], rel=1e-12), (key, k)
+    assert (got["n_boot"], got["n_episodes"], got["level"]) == (60, 3, 0.9)
+    with pytest.raises(ValueError, match="true_values"):
+        bootstrap_intervals([np.nan, 1.0, 2.0, 3.0], returns, score)
+
+
+def test_improvement_intervals_against_a_plain_loop():
+    """improvement_intervals: per replicate, policies drawn with replacement (the same for
+    every seed), returns redrawn from N(C, SE^2) (paired: C1 = C0 draw + (C1 - C0) + diff_se
+    z), I = (C1 - C0) / |C0|, MPI / API averaged over seeds; quantiles as a plain loop."""
+    rng = np.random.default_rng(2)
+    c0 = rng.normal(5.0, 1.0, (2, 3))
+    c1, s0, s1, sd = c0 + rng.normal(size=(2, 3)), *np.abs(rng.normal(size=(3, 2, 3)))
+    for diff_se in (None, sd):
+        draws = np.random.default_rng(4)
+        idx = draws.integers(0, 3, (50, 3))
+        z0, z1 = draws.standard_normal((2, 50, 2, 3))
+        mpi, api = [], []
+        for b in range(50):
+            per_seed = []
+            for r in range(2):
+                d0 = c0[r] + s0[r] * z0[b, r]
+                d1 = (c1[r] + s1[r] * z1[b, r] if diff_se is None
+                      else d0 + (c1[r] - c0[r]) + sd[r] * z1[b, r])
+                i = (d1[idx[b]] - d0[idx[b]]) / np.abs(d0[idx[b]])
+                per_seed.append((i.min(), i.mean()))
+            mpi.append(np.mean([m for m, _ in per_seed]))
+            api.append(np.mean([a for _, a in per_seed]))
+        got = improvement_intervals(c0, s0, c1, s1, diff_se=diff_se, n_boot=50, seed=4,
+                                    level=0.8)
+        assert got["mpi"] == pytest.approx(np.quantile(mpi, [0.1, 0.9]), rel=1e-12)
+        assert got["api"] == pytest.approx(np.quantile(api, [0.1, 0.9]), rel=1e-12)
+    with pytest.raises(ValueError, match="c0: improvement is undefined"):
+        improvement_intervals(np.zeros(3), s0[0], c1[0], s1[0])
+
+
+def test_paired_gain_and_seed_difference_by_hand():
+    """paired_gain: candidate k's per-episode gain over candidate 0, its mean and standard
+    error (ddof 1) per policy, as a loop; paired_seed_difference: the per-seed differences
+    over seeds both ran, their t-interval (4.303 for 3 seeds), seeds where A is lower."""
+    r = np.random.default_rng(3).normal(size=(3, 2, 5))
+    mean, se = paired_gain(r)
+    for k in range(2):
+        for p in range(2):
+            g = [r[k + 1, p, e] - r[0, p, e] for e in range(5)]
+            assert mean[k, p] == pytest.approx(sum(g) / 5, rel=1e-12)
+            sd = math.sqrt(sum((x - sum(g) / 5) ** 2 for x in g) / 4)
+            assert se[k, p] == pytest.approx(sd / math.sqrt(5), rel=1e-12)
+    d = np.array([-1.0, 2.0, -0.5])
+    mid, lo, hi, lower, n = paired_seed_difference([1.0, 4.0, None, 2.5], [2.0, 2.0, 7.0, 3.0])
+    half = 4.302653 * d.std(ddof=1) / math.sqrt(3)
+    assert (mid, lower, n) == (pytest.approx(d.mean()), 2, 3)
+    assert (lo, hi) == (pytest.approx(d.mean() - half, rel=1e-6),
+                        pytest.approx(d.mean() + half, rel=1e-6))
+    assert paired_seed_difference([1.0, 2.0], [1.0, 2.0, 3.0]) is None
+    assert paired_seed_difference([1.0, None], [2.0, 3.0]) is None
 
 
 def test_sign_flip_p_matches_exact_enumeration():

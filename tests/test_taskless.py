@@ -88,7 +88,8 @@ def test_learned_reward_matches_a_known_reward(pm_falls):
 def test_taskless_data_trains_with_a_learned_reward_and_hazard(trained):
     s = trained["summary"]
     assert s["config"]["task"] is None
-    assert (s["config"]["reward"], s["config"]["termination"]) == ("learned", "hazard")
+    assert (s["config"]["outcome"]["reward"], s["config"]["outcome"]["termination"]) == (
+        "learned", "hazard")
     assert s["config"]["data_episode_length"] == 50
     assert "data of no registered task (meta.task None): reward 'learned', termination " \
         "'hazard'" in trained["printed"]
@@ -219,7 +220,7 @@ def test_the_unregistered_system_example_learns_and_ranks(monkeypatch, tmp_path)
     sys.modules.pop("own_system_unregistered", None)
     assert task_names() == before  # nothing registered
     s, r = out["summary"], out["report"]
-    assert s["config"]["task"] is None and s["config"]["reward"] == "learned"
+    assert s["config"]["task"] is None and s["config"]["outcome"]["reward"] == "learned"
     assert s["learned"]["reward"]["heldout_r2"] > 0.95
     assert s["learned"]["termination"]["heldout_ends"] > 0
     assert r["horizon"] == example.EPISODE and len(r["true_value"]) == 6

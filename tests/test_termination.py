@@ -1,7 +1,6 @@
 """The learned termination hazard and the "predictive" termination (rl2s_jax.model.termination):
 its loss against NumPy, that it learns a known hazard, that rollouts end episodes with the
 chances it gives, and that it travels through training, checkpoints and the simulator env."""
-import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -111,7 +110,7 @@ def test_termination_settings_are_checked(pm):
     data = make_train_data(ds, params, CFG)
     with pytest.raises(ValueError, match="TrainData.done"):
         init(jax.random.PRNGKey(0), CFG, data.replace(done=None))
-    rule = simulator(init(jax.random.PRNGKey(0), dataclasses.replace(CFG, termination="rule"),
+    rule = simulator(init(jax.random.PRNGKey(0), CFG.override({"outcome.termination": "rule"}),
                           data))
     assert rule.hazard is None and rule.terminations(get_task("pointmass").done_fn)[1] is None
     with pytest.raises(ValueError, match="needs a learned hazard"):
@@ -144,7 +143,7 @@ def test_training_fits_the_hazard_and_a_checkpoint_keeps_it(pm, tmp_path):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     # the hazard's window travels with it (a window lost on load would turn q = P(end within
     # K steps) into a per-step hazard K times too high)
-    windowed = state.replace(config=dataclasses.replace(state.config, hazard_window=4))
+    windowed = state.replace(config=state.config.override({"outcome.hazard_window": 4}))
     ck = Checkpointer(tmp_path / "ck4")
     ck.save(windowed, {"data": {"obs_size": 2, "action_size": 1}})
     ck.close()
@@ -156,7 +155,7 @@ def test_predictive_termination_ends_with_the_models_own_chance(pm):
     """'predictive' ends a step with P(|p'| > 2) under the model's one-step Gaussian (one
     member): checked against the normal tail at a state whose mean next p is near 2."""
     ds, params = pm
-    cfg = dataclasses.replace(CFG, termination="predictive", member_mode="fixed")
+    cfg = CFG.override({"outcome.termination": "predictive", "member_mode": "fixed"})
     sim = simulator(init(jax.random.PRNGKey(0), cfg, make_train_data(ds, params, cfg)))
     task = get_task("pointmass")
     done_fn, hazard_fn = sim.terminations(task.done_fn)
@@ -234,11 +233,11 @@ def test_the_adversarial_phase_simulated_envs_end_by_the_hazard(pm):
     from rl2s_jax.train.step import _advance_sim
 
     ds, params = pm
-    cfg = dataclasses.replace(CFG, method="rl2s", termination="hazard", hazard_steps=1,
-                              vd_every=0, eps=1.0)
+    cfg = CFG.override({"method": "rl2s", "outcome.termination": "hazard",
+                        "outcome.hazard_steps": 1, "vd.every": 0, "eps": 1.0})
     data = make_train_data(ds, params, cfg)
     state = init(jax.random.PRNGKey(0), cfg, data)
-    for bias, t_after in ((30.0, 0), (-30.0, cfg.sim_steps)):
+    for bias, t_after in ((30.0, 0), (-30.0, cfg.adversarial.sim_steps)):
         layers = [dict(x) for x in state.hazard["layers"]]
         layers[-1] = {"w": jnp.zeros_like(layers[-1]["w"]),
                       "b": jnp.full_like(layers[-1]["b"], bias)}  # h = sigmoid(bias)

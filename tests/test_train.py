@@ -689,15 +689,15 @@ def test_discriminator_loss_sign_convention():
     (dict(eps=-0.1), "eps"),
     (dict(batch_size=0), "batch_size"),
     (dict(updates_per_step=2.5), "updates_per_step"),
-    (dict(vd_horizon=0), "vd_horizon"),
-    (dict(vd_every=-1), "vd_every"),
-    (dict(method="rl2s", vd_every=0), "vd_every"),
-    (dict(gen_hidden=()), "gen_hidden"),
-    (dict(disc_hidden=(64, 0)), "disc_hidden"),
+    (dict(vd_horizon=0), "vd.horizon"),
+    (dict(vd_every=-1), "vd.every"),
+    (dict(method="rl2s", vd_every=0), "vd.every"),
+    (dict(gen_hidden=()), "dynamics.hidden"),
+    (dict(disc_hidden=(64, 0)), "adversarial.disc_hidden"),
     (dict(gen_lr=0.0), "gen_lr"),
     (dict(grad_clip=float("nan")), "grad_clip"),
     (dict(gamma=1.5), "gamma"),
-    (dict(method="gail", buffer_size=8, batch_size=64), "buffer_size"),
+    (dict(method="gail", buffer_size=8, batch_size=64), "adversarial.buffer_size"),
     (dict(ensemble_size=0), "ensemble_size"),
     (dict(ensemble_size=3, n_elites=4), "n_elites"),
     (dict(holdout_frac=0.0, n_elites=2), "n_elites"),
@@ -706,15 +706,17 @@ def test_discriminator_loss_sign_convention():
     (dict(holdout_rows=0), "holdout_rows"),
     (dict(member_mode="best"), "member_mode"),
     (dict(uncertainty="var"), "uncertainty"),
-    (dict(gen_noise="none"), "gen_noise"),
-    (dict(gen_log_std_bounds="soft"), "gen_log_std_bounds"),
+    (dict(gen_noise="none"), "dynamics.noise"),
+    (dict(gen_log_std_bounds="soft"), "dynamics.log_std_bounds"),
     (dict(gen_weight_decay=-1.0), "gen_weight_decay"),
     (dict(ema_decay=1.0), "ema_decay"),
-    (dict(pretrain_steps=-1), "pretrain_steps"),
-    (dict(disc_warmup_steps=1.5), "disc_warmup_steps"),
-    (dict(adv_nll_on="test"), "adv_nll_on"),
+    (dict(pretrain_steps=-1), "adversarial.pretrain_steps"),
+    (dict(disc_warmup_steps=1.5), "adversarial.disc_warmup_steps"),
+    (dict(adv_nll_on="test"), "adversarial.nll_on"),
 ])
 def test_bad_config_names_the_field(overrides, field):
+    """The field by its dotted name where it is a group's (the overrides in the flat names
+    ``small`` takes for one release)."""
     cfg = T.TrainConfig.small(task="pointmass", **overrides)
     with pytest.raises(ValueError, match=rf"^{field}:"):
         cfg.validate()
@@ -788,14 +790,15 @@ def test_make_config_profiles():
 
     ds = SimpleNamespace(meta={"task": "hopper", "episode_length": 1000, "gamma": 0.99})
     gpu = make_config(ds, "rl2s", "gpu")
-    assert gpu == T.TrainConfig(task="hopper", method="rl2s", vd_horizon=1000, gamma=0.99)
-    assert (gpu.gen_activation, gpu.batch_size, gpu.early_stop_patience,
-            gpu.pretrain_steps) == ("silu", 1024, 0, 1000)
+    assert gpu == T.TrainConfig().override({"task": "hopper", "method": "rl2s",
+                                            "vd.horizon": 1000, "gamma": 0.99})
+    assert (gpu.dynamics.activation, gpu.batch_size, gpu.early_stop_patience,
+            gpu.adversarial.pretrain_steps) == ("silu", 1024, 0, 1000)
     cpu = make_config(ds, "bc", "cpu", overrides={"batch_size": 32})
-    assert cpu.vd_horizon == 100 and cpu.pretrain_steps == 100 and cpu.batch_size == 32
+    assert (cpu.vd.horizon, cpu.adversarial.pretrain_steps, cpu.batch_size) == (100, 100, 32)
     for k, v in CPU_MODEL.items():
         if k != "batch_size":
-            assert getattr(cpu, k) == v, k
+            assert cpu.to_dotted()[k] == v, k
     assert cpu.ensemble_size == T.TrainConfig.small().ensemble_size
     with pytest.raises(ValueError, match="profile"):
         make_config(ds, "bc", "tpu")

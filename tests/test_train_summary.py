@@ -3,6 +3,7 @@ inside pre-training says so; test-data results reach summary.json and the table 
 were measured; inspect tells the logged return from the true discounted value."""
 import json
 
+from rl2s_jax.app.specs import TrainSpec
 from rl2s_jax.app.training import format_summary, run_training
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.data.summary import dataset_summary
@@ -14,8 +15,8 @@ SMALL = {"vd_horizon": 50, "vd_episodes": 2, "updates_per_step": 2, "gen_hidden"
 
 def test_a_run_inside_pretraining_warns_and_says_how_far(pm_files, tmp_path):
     logs = []
-    s = run_training(pm_files["train"], "rl2s", 3, str(tmp_path / "run"), profile="cpu",
-                     overrides=SMALL, progress=False, log=logs.append)
+    s = run_training(TrainSpec(pm_files["train"], 3, str(tmp_path / "run"), "rl2s",
+                               profile="cpu", set=SMALL, quiet=True), log=logs.append)
     warning = [line for line in logs if "warning" in line]
     assert warning and "--steps 3" in warning[0] and "98 more step(s)" in warning[0], logs
     assert s["pretrain_steps_left"] == 98
@@ -30,10 +31,9 @@ def test_eval_data_results_reach_the_summary_with_their_settings(pm_files, tmp_p
     logs = []
     # with the progress bar: the test results join the training VD there (make hopper crashed
     # when both named a key "avd"); chunks of 2 put an evaluation before the last bar update
-    s = run_training(pm_files["train"], "bc", 4, str(tmp_path / "run"), profile="cpu",
-                     overrides=SMALL, progress=True, log=logs.append, chunk=2,
-                     eval_data=pm_files["test"], eval_every=2,
-                     setting=EvalSetting(episodes=3))
+    s = run_training(TrainSpec(pm_files["train"], 4, str(tmp_path / "run"), "bc",
+                               profile="cpu", set=SMALL, chunk=2, eval_data=pm_files["test"],
+                               eval_every=2, eval_episodes=3), log=logs.append)
     assert "avd_test=" in capsys.readouterr().err
     assert not [line for line in logs if "warning" in line]  # bc: no pre-training
     assert s["pretrain_steps_left"] == 0 and s["step_test"] == 4

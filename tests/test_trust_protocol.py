@@ -28,7 +28,7 @@ def pm_lanes(pm_files):
     from rl2s_jax.zoo.zoo import policies_for
 
     train_ds, test_ds = load_dataset(pm_files["train"]), load_dataset(pm_files["test"])
-    cfg = TrainConfig.small(task="pointmass", method="rl2s", vd_horizon=20)
+    cfg = TrainConfig.small(task="pointmass", method="rl2s", **{"vd.horizon": 20})
     assert cfg.n_elites >= 2
     data = make_train_data(train_ds, policies_for(train_ds), cfg)
     lanes = [("rl2s", 0), ("rl2s", 1)]
@@ -36,7 +36,7 @@ def pm_lanes(pm_files):
                         eps=jnp.asarray([0.25, 0.25], jnp.float32))
     kw = dict(task="pointmass", train_ds=train_ds, train_pols=policies_for(train_ds),
               test_ds=test_ds, test_pols=policies_for(test_ds),
-              truth=true_values(test_ds, cfg.vd_horizon, cfg.gamma), horizon=cfg.vd_horizon,
+              truth=true_values(test_ds, cfg.vd.horizon, cfg.gamma), horizon=cfg.vd.horizon,
               gamma=cfg.gamma, sizes={"value_episodes": 4, "eval_episodes": 4}, seed=0,
               level=LEVEL)
     return {"adversarial": (lanes, states)}, kw

@@ -14,7 +14,7 @@ from collections.abc import Callable, Sequence
 import jax
 import numpy as np
 
-from rl2s_jax._files import write_json, write_text
+from rl2s_jax._files import save_figure, write_json, write_text
 from rl2s_jax.app.specs import DiagnoseSpec
 from rl2s_jax.data.dataset import Dataset, load_dataset
 from rl2s_jax.data.episodes import Episodes, from_dataset, pool_episodes, split_episodes
@@ -455,7 +455,7 @@ def plot_gain(out_dir: str, gain: dict) -> list[str]:
     fig.suptitle(f"held-out gain of the extension (mean ± std over {len(gain['seeds'])} seeds)")
     fig.tight_layout()
     path = os.path.join(out_dir, "gain.png")
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return [path]
 

@@ -25,6 +25,7 @@ from rl2s_jax.evaluate.trust import format_trust
 from rl2s_jax.physics.hybrid import load_hybrid
 from rl2s_jax.physics.physics_simulator import one_step_mse, physics_simulator
 from rl2s_jax.train.checkpoint import Checkpointer
+from rl2s_jax.train.config import saved_field
 from rl2s_jax.zoo.zoo import policies_for
 
 
@@ -40,9 +41,9 @@ def _setting(setting: EvalSetting | None, n_episodes, horizon, seed, truth) -> E
 
 def checkpoint_setting(config: dict, ds, setting: EvalSetting) -> EvalSetting:
     """``setting`` with the horizon filled for a checkpoint of ``config`` on ``ds``: given,
-    else the config's ``vd_horizon`` (at most the data's episode_length: the real episodes end
+    else the config's ``vd.horizon`` (at most the data's episode_length: the real episodes end
     there); the same horizon training measured its VD with."""
-    return setting.resolve(ds.meta.get("episode_length"), config.get("vd_horizon"),
+    return setting.resolve(ds.meta.get("episode_length"), saved_field(config, "vd.horizon"),
                            config.get("profile"))
 
 

@@ -50,7 +50,7 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax._files import write_json, write_text
+from rl2s_jax._files import save_figure, write_json, write_text
 from rl2s_jax.app.specs import ImproveSpec, check_floor_scale, check_no_guard_alone
 from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.data.dataset import load_dataset
@@ -74,6 +74,7 @@ from rl2s_jax.physics.physics_simulator import NOMINAL, physics_simulator
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_meta, load_simulator
+from rl2s_jax.train.config import saved_field
 from rl2s_jax.zoo.zoo import Zoo, policies_for, policy_source, save_zoo
 
 # The deployment guard's default margin (module docstring: the margin of the guard studies in
@@ -422,7 +423,7 @@ def training_error_floor(run: dict) -> dict:
     by = run.get("vd_measured_by") or {}
     cfg = run.get("config") or {}
     return {"mvd": float(run["mvd_train"]),
-            "horizon": int(by.get("horizon", cfg.get("vd_horizon"))),
+            "horizon": int(by.get("horizon", saved_field(cfg, "vd.horizon"))),
             "gamma": float(by.get("gamma", cfg.get("gamma"))), "step": run.get("steps")}
 
 
@@ -562,7 +563,7 @@ def plot_policies(out: str, s: dict) -> list[str]:
         fig.suptitle(r["policy"])
         fig.tight_layout()
         name = f"policy_{_safe(r['policy'])}.png"
-        fig.savefig(os.path.join(out, name), dpi=100)
+        save_figure(fig, os.path.join(out, name), dpi=100)
         plt.close(fig)
         files.append(name)
     return files

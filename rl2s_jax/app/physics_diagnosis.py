@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from rl2s_jax._files import write_json, write_text
+from rl2s_jax._files import save_figure, write_json, write_text
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.diagnose.gaps import jsonable
 from rl2s_jax.physics.identify import FitConfig, identify
@@ -136,7 +136,7 @@ def plot_physics(out_dir: str, nominal: dict, calibrated: dict) -> list[str]:
     bx.legend()
     fig.tight_layout()
     path = os.path.join(out_dir, "physics_one_step.png")
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return [path]
 

@@ -22,7 +22,7 @@ from rl2s_jax.app.improvement import (
     training_error_floor,
 )
 from rl2s_jax.app.report import improvement_text, load_curve, machine_info, write_report
-from rl2s_jax.app.specs import PipelineSpec, check_floor_scale
+from rl2s_jax.app.specs import PipelineSpec, TrainSpec, check_floor_scale
 from rl2s_jax.app.training import parse_overrides, run_training
 from rl2s_jax.data.collect import collect
 from rl2s_jax.data.dataset import load_dataset, save_dataset
@@ -38,6 +38,7 @@ from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_simulator
+from rl2s_jax.train.config import saved_field
 from rl2s_jax.zoo.zoo import load_zoo, policies_for
 
 
@@ -237,6 +238,18 @@ def evaluate_run(run_dir: str, test_path: str, setting: EvalSetting,
                                setting=setting, level=level)
 
 
+def _train_spec(spec: PipelineSpec, method: str, run_dir: str, datasets: dict, sizes: dict,
+                profile: str) -> TrainSpec:
+    """The pipeline's training run of ``method``: its train data, test data evaluated every
+    ``sizes["eval_every"]`` steps in the pipeline's evaluation setting."""
+    return TrainSpec(
+        data=datasets["train"]["path"], steps=sizes["steps"], out=run_dir, method=method,
+        profile=profile, seed=spec.seed, save_every=sizes["eval_every"],
+        eval_data=datasets["test"]["path"], eval_every=sizes["eval_every"],
+        eval_episodes=spec.eval_episodes, eval_horizon=spec.eval_horizon,
+        eval_seed=spec.eval_seed, truth=spec.truth, quiet=spec.quiet)
+
+
 def run_pipeline(spec: PipelineSpec) -> int:
     """The whole pipeline for one task: collect, train the four methods, evaluate, fine-tune
     the test policies in each simulator through the deployment guard (``guard_margin(spec)``:
@@ -293,11 +306,8 @@ def run_pipeline(spec: PipelineSpec) -> int:
     for method in methods:
         run_dir = os.path.join(out, method)
         print(f"\n[pipeline] training {method} -> {run_dir}")
-        runs[method] = run_training(
-            summary["datasets"]["train"]["path"], method, sizes["steps"], run_dir,
-            profile=profile, seed=spec.seed, save_every=sizes["eval_every"],
-            eval_data=summary["datasets"]["test"]["path"], eval_every=sizes["eval_every"],
-            setting=setting, progress=not spec.quiet)
+        runs[method] = run_training(_train_spec(spec, method, run_dir, summary["datasets"],
+                                                sizes, profile))
         evals[method] = evaluate_run(run_dir, summary["datasets"]["test"]["path"], setting)
         curves[method] = load_curve(os.path.join(run_dir, "eval.jsonl"))
     summary["train_runs"] = {m: {k: r[k] for k in ("steps", "seconds", "avd_train",
@@ -306,7 +316,7 @@ def run_pipeline(spec: PipelineSpec) -> int:
         improvement = improve_in_simulators(
             spec.task, summary["datasets"]["test"]["path"],
             {m: os.path.join(out, m, "checkpoints") for m in methods}, sizes,
-            horizon=runs[methods[0]]["config"]["vd_horizon"], seed=spec.seed,
+            horizon=saved_field(runs[methods[0]]["config"], "vd.horizon"), seed=spec.seed,
             guard_margin=margin, guard_episodes=spec.guard_episodes,
             guard_floors={m: training_error_floor(r) for m, r in runs.items()},
             guard_floor_scale=sizes["guard_floor_scale"],

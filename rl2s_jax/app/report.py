@@ -1,14 +1,13 @@
 """The pipeline's report: report.json, report.md, PNG plots and a one-screen terminal table."""
 from __future__ import annotations
 
-import json
 import os
 
 import jax
 import jaxlib
 import numpy as np
 
-from rl2s_jax._files import write_json, write_text
+from rl2s_jax._files import read_jsonl, save_figure, write_json, write_text
 
 TABLE_KEYS = ("avd", "mvd", "kendall_tau", "spearman", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10",
               "regret@1", "mpi", "api")
@@ -49,8 +48,7 @@ def load_curve(path: str) -> list[dict]:
     """Rows of a run's eval.jsonl (test-policy metrics over training), or [] if absent."""
     if not os.path.exists(path):
         return []
-    with open(path) as f:
-        return [json.loads(line) for line in f if line.strip()]
+    return read_jsonl(path)
 
 
 def table(methods: dict[str, dict], keys=TABLE_KEYS) -> str:
@@ -138,7 +136,7 @@ def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) ->
             ax.grid(alpha=0.3)
         axes[0].legend()
         fig.tight_layout()
-        fig.savefig(os.path.join(out, "vd_curves.png"), dpi=110)
+        save_figure(fig, os.path.join(out, "vd_curves.png"), dpi=110)
         plt.close(fig)
         files.append("vd_curves.png")
 
@@ -155,7 +153,7 @@ def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) ->
         ax.set_ylabel("VD (test policies, by true value)")
         ax.legend()
         fig.tight_layout()
-        fig.savefig(os.path.join(out, "vd_per_policy.png"), dpi=110)
+        save_figure(fig, os.path.join(out, "vd_per_policy.png"), dpi=110)
         plt.close(fig)
         files.append("vd_per_policy.png")
 
@@ -169,7 +167,7 @@ def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) ->
             ax.set_xlabel("true value")
         axes[0][0].set_ylabel("simulated value")
         fig.tight_layout()
-        fig.savefig(os.path.join(out, "true_vs_sim.png"), dpi=110)
+        save_figure(fig, os.path.join(out, "true_vs_sim.png"), dpi=110)
         plt.close(fig)
         files.append("true_vs_sim.png")
 
@@ -217,7 +215,7 @@ def plot_improvement(out: str, imps: dict[str, dict], names: list[str], order) -
                  fontsize=8)
     ax.legend(handles=handles, fontsize=7)
     fig.tight_layout()
-    fig.savefig(os.path.join(out, "improvement.png"), dpi=110)
+    save_figure(fig, os.path.join(out, "improvement.png"), dpi=110)
     plt.close(fig)
     return "improvement.png"
 

@@ -194,7 +194,9 @@ class ExportSpec:
 
 @dataclasses.dataclass(frozen=True)
 class TrainSpec:
-    """`rl2s train`: learn a simulator from a Dataset into the run directory ``out``."""
+    """`rl2s train`: learn a simulator from a Dataset into the run directory ``out``
+    (``app.training.run_training(spec)``). ``set``: TrainConfig overrides, the flag's
+    "key=value" strings or, from Python, a {key: value} dict."""
 
     data: str
     steps: int
@@ -208,7 +210,7 @@ class TrainSpec:
     seed: int = 0
     save_every: int | None = None
     chunk: int = 10
-    set: list[str] | None = None
+    set: list[str] | dict | None = None
     eval_data: str | None = None
     eval_policies: str | None = None
     eval_every: int | None = None
@@ -227,6 +229,10 @@ class TrainSpec:
             raise ValueError(f"method: expected rl2s, gail, bc or rl2s-bc, got {self.method!r}")
         if self.profile not in ("auto", "cpu", "gpu"):
             raise ValueError(f"profile: expected auto, cpu or gpu, got {self.profile!r}")
+        if not (self.set is None or isinstance(self.set, dict) or (
+                isinstance(self.set, list | tuple) and all(isinstance(x, str) for x in self.set))):
+            raise ValueError(f"set: expected 'key=value' strings or a {{key: value}} dict, got "
+                             f"{self.set!r}")
 
 
 @dataclasses.dataclass(frozen=True)

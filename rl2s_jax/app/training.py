@@ -11,7 +11,7 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax._files import write_json, write_text
+from rl2s_jax._files import read_jsonl, write_json, write_text
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.app.specs import TrainSpec
 from rl2s_jax.data.dataset import load_dataset
@@ -29,8 +29,9 @@ from rl2s_jax.zoo.zoo import policies_for
 
 # The cpu profile's members: TrainConfig.small's 2x64 at 5 updates per step had not fitted
 # Hopper (held-out error 0.385 change stds; these: 0.140, experiments/model_fit.py on the CPU).
-CPU_MODEL = dict(gen_hidden=(128, 128, 128), gen_activation="silu", batch_size=256,
-                 updates_per_step=25, early_stop_patience=0, gen_weight_decay=0.0)
+CPU_MODEL = {"dynamics.hidden": (128, 128, 128), "dynamics.activation": "silu",
+             "batch_size": 256, "updates_per_step": 25, "early_stop_patience": 0,
+             "gen_weight_decay": 0.0}
 
 
 def make_config(ds, method: str, profile: str, eps: float | None = None,
@@ -40,11 +41,12 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
     defaults), 'cpu' = ``TrainConfig.small`` with the members fitted as the gpu profile fits
     them (3 of 3x128 SiLU, batch 256, 25 updates per step, no early stopping or weight decay:
     docs/RESULTS.md, "make hopper"), 100 pre-training steps and 5 critic warm-up steps.
-    ``overrides``: field -> value (``--set``).
+    ``overrides``: name -> value (``--set``; ``TrainConfig.override``'s names: dotted
+    "dynamics.obs_history", or for one release the flat format's "obs_history").
 
     Data of no registered task (``meta.task`` null) or ``no_task`` (--no-task): the reward is
-    learned from the data's rewards (``reward`` "learned") and episodes end by the hazard
-    learned from its done flags (``termination`` "hazard"), unless ``overrides`` say
+    learned from the data's rewards (``outcome.reward`` "learned") and episodes end by the
+    hazard learned from its done flags (``outcome.termination`` "hazard"), unless ``overrides`` say
     otherwise; its time limit is ``data_episode_length``. A ``meta.task`` that is not
     registered is refused without ``no_task`` (``envs.tasks.data_task``).
 
@@ -53,39 +55,30 @@ def make_config(ds, method: str, profile: str, eps: float | None = None,
 
     data_task(ds.meta["task"], no_task)
     ep_len = ds.meta.get("episode_length") or 1000
-    base = dict(task=ds.meta["task"], method=method, eps=eps,
-                gamma=float(ds.meta.get("gamma") or 0.999))
+    base = {"task": ds.meta["task"], "method": method, "eps": eps,
+            "gamma": float(ds.meta.get("gamma") or 0.999)}
     if ds.meta["task"] not in TASKS or no_task:
-        base.update(reward="learned", termination="hazard",
-                    data_episode_length=ds.meta.get("episode_length"))
+        base.update({"outcome.reward": "learned", "outcome.termination": "hazard",
+                     "data_episode_length": ds.meta.get("episode_length")})
     if profile == "cpu":
-        cfg = TrainConfig.small(vd_horizon=profile_horizon("cpu", ep_len), pretrain_steps=100,
-                                disc_warmup_steps=5, **CPU_MODEL, **base)
+        cfg = TrainConfig.small().override({
+            "vd.horizon": profile_horizon("cpu", ep_len), "adversarial.pretrain_steps": 100,
+            "adversarial.disc_warmup_steps": 5, **CPU_MODEL, **base})
     elif profile == "gpu":
-        cfg = TrainConfig(vd_horizon=profile_horizon("gpu", ep_len), **base)
+        cfg = TrainConfig().override({"vd.horizon": profile_horizon("gpu", ep_len), **base})
     else:
         raise ValueError(f"profile: expected 'cpu' or 'gpu', got {profile!r}")
-    if overrides:
-        d = cfg.to_dict()
-        unknown = sorted(set(overrides) - set(d))
-        if unknown:
-            raise ValueError(f"set: unknown config field(s) {unknown}; known: {sorted(d)}")
-        d.update(overrides)
-        cfg = TrainConfig.from_dict(d)
+    cfg = cfg.override(overrides, what="set")
     if cfg.physics is not None:
         cfg = hybrid_config(cfg, ds)
     return cfg.validate()
 
 
-def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str | None = None,
-                 profile: str = "auto", seed: int = 0, eps: float | None = None,
-                 save_every: int | None = None, chunk: int = 10, overrides: dict | None = None,
-                 progress: bool = True, log=print, eval_data: str | None = None,
-                 eval_every: int | None = None, setting: EvalSetting | None = None,
-                 resume_step: int | None = None, policy_file: str | None = None,
-                 eval_policies: str | None = None, no_task: bool = False) -> dict:
-    """Load a Dataset, train a simulator with checkpoints in ``out`` (resuming if ``out``
-    holds one), and return a summary dict (also written to out/summary.json).
+def run_training(spec: TrainSpec, log=print) -> dict:
+    """`rl2s train` from Python: load ``spec.data``, train a simulator with checkpoints in
+    ``spec.out`` (resuming if it holds one), and return a summary dict (also written to
+    out/summary.json); ``log`` takes its lines. ``spec.set``: "key=value" strings (the
+    flag's) or a {key: value} mapping, TrainConfig's overrides.
 
     A resumed run starts from ``resume_step``, or by default from the newest intact
     checkpoint (broken newer ones are skipped with a CheckpointWarning). Saved steps after the
@@ -94,89 +87,59 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
 
     ``eval_data``: a Dataset of other (test) policies, evaluated every ``eval_every`` steps
     with VD and ranking metrics appended to out/eval.jsonl (the AVD/MVD-over-training curve),
-    and at the last step: the summary's test numbers are the final checkpoint's, in
-    ``setting`` (default ``EvalSetting()``, its horizon the config's vd_horizon), the numbers
-    `rl2s evaluate` gives that checkpoint in the same setting; its policies
-    from ``eval_policies`` (a policy file, checked as ``policy_file`` is, before
-    any training work), else from ``zoo`` or what its meta.source names. The training
+    and at the last step: the summary's test numbers are the final checkpoint's, in the
+    setting of the eval flags (``EvalSetting.from_flags``; its horizon by default the
+    config's vd_horizon), the numbers `rl2s evaluate` gives that checkpoint in the same
+    setting; its policies from ``eval_policies`` (a policy file, checked as ``policy_file`` is,
+    before any training work), else from ``zoo`` or what its meta.source names. The training
     policies: from ``zoo``, ``policy_file`` or what the data's meta.source names
     (``zoo.policies_for``). The summary's ``learned`` block holds the simulator's reward and
     termination errors on the held-out episodes (``train.learned.heldout_errors``).
     """
-
-    if not isinstance(steps, int) or steps < 1:
-        raise ValueError(f"steps: expected an int >= 1, got {steps!r}")
-    if eval_policies is not None and eval_data is None:
+    if not isinstance(spec, TrainSpec):
+        raise TypeError(f"spec: expected a TrainSpec, got {type(spec).__name__}")
+    if spec.eval_policies is not None and spec.eval_data is None:
         raise ValueError("eval-policies: these are the policies of a test Dataset; give it "
                          "with --eval-data TEST")
-    ds = load_dataset(data_path)
+    ds = load_dataset(spec.data)
+    profile = spec.profile
     if profile == "auto":
         profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
-    cfg = make_config(ds, method, profile, eps, overrides, no_task)
-    if not cfg.registered or no_task:
-        log(f"[train] {data_path}: {'--no-task' if no_task else 'data of no registered task'} "
-            f"(meta.task {ds.meta.get('task')!r}): reward {cfg.reward!r}, termination "
-            f"{cfg.termination!r} (a reward head r(s, a, s') fitted on its rewards, the hazard "
-            f"h(s, a) on its done flags; their held-out errors are in the summary)")
-    if cfg.pretrains and steps <= cfg.pretrain_steps:
-        log(f"[train] warning: --steps {steps} ends inside the {cfg.pretrain_steps} "
-            f"pre-training steps of {method}: this run is maximum likelihood on every policy "
-            f"(as bc) and never reaches the adversarial phase; "
-            f"{cfg.pretrain_steps - steps + 1} more step(s) reach it (--steps "
-            f"{cfg.pretrain_steps + 1} or more, or --set pretrain_steps=N)")
-    policies = policies_for(ds, zoo, policy_file=policy_file, data_path=data_path)
-    eval_path = os.path.join(out, "eval.jsonl")
-    on_eval, last_test = None, {}
-    if eval_data is not None:  # its data and policies checked before any training work
-        on_eval = _test_evaluator(eval_data, cfg, eval_path, setting or EvalSetting(), zoo,
-                                  last_test, eval_policies)
-        eval_every = eval_every or save_every or max(1, steps // 10)
+    overrides = dict(spec.set) if isinstance(spec.set, dict) else parse_overrides(spec.set)
+    if spec.physics is not None:  # a hybrid (rl2s_jax.physics.hybrid)
+        overrides["physics"] = spec.physics
+    cfg = make_config(ds, spec.method, profile, spec.eps, overrides, spec.no_task)
+    _say_what_runs(spec, ds, cfg, log)
+    policies = policies_for(ds, spec.zoo, policy_file=spec.policy_file, data_path=spec.data)
+    eval_path = os.path.join(spec.out, "eval.jsonl")
+    on_eval, last_test, eval_every = None, {}, spec.eval_every
+    if spec.eval_data is not None:  # its data and policies checked before any training work
+        setting = EvalSetting.from_flags(spec.eval_episodes, spec.eval_horizon, spec.eval_seed,
+                                         spec.truth)
+        on_eval = _test_evaluator(spec.eval_data, cfg, eval_path, setting, spec.zoo,
+                                  last_test, spec.eval_policies)
+        eval_every = eval_every or spec.save_every or max(1, spec.steps // 10)
     data = make_train_data(residual_data(ds, cfg.physics), policies, cfg)  # a hybrid's residual
-    os.makedirs(out, exist_ok=True)
-    ck = Checkpointer(os.path.join(out, "checkpoints"))
-    meta = {"data": {"path": os.path.abspath(data_path), "task": ds.meta["task"],
+    os.makedirs(spec.out, exist_ok=True)
+    ck = Checkpointer(os.path.join(spec.out, "checkpoints"))
+    meta = {"data": {"path": os.path.abspath(spec.data), "task": ds.meta["task"],
                      "obs_size": ds.obs_size, "action_size": ds.action_size,
                      "n_policies": ds.n_policies, "policy_names": ds.meta.get("policy_names"),
                      "gamma": ds.meta.get("gamma"),
                      "true_value": np.asarray(data.true_value).tolist()},
-            "seed": seed, "profile": profile, **physics_meta(cfg.physics)}
-    metrics_path = os.path.join(out, "metrics.jsonl")
-    key = jax.random.PRNGKey(seed)
-    if resume_step is not None and ck.latest_step() is None:
-        ck.close()
-        raise FileNotFoundError(f"resume_step: {out}/checkpoints holds no saved step to resume "
-                                f"step {resume_step} from")
-    if ck.latest_step() is not None:
-        template = jax.eval_shape(lambda: init(key, cfg, data))
-        try:
-            state = ck.restore(template, resume_step)
-        except BaseException:
-            ck.close()
-            raise
-        moved = ck.set_aside_after(int(state.step))
-        _truncate_metrics(metrics_path, int(state.step))
-        _truncate_metrics(eval_path, int(state.step))
-        log(f"[train] resuming {out} from step {int(state.step)}")
-        for kind, steps_moved in moved.items():
-            if steps_moved:
-                log(f"[train] moved {kind} step(s) {steps_moved} to {ck.directory}/{kind}/")
-    else:
-        for path in (metrics_path, eval_path):
-            if os.path.exists(path):
-                os.remove(path)
-        t0 = time.perf_counter()
-        state = jax.jit(init, static_argnums=1)(key, cfg, data)
-        log(f"[train] {method} (eps {cfg.initial_eps}, profile {profile}) on {data_path}: "
-            f"{ds.n_transitions} transitions, {ds.n_policies} policies; init "
-            f"{time.perf_counter() - t0:.1f}s")
+            "seed": spec.seed, "profile": profile, **physics_meta(cfg.physics)}
+    metrics_path = os.path.join(spec.out, "metrics.jsonl")
+    state = _start_state(spec, cfg, data, ck, (metrics_path, eval_path), log,
+                         f"profile {profile}) on {spec.data}: {ds.n_transitions} transitions, "
+                         f"{ds.n_policies} policies")
     t0 = time.perf_counter()
     start = int(state.step)
     jumps: list[str] = []
     try:
-        state, metrics = fit(state, data, steps, chunk=chunk, checkpointer=ck,
-                             save_every=save_every, meta=meta, metrics_path=metrics_path,
-                             progress=progress, eval_every=eval_every, on_eval=on_eval,
-                             on_warning=lambda text: (jumps.append(text), log(text)))
+        state, _ = fit(state, data, spec.steps, chunk=spec.chunk, checkpointer=ck,
+                       save_every=spec.save_every, meta=meta, metrics_path=metrics_path,
+                       progress=not spec.quiet, eval_every=eval_every, on_eval=on_eval,
+                       on_warning=lambda text: (jumps.append(text), log(text)))
     finally:
         ck.close()
     if on_eval is not None and last_test.get("step_test") != int(state.step):
@@ -184,20 +147,83 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
         # rerun of a finished run replaces its row of that step)
         _truncate_metrics(eval_path, int(state.step) - 1)
         on_eval(state)
-    seconds = time.perf_counter() - t0
+    summary = _summary(spec, profile, cfg, state, data, ds, start, time.perf_counter() - t0,
+                       jumps, last_test)
+    if start > 0:  # resumed: what the earlier summary held stays
+        keep_earlier(summary, os.path.join(spec.out, "summary.json"), start)
+    write_json(os.path.join(spec.out, "summary.json"), summary)
+    return summary
+
+
+def _say_what_runs(spec: TrainSpec, ds, cfg: TrainConfig, log) -> None:
+    """Log where the reward and termination come from without a registered task, and warn
+    when the run ends inside pre-training."""
+    if not cfg.registered or spec.no_task:
+        log(f"[train] {spec.data}: "
+            f"{'--no-task' if spec.no_task else 'data of no registered task'} "
+            f"(meta.task {ds.meta.get('task')!r}): reward {cfg.outcome.reward!r}, termination "
+            f"{cfg.outcome.termination!r} (a reward head r(s, a, s') fitted on its rewards, the "
+            f"hazard h(s, a) on its done flags; their held-out errors are in the summary)")
+    pretrain = cfg.adversarial.pretrain_steps
+    if cfg.pretrains and spec.steps <= pretrain:
+        log(f"[train] warning: --steps {spec.steps} ends inside the {pretrain} "
+            f"pre-training steps of {spec.method}: this run is maximum likelihood on every "
+            f"policy (as bc) and never reaches the adversarial phase; "
+            f"{pretrain - spec.steps + 1} more step(s) reach it (--steps "
+            f"{pretrain + 1} or more, or --set adversarial.pretrain_steps=N)")
+
+
+def _start_state(spec: TrainSpec, cfg: TrainConfig, data, ck: Checkpointer, logs, log,
+                 what: str):
+    """The TrainState to train from: the checkpoint resumed (``spec.resume_step`` or the
+    newest intact one; the logs in ``logs`` cut back to its step), else a fresh ``init``
+    (the logs removed; ``what``: the profile and data, for its log line)."""
+    key = jax.random.PRNGKey(spec.seed)
+    if spec.resume_step is not None and ck.latest_step() is None:
+        ck.close()
+        raise FileNotFoundError(f"resume_step: {spec.out}/checkpoints holds no saved step to "
+                                f"resume step {spec.resume_step} from")
+    if ck.latest_step() is None:
+        for path in logs:
+            if os.path.exists(path):
+                os.remove(path)
+        t0 = time.perf_counter()
+        state = jax.jit(init, static_argnums=1)(key, cfg, data)
+        log(f"[train] {spec.method} (eps {cfg.initial_eps}, {what}; init "
+            f"{time.perf_counter() - t0:.1f}s")
+        return state
+    template = jax.eval_shape(lambda: init(key, cfg, data))
+    try:
+        state = ck.restore(template, spec.resume_step)
+    except BaseException:
+        ck.close()
+        raise
+    moved = ck.set_aside_after(int(state.step))
+    for path in logs:
+        _truncate_metrics(path, int(state.step))
+    log(f"[train] resuming {spec.out} from step {int(state.step)}")
+    for kind, steps_moved in moved.items():
+        if steps_moved:
+            log(f"[train] moved {kind} step(s) {steps_moved} to {ck.directory}/{kind}/")
+    return state
+
+
+def _summary(spec: TrainSpec, profile: str, cfg: TrainConfig, state, data, ds, start: int,
+             seconds: float, jumps: list[str], last_test: dict) -> dict:
+    """summary.json of a run that trained from step ``start`` to ``state.step``."""
     names = ds.meta.get("policy_names") or [str(i) for i in range(ds.n_policies)]
     vd = np.asarray(state.vd)
-    summary = {
-        "method": method, "eps": float(state.eps), "profile": profile, "steps": int(state.step),
-        "steps_run": int(state.step) - start, "seconds": round(seconds, 2),
-        "backend": jax.default_backend(), "machine": machine_info(),
-        "avd_train": float(np.mean(vd)),
-        "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(out, "checkpoints"),
-        "pretrain_steps_left": (max(0, cfg.pretrain_steps + 1 - int(state.step))
+    return {
+        "method": spec.method, "eps": float(state.eps), "profile": profile,
+        "steps": int(state.step), "steps_run": int(state.step) - start,
+        "seconds": round(seconds, 2), "backend": jax.default_backend(),
+        "machine": machine_info(), "avd_train": float(np.mean(vd)),
+        "mvd_train": float(np.max(vd)), "checkpoint": os.path.join(spec.out, "checkpoints"),
+        "pretrain_steps_left": (max(0, cfg.adversarial.pretrain_steps + 1 - int(state.step))
                                 if cfg.pretrains else 0),
         "vd_measured_by": {"source": "simulated, the last completed VD measurement of the "
-                           "training policies", "episodes": cfg.vd_episodes,
-                           "horizon": cfg.vd_horizon, "gamma": cfg.gamma},
+                           "training policies", "episodes": cfg.vd.episodes,
+                           "horizon": cfg.vd.horizon, "gamma": cfg.gamma},
         "worst_vd_jumps": jumps,
         "learned": None if cfg.physics else heldout_errors(simulator(state), data),
         **last_test,
@@ -206,10 +232,6 @@ def run_training(data_path: str, method: str, steps: int, out: str, *, zoo: str 
                      for n, t, s, v in zip(names, np.asarray(data.true_value),
                                            np.asarray(state.sim_value), vd, strict=True)},
         "config": state.config.to_dict()}
-    if start > 0:  # resumed: what the earlier summary held stays
-        keep_earlier(summary, os.path.join(out, "summary.json"), start)
-    write_json(os.path.join(out, "summary.json"), summary)
-    return summary
 
 
 def keep_earlier(summary: dict, path: str, resumed_from: int) -> None:
@@ -269,7 +291,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
             pols = policies_for(ds, zoo, data_path=eval_data, flag="eval-policies")
         except ValueError as err:  # say which Dataset's policies are unknown
             raise ValueError(f"eval_data: {eval_data}: {err}") from None
-    setting = setting.resolve(ds.meta.get("episode_length"), cfg.vd_horizon)
+    setting = setting.resolve(ds.meta.get("episode_length"), cfg.vd.horizon)
     key = setting.key()
 
     def on_eval(state):
@@ -277,7 +299,7 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
                                horizon=setting.horizon, truth=setting.truth)  # data's gamma
         row = {"step": int(state.step), **r["metrics"], "vd": r["vd"],
                "setting": setting.to_dict(), "true_value_source": r["true_value_source"]}
-        with open(path, "a") as f:
+        with open(path, "a") as f:  # appended: safe as metrics.jsonl is (train.loop.fit)
             f.write(json.dumps(row) + "\n")
         last.clear()
         last.update({f"{k}_test": v for k, v in r["metrics"].items()})
@@ -294,21 +316,12 @@ def _test_evaluator(eval_data: str, cfg, path: str, setting: EvalSetting,
 
 
 def run_train(spec: TrainSpec) -> int:
-    """`rl2s train`'s body: ``run_training`` with the spec's options, then its summary table;
-    1 where training diverged."""
+    """`rl2s train`'s body: ``run_training(spec)``, then its summary table; 1 where training
+    diverged."""
     if not os.path.exists(spec.data):
         raise FileNotFoundError(f"data: no such file {spec.data}")
     try:
-        summary = run_training(spec.data, spec.method, spec.steps, spec.out, zoo=spec.zoo,
-                               profile=spec.profile, seed=spec.seed, eps=spec.eps,
-                               save_every=spec.save_every, chunk=spec.chunk,
-                               overrides=train_overrides(spec), progress=not spec.quiet,
-                               eval_data=spec.eval_data, eval_every=spec.eval_every,
-                               setting=EvalSetting.from_flags(
-                                   spec.eval_episodes, spec.eval_horizon, spec.eval_seed,
-                                   spec.truth),
-                               resume_step=spec.resume_step, policy_file=spec.policy_file,
-                               eval_policies=spec.eval_policies, no_task=spec.no_task)
+        summary = run_training(spec)
     except TrainingDiverged as err:
         print(f"rl2s train: {err}", file=sys.stderr)
         return 1
@@ -316,31 +329,23 @@ def run_train(spec: TrainSpec) -> int:
     return 0
 
 
-def train_overrides(spec: TrainSpec) -> dict:
-    """The config overrides of `rl2s train`: ``--set`` pairs, and ``--physics`` as the
-    ``physics`` field (a hybrid)."""
-    overrides = parse_overrides(spec.set)
-    if spec.physics is not None:
-        overrides["physics"] = spec.physics
-    return overrides
-
-
-def train_hybrid(data_path: str, physics: str, steps: int, out: str, **kw) -> dict:
+def train_hybrid(data_path: str, physics: str, steps: int, out: str, *,
+                 overrides: dict | None = None, log=print, **kw) -> dict:
     """`rl2s train --physics PHYSICS --method bc`: the hybrid of a calibrated.json's physics
     and a residual learned by likelihood (rl2s_jax.physics.hybrid), checkpointed in ``out``;
-    ``kw`` as ``run_training``'s (``overrides`` included). Load it with
+    ``overrides``: TrainConfig's (``--set``), ``kw``: TrainSpec's other fields. Load it with
     ``physics.hybrid.load_hybrid`` (as `rl2s evaluate` does). -> the summary."""
-    overrides = {**(kw.pop("overrides", None) or {}), "physics": physics}
-    return run_training(data_path, "bc", steps, out, overrides=overrides, **kw)
+    spec = TrainSpec(data=data_path, steps=steps, out=out, method="bc", physics=physics,
+                     set=dict(overrides or {}), **kw)
+    return run_training(spec, log)
 
 
 def _truncate_metrics(path: str, step: int) -> None:
     """Drop logged rows after ``step`` (they belong to a run that went past its checkpoint)."""
     if not os.path.exists(path):
         return
-    with open(path) as f:
-        rows = [line for line in f if line.strip() and json.loads(line)["step"] <= step]
-    write_text(path, "".join(rows))
+    rows = [row for row in read_jsonl(path) if row["step"] <= step]  # a torn last line goes
+    write_text(path, "".join(json.dumps(row) + "\n" for row in rows))
 
 
 def format_summary(s: dict) -> str:

@@ -86,34 +86,43 @@ NOT_TRAINABLE = {
 
 def train_set(changes: list[dict], base: TrainConfig | None = None
               ) -> tuple[list[str], list[dict], list[str]]:
-    """The extension as ``rl2s train --set`` items (``KEY=VALUE``, TrainConfig fields, values
-    in JSON) over ``base``, the config of the simulator being extended (default: TrainConfig's
-    defaults, what `rl2s train` builds). An item ``base`` already satisfies is not repeated:
-    training's default members already have a state-dependent noise head and beta-NLL at
-    beta 1, and lowering beta to diagnosis's 0.5 raised the held-out MSE of Hopper's noise
-    variant by a quarter (RESULTS, "Planted effects through `rl2s train`").
+    """The extension as ``rl2s train --set`` items (``KEY=VALUE``, TrainConfig fields by
+    their dotted names, values in JSON) over ``base``, the config of the simulator being
+    extended (default: TrainConfig's defaults, what `rl2s train` builds). An item ``base``
+    already satisfies is not repeated: training's default members already have a
+    state-dependent noise head and beta-NLL at beta 1, and lowering beta to diagnosis's 0.5
+    raised the held-out MSE of Hopper's noise variant by a quarter (RESULTS, "Planted effects
+    through `rl2s train`").
     -> (train_set, not_trainable [{"change", "why"}], already ["KEY=VALUE" of base])."""
     base = base or TrainConfig()
+    dyn = base.dynamics
     want: dict = {}
     skipped: list[dict] = []
+
+    def raise_to(k, v):  # a history input at least v
+        want[f"dynamics.{k}"] = max(int(v), getattr(dyn, k), want.get(f"dynamics.{k}", 0))
+
     for c in changes:
         for k, v in c["change"].items():
             if k in ("action_history", "obs_history"):
-                want[k] = max(int(v), getattr(base, k), want.get(k, 0))
+                raise_to(k, v)
             elif k == "context_dim":  # inferred online from the recent transitions
-                want[k] = max(int(v), base.context_dim)
+                want["dynamics.context_dim"] = max(int(v), dyn.context_dim)
                 for h in ("obs_history", "action_history"):
-                    want[h] = max(CONTEXT_WINDOW, getattr(base, h), want.get(h, 0))
+                    raise_to(h, CONTEXT_WINDOW)
             elif k == "noise":
-                want["gen_noise"] = v
+                want["dynamics.noise"] = v
             elif k == "nll_beta":  # at least v
                 want["nll_beta"] = max(float(v), base.nll_beta)
             elif k == "time_inputs":  # "order": rollouts run at the end of the recording
-                want[k] = sorted(set(base.time_inputs) | set(want.get(k, ())) | set(v))
+                want["dynamics.time_inputs"] = sorted(
+                    set(dyn.time_inputs) | set(want.get("dynamics.time_inputs", ())) | set(v))
             else:
                 skipped.append({"change": f"{k}={json.dumps(v)}",
                                 "why": NOT_TRAINABLE.get(k, "no training field yet")})
-    has = lambda k, v: (sorted(getattr(base, k)) if k == "time_inputs" else getattr(base, k)) == v
+    now = lambda k: getattr(dyn, k[len("dynamics."):]) if k.startswith("dynamics.") else getattr(
+        base, k)
+    has = lambda k, v: (sorted(now(k)) if k.endswith("time_inputs") else now(k)) == v
     items = [f"{k}={json.dumps(v)}" for k, v in want.items() if not has(k, v)]
     already = [f"{k}={json.dumps(v)}" for k, v in want.items() if has(k, v)]
     return items, skipped, already

@@ -7,6 +7,7 @@ import os
 
 import numpy as np
 
+from rl2s_jax._files import save_figure
 from rl2s_jax.diagnose.gaps import _MAX_BARS, _MAX_HEAT_VARS, KSTEP_UNITS, RESID_UNITS, _num, _pct
 
 
@@ -73,7 +74,7 @@ def plot_gaps(out_dir: str, breakdown: dict, *, prefix: str = "gaps") -> list[st
         fig.suptitle(title, fontsize=11)
         fig.tight_layout()
         path = os.path.join(out_dir, f"{prefix}_one_step.png")
-        fig.savefig(path, dpi=110)
+        save_figure(fig, path, dpi=110)
         plt.close(fig)
         files.append(path)
 
@@ -88,7 +89,7 @@ def plot_gaps(out_dir: str, breakdown: dict, *, prefix: str = "gaps") -> list[st
                 _panel_values(ax, vd)
         fig.tight_layout()
         path = os.path.join(out_dir, f"{prefix}_rollout.png")
-        fig.savefig(path, dpi=110)
+        save_figure(fig, path, dpi=110)
         plt.close(fig)
         files.append(path)
     return files

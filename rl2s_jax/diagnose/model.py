@@ -35,7 +35,7 @@ from rl2s_jax.data.episodes import Episodes
 from rl2s_jax.model.dynamics import NOISE_KINDS, TIME_INPUTS, DynamicsSpec, Normalizer
 from rl2s_jax.model.history import History, episode_steps_back, past_rows, push_history
 from rl2s_jax.model.simulator import Simulator, simulator_returns
-from rl2s_jax.train.config import TrainConfig
+from rl2s_jax.train.config import TrainConfig, VDConfig
 from rl2s_jax.train.data import TrainData, episode_steps_left
 from rl2s_jax.train.lanes import init_lanes, train_lanes
 from rl2s_jax.train.step import TrainState, simulator
@@ -144,17 +144,19 @@ class ModelSpec:
         member per lane, no value measurement, no held-out rows inside the fit; mean-free
         rollouts sample the member (``sim_noise`` 1). ``episode_length`` scales the "step"
         time input (as the data's ``Episodes.step_frac``)."""
+        dynamics = DynamicsSpec(
+            hidden=self.hidden, noise=self.noise, activation="relu",
+            log_std_bounds=self.log_std_bounds, action_history=self.action_history,
+            obs_history=self.obs_history, time_inputs=tuple(self.time_inputs),
+            context_dim=self.context_dim, context_hidden=tuple(self.context_hidden))
         return TrainConfig(
-            task=None, method="bc", gen_hidden=self.hidden, gen_noise=self.noise,
-            gen_activation="relu", gen_log_std_bounds=self.log_std_bounds,
+            task=None, method="bc", dynamics=dynamics,
             log_std_bound_weight=self.log_std_bound_weight, gen_weight_decay=self.weight_decay,
             nll_beta=float(self.nll_beta), batch_size=self.batch_size, bc_lr=float(self.lr),
             updates_per_step=self.updates_per_step, ensemble_size=1, n_elites=1,
-            holdout_frac=0.0, early_stop_patience=0, vd_every=0, vd_horizon=int(episode_length),
-            sim_noise=1.0, input_ignore_dims=tuple(int(d) for d in position_dims),
-            action_history=self.action_history, obs_history=self.obs_history,
-            time_inputs=tuple(self.time_inputs), context_dim=self.context_dim,
-            context_hidden=tuple(self.context_hidden)).validate()
+            holdout_frac=0.0, early_stop_patience=0,
+            vd=VDConfig(every=0, horizon=int(episode_length)), sim_noise=1.0,
+            input_ignore_dims=tuple(int(d) for d in position_dims)).validate()
 
 
 class ModelDiverged(FloatingPointError):
@@ -261,16 +263,16 @@ def _train_data(eps: Episodes, rows: np.ndarray, cfg: TrainConfig) -> TrainData:
     if not cfg.markov:
         extra = dict(steps_back=jnp.asarray(episode_steps_back(pid, epi, t), jnp.int32),
                      t=jnp.asarray(t, jnp.int32),
-                     val_hist=episode_history(eps, rows[:0], obs_history=cfg.obs_history,
-                                              action_history=cfg.action_history,
-                                              time_inputs=tuple(cfg.time_inputs),
+                     val_hist=episode_history(eps, rows[:0], obs_history=cfg.dynamics.obs_history,
+                                              action_history=cfg.dynamics.action_history,
+                                              time_inputs=tuple(cfg.dynamics.time_inputs),
                                               episode_length=cfg.episode_length))
-        if "order" in cfg.time_inputs:
+        if "order" in cfg.dynamics.time_inputs:
             extra["order"] = f32(eps.order)
     starts = rows[eps.t[rows] == 0] if (eps.t[rows] == 0).any() else rows[:1]
     return TrainData(
-        obs_history=cfg.obs_history, action_history=cfg.action_history,
-        time_inputs=tuple(cfg.time_inputs), episode_length=cfg.episode_length, **extra,
+        obs_history=cfg.dynamics.obs_history, action_history=cfg.dynamics.action_history,
+        time_inputs=tuple(cfg.dynamics.time_inputs), episode_length=cfg.episode_length, **extra,
         obs=f32(eps.obs), action=f32(eps.action), next_obs=f32(eps.next_obs),
         policy_start=jnp.zeros((1,), jnp.int32),
         policy_count=jnp.asarray([rows.size], jnp.int32),

@@ -57,7 +57,7 @@ def evaluate_lanes(sims: Simulator, seeds, policies, pool, truth, *, key_base: i
 
 def intervals_over_seeds(per_seed: list[dict | None]) -> dict:
     """Each metric's mean over seeds of the per-seed bootstrap interval ends and std.
-    per_seed: S entries of ``bootstrap_intervals(...)["metrics"]`` ({metric: {"lo", "hi",
+    per_seed: S entries of ``stats.bootstrap_intervals(...)["metrics"]`` ({metric: {"lo", "hi",
     "std", ...}}, None for a seed without one) -> {metric: {"lo", "hi", "std"}} (an
     episode-noise interval; the spread over seeds is a result's "std")."""
     rows = [r for r in per_seed if r is not None]

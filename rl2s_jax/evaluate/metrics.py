@@ -25,7 +25,6 @@ __all__ = [
     "ranking_metrics",
     "regret_at_k",
     "spearman",
-    "bootstrap_intervals",
     "value_differences",
 ]
 
@@ -235,7 +234,7 @@ def noise_ceiling(values, episode_sd, *, n_truth: int, n_sim: int, n_rep: int = 
     truth_episode_sd ([P] or scalar) replaces episode_sd on the truth's side where the real
     episodes were measured apart (e.g. the Dataset's value SE x sqrt(value episodes)).
     -> {metric: {"mean", "lo", "hi"}} for kendall_tau, spearman, ndcg@k and regret@k.
-    Unlike ``bootstrap_intervals``' spread of tau around its own estimate, this is the bias
+    Unlike ``stats.bootstrap_intervals``' spread of tau around its own estimate, this is the bias
     the noise puts on tau: packed values with a large per-episode spread (Ant's falls) keep
     even the real dynamics below tau 1.
     """
@@ -263,56 +262,3 @@ def noise_ceiling(values, episode_sd, *, n_truth: int, n_sim: int, n_rep: int = 
     return {k: {"mean": float(np.mean(x)), "lo": float(np.quantile(x, q)),
                 "hi": float(np.quantile(x, 1.0 - q))}
             for k, x in ((k, np.array([r[k] for r in reps])) for k in reps[0])}
-
-
-def bootstrap_intervals(true_values, sim_returns, true_se=None, *, n_boot: int = 1000,
-                        seed: int = 0, ks: Iterable[int] = (1, 3, 5, 10), level: float = 0.95
-                        ) -> dict:
-    """Bootstrap intervals of every ``ranking_metrics`` metric over evaluation episodes.
-
-    true_values: [P] true values; sim_returns: [P, n] the simulated return of each of n
-    episodes per policy (the simulated value is their mean); true_se: [P] standard errors of
-    the true values, or None when they are known exactly.
-
-    Each of n_boot replicates resamples every policy's n simulated episodes with replacement;
-    when true_se is given, it also draws the true values from N(true, true_se^2) (a parametric
-    bootstrap: the per-episode true returns are not stored). Returns
-    {"level", "n_boot", "n_episodes", "metrics": {metric: {"lo", "hi", "std"}} over both
-    noises, "sim_only": {metric: {"lo", "hi", "std"}} over the simulated episodes alone}.
-    ``sim_only["kendall_tau"]["std"]`` is how much evaluation noise alone moves tau.
-    """
-    t = _as_values(true_values, "true_values")
-    r = np.array(sim_returns, dtype=np.float64)
-    if r.ndim != 2 or r.shape[0] != t.size or r.shape[1] < 1:
-        raise ValueError(f"sim_returns must be [P, n] with P = {t.size} (the true values') and "
-                         f"n >= 1 episodes, got shape {r.shape}")
-    if not np.all(np.isfinite(r)):
-        raise ValueError("sim_returns must be finite")
-    se = None
-    if true_se is not None:
-        se = _as_values(true_se, "true_se")
-        if se.shape != t.shape or (se < 0).any():
-            raise ValueError(f"true_se must be [P = {t.size}] and >= 0, got {se.tolist()}")
-    if not isinstance(n_boot, int) or n_boot < 2:
-        raise ValueError(f"n_boot must be an int >= 2, got {n_boot!r}")
-    if not 0.0 < level < 1.0:
-        raise ValueError(f"level must be in (0, 1), got {level}")
-    ks = tuple(ks)
-    rng = np.random.default_rng(seed)
-    P, n = r.shape
-    rows = np.arange(P)[:, None]
-    both, sim_only = [], []
-    for _ in range(n_boot):
-        sim = r[rows, rng.integers(0, n, size=(P, n))].mean(1)
-        sim_only.append(ranking_metrics(t, sim, ks))
-        truth = t if se is None else t + se * rng.standard_normal(P)
-        both.append(sim_only[-1] if se is None else ranking_metrics(truth, sim, ks))
-    q = (1.0 - level) / 2.0
-
-    def summary(reps):
-        return {k: {"lo": float(np.quantile(v, q)), "hi": float(np.quantile(v, 1.0 - q)),
-                    "std": float(np.std(v, ddof=1))}
-                for k, v in ((k, np.array([m[k] for m in reps])) for k in reps[0])}
-
-    return {"level": level, "n_boot": n_boot, "n_episodes": n, "metrics": summary(both),
-            "sim_only": summary(sim_only)}

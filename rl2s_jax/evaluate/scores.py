@@ -15,12 +15,13 @@ import numpy as np
 
 from rl2s_jax.data.values import true_values, true_values_se, truth_used
 from rl2s_jax.envs.tasks import get_task
-from rl2s_jax.evaluate.metrics import bootstrap_intervals, ranking_metrics
+from rl2s_jax.evaluate.metrics import ranking_metrics
 from rl2s_jax.evaluate.oracle import oracle_dynamics
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.history import logged_history
 from rl2s_jax.model.simulator import Simulator, simulated_returns, simulator_returns, start_pool
 from rl2s_jax.policy.policy import Params, num_policies
+from rl2s_jax.stats import bootstrap_intervals
 
 
 @partial(jax.jit, static_argnames=("n_episodes", "horizon", "gamma", "policy_fn"))
@@ -47,8 +48,8 @@ def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 
 
     returns, lengths: [P, n] each simulated episode's discounted return and length
     ("sim_return_sd": [P] the spread of one episode's return, the evaluation noise). n_boot > 0
-    adds "intervals" (``evaluate.bootstrap_intervals`` over the episodes, with the true values'
-    standard errors when the data measured them). ``truth``: which true value
+    adds "intervals" (``stats.bootstrap_intervals`` of ``ranking_metrics`` over the episodes,
+    with the true values' standard errors when the data measured them). ``truth``: which true value
     (``data.values.truth_used``; the one used is "true_value_source").
     """
     source = truth_used(ds, horizon, gamma, truth)
@@ -66,8 +67,9 @@ def value_report(ds, returns, lengths, *, horizon: int, gamma: float, ks=(1, 3, 
     if ds.n_policies >= 2:
         out["metrics"] = ranking_metrics(truth, sim_value, ks=ks)
         if n_boot and np.all(np.isfinite(returns)):
-            out["intervals"] = bootstrap_intervals(truth, returns, se,
-                                                   n_boot=n_boot, seed=boot_seed, ks=ks)
+            out["intervals"] = bootstrap_intervals(
+                truth, returns, partial(ranking_metrics, ks=ks), se, n_boot=n_boot,
+                seed=boot_seed)
     else:
         vd = float(abs(truth[0] - sim_value[0]))
         out["metrics"] = {"avd": vd, "mvd": vd}

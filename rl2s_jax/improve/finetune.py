@@ -39,6 +39,7 @@ from rl2s_jax.improve.sim_env import SimulatorEnv
 from rl2s_jax.model.simulator import Simulator, simulator_returns
 from rl2s_jax.policy.policy import Params, num_policies
 from rl2s_jax.policy.sac import SACConfig, episode_returns, make_sac
+from rl2s_jax.stats import paired_gain
 
 
 def improve_policies(sim: Env | Simulator | Callable, task: Task | str | None,
@@ -122,18 +123,11 @@ def choose_candidates(returns, z: float = 2.0) -> np.ndarray:
         raise ValueError("returns: expected finite episode returns")
     if not (np.isfinite(z) and z >= 0):
         raise ValueError(f"z: expected a finite float >= 0, got {z!r}")
-    mean, se = _paired_gain(r)
+    mean, se = paired_gain(r)
     eligible = (mean > z * se) & (mean > 0)
     score = np.where(eligible, r[1:].mean(-1), -np.inf)
     best = score.argmax(0)
     return np.where(eligible.any(0), best + 1, 0).astype(np.int32)
-
-
-def _paired_gain(r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and standard error of candidate k's paired gain over candidate 0, from episode
-    returns r [K + 1, P, E]. -> ([K, P], [K, P])."""
-    gain = r[1:] - r[:1]
-    return gain.mean(-1), gain.std(-1, ddof=1) / np.sqrt(r.shape[2])
 
 
 def _candidate_shape(candidates: Params) -> tuple[int, int]:
@@ -173,7 +167,7 @@ def select_by_validation(env: Env, candidates: Params, key: jax.Array, *, n_epis
     r = np.stack([r0, *rest]).astype(np.float64)
     index = choose_candidates(r, z)
     return (_pick_candidates(candidates, index),
-            {"index": index, "validation_mean": r.mean(-1), "gain_se": _paired_gain(r)[1]})
+            {"index": index, "validation_mean": r.mean(-1), "gain_se": paired_gain(r)[1]})
 
 
 @partial(jax.jit, static_argnames=("task", "n_episodes", "horizon", "gamma"))
@@ -475,40 +469,3 @@ def paired_returns(r0: np.ndarray, r1: np.ndarray) -> dict[str, np.ndarray | flo
     c0, c1 = r0.mean(1), r1.mean(1)
     return {"c0": c0, "c0_se": se(r0), "c1": c1, "c1_se": se(r1), "diff_se": se(r1 - r0),
             **improvement_metrics(c0, c1)}
-
-
-def improvement_intervals(c0, c0_se, c1, c1_se, *, diff_se=None, level: float = 0.95,
-                          n_boot: int = 2000, seed: int = 0) -> dict[str, list[float]]:
-    """Bootstrap intervals of MPI and API from real returns with their standard errors
-    (all [R, P]: R seeds of the fine-tuning x P policies, or [P]).
-
-    Each replicate resamples the P policies with replacement (the same draw for every seed)
-    and redraws each measured return from N(C, SE^2) (the measurement's own noise), then takes
-    MPI = min I and API = mean I over the drawn policies, averaged over the seeds. With
-    ``diff_se`` (paired measurement, ``measure_improvement``) C1 is redrawn as C0 + (C1 - C0)
-    + diff_se * z, keeping the pairing. The interval is the replicates' central ``level``
-    quantile range. -> {"mpi": [low, high], "api": [low, high]}."""
-    c0, s0, c1, s1 = (np.atleast_2d(np.asarray(x, np.float64)) for x in (c0, c0_se, c1, c1_se))
-    if not c0.shape == s0.shape == c1.shape == s1.shape:
-        raise ValueError(f"c0, c0_se, c1, c1_se: expected one shape, got {c0.shape}, "
-                         f"{s0.shape}, {c1.shape}, {s1.shape}")
-    sd = None if diff_se is None else np.atleast_2d(np.asarray(diff_se, np.float64))
-    if sd is not None and sd.shape != c0.shape:
-        raise ValueError(f"diff_se: expected the shape of c0 {c0.shape}, got {sd.shape}")
-    improvement_metrics(c0.reshape(-1), c1.reshape(-1))  # the same checks
-    if not 0 < level < 1:
-        raise ValueError(f"level: expected in (0, 1), got {level}")
-    rng = np.random.default_rng(seed)
-    R, P = c0.shape
-    idx = rng.integers(0, P, (n_boot, P))
-    z0, z1 = rng.standard_normal((2, n_boot, R, P))
-    d0 = c0[None] + s0[None] * z0
-    d1 = (c1[None] + s1[None] * z1 if sd is None
-          else d0 + (c1 - c0)[None] + sd[None] * z1)
-    take = np.broadcast_to(idx[:, None], z0.shape)
-    b0 = np.take_along_axis(d0, take, axis=-1)
-    b1 = np.take_along_axis(d1, take, axis=-1)
-    imp = (b1 - b0) / np.maximum(np.abs(b0), 1e-8)
-    mpi, api = imp.min(-1).mean(-1), imp.mean(-1).mean(-1)
-    q = [(1 - level) / 2, (1 + level) / 2]
-    return {"mpi": np.quantile(mpi, q).tolist(), "api": np.quantile(api, q).tolist()}

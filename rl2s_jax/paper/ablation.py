@@ -20,7 +20,7 @@ from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.model.dynamics import MEMBER_MODES
 from rl2s_jax.model.termination import TERMINATIONS
-from rl2s_jax.train.config import LEGACY_MODEL, TrainConfig
+from rl2s_jax.train.config import LEGACY_MODEL, TrainConfig, saved_field
 from rl2s_jax.train.lanes import select_point
 
 # variant -> (config method, config overrides); "rl2s" keeps the EMA and is evaluated twice.
@@ -130,13 +130,14 @@ def tau_swing(points: list[dict], from_step: int = 0) -> float | None:
 def summarize_rows(results: list[dict]) -> dict:
     """{row: {"final" | "selected": {metric: (mean, std, n)}, "selected_steps": [...],
     "tau_swing": (mean, std, n)}} over the seeds of every variant result; the swing is taken
-    from the first evaluation at or after the pre-training steps (config.pretrain_steps of an
-    adversarial variant, else from the start)."""
+    from the first evaluation at or after the pre-training steps (the config's
+    adversarial.pretrain_steps of an adversarial variant, else from the start)."""
     table = {}
     for res in results:
         cfg = res.get("config") or {}
         adversarial = cfg.get("method") in ("rl2s", "gail")
-        from_step = int(cfg.get("pretrain_steps") or 0) if adversarial else 0
+        from_step = (int(saved_field(cfg, "adversarial.pretrain_steps") or 0) if adversarial
+                     else 0)
         for row, lanes in res["curves"].items():
             finals, chosen, steps, swings, valids = [], [], [], [], []
             for points in lanes.values():

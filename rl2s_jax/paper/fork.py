@@ -92,7 +92,7 @@ def join_trunk(trunk: dict, start: TrainState) -> TrainState:
     measurement recomputes it). With the same key and a config equal but for the method, the
     result is the state BC's own first ``step`` steps reach. Pure and jittable."""
     state = start.replace(**{name: trunk[name] for name in JOINED})
-    if start.config.vd_every:
+    if start.config.vd.every:
         state = state.replace(selected=select_worst(state.vd,
                                                     n_worst(start.eps, state.vd.shape[0])))
     return state
@@ -118,12 +118,12 @@ def join_refusal(trunk: dict | None, cfg: TrainConfig, lanes, joining, eps, *, s
         return f"the trunk ran seeds {trunk['seeds']}, this family {list(seeds)}"
     other = trunk["config"]
     if dataclasses.replace(cfg, method=other.method) != other:
-        diff = [f.name for f in dataclasses.fields(cfg) if f.name != "method"
-                and getattr(cfg, f.name) != getattr(other, f.name)]
+        mine, theirs = cfg.to_dotted(), other.to_dotted()
+        diff = [k for k in mine if k != "method" and mine[k] != theirs[k]]
         return f"the trunk's config differs in {', '.join(diff)}"
-    if trunk["at_step"] != cfg.pretrain_steps:
+    if trunk["at_step"] != cfg.adversarial.pretrain_steps:
         return (f"the trunk pre-trained {trunk['at_step']} steps, this config's "
-                f"pretrain_steps is {cfg.pretrain_steps}")
+                f"pretrain_steps is {cfg.adversarial.pretrain_steps}")
     if trunk["fields"] is None:
         return f"the trunk's training ended before step {trunk['at_step']}"
     if sizes["steps"] < trunk["at_step"]:

@@ -40,6 +40,7 @@ from rl2s_jax.paper.protocol import (
 )
 from rl2s_jax.policy.policy import Params, index_params
 from rl2s_jax.policy.sac import SACConfig, episode_returns
+from rl2s_jax.train.config import saved_field
 from rl2s_jax.train.step import simulator
 
 
@@ -100,7 +101,7 @@ def lane_training_mvd(finals: dict, last_seed: int, horizon: int, gamma: float
     out = []
     for fam_lanes, states in finals.values():
         vd = np.asarray(states.vd, np.float64)  # [L, P_train]
-        at = {"horizon": states.config.vd_horizon, "gamma": states.config.gamma}
+        at = {"horizon": states.config.vd.horizon, "gamma": states.config.gamma}
         out += [guard_floor({"mvd": float(vd[i].max()), **at}, horizon, gamma)
                 for i, (_, s) in enumerate(fam_lanes) if s < last_seed]
     return out
@@ -120,7 +121,8 @@ def lane_error_range(result: dict, lane: str, horizon: int, gamma: float) -> flo
         return None
     e = np.asarray(sim, np.float64) - np.asarray(truth, np.float64)
     cfg = result.get("train_config", {}).get(entry.get("family")) or {}
-    spread = guard_floor({"mvd": float(e.max() - e.min()), "horizon": cfg.get("vd_horizon"),
+    spread = guard_floor({"mvd": float(e.max() - e.min()),
+                          "horizon": saved_field(cfg, "vd.horizon"),
                           "gamma": cfg.get("gamma", np.nan)}, horizon, gamma)
     return spread or None  # 0.0: measured elsewhere or not finite
 

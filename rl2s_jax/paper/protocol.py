@@ -30,11 +30,12 @@ from rl2s_jax.evaluate.lane_scores import (
     oracle_noise_ceiling,
     oracle_rows,
 )
-from rl2s_jax.evaluate.metrics import bootstrap_intervals
+from rl2s_jax.evaluate.metrics import ranking_metrics
 from rl2s_jax.evaluate.scores import evaluate_simulator
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.paper.fork import Join, Trunk, join_refusal, take_lanes, train_chunk
 from rl2s_jax.sharding import is_writer, lane_mesh, replicate, shard_lanes
+from rl2s_jax.stats import bootstrap_intervals
 from rl2s_jax.train.config import DEFAULT_EPS, TrainConfig
 from rl2s_jax.train.cvar import n_worst
 from rl2s_jax.train.data import make_train_data
@@ -191,18 +192,18 @@ def run_oracle(result: dict, task: str, test_ds, test_pols, seeds, cfg: TrainCon
     sizes, into ``result``; ``phase("oracle", t0)`` records its time, ``save()`` writes."""
     t0 = time.perf_counter()
     orc = oracle_rows(task, test_ds, test_pols, seeds, n_episodes=sizes["eval_episodes"],
-                      horizon=cfg.vd_horizon, gamma=cfg.gamma, n_boot=sizes["bootstrap"])
+                      horizon=cfg.vd.horizon, gamma=cfg.gamma, n_boot=sizes["bootstrap"])
     result["per_seed"]["oracle"] = {**orc["per_seed"], "mpi": [], "api": []}
     result["lane_intervals"] = {"oracle": orc["intervals"]}
     result["intervals"] = {"oracle": intervals_over_seeds(orc["intervals"])}
     result["oracle_sim_value"] = orc["sim_value"]
     result["oracle_sim_length"] = orc["sim_length"]
     result["noise_ceiling"] = oracle_noise_ceiling(
-        test_ds, true_values(test_ds, cfg.vd_horizon, cfg.gamma), orc["sim_return_sd"],
-        n_sim=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
+        test_ds, true_values(test_ds, cfg.vd.horizon, cfg.gamma), orc["sim_return_sd"],
+        n_sim=sizes["eval_episodes"], horizon=cfg.vd.horizon, gamma=cfg.gamma)
     phase("oracle", t0)
     save()
-    log(f"[paper] oracle (real dynamics, horizon {cfg.vd_horizon}): "
+    log(f"[paper] oracle (real dynamics, horizon {cfg.vd.horizon}): "
         + "  ".join(f"{k} {np.mean(v):.3f}" for k, v in orc["per_seed"].items()
                     if k in ("kendall_tau", "ndcg@1", "spearman", "avd", "mvd")))
     nc = result["noise_ceiling"]
@@ -277,8 +278,8 @@ def _final_rows(result, family, lanes, eps, points, evals, values, returns, leng
             result["per_seed"][meth][k].append(None if r is None else r[k])
         iv = None
         if r is not None and n_boot and np.all(np.isfinite(returns[i])):
-            iv = bootstrap_intervals(truth, returns[i], truth_se, n_boot=n_boot, seed=s,
-                                     ks=(1, 3, 5, 10))["metrics"]
+            iv = bootstrap_intervals(truth, returns[i], ranking_metrics, truth_se,
+                                     n_boot=n_boot, seed=s)["metrics"]
         result.setdefault("lane_intervals", {}).setdefault(meth, []).append(iv)
         result.setdefault("intervals", {})[meth] = intervals_over_seeds(
             result["lane_intervals"][meth])
@@ -303,10 +304,11 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
 
     ``fork`` (an adversarial family with pre-training, one process): the lanes of a seed
     are identical through pre-training, so only the first method's lanes (the trunk) train
-    and are evaluated until ``cfg.pretrain_steps``; then ``train.lanes.fork`` continues each
-    other lane from its seed's trunk lane with its own eps, critic, simulated envs and buffer
-    (drawn by its own ``init``): the same states as separate lanes, at 1 / len(methods) of
-    the pre-training work. result["fork"][family] says whether and where it forked.
+    and are evaluated until ``cfg.adversarial.pretrain_steps``; then ``train.lanes.fork``
+    continues each other lane from its seed's trunk lane with its own eps, critic, simulated
+    envs and buffer (drawn by its own ``init``): the same states as separate lanes, at
+    1 / len(methods) of the pre-training work. result["fork"][family] says whether and where
+    it forked.
 
     ``share`` (a dict passed to every family of one process; with ``fork``): the forking
     family leaves its trunk there (share["trunk"]: its evaluation points up to the fork and
@@ -320,7 +322,7 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     -> (lanes [(method, seed)] * L, their final TrainState, leading lane axis L)"""
     t0 = time.perf_counter()
     data_host = data = make_train_data(train_ds, train_pols, cfg)
-    truth = true_values(test_ds, cfg.vd_horizon, cfg.gamma)
+    truth = true_values(test_ds, cfg.vd.horizon, cfg.gamma)
     test_pool = start_pool(test_ds)
     select_pool, select_truth = heldout_start_pool(train_ds), np.asarray(data.true_value)
     lanes = [(m, s) for m in methods for s in seeds]
@@ -332,21 +334,19 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     pending, note, record = None, "", None  # a fork (Trunk) or join (Join) to come
     joining = [i for i, (m, _) in enumerate(lanes) if m == "bc"]
     if fork and cfg.pretrains and len(methods) > 1 and jax.process_count() == 1:
-        trunk = None
+        trunk, fork_step = None, cfg.adversarial.pretrain_steps
         if share is not None:
             trunk = share["trunk"] = {
                 "family": family, "method": methods[0], "config": cfg, "seeds": list(seeds),
-                "at_step": cfg.pretrain_steps,
+                "at_step": fork_step,
                 "sizes": {k: sizes[k] for k in ("eval_every", "eval_episodes")},
                 "inputs": (train_ds, test_ds, train_pols, test_pols), "points": {},
                 "fields": None, "finite_before": None}
         pending = Trunk(jax.block_until_ready(shard_lanes(states, mesh_all)), len(seeds),
-                         len(lanes), cfg.pretrain_steps, trunk)
-        record = {
-            "trunk": methods[0], "at_step": cfg.pretrain_steps,
-            "steps_saved_per_seed": (len(methods) - 1) * min(cfg.pretrain_steps,
-                                                             sizes["steps"])}
-        note = f"; the {methods[0]} lanes pre-train for all (fork at step {cfg.pretrain_steps})"
+                         len(lanes), fork_step, trunk)
+        record = {"trunk": methods[0], "at_step": fork_step,
+                  "steps_saved_per_seed": (len(methods) - 1) * min(fork_step, sizes["steps"])}
+        note = f"; the {methods[0]} lanes pre-train for all (fork at step {fork_step})"
     elif joining:
         trunk = (share or {}).pop("trunk", None) if fork else None
         why = ("the fork is off (--no-fork)" if not fork else join_refusal(
@@ -373,12 +373,12 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     log(f"[paper] {family}: {len(lanes)} lanes over {mesh_all.size} device(s) "
         f"{', '.join(f'{m}/{s} (eps {e:g})' for (m, s), e in zip(lanes, eps, strict=True))}"
         f", config method {cfg.method}; init {time.perf_counter() - t0:.1f}s{note}")
-    n_sel = [int(n_worst(e, data_host.n_policies)) if cfg.vd_every else data_host.n_policies
+    n_sel = [int(n_worst(e, data_host.n_policies)) if cfg.vd.every else data_host.n_policies
              for e in eps]
     n = sizes["eval_every"]
     compiled, evals, t_eval = {}, None, 0.0
     worst = [None] * len(lanes)  # each lane's worst training VD at its last evaluation
-    roll = dict(n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon, gamma=cfg.gamma)
+    roll = dict(n_episodes=sizes["eval_episodes"], horizon=cfg.vd.horizon, gamma=cfg.gamma)
     lane_seeds = [s for _, s in lanes]
     for _ in range(sizes["steps"] // n):
         t1 = time.perf_counter()
@@ -411,20 +411,20 @@ def train_family(result: dict, family: str, cfg: TrainConfig, methods, *, train_
     if pending is not None:  # training ended within pre-training: fork / join the final states
         states = pending.grow(states, None, mesh_all)
     _final_rows(result, family, lanes, eps, points, evals, values, returns, lengths, truth,
-                true_values_se(test_ds, cfg.vd_horizon, cfg.gamma), sizes["bootstrap"])
+                true_values_se(test_ds, cfg.vd.horizon, cfg.gamma), sizes["bootstrap"])
     result["true_value"] = np.asarray(truth).tolist()
     # The paper's sizes are its own evaluation setting (evaluate/setting.py's fields), stored
     # beside its numbers; each lane draws its episodes with PRNGKey(1000 + its seed).
-    result["setting"] = {"episodes": sizes["eval_episodes"], "horizon": cfg.vd_horizon,
+    result["setting"] = {"episodes": sizes["eval_episodes"], "horizon": cfg.vd.horizon,
                          "seed": "1000 + the lane's seed", "truth": "auto",
-                         "true_value_source": truth_used(test_ds, cfg.vd_horizon, cfg.gamma)}
+                         "true_value_source": truth_used(test_ds, cfg.vd.horizon, cfg.gamma)}
     result["train_true_value"] = select_truth.tolist()
     result.setdefault("train_config", {})[family] = cfg.to_dict()
     result["timings"][f"eval_{family}"] = round(t_eval, 1)
     if check_eval:
         r = evaluate_simulator(simulator(take_lanes(states, 0)), test_ds, test_pols,
                                key=jax.random.PRNGKey(1000 + lanes[0][1]),
-                               n_episodes=sizes["eval_episodes"], horizon=cfg.vd_horizon,
+                               n_episodes=sizes["eval_episodes"], horizon=cfg.vd.horizon,
                                gamma=cfg.gamma)
         diff = float(np.max(np.abs(np.asarray(r["sim_value"]) - values[0])))
         result.setdefault("eval_check", {})[family] = {

@@ -72,11 +72,13 @@ def train_learned(train_path: str, method: str, out: str, *, steps: int, profile
     evaluation's -> the trained Simulator (checkpoint under ``out``)."""
     # Imported here: app.training pulls in the whole training stack, which the table's
     # helpers (and their tests) do not need.
+    from rl2s_jax.app.specs import TrainSpec
     from rl2s_jax.app.training import run_training
     from rl2s_jax.train.checkpoint import load_simulator
 
-    run_training(train_path, method, steps, out, profile=profile, seed=seed, progress=False,
-                 log=log, overrides={"gamma": float(gamma), "vd_horizon": int(horizon)})
+    run_training(TrainSpec(data=train_path, steps=steps, out=out, method=method, profile=profile,
+                           seed=seed, quiet=True,
+                           set={"gamma": float(gamma), "vd.horizon": int(horizon)}), log=log)
     return load_simulator(os.path.join(out, "checkpoints"))
 
 

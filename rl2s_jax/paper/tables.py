@@ -9,7 +9,7 @@ import math
 import os
 import statistics
 
-from rl2s_jax.stats import t_interval
+from rl2s_jax.stats import paired_seed_difference
 
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -184,15 +184,11 @@ def bars(result: dict) -> dict[str, tuple[bool | None, str]]:
 
 def paired_mvd(result: dict, other: str) -> tuple[float, float, float, int, int] | None:
     """RL2S's MVD minus ``other``'s, seed by seed (the lanes of one seed share the key and the
-    data): (mean, lo, hi, seeds where RL2S is lower, seeds) with a 95% t-interval over the
-    seeds; None without two seeds that both methods ran."""
+    data): ``stats.paired_seed_difference``'s (mean, lo, hi, seeds where RL2S is lower, seeds)
+    with a 95% t-interval over the seeds; None without two seeds that both methods ran."""
     per = result.get("per_seed") or {}
     a, b = (per.get(m, {}).get("mvd") or [] for m in ("rl2s", other))
-    if len(a) != len(b):
-        return None
-    diffs = [x - y for x, y in zip(a, b, strict=True) if x is not None and y is not None]
-    t = t_interval(diffs)
-    return None if t is None else (*t, sum(d < 0 for d in diffs), len(diffs))
+    return paired_seed_difference(a, b)
 
 
 def paired_mvd_rows(results: dict) -> list[str]:

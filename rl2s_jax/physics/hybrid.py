@@ -30,9 +30,9 @@ What it rules out (``TrainConfig._check_physics_rules``): the adversarial method
 and rl2s-bc roll the learned model inside ``train_step`` (its simulated samples, the VD that
 picks the worst policies); those rollouts step the members alone, which model only the
 residual, so they are refused, and training runs with the VD measurement off
-(``vd_every`` 0): score the hybrid with ``rl2s evaluate``. A learned reward would be fitted to
+(``vd.every`` 0): score the hybrid with ``rl2s evaluate``. A learned reward would be fitted to
 the residual and is refused. With delays, the members see at least ``max(delays)`` past
-actions (``action_history``), which the physics reads from the rollouts' ``History``.
+actions (``dynamics.action_history``), which the physics reads from the rollouts' ``History``.
 
 Files: ``rl2s train --physics DIR/calibrated.json --method bc`` (app/training.py) records the
 path in the config (``TrainConfig.physics``) and the calibrated.json content in every saved
@@ -42,7 +42,6 @@ alone, in a fresh process. :func:`fit_hybrid` does it all in memory.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import os
 from collections.abc import Callable
@@ -107,8 +106,8 @@ def hybrid_config(cfg: TrainConfig, ds, content: dict | None = None) -> TrainCon
     if delays.shape != (ds.action_size,) or (delays < 0).any():
         raise ValueError(f"physics: {cfg.physics} has delays {delays.tolist()}; the data has "
                          f"{ds.action_size} actions (expected one delay >= 0 each)")
-    history = max(cfg.action_history, int(delays.max()) if delays.size else 0)
-    cfg = dataclasses.replace(cfg, vd_every=0, action_history=history)
+    history = max(cfg.dynamics.action_history, int(delays.max()) if delays.size else 0)
+    cfg = cfg.override({"vd.every": 0, "dynamics.action_history": history})
     cfg._check_physics_rules()  # the method first: validate's other rules assume VD
     return cfg
 
@@ -169,7 +168,8 @@ def fit_hybrid(ds, policies, physics: str | dict, *, steps: int, config: TrainCo
     """The hybrid fitted in memory, no files: the residual of ``physics`` (a calibrated.json
     path or its content) on Dataset ``ds`` learned by ``steps`` train_steps of method "bc"
     (``config``: the members' settings, default ``TrainConfig.small``; its method, physics,
-    vd_every and action_history are set here). policies: ``ds``'s policies, stacked [P, ...].
+    vd.every and dynamics.action_history are set here). policies: ``ds``'s policies,
+    stacked [P, ...].
     -> the hybrid ``Simulator`` (its ``base`` the MJX physics)."""
     # Imported here to keep `import rl2s_jax.physics` light: the training loop and its
     # optimisers load only when a hybrid is fitted.
@@ -180,7 +180,7 @@ def fit_hybrid(ds, policies, physics: str | dict, *, steps: int, config: TrainCo
     content = read_calibrated(physics) if isinstance(physics, str) else physics
     base = config or TrainConfig.small(task=ds.meta.get("task"))
     name = physics if isinstance(physics, str) else "<in memory>"
-    cfg = hybrid_config(dataclasses.replace(base, method="bc", eps=None, physics=name), ds,
+    cfg = hybrid_config(base.override({"method": "bc", "eps": None, "physics": name}), ds,
                         content).validate()
     data = make_train_data(residual_data(ds, content, backend), policies, cfg)
     state = jax.jit(init, static_argnums=1)(jax.random.PRNGKey(seed), cfg, data)

@@ -145,8 +145,8 @@ class Checkpointer:
                     f"--out directory")
             saved = self._config(s)
             if saved != template.config:
-                new = template.config.to_dict()
-                diff = {k: (v, new[k]) for k, v in saved.to_dict().items() if new[k] != v}
+                new = template.config.to_dotted()
+                diff = {k: (v, new[k]) for k, v in saved.to_dotted().items() if new[k] != v}
                 raise CheckpointError(
                     f"config: the checkpoint in {self.directory} was trained with a different "
                     f"config (saved vs requested: {diff}); use another --out directory or the "
@@ -375,7 +375,7 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None, *,
             raise CheckpointError(f"ckpt: format_version 2 or {FORMAT_VERSION} expected, got "
                                   f"{version!r} in {directory} step {s}")
         if version == 2:  # one generator (a list of layers), trained before the family
-            cfg = TrainConfig.from_saved({**meta["config"], **LEGACY_MODEL})
+            cfg = TrainConfig.from_saved(meta["config"]).override(LEGACY_MODEL)
         else:
             cfg = ck._config(s)
         try:
@@ -385,17 +385,17 @@ def load_checkpoint(directory: str | os.PathLike, step: int | None = None, *,
         norm = Normalizer.from_data(np.zeros((2, o)), np.zeros((2, a)), np.zeros((2, o)))
         if version == 2:
             template = jax.eval_shape(lambda: {
-                "gen": init_generator(jax.random.PRNGKey(0), o, a, cfg.gen_hidden),
+                "gen": init_generator(jax.random.PRNGKey(0), o, a, cfg.dynamics.hidden),
                 "norm": norm})
         else:
             template = jax.eval_shape(lambda: {
-                "gen": dyn.init_ensemble(jax.random.PRNGKey(0), cfg.dynamics_spec, o, a,
+                "gen": dyn.init_ensemble(jax.random.PRNGKey(0), cfg.dynamics, o, a,
                                          cfg.ensemble_size),
                 "norm": norm, "rank": jax.numpy.zeros((cfg.ensemble_size,), jax.numpy.int32),
-                **({"hazard": init_hazard(jax.random.PRNGKey(0), o, a, cfg.hazard_hidden)}
-                   if cfg.termination in LEARNED else {}),
-                **({"reward": init_reward(jax.random.PRNGKey(0), o, a, cfg.reward_hidden)}
-                   if cfg.reward == "learned" else {})})
+                **({"hazard": init_hazard(jax.random.PRNGKey(0), o, a, cfg.outcome.hazard_hidden)}
+                   if cfg.outcome.termination in LEARNED else {}),
+                **({"reward": init_reward(jax.random.PRNGKey(0), o, a, cfg.outcome.reward_hidden)}
+                   if cfg.outcome.reward == "learned" else {})})
         sim = ck._restore_item(s, "simulator", ocp.args.StandardRestore(template))
         return Simulator(gen=sim["gen"], norm=sim["norm"], rank=sim.get("rank"),
                          hazard=sim.get("hazard"), reward=sim.get("reward"),

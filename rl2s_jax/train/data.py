@@ -150,17 +150,18 @@ def make_train_data(ds, policies: Params, config: TrainConfig) -> TrainData:
     val = np.flatnonzero(held)
     if val.size > config.holdout_rows:
         val = val[np.round(np.linspace(0, val.size - 1, config.holdout_rows)).astype(int)]
-    true_value = true_values(ds, config.vd_horizon, config.gamma, strict=bool(config.vd_every))
+    true_value = true_values(ds, config.vd.horizon, config.gamma, strict=bool(config.vd.every))
     f32 = lambda x, rows: jnp.asarray(np.asarray(x)[rows], jnp.float32)
     obs, action, next_obs = (np.asarray(x)[keep] for x in (ds.obs, ds.action, ds.next_obs))
     steps_left = episode_steps_left(np.asarray(ds.policy_id)[order],
                                     np.asarray(ds.episode_id)[order], np.asarray(ds.t)[order])
-    hist = dict(obs_history=config.obs_history, action_history=config.action_history,
-                time_inputs=tuple(config.time_inputs), episode_length=config.episode_length)
+    d = config.dynamics
+    hist = dict(obs_history=d.obs_history, action_history=d.action_history,
+                time_inputs=tuple(d.time_inputs), episode_length=config.episode_length)
     extra = {}
     if not config.markov:
         back_all = dataset_steps_back(ds)
-        ep_order = dataset_episode_order(ds) if "order" in config.time_inputs else None
+        ep_order = dataset_episode_order(ds) if "order" in config.dynamics.time_inputs else None
         extra = dict(steps_back=jnp.asarray(back_all[order], jnp.int32),
                      t=jnp.asarray(np.asarray(ds.t)[order], jnp.int32),
                      order=None if ep_order is None else jnp.asarray(ep_order[order],

@@ -52,7 +52,7 @@ def train_lanes(states: TrainState, data: TrainData, n: int, cfg: TrainConfig,
     while done < n:
         step = int(states.step[0])
         ph = cfg.phase(step)
-        k = min(n - done, cfg.pretrain_steps - step) if ph == "pretrain" else n - done
+        k = min(n - done, cfg.adversarial.pretrain_steps - step) if ph == "pretrain" else n - done
         if (k, ph) not in compiled:
             compiled[k, ph] = jax.jit(jax.vmap(partial(_lane_chunk, n=k, phase=ph),
                                                in_axes=(0, None)))
@@ -105,7 +105,7 @@ def fork(trunk: TrainState, start: TrainState) -> TrainState:
                          "state the lanes share)")
     cfg = start.config
     state = trunk.replace(**{name: getattr(start, name) for name in FORK_REDRAWN})
-    if cfg.vd_every:
+    if cfg.vd.every:
         state = state.replace(selected=select_worst(trunk.vd,
                                                     n_worst(start.eps, trunk.vd.shape[0])))
     return state
@@ -122,9 +122,10 @@ def fork_lanes(trunk: TrainState, starts: TrainState) -> TrainState:
     steps = np.asarray(trunk.step)
     if np.any(np.asarray(starts.step) != 0):
         raise ValueError("fork_lanes: the starts must be fresh lanes (step 0)")
-    if not cfg.pretrains or np.any(steps > cfg.pretrain_steps):
+    if not cfg.pretrains or np.any(steps > cfg.adversarial.pretrain_steps):
         raise ValueError(f"fork_lanes: the trunk must be within its pre-training (steps <= "
-                         f"pretrain_steps {cfg.pretrain_steps}), got steps {steps.tolist()}")
+                         f"adversarial.pretrain_steps {cfg.adversarial.pretrain_steps}), got "
+                         f"steps {steps.tolist()}")
     return _fork_lanes(trunk, starts)
 
 

@@ -21,27 +21,29 @@ def fit_learned(key: jax.Array, cfg: TrainConfig, data: TrainData, norm: Normali
     -> (hazard params | None, reward params | None)"""
     obs_size, act_size = data.obs.shape[1], data.action.shape[1]
     hazard = reward = None
-    if cfg.termination in LEARNED:
+    if cfg.outcome.termination in LEARNED:
         if data.done is None:
-            raise ValueError(f"termination: {cfg.termination!r} learns from the data's done "
-                             f"flags, and TrainData.done is None (make_train_data sets it)")
+            raise ValueError(f"outcome.termination: {cfg.outcome.termination!r} learns from the "
+                             f"data's done flags, and TrainData.done is None (make_train_data "
+                             f"sets it)")
         k_init, k_fit = jax.random.split(jax.random.fold_in(key, 7))
-        if cfg.hazard_window > 1 and data.steps_left is None:
+        if cfg.outcome.hazard_window > 1 and data.steps_left is None:
             raise ValueError("hazard_window: a window > 1 needs TrainData.steps_left "
                              "(make_train_data sets it); set hazard_window=1")
-        labels = (data.done if cfg.hazard_window == 1
-                  else window_labels(data.done, data.steps_left, cfg.hazard_window))
-        hazard, _ = fit_hazard(k_fit, init_hazard(k_init, obs_size, act_size, cfg.hazard_hidden),
-                               norm, data.obs, data.action, labels, steps=cfg.hazard_steps)
-    if cfg.reward == "learned":
+        labels = (data.done if cfg.outcome.hazard_window == 1
+                  else window_labels(data.done, data.steps_left, cfg.outcome.hazard_window))
+        hazard, _ = fit_hazard(k_fit, init_hazard(k_init, obs_size, act_size,
+                                                  cfg.outcome.hazard_hidden),
+                               norm, data.obs, data.action, labels, steps=cfg.outcome.hazard_steps)
+    if cfg.outcome.reward == "learned":
         if data.reward is None:
             raise ValueError("reward: 'learned' fits a head on the data's rewards, and "
                              "TrainData.reward is None (make_train_data sets it)")
         k_init, k_fit = jax.random.split(jax.random.fold_in(key, 8))
         reward, _ = fit_reward(k_fit, init_reward(k_init, obs_size, act_size,
-                                                  cfg.reward_hidden),
+                                                  cfg.outcome.reward_hidden),
                                norm, data.obs, data.action, data.next_obs, data.reward,
-                               steps=cfg.reward_steps)
+                               steps=cfg.outcome.reward_steps)
     return hazard, reward
 
 

@@ -76,10 +76,12 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     Chunks of ``chunk`` steps run as one compiled scan; checkpoints land at every multiple of
     ``save_every`` and at the end; with pre-training a chunk never straddles
     ``pretrain_steps`` (each runs one phase only). Metrics of every step are appended to
-    ``metrics_path``. ``on_eval(state)`` runs at every multiple of ``eval_every`` (chunks end
-    there too); the scalars of a dict it returns join the progress bar. ``on_warning(text)``
-    hears of every sharp rise of the worst training-policy VD between measurements
-    (``worst_vd_jumps``; default: printed above the progress bar). Raises
+    ``metrics_path``, one JSON line each (appended, not rewritten whole: a crash can tear only
+    the last line, which the readers skip, ``_files.read_jsonl``, and a resumed run rewrites
+    the log before it appends). ``on_eval(state)`` runs at every multiple of ``eval_every``
+    (chunks end there too); the scalars of a dict it returns join the progress bar.
+    ``on_warning(text)`` hears of every sharp rise of the worst training-policy VD between
+    measurements (``worst_vd_jumps``; default: printed above the progress bar). Raises
     TrainingDiverged (after saving the last good state) on NaN/Inf.
     -> (final state, metrics stacked over the steps run here).
     """
@@ -98,7 +100,7 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
     if progress:
         bar = tqdm(total=n_steps, initial=min(start, n_steps), unit="step",
                    desc=f"train {state.config.method}", dynamic_ncols=True)
-    log = open(metrics_path, "a") if metrics_path else None
+    log = open(metrics_path, "a") if metrics_path else None  # appended: see the docstring
     try:
         while int(state.step) < n_steps:
             step = int(state.step)
@@ -108,7 +110,7 @@ def fit(state: TrainState, data: TrainData, n_steps: int, *, chunk: int = 10,
                 n = min(n, eval_every - step % eval_every)
             phase = state.config.phase(step)
             if phase == "pretrain":
-                n = min(n, state.config.pretrain_steps - step)
+                n = min(n, state.config.adversarial.pretrain_steps - step)
             t0 = time.perf_counter()
             new_state, metrics = _train_chunk(state, data, n_steps=n, phase=phase)
             metrics = jax.device_get(metrics)

@@ -150,7 +150,8 @@ def _gen_tx(cfg: TrainConfig, lr: float) -> optax.GradientTransformation:
 
 
 def _disc_tx(cfg: TrainConfig) -> optax.GradientTransformation:
-    return optax.chain(optax.clip(cfg.grad_clip), optax.adam(cfg.disc_lr, b1=cfg.disc_beta1))
+    adv = cfg.adversarial
+    return optax.chain(optax.clip(cfg.grad_clip), optax.adam(adv.disc_lr, b1=adv.disc_beta1))
 
 
 def _tree_where(cond, new, old):
@@ -187,7 +188,7 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
     # keys folded from the key apart from the split: other draws stay as they were
     hazard, reward = fit_learned(key, cfg, data, norm)
     k_gen, k_disc, k_sim, k_buf, k_vd, k_roll, key = jax.random.split(key, 7)
-    gen = dyn.init_ensemble(k_gen, cfg.dynamics_spec, obs_size, act_size, E)
+    gen = dyn.init_ensemble(k_gen, cfg.dynamics, obs_size, act_size, E)
     heldout = _heldout_nll(gen, norm, data)
     rank = dyn.rank_members(heldout)
     eps = jnp.asarray(cfg.initial_eps if eps is None else eps, jnp.float32)
@@ -204,30 +205,30 @@ def init(key: jax.Array, config: TrainConfig, data: TrainData,
         since_best=jnp.zeros((E,), jnp.int32), stopped=jnp.zeros((E,), bool),
         best_gen=gen if cfg.early_stopping else None,
         ema_gen=gen if cfg.ema_decay else None, hazard=hazard, reward=reward, config=cfg)
-    if cfg.vd_every:
+    if cfg.vd.every:
         sim = _sampler(gen, state, cfg.sim_noise)
         task = sim.task_fns()
         done_fn, hazard_fn = sim.terminations(task.done_fn)
         sim_value, sim_length = simulated_values(
             data.policies, sim.dynamics, task.reward_fn, done_fn, data.start_pool, k_vd,
-            n_episodes=cfg.vd_episodes, horizon=cfg.vd_horizon, gamma=cfg.gamma,
+            n_episodes=cfg.vd.episodes, horizon=cfg.vd.horizon, gamma=cfg.gamma,
             hazard_fn=hazard_fn, new_history=sim.new_history)
         vd = value_difference(sim_value, data.true_value)
         selected = select_worst(vd, n_worst(eps, P))
-        vd_roll = start_values(data.start_pool, P, cfg.vd_episodes, k_roll, sim.new_history)
+        vd_roll = start_values(data.start_pool, P, cfg.vd.episodes, k_roll, sim.new_history)
     state = state.replace(vd=vd, sim_value=sim_value, sim_length=sim_length, selected=selected,
                           vd_roll=vd_roll)
-    if cfg.adversarial:
-        disc, disc_us = init_discriminator(k_disc, obs_size, act_size, cfg.disc_hidden)
+    if cfg.is_adversarial:
+        disc, disc_us = init_discriminator(k_disc, obs_size, act_size, cfg.adversarial.disc_hidden)
         sampler = _sampler(gen, state, cfg.sim_noise)
-        sim = _reset_sim(SimEnvs(obs=jnp.zeros((cfg.sim_envs, obs_size)),
-                                 policy=jnp.zeros((cfg.sim_envs,), jnp.int32),
-                                 t=jnp.zeros((cfg.sim_envs,), jnp.int32),
-                                 hist=sampler.new_history((cfg.sim_envs,))),
-                         jnp.ones((cfg.sim_envs,), bool), data, selected, k_sim)
+        sim = _reset_sim(SimEnvs(obs=jnp.zeros((cfg.adversarial.sim_envs, obs_size)),
+                                 policy=jnp.zeros((cfg.adversarial.sim_envs,), jnp.int32),
+                                 t=jnp.zeros((cfg.adversarial.sim_envs,), jnp.int32),
+                                 hist=sampler.new_history((cfg.adversarial.sim_envs,))),
+                         jnp.ones((cfg.adversarial.sim_envs,), bool), data, selected, k_sim)
         # The buffer starts with real (s, a) of the selected policies; simulated ones replace
         # them within buffer_size / (sim_envs * sim_steps) steps.
-        rows, _ = _sample_rows(k_buf, data, selected, cfg.buffer_size)
+        rows, _ = _sample_rows(k_buf, data, selected, cfg.adversarial.buffer_size)
         state = state.replace(disc=disc, disc_us=disc_us, disc_opt=_disc_tx(cfg).init(disc),
                               sim=sim, buffer_obs=data.obs[rows], buffer_act=data.action[rows],
                               buffer_pos=jnp.zeros((), jnp.int32),
@@ -246,7 +247,7 @@ def member_mle_updates(gen, opt, key: jax.Array, data: TrainData, selected: jax.
     the members with their keys ``dynamics.member_keys``."""
     cfg = config
     tx = _gen_tx(cfg, cfg.bc_lr)
-    learned = cfg.gen_log_std_bounds == "learned"
+    learned = cfg.dynamics.log_std_bounds == "learned"
 
     k = cfg.multistep_steps
 
@@ -354,7 +355,7 @@ def _advance_sim(state: TrainState, data: TrainData, key):
     sim_step = sampler.step
     # the simulated envs end as the value rollouts do (rule, learned hazard or both)
     done_fn, hazard_fn = sampler.terminations(sampler.task_fns().done_fn)
-    E, B = cfg.sim_envs, cfg.buffer_size
+    E, B = cfg.adversarial.sim_envs, cfg.adversarial.buffer_size
     act = jax.vmap(sample_action)
 
     def step(carry, key):
@@ -372,13 +373,14 @@ def _advance_sim(state: TrainState, data: TrainData, key):
                                               sim.hist)
         t = sim.t + 1
         ended = ends_episode(sim.obs, action, next_obs, k_end, done_fn, hazard_fn)
-        reset = ended | (t >= cfg.sim_horizon)
+        reset = ended | (t >= cfg.adversarial.sim_horizon)
         sim = _reset_sim(SimEnvs(next_obs, sim.policy, t, hist), reset, data, state.selected,
                          k_reset)
         return (sim, buf_obs, buf_act, buf_hist, (pos + E) % B), (reset.mean(), u.mean())
 
     carry = (state.sim, state.buffer_obs, state.buffer_act, state.buffer_hist, state.buffer_pos)
-    carry, (reset_rate, u) = jax.lax.scan(step, carry, jax.random.split(key, cfg.sim_steps))
+    carry, (reset_rate, u) = jax.lax.scan(step, carry,
+                                          jax.random.split(key, cfg.adversarial.sim_steps))
     sim, buf_obs, buf_act, buf_hist, pos = carry
     metrics = {"sim_reset_rate": reset_rate.mean()}
     if cfg.ensemble_size > 1:
@@ -388,14 +390,14 @@ def _advance_sim(state: TrainState, data: TrainData, key):
 
 
 def _adversarial_updates(state: TrainState, data: TrainData, key):
-    cfg = state.config
+    cfg, adv = state.config, state.config.adversarial
     gen_tx, disc_tx = _gen_tx(cfg, cfg.gen_lr), _disc_tx(cfg)
     n = cfg.batch_size
-    train_gen = (state.step >= cfg.pretrain_steps + cfg.disc_warmup_steps
-                 if cfg.disc_warmup_steps else None)
+    train_gen = (state.step >= adv.pretrain_steps + adv.disc_warmup_steps
+                 if adv.disc_warmup_steps else None)
 
     def fake_sa(key):
-        rows = jax.random.randint(key, (n,), 0, cfg.buffer_size)
+        rows = jax.random.randint(key, (n,), 0, adv.buffer_size)
         return (state.buffer_obs[rows], state.buffer_act[rows],
                 take_history(state.buffer_hist, rows))
 
@@ -406,7 +408,7 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         f_obs, f_act, f_hist = fake_sa(k_fake)
         f_next = _sampler(gen, state, 1.0).sample(f_obs, f_act, k_gen, f_hist)
         (loss, (us, aux)), grads = jax.value_and_grad(losses.discriminator_loss, has_aux=True)(
-            disc, us, state.norm, real, (f_obs, f_act, f_next), cfg.matmul_dtype)
+            disc, us, state.norm, real, (f_obs, f_act, f_next), cfg.dynamics.matmul_dtype)
         updates, opt = disc_tx.update(grads, opt, disc)
         return (gen, optax.apply_updates(disc, updates), us, opt), {"disc_loss": loss, **aux}
 
@@ -414,7 +416,7 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         gen, gen_opt, disc, us, disc_opt = carry
         k_disc, k_real, k_fake, k_gen = jax.random.split(key, 4)
         (_, disc, us, disc_opt), d_metrics = jax.lax.scan(
-            disc_update, (gen, disc, us, disc_opt), jax.random.split(k_disc, cfg.disc_updates))
+            disc_update, (gen, disc, us, disc_opt), jax.random.split(k_disc, adv.disc_updates))
         r_obs, r_act, r_next, r_hist = _real_batch_history(k_real, data, state.selected, n)
         f_obs, f_act, f_hist = fake_sa(k_fake)
         obs, act = jnp.concatenate([r_obs, f_obs]), jnp.concatenate([r_act, f_act])
@@ -422,17 +424,17 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
                 jax.tree_util.tree_map(lambda r, f: jnp.concatenate([r, f]), r_hist, f_hist))
         keys = dyn.member_keys(k_gen, cfg.ensemble_size)
         anchors = [(r_obs, r_act, r_next, r_hist)]
-        if cfg.adv_nll_weight and cfg.adv_nll_on != "selected":  # fold_in: "selected" keeps
+        if adv.nll_weight and adv.nll_on != "selected":  # fold_in: "selected" keeps
             every = _real_batch_history(jax.random.fold_in(k_real, 1), data,  # its keys
                                         jnp.ones_like(state.selected), n)
-            anchors = [every] if cfg.adv_nll_on == "all" else anchors + [every]
+            anchors = [every] if adv.nll_on == "all" else anchors + [every]
 
         def member_loss(g, k):
             loss = losses.generator_adversarial_loss(g, disc, us, state.norm, obs, act, k,
-                                                     hist, cfg.matmul_dtype)[0]
-            if cfg.adv_nll_weight:  # the likelihood anchor (static: off costs nothing)
+                                                     hist, cfg.dynamics.matmul_dtype)[0]
+            if adv.nll_weight:  # the likelihood anchor (static: off costs nothing)
                 nll = sum(losses.generator_nll_loss(g, state.norm, *a)[0] for a in anchors)
-                loss = loss + cfg.adv_nll_weight * nll / len(anchors)
+                loss = loss + adv.nll_weight * nll / len(anchors)
             return loss
 
         def total(g_all):  # each member's loss on the same (s, a), its own noise: sum
@@ -460,7 +462,7 @@ def _start_adversarial(state: TrainState) -> TrainState:
     stopping), fresh optimiser moments (the likelihood ones do not fit the new loss), the
     moving average restarted there."""
     cfg = state.config
-    first = state.step == cfg.pretrain_steps
+    first = state.step == cfg.adversarial.pretrain_steps
     gen = _tree_where(first, state.best_gen, state.gen) if cfg.early_stopping else state.gen
     fresh = dyn.map_members(_gen_tx(cfg, cfg.gen_lr).init, gen)
     state = state.replace(gen=gen, gen_opt=_tree_where(first, fresh, state.gen_opt))
@@ -470,7 +472,7 @@ def _start_adversarial(state: TrainState) -> TrainState:
 
 
 def _adversarial_step(state: TrainState, data: TrainData, k_sim, k_upd):
-    if state.config.pretrain_steps:
+    if state.config.adversarial.pretrain_steps:
         state = _start_adversarial(state)
     state, metrics = _advance_sim(state, data, k_sim)
     state, m = _adversarial_updates(state, data, k_upd)
@@ -485,7 +487,7 @@ def _adversarial_step(state: TrainState, data: TrainData, k_sim, k_upd):
 def _advance_vd(state: TrainState, data: TrainData, key):
     """Advance the spread-out value measurement; on completion refresh VD and the selection."""
     cfg = state.config
-    H, K = cfg.vd_horizon, cfg.vd_every
+    H, K = cfg.vd.horizon, cfg.vd.every
     k_run, k_restart = jax.random.split(key)
     sim = _sampler(state.gen, state, cfg.sim_noise)
     task = sim.task_fns()
@@ -496,7 +498,7 @@ def _advance_vd(state: TrainState, data: TrainData, key):
     done = roll.t >= H
     sim_value = roll.ret.mean(1)
     vd = value_difference(sim_value, data.true_value)
-    fresh = start_values(data.start_pool, data.n_policies, cfg.vd_episodes, k_restart,
+    fresh = start_values(data.start_pool, data.n_policies, cfg.vd.episodes, k_restart,
                          sim.new_history)
     pick = lambda new, old: jnp.where(done, new, old)
     return state.replace(
@@ -515,7 +517,7 @@ def _phase_step(state: TrainState, data: TrainData, k_sim, k_upd, phase: str):
     cfg = state.config
     if phase == "pretrain":
         state, metrics = _mle_step(state, data, k_upd, jnp.ones_like(state.selected))
-    elif cfg.adversarial:
+    elif cfg.is_adversarial:
         state, metrics = _adversarial_step(state, data, k_sim, k_upd)
     else:
         state, metrics = _mle_step(state, data, k_upd, state.selected)
@@ -554,11 +556,11 @@ def train_step(state: TrainState, data: TrainData, phase: str | None = None
         state, metrics, finite = _phase_step(state, data, k_sim, k_upd, phase)
     else:
         state, metrics, finite = jax.lax.cond(
-            state.step < cfg.pretrain_steps,
+            state.step < cfg.adversarial.pretrain_steps,
             lambda s: _phase_step(s, data, k_sim, k_upd, "pretrain"),
             lambda s: _phase_step(s, data, k_sim, k_upd, "main"), state)
     refreshed = jnp.bool_(False)
-    if cfg.vd_every:
+    if cfg.vd.every:
         state, refreshed = _advance_vd(state, data, k_vd)
     finite["finite/params"] = losses.tree_all_finite((state.gen, state.disc))
     if data.n_heldout:

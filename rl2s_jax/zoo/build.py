@@ -21,7 +21,7 @@ import time
 import jax
 import numpy as np
 
-from rl2s_jax._files import atomic_open, write_text
+from rl2s_jax._files import atomic_open, save_figure, write_text
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.policy.ppo import PPOConfig
@@ -553,7 +553,7 @@ def write_zoo_plots(directory: str) -> list[str]:
                ylabel=f"return ({meta['info'].get('value_episodes', '?')} fresh episodes)")
         ax.legend(fontsize=7)
     fig.tight_layout()
-    fig.savefig(os.path.join(directory, "curves.png"), dpi=110)
+    save_figure(fig, os.path.join(directory, "curves.png"), dpi=110)
     plt.close(fig)
 
     ret = np.asarray(meta["returns"])
@@ -565,7 +565,7 @@ def write_zoo_plots(directory: str) -> list[str]:
            ylabel="policies")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(os.path.join(directory, "returns_hist.png"), dpi=110)
+    save_figure(fig, os.path.join(directory, "returns_hist.png"), dpi=110)
     plt.close(fig)
     return ["curves.png", "returns_hist.png"]
 

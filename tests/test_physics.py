@@ -188,7 +188,8 @@ def test_cli_writes_the_physics_report(tmp_path, pm, zoo_params, datasets):
     pm2, theta, delays = load_calibrated(str(out / "calibrated.json"))
     k = pm2.index("actuator_gear", "leg_joint")
     assert pm2.candidates[k].value(theta[k]) == pytest.approx(ph["top_cause"]["value"])
-    assert "load_calibrated" in ph["command"] and delays.tolist() == [0, 0, 0]
+    assert ph["command"].startswith("rl2s evaluate --physics ")
+    assert str(out / "calibrated.json") in ph["command"] and delays.tolist() == [0, 0, 0]
 
 
 def test_sysid_path_fits_the_chosen_quantity(pm, zoo_params, datasets):

@@ -70,10 +70,11 @@ from rl2s_jax.improve.physics_env import PhysicsEnv, is_physics
 from rl2s_jax.improve.recipes import IMPROVE_RECIPES, recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
+from rl2s_jax.physics.hybrid import load_hybrid
 from rl2s_jax.physics.physics_simulator import NOMINAL, physics_simulator
 from rl2s_jax.policy.policy import index_params
 from rl2s_jax.policy.sac import SACConfig
-from rl2s_jax.train.checkpoint import load_meta, load_simulator
+from rl2s_jax.train.checkpoint import load_meta
 from rl2s_jax.train.config import saved_field
 from rl2s_jax.zoo.zoo import Zoo, policies_for, policy_source, save_zoo
 
@@ -171,7 +172,7 @@ def simulator_of(spec: ImproveSpec) -> tuple:
     "physics": the physics' calibrated.json (absolute) or "nominal", or None})."""
     if spec.physics is None:
         _, ds, ids = check_inputs(spec.ckpt, spec.data, spec.policies)
-        return (load_simulator(spec.ckpt, spec.step), ds, ids,
+        return (load_hybrid(spec.ckpt, spec.step)[0], ds, ids,
                 {"checkpoint": os.path.abspath(spec.ckpt), "physics": None})
     if not os.path.exists(spec.data):
         raise FileNotFoundError(f"data: no such file {spec.data}")

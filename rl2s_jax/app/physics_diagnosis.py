@@ -95,9 +95,10 @@ def diagnose_physics(spec: PhysicsSpec) -> dict:
                                    "n_frames": pm.n_frames, "theta": found["theta"],
                                    "delays": found["delays"],
                                    "labels": [c.label for c in pm.candidates]}))
-    command = ("python -c " + shlex.quote(
-        f"from rl2s_jax.app.physics_diagnosis import load_calibrated; "
-        f"pm, theta, delays = load_calibrated({cal_path!r})"))
+    # the calibrated simulator as a user runs it (`rl2s improve --physics` and
+    # gymnasium.make(..., physics=) take the same file; load_calibrated from Python)
+    command = (f"rl2s evaluate --physics {shlex.quote(cal_path)} --data "
+               f"{shlex.quote(spec.data)}")
     physics = {k: found[k] for k in ("top_cause", "parameters", "unexplained")}
     physics.update(seconds=time.perf_counter() - start, command=command,
                    error_nominal=found["error_nominal"],

@@ -57,8 +57,8 @@ from rl2s_jax.envs.tasks import Task, get_task, task_names
 from rl2s_jax.improve.physics_env import PhysicsEnv, is_physics
 from rl2s_jax.improve.sim_env import Dynamics, SimulatorEnv
 from rl2s_jax.model.simulator import Simulator, start_pool
+from rl2s_jax.physics.hybrid import load_hybrid
 from rl2s_jax.physics.physics_simulator import PhysicsSimulator, physics_simulator
-from rl2s_jax.train.checkpoint import load_simulator
 
 __all__ = ["SIMULATOR_ENV_ID", "SimulatorGymEnv", "SimulatorVectorEnv", "TaskGymEnv",
            "VecState", "make_simulator_env", "make_simulator_vector_env", "register_envs",
@@ -107,13 +107,14 @@ def _from_files(ckpt: str | os.PathLike | None, data, step: int | None, physics=
     if (ckpt is None) == (physics is None):
         raise ValueError("physics: give ckpt= (a learned simulator's checkpoint) or physics= "
                          "(a calibrated.json or 'nominal'), one of them")
+    if physics is None:  # the checkpoint first: a wrong path fails before the data loads
+        sim = load_hybrid(ckpt, step)[0]  # any checkpoint; a hybrid with its physics
+        return sim, (load_dataset(data) if isinstance(data, str | os.PathLike) else data)
+    if step is not None:
+        raise ValueError("step: a checkpoint's step; a physics model has none")
     ds = load_dataset(data) if isinstance(data, str | os.PathLike) else data
-    if physics is not None:
-        if step is not None:
-            raise ValueError("step: a checkpoint's step; a physics model has none")
-        return physics_simulator(str(physics), ds.meta.get("task"), ds.obs_size,
-                                 ds.action_size), ds
-    return load_simulator(ckpt, step), ds
+    return physics_simulator(str(physics), ds.meta.get("task"), ds.obs_size,
+                             ds.action_size), ds
 
 
 def _disagreement_fn(sim):

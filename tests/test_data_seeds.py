@@ -97,6 +97,34 @@ def test_merge_results_records_each_data_seed(tmp_path):
                  str(tmp_path / "other.json")])
 
 
+def test_merge_results_carries_a_data_seed_runs_trust(tmp_path):
+    """--data-seed-run: its trust block becomes the task's "trust" (marked with its data seed)
+    where the task has none of its own; the task's own trust is kept; two runs' blocks are
+    refused."""
+    mr = load_script("merge_results")
+    out = tmp_path / "out"
+    out.mkdir()
+    block = {"level": 0.9, "coverage": 0.85, "width_over_range": 0.2, "worst_flagged": 1.0,
+             "runs": 2, "command": "paper.py --data-seed 23"}
+    run = {**_run(("rl2s",), ([0.9, 0.8],), ([1.0, 1.0],), 23), "trust": {"rl2s": block},
+           "trust_calibration": {"origins": [0, 1]}}
+    (tmp_path / "r.json").write_text(json.dumps(run))
+    (out / "hopper.json").write_text(json.dumps({"task": "hopper", "per_seed": {}}))
+    args = ["--task", "hopper", "--keep", "--out", str(out), "--data-seed-run",
+            str(tmp_path / "r.json")]
+    assert mr.main(args) == 0
+    got = json.loads((out / "hopper.json").read_text())
+    assert got["trust"] == {"rl2s": {**block, "data_seed": 23}}
+    assert got["trust_calibration"] == {"origins": [0, 1], "data_seed": 23}
+    own = {"rl2s": {**block, "coverage": 0.5}}
+    (out / "hopper.json").write_text(json.dumps({"task": "hopper", "per_seed": {}, "trust": own}))
+    assert mr.main(args) == 0
+    assert json.loads((out / "hopper.json").read_text())["trust"] == own
+    (tmp_path / "r2.json").write_text(json.dumps({**run, "test_policy_names": NAMES}))
+    with pytest.raises(SystemExit, match="trust: more than one --data-seed-run"):
+        mr.main([*args, "--data-seed-run", str(tmp_path / "r2.json")])
+
+
 def test_data_seed_entry_refuses_mixed_runs():
     a = _run(("rl2s",), ([0.5, 0.5],), ([1.0, 1.0],), 7)
     with pytest.raises(ValueError, match="data_seed: the runs are of different data seeds"):
@@ -112,6 +140,12 @@ def test_data_seed_entry_refuses_mixed_runs():
     assert "oracle" not in entry and "noise_ceiling" not in entry
     with pytest.raises(ValueError, match="per_seed: no run has any of"):
         dseeds.data_seed_entry([_run(("oracle",), ([0.5],), ([1.0],), 7)])
+    # a run cut off after its oracle (paper.py measures it before training): oracle only
+    cut = {**_run(("rl2s", "oracle"), ([], [0.9, 0.8]), ([], [1.0, 1.0]), 23), "complete": False}
+    _, entry = dseeds.data_seed_entry([cut])
+    assert entry["oracle"] == {"kendall_tau": pytest.approx(0.85), "seeds": 2}
+    assert "rl2s" not in entry and entry["complete"] is False
+    assert "not measured" in dseeds.oracle_bar("hopper", entry)
 
 
 def test_oracle_check_output_fills_its_data_seed():

@@ -369,6 +369,9 @@ def main(argv=None):
     compile_cache.enable()
     if args.k < 1 or args.transitions < args.k or args.value_episodes < 2:
         ap.error("expected --k >= 1, --transitions >= --k, --value-episodes >= 2")
+    for path in (args.out, args.results):  # their folders before any work (atomic writes)
+        if path:
+            os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     t0 = time.time()
     record = {"args": vars(args), "tasks": [run_task(t, args) for t in args.tasks]}
     record["seconds"] = time.time() - t0

@@ -273,6 +273,8 @@ def write(args, argv, results: dict, seconds: float, n_units: int) -> None:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse(argv)
+    if args.out:  # its folder before any work: a missing one lost a whole GPU run
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     # several processes share one GPU: each takes the memory it needs, not 75% of it
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     try:

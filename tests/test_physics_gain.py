@@ -231,3 +231,23 @@ def test_unseen_check_names_element_and_value():
     assert not check(delay, {**delay[0], "value": 2})["passed"]
     assert check([], None)["passed"] and not check([], top)["passed"]
     assert not check(truth, None)["passed"]
+
+
+@pytest.mark.parametrize("script, work, args", [
+    ("physics_gain", "_unit", ["--cases", "mass", "--seeds", "0", "--out"]),
+    ("gymnasium_v5", "run_task", ["--tasks", "hopper", "--results"]),
+])
+def test_scripts_make_their_output_folder_before_any_work(tmp_path, monkeypatch, script,
+                                                          work, args):
+    """--out / --results into a folder that does not exist yet (both crashed on the GPU after
+    their work for want of it): made before the first unit runs."""
+    mod = load_script(script)
+    out = tmp_path / "new" / "deeper" / "result.json"
+
+    def first_unit(*a, **k):
+        assert out.parent.is_dir()
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(mod, work, first_unit)
+    with pytest.raises(RuntimeError, match="stop here"):
+        mod.main([*args, str(out)])

@@ -4,7 +4,8 @@ of a task recorded under its data seed in ``docs/results/<task>.json``'s ``"by_d
 "oracle": {"kendall_tau", "seeds"}, "noise_ceiling": {"mean", "lo", "hi", "n_truth", "n_sim"},
 "command", "hardware", "test_policy_names", "zoo_sha256", "complete": false where a run was
 cut off}}``; a method, the oracle or the ceiling not measured is absent), and the rows of
-the table "Ranking over data seeds" that experiments/paper_tables.py renders from it. Pure Python and NumPy."""
+the table "Ranking over data seeds" that experiments/paper_tables.py renders from it.
+Pure Python and NumPy."""
 from __future__ import annotations
 
 import numpy as np

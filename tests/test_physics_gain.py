@@ -155,6 +155,8 @@ def test_physics_block_from_the_json(tmp_path):
     assert "not the table" not in block
     (res / "physics_gain.json").write_text(json.dumps({**gain, "args": {"profile": "cpu"}}))
     assert "A check of the code at CPU sizes, not the table" in pt.physics_block(str(res), "R")
+    (res / "physics_gain.json").write_text(json.dumps({**gain, "note": "GPU shared"}))
+    assert "mujoco 4.0.0, 400 s. GPU shared; profile gpu" in pt.physics_block(str(res), "R")
     pt.merge_v5_row(str(res / "gymnasium_v5.json"),
                     pt.v5_row(_v5_record(), "python experiments/gymnasium_v5.py", "one H200"))
     block = pt.physics_block(str(res), "R")

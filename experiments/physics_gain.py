@@ -47,8 +47,9 @@ Profiles (explicit flags override them; PROFILES):
   15 runs named the planted quantity (damping seed 2 nothing); the calibrated physics at
   round-off (~3.5e-6; friction seed 2 5e-4) and tau 1.000 where named; the hybrid one-step
   1.2e-4 - 7e-4, tau 0.996 - 1.000; BC tau 0.69 - 0.89 and RL2S 0.51 - 0.85, both below the
-  nominal physics' 0.78 - 0.98 in every case at these sizes. The JSON is rewritten after every unit (its folder is made first), so a
-  call cut short keeps what finished, and ``--resume`` (same command) runs only the rest:
+  nominal physics' 0.78 - 0.98 in every case at these sizes. The JSON is rewritten after
+  every unit (its folder is made first), so a call cut short keeps what finished, and
+  ``--resume`` (same command) runs only the rest:
 
     timeout 540 env PYTHONPATH=. python experiments/physics_gain.py --profile gpu --jobs 15 \
         --out docs/results/physics_gain.json [--resume]

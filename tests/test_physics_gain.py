@@ -201,7 +201,7 @@ def test_learned_simulator_scored_on_the_physics_rows(pm_files, tmp_path):
     assert (tmp_path / "bc" / "checkpoints").is_dir()
     with open(tmp_path / "bc" / "summary.json") as f:
         config = json.load(f)["config"]
-    assert (config["method"], config["gamma"], config["vd_horizon"]) == ("bc", 0.95, 20)
+    assert (config["method"], config["gamma"], config["vd"]["horizon"]) == ("bc", 0.95, 20)
     held = load_dataset(pm_files["test"])
     task, params = get_task("pointmass"), policies_for(held)
     pool, key = start_pool(held), jax.random.PRNGKey(3)

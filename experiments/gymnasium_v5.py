@@ -20,9 +20,7 @@ RK4; then also the MJX task's solver iterations), to see which difference the er
 from. ``--diagnose DIR``: also ``rl2s diagnose --physics`` (app/physics_diagnosis.py) on the
 v5 data. ``--results FILE``: each task's row (``paper.physics_tables.v5_row``: errors, tau and
 its noise floor, AVD / MVD, the diagnosis) with this command and machine, merged into RESULTS'
-``docs/results/gymnasium_v5.json``. HalfCheetah's values (never measured), on one H200 host:
-``python experiments/gymnasium_v5.py --tasks halfcheetah --transitions 500 --value-episodes 8
---mjx-values --no-control --diagnose DIR --results docs/results/gymnasium_v5.json``.
+``docs/results/gymnasium_v5.json`` (the folders of --out and --results are made first).
 
 Results (2-core CPU shared with three other sessions, 2026-11-28; gymnasium 1.4.0, mujoco
 4.0.0). Errors: RMSE / RMS of the data's change, mean over the observation dims.
@@ -93,7 +91,16 @@ On one H200 host (MJX on the GPU: no wedge), ``--tasks T --transitions 500 --val
               policies gain most); diagnosis names nothing (unexplained 1.000): v5's margin
               0.01 and contype on every geom, and the absent foot spheres, are not candidates.
     halfcheetah  one-step 0.0082, 10-step 0.060; its diagnosis stopped on a split of one
-              episode per policy (fixed since in identify.split_rows); values not measured.
+              episode per policy (fixed since in identify.split_rows); no values that run.
+
+HalfCheetah's values (GPU 1 of a 2x H200 host shared with a Walker2d protocol run; a714f44,
+jax 0.11.2; 553 s), ``--tasks halfcheetah --transitions 500 --value-episodes 8 --mjx-values
+--no-control --diagnose DIR --results FILE`` (it crashed writing FILE into a missing folder
+after printing every number: gymnasium_v5.json's row is rebuilt from its log by ``v5_row``):
+43 test policies, one-step 0.00819 (in / out of contact 0.00952 / 0.00764), 10-step 0.0460;
+v5 differs in solver iterations (100 vs 4), float64 and contype on floor, torso, bshin, fshin;
+the diagnosis names nothing (unexplained 1.000); tau v5 vs MJX 0.987 (MJX re-measured vs the
+zoo's 0.973), AVD 43.4, MVD 408.9: the ranking is the same in both engines within the noise.
 """
 from __future__ import annotations
 
@@ -369,6 +376,9 @@ def main(argv=None):
     compile_cache.enable()
     if args.k < 1 or args.transitions < args.k or args.value_episodes < 2:
         ap.error("expected --k >= 1, --transitions >= --k, --value-episodes >= 2")
+    for path in (args.out, args.results):  # their folders before any work (atomic writes)
+        if path:
+            os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     t0 = time.time()
     record = {"args": vars(args), "tasks": [run_task(t, args) for t in args.tasks]}
     record["seconds"] = time.time() - t0

@@ -4,7 +4,11 @@ control (experiments/improve_control.py), each optional.
 
     python experiments/merge_results.py --task hopper [--paper P.json [--paper Q.json]]
         [--oracle O.json | --oracle-paper R.json] [--control C.json] [--out docs/results]
-        [--keep]
+        [--keep] [--data-seed-run P.json ...]
+
+--data-seed-run files go to by_data_seed only (``rl2s_jax.paper.data_seeds``); the trust
+block of one of them (issue 64) becomes the task's "trust", marked with its data seed, unless
+the task's own --paper run has one.
 
 Several --paper files are runs of one protocol split over calls or GPUs on the same data:
 other families (paper.py --families adversarial / mle) or other seeds (--first-seed K, e.g.
@@ -230,6 +234,27 @@ def carry_trust(merged: dict, parts: list[dict]) -> None:
                                            for k in ("floor", "interval")}}
 
 
+def data_seed_trust(result: dict, runs: list[dict]) -> None:
+    """Issue 64's "trust" of a --data-seed-run into ``result`` (in place) where the result
+    has none of its own (its --paper run's): each method's block with its ``data_seed``, and
+    that run's "trust_calibration"; a trust recorded this way before is replaced. ValueError
+    when several runs bring one (their lanes are not here to join: merge them with --paper)."""
+    have = [r for r in runs if isinstance(r.get("trust"), dict) and r["trust"]
+            and "error" not in r["trust"]]
+    if not have:
+        return
+    if len(have) > 1:
+        raise ValueError("trust: more than one --data-seed-run has a trust block; join them "
+                         "with --paper first")
+    own = result.get("trust") or {}
+    if any("data_seed" not in b for b in own.values() if isinstance(b, dict)) or "error" in own:
+        return  # the task's own rows' trust
+    ds = data_seed_of(have[0])
+    result["trust"] = {m: {**b, "data_seed": ds} for m, b in have[0]["trust"].items()}
+    if have[0].get("trust_calibration"):
+        result["trust_calibration"] = {**have[0]["trust_calibration"], "data_seed": ds}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
@@ -241,7 +266,8 @@ def main(argv=None) -> int:
     ap.add_argument("--control")
     ap.add_argument("--data-seed-run", action="append", default=[], metavar="P.json",
                     help="paper.py result(s) recorded under by_data_seed only (repeat; the "
-                    "first run of a data seed that has a method gives its numbers)")
+                    "first run of a data seed that has a method gives its numbers); a run's "
+                    "trust block becomes the task's \"trust\" where it has none of its own")
     ap.add_argument("--keep", action="store_true", help="without --paper: start from the "
                     "existing OUT/<task>.json (e.g. to replace only its control)")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
@@ -281,8 +307,9 @@ def main(argv=None) -> int:
         with open(previous) as f:  # the data seeds recorded before: kept
             result["by_data_seed"] = json.load(f).get("by_data_seed") or {}
     try:
-        record_data_seeds(result, [*([result] if args.paper else []),
-                                   *(_read(p) for p in args.data_seed_run)])
+        ds_runs = [_read(p) for p in args.data_seed_run]
+        record_data_seeds(result, [*([result] if args.paper else []), *ds_runs])
+        data_seed_trust(result, ds_runs)
         if args.oracle:
             oracle_into_data_seed(result, _read(args.oracle))
     except ValueError as err:

@@ -18,9 +18,9 @@ as ``--work``/<case>_<seed>/train.npz) by the project's own training, ``rl2s tra
 ``--train-profile``, ``--steps`` steps, VD at this script's gamma and horizon) and scored
 alike (``paper.simulator_gain``: the same held-out rows and windows, their mean next state
 fed the logged actions; values from the same start states and policy draws). The hybrid's
-column: where ``rl2s_jax.physics.hybrid`` imports and has ``fit_hybrid`` (branch ``hybrid``,
-not merged when this was written: ``hybrid_row`` says what it calls), it is trained on the
-calibrated physics' residual and scored alike; else skipped with a printed note. The
+column (``rl2s_jax.physics.hybrid``'s ``fit_hybrid``; ``hybrid_row`` says what it calls) is
+trained on the calibrated physics' residual and scored alike; where that module does not
+import, it is skipped with a printed note. The
 table: mean over seeds with a 95% t interval (``stats.t_interval``).
 
 Profiles (explicit flags override them; PROFILES):
@@ -39,12 +39,17 @@ Profiles (explicit flags override them; PROFILES):
   process per case and seed: C MuJoCo is single-threaded; every process allocates GPU memory
   as it needs it): 1000 transitions per policy, 600 training steps of the ``cpu`` training
   profile's members (3 of 3x128; the paper's 7 of 4x512 with 1000 pre-training steps do not
-  fit 15 units into one 9-minute call), 16 value episodes. Estimated, not measured: the C
-  MuJoCo work grows ~3.3x to ~2 min per unit on a host core, each training's compilation
-  (~1 min, 15 at once on 16 cores) and 600 GPU steps (~20 s) twice (three times once the
-  hybrid is merged): 5-7 min for the 15 units side by side, 6-9 with the hybrid. The JSON is
-  rewritten after every unit, so a call cut short keeps what finished, and ``--resume`` (same
-  command) runs only the rest:
+  fit 15 units into one 9-minute call), 16 value episodes. Measured (2026-11-28, main at
+  a714f44, jax 0.11.2, mujoco 4.0.0): 432 s in the script, 7 min 18 s wall, on a 2x H200
+  host's 32 cores and GPU 0, both shared with an Ant protocol run: identification 2.6-7.8 s,
+  BC 25-42 s, the hybrid 60-89 s, RL2S 103-113 s per unit (compilation included). The table
+  (docs/results/physics_gain.json, RESULTS; docs/DIAGNOSIS.md "The gain" reads it): 14 of
+  15 runs named the planted quantity (damping seed 2 nothing); the calibrated physics at
+  round-off (~3.5e-6; friction seed 2 5e-4) and tau 1.000 where named; the hybrid one-step
+  1.2e-4 - 7e-4, tau 0.996 - 1.000; BC tau 0.69 - 0.89 and RL2S 0.51 - 0.85, both below the
+  nominal physics' 0.78 - 0.98 in every case at these sizes. The JSON is rewritten after
+  every unit (its folder is made first), so a call cut short keeps what finished, and
+  ``--resume`` (same command) runs only the rest:
 
     timeout 540 env PYTHONPATH=. python experiments/physics_gain.py --profile gpu --jobs 15 \
         --out docs/results/physics_gain.json [--resume]
@@ -273,6 +278,8 @@ def write(args, argv, results: dict, seconds: float, n_units: int) -> None:
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parse(argv)
+    if args.out:  # its folder before any work: a missing one lost a whole GPU run
+        os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
     # several processes share one GPU: each takes the memory it needs, not 75% of it
     os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
     try:

@@ -97,6 +97,34 @@ def test_merge_results_records_each_data_seed(tmp_path):
                  str(tmp_path / "other.json")])
 
 
+def test_merge_results_carries_a_data_seed_runs_trust(tmp_path):
+    """--data-seed-run: its trust block becomes the task's "trust" (marked with its data seed)
+    where the task has none of its own; the task's own trust is kept; two runs' blocks are
+    refused."""
+    mr = load_script("merge_results")
+    out = tmp_path / "out"
+    out.mkdir()
+    block = {"level": 0.9, "coverage": 0.85, "width_over_range": 0.2, "worst_flagged": 1.0,
+             "runs": 2, "command": "paper.py --data-seed 23"}
+    run = {**_run(("rl2s",), ([0.9, 0.8],), ([1.0, 1.0],), 23), "trust": {"rl2s": block},
+           "trust_calibration": {"origins": [0, 1]}}
+    (tmp_path / "r.json").write_text(json.dumps(run))
+    (out / "hopper.json").write_text(json.dumps({"task": "hopper", "per_seed": {}}))
+    args = ["--task", "hopper", "--keep", "--out", str(out), "--data-seed-run",
+            str(tmp_path / "r.json")]
+    assert mr.main(args) == 0
+    got = json.loads((out / "hopper.json").read_text())
+    assert got["trust"] == {"rl2s": {**block, "data_seed": 23}}
+    assert got["trust_calibration"] == {"origins": [0, 1], "data_seed": 23}
+    own = {"rl2s": {**block, "coverage": 0.5}}
+    (out / "hopper.json").write_text(json.dumps({"task": "hopper", "per_seed": {}, "trust": own}))
+    assert mr.main(args) == 0
+    assert json.loads((out / "hopper.json").read_text())["trust"] == own
+    (tmp_path / "r2.json").write_text(json.dumps({**run, "test_policy_names": NAMES}))
+    with pytest.raises(SystemExit, match="trust: more than one --data-seed-run"):
+        mr.main([*args, "--data-seed-run", str(tmp_path / "r2.json")])
+
+
 def test_data_seed_entry_refuses_mixed_runs():
     a = _run(("rl2s",), ([0.5, 0.5],), ([1.0, 1.0],), 7)
     with pytest.raises(ValueError, match="data_seed: the runs are of different data seeds"):
@@ -112,6 +140,12 @@ def test_data_seed_entry_refuses_mixed_runs():
     assert "oracle" not in entry and "noise_ceiling" not in entry
     with pytest.raises(ValueError, match="per_seed: no run has any of"):
         dseeds.data_seed_entry([_run(("oracle",), ([0.5],), ([1.0],), 7)])
+    # a run cut off after its oracle (paper.py measures it before training): oracle only
+    cut = {**_run(("rl2s", "oracle"), ([], [0.9, 0.8]), ([], [1.0, 1.0]), 23), "complete": False}
+    _, entry = dseeds.data_seed_entry([cut])
+    assert entry["oracle"] == {"kendall_tau": pytest.approx(0.85), "seeds": 2}
+    assert "rl2s" not in entry and entry["complete"] is False
+    assert "not measured" in dseeds.oracle_bar("hopper", entry)
 
 
 def test_oracle_check_output_fills_its_data_seed():
@@ -306,20 +340,23 @@ def test_oracle_check_data_seed_takes_the_protocols_test_split_only(tmp_path, mo
 
 def test_readme_headline_is_the_data_seed_table():
     """README's headline taus are RL2S's means over the data seeds that docs/results/*.json
-    record (by_data_seed), rounded to 2 digits, and it names those data seeds."""
+    record with RL2S (by_data_seed; an oracle-only entry does not count), rounded to 2
+    digits; it names the data seeds every task has and each one only some have."""
     import os
     import re
 
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    means, seeds = {}, set()
+    means, seeds = {}, []
     for task in ("hopper", "walker2d", "halfcheetah", "ant"):
         with open(os.path.join(root, "docs", "results", f"{task}.json")) as f:
-            tab = json.load(f)["by_data_seed"]
-        seeds |= set(tab)
+            tab = {k: e for k, e in json.load(f)["by_data_seed"].items() if "rl2s" in e}
+        seeds.append(set(tab))
         means[task] = np.mean([e["rl2s"]["kendall_tau"] for e in tab.values()])
     readme = " ".join(open(os.path.join(root, "README.md")).read().split())
     want = (f"tau {means['hopper']:.2f} (Hopper), {means['walker2d']:.2f} (Walker2d), "
             f"{means['halfcheetah']:.2f} (HalfCheetah) and {means['ant']:.2f} (Ant")
     assert want in readme
-    named = sorted(seeds, key=int)
-    assert re.search(rf"data seeds {' and '.join(named)}\b", readme)
+    common = sorted(set.intersection(*seeds), key=int)
+    assert re.search(rf"data seeds {' and '.join(common)}\b", readme)
+    for extra in sorted(set.union(*seeds) - set(common), key=int):
+        assert re.search(rf"data seed {extra}\b", readme), extra

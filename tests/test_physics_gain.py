@@ -155,6 +155,8 @@ def test_physics_block_from_the_json(tmp_path):
     assert "not the table" not in block
     (res / "physics_gain.json").write_text(json.dumps({**gain, "args": {"profile": "cpu"}}))
     assert "A check of the code at CPU sizes, not the table" in pt.physics_block(str(res), "R")
+    (res / "physics_gain.json").write_text(json.dumps({**gain, "note": "GPU shared"}))
+    assert "mujoco 4.0.0, 400 s. GPU shared; profile gpu" in pt.physics_block(str(res), "R")
     pt.merge_v5_row(str(res / "gymnasium_v5.json"),
                     pt.v5_row(_v5_record(), "python experiments/gymnasium_v5.py", "one H200"))
     block = pt.physics_block(str(res), "R")
@@ -199,7 +201,7 @@ def test_learned_simulator_scored_on_the_physics_rows(pm_files, tmp_path):
     assert (tmp_path / "bc" / "checkpoints").is_dir()
     with open(tmp_path / "bc" / "summary.json") as f:
         config = json.load(f)["config"]
-    assert (config["method"], config["gamma"], config["vd_horizon"]) == ("bc", 0.95, 20)
+    assert (config["method"], config["gamma"], config["vd"]["horizon"]) == ("bc", 0.95, 20)
     held = load_dataset(pm_files["test"])
     task, params = get_task("pointmass"), policies_for(held)
     pool, key = start_pool(held), jax.random.PRNGKey(3)
@@ -231,3 +233,23 @@ def test_unseen_check_names_element_and_value():
     assert not check(delay, {**delay[0], "value": 2})["passed"]
     assert check([], None)["passed"] and not check([], top)["passed"]
     assert not check(truth, None)["passed"]
+
+
+@pytest.mark.parametrize("script, work, args", [
+    ("physics_gain", "_unit", ["--cases", "mass", "--seeds", "0", "--out"]),
+    ("gymnasium_v5", "run_task", ["--tasks", "hopper", "--results"]),
+])
+def test_scripts_make_their_output_folder_before_any_work(tmp_path, monkeypatch, script,
+                                                          work, args):
+    """--out / --results into a folder that does not exist yet (both crashed on the GPU after
+    their work for want of it): made before the first unit runs."""
+    mod = load_script(script)
+    out = tmp_path / "new" / "deeper" / "result.json"
+
+    def first_unit(*a, **k):
+        assert out.parent.is_dir()
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(mod, work, first_unit)
+    with pytest.raises(RuntimeError, match="stop here"):
+        mod.main([*args, str(out)])

@@ -2,9 +2,10 @@
 of a task recorded under its data seed in ``docs/results/<task>.json``'s ``"by_data_seed"``
 (``{"<data seed>": {"rl2s": {"kendall_tau", "mvd", "seeds"}, "gail", "bc", "rl2s-bc",
 "oracle": {"kendall_tau", "seeds"}, "noise_ceiling": {"mean", "lo", "hi", "n_truth", "n_sim"},
-"command", "hardware", "test_policy_names", "zoo_sha256"}}``; a method, the oracle or the
-ceiling not measured is absent), and the rows of the table "Ranking over data seeds" that
-experiments/paper_tables.py renders from it. Pure Python and NumPy."""
+"command", "hardware", "test_policy_names", "zoo_sha256", "complete": false where a run was
+cut off}}``; a method, the oracle or the ceiling not measured is absent), and the rows of
+the table "Ranking over data seeds" that experiments/paper_tables.py renders from it.
+Pure Python and NumPy."""
 from __future__ import annotations
 
 import numpy as np
@@ -39,9 +40,11 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
     families, reruns): per method of BY_DATA_SEED_METHODS its Kendall tau and MVD, the means
     over the seeds of the first run that has it; the oracle's tau and the noise ceiling
     (``{"mean", "lo", "hi"}``) where a run measured them itself (not an oracle row that
-    merge_results.py took from another collection: ``result["oracle"]``), else absent.
+    merge_results.py took from another collection: ``result["oracle"]``), else absent;
+    ``"complete": false`` when a run used was cut off (paper.py's ``complete``).
     -> (data seed, entry). ValueError naming the field where the runs differ (data seed,
-    task, test policies) or when none has a method."""
+    task, test policies) or when none has a method (but an oracle-only entry of a cut-off
+    run: the oracle runs before training)."""
     if not runs:
         raise ValueError("runs: expected at least one paper.py result")
     seeds = {data_seed_of(r) for r in runs}
@@ -65,7 +68,8 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
             entry[m]["mvd"] = _mean_over_seeds(per, "mvd")
         if not any(run is u for u in used):
             used.append(run)
-    if not set(entry) - {"oracle"}:
+    if not set(entry) - {"oracle"} and not ("oracle" in entry and any(
+            r.get("complete") is False for r in used)):
         raise ValueError(f"per_seed: no run has any of {', '.join(BY_DATA_SEED_METHODS)}")
     ceiling = next((r["noise_ceiling"] for r in own if r.get("noise_ceiling")), None)
     if ceiling:
@@ -76,6 +80,8 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
                  hardware=used[0].get("hardware"),
                  test_policy_names=list(runs[0].get("test_policy_names") or []),
                  zoo_sha256=used[0].get("zoo_sha256"))
+    if any(r.get("complete") is False for r in used):
+        entry["complete"] = False  # a run cut off (e.g. its time limit): what it measured
     return seeds.pop(), entry
 
 

@@ -53,8 +53,10 @@ def _gain_lines(doc: dict | None, source: str) -> list[str]:
     if args.get("profile") == "cpu":
         cut += ("A check of the code at CPU sizes, not the table (the `gpu` profile makes it: "
                 "experiments/physics_gain.py's docstring). ")
+    note = f". {doc['note'].rstrip('.')}" if doc.get("note") else ""
     return [f"{cut}`{doc['command']}` on {_machine(doc.get('machine'))}, "
-            f"{doc.get('seconds', 0):.0f} s; profile {args.get('profile', '?')}: "
+            f"{doc.get('seconds', 0):.0f} s{note}"
+            f"; profile {args.get('profile', '?')}: "
             f"{args.get('transitions', '?')} transitions per training policy, "
             f"{args.get('steps', '?')} training steps ({args.get('train_profile', '?')} "
             f"training profile), {args.get('episodes', '?')} value episodes of "

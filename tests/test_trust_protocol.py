@@ -307,6 +307,6 @@ def test_a_diverged_lane_is_skipped_and_a_failure_spares_the_run(pm_lanes, monke
                               trust_level=0.9, trust_episodes=None, trust_member_episodes=16,
                               episode_length=None)
     tp.trust_phase(args, result, {}, {"train": None, "test": None},
-                   {"f": types.SimpleNamespace(vd_horizon=5, gamma=0.9)}, {},
+                   {"f": types.SimpleNamespace(vd=types.SimpleNamespace(horizon=5), gamma=0.9)}, {},
                    phase=lambda name, t0: phases.append(name), save=lambda: None)
     assert result["trust"] == {"error": "RuntimeError: boom"} and phases == ["trust"]

@@ -31,6 +31,7 @@ __all__ = [
     "Dataset",
     "DatasetError",
     "concat_datasets",
+    "spread_rows",
     "save_dataset",
     "load_dataset",
     "validate_dataset",
@@ -170,6 +171,14 @@ class Dataset:
         source["selected_policies"] = [int(prev[i]) if prev is not None else int(i) for i in ids]
         meta["source"] = source
         return Dataset(**fields, meta=meta)
+
+
+def spread_rows(n: int, max_rows: int) -> np.ndarray:
+    """Row indices [min(n, max_rows)] int64: all ``n`` rows, or ``max_rows`` of them evenly
+    spread from the first to the last (a fixed subset: no draw, the same every call)."""
+    if n <= max_rows:
+        return np.arange(n)
+    return np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64)
 
 
 def concat_datasets(datasets: Sequence[Dataset]) -> Dataset:

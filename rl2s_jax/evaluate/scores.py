@@ -13,6 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax.data.dataset import spread_rows
 from rl2s_jax.data.values import true_values, true_values_se, truth_used
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.metrics import ranking_metrics
@@ -126,9 +127,7 @@ def one_step_errors(sim: Simulator, ds, max_rows: int = ONE_STEP_ROWS) -> dict:
     quantity training's ``heldout_nll`` reports up to the constant sum(log delta_std)),
     "heldout_mse": the mean squared error of the mean next state (``Simulator.mean``), per dim
     in units of this data's own std of s' - s, averaged over dims; "one_step_rows": n}."""
-    n = ds.n_transitions
-    rows = (np.arange(n) if n <= max_rows
-            else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
+    rows = spread_rows(ds.n_transitions, max_rows)
     obs, action, next_obs = (jnp.asarray(np.asarray(x, np.float32)[rows])
                              for x in (ds.obs, ds.action, ds.next_obs))
     if obs.shape[-1] != sim.norm.obs_mean.shape[-1] or (

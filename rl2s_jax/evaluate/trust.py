@@ -45,6 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax.data.dataset import spread_rows
 from rl2s_jax.model import dynamics as dyn
 from rl2s_jax.model.history import logged_history, push_history
 from rl2s_jax.model.simulator import (
@@ -334,15 +335,20 @@ def returns_and_support(sim: Simulator, policies: Params, pool: jax.Array, key: 
     return ret, total.sum(1) / jnp.maximum(count.sum(1), 1.0)
 
 
-def data_disagreement(sim: Simulator, ds, max_rows: int = SUPPORT_ROWS) -> float:
-    """The mean of u(s, a) over (up to ``max_rows``, evenly spread) rows of ``ds``."""
-    n = ds.n_transitions
-    rows = (np.arange(n) if n <= max_rows
-            else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
+def _data_rows(sim: Simulator, ds, max_rows: int):
+    """(obs [R, O], action [R, A], the rows' logged History or None) of up to ``max_rows``
+    evenly spread rows of ``ds``, as ``sim`` (one simulator or lanes stacked) reads them."""
+    rows = spread_rows(ds.n_transitions, max_rows)
     obs, action = (jnp.asarray(np.asarray(x, np.float32)[rows]) for x in (ds.obs, ds.action))
     hist = None if sim.markov else logged_history(
         ds, rows, obs_history=sim.obs_history, action_history=sim.action_history,
         time_inputs=sim.time_inputs, episode_length=sim.episode_length)
+    return obs, action, hist
+
+
+def data_disagreement(sim: Simulator, ds, max_rows: int = SUPPORT_ROWS) -> float:
+    """The mean of u(s, a) over (up to ``max_rows``, evenly spread) rows of ``ds``."""
+    obs, action, hist = _data_rows(sim, ds, max_rows)
     return float(jnp.mean(jax.jit(Simulator.disagreement)(sim, obs, action, hist)))
 
 
@@ -437,13 +443,7 @@ def lane_feature_arrays(sims: Simulator, policies: Params, pool: jax.Array, keys
 
 def lane_data_disagreement(sims: Simulator, ds, max_rows: int = SUPPORT_ROWS) -> np.ndarray:
     """``data_disagreement`` of every lane of ``sims`` [L] on the rows of ``ds`` (u's unit)."""
-    n = ds.n_transitions
-    rows = (np.arange(n) if n <= max_rows
-            else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
-    obs, action = (jnp.asarray(np.asarray(x, np.float32)[rows]) for x in (ds.obs, ds.action))
-    hist = None if sims.markov else logged_history(
-        ds, rows, obs_history=sims.obs_history, action_history=sims.action_history,
-        time_inputs=sims.time_inputs, episode_length=sims.episode_length)
+    obs, action, hist = _data_rows(sims, ds, max_rows)
     u = jax.jit(jax.vmap(Simulator.disagreement, in_axes=(0, None, None, None)))(
         sims, obs, action, hist)
     return np.asarray(jnp.mean(u, -1), np.float64)

@@ -34,6 +34,7 @@ import os
 import jax
 import numpy as np
 
+from rl2s_jax.data.dataset import spread_rows
 from rl2s_jax.envs.tasks import TASKS, get_task
 from rl2s_jax.physics.calibrated import _theta_delays, physics_dynamics
 from rl2s_jax.physics.mjx_model import (
@@ -214,9 +215,7 @@ def one_step_mse(sim: PhysicsSimulator, ds, max_rows: int = 20_000,
     compile; the MJX step the rollouts take differs from it by float32 round-off), or
     ``backend="mjx"``. No NLL: the physics is deterministic. -> {"heldout_mse",
     "one_step_rows"}."""
-    n = ds.n_transitions
-    rows = (np.arange(n) if n <= max_rows
-            else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
+    rows = spread_rows(ds.n_transitions, max_rows)
     action = np.asarray(ds.action, np.float64)
     if not sim.markov:
         action = delayed_actions(action, np.asarray(ds.episode_id), np.asarray(ds.t),

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax.data.dataset import spread_rows
 from rl2s_jax.policy.policy import Params, policy_dist, tanh_log_det
 
 MAX_ROWS = 20_000  # logged rows scored (evenly spread over the data)
@@ -62,9 +63,7 @@ def policy_log_likelihoods(ds, params: Params, max_rows: int = MAX_ROWS) -> dict
     (row p: the rows policy_id p logged; NaN where it logged none), "uniform": [P] the same of
     a uniform action in the box [-1, 1]^a (a reference no policy should fall below), "rows":
     [P] rows scored per policy}; edge actions are censored (module docstring)."""
-    n = ds.n_transitions
-    rows = (np.arange(n) if n <= max_rows
-            else np.round(np.linspace(0, n - 1, max_rows)).astype(np.int64))
+    rows = spread_rows(ds.n_transitions, max_rows)
     obs = jnp.asarray(np.asarray(ds.obs, np.float32)[rows])
     action = jnp.asarray(np.asarray(ds.action, np.float32)[rows])
     ll, uniform = (np.asarray(x, np.float64) for x in _log_likelihoods(params, obs, action))

@@ -109,12 +109,12 @@ def _from_files(ckpt: str | os.PathLike | None, data, step: int | None, physics=
                          "(a calibrated.json or 'nominal'), one of them")
     if physics is None:  # the checkpoint first: a wrong path fails before the data loads
         sim = load_hybrid(ckpt, step)[0]  # any checkpoint; a hybrid with its physics
-        return sim, (load_dataset(data) if isinstance(data, str | os.PathLike) else data)
-    if step is not None:
+    elif step is not None:
         raise ValueError("step: a checkpoint's step; a physics model has none")
     ds = load_dataset(data) if isinstance(data, str | os.PathLike) else data
-    return physics_simulator(str(physics), ds.meta.get("task"), ds.obs_size,
-                             ds.action_size), ds
+    if physics is not None:
+        sim = physics_simulator(str(physics), ds.meta.get("task"), ds.obs_size, ds.action_size)
+    return sim, ds
 
 
 def _disagreement_fn(sim):

@@ -72,6 +72,22 @@ def _recipe_and_guard_options(p, recipes) -> None:
     p.add_argument("--no-guard", action="store_true", help="deploy every fine-tuned policy")
 
 
+def _improve_guard_options(p) -> None:
+    """`rl2s improve`'s guard over snapshots and its choice of deployment guard (the interval
+    guard: improve/gain_intervals.py)."""
+    p.add_argument("--guard-snapshots", action="store_true", help="keep the actor every "
+                   "tenth of the iterations; of the snapshots that pass the guard, deploy the "
+                   "one whose smallest predicted gain is largest (default: the final actor)")
+    p.add_argument("--guard", choices=("floor", "interval"), default="floor", help="floor: "
+                   "every elite member's gain above the margin and floor; interval: the lower "
+                   "end of the predicted relative gain's conformal interval above 0 (needs "
+                   "--guard-calibration)")
+    p.add_argument("--guard-calibration", nargs="+", metavar="FILE", help="the interval "
+                   "guard's calibration: a saved one {task, level, q, floor, n}, or results of "
+                   "paper.py --policy-split validation --guard-margin M on the task (their "
+                   "fine-tuned policies' real gains; level 0.9)")
+
+
 def _sim_env_options(p, default: str = "whole episodes from its start states") -> None:
     """The simulated env SAC fine-tunes in (MBPO branches, MOPO penalty)."""
     p.add_argument("--branch-length", type=_positive("branch-length"), help="MBPO: rollouts "
@@ -241,9 +257,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "u(s, a) exceeds this (same units); --halt-penalty: subtracted then")
     p.add_argument("--halt-penalty", type=float, default=0.0)
     _recipe_and_guard_options(p, IMPROVE_RECIPES)
-    p.add_argument("--guard-snapshots", action="store_true", help="keep the actor every "
-                   "tenth of the iterations; of the snapshots that pass the guard, deploy the "
-                   "one whose smallest predicted gain is largest (default: the final actor)")
+    _improve_guard_options(p)
     _policy_source(p)
     p.add_argument("--step", type=int, help="checkpoint step (default: latest)")
     p.add_argument("--seed", type=int, default=0)

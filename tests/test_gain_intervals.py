@@ -98,8 +98,7 @@ def test_guard_comparison_by_hand():
 
 
 def test_gain_calibration_reads_validation_runs_only():
-    from rl2s_jax.paper.trust_phase import gain_calibration
-
+    gain_calibration = gi.calibration_from_runs
     start = np.full((2, 3), 100.0)
     gain = np.array([[20.0, 1.0, -30.0], [22.0, 40.0, -28.0]])
     run = {"task": "hopper", "policy_split": "validation", "command": "c",

@@ -55,6 +55,7 @@ from rl2s_jax.app.specs import ImproveSpec, check_floor_scale, check_no_guard_al
 from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
+from rl2s_jax.evaluate.trust import json_safe
 from rl2s_jax.improve.finetune import (
     deployment_guard,
     guarded,
@@ -66,13 +67,14 @@ from rl2s_jax.improve.finetune import (
     select_by_members,
     training_return_curve,
 )
+from rl2s_jax.improve.gain_intervals import gain_features, interval_guard, read_calibration
 from rl2s_jax.improve.physics_env import PhysicsEnv, is_physics
 from rl2s_jax.improve.recipes import IMPROVE_RECIPES, recipe_settings
 from rl2s_jax.improve.sim_env import branch_pool, real_rows, scaled_env_options
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.physics.hybrid import load_hybrid
 from rl2s_jax.physics.physics_simulator import NOMINAL, physics_simulator
-from rl2s_jax.policy.policy import index_params
+from rl2s_jax.policy.policy import index_params, num_policies
 from rl2s_jax.policy.sac import SACConfig
 from rl2s_jax.train.checkpoint import load_meta
 from rl2s_jax.train.config import saved_field
@@ -232,6 +234,8 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
                          f"{floor!r}")
     measure = not spec.no_measure
     sim, ds, ids, inside = simulator_of(spec)
+    cal = (read_calibration(spec.guard_calibration, sim.task) if spec.guard == "interval"
+           else None)  # the interval guard's, checked before any work
     task = sim.task_fns()  # the registered task's rules, or the learned reward and hazard
     if measure and sim.task not in TASKS:
         log(f"[improve] {spec.data} is data of no registered task (meta.task "
@@ -285,24 +289,10 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
 
     guard, deployed = None, after  # deployed: what the zoo gets (the guard may keep starts)
     if margin is not None:  # the simulator's own verdict, start vs fine-tuned
-        floor, floor_source = ((float(floor), "given") if floor is not None
-                               else (0.0, "a physics model has no training MVD")
-                               if is_physics(sim)
-                               else checkpoint_floor(spec.ckpt, spec.step, episode_length,
-                                                     gamma))
-        scale = 1.0 if floor_scale is None else float(floor_scale)
-        floor, floor_source = scale * floor, (floor_source if scale == 1 else
-                                              f"{scale:g} x {floor_source}")
-        guard, deployed = deploy_through_guard(
-            sim, None, start_pool(ds), policies, after, snapshots,
-            jax.random.fold_in(k_measure, 1), margin=margin, n_episodes=spec.guard_episodes,
-            horizon=episode_length, gamma=gamma, chunk=chunk, iterations=iterations,
-            floor=floor)
-        guard.update(floor_source=floor_source, floor_scale=scale)
-        log(f"[improve] guard (margin {margin}, floor {floor:.3g}: {floor_source}"
-            + (f", over snapshots every {chunk} iterations" if snapshots is not None else "")
-            + f"): {int(np.sum(guard['accepted']))} of {len(ids)} fine-tuned policies kept, "
-            "every elite member predicting a gain")
+        guard, deployed = _guard(spec, sim, ds, policies, after, snapshots, log, cal=cal,
+                                 key=jax.random.fold_in(k_measure, 1), margin=margin,
+                                 floor=floor, floor_scale=floor_scale, chunk=chunk,
+                                 iterations=iterations, horizon=episode_length, gamma=gamma)
 
     measured = deployed_measured = None
     if measure:
@@ -355,9 +345,7 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
         if measured is not None:
             row.update({k: float(measured[k][j]) for k in ("c0", "c0_se", "c1", "c1_se", "I")})
         if guard is not None:
-            row.update(deployed_fine_tuned=bool(guard["accepted"][j]),
-                       predicted_gain=guard["predicted_gain"][j],
-                       predicted_gain_mean=guard["predicted_gain_mean"][j])
+            row.update(_guard_row(guard, j))
             if "I" in guard:
                 row["real_gain"] = guard["I"][j]
         elif measured is not None:  # no guard: every fine-tuned policy deployed
@@ -379,6 +367,76 @@ def fine_tune(spec: ImproveSpec, *, floor: float | None = None, chunk: int | Non
     return summary
 
 
+def _guard(spec: ImproveSpec, sim, ds, policies, after, snapshots, log, *, cal, key,
+           margin: float, floor, floor_scale, chunk: int, iterations: int, horizon: int,
+           gamma: float) -> tuple[dict, dict]:
+    """``fine_tune``'s deployment guard: the interval guard where ``cal`` (a
+    ``read_calibration``), else the floor guard (``deploy_through_guard``) with the floor
+    ``floor`` (None: the checkpoint's training MVD, ``checkpoint_floor``) x ``floor_scale``.
+    -> (the summary's guard block, the deployed policies [P, ...])."""
+    P = num_policies(policies)
+    if cal is not None:
+        guard, deployed = deploy_through_interval_guard(
+            sim, start_pool(ds), policies, after, key, calibration=cal,
+            n_episodes=spec.guard_episodes, horizon=horizon, gamma=gamma)
+        c = guard["calibration"]
+        log(f"[improve] interval guard (level {c['level']}, q {c['q']}, n {c['n']}): "
+            f"{int(np.sum(guard['accepted']))} of {P} fine-tuned policies kept, the lower end "
+            "of the predicted gain's interval above 0")
+        return guard, deployed
+    floor, floor_source = ((float(floor), "given") if floor is not None
+                           else (0.0, "a physics model has no training MVD")
+                           if is_physics(sim)
+                           else checkpoint_floor(spec.ckpt, spec.step, horizon, gamma))
+    scale = 1.0 if floor_scale is None else float(floor_scale)
+    floor, floor_source = scale * floor, (floor_source if scale == 1 else
+                                          f"{scale:g} x {floor_source}")
+    guard, deployed = deploy_through_guard(
+        sim, None, start_pool(ds), policies, after, snapshots, key, margin=margin,
+        n_episodes=spec.guard_episodes, horizon=horizon, gamma=gamma, chunk=chunk,
+        iterations=iterations, floor=floor)
+    guard.update(floor_source=floor_source, floor_scale=scale)
+    log(f"[improve] guard (margin {margin}, floor {floor:.3g}: {floor_source}"
+        + (f", over snapshots every {chunk} iterations" if snapshots is not None else "")
+        + f"): {int(np.sum(guard['accepted']))} of {P} fine-tuned policies kept, "
+        "every elite member predicting a gain")
+    return guard, deployed
+
+
+def _start_and_tuned_values(sim, policies, after, starts, key, task=None, **kw) -> tuple:
+    """Each elite member's simulated values of the start and the fine-tuned policies, the
+    same episodes for both (``member_values``). -> (v0 [M, P], v1 [M, P])."""
+    both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]), policies, after)
+    values = member_values(sim, task, both, starts, key, **kw)
+    P = values.shape[1] // 2
+    return values[:, :P], values[:, P:]
+
+
+def deploy_through_interval_guard(sim, starts, policies, after, key, *, calibration: dict,
+                                  n_episodes: int, horizon: int, gamma: float
+                                  ) -> tuple[dict, dict]:
+    """The interval guard (``rl2s improve --guard interval``, ``gain_intervals``): the
+    fine-tuned policy deploys where the lower end of its predicted relative gain's interval,
+    G - q sigma from the elite members' values of the start and of it, is above 0; else the
+    start. calibration: ``read_calibration``'s. -> (the summary's guard block: "kind",
+    "calibration" (level, q (None: infinite), q_infinite, floor, n, source), "accepted",
+    "gain" [P] G, "gain_member_sd" [P], "gain_lower" [P] (None: unbounded), the members'
+    values and ``predicted_gains``; the deployed policies [P, ...])."""
+    v0, v1 = _start_and_tuned_values(sim, policies, after, starts, key,
+                                     n_episodes=n_episodes, horizon=horizon, gamma=gamma)
+    accept, lower = interval_guard(v0, v1 - v0, calibration)
+    feats = gain_features(v0, v1 - v0)
+    lo, mean = predicted_gains(v0, v1)
+    cal = {**calibration, "q_infinite": not np.isfinite(calibration["q"])}
+    guard = json_safe({"kind": "interval", "calibration": cal, "episodes": n_episodes,
+                       "accepted": accept.tolist(), "gain": feats["gain"].tolist(),
+                       "gain_member_sd": feats["member_sd"].tolist(),
+                       "gain_lower": lower.tolist(), "sim_value_start": v0.tolist(),
+                       "sim_value_tuned": v1.tolist(), "predicted_gain": lo,
+                       "predicted_gain_mean": mean})
+    return guard, guarded(policies, after, accept)
+
+
 def deploy_through_guard(sim, task, starts, policies, after, snapshots, key, *, margin: float,
                          n_episodes: int, horizon: int, gamma: float, chunk: int | None = None,
                          iterations: int | None = None, floor: float = 0.0
@@ -392,11 +450,7 @@ def deploy_through_guard(sim, task, starts, policies, after, snapshots, key, *, 
     kw = dict(n_episodes=n_episodes, horizon=horizon, gamma=gamma)
     guard = {"margin": margin, "floor": floor, "episodes": n_episodes}
     if snapshots is None:
-        both = jax.tree_util.tree_map(lambda a, b: jax.numpy.concatenate([a, b]), policies,
-                                      after)
-        values = member_values(sim, task, both, starts, key, **kw)
-        P = values.shape[1] // 2
-        v0, v1 = values[:, :P], values[:, P:]
+        v0, v1 = _start_and_tuned_values(sim, policies, after, starts, key, task=task, **kw)
         accept = deployment_guard(v0, v1, margin, floor)
         deployed = guarded(policies, after, accept)
         cand = v1  # the candidate whose predicted gain the summary shows
@@ -470,6 +524,18 @@ def predicted_gains(v0, v1) -> tuple[list, list]:
     return [_nan_none(x) for x in lo], [_nan_none(x) for x in mean]
 
 
+def _guard_row(guard: dict, j: int) -> dict:
+    """Policy j's guard fields in the summary's row: deployed or not, the members' predicted
+    gain; under the interval guard also G (``predicted_relative_gain``) and its interval's
+    lower end (``gain_lower``, None: unbounded)."""
+    row = {"deployed_fine_tuned": bool(guard["accepted"][j]),
+           "predicted_gain": guard["predicted_gain"][j],
+           "predicted_gain_mean": guard["predicted_gain_mean"][j]}
+    if guard.get("kind") == "interval":
+        row.update(predicted_relative_gain=guard["gain"][j], gain_lower=guard["gain_lower"][j])
+    return row
+
+
 def _deployed_text(guard: dict, j: int) -> str:
     """What the zoo holds for policy j under the guard (zoo.json origins)."""
     if not guard["accepted"][j]:
@@ -490,7 +556,9 @@ def summary_markdown(s: dict) -> str:
         lines += [f"MPI {s['mpi']:.3f}, API {s['api']:.3f} (real returns over "
                   f"{s['n_episodes']} episodes each)", ""]
     g = s.get("guard")
-    if g:
+    if g and g.get("kind") == "interval":
+        lines += [interval_guard_line(g), "", deployment_table(s), ""]
+    elif g:
         kept = sum(g["accepted"])
         lines += [f"Deployment guard (margin {g['margin']}"
                   + (f", floor {g['floor']:.3g}: {g['floor_source']}" if "floor_source" in g
@@ -516,15 +584,31 @@ def summary_markdown(s: dict) -> str:
     return "\n".join(lines)
 
 
+def interval_guard_line(g: dict) -> str:
+    """The interval guard's line: its rule, calibration (level, q, floor, n, source) and
+    what it deployed."""
+    c = g["calibration"]
+    q = "inf (too few calibration policies for the level)" if c["q_infinite"] else f"{c['q']:.3g}"
+    return (f"Deployment guard: interval (deploy where the lower end of the predicted relative "
+            f"gain's interval is above 0; level {c['level']}, q {q}, floor {c['floor']:.3g}, "
+            f"n {c['n']} calibration policies, from {', '.join(c['source'])}): "
+            f"{sum(g['accepted'])} of {len(g['accepted'])} fine-tuned policies deployed, the "
+            "others kept as they were"
+            + (f"; deployed MPI {g['mpi']:.3f}, API {g['api']:.3f}" if "mpi" in g else ""))
+
+
 def deployment_table(s: dict) -> str:
-    """Per policy under the guard: deployed or kept, the simulator's predicted gain (the
-    smallest over the elite members, which the guard compares with the margin, and their
-    mean) and the real gain of what was deployed (0 for a kept start), with the final actor's
+    """Per policy under the guard: deployed or kept, the simulator's predicted gain (floor
+    guard: the smallest over the elite members, which the guard compares with the margin, and
+    their mean; interval guard: G and its interval's lower end, which it compares with 0) and
+    the real gain of what was deployed (0 for a kept start), with the final actor's
     real gain for comparison (what deploying it anyway would have given)."""
     g = s["guard"]
-    lines = ["| policy | deployed | predicted gain (every member at least) | predicted gain "
-             "(members' mean) | real gain | real gain, fine-tuned anyway |",
-             "|---|---|---:|---:|---:|---:|"]
+    interval = g.get("kind") == "interval"
+    lines = [("| policy | deployed | predicted relative gain G | its interval's lower end "
+              if interval else "| policy | deployed | predicted gain (every member at least) "
+              "| predicted gain (members' mean) ")
+             + "| real gain | real gain, fine-tuned anyway |", "|---|---|---:|---:|---:|---:|"]
 
     def num(x):
         return "n/a" if x is None else f"{x:+.3f}"
@@ -532,9 +616,10 @@ def deployment_table(s: dict) -> str:
         what = _deployed_text(g, j).replace(" (the guard kept it)", "")
         what = ("kept (start)" if not g["accepted"][j] else
                 "deployed" + what[len("fine-tuned"):])
-        lines.append(f"| {r['policy']} | {what} | {num(g['predicted_gain'][j])} | "
-                     f"{num(g['predicted_gain_mean'][j])} | {num(r.get('real_gain'))} | "
-                     f"{num(r.get('I'))} |")
+        sim = ((g["gain"][j], "-inf" if g["gain_lower"][j] is None else num(g["gain_lower"][j]))
+               if interval else (g["predicted_gain"][j], num(g["predicted_gain_mean"][j])))
+        lines.append(f"| {r['policy']} | {what} | {num(sim[0])} | {sim[1]} | "
+                     f"{num(r.get('real_gain'))} | {num(r.get('I'))} |")
     return "\n".join(lines)
 
 
@@ -585,6 +670,7 @@ def _jsonable(cfg: SACConfig) -> dict:
 
 
 __all__ = ["GUARD_MARGIN", "apply_recipe", "check_inputs", "deploy_through_guard",
-           "deployment_table", "fine_tune", "fine_tuning_overrides", "guard_margin",
+           "deploy_through_interval_guard", "deployment_table", "fine_tune",
+           "fine_tuning_overrides", "guard_margin", "interval_guard_line",
            "policy_indices", "predicted_gains", "run_improve", "sac_config", "simulator_of",
            "summary_markdown"]

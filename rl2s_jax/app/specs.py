@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import math
+import os
 
 from rl2s_jax._names import IMPROVE_RECIPE_NAMES
 
@@ -65,7 +66,8 @@ def check_no_guard_alone(spec) -> None:
         given = [o for o, on in (
             ("--guard-margin", spec.guard_margin is not None),
             ("--guard-snapshots", getattr(spec, "guard_snapshots", False)),
-            ("--guard-floor-scale", getattr(spec, "guard_floor_scale", None) is not None)) if on]
+            ("--guard-floor-scale", getattr(spec, "guard_floor_scale", None) is not None),
+            ("--guard interval", getattr(spec, "guard", "floor") == "interval")) if on]
         if given:
             raise ValueError(f"no-guard: turns the deployment guard off; drop {given[0]}")
 
@@ -81,6 +83,35 @@ def _check_guard(spec) -> None:
     m = spec.guard_margin
     if m is not None and not (math.isfinite(m) and m >= 0):
         raise ValueError(f"guard-margin: expected a finite float >= 0, got {m!r}")
+
+
+def _check_interval_guard(spec) -> None:
+    """`rl2s improve --guard {floor,interval}` and --guard-calibration: the interval guard
+    needs a calibration file (present; its content is read before any work by
+    ``improve.gain_intervals.read_calibration``) and takes none of the floor guard's options,
+    and the floor guard takes no calibration."""
+    if spec.guard not in ("floor", "interval"):
+        raise ValueError(f"guard: expected floor or interval, got {spec.guard!r}")
+    if spec.guard == "floor":
+        if spec.guard_calibration:
+            raise ValueError("guard-calibration: the interval guard's calibration; add "
+                             "--guard interval (the default floor guard takes none)")
+        return
+    if not spec.guard_calibration:
+        raise ValueError("guard: 'interval' needs --guard-calibration FILE (a saved calibration "
+                         "or paper.py validation-split results with known real gains)")
+    given = [f for f, on in (("--guard-margin", spec.guard_margin is not None),
+                             ("--guard-floor-scale", spec.guard_floor_scale is not None),
+                             ("--guard-snapshots", spec.guard_snapshots)) if on]
+    if given:
+        raise ValueError(f"guard: 'interval' deploys where the lower end of the predicted "
+                         f"gain's interval is above 0; {given[0]} is the floor guard's, drop it")
+    if spec.physics is not None:
+        raise ValueError("guard: 'interval' is calibrated on learned simulators' elite-member "
+                         "spread, and a physics model has one member; use the floor guard")
+    for p in spec.guard_calibration:
+        if not os.path.isfile(p):
+            raise ValueError(f"guard-calibration: no such file {p}")
 
 
 def _check_physics(spec) -> None:
@@ -289,6 +320,8 @@ class ImproveSpec:
     guard_episodes: int = 16
     no_guard: bool = False
     guard_snapshots: bool = False
+    guard: str = "floor"  # or "interval" (the lower end of the predicted gain's interval > 0)
+    guard_calibration: list[str] | None = None  # the interval guard's calibration file(s)
     zoo: str | None = None
     policy_file: str | None = None
     step: int | None = None
@@ -301,6 +334,7 @@ class ImproveSpec:
         if self.ckpt is None and self.physics is None:
             raise ValueError("ckpt: required (a checkpoint directory), or --physics SRC")
         _check_guard(self)
+        _check_interval_guard(self)
         _check_ints(self, ("iterations", "episodes", "branch_length", "guard_episodes"))
         if self.episodes < 2 and not self.no_measure:
             raise ValueError(f"episodes: expected >= 2 (for standard errors), got "

@@ -17,8 +17,15 @@ simulators never saw them, e.g. ``paper.py --policy-split validation``'s fine-tu
 policies; score |G - I| / sigma, q their conformal quantile at ``level``. Guard: deploy where
 G - q sigma > 0. Relative gains put the simulated (discounted, at the guard's horizon) and
 the real (undiscounted) gains on one scale; what is left of the difference is in the scores.
+
+``calibration_from_runs`` calibrates from such validation runs (``paper.py --guard-calibration``
+and ``rl2s improve --guard interval --guard-calibration``); ``read_calibration`` reads either
+those runs or a saved calibration (``calibrate_gains``' dict with its "task") for one task.
 """
 from __future__ import annotations
+
+import json
+import math
 
 import numpy as np
 
@@ -84,3 +91,83 @@ def interval_guard(member_start, member_gain, cal: dict) -> tuple[np.ndarray, np
     f = gain_features(member_start, member_gain)
     lower = gain_lower_bound(f["gain"], f["member_sd"], cal)
     return lower > 0, lower
+
+
+def calibration_from_runs(runs: list[dict], task: str, level: float) -> dict:
+    """The interval guard's calibration (``calibrate_gains``) from results of ``paper.py
+    --policy-split validation --guard-margin M`` on ``task``: the fine-tuned validation
+    policies of every lane pooled (simulators that learned from the "fit" policies only),
+    their real gain I_paired. ValueError naming what a run lacks."""
+    g, sd, real, sources = [], [], [], []
+    for run in runs:
+        if run.get("task") != task or run.get("policy_split") != "validation":
+            raise ValueError(f"guard-calibration: expected a {task!r} run on the validation "
+                             f"split, got {run.get('task')!r} on {run.get('policy_split')!r}")
+        for lane, e in (run.get("improvement") or {}).items():
+            if "guard_member_gain" not in e or "guard_member_start" not in e:
+                raise ValueError(f"guard-calibration: lane {lane} has no guard_member_gain / "
+                                 f"guard_member_start (a run with --guard-margin)")
+            f = gain_features(e["guard_member_start"], e["guard_member_gain"])
+            ok = np.asarray([x is not None for x in e["I_paired"]])
+            g += f["gain"][ok].tolist()
+            sd += f["member_sd"][ok].tolist()
+            real += [x for x in e["I_paired"] if x is not None]
+        sources.append(run.get("command"))
+    if not g:
+        raise ValueError("guard-calibration: the runs hold no fine-tuned policies")
+    return {**calibrate_gains(g, sd, real, level), "sources": sources,
+            "what": "fine-tuned validation policies (paper.py --policy-split validation), "
+                    "all lanes pooled; real gain I_paired"}
+
+
+CALIBRATION_KEYS = ("task", "level", "q", "floor", "n")
+
+
+def _saved_calibration(d: dict, task: str, path: str) -> dict:
+    """A saved calibration {"task", "level", "q", "floor", "n"} (q None or inf: too few
+    calibration policies for the level), checked."""
+    missing = [k for k in CALIBRATION_KEYS if k not in d]
+    if missing:
+        raise ValueError(f"guard-calibration: {path} lacks {missing}; expected a calibration "
+                         f"{{{', '.join(CALIBRATION_KEYS)}}} or a paper.py validation-split "
+                         f"result")
+    if d["task"] != task:
+        raise ValueError(f"guard-calibration: {path} calibrates task {d['task']!r}, the "
+                         f"simulator models {task!r}")
+    q = math.inf if d["q"] is None else d["q"]
+    ok = (all(isinstance(d[k], int | float) and not isinstance(d[k], bool)
+              for k in ("level", "floor", "n")) and isinstance(q, int | float)
+          and not isinstance(q, bool) and 0 < d["level"] < 1 and d["n"] >= 1
+          and math.isfinite(d["floor"]) and d["floor"] > 0 and q >= 0 and not math.isnan(q))
+    if not ok:
+        raise ValueError(f"guard-calibration: {path}: expected level in (0, 1), q >= 0 (None: "
+                         f"infinite), floor > 0 finite, n >= 1, got "
+                         f"{ {k: d[k] for k in CALIBRATION_KEYS[1:]} }")
+    return {"level": float(d["level"]), "q": float(q), "floor": float(d["floor"]),
+            "n": int(d["n"])}
+
+
+def read_calibration(paths: list[str], task: str, level: float = tr.DEFAULT_LEVEL) -> dict:
+    """The interval guard's calibration for ``task`` from ``paths``: one saved calibration
+    (``_saved_calibration``), or paper.py validation-split results pooled at ``level``
+    (``calibration_from_runs``). -> {"level", "q", "floor", "n", "source": the paths}.
+    ValueError naming --guard-calibration for a missing, unreadable or other task's file."""
+    docs = []
+    for path in paths:
+        try:
+            with open(path) as f:
+                docs.append(json.load(f))
+        except FileNotFoundError:
+            raise ValueError(f"guard-calibration: no such file {path}") from None
+        except (OSError, ValueError) as err:  # UnicodeDecodeError and JSONDecodeError too
+            raise ValueError(f"guard-calibration: {path} is not readable JSON ({err})") from None
+        if not isinstance(docs[-1], dict):
+            raise ValueError(f"guard-calibration: {path}: expected a JSON object")
+    if any("improvement" not in d for d in docs):
+        if len(docs) > 1:
+            raise ValueError("guard-calibration: a saved calibration comes alone; expected one "
+                             "file, or paper.py validation-split results")
+        cal = _saved_calibration(docs[0], task, paths[0])
+    else:
+        cal = calibration_from_runs(docs, task, level)
+    return {**{k: cal[k] for k in ("level", "q", "floor", "n")}, "source": list(paths)}

@@ -313,33 +313,6 @@ def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict,
 
 # ------------------------------------------------------------------ the interval guard
 
-def gain_calibration(runs: list[dict], task: str, level: float) -> dict:
-    """The interval guard's calibration (``gain_intervals.calibrate_gains``) from results of
-    ``paper.py --policy-split validation --guard-margin M`` on ``task``: the fine-tuned
-    validation policies of every lane pooled (simulators that learned from the "fit"
-    policies only), their real gain I_paired. ValueError naming what a run lacks."""
-    g, sd, real, sources = [], [], [], []
-    for run in runs:
-        if run.get("task") != task or run.get("policy_split") != "validation":
-            raise ValueError(f"guard-calibration: expected a {task!r} run on the validation "
-                             f"split, got {run.get('task')!r} on {run.get('policy_split')!r}")
-        for lane, e in (run.get("improvement") or {}).items():
-            if "guard_member_gain" not in e or "guard_member_start" not in e:
-                raise ValueError(f"guard-calibration: lane {lane} has no guard_member_gain / "
-                                 f"guard_member_start (a run with --guard-margin)")
-            f = gi.gain_features(e["guard_member_start"], e["guard_member_gain"])
-            ok = np.asarray([x is not None for x in e["I_paired"]])
-            g += f["gain"][ok].tolist()
-            sd += f["member_sd"][ok].tolist()
-            real += [x for x in e["I_paired"] if x is not None]
-        sources.append(run.get("command"))
-    if not g:
-        raise ValueError("guard-calibration: the runs hold no fine-tuned policies")
-    return {**gi.calibrate_gains(g, sd, real, level), "sources": sources,
-            "what": "fine-tuned validation policies (paper.py --policy-split validation), "
-                    "all lanes pooled; real gain I_paired"}
-
-
 def guard_block(entries: list[dict], accepted: list, zoo_returns, names, control=None) -> dict:
     """One guard's figures for one method's lanes (``entries``: result["improvement"]'s,
     ``accepted`` [lane][P] its verdicts): "median_gain" (``finetune.median_gain`` over the
@@ -393,7 +366,7 @@ def guard_phase(args, result: dict, level: float) -> None:
     for path in args.guard_calibration:
         with open(path) as f:
             runs.append(json.load(f))
-    cal = gain_calibration(runs, args.task, level)
+    cal = gi.calibration_from_runs(runs, args.task, level)
     result["guard"] = guard_comparison(result, cal, load_zoo(args.task).returns, args.guard)
     for kind in ("floor", "interval"):
         for m, b in result["guard"][kind].items():

@@ -176,3 +176,31 @@ def test_crossfit_calibrates_each_fold_on_the_others(tmp_path):
     assert o["interval"]["rl2s"]["deployed"] == sum(sum(e["guard_accepted_interval"])
                                                     for e in entries)
     assert o["floor"]["rl2s"]["deployed"] == 12 and o["floor"]["rl2s"]["control_median_gain"] == 0.4
+
+
+def test_read_calibration_takes_a_saved_calibration_or_validation_runs(tmp_path):
+    """read_calibration: a saved calibration as it is (q None: infinite), validation-split
+    results as calibration_from_runs pools them; every refusal names --guard-calibration."""
+    saved = {"task": "hopper", "level": 0.8, "q": None, "floor": 0.5, "n": 3}
+    (tmp_path / "s.json").write_text(json.dumps(saved))
+    cal = gi.read_calibration([str(tmp_path / "s.json")], "hopper")
+    assert cal == {"level": 0.8, "q": math.inf, "floor": 0.5, "n": 3,
+                   "source": [str(tmp_path / "s.json")]}
+    start, gain = _members(np.random.default_rng(1), M=2, P=3)
+    run = {"task": "hopper", "policy_split": "validation", "command": "c",
+           "improvement": {"rl2s/0": _entry("rl2s", 0, start, gain, [100.0] * 3,
+                                            [120.0, 100.0, 70.0], [True] * 3)}}
+    (tmp_path / "v.json").write_text(json.dumps(run))
+    cal = gi.read_calibration([str(tmp_path / "v.json")] * 2, "hopper", level=0.5)
+    ref = gi.calibration_from_runs([run, run], "hopper", 0.5)
+    assert {k: cal[k] for k in ("level", "q", "floor", "n")} == {
+        k: ref[k] for k in ("level", "q", "floor", "n")}
+    for bad, msg in (({**saved, "task": "ant"}, "calibrates task 'ant'"),
+                     ({k: v for k, v in saved.items() if k != "floor"}, "lacks ['floor']"),
+                     ({**saved, "floor": 0}, "floor > 0"), ({**saved, "level": 1.2}, "level in")):
+        (tmp_path / "b.json").write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=r"^guard-calibration: .*" + msg.replace(
+                "(", r"\(").replace("[", r"\[")):
+            gi.read_calibration([str(tmp_path / "b.json")], "hopper")
+    with pytest.raises(ValueError, match="guard-calibration: a saved calibration comes alone"):
+        gi.read_calibration([str(tmp_path / "s.json"), str(tmp_path / "v.json")], "hopper")

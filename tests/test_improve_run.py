@@ -192,6 +192,12 @@ def test_improve_uses_the_guard_by_default(pointmass_checkpoint, tmp_path, capsy
     gain = (v1 - v0) / np.abs(v0)
     assert g["accepted"] == np.all(gain > 0.02, axis=0).tolist()
     assert "| policy | deployed | predicted gain (every member at least) |" in printed
+    # the floor guard's block and rows as before the interval guard existed (--guard floor)
+    assert set(g) == {"margin", "floor", "episodes", "accepted", "sim_value_start",
+                      "sim_value_tuned", "predicted_gain", "predicted_gain_mean",
+                      "floor_source", "floor_scale", "c1", "c1_se", "I", "mpi", "api"}
+    assert "interval" not in printed and not any(
+        {"predicted_relative_gain", "gain_lower"} & set(r) for r in s["policies"])
     for j, r in enumerate(s["policies"]):
         assert r["deployed_fine_tuned"] == g["accepted"][j]
         assert r["predicted_gain"] == pytest.approx(gain[:, j].min())
@@ -370,3 +376,96 @@ def test_checkpoint_floor_reads_the_summary_beside_the_checkpoint(tmp_path):
     assert value == 0.0 and "step 300" in why
     assert checkpoint_floor(str(ckpt), None, 1000, 0.999)[0] == 0.0
     assert checkpoint_floor(str(ckpt), None, 100, 0.99)[0] == 0.0
+
+
+def _calibration_file(path, **fields):
+    cal = {"task": "pointmass", "level": 0.9, "q": 1.0, "floor": 0.01, "n": 20, **fields}
+    path.write_text(json.dumps(cal))
+    return str(path)
+
+
+def test_improve_interval_guard_deploys_where_the_lower_end_is_above_zero(
+        pointmass_checkpoint, tmp_path, capsys):
+    """--guard interval on a hand-made calibration: per policy G = mean over the elite members
+    of (v1 - v0) / |mean v0|, its lower end G - q (sd + floor) (NumPy, from the recorded member
+    values); exactly the policies whose lower end is above 0 deploy, the zoo holds the start
+    elsewhere; the summary and the printed report state G, the lower end and the calibration."""
+    run = pointmass_checkpoint
+    before = pol.index_params(policies_for(load_dataset(run["data"])), np.arange(4))
+    q, floor = 1.5, 0.01
+    cal = _calibration_file(tmp_path / "cal.json", q=q, floor=floor)
+    out = tmp_path / "interval"
+    assert cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--out", str(out),
+                     "--iterations", "20", "--episodes", "2", "--quiet", "--guard-episodes",
+                     "4", "--guard", "interval", "--guard-calibration", cal, *SMALL]) == 0
+    printed = capsys.readouterr().out
+    s = json.loads((out / "summary.json").read_text())
+    g = s["guard"]
+    v0, v1 = np.asarray(g["sim_value_start"]), np.asarray(g["sim_value_tuned"])
+    rel = (v1 - v0) / np.abs(v0.mean(0))
+    gain, sd = rel.mean(0), rel.std(0, ddof=1)
+    lower = gain - q * (sd + floor)
+    # a policy with G > 0 that its interval keeps: the lower end decides, not G alone
+    assert 0 < (lower > 0).sum() < 4 and ((gain > 0) & (lower <= 0)).any(), (gain, lower)
+    assert g["kind"] == "interval" and g["accepted"] == (lower > 0).tolist()
+    assert g["gain"] == pytest.approx(gain.tolist()) and g["gain_lower"] == pytest.approx(
+        lower.tolist())
+    assert g["calibration"] == {"level": 0.9, "q": q, "floor": floor, "n": 20,
+                                "source": [cal], "q_infinite": False}
+    zoo = zoo_mod.load_zoo(str(out))
+    for j, r in enumerate(s["policies"]):
+        assert r["deployed_fine_tuned"] == bool(lower[j] > 0)
+        assert r["predicted_relative_gain"] == pytest.approx(gain[j])
+        assert r["gain_lower"] == pytest.approx(lower[j])
+        assert r["real_gain"] == (r["I"] if lower[j] > 0 else 0.0)
+        same = all(np.array_equal(a[j], b[j]) for a, b in zip(
+            jax.tree_util.tree_leaves(zoo.params), jax.tree_util.tree_leaves(before),
+            strict=True))
+        assert same == (not lower[j] > 0)
+        what = "deployed" if lower[j] > 0 else "kept (start)"
+        assert f"| {r['policy']} | {what} | {gain[j]:+.3f} | {lower[j]:+.3f} |" in printed
+    assert "Deployment guard: interval (deploy where the lower end" in printed
+    assert f"q {q:.3g}, floor {floor:.3g}, n 20 calibration policies, from {cal}" in printed
+
+
+def test_improve_interval_guard_refused_at_the_door(pointmass_checkpoint, tmp_path, capsys):
+    """Each wrong use of --guard interval / --guard-calibration: status 2, one line naming
+    the flag and what was expected, nothing written."""
+    run = pointmass_checkpoint
+    out = tmp_path / "never"
+    good = _calibration_file(tmp_path / "good.json")
+    bad_json = tmp_path / "bad.json"
+    bad_json.write_text("{not json")
+    test_split = tmp_path / "test_split.json"
+    test_split.write_text(json.dumps({"task": "pointmass", "policy_split": "zoo",
+                                      "improvement": {}}))
+    cases = (
+        (["--guard", "interval"], "guard: 'interval' needs --guard-calibration FILE"),
+        (["--guard", "interval", "--guard-calibration", str(tmp_path / "nope.json")],
+         "guard-calibration: no such file"),
+        (["--guard", "interval", "--guard-calibration", good, "--no-guard"],
+         "no-guard: turns the deployment guard off; drop --guard interval"),
+        (["--guard", "interval", "--guard-calibration", good, "--guard-margin", "0.1"],
+         "--guard-margin is the floor guard's, drop it"),
+        (["--guard-calibration", good], "guard-calibration: the interval guard's calibration; "
+                                        "add --guard interval"),
+        (["--guard", "interval", "--guard-calibration",
+          _calibration_file(tmp_path / "hopper.json", task="hopper")],
+         "guard-calibration: " + str(tmp_path / "hopper.json") + " calibrates task 'hopper', "
+         "the simulator models 'pointmass'"),
+        (["--guard", "interval", "--guard-calibration", str(bad_json)],
+         "is not readable JSON"),
+        (["--guard", "interval", "--guard-calibration",
+          _calibration_file(tmp_path / "neg.json", q=-1.0)], "expected level in (0, 1), q >= 0"),
+        (["--guard", "interval", "--guard-calibration", str(test_split)],
+         "guard-calibration: expected a 'pointmass' run on the validation split"),
+    )
+    for extra, msg in cases:
+        rc = cli.main(["improve", "--ckpt", run["ckpt"], "--data", run["data"], "--out",
+                       str(out), "--iterations", "5", "--quiet", *extra])
+        err = capsys.readouterr().err
+        assert rc == 2 and msg in err and len(err.strip().splitlines()) == 1, (extra, err)
+    rc = cli.main(["improve", "--physics", "nominal", "--data", run["data"], "--out", str(out),
+                   "--guard", "interval", "--guard-calibration", good])
+    assert rc == 2 and "guard: 'interval' is calibrated on learned" in capsys.readouterr().err
+    assert not os.path.exists(out)

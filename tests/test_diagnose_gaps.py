@@ -7,7 +7,7 @@ import pytest
 
 from rl2s_jax.data import episodes as ep_mod
 from rl2s_jax.data.dataset import Dataset
-from rl2s_jax.diagnose.gap_views import gaps_markdown, plot_gaps
+from rl2s_jax.diagnose.gap_views import VALUES_NO_INTERVAL, gaps_markdown, plot_gaps
 from rl2s_jax.diagnose.gaps import error_breakdown
 
 OBS, A, P, L, E = 4, 2, 4, 50, 40  # obs size, action size, policies, episode length, episodes
@@ -166,11 +166,13 @@ def test_plots_and_markdown(eps, rows, tmp_path):
     md = gaps_markdown(b, files)
     assert "![g_one_step.png](g_one_step.png)" in md and "| obs 0 |" in md
     assert "\\|VD\\|" in md and all(f"- {s}" in md for s in b["summary"])
+    assert VALUES_NO_INTERVAL in md  # the simulated values say why they have no interval
     # without kstep / vd: only the one-step figure
     b2 = error_breakdown(eps, rows, resid, std)
     files2 = plot_gaps(str(tmp_path / "sub"), b2)
     assert [os.path.basename(f) for f in files2] == ["gaps_one_step.png"]
     assert "g_rollout" not in gaps_markdown(b2, files2)
+    assert VALUES_NO_INTERVAL not in gaps_markdown(b2, files2)  # no values, no note
 
 
 def test_bad_input(eps, rows):

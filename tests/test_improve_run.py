@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from rl2s_jax import cli
+from rl2s_jax.app.value_intervals import NO_INTERVAL
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.envs.tasks import PointMass
@@ -196,8 +197,11 @@ def test_improve_uses_the_guard_by_default(pointmass_checkpoint, tmp_path, capsy
     assert set(g) == {"margin", "floor", "episodes", "accepted", "sim_value_start",
                       "sim_value_tuned", "predicted_gain", "predicted_gain_mean",
                       "floor_source", "floor_scale", "c1", "c1_se", "I", "mpi", "api"}
-    assert "interval" not in printed and not any(
+    assert "predicted relative gain G" not in printed and not any(
         {"predicted_relative_gain", "gain_lower"} & set(r) for r in s["policies"])
+    # issue 64: each simulated value printed without an interval says why
+    assert f"Why no interval: {NO_INTERVAL['sim_return']}." in printed
+    assert f"Why no interval: {NO_INTERVAL['floor_guard']}." in printed
     for j, r in enumerate(s["policies"]):
         assert r["deployed_fine_tuned"] == g["accepted"][j]
         assert r["predicted_gain"] == pytest.approx(gain[:, j].min())
@@ -426,6 +430,7 @@ def test_improve_interval_guard_deploys_where_the_lower_end_is_above_zero(
         assert f"| {r['policy']} | {what} | {gain[j]:+.3f} | {lower[j]:+.3f} |" in printed
     assert "Deployment guard: interval (deploy where the lower end" in printed
     assert f"q {q:.3g}, floor {floor:.3g}, n 20 calibration policies, from {cal}" in printed
+    assert NO_INTERVAL["floor_guard"] not in printed and NO_INTERVAL["sim_return"] in printed
 
 
 def test_improve_interval_guard_refused_at_the_door(pointmass_checkpoint, tmp_path, capsys):

@@ -190,6 +190,10 @@ def test_improvement_text_names_the_floor_and_its_scale():
                                     recipe={"branch_length": None, "uncertainty_penalty": 0.0}))
     assert "Fine-tuned" not in text(guard_floor=0.0)
     assert "| p0 | deployed | +0.300 | 100.0 | 150.0 | +0.500 |" in text(guard_floor=0.0)
+    # the predicted gains have no interval, and the report says why (issue 64); no guard: none
+    from rl2s_jax.app.value_intervals import NO_INTERVAL
+    assert f"Why no interval: {NO_INTERVAL['floor_guard']}." in text(guard_floor=0.0)
+    assert "Why no interval" not in text(guard_floor=0.0, guard_margin=None)
 
 
 def test_cpu_from_cpuinfo_names_the_model_and_the_widest_instruction_set():

@@ -51,6 +51,7 @@ def test_eval_data_results_reach_the_summary_with_their_settings(pm_files, tmp_p
     table = format_summary(s)
     assert "test policies" in table and "3 episodes x 50 steps" in table
     assert "seed 0, true values: measured" in table
+    assert "why no interval: sim value: of the training policies" in table  # issue 64
 
 
 def test_inspect_names_return_and_discounted_value_apart(pm_files):

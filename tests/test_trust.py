@@ -213,7 +213,8 @@ def test_pipeline_report_lines():
                        ["train"] * 9, 0.9)
     t = tr.trust_report(f, cal, ["a", "b", "c"], truth=[0.1, 5.1, 1.0])
     assert t["worst"] == {"name": "c", "flagged": True}  # |9 - 1| is the largest error
-    (line, blank) = trust_lines({"bc": {"trust": t}, "gail": {"trust": {"skipped": "x"}}})
+    (line, skipped, blank) = trust_lines({"bc": {"trust": t}, "gail": {"trust": {"skipped": "x"}}})
+    assert skipped == "- gail: value intervals skipped: x"  # why it has none, said
     assert line.startswith("- bc: 90% value intervals cover 67% of the test policies")
     assert "1 untrusted" in line and "c flagged" in line and "training (optimistic)" in line
     assert blank == "" and trust_lines({"bc": {}}) == []
@@ -260,3 +261,17 @@ def test_default_calibration_is_the_training_data(pm_files, tmp_path):
                         strict=True):
         assert p["sim_value"] == pytest.approx(v, rel=1e-5) and p["seed_sd"] == pytest.approx(sd)
     assert "50% interval" in format_agreement(two)
+
+
+def test_evaluate_says_why_a_value_has_no_interval(pm_files, pm_checkpoint, capsys):
+    """Issue 64's audit: `rl2s evaluate --oracle` and `--level 0` print values without an
+    interval, each with the reason (NO_INTERVAL), in the printed report and the JSON."""
+    from rl2s_jax.app.evaluation import run_evaluate
+    from rl2s_jax.app.specs import EvaluateSpec
+    from rl2s_jax.app.value_intervals import NO_INTERVAL
+
+    kw = dict(data=pm_files["test"], episodes=2, horizon=10, bootstrap=0)
+    assert run_evaluate(EvaluateSpec(oracle=True, **kw)) == 0
+    assert f"value intervals skipped: {NO_INTERVAL['oracle']}" in capsys.readouterr().out
+    assert run_evaluate(EvaluateSpec(ckpt=[pm_checkpoint], level=0, **kw)) == 0
+    assert f"value intervals skipped: {NO_INTERVAL['level_0']}" in capsys.readouterr().out

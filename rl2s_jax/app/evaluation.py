@@ -15,7 +15,7 @@ import numpy as np
 
 from rl2s_jax._files import write_json
 from rl2s_jax.app.specs import EvaluateSpec
-from rl2s_jax.app.value_intervals import trust_for
+from rl2s_jax.app.value_intervals import NO_INTERVAL, trust_for
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.metrics import spearman
@@ -135,7 +135,8 @@ def evaluate_oracle_data(data_path: str, *, zoo: str | None = None,
                          truth: str | None = None, level: float | None = None,
                          calibration: list[str] | None = None) -> dict:
     """``evaluate_checkpoint`` with the task's real dynamics (``evaluate_oracle``): the control,
-    in the same ``EvalSetting`` (no value intervals: ``level`` / ``calibration`` unused);
+    in the same ``EvalSetting`` (no value intervals: with ``level`` the report's "trust" says
+    why, ``NO_INTERVAL["oracle"]``; ``calibration`` unused);
     with no checkpoint its default horizon is the one training on
     this backend measures VD with (``EvalSetting.resolve``), so that the oracle and a
     simulator trained here score the same horizon."""
@@ -153,6 +154,8 @@ def evaluate_oracle_data(data_path: str, *, zoo: str | None = None,
                              n_boot=n_boot, truth=setting.truth)
     report.update(method="oracle", data=data_path, seed=setting.seed,
                   **_sources(setting, n_episodes))
+    if level:
+        report["trust"] = {"skipped": NO_INTERVAL["oracle"]}
     return report
 
 
@@ -409,14 +412,16 @@ def run_evaluate(spec: EvaluateSpec) -> int:
     kw = dict(zoo=spec.zoo, policy_file=spec.policy_file, seed=spec.seed, truth=spec.truth,
               n_episodes=spec.episodes, horizon=spec.horizon, n_boot=spec.bootstrap,
               level=spec.level or None, calibration=spec.calibration)
-    if spec.ckpt and len(spec.ckpt) > 1:  # several simulators: where they disagree
+    several = bool(spec.ckpt and len(spec.ckpt) > 1)  # several simulators: where they disagree
+    if several:
         report = evaluate_checkpoints(spec.ckpt, spec.data, step=spec.step, **kw)
-        print(format_agreement(report))
     else:
         report = (evaluate_oracle_data(spec.data, **kw) if spec.oracle
                   else evaluate_physics(spec.physics, spec.data, **kw) if spec.physics
                   else evaluate_checkpoint(spec.ckpt[0], spec.data, step=spec.step, **kw))
-        print(format_report(report))
+    if not spec.level:
+        report["trust"] = {"skipped": NO_INTERVAL["level_0"]}
+    print(format_agreement(report) if several else format_report(report))
     if spec.json:
         os.makedirs(os.path.dirname(os.path.abspath(spec.json)), exist_ok=True)
         write_json(spec.json, report)

@@ -53,6 +53,7 @@ import numpy as np
 from rl2s_jax._files import save_figure, write_json, write_text
 from rl2s_jax.app.specs import ImproveSpec, check_floor_scale, check_no_guard_alone
 from rl2s_jax.app.training import parse_overrides
+from rl2s_jax.app.value_intervals import NO_INTERVAL
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS
 from rl2s_jax.evaluate.trust import json_safe
@@ -546,7 +547,9 @@ def _deployed_text(guard: dict, j: int) -> str:
 
 
 def summary_markdown(s: dict) -> str:
-    """The summary as a markdown table: real return before / after ± SE, I, simulated return."""
+    """The summary as a markdown table: real return before / after ± SE, I, simulated return;
+    the guard's verdicts (``deployment_table``); why a simulated value has no interval
+    (``NO_INTERVAL``)."""
     recipe = f" (recipe {s['recipe']})" if s.get("recipe") else ""
     lines = [f"# rl2s improve: {s['task']}, {s['iterations']} SAC iterations{recipe}",
              "", (f"physics model `{s['physics']}`" if s.get("physics")
@@ -581,6 +584,9 @@ def summary_markdown(s: dict) -> str:
                          f"{r['c1']:.1f} ± {r['c1_se']:.1f} | {r['I']:+.3f} | {sim} |")
         else:
             lines.append(f"| {r['policy']} | n/a | n/a | n/a | {sim} |")
+    lines += ["", f"Why no interval: {NO_INTERVAL['sim_return']}."]
+    if g and g.get("kind") != "interval":
+        lines.append(f"Why no interval: {NO_INTERVAL['floor_guard']}.")
     return "\n".join(lines)
 
 

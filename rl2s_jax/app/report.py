@@ -8,6 +8,7 @@ import jaxlib
 import numpy as np
 
 from rl2s_jax._files import read_jsonl, save_figure, write_json, write_text
+from rl2s_jax.app.value_intervals import NO_INTERVAL
 
 TABLE_KEYS = ("avd", "mvd", "kendall_tau", "spearman", "ndcg@1", "ndcg@3", "ndcg@5", "ndcg@10",
               "regret@1", "mpi", "api")
@@ -88,7 +89,7 @@ def improvement_text(evals: dict[str, dict]) -> str:
     """Per method and test policy of the improvement (``evals[m]["improvement"]``, the
     pipeline's ``improve_in_simulators``): deployed or kept, the simulator's predicted gain
     (the smallest over the elite members; the guard's criterion) and the real gain (paired C1
-    vs C0). Markdown; "" without improvement."""
+    vs C0); why the predicted gains have no interval. Markdown; "" without improvement."""
     lines = []
     for method, r in evals.items():
         imp = r.get("improvement")
@@ -111,6 +112,8 @@ def improvement_text(evals: dict[str, dict]) -> str:
             lines.append(f"| {name} | {'deployed' if imp['deployed'][j] else 'kept (start)'} | "
                          + ("n/a" if p is None else f"{p:+.3f}") + f" | {imp['c0'][j]:.1f} | "
                          f"{imp['c1'][j]:.1f} | {imp['I'][j]:+.3f} |")
+    if any((r.get("improvement") or {}).get("guard_margin") is not None for r in evals.values()):
+        lines += ["", f"Why no interval: {NO_INTERVAL['floor_guard']}."]
     return "\n".join(lines)
 
 
@@ -221,10 +224,13 @@ def plot_improvement(out: str, imps: dict[str, dict], names: list[str], order) -
 
 
 def trust_lines(evals: dict[str, dict]) -> list[str]:
-    """report.md's lines on each method's value intervals (evaluate/trust.py), if any."""
+    """report.md's lines on each method's value intervals (evaluate/trust.py), or why it has
+    none, if either."""
     lines = []
     for name, r in evals.items():
         t = r.get("trust") or {}
+        if "skipped" in t:
+            lines.append(f"- {name}: value intervals skipped: {t['skipped']}")
         if "coverage" in t:
             c, wor = t["calibration"], t["width_over_range"]
             lines.append(f"- {name}: {t['level']:.0%} value intervals cover "

@@ -14,6 +14,7 @@ import numpy as np
 from rl2s_jax._files import read_jsonl, write_json, write_text
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.app.specs import TrainSpec
+from rl2s_jax.app.value_intervals import NO_INTERVAL
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.envs.tasks import TASKS, data_task
 from rl2s_jax.evaluate.scores import evaluate_simulator
@@ -374,6 +375,7 @@ def format_summary(s: dict) -> str:
         mark = "*" if name in s["selected"] else ""
         lines.append(f"{name:<14}{p['true_value']:>12.2f}{p['sim_value']:>12.2f}"
                      f"{p['vd']:>10.2f}  {mark}")
+    lines.append(f"why no interval: {NO_INTERVAL['training_policies']}")
     lines.append(f"checkpoint: {s['checkpoint']}")
     return "\n".join(lines)
 

@@ -20,6 +20,26 @@ from rl2s_jax.physics.hybrid import load_hybrid
 from rl2s_jax.policy.policy import index_params, save_policies
 from rl2s_jax.zoo.zoo import load_zoo, policies_for
 
+# Why a simulated value a command prints has no interval (issue 64: every command that prints
+# a simulated value prints its interval or says why not; docs/EVALUATION.md, "Which printed
+# values carry an interval").
+NO_INTERVAL = {
+    "sim_return": "simulated return: SAC's own return while fine-tuning inside the simulator "
+                  "(the exploring actor over its training episodes), a training curve rather "
+                  "than an estimate of a policy's value, so no interval",
+    "floor_guard": "predicted gain: the elite members' gains that the guard compares with its "
+                   "margin carry no interval, which needs fine-tuned policies with known real "
+                   "gains to calibrate on (`rl2s improve --guard interval --guard-calibration "
+                   "FILE`)",
+    "training_policies": "sim value: of the training policies, whose data the simulator "
+                         "learned from, beside their true values: the error is measured, not "
+                         "predicted, so no interval (other policies' intervals: `rl2s "
+                         "evaluate --ckpt`)",
+    "oracle": "the oracle runs the real dynamics: its values are Monte-Carlo estimates of the "
+              "truth, not a simulator's predictions (their episode noise: --bootstrap)",
+    "level_0": "--level 0 turned them off",
+}
+
 
 def _calibration_paths(metas: list[dict], calibration: list[str] | None) -> tuple[list, set]:
     """(the calibration data files, the real paths of the checkpoints' training data)."""

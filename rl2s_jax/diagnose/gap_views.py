@@ -232,6 +232,13 @@ def _panel_values(ax, vd: dict) -> None:
     ax.legend(fontsize=7)
 
 
+# Why the by-policy table's simulated values have no interval (issue 64: every printed simulated
+# value has its interval or says why not; app/value_intervals.py NO_INTERVAL for the others)
+VALUES_NO_INTERVAL = ("Why no interval: sim is the diagnosed model's value of each of the data's "
+                      "own policies, beside its true value: the error is measured, not "
+                      "predicted (other policies' intervals: `rl2s evaluate --ckpt`).")
+
+
 def gaps_markdown(breakdown: dict, plots: list[str], *, rel_to: str | None = None,
                   max_rows: int = 8) -> str:
     """A compact markdown section: findings, top rows of the by-dim and by-policy tables, the
@@ -264,6 +271,8 @@ def gaps_markdown(breakdown: dict, plots: list[str], *, rel_to: str | None = Non
         if has_vd:
             row += "".join(f" {_num(p.get(k))} |" for k in ("true", "sim", "abs_vd"))
         lines.append(row)
+    if has_vd:
+        lines += ["", VALUES_NO_INTERVAL]
     lines.append("")
 
     worst = breakdown["by_region"]["worst"]

@@ -204,3 +204,25 @@ def test_read_calibration_takes_a_saved_calibration_or_validation_runs(tmp_path)
             gi.read_calibration([str(tmp_path / "b.json")], "hopper")
     with pytest.raises(ValueError, match="guard-calibration: a saved calibration comes alone"):
         gi.read_calibration([str(tmp_path / "s.json"), str(tmp_path / "v.json")], "hopper")
+
+
+def test_improve_report_of_the_interval_guard_with_an_infinite_q():
+    """rl2s improve's summary.md under the interval guard (from a hand-made summary): the
+    calibration line says q is infinite and why, an unbounded lower end prints -inf, nothing
+    deploys; the floor guard's no-interval line is absent, the simulated return's present."""
+    from rl2s_jax.app.improvement import summary_markdown
+    from rl2s_jax.app.value_intervals import NO_INTERVAL
+
+    g = {"kind": "interval", "accepted": [False, False], "gain": [0.2, -0.1],
+         "gain_lower": [None, None], "predicted_gain": [0.1, -0.2],
+         "predicted_gain_mean": [0.2, -0.1],
+         "calibration": {"level": 0.9, "q": None, "q_infinite": True, "floor": 0.01, "n": 3,
+                         "source": ["cal.json"]}}
+    rows = [{"policy": p, "sim_return_curve": [1.0, 2.0], "deployed_fine_tuned": False}
+            for p in ("a", "b")]
+    md = summary_markdown({"task": "pointmass", "iterations": 5, "checkpoint": "ck",
+                           "data": "d.npz", "mpi": None, "guard": g, "policies": rows})
+    assert ("level 0.9, q inf (too few calibration policies for the level), floor 0.01, n 3 "
+            "calibration policies, from cal.json): 0 of 2 fine-tuned policies deployed") in md
+    assert "| a | kept (start) | +0.200 | -inf | n/a | n/a |" in md
+    assert NO_INTERVAL["floor_guard"] not in md and NO_INTERVAL["sim_return"] in md

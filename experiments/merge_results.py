@@ -7,8 +7,8 @@ control (experiments/improve_control.py), each optional.
         [--keep] [--data-seed-run P.json ...]
 
 --data-seed-run files go to by_data_seed only (``rl2s_jax.paper.data_seeds``); the trust
-block of one of them (issue 64) becomes the task's "trust", marked with its data seed, unless
-the task's own --paper run has one.
+block (issue 64) becomes the task's "trust", marked with its data seed, or pooled over the
+data seeds of several (``data_seeds.pooled_trust``), unless the task's own --paper run has one.
 
 Several --paper files are runs of one protocol split over calls or GPUs on the same data:
 other families (paper.py --families adversarial / mle) or other seeds (--first-seed K, e.g.
@@ -38,7 +38,8 @@ import numpy as np
 
 from rl2s_jax.evaluate.lane_scores import intervals_over_seeds
 from rl2s_jax.improve.finetune import median_gain
-from rl2s_jax.paper.data_seeds import data_seed_of, oracle_into_data_seed, record_data_seeds
+from rl2s_jax.paper.data_seeds import (data_seed_of, oracle_into_data_seed, pooled_trust,
+                                       record_data_seeds)
 from rl2s_jax.paper.protocol import summarise
 from rl2s_jax.paper.trust_phase import trust_from_lanes
 from rl2s_jax.zoo.zoo import load_zoo
@@ -235,24 +236,34 @@ def carry_trust(merged: dict, parts: list[dict]) -> None:
 
 
 def data_seed_trust(result: dict, runs: list[dict]) -> None:
-    """Issue 64's "trust" of a --data-seed-run into ``result`` (in place) where the result
-    has none of its own (its --paper run's): each method's block with its ``data_seed``, and
-    that run's "trust_calibration"; a trust recorded this way before is replaced. ValueError
-    when several runs bring one (their lanes are not here to join: merge them with --paper)."""
+    """Issue 64's "trust" of the --data-seed-runs into ``result`` (in place) where the result
+    has none of its own (its --paper run's): one run's blocks marked with its ``data_seed``;
+    runs of several data seeds pooled (``data_seeds.pooled_trust``: every run of every data
+    seed, each data seed's block kept under "by_data_seed"); "trust_calibration" per data
+    seed. A trust recorded this way before is replaced. ValueError when two runs of one data
+    seed bring one (their lanes are not here to join: merge them with --paper)."""
     have = [r for r in runs if isinstance(r.get("trust"), dict) and r["trust"]
             and "error" not in r["trust"]]
     if not have:
         return
-    if len(have) > 1:
-        raise ValueError("trust: more than one --data-seed-run has a trust block; join them "
-                         "with --paper first")
+    seeds = [data_seed_of(r) for r in have]
+    if len(set(seeds)) < len(seeds):
+        raise ValueError("trust: two --data-seed-runs of one data seed have a trust block; "
+                         "join them with --paper first")
     own = result.get("trust") or {}
-    if any("data_seed" not in b for b in own.values() if isinstance(b, dict)) or "error" in own:
+    if any("data_seed" not in b and "data_seeds" not in b for b in own.values()
+           if isinstance(b, dict)) or "error" in own:
         return  # the task's own rows' trust
-    ds = data_seed_of(have[0])
-    result["trust"] = {m: {**b, "data_seed": ds} for m, b in have[0]["trust"].items()}
-    if have[0].get("trust_calibration"):
-        result["trust_calibration"] = {**have[0]["trust_calibration"], "data_seed": ds}
+    if len(have) == 1:
+        result["trust"] = {m: {**b, "data_seed": seeds[0]} for m, b in have[0]["trust"].items()}
+    else:
+        result["trust"] = pooled_trust(have)
+    cals = {str(ds): r["trust_calibration"] for ds, r in zip(seeds, have)
+            if r.get("trust_calibration")}
+    if len(cals) == 1:
+        result["trust_calibration"] = {**next(iter(cals.values())), "data_seed": seeds[0]}
+    elif cals:
+        result["trust_calibration"] = {"by_data_seed": cals}
 
 
 def main(argv=None) -> int:

@@ -37,7 +37,7 @@ import argparse
 import os
 import sys
 
-from rl2s_jax.paper.data_seeds import data_seed_rows
+from rl2s_jax.paper.data_seeds import data_seed_rows, trust_rows
 from rl2s_jax.paper.physics_tables import PHYSICS_BEGIN, PHYSICS_END, physics_block
 from rl2s_jax.paper.tables import (
     PAPER_NOTE,
@@ -127,6 +127,7 @@ def render(results: dict, source: str) -> str:
     lines += ["", "### Table 1: ranking the test policies", ""]
     lines += metric_table(results, TABLE1)
     lines += data_seed_section(results)
+    lines += trust_section(results)
     lines += ["", "### Table 2: policy improvement (SAC inside each simulator, real return)", ""]
     lines += metric_table(results, TABLE2, with_oracle=False) + control_rows(results)
     lines += ["", "MPI / API: C0 is the test data's true value, C1 measured apart. MPI / API "
@@ -179,6 +180,24 @@ def data_seed_section(results: dict) -> list[str]:
             "issue 66's bar. Recorded by `experiments/merge_results.py` (by_data_seed; the "
             "commands are in the task JSONs). \"not measured\": no run measured it.", "",
             *rows]
+
+
+def trust_section(results: dict) -> list[str]:
+    """The table "Value intervals over data seeds" (issue 64) from the tasks' "trust"
+    blocks (``data_seeds.trust_rows``); no task has one: nothing."""
+    rows = trust_rows(results, TASKS)
+    if not rows:
+        return []
+    return ["", "### Value intervals over data seeds", "",
+            "Each test policy's split-conformal interval for its true value at level 0.9 "
+            "(`paper/trust_phase.py`: calibrated on 20 perturbed training policies measured in "
+            "the real env, never on test policies), per method over every run (seed x data "
+            "seed): coverage of the true values, mean width over the range of the true values, "
+            "the plain seed-spread interval's width once scaled WITH the truth to the same "
+            "coverage (✓: the conformal interval is narrower), and the share of runs whose "
+            "largest-error policy is flagged untrusted. Issue 64's bars beside each (✓ / ✗). "
+            "Recorded by `experiments/merge_results.py --data-seed-run` (the commands are in "
+            "the task JSONs).", "", *rows]
 
 
 def with_block(text: str, block: str, begin: str = BEGIN, end_mark: str = END) -> str:

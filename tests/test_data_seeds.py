@@ -9,6 +9,7 @@ import pytest
 from experiment_scripts import load_script
 
 from rl2s_jax.paper import data_seeds as dseeds
+from rl2s_jax.paper.data_seeds import data_seed_of
 
 NAMES = ["p0", "p1", "p2"]
 
@@ -121,8 +122,63 @@ def test_merge_results_carries_a_data_seed_runs_trust(tmp_path):
     assert mr.main(args) == 0
     assert json.loads((out / "hopper.json").read_text())["trust"] == own
     (tmp_path / "r2.json").write_text(json.dumps({**run, "test_policy_names": NAMES}))
-    with pytest.raises(SystemExit, match="trust: more than one --data-seed-run"):
+    (out / "hopper.json").write_text(json.dumps({"task": "hopper", "per_seed": {}}))
+    with pytest.raises(SystemExit, match="trust: two --data-seed-runs of one data seed"):
         mr.main([*args, "--data-seed-run", str(tmp_path / "r2.json")])
+
+
+def _trust_run(ds: int, truth, sims, covered, flagged) -> dict:
+    """A paper.py result of data seed ``ds`` with rl2s lanes' trust entries: sims [S, P]."""
+    truth = np.asarray(truth, float)
+    lanes = {f"rl2s/{s}": {"trust": {
+        "level": 0.9, "coverage": covered[s], "width_over_range": 0.1 * (s + 1),
+        "worst": {"flagged": flagged[s]}, "q_infinite": False, "sim_value": list(sims[s])}}
+        for s in range(len(sims))}
+    return {**_run(("rl2s",), ([0.9] * len(sims),), ([1.0] * len(sims),), ds),
+            "true_value": truth.tolist(), "lanes": lanes,
+            "trust": {"rl2s": {"coverage": float(np.mean(covered)), "runs": len(sims)}}}
+
+
+def test_pooled_trust_over_data_seeds_against_numpy(tmp_path):
+    """pooled_trust: means over every run of both data seeds, and the seed-spread interval
+    pooled on each data seed's truth range, scaled to the pooled coverage (NumPy reference);
+    merge_results records it for two --data-seed-runs."""
+    rng = np.random.default_rng(3)
+    t7, t23 = np.array([0.0, 50.0, 100.0]), np.array([10.0, 40.0, 210.0])
+    s7, s23 = t7 + rng.normal(0, 9, (2, 3)), t23 + rng.normal(0, 20, (3, 3))
+    runs = [_trust_run(7, t7, s7, [1.0, 2 / 3], [1.0, 0.0]),
+            _trust_run(23, t23, s23, [1 / 3, 1.0, 1.0], [1.0, 1.0, 0.0])]
+    b = dseeds.pooled_trust(runs)["rl2s"]
+    cov = np.mean([1.0, 2 / 3, 1 / 3, 1.0, 1.0])
+    assert b["coverage"] == pytest.approx(cov) and b["runs"] == 5
+    assert b["worst_flagged"] == pytest.approx(3 / 5)
+    assert b["width_over_range"] == pytest.approx(np.mean([0.1, 0.2, 0.1, 0.2, 0.3]))
+    v, sd, tr = [], [], []
+    for t, sims in ((t7, s7), (t23, s23)):
+        r = t.max() - t.min()
+        v += list((sims / r).ravel())
+        sd += list(np.tile(sims.std(0, ddof=1) / r, len(sims)))
+        tr += list(np.tile(t / r, len(sims)))
+    need = np.sort(np.abs(np.subtract(v, tr)) / sd)
+    k = need[int(np.ceil(cov * need.size)) - 1]
+    assert b["seed_spread"]["scaled_width_over_range"] == pytest.approx(np.mean(2 * k * np.array(sd)))
+    assert b["narrower_than_seed_spread"] == (b["width_over_range"]
+                                             < b["seed_spread"]["scaled_width_over_range"])
+    assert b["data_seeds"] == [7, 23] and b["by_data_seed"]["7"]["runs"] == 2
+    with pytest.raises(ValueError, match="one run per data seed"):
+        dseeds.pooled_trust([runs[0], runs[0]])
+    mr = load_script("merge_results")
+    (tmp_path / "hopper.json").write_text(json.dumps({"task": "hopper", "per_seed": {}}))
+    args = ["--task", "hopper", "--keep", "--out", str(tmp_path)]
+    for r in runs:
+        (tmp_path / f"r{data_seed_of(r)}.json").write_text(json.dumps(
+            {**r, "trust_calibration": {"n": data_seed_of(r)}}))
+        args += ["--data-seed-run", str(tmp_path / f"r{data_seed_of(r)}.json")]
+    assert mr.main(args) == 0
+    got = json.loads((tmp_path / "hopper.json").read_text())
+    assert got["trust"]["rl2s"]["coverage"] == pytest.approx(cov)
+    assert got["trust_calibration"] == {"by_data_seed": {"7": {"n": 7}, "23": {"n": 23}}}
+
 
 
 def test_data_seed_entry_refuses_mixed_runs():
@@ -146,6 +202,12 @@ def test_data_seed_entry_refuses_mixed_runs():
     assert entry["oracle"] == {"kendall_tau": pytest.approx(0.85), "seeds": 2}
     assert "rl2s" not in entry and entry["complete"] is False
     assert "not measured" in dseeds.oracle_bar("hopper", entry)
+    # with a whole run of the methods beside it the entry is complete (its oracle is whole)
+    full = _run(("rl2s",), ([0.7, 0.8],), ([1.0, 1.0],), 23)
+    _, entry = dseeds.data_seed_entry([full, cut])
+    assert entry["oracle"]["kendall_tau"] == pytest.approx(0.85) and "complete" not in entry
+    _, entry = dseeds.data_seed_entry([{**full, "complete": False}, cut])
+    assert entry["complete"] is False
 
 
 def test_oracle_check_output_fills_its_data_seed():
@@ -357,6 +419,7 @@ def test_readme_headline_is_the_data_seed_table():
             f"{means['halfcheetah']:.2f} (HalfCheetah) and {means['ant']:.2f} (Ant")
     assert want in readme
     common = sorted(set.intersection(*seeds), key=int)
-    assert re.search(rf"data seeds {' and '.join(common)}\b", readme)
+    listed = ", ".join(common[:-1]) + " and " + common[-1]  # "0, 7 and 23"
+    assert re.search(rf"data seeds {listed}\b", readme)
     for extra in sorted(set.union(*seeds) - set(common), key=int):
         assert re.search(rf"data seed {extra}\b", readme), extra

@@ -41,7 +41,8 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
     over the seeds of the first run that has it; the oracle's tau and the noise ceiling
     (``{"mean", "lo", "hi"}``) where a run measured them itself (not an oracle row that
     merge_results.py took from another collection: ``result["oracle"]``), else absent;
-    ``"complete": false`` when a run used was cut off (paper.py's ``complete``).
+    ``"complete": false`` when a run that gave a method's numbers (or, with no method, the
+    oracle's) was cut off (paper.py's ``complete``).
     -> (data seed, entry). ValueError naming the field where the runs differ (data seed,
     task, test policies) or when none has a method (but an oracle-only entry of a cut-off
     run: the oracle runs before training)."""
@@ -53,7 +54,7 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
     for k in ("task", "test_policy_names"):
         if any(r.get(k) != runs[0].get(k) for r in runs[1:]):
             raise ValueError(f"{k}: the runs of one data seed differ")
-    entry, used = {}, []
+    entry, used, method_runs = {}, [], {}
     own = [r for r in runs if not isinstance(r.get("oracle"), dict)]  # else merged from elsewhere
     for m in (*BY_DATA_SEED_METHODS, "oracle"):
         run = next((r for r in (own if m == "oracle" else runs)
@@ -61,6 +62,7 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
                     is not None), None)
         if run is None:
             continue
+        method_runs[m] = run
         per = run["per_seed"][m]
         entry[m] = {"kendall_tau": _mean_over_seeds(per, "kendall_tau"),
                     "seeds": len(per["kendall_tau"])}
@@ -80,8 +82,10 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
                  hardware=used[0].get("hardware"),
                  test_policy_names=list(runs[0].get("test_policy_names") or []),
                  zoo_sha256=used[0].get("zoo_sha256"))
-    if any(r.get("complete") is False for r in used):
-        entry["complete"] = False  # a run cut off (e.g. its time limit): what it measured
+    methods_from = [r for r in used if any(r is method_runs.get(m) for m in BY_DATA_SEED_METHODS)]
+    if any(r.get("complete") is False for r in (methods_from or used)):
+        entry["complete"] = False  # a run cut off (e.g. its time limit) gave the methods'
+        # numbers (an oracle measured before the cut is whole)
     return seeds.pop(), entry
 
 
@@ -198,3 +202,94 @@ def data_seed_rows(results: dict, tasks) -> list[str]:
                                         for d in seeds if str(d) in tab])
         lines.append(f"| {task} | oracle / noise ceiling | {' | '.join(cells)} | {mean} | |")
     return lines
+
+
+def _lane_trusts(run: dict, method: str) -> list[dict]:
+    """One run's lanes' "trust" entries of ``method`` in seed order (lanes "<method>/<seed>")."""
+    lanes = sorted((int(k.rsplit("/", 1)[1]), e["trust"]) for k, e in run.get("lanes", {}).items()
+                   if k.rsplit("/", 1)[0] == method and (e.get("trust") or {}).get("coverage")
+                   is not None)
+    return [t for _, t in lanes]
+
+
+def pooled_trust(runs: list[dict]) -> dict:
+    """Issue 64's "trust" block per method over data seeds: ``runs`` are paper.py results
+    (one per data seed, each with its lanes' trust entries and true values). Per method the
+    means over every run (method x seed x data seed) of coverage and width_over_range, the
+    share of runs whose worst-error policy is flagged, and the seed-spread interval pooled the
+    same way (each data seed's values, seed spread and truth over its own truth's range, so
+    widths add up as width/range) scaled to the pooled coverage; "by_data_seed" keeps each
+    data seed's own block."""
+    from rl2s_jax.evaluate import trust as tr  # NumPy; keeps this module's import light
+    by_ds = {data_seed_of(r): r for r in runs}
+    if len(by_ds) != len(runs):
+        raise ValueError("runs: expected one run per data seed")
+    methods = [m for m in dict.fromkeys(k for r in runs for k in (r.get("trust") or {}))
+               if all(_lane_trusts(r, m) for r in runs)]
+    out = {}
+    for m in methods:
+        lanes = {ds: _lane_trusts(r, m) for ds, r in by_ds.items()}
+        every = [t for ls in lanes.values() for t in ls]
+        level = every[0]["level"]
+        cov = float(np.mean([t["coverage"] for t in every]))
+        wor = [t["width_over_range"] for t in every]
+        wor = None if any(w is None for w in wor) else float(np.mean(wor))
+        v, sd, truth = [], [], []
+        for ds, ls in lanes.items():
+            t = np.asarray(by_ds[ds]["true_value"], np.float64)
+            sims = np.asarray([x["sim_value"] for x in ls], np.float64) / np.ptp(t)
+            v.append(sims.ravel())
+            sd.append(np.tile(sims.std(0, ddof=1), len(ls)))
+            truth.append(np.tile(t / np.ptp(t), len(ls)))
+        s = tr.spread_interval(np.concatenate(v), np.concatenate(sd), np.concatenate(truth),
+                               level, cov)
+        scaled = s["scaled_mean_width"]
+        out[m] = tr.json_safe({
+            "level": level, "coverage": cov, "width_over_range": wor,
+            "worst_flagged": float(np.mean([t["worst"]["flagged"] for t in every])),
+            "runs": len(every), "data_seeds": sorted(by_ds),
+            "unbounded_runs": int(sum(bool(t["q_infinite"]) for t in every)),
+            "seed_spread": {"coverage": s["coverage"], "width_over_range": s["mean_width"],
+                            "scaled_width_over_range": scaled,
+                            "scaled_infinite": not np.isfinite(scaled)},
+            "narrower_than_seed_spread": None if wor is None or not np.isfinite(scaled)
+            else bool(wor < scaled),
+            "command": " && ".join(dict.fromkeys(r.get("command", "?") for r in runs)),
+            "by_data_seed": {str(ds): {k: (r.get("trust") or {}).get(m, {}).get(k) for k in
+                                       ("coverage", "width_over_range", "worst_flagged", "runs")}
+                             for ds, r in by_ds.items()}})
+    return out
+
+
+# issue 64's bars at level 0.9
+TRUST_BARS = {"coverage": 0.85, "width_over_range": 0.25, "worst_flagged": 0.8}
+
+
+def trust_rows(results: dict, tasks) -> list[str]:
+    """The markdown table of the tasks' "trust" blocks (``pooled_trust`` or one data seed's):
+    per task and method the coverage, width / range, the seed-spread interval scaled to the
+    same coverage, the share of runs whose worst-error policy is flagged, each against issue
+    64's bar, and the data seeds' own coverages; no task has one: []."""
+    f = lambda x: "n/a" if x is None else f"{x:.3f}"
+    mark = lambda ok: "" if ok is None else (" ✓" if ok else " ✗")
+    lines = [f"| task | method | runs (data seeds) | coverage (>= {TRUST_BARS['coverage']}) | "
+             f"width / range (<= {TRUST_BARS['width_over_range']}) | seed spread scaled to it | "
+             f"worst flagged (>= {TRUST_BARS['worst_flagged']}) | coverage per data seed |",
+             "|---|---|---:|---:|---:|---:|---:|---|"]
+    for task in tasks:
+        for m, b in ((results.get(task) or {}).get("trust") or {}).items():
+            if not isinstance(b, dict) or "coverage" not in b:
+                continue
+            seeds = b.get("data_seeds") or [b.get("data_seed", "?")]
+            per = b.get("by_data_seed") or {}
+            sp = (b.get("seed_spread") or {}).get("scaled_width_over_range")
+            w = b.get("width_over_range")
+            cov_per = "; ".join(f"{d}: {f(e.get('coverage'))}" for d, e in sorted(per.items(), key=lambda kv: int(kv[0])))
+            lines.append(
+                f"| {task} | {m} | {b['runs']} ({', '.join(map(str, seeds))}) | "
+                f"{f(b['coverage'])}{mark(b['coverage'] >= TRUST_BARS['coverage'])} | "
+                f"{f(w)}{mark(None if w is None else w <= TRUST_BARS['width_over_range'])} | "
+                f"{f(sp)}{mark(b.get('narrower_than_seed_spread'))} | "
+                f"{f(b['worst_flagged'])}{mark(b['worst_flagged'] >= TRUST_BARS['worst_flagged'])}"
+                f" | {cov_per} |")
+    return lines if len(lines) > 2 else []

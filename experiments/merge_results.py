@@ -38,8 +38,12 @@ import numpy as np
 
 from rl2s_jax.evaluate.lane_scores import intervals_over_seeds
 from rl2s_jax.improve.finetune import median_gain
-from rl2s_jax.paper.data_seeds import (data_seed_of, oracle_into_data_seed, pooled_trust,
-                                       record_data_seeds)
+from rl2s_jax.paper.data_seeds import (
+    data_seed_of,
+    oracle_into_data_seed,
+    pooled_trust,
+    record_data_seeds,
+)
 from rl2s_jax.paper.protocol import summarise
 from rl2s_jax.paper.trust_phase import trust_from_lanes
 from rl2s_jax.zoo.zoo import load_zoo
@@ -258,7 +262,7 @@ def data_seed_trust(result: dict, runs: list[dict]) -> None:
         result["trust"] = {m: {**b, "data_seed": seeds[0]} for m, b in have[0]["trust"].items()}
     else:
         result["trust"] = pooled_trust(have)
-    cals = {str(ds): r["trust_calibration"] for ds, r in zip(seeds, have)
+    cals = {str(ds): r["trust_calibration"] for ds, r in zip(seeds, have, strict=True)
             if r.get("trust_calibration")}
     if len(cals) == 1:
         result["trust_calibration"] = {**next(iter(cals.values())), "data_seed": seeds[0]}

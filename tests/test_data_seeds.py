@@ -161,7 +161,8 @@ def test_pooled_trust_over_data_seeds_against_numpy(tmp_path):
         tr += list(np.tile(t / r, len(sims)))
     need = np.sort(np.abs(np.subtract(v, tr)) / sd)
     k = need[int(np.ceil(cov * need.size)) - 1]
-    assert b["seed_spread"]["scaled_width_over_range"] == pytest.approx(np.mean(2 * k * np.array(sd)))
+    want = np.mean(2 * k * np.array(sd))
+    assert b["seed_spread"]["scaled_width_over_range"] == pytest.approx(want)
     assert b["narrower_than_seed_spread"] == (b["width_over_range"]
                                              < b["seed_spread"]["scaled_width_over_range"])
     assert b["data_seeds"] == [7, 23] and b["by_data_seed"]["7"]["runs"] == 2

@@ -4,12 +4,13 @@ of a task recorded under its data seed in ``docs/results/<task>.json``'s ``"by_d
 "oracle": {"kendall_tau", "seeds"}, "noise_ceiling": {"mean", "lo", "hi", "n_truth", "n_sim"},
 "command", "hardware", "test_policy_names", "zoo_sha256", "complete": false where a run was
 cut off}}``; a method, the oracle or the ceiling not measured is absent), and the rows of
-the table "Ranking over data seeds" that experiments/paper_tables.py renders from it.
-Pure Python and NumPy."""
+the table "Ranking over data seeds" that experiments/paper_tables.py renders from it; issue
+64's "trust" blocks pooled over data seeds (``pooled_trust``) and their table."""
 from __future__ import annotations
 
 import numpy as np
 
+from rl2s_jax.evaluate import trust as tr
 from rl2s_jax.stats import t_interval
 
 BY_DATA_SEED_METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -220,7 +221,6 @@ def pooled_trust(runs: list[dict]) -> dict:
     same way (each data seed's values, seed spread and truth over its own truth's range, so
     widths add up as width/range) scaled to the pooled coverage; "by_data_seed" keeps each
     data seed's own block."""
-    from rl2s_jax.evaluate import trust as tr  # NumPy; keeps this module's import light
     by_ds = {data_seed_of(r): r for r in runs}
     if len(by_ds) != len(runs):
         raise ValueError("runs: expected one run per data seed")
@@ -284,7 +284,8 @@ def trust_rows(results: dict, tasks) -> list[str]:
             per = b.get("by_data_seed") or {}
             sp = (b.get("seed_spread") or {}).get("scaled_width_over_range")
             w = b.get("width_over_range")
-            cov_per = "; ".join(f"{d}: {f(e.get('coverage'))}" for d, e in sorted(per.items(), key=lambda kv: int(kv[0])))
+            cov_per = "; ".join(f"{d}: {f(e.get('coverage'))}"
+                                for d, e in sorted(per.items(), key=lambda kv: int(kv[0])))
             lines.append(
                 f"| {task} | {m} | {b['runs']} ({', '.join(map(str, seeds))}) | "
                 f"{f(b['coverage'])}{mark(b['coverage'] >= TRUST_BARS['coverage'])} | "

@@ -2,7 +2,7 @@
 GPU-seconds go"): `paper.py` runs of `device.sh streams`, one per GPU, joined with nvidia-smi's
 utilization samples of their GPUs.
 
-    python experiments/gpu_profile.py STREAMS_DIR [--json OUT.json]
+    python experiments/gpu_profile.py STREAMS_DIR [--json OUT.json] [--idle-min 6]
 
 STREAMS_DIR holds
 - progress.log: device.sh streams' lines "[s<i>] <k> start HH:MM:SS GPU <n>: paper <task> ..."
@@ -24,7 +24,10 @@ after the last is a row of its own, so a task's rows add up to its stream's wall
 A sample's utilization.gpu (the share of nvidia-smi's sample period in which any kernel ran)
 holds from the midpoint with the sample before to the midpoint with the one after; busy
 GPU-seconds are its integral over a window (time outside the samples counts as idle). Busy
-says a kernel was running, not how much of the GPU it used.
+says a kernel was running, not how much of the GPU it used. Idle spans: runs of samples at 0%
+at least --idle-min seconds long, with the rows they fall in (compilation and host work sit
+there). The summary adds one GPU's protocol: the tasks one after another without the oracle
+and trust phases (the issue's `--no-oracle` protocol), its busy GPU-seconds against 600 s.
 """
 from __future__ import annotations
 

@@ -30,6 +30,7 @@ from functools import partial
 import jax
 import numpy as np
 
+from rl2s_jax import compile_cache
 from rl2s_jax.app.improvement import fine_tuning_overrides
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.app.training import make_config, parse_overrides
@@ -276,10 +277,10 @@ def check_uncertainty(variants, sizes: dict, cfg, family: str) -> None:
 
 
 def main(argv=None) -> int:
-    argv = list(sys.argv[1:] if argv is None else argv)
-    args = parse_args(argv)
+    args = parse_args(argv := list(sys.argv[1:] if argv is None else argv))
     t_start = time.perf_counter()
     initialize_distributed()  # multi-host, when the coordinator variables are set
+    compile_cache.enable()  # each program compiles once per machine (RL2S_COMPILATION_CACHE)
     backend = jax.default_backend()
     profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
     sizes = resolve_sizes(args, profile)

@@ -36,6 +36,7 @@ import sys
 
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.evaluate.lane_scores import intervals_over_seeds
 from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.paper.data_seeds import (
@@ -270,7 +271,7 @@ def data_seed_trust(result: dict, runs: list[dict]) -> None:
         result["trust_calibration"] = {"by_data_seed": cals}
 
 
-def main(argv=None) -> int:
+def parse_args(argv) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--task", required=True)
     ap.add_argument("--paper", action="append", help="paper.py's <task>.json (repeat for "
@@ -281,20 +282,25 @@ def main(argv=None) -> int:
     ap.add_argument("--control")
     ap.add_argument("--data-seed-run", action="append", default=[], metavar="P.json",
                     help="paper.py result(s) recorded under by_data_seed only (repeat; the "
-                    "first run of a data seed that has a method gives its numbers); a run's "
-                    "trust block becomes the task's \"trust\" where it has none of its own")
+                    "first run of a data seed that has a method gives its numbers); their "
+                    "trust blocks become the task's \"trust\" (pooled over data seeds) where "
+                    "it has none of its own")
     ap.add_argument("--keep", action="store_true", help="without --paper: start from the "
                     "existing OUT/<task>.json (e.g. to replace only its control)")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
     args = ap.parse_args(argv)
     if args.oracle and args.oracle_paper:
         raise SystemExit("oracle, oracle-paper: expected at most one oracle source")
-    sha = zoo_sha256(args.task)
+    return args
+
+
+def base_result(args, sha: str) -> dict:
+    """The result the merge starts from: the --paper runs joined (refused: another split, runs
+    that do not join, another zoo), else OUT/<task>.json with --keep, else an empty one."""
     if args.paper:
         parts = []
         for p in args.paper:
-            with open(p) as f:
-                parts.append(json.load(f))
+            parts.append(_read(p))
             if parts[-1].get("policy_split", "zoo") != "zoo":
                 raise SystemExit(f"paper: {p} ran on the {parts[-1]['policy_split']} split "
                                  "(--policy-split): not the task's protocol")
@@ -309,18 +315,67 @@ def main(argv=None) -> int:
         if result.get("zoo_sha256") not in (None, sha):
             raise SystemExit(f"paper: measured on zoo {result['zoo_sha256']}, the shipped zoo "
                              f"is {sha}")
-    elif args.keep:
-        with open(os.path.join(args.out, f"{args.task}.json")) as f:
-            result = json.load(f)
-    else:
-        result = {"task": args.task, "methods": {}, "std": {}, "n": {}, "per_seed": {},
-                  "note": "the protocol was not re-run on this zoo"}
+        return result
+    if args.keep:
+        return _read(os.path.join(args.out, f"{args.task}.json"))
+    return {"task": args.task, "methods": {}, "std": {}, "n": {}, "per_seed": {},
+            "note": "the protocol was not re-run on this zoo"}
+
+
+def attach_oracle(result: dict, orc: dict, own_rows: bool) -> None:
+    """oracle_check.py's row with the most episodes at the longest horizon as the "oracle"
+    method of ``result`` (unless it has one, or ``orc`` is another data seed's or split's);
+    own_rows False (no --paper): its command, hardware and jax version become the result's."""
+    if "data_seed" in orc and (orc.get("policy_names") != result.get("test_policy_names")
+                               or orc["data_seed"] != data_seed_of(result)):
+        return  # another data seed's (or test split's) oracle: its by_data_seed entry only
+    if "oracle" in result.get("per_seed", {}):
+        return
+    row = max(orc["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
+    result["per_seed"]["oracle"] = {k: [v] for k, v in row["metrics"].items()}
+    result.setdefault("intervals", {})["oracle"] = (row.get("intervals") or {}).get(
+        "metrics", {})
+    if not own_rows:
+        result.update(command=orc["command"], hardware=orc["hardware"], seeds=1,
+                      jax_version=orc["jax_version"])
+    result["oracle"] = {"source": orc["command"], "hardware": orc["hardware"],
+                        "horizon": row["horizon"], "n_episodes": row["n_episodes"],
+                        "policies": orc["policies"], "metrics": row["metrics"],
+                        "eval_noise_tau_std": ((row.get("intervals") or {}).get(
+                            "sim_only", {}).get("kendall_tau", {}).get("std"))}
+
+
+def control_block(task: str, path: str) -> dict:
+    """improve_control.py's output as the task's "control" (its first config; the test
+    policies' only)."""
+    ctl = _read(path)
+    if ctl.get("split", "test") != "test":
+        raise SystemExit(f"control: fine-tuned the {ctl['split']} policies; the task's "
+                         "control is the test policies'")
+    name, c = next(iter(ctl["configs"].items()))
+    zret = np.asarray(load_zoo(task).returns)
+    gain = median_gain(c["c0"], c["c1"], zret[ctl["zoo_ids"]], zret)
+    return {"config": name, "seeds": ctl["seeds"], "iterations": ctl["iterations"],
+            "policies": len(ctl["zoo_ids"]), "zoo_ids": ctl["zoo_ids"],
+            "mpi": c["mpi"], "api": c["api"], "mpi_ci95": c["mpi_ci95"],
+            "api_ci95": c["api_ci95"], "c0": c["c0"], "c1": c["c1"], "I": c["I"],
+            "device": ctl["device"], "paired": bool(c.get("paired")),
+            "median_gain": gain["median_gain"], "n_below": gain["n_below"],
+            "deployed": (int((np.asarray(c["selected"]) > 0).sum())
+                         if "selected" in c else None),
+            "budget_env_steps": ctl["iterations"] * c["sac"]["n_envs"],
+            "command": ctl.get("command"), "hardware": ctl.get("hardware")}
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv)
+    sha = zoo_sha256(args.task)
+    result = base_result(args, sha)
     if not (args.keep and result.get("zoo_sha256")):  # --keep: the zoo it was measured on
         result["zoo_sha256"] = sha
     previous = os.path.join(args.out, f"{args.task}.json")
     if "by_data_seed" not in result and os.path.exists(previous):
-        with open(previous) as f:  # the data seeds recorded before: kept
-            result["by_data_seed"] = json.load(f).get("by_data_seed") or {}
+        result["by_data_seed"] = _read(previous).get("by_data_seed") or {}  # kept
     try:
         ds_runs = [_read(p) for p in args.data_seed_run]
         record_data_seeds(result, [*([result] if args.paper else []), *ds_runs])
@@ -329,52 +384,15 @@ def main(argv=None) -> int:
             oracle_into_data_seed(result, _read(args.oracle))
     except ValueError as err:
         raise SystemExit(f"by-data-seed: {err}") from None
-    orc = _read(args.oracle) if args.oracle else None
-    if orc and "data_seed" in orc and (orc.get("policy_names") != result.get("test_policy_names")
-                                       or orc["data_seed"] != data_seed_of(result)):
-        orc = None  # another data seed's (or test split's) oracle: its by_data_seed entry only
-    if orc and "oracle" not in result.get("per_seed", {}):
-        row = max(orc["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
-        result["per_seed"]["oracle"] = {k: [v] for k, v in row["metrics"].items()}
-        result.setdefault("intervals", {})["oracle"] = (row.get("intervals") or {}).get(
-            "metrics", {})
-        if not args.paper:
-            result.update(command=orc["command"], hardware=orc["hardware"], seeds=1,
-                          jax_version=orc["jax_version"])
-        result["oracle"] = {"source": orc["command"], "hardware": orc["hardware"],
-                            "horizon": row["horizon"], "n_episodes": row["n_episodes"],
-                            "policies": orc["policies"], "metrics": row["metrics"],
-                            "eval_noise_tau_std": ((row.get("intervals") or {}).get(
-                                "sim_only", {}).get("kendall_tau", {}).get("std"))}
+    if args.oracle:
+        attach_oracle(result, _read(args.oracle), own_rows=bool(args.paper))
     if args.oracle_paper and "oracle" not in result.get("per_seed", {}):
         attach_paper_oracle(result, args.oracle_paper, sha)
     if args.control:
-        with open(args.control) as f:
-            ctl = json.load(f)
-        if ctl.get("split", "test") != "test":
-            raise SystemExit(f"control: fine-tuned the {ctl['split']} policies; the task's "
-                             "control is the test policies'")
-        name, c = next(iter(ctl["configs"].items()))
-        zoo = load_zoo(args.task)
-        zret = np.asarray(zoo.returns)
-        gain = median_gain(c["c0"], c["c1"], zret[ctl["zoo_ids"]], zret)
-        result["control"] = {"config": name, "seeds": ctl["seeds"],
-                             "iterations": ctl["iterations"], "policies": len(ctl["zoo_ids"]),
-                             "zoo_ids": ctl["zoo_ids"],
-                             "mpi": c["mpi"], "api": c["api"], "mpi_ci95": c["mpi_ci95"],
-                             "api_ci95": c["api_ci95"], "c0": c["c0"], "c1": c["c1"],
-                             "I": c["I"], "device": ctl["device"],
-                             "paired": bool(c.get("paired")),
-                             "median_gain": gain["median_gain"], "n_below": gain["n_below"],
-                             "deployed": (int((np.asarray(c["selected"]) > 0).sum())
-                                          if "selected" in c else None),
-                             "budget_env_steps": ctl["iterations"] * c["sac"]["n_envs"],
-                             "command": ctl.get("command"), "hardware": ctl.get("hardware")}
+        result["control"] = control_block(args.task, args.control)
     os.makedirs(args.out, exist_ok=True)
-    path = os.path.join(args.out, f"{args.task}.json")
-    with open(path, "w") as f:
-        json.dump(result, f, indent=1)
-    print(f"-> {path}")
+    write_json(previous, result)
+    print(f"-> {previous}")
     return 0
 
 

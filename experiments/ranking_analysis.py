@@ -3,7 +3,13 @@ paper.py results (data seeds), per test policy its true value with its standard 
 simulated value per method and seed; which pairs of policies each simulator swaps (discordant
 pairs) and whether each swap lies within the truth's own noise; the share of the tau lost to
 within-noise swaps against real ones; the swaps against the simulated episode lengths
-(termination) and, where a lane records it, a per-policy ``support``.
+(termination) and, where a lane records it, a per-policy ``support``; where a lane carries issue
+64's trust report (``lanes[<method>/<seed>]["trust"]``: support, member_sd, sim_value, trusted;
+``rl2s_jax.evaluate.ranking_swaps``), their means over a method's lanes per policy, their
+Spearman correlation with the real swaps per policy, the rank (1 = largest) by member_sd,
+relative member_sd (member_sd / max(|trust sim_value|, 1)) and support of the policy carrying
+most of a method's real swaps, and how often a lane's worst-|error| policy (the trust report's
+"worst": largest |trust sim_value - V|) has the lane's largest / two largest member_sd.
 
     python experiments/ranking_analysis.py RESULT.json [RESULT.json ...] [--methods rl2s,gail]
         [--json OUT.json] [--n-rep 2000]

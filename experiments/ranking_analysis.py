@@ -212,9 +212,9 @@ def relations(a: dict) -> dict:
     """Where the real swaps fall, per policy (summed over methods and seeds), against the
     simulators' relative value error |sim - V| / max(|V|, 1), their episode-length error
     |sim length - true length| and, where recorded, their support and (from the lanes' trust)
-    member_sd and relative member_sd, each the mean over the methods of their means over lanes:
-    Spearman rank correlations (``metrics.spearman``; None where a feature is missing or
-    constant)."""
+    member_sd and relative member_sd, each the mean over the methods of their means over lanes,
+    and the true value itself (a control): Spearman rank correlations (``metrics.spearman``;
+    None where a feature is missing or constant)."""
     real = np.asarray(a["real_swaps_per_policy"], np.float64)
     truth = np.asarray(a["true_value"])
     feats = {}
@@ -231,6 +231,7 @@ def relations(a: dict) -> dict:
     for k in ("member_sd", "relative_member_sd") if trust else ():
         feats[k.replace("_", " ")] = np.mean([t[k] for t in trust], 0)
     feats["truth SE / value"] = np.asarray(a["se"]) / np.maximum(np.abs(truth), 1.0)
+    feats["true value"] = truth  # a control: swaps and member_sd may both follow the value
     out = {}
     for k, v in feats.items():
         ok = np.ptp(real) > 0 and np.ptp(v) > 0

@@ -421,6 +421,7 @@ def test_ranking_analysis_relates_real_swaps_to_the_lanes_trust(tmp_path, capsys
     assert rels["member sd"] == pytest.approx(1.5 / 22.5 ** 0.5)
     assert rels["support"] == pytest.approx(_hand_spearman(real, mean("support")))
     assert rels["relative member sd"] == pytest.approx(_hand_spearman(real, rel))
+    assert rels["true value"] == pytest.approx(_hand_spearman(real, truth))
     printed = capsys.readouterr().out
     assert "rl2s's trust: support member_sd relative trusted" in printed
     assert ("rl2s: most real swaps (2 over its lanes): b (rank by member_sd 1, relative 2, "

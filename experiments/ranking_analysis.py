@@ -38,7 +38,9 @@ episodes the result's ``eval_episodes``, its per-episode spread assumed the trut
 exact simulator would be measured at.
 
 Needs no GPU: the numbers come from the JSONs (``lanes[<method>/<seed>]["sim_value"]``,
-``true_value``, ``true_length``, ``lanes[...]["sim_length"]``).
+``true_value``, ``true_length``, ``lanes[...]["sim_length"]``, ``lanes[...]["trust"]``). --json
+adds, per method, "trust" (the means above), "most_real_swaps" (``carrier_ranks``) and
+"worst_in_top" (None without trust), and per data seed "relations" (the Spearman correlations).
 """
 from __future__ import annotations
 

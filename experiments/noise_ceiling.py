@@ -29,6 +29,7 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from rl2s_jax._files import write_json  # noqa: E402
 from rl2s_jax.evaluate.metrics import kendall_tau, noise_ceiling  # noqa: E402
 
 
@@ -120,8 +121,7 @@ def main(argv=None) -> int:
         a = analyse(json.load(fh), episodes, args.target, args.n_rep, pairs)
     print(report(a))
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(a, fh, indent=1)
+        write_json(args.json, a)
     return 0
 
 

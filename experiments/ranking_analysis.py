@@ -3,7 +3,13 @@ paper.py results (data seeds), per test policy its true value with its standard 
 simulated value per method and seed; which pairs of policies each simulator swaps (discordant
 pairs) and whether each swap lies within the truth's own noise; the share of the tau lost to
 within-noise swaps against real ones; the swaps against the simulated episode lengths
-(termination) and, where a lane records it, a per-policy ``support``.
+(termination) and, where a lane records it, a per-policy ``support``; where a lane carries issue
+64's trust report (``lanes[<method>/<seed>]["trust"]``: support, member_sd, sim_value, trusted;
+``rl2s_jax.evaluate.ranking_swaps``), their means over a method's lanes per policy, their
+Spearman correlation with the real swaps per policy, the rank (1 = largest) by member_sd,
+relative member_sd (member_sd / max(|trust sim_value|, 1)) and support of the policy carrying
+most of a method's real swaps, and how often a lane's worst-|error| policy (the trust report's
+"worst": largest |trust sim_value - V|) has the lane's largest / two largest member_sd.
 
     python experiments/ranking_analysis.py RESULT.json [RESULT.json ...] [--methods rl2s,gail]
         [--json OUT.json] [--n-rep 2000]
@@ -32,7 +38,9 @@ episodes the result's ``eval_episodes``, its per-episode spread assumed the trut
 exact simulator would be measured at.
 
 Needs no GPU: the numbers come from the JSONs (``lanes[<method>/<seed>]["sim_value"]``,
-``true_value``, ``true_length``, ``lanes[...]["sim_length"]``).
+``true_value``, ``true_length``, ``lanes[...]["sim_length"]``, ``lanes[...]["trust"]``). --json
+adds, per method, "trust" (the means above), "most_real_swaps" (``carrier_ranks``) and
+"worst_in_top" (None without trust), and per data seed "relations" (the Spearman correlations).
 """
 from __future__ import annotations
 
@@ -45,33 +53,19 @@ import sys
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from rl2s_jax._files import write_json  # noqa: E402
 from rl2s_jax.evaluate.metrics import kendall_tau, noise_ceiling, spearman  # noqa: E402
+from rl2s_jax.evaluate.ranking_swaps import (  # noqa: E402
+    carrier_ranks,
+    leave_one_out,
+    swaps,
+    trust_features,
+    worst_in_top,
+)
 from rl2s_jax.paper.data_seeds import data_seed_of  # noqa: E402
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-
-
-def swaps(truth, se, sim) -> dict:
-    """The discordant pairs of one simulator: truth, se, sim [P]. -> {"pairs": N, "tau",
-    "noise": [(i, j)] swaps within the truth's noise, "real": [(i, j)] the others,
-    "tau_lost_noise", "tau_lost_real" (2 D / N each)}; i < j index the policies."""
-    t, e, s = (np.asarray(x, np.float64) for x in (truth, se, sim))
-    if not (t.shape == e.shape == s.shape and t.ndim == 1 and t.size >= 2):
-        raise ValueError(f"truth, se, sim: expected equal shapes [P >= 2], got {t.shape}, "
-                         f"{e.shape}, {s.shape}")
-    if not (np.all(np.isfinite(t)) and np.all(np.isfinite(s)) and np.all(e >= 0)):
-        raise ValueError("truth, se, sim: expected finite values and se >= 0")
-    i, j = np.triu_indices(t.size, k=1)
-    discordant = np.sign(t[i] - t[j]) * np.sign(s[i] - s[j]) < 0
-    within = np.abs(t[i] - t[j]) < 2.0 * np.sqrt(e[i] ** 2 + e[j] ** 2)
-    n = i.size
-    noise = [(int(a), int(b)) for a, b in zip(i[discordant & within], j[discordant & within],
-                                              strict=True)]
-    real = [(int(a), int(b)) for a, b in zip(i[discordant & ~within], j[discordant & ~within],
-                                             strict=True)]
-    return {"pairs": n, "tau": kendall_tau(t, s), "noise": noise, "real": real,
-            "tau_lost_noise": 2.0 * len(noise) / n, "tau_lost_real": 2.0 * len(real) / n}
 
 
 def zoo_se(result: dict) -> np.ndarray:
@@ -126,12 +120,43 @@ def lanes_of(results: list[dict], methods) -> dict[str, list[dict]]:
     return out
 
 
-def leave_one_out(truth, sims) -> np.ndarray:
-    """Mean tau over the lanes [L, P] of sims without each policy in turn -> [P]."""
-    t, s = np.asarray(truth, np.float64), np.asarray(sims, np.float64)
-    keep = lambda i: np.arange(t.size) != i
-    return np.array([np.mean([kendall_tau(t[keep(i)], lane[keep(i)]) for lane in s])
-                     for i in range(t.size)])
+def method_analysis(method: str, ls: list[dict], truth, se) -> dict:
+    """One method's lanes ``ls`` against the truth [P] and its SEs [P]: per lane its swaps,
+    their means, swaps per policy, tau without each policy, mean simulated lengths, support
+    (an older lane's own "support", else its trust's), the trust means (``trust_features``:
+    None without trust), the ranks of the policies with most real swaps by support /
+    member_sd / relative member_sd (``carrier_ranks``) and ``worst_in_top``."""
+    P = truth.size
+    rows, noise_count, real_count = [], np.zeros(P, int), np.zeros(P, int)
+    for lane in ls:
+        sw = swaps(truth, se, lane["sim_value"])
+        for a, b in sw["noise"]:
+            noise_count[[a, b]] += 1
+        for a, b in sw["real"]:
+            real_count[[a, b]] += 1
+        rows.append({"seed": lane["seed"], "tau": sw["tau"], "noise": len(sw["noise"]),
+                     "real": len(sw["real"]), "tau_lost_noise": sw["tau_lost_noise"],
+                     "tau_lost_real": sw["tau_lost_real"], "real_pairs": sw["real"]})
+    sims = np.array([lane["sim_value"] for lane in ls], np.float64)
+    lengths = [lane.get("sim_length") for lane in ls]
+    trust = trust_features(ls, P, method)
+    support = (np.mean([lane["support"] for lane in ls], 0).tolist()
+               if all("support" in lane for lane in ls) else trust and trust["support"])
+    feats = {k: trust[k] for k in ("member_sd", "support", "relative_member_sd")} if trust \
+        else {}
+    return {
+        "seeds": rows, "sim_value": sims.tolist(),
+        "tau": float(np.mean([r["tau"] for r in rows])),
+        "tau_lost_noise": float(np.mean([r["tau_lost_noise"] for r in rows])),
+        "tau_lost_real": float(np.mean([r["tau_lost_real"] for r in rows])),
+        "tau_without": leave_one_out(truth, sims).tolist(),
+        "sim_length": (np.mean(np.array(lengths, np.float64), 0).tolist()
+                       if all(x is not None for x in lengths) else None),
+        "support": support, "trust": trust,
+        "noise_swaps_per_policy": noise_count.tolist(),
+        "real_swaps_per_policy": real_count.tolist(),
+        "most_real_swaps": carrier_ranks(real_count, feats) if trust else None,
+        "worst_in_top": worst_in_top(ls, truth, P, method)}
 
 
 def analyse_seed(results: list[dict], methods=METHODS, n_rep: int = 2000) -> dict:
@@ -150,31 +175,10 @@ def analyse_seed(results: list[dict], methods=METHODS, n_rep: int = 2000) -> dic
     n_truth = int(first["sizes"]["value_episodes"])
     ceiling = noise_ceiling(truth, se * np.sqrt(n_truth), n_truth=n_truth, n_sim=n_sim,
                             n_rep=n_rep)["kendall_tau"]
+    per_method = {m: method_analysis(m, ls, truth, se) for m, ls in lanes.items()}
+    noise_count = np.sum([r["noise_swaps_per_policy"] for r in per_method.values()], 0)
+    real_count = np.sum([r["real_swaps_per_policy"] for r in per_method.values()], 0)
     P = truth.size
-    per_method, noise_count, real_count = {}, np.zeros(P, int), np.zeros(P, int)
-    for m, ls in lanes.items():
-        rows = []
-        for lane in ls:
-            sw = swaps(truth, se, lane["sim_value"])
-            for a, b in sw["noise"]:
-                noise_count[[a, b]] += 1
-            for a, b in sw["real"]:
-                real_count[[a, b]] += 1
-            rows.append({"seed": lane["seed"], "tau": sw["tau"], "noise": len(sw["noise"]),
-                         "real": len(sw["real"]), "tau_lost_noise": sw["tau_lost_noise"],
-                         "tau_lost_real": sw["tau_lost_real"], "real_pairs": sw["real"]})
-        sims = np.array([lane["sim_value"] for lane in ls], np.float64)
-        lengths = [lane.get("sim_length") for lane in ls]
-        per_method[m] = {
-            "seeds": rows, "sim_value": sims.tolist(),
-            "tau": float(np.mean([r["tau"] for r in rows])),
-            "tau_lost_noise": float(np.mean([r["tau_lost_noise"] for r in rows])),
-            "tau_lost_real": float(np.mean([r["tau_lost_real"] for r in rows])),
-            "tau_without": leave_one_out(truth, sims).tolist(),
-            "sim_length": (np.mean(np.array(lengths, np.float64), 0).tolist()
-                           if all(x is not None for x in lengths) else None),
-            "support": (np.mean([lane["support"] for lane in ls], 0).tolist()
-                        if all("support" in lane for lane in ls) else None)}
     return {"data_seed": data_seed_of(first), "task": first.get("task"), "policies": names,
             "true_value": truth.tolist(), "se": se.tolist(), "se_source": source,
             "true_length": first.get("true_length"), "n_truth": n_truth, "n_sim": n_sim,
@@ -209,8 +213,10 @@ def group_by_data_seed(results: list[dict]) -> dict[int, list[dict]]:
 def relations(a: dict) -> dict:
     """Where the real swaps fall, per policy (summed over methods and seeds), against the
     simulators' relative value error |sim - V| / max(|V|, 1), their episode-length error
-    |sim length - true length| and, where recorded, their support: Spearman rank correlations
-    (``metrics.spearman``; None where a feature is missing or constant)."""
+    |sim length - true length| and, where recorded, their support and (from the lanes' trust)
+    member_sd and relative member_sd, each the mean over the methods of their means over lanes,
+    and the true value itself (a control): Spearman rank correlations (``metrics.spearman``;
+    None where a feature is missing or constant)."""
     real = np.asarray(a["real_swaps_per_policy"], np.float64)
     truth = np.asarray(a["true_value"])
     feats = {}
@@ -223,7 +229,11 @@ def relations(a: dict) -> dict:
     sup = [m["support"] for m in a["methods"].values() if m["support"] is not None]
     if sup:
         feats["support"] = np.mean(sup, 0)
+    trust = [m["trust"] for m in a["methods"].values() if m["trust"] is not None]
+    for k in ("member_sd", "relative_member_sd") if trust else ():
+        feats[k.replace("_", " ")] = np.mean([t[k] for t in trust], 0)
     feats["truth SE / value"] = np.asarray(a["se"]) / np.maximum(np.abs(truth), 1.0)
+    feats["true value"] = truth  # a control: swaps and member_sd may both follow the value
     out = {}
     for k, v in feats.items():
         ok = np.ptp(real) > 0 and np.ptp(v) > 0
@@ -246,17 +256,23 @@ def report(a: dict) -> str:
                      f" / {r['tau_lost_real']:.3f}   without {a['policies'][best]}: tau "
                      f"{r['tau_without'][best]:.3f}")
     head = "  ".join(f"{m:>7}" for m in ms)
+    tm = next((m for m, r in ms.items() if r["trust"]), None)
     lines += ["", f"  {'policy':<16} {'true':>7} {'se':>5}  {head}  {'len true/sim':>13}  "
-              "swaps noise/real"]
+              "swaps noise/real" + (f"  {tm}'s trust: support member_sd relative trusted"
+                                    if tm else "")]
     order = np.argsort(a["true_value"])
     rl2s_len = next((r["sim_length"] for r in ms.values() if r["sim_length"]), None)
     for i in order:
         sims = "  ".join(f"{np.mean(np.asarray(r['sim_value'])[:, i]):>7.0f}" for r in ms.values())
         tl = a["true_length"][i] if a.get("true_length") else float("nan")
         sl = rl2s_len[i] if rl2s_len else float("nan")
+        t = ms[tm]["trust"] if tm else None
         lines.append(f"  {a['policies'][i]:<16} {a['true_value'][i]:>7.0f} {a['se'][i]:>5.0f}  "
                      f"{sims}  {tl:>6.0f}/{sl:<6.0f}  {a['noise_swaps_per_policy'][i]:>5}/"
-                     f"{a['real_swaps_per_policy'][i]}")
+                     f"{a['real_swaps_per_policy'][i]:<4}" + (
+                         f"  {t['support'][i]:>21.2f} {t['member_sd'][i]:>9.1f} "
+                         f"{t['relative_member_sd'][i]:>8.3f} {t['trusted'][i]:>7.2f}" if t
+                         else ""))
     pairs: dict = {}
     for r in ms.values():
         for s in r["seeds"]:
@@ -269,7 +285,26 @@ def report(a: dict) -> str:
     rel = relations(a)
     lines.append("  Spearman of real swaps per policy with: " + ", ".join(
         f"{k} {'n/a' if v is None else format(v, '+.2f')}" for k, v in rel.items()))
-    return "\n".join(lines)
+    return "\n".join(lines + coverage_lines(a))
+
+
+def coverage_lines(a: dict) -> list[str]:
+    """Per method with trust: the policies with most real swaps and their ranks (1 = largest,
+    of P) by member_sd, relative member_sd and support; how often a lane's worst-|error|
+    policy has the lane's largest / second-largest member_sd."""
+    P, out = len(a["policies"]), []
+    for m, r in a["methods"].items():
+        c, w = r["most_real_swaps"], r["worst_in_top"]
+        if c is None:
+            continue
+        who = ", ".join(
+            f"{a['policies'][i]} (rank by member_sd {c['rank_by_member_sd'][k]}, relative "
+            f"{c['rank_by_relative_member_sd'][k]}, support {c['rank_by_support'][k]} of {P})"
+            for k, i in enumerate(c["policies"])) or "none"
+        out.append(f"  {m}: most real swaps ({c['real_swaps']} over its lanes): {who}; the "
+                   f"worst-|error| policy has the largest member_sd in {w['top1']} of "
+                   f"{w['lanes']} lanes, one of the two largest in {w['top2']}")
+    return [""] + out if out else []
 
 
 def main(argv=None) -> int:
@@ -306,8 +341,7 @@ def main(argv=None) -> int:
                       f"{c['max_abs_z']:.2f}; ~1 when the SEs are right), tau of one truth "
                       f"against the other {c['tau_truth_vs_truth']:.3f}")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(out, f, indent=1)
+        write_json(args.json, out)
     return 0
 
 

@@ -350,6 +350,8 @@ def test_ranking_analysis_per_data_seed_and_between_truths(tmp_path, capsys):
     assert m["tau_without"][0] == pytest.approx((1 / 3 + 1) / 2)
     assert m["tau_without"][2] == pytest.approx(1 / 3)
     assert zero["se_source"].startswith("true_value_se")
+    assert m["trust"] is None and m["most_real_swaps"] is None and m["worst_in_top"] is None
+    assert "member sd" not in zero["relations"] and "support" not in zero["relations"]
     z = np.array([0.0, -1.0, 0.0, -3.0]) / np.sqrt(2.0)
     between = out["truth_between_data_seeds"][0]
     assert between["rms_z"] == pytest.approx(np.sqrt(np.mean(z ** 2)))
@@ -359,6 +361,76 @@ def test_ranking_analysis_per_data_seed_and_between_truths(tmp_path, capsys):
     assert "real swaps most often (of 2 lanes): c-d 1" in printed
     with pytest.raises(SystemExit, match="methods: expected a comma list"):
         ra.main([paths[0], "--methods", "nope"])
+
+
+def _hand_spearman(x, y):
+    """Pearson of average ranks, in plain Python (ties share the mean of their ranks)."""
+    def ranks(v):
+        return [1 + sum(w < u for w in v) + (sum(w == u for w in v) - 1) / 2 for u in v]
+    rx, ry = ranks(x), ranks(y)
+    mx, my = sum(rx) / len(rx), sum(ry) / len(ry)
+    cov = sum((a - mx) * (b - my) for a, b in zip(rx, ry, strict=True))
+    return cov / (sum((a - mx) ** 2 for a in rx) * sum((b - my) ** 2 for b in ry)) ** 0.5
+
+
+def test_ranking_analysis_relates_real_swaps_to_the_lanes_trust(tmp_path, capsys):
+    """Lanes with issue 64's trust (support, member_sd, sim_value, trusted per policy): their
+    means per policy, Spearman of real swaps with them, the swap carrier's ranks and the
+    worst-|error| policy's rank by member_sd, each against a hand computation; a method
+    without trust keeps the old output; a trust list of the wrong length is refused."""
+    ra = load_script("ranking_analysis")
+    truth = [0.0, 10.0, 20.0, 30.0]  # gaps 10 > 2 sqrt(2): every swap is real
+    trust = [{"member_sd": [1.0, 4.0, 2.0, 3.0], "support": [1.0, 0.5, 2.0, 0.8],
+              "sim_value": [0.0, 26.0, 20.0, 30.0], "trusted": [True, False, True, True]},
+             {"member_sd": [3.0, 2.0, 1.0, 2.5], "support": [1.2, 0.7, 1.0, 0.6],
+              "sim_value": [9.0, 10.0, 21.0, 45.0], "trusted": [True, True, False, True]}]
+    sims = [[0.0, 25.0, 20.0, 30.0], [12.0, 10.0, 20.0, 30.0]]  # swaps b-c, then a-b
+    lanes = {f"rl2s/{s}": {"sim_value": v, "trust": t}
+             for s, (v, t) in enumerate(zip(sims, trust, strict=True))}
+    lanes["bc/0"] = {"sim_value": truth}  # an older lane: no trust
+    r = {"task": "hopper", "command": "paper.py --data-seed 7", "lanes": lanes,
+         "true_value": truth, "true_value_se": [1.0] * 4, "test_policy_names": list("abcd"),
+         "sizes": {"eval_episodes": 16, "value_episodes": 16}}
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(r))
+    assert ra.main([str(path), "--methods", "rl2s,bc", "--n-rep", "20", "--json",
+                    str(tmp_path / "a.json")]) == 0
+    seven = json.loads((tmp_path / "a.json").read_text())["data_seeds"]["7"]
+    m, bc = seven["methods"]["rl2s"], seven["methods"]["bc"]
+    assert m["real_swaps_per_policy"] == [1, 2, 1, 0]
+    mean = lambda k: [(x + y) / 2 for x, y in zip(trust[0][k], trust[1][k], strict=True)]
+    rel = [(a / max(abs(u), 1) + b / max(abs(v), 1)) / 2 for a, u, b, v in zip(
+        trust[0]["member_sd"], trust[0]["sim_value"], trust[1]["member_sd"],
+        trust[1]["sim_value"], strict=True)]
+    assert m["trust"]["member_sd"] == pytest.approx(mean("member_sd"))
+    assert m["trust"]["support"] == pytest.approx(mean("support"))
+    assert m["trust"]["relative_member_sd"] == pytest.approx(rel)
+    assert m["trust"]["trusted"] == pytest.approx([1.0, 0.5, 0.5, 1.0])
+    assert m["support"] == pytest.approx(mean("support"))
+    # b carries most real swaps (2): member_sd means [2, 3, 1.5, 2.75] -> rank 1; support
+    # means [1.1, 0.6, 1.5, 0.7] -> rank 4; relative [0.67, 0.18, 0.07, 0.08] -> rank 2
+    assert m["most_real_swaps"] == {"policies": [1], "real_swaps": 2, "rank_by_member_sd": [1],
+                                    "rank_by_support": [4], "rank_by_relative_member_sd": [2]}
+    # worst |trust sim - V|: lane 0 b (16; member_sd 4, the largest), lane 1 d (15; 2.5, the
+    # second largest; by the lane's own sim_value it would be a, 12, with the largest)
+    assert m["worst_in_top"] == {"lanes": 2, "top1": 1, "top2": 2, "worst": [1, 3]}
+    assert bc["trust"] is None and bc["most_real_swaps"] is None and bc["worst_in_top"] is None
+    real = [1, 2, 1, 0]  # bc swaps nothing
+    rels = seven["relations"]
+    assert rels["member sd"] == pytest.approx(_hand_spearman(real, mean("member_sd")))
+    assert rels["member sd"] == pytest.approx(1.5 / 22.5 ** 0.5)
+    assert rels["support"] == pytest.approx(_hand_spearman(real, mean("support")))
+    assert rels["relative member sd"] == pytest.approx(_hand_spearman(real, rel))
+    assert rels["true value"] == pytest.approx(_hand_spearman(real, truth))
+    printed = capsys.readouterr().out
+    assert "rl2s's trust: support member_sd relative trusted" in printed
+    assert ("rl2s: most real swaps (2 over its lanes): b (rank by member_sd 1, relative 2, "
+            "support 4 of 4); the worst-|error| policy has the largest member_sd in 1 of 2 "
+            "lanes, one of the two largest in 2") in printed
+    lanes["rl2s/1"]["trust"] = {**trust[1], "support": [1.0, 2.0]}
+    path.write_text(json.dumps(r))
+    with pytest.raises(SystemExit, match=r"lanes\[rl2s/1\]\.trust\.support: expected 4"):
+        ra.main([str(path), "--methods", "rl2s", "--n-rep", "20"])
 
 
 def test_zoo_standard_errors_scale_the_zoos_and_check_its_policies():

@@ -900,7 +900,9 @@ def test_noise_ceiling_script_reads_the_oracle_seeds(tmp_path, capsys):
     assert a["n_truth_episodes"] == 8 and a["episodes_for_target"] == 4096
     path = tmp_path / "ant.json"
     path.write_text(json.dumps(res))
-    assert nc.main([str(path), "--episodes", "4,4096", "--n-rep", "50", "--pairs", "2:3"]) == 0
+    assert nc.main([str(path), "--episodes", "4,4096", "--n-rep", "50", "--pairs", "2:3",
+                    "--json", str(tmp_path / "nc.json")]) == 0
+    assert json.loads((tmp_path / "nc.json").read_text())["n_truth_episodes"] == 8
     out = capsys.readouterr().out
     assert "oracle seed vs oracle seed" in out and "truth:simulator 2:3 episodes" in out
     with pytest.raises(SystemExit, match="pairs"):

@@ -285,6 +285,9 @@ def parse_args(argv) -> argparse.Namespace:
                     "first run of a data seed that has a method gives its numbers); their "
                     "trust blocks become the task's \"trust\" (pooled over data seeds) where "
                     "it has none of its own")
+    ap.add_argument("--guard-reading", metavar="G.json", help="experiments/interval_guard.py's "
+                    "output: the floor and the interval guard on the task's recorded "
+                    "improvement runs become its \"guard\" (issue 64 item 4)")
     ap.add_argument("--keep", action="store_true", help="without --paper: start from the "
                     "existing OUT/<task>.json (e.g. to replace only its control)")
     ap.add_argument("--out", default=os.path.join(ROOT, "docs", "results"))
@@ -367,6 +370,21 @@ def control_block(task: str, path: str) -> dict:
             "command": ctl.get("command"), "hardware": ctl.get("hardware")}
 
 
+def guard_reading(task: str, path: str) -> dict:
+    """interval_guard.py's output as the task's "guard": per guard ("floor", "interval") and
+    method {"median_gain", "mpi", "deployed", "deployed_losses", "control_median_gain", ...},
+    with the reading's level, cross-fit, runs, command and source file."""
+    g = _read(path)
+    if g.get("task") != task or not {"floor", "interval"} <= set(g):
+        raise SystemExit(f"guard-reading: expected interval_guard.py's output for {task!r} "
+                         f"(task, floor, interval), got {path}")
+    return {"floor": g["floor"], "interval": g["interval"], "level": g.get("level"),
+            "crossfit": g.get("crossfit"), "runs": g.get("runs"), "command": g.get("command"),
+            "source": os.path.relpath(path, ROOT) if os.path.isabs(path) else path,
+            "reading": "offline: each half of the fine-tuned policies (by zoo id) calibrated on "
+                       "the other half's real gains (paper.trust_phase.crossfit_interval_guard)"}
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     sha = zoo_sha256(args.task)
@@ -390,6 +408,8 @@ def main(argv=None) -> int:
         attach_paper_oracle(result, args.oracle_paper, sha)
     if args.control:
         result["control"] = control_block(args.task, args.control)
+    if args.guard_reading:
+        result["guard"] = guard_reading(args.task, args.guard_reading)
     os.makedirs(args.out, exist_ok=True)
     write_json(previous, result)
     print(f"-> {previous}")

@@ -49,6 +49,7 @@ from rl2s_jax.paper.tables import (
     bar_table,
     control_rows,
     guard_rows,
+    interval_guard_rows,
     load_results,
     metric_table,
     paired_mvd_rows,
@@ -128,6 +129,7 @@ def render(results: dict, source: str) -> str:
     lines += metric_table(results, TABLE1)
     lines += data_seed_section(results)
     lines += trust_section(results)
+    lines += guard_section(results)
     lines += ["", "### Table 2: policy improvement (SAC inside each simulator, real return)", ""]
     lines += metric_table(results, TABLE2, with_oracle=False) + control_rows(results)
     lines += ["", "MPI / API: C0 is the test data's true value, C1 measured apart. MPI / API "
@@ -198,6 +200,22 @@ def trust_section(results: dict) -> list[str]:
             "largest-error policy is flagged untrusted. Issue 64's bars beside each (✓ / ✗). "
             "Recorded by `experiments/merge_results.py --data-seed-run` (the commands are in "
             "the task JSONs).", "", *rows]
+
+
+def guard_section(results: dict) -> list[str]:
+    """The table "The interval guard against the floor guard" (issue 64 item 3) from the
+    tasks' "guard" readings (``tables.interval_guard_rows``); none recorded: nothing."""
+    rows = interval_guard_rows(results, TASKS)
+    if not rows:
+        return []
+    return ["", "### The interval guard against the floor guard", "",
+            "The recorded in-simulator fine-tuning runs (RESULTS' \"Policy improvement inside "
+            "the simulators\", the task's recipe) read offline by `experiments/interval_guard.py"
+            "` at level 0.9: the floor guard the runs used, and the interval guard (deploy where "
+            "the lower end of the predicted gain's conformal interval is above 0), each half of "
+            "the fine-tuned policies calibrated on the other half's real gains. Median gain of "
+            "the policies below the zoo's top quartile, kept policies at 0; deployed of "
+            "lanes x policies.", "", *rows]
 
 
 def with_block(text: str, block: str, begin: str = BEGIN, end_mark: str = END) -> str:

@@ -496,3 +496,36 @@ def test_readme_headline_is_the_data_seed_table():
     assert re.search(rf"data seeds {listed}\b", readme)
     for extra in sorted(set.union(*seeds) - set(common), key=int):
         assert re.search(rf"data seed {extra}\b", readme), extra
+
+
+def test_guard_reading_recorded_and_tabled(tmp_path):
+    """merge_results --guard-reading: interval_guard.py's output becomes the task's "guard"
+    (another task's refused, naming the flag); tables.interval_guard_rows prints each guard's
+    median gain, deployed, lost and MPI per method beside the control."""
+    from rl2s_jax.paper.tables import interval_guard_rows
+
+    mr = load_script("merge_results")
+    block = lambda med, dep: {"median_gain": med, "mpi": 0.0, "deployed": dep,
+                              "deployed_losses": 0, "lanes_x_policies": 20,
+                              "control_median_gain": 0.48}
+    reading = {"task": "hopper", "level": 0.9, "runs": ["docs/results/improvement_x/hopper.json"],
+               "command": "interval_guard.py --task hopper", "crossfit": {"folds": 2},
+               "floor": {"rl2s": block(0.3, 7), "gail": block(0.1, 4)},
+               "interval": {"rl2s": block(0.0, 2), "gail": block(0.05, 3)}}
+    (tmp_path / "g.json").write_text(json.dumps(reading))
+    (tmp_path / "hopper.json").write_text(json.dumps({"task": "hopper", "per_seed": {}}))
+    args = ["--task", "hopper", "--keep", "--out", str(tmp_path), "--guard-reading",
+            str(tmp_path / "g.json")]
+    assert mr.main(args) == 0
+    got = json.loads((tmp_path / "hopper.json").read_text())
+    assert got["guard"]["floor"] == reading["floor"]
+    assert got["guard"]["interval"]["gail"]["median_gain"] == 0.05
+    rows = interval_guard_rows({"hopper": got}, ["hopper", "ant"])
+    assert len(rows) == 4 and "| hopper | improvement_x | +0.48 | floor | +0.30 (7 of 20" in rows[2]
+    assert rows[3].split(" | ")[3:6] == ["interval", "+0.00 (2 of 20, 0 lost, MPI 0.000)",
+                                         "+0.05 (3 of 20, 0 lost, MPI 0.000)"]
+    assert rows[3].endswith("| n/a |")  # BC not in the reading
+    assert interval_guard_rows({"hopper": {"task": "hopper"}}, ["hopper"]) == []
+    (tmp_path / "g.json").write_text(json.dumps({**reading, "task": "ant"}))
+    with pytest.raises(SystemExit, match="guard-reading: expected interval_guard.py's output"):
+        mr.main(args)

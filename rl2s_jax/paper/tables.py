@@ -379,3 +379,33 @@ def bar_table(results: dict) -> list[str]:
             cells.append(f"{word} ({numbers})")
         rows.append(f"| {task} | " + " | ".join(cells) + " |")
     return rows
+
+
+def interval_guard_rows(results: dict, tasks) -> list[str]:
+    """Issue 64 item 3: per task with a "guard" reading (``merge_results.py --guard-reading``)
+    and per guard, each method's guarded median gain of the policies below the zoo's top
+    quartile, the deployed count, the deployed real losses and MPI, beside the real-env
+    control's median gain; none recorded: []."""
+    rows = []
+    methods = ("rl2s", "gail", "bc")
+    for task in tasks:
+        g = (results.get(task) or {}).get("guard") or {}
+        if not {"floor", "interval"} <= set(g):
+            continue
+        ctl = next((b.get("control_median_gain") for b in g["floor"].values()), None)
+        for kind in ("floor", "interval"):
+            cells = []
+            for m in methods:
+                b = g[kind].get(m)
+                cells.append("n/a" if b is None else
+                             f"{b['median_gain']:+.2f} ({b['deployed']} of "
+                             f"{b['lanes_x_policies']}, {b['deployed_losses']} lost, MPI "
+                             f"{b['mpi']:.3f})")
+            src = os.path.basename(os.path.dirname(g["runs"][0])) if g.get("runs") else "?"
+            rows.append(f"| {task} | {src} | {'n/a' if ctl is None else f'{ctl:+.2f}'} | "
+                        f"{kind} | " + " | ".join(cells) + " |")
+    if rows:
+        rows = ["| task | improvement runs | control | guard | RL2S: median gain (deployed, "
+                "lost, MPI) | GAIL | BC |", "|---|---|---:|---|---|---|---|", *rows]
+    return rows
+

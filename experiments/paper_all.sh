@@ -13,7 +13,8 @@
 # Environment: PY (the python command, default python3), TASKS (default the four),
 # DATA_DIR (collected data, default OUT/data), RL2S_GPUS (the GPU count, default nvidia-smi's),
 # PAPER_UNITS=task|family|auto (auto, the default: a whole task per unit when there are
-# at least as many GPUs as tasks and fewer than twice as many, else (task, family) pairs).
+# at least as many GPUs as tasks and fewer than twice as many, else (task, family) pairs),
+# PAPER_PER_GPU=K (K paper.py processes per GPU at once; default 1).
 set -uo pipefail
 OUT=${1:-results/paper}
 shift || true

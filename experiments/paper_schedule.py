@@ -28,6 +28,11 @@ With one GPU or none, a unit is a whole task (both families in one paper.py, OUT
 log OUT/paper_<task>.log, also shown here), one after another: splitting would only add a
 process start and the data's reload per task. With one GPU, CUDA_VISIBLE_DEVICES=0.
 
+``--per-gpu K`` (or PAPER_PER_GPU=K): K processes share each GPU at once, each with 1/K of
+the memory fraction, costliest first: a task's idle phases (data collection, compilation,
+37% of the protocol's GPU time: docs/BENCHMARKS.md, "Where one task's GPU-seconds go") run
+beside another's training. Not yet timed on a GPU.
+
 At the end: every unit's task, family, GPU, start and wall seconds (and when its data phase
 ended, seconds after its start), the merges, each GPU's busy seconds and the total, printed
 and written to OUT/schedule.json. A failed unit does not stop the others; the script
@@ -77,19 +82,20 @@ def split_families(args: list[str]) -> tuple[list[str], list[str]]:
 
 
 def plan(tasks: list[str], n_gpus: int, args: list[str], out: str,
-         units: str = "auto") -> list[dict]:
+         units: str = "auto", per_gpu: int = 1) -> list[dict]:
     """The units in queue order, each {task, family (None: every family), args, out, log,
     collects}; ``collects``: the task's first unit, which collects its data. ``units``
     "family": (task, family) pairs when there are two GPUs or more; "task": a whole task per
     unit whatever the GPUs (its families in one process, so that the likelihood family's BC
     lanes can continue from the adversarial pre-training: docs/SCALING.md); "auto": "task"
-    when len(tasks) <= n_gpus < 2 len(tasks), else "family"."""
+    when len(tasks) <= n_gpus < 2 len(tasks), else "family". ``per_gpu``: processes per GPU
+    at once (whole tasks run costliest first wherever more than one runs at a time)."""
     if units not in ("auto", "family", "task"):
         raise SystemExit(f"units: expected auto, family or task, got {units!r}")
     if units == "auto":
         units = "task" if len(tasks) <= n_gpus < 2 * len(tasks) else "family"
     if n_gpus <= 1 or units == "task":
-        if n_gpus > 1:  # the costliest tasks first
+        if n_gpus * per_gpu > 1:  # the costliest tasks first
             tasks = sorted(tasks, key=lambda t: -sum(COST.get(t, DEFAULT_COST).values()))
         return [{"task": t, "family": None, "args": list(args), "out": out, "collects": True,
                  "log": os.path.join(out, f"paper_{t}.log")} for t in tasks]
@@ -133,11 +139,15 @@ def _pump(unit: dict, proc, tee: bool, events: queue.Queue) -> None:
 
 def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: float,
               on_task_end=None) -> None:
-    """Run ``units`` over ``slots`` (GPU indices; [None]: no GPU), one process per slot; each
+    """Run ``units`` over ``slots`` (GPU indices, a GPU listed K times runs K processes at once,
+    each with 1/K of the memory fraction (XLA_PYTHON_CLIENT_MEM_FRACTION, default 0.9);
+    [None]: no GPU), one process per slot; each
     unit gets gpu, start_s, data_s, wall_s and rc. ``on_task_end(task)``: called once all of a
     task's units have ended (e.g. to merge it while the other tasks run)."""
     events: queue.Queue = queue.Queue()
     pending, free, data_done, running = list(units), sorted(slots), set(), 0  # [None] or ints
+    share = max([slots.count(g) for g in slots if g is not None] or [1])
+    mem = float(os.environ.get("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.9"))
     tee = len(slots) == 1
     while pending or running:
         while free:
@@ -149,6 +159,8 @@ def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: 
             env = {**os.environ, "PYTHONUNBUFFERED": "1"}
             if gpu is not None:
                 env["CUDA_VISIBLE_DEVICES"] = str(gpu)
+                if share > 1:  # each process preallocates its share of the GPU's memory
+                    env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{mem / share:.3f}"
             cmd = [*py, "experiments/paper.py", "--task", unit["task"], "--out", unit["out"],
                    "--data-dir", data_dir, *unit["args"]]
             os.makedirs(unit["out"], exist_ok=True)
@@ -232,10 +244,13 @@ def merge_task(t: str, mine: list[dict], py: list[str], out: str, t0: float) -> 
     return m
 
 
-def report(units: list[dict], merges: list[dict], n_gpus: int, total: float, out: str) -> str:
-    """The wall time per part as text; OUT/schedule.json written."""
+def report(units: list[dict], merges: list[dict], n_gpus: int, total: float, out: str,
+           per_gpu: int = 1) -> str:
+    """The wall time per part as text; OUT/schedule.json written (busy per GPU: its units'
+    seconds summed, so more than the wall time where ``per_gpu`` processes shared it)."""
     ran = sorted(units, key=lambda u: (u.get("start_s", float("inf")), u["task"]))
-    lines = [f"[paper_all] wall time per part, {n_gpus} GPU(s):",
+    lines = [f"[paper_all] wall time per part, {n_gpus} GPU(s)"
+             f"{f', {per_gpu} processes per GPU' if per_gpu > 1 else ''}:",
              f"  {'task':<12} {'family':<12} {'gpu':>3} {'start (s)':>9} {'wall (s)':>9}  "
              f"{'data (s)':>8}  status"]
     for u in ran:
@@ -259,7 +274,8 @@ def report(units: list[dict], merges: list[dict], n_gpus: int, total: float, out
     keys = ("task", "family", "gpu", "start_s", "wall_s", "data_s", "rc", "collects", "log",
             "out")
     with open(os.path.join(out, "schedule.json"), "w") as f:
-        json.dump({"gpus": n_gpus, "total_s": round(total, 1), "busy_s": busy,
+        json.dump({"gpus": n_gpus, "per_gpu": per_gpu, "total_s": round(total, 1),
+                   "busy_s": busy,
                    "units": [{k: u.get(k) for k in keys} for u in ran], "merges": merges},
                   f, indent=1)
     return "\n".join(lines)
@@ -280,17 +296,23 @@ def main(argv=None) -> int:
                     help="auto (default): task when tasks <= GPUs < 2 x tasks, else family; "
                     "family: (task, family) units with two GPUs or more; task: one process "
                     "per task whatever the GPUs (env PAPER_UNITS)")
+    ap.add_argument("--per-gpu", type=int, default=int(os.environ.get("PAPER_PER_GPU", "1")),
+                    help="paper.py processes per GPU at once (env PAPER_PER_GPU; default 1): "
+                    "with 2, one task's data collection and compilation (the GPU idle) run "
+                    "beside another's training")
     args = ap.parse_args(argv)
+    if args.per_gpu < 1:
+        raise SystemExit(f"per-gpu: expected a whole number >= 1, got {args.per_gpu}")
     t0 = time.monotonic()
     tasks, py, n = args.tasks.split(), shlex.split(args.py), max(0, args.gpus)
     os.makedirs(args.out, exist_ok=True)
-    units = plan(tasks, n, extra, args.out, args.units)
+    units = plan(tasks, n, extra, args.out, args.units, args.per_gpu)
     merger = Merger(units, tasks, py, args.out, t0)
     split = any(u["family"] for u in units)
-    run_units(units, list(range(n)) if n else [None], py, args.data_dir, t0,
-              merger if split else None)
+    slots = [g for g in range(n) for _ in range(args.per_gpu)] if n else [None]
+    run_units(units, slots, py, args.data_dir, t0, merger if split else None)
     merges = merger.wait()
-    print(report(units, merges, n, time.monotonic() - t0, args.out), flush=True)
+    print(report(units, merges, n, time.monotonic() - t0, args.out, args.per_gpu), flush=True)
     failed = [f"{name(u)} (exit {u.get('rc')}, log {u['log']})" for u in units
               if u.get("rc") != 0]
     failed += [f"merge of {m['task']} (exit {m['rc']}, log {m['log']})" for m in merges

@@ -944,7 +944,7 @@ def _run_paper_all(tmp_path, n_gpu: int, fail: str = "", tasks: str = "hopper wa
           prev=$a
         done
         gpu=gpu=${{CUDA_VISIBLE_DEVICES:-none}}
-        echo "start $task $fam $gpu $*" >> {events}
+        echo "start $task $fam $gpu mem=${{XLA_PYTHON_CLIENT_MEM_FRACTION:-none}} $*" >> {events}
         [ "$task/$fam" = "{fail}" ] && {{ echo "end $task $fam $gpu" >> {events}; exit 3; }}
         sleep 0.2
         echo "data $task $fam $gpu" >> {events}  # before the line the driver waits for
@@ -1060,6 +1060,27 @@ def test_paper_all_whole_task_units(tmp_path):
     rc, ev, proc = _run_paper_all(tmp_path / "b", 2, env_extra={"PAPER_UNITS": "seed"})
     assert rc != 0 and "units: expected auto, family or task, got 'seed'" in proc.stderr
     assert not any(e.startswith("start") for e in ev)
+
+
+def test_paper_all_per_gpu_runs_k_processes_on_one_gpu(tmp_path):
+    """PAPER_PER_GPU=2 on one GPU: whole tasks, costliest first, two at a time (never three),
+    each with half the memory fraction; every task once; a bad value refused."""
+    rc, ev, proc = _run_paper_all(tmp_path / "a", 1, env_extra={"PAPER_PER_GPU": "2"})
+    assert rc == 0, proc.stderr
+    starts = [e.split() for e in ev if e.startswith("start")]
+    assert [s[1] for s in starts][0] == "ant" and sorted(s[1] for s in starts) == sorted(TASKS4)
+    assert {s[2] for s in starts} == {"both"} and {s[3] for s in starts} == {"gpu=0"}
+    assert {s[4] for s in starts} == {"mem=0.450"}
+    running, most = 0, 0
+    for e in ev:
+        running += e.startswith("start") - e.startswith("end")
+        most = max(most, running)
+    assert most == 2 and running == 0
+    assert json.loads((tmp_path / "a" / "out" / "schedule.json").read_text())["per_gpu"] == 2
+    rc, ev, proc = _run_paper_all(tmp_path / "b", 1)  # the default: one at a time, no fraction
+    assert rc == 0 and {e.split()[4] for e in ev if e.startswith("start")} == {"mem=none"}
+    rc, ev, proc = _run_paper_all(tmp_path / "c", 1, env_extra={"PAPER_PER_GPU": "0"})
+    assert rc != 0 and "per-gpu: expected a whole number >= 1, got 0" in proc.stderr
 
 
 def test_paper_schedule_auto_units():

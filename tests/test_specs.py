@@ -74,7 +74,8 @@ def test_the_command_line_only_maps_flags():
     tree = ast.parse(pathlib.Path(cli.__file__).read_text())
     names = {n.name for n in tree.body if isinstance(n, ast.FunctionDef)}
     assert names == {"_positive", "_gamma", "_policy_ids", "_policy_source",
-                     "_recipe_and_guard_options", "_sim_env_options", "build_parser", "main",
+                     "_recipe_and_guard_options", "_improve_guard_options", "_sim_env_options",
+                     "build_parser", "main",
                      "_main", "_run"}
 
 

@@ -91,8 +91,8 @@ def train_set(changes: list[dict], base: TrainConfig | None = None
     extended (default: TrainConfig's defaults, what `rl2s train` builds). An item ``base``
     already satisfies is not repeated: training's default members already have a
     state-dependent noise head and beta-NLL at beta 1, and lowering beta to diagnosis's 0.5
-    raised the held-out MSE of Hopper's noise variant by a quarter (RESULTS, "Planted effects
-    through `rl2s train`").
+    raised the held-out MSE of Hopper's noise variant by a quarter (docs/DIAGNOSIS.md,
+    "Planted effects through `rl2s train` and `rl2s evaluate`").
     -> (train_set, not_trainable [{"change", "why"}], already ["KEY=VALUE" of base])."""
     base = base or TrainConfig()
     dyn = base.dynamics

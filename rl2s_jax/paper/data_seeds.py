@@ -261,6 +261,37 @@ def pooled_trust(runs: list[dict]) -> dict:
     return out
 
 
+def data_seed_trust(result: dict, runs: list[dict]) -> None:
+    """Issue 64's "trust" of the --data-seed-runs into ``result`` (in place) where the result
+    has none of its own (its --paper run's): one run's blocks marked with its ``data_seed``;
+    runs of several data seeds pooled (``data_seeds.pooled_trust``: every run of every data
+    seed, each data seed's block kept under "by_data_seed"); "trust_calibration" per data
+    seed. A trust recorded this way before is replaced. ValueError when two runs of one data
+    seed bring one (their lanes are not here to join: merge them with --paper)."""
+    have = [r for r in runs if isinstance(r.get("trust"), dict) and r["trust"]
+            and "error" not in r["trust"]]
+    if not have:
+        return
+    seeds = [data_seed_of(r) for r in have]
+    if len(set(seeds)) < len(seeds):
+        raise ValueError("trust: two --data-seed-runs of one data seed have a trust block; "
+                         "join them with --paper first")
+    own = result.get("trust") or {}
+    if any("data_seed" not in b and "data_seeds" not in b for b in own.values()
+           if isinstance(b, dict)) or "error" in own:
+        return  # the task's own rows' trust
+    if len(have) == 1:
+        result["trust"] = {m: {**b, "data_seed": seeds[0]} for m, b in have[0]["trust"].items()}
+    else:
+        result["trust"] = pooled_trust(have)
+    cals = {str(ds): r["trust_calibration"] for ds, r in zip(seeds, have, strict=True)
+            if r.get("trust_calibration")}
+    if len(cals) == 1:
+        result["trust_calibration"] = {**next(iter(cals.values())), "data_seed": seeds[0]}
+    elif cals:
+        result["trust_calibration"] = {"by_data_seed": cals}
+
+
 # issue 64's bars at level 0.9
 TRUST_BARS = {"coverage": 0.85, "width_over_range": 0.25, "worst_flagged": 0.8}
 

@@ -425,3 +425,71 @@ def test_evaluated_report_and_block_by_hand():
         "width_over_range"] is None
     assert "skipped" in method_evaluated([{"evaluated": a}, {"evaluated": {**b, "n": 5}}])
     assert method_evaluated([{}, {"evaluated": {"skipped": "x"}}]) is None
+
+
+def test_merge_results_carries_the_evaluated_block():
+    """carry_trust on runs whose lanes have an evaluated report: the method's block as
+    without them, plus "evaluated" pooled over the four lanes of both runs."""
+    from experiment_scripts import load_script
+
+    from rl2s_jax.paper.trust_phase import evaluated_report, lane_trust, method_evaluated
+
+    mr = load_script("merge_results")
+    rng = np.random.default_rng(5)
+    keys = ("member_sd", "eval_se", "support")
+    truth, ev_truth = rng.uniform(0, 10, 5), rng.uniform(0, 10, 3)
+    cal = {k: rng.uniform(1, 2, 8) for k in keys + ("sim_value",)} | {"seed_sd": np.zeros(8)}
+    cal_truth = cal["sim_value"] + rng.normal(0, .3, 8)
+    parts, entries = [], []
+    for ids in ([0, 1], [2, 3]):
+        lanes = {}
+        for s in ids:
+            f, g = ({k: rng.uniform(0.5, 1.5, n) for k in keys} | {
+                "sim_value": t + rng.normal(0, 1, n), "seed_sd": np.zeros(n)}
+                for t, n in ((truth, 5), (ev_truth, 3)))
+            e = tr.json_safe(lane_trust(f, cal, cal_truth, list("abcde"), truth, LEVEL))
+            entries.append(dict(e, evaluated=tr.json_safe(
+                evaluated_report(g, cal, cal_truth, ev_truth, LEVEL))))
+            lanes[f"rl2s/{s}"] = {"seed": s, "trust": entries[-1]}
+        parts.append({"lanes": lanes, "true_value": truth.tolist(), "command": "c",
+                      "trust_calibration": {"true_value": [1.0], "origins": [{"i": 0}]}})
+    merged = {"lanes": {**parts[0]["lanes"], **parts[1]["lanes"]},
+              "true_value": truth.tolist(), "command": "c && c"}
+    mr.carry_trust(merged, parts)
+    assert merged["trust"]["rl2s"].pop("evaluated") == tr.json_safe(method_evaluated(entries))
+    bare = {**merged, "lanes": {k: {**v, "trust": {x: y for x, y in v["trust"].items()
+                                                    if x != "evaluated"}}
+                                for k, v in merged["lanes"].items()}}
+    mr.carry_trust(bare, parts)
+    assert merged["trust"] == bare["trust"] and bare["trust"]["rl2s"]["runs"] == 4
+    assert method_evaluated(entries)["runs"] == 4
+
+
+def test_trust_phase_passes_the_flag_and_logs_the_evaluated_block(monkeypatch, capsys):
+    """paper.py's trust step: --trust-evaluated reaches run_trust as n_evaluated, and each
+    method with an "evaluated" block gets its own log line."""
+    import argparse
+    import types
+
+    from rl2s_jax.paper import trust_phase as tp
+
+    seen = {}
+    block = {"level": 0.9, "coverage": 0.9, "width_over_range": 0.2, "worst_flagged": 0.5,
+             "runs": 2, "unbounded_runs": 0, "seed_spread": {"skipped": "one seed"},
+             "evaluated": {"n": 4, "coverage": 0.75, "width_over_range": 0.3,
+                           "worst_flagged": 0.5, "runs": 2}}
+
+    def fake(result, finals, **kw):
+        seen.update(kw)
+        result["trust"] = {"rl2s": block}
+    monkeypatch.setattr(tp, "run_trust", fake)
+    monkeypatch.setattr(tp, "policies_for", lambda ds: None)
+    args = argparse.Namespace(trust_calibration=3, task="pointmass", data_seed=0,
+                              trust_evaluated=4, trust_level=0.9, trust_episodes=None,
+                              trust_member_episodes=16, episode_length=None)
+    tp.trust_phase(args, {"true_value": [1.0]}, {}, {"train": None, "test": None},
+                   {"f": types.SimpleNamespace(vd=types.SimpleNamespace(horizon=5), gamma=0.9)}, {},
+                   phase=lambda name, t0: None, save=lambda: None)
+    assert seen["n_evaluated"] == 4
+    assert ("[paper] trust rl2s evaluated: 4 perturbed test policies: coverage 0.750, "
+            "width/range 0.300, worst policy flagged in 0.500 of 2 runs") in capsys.readouterr().out

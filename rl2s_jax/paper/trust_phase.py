@@ -10,14 +10,22 @@ program over its lanes on the test and calibration policies (``trust.lane_featur
 one ensemble rollout (values and support together) at ``--trust-episodes`` episodes plus
 each elite alone, vmapped over the elites, at ``--trust-member-episodes``.
 
+With --trust-evaluated N (``run_trust``'s n_evaluated; default 0: none) also a second
+evaluated set: N ``perturbed_policies`` of the TEST policies (their own key), their truth
+measured as the calibration policies' and their features in the same programs; each lane's
+intervals on them are calibrated on the calibration policies, as the test policies' are. They
+are built from the test policies, so they only measure: they calibrate and select nothing.
+
 Also the interval guard beside the floor guard (``guard_phase``, ``improve.gain_intervals``)
 and its offline cross-fit reading (``crossfit_interval_guard``, experiments/interval_guard.py).
 
 Writes result["lanes"][lane]["trust"] (each test policy's interval and flag),
 result["trust"][method] (the issue's block: level, coverage, width_over_range, worst_flagged,
 runs, command; the plain seed-spread interval scaled to the same coverage beside it) and
-result["trust_calibration"]. JSON-valid: an infinite quantile (too few calibration policies
-for the level) leaves None with "q_infinite": true, and unbounded intervals None ends."""
+result["trust_calibration"]; with --trust-evaluated, also each lane's and method's
+"evaluated" block and result["trust_evaluated"] (the set's truths and origins). JSON-valid:
+an infinite quantile (too few calibration policies for the level) leaves None with
+"q_infinite": true, and unbounded intervals None ends."""
 from __future__ import annotations
 
 import json

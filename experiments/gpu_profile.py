@@ -194,8 +194,9 @@ def _parts(name: str, log: dict, a: float, b: float) -> list[tuple[str, float, f
         rest = "the rest (final rows, bootstrap intervals)"
     elif name == "trust":
         timings = log["timings"]
-        parts += [(("calibration policies' real values" if k == "trust_calibration" else
-                    f"{k.removeprefix('trust_')} family's interval programs"), v)
+        real = {"trust_calibration": "calibration policies' real values",
+                "trust_evaluated": "evaluated (perturbed test) policies' real values"}
+        parts += [(real.get(k, f"{k.removeprefix('trust_')} family's interval programs"), v)
                   for k, v in timings.items() if k.startswith("trust_")]
         rest = "the rest (interval blocks per method)"
     else:

@@ -142,3 +142,15 @@ def test_bad_input_is_refused_with_its_file(streams, tmp_path):
         gp.main([str(tmp_path)])
     with pytest.raises(SystemExit, match="expected progress.log"):
         gp.main([str(tmp_path / "nowhere")])
+
+
+def test_trust_parts_name_the_real_env_measurements():
+    """The trust phase's logged parts end to end: the calibration and the evaluated set's
+    real-env values, then each family's programs, the rest up to the phase's end."""
+    log = {"timings": {"trust_calibration": 5.0, "trust_evaluated": 3.0,
+                       "trust_adversarial": 2.0}, "families": {}}
+    assert gp._parts("trust", log, 10.0, 30.0) == [
+        ("calibration policies' real values", 10.0, 15.0),
+        ("evaluated (perturbed test) policies' real values", 15.0, 18.0),
+        ("adversarial family's interval programs", 18.0, 20.0),
+        ("the rest (interval blocks per method)", 20.0, 30.0)]

@@ -42,12 +42,13 @@ def pm_lanes(pm_files):
     return {"adversarial": (lanes, states)}, kw
 
 
-def _run(pm_lanes, n, level=LEVEL):
+def _run(pm_lanes, n, level=LEVEL, n_evaluated=0):
     from rl2s_jax.paper.trust_phase import run_trust
 
     finals, kw = pm_lanes
     result = {"lanes": {"rl2s/0": {}, "rl2s/1": {}}, "timings": {}, "command": "cmd"}
-    run_trust(result, finals, n_calibration=n, **{**kw, "level": level})
+    run_trust(result, finals, n_calibration=n, **{**kw, "level": level},
+              **({"n_evaluated": n_evaluated} if n_evaluated else {}))
     return result
 
 
@@ -304,9 +305,191 @@ def test_a_diverged_lane_is_skipped_and_a_failure_spares_the_run(pm_lanes, monke
     monkeypatch.setattr(tp, "policies_for", lambda ds: None)
     result, phases = {"true_value": [1.0]}, []
     args = argparse.Namespace(trust_calibration=3, task="pointmass", data_seed=0,
-                              trust_level=0.9, trust_episodes=None, trust_member_episodes=16,
-                              episode_length=None)
+                              trust_evaluated=0, trust_level=0.9, trust_episodes=None,
+                              trust_member_episodes=16, episode_length=None)
     tp.trust_phase(args, result, {}, {"train": None, "test": None},
                    {"f": types.SimpleNamespace(vd=types.SimpleNamespace(horizon=5), gamma=0.9)}, {},
                    phase=lambda name, t0: phases.append(name), save=lambda: None)
     assert result["trust"] == {"error": "RuntimeError: boom"} and phases == ["trust"]
+
+
+@pytest.mark.slow
+def test_protocol_trust_evaluated_set(pm_lanes, monkeypatch):
+    """--trust-evaluated 4: perturbed TEST policies (their own key) measured in the real env
+    as the calibration set is, evaluated in the same programs; each lane's intervals on them
+    calibrated on the calibration set alone (q and the test policies' intervals as without
+    the flag), coverage and width by NumPy; trust_from_lanes gives the same block; without
+    the flag no new key; a lane diverged on the evaluated set alone keeps its test report."""
+    from rl2s_jax.envs.tasks import get_task
+    from rl2s_jax.paper import trust_phase as tp
+
+    finals, kw = pm_lanes
+    plain, r = _run(pm_lanes, 6), _run(pm_lanes, 6, n_evaluated=4)
+    assert "trust_evaluated" not in plain and "trust_evaluated" not in plain["timings"]
+    assert not any("evaluated" in plain["lanes"][k]["trust"] for k in plain["lanes"])
+    assert "evaluated" not in plain["trust"]["rl2s"]
+    assert "evaluated" not in tp.trust_from_lanes({**plain, "true_value": kw["truth"].tolist()})[
+        "rl2s"]
+    json.dumps(r, allow_nan=False)
+    assert r["trust_calibration"] == plain["trust_calibration"]
+    ev = r["trust_evaluated"]
+    assert ev["n"] == 4 and ev["origins"] != r["trust_calibration"]["origins"]
+    _, truth, origins = tp.calibration_policies(
+        "pointmass", kw["test_pols"], n=4, seed=kw["seed"] + 5000,
+        n_episodes=kw["sizes"]["value_episodes"], horizon=kw["horizon"], gamma=kw["gamma"],
+        episode_length=get_task("pointmass").episode_length)
+    np.testing.assert_array_equal(ev["true_value"], truth)
+    assert ev["origins"] == origins and "trust_evaluated" in r["timings"]
+    truth = np.asarray(truth, np.float64)
+    covs, wors, flagged = [], [], []
+    for lane in ("rl2s/0", "rl2s/1"):
+        t, t0 = r["lanes"][lane]["trust"], plain["lanes"][lane]["trust"]
+        assert t["q"] == pytest.approx(t0["q"], rel=1e-6)
+        np.testing.assert_allclose(t["interval"], t0["interval"], rtol=1e-6)
+        e = t["evaluated"]
+        assert e["n"] == 4 and e["q"] == pytest.approx(t["q"], rel=1e-12)
+        lo, hi = np.asarray(e["interval"], np.float64).T
+        np.testing.assert_allclose((lo + hi) / 2, e["sim_value"], rtol=1e-6, atol=1e-9)
+        covs.append(np.mean((truth >= lo) & (truth <= hi)))
+        assert e["coverage"] == pytest.approx(covs[-1])
+        wors.append(np.mean(hi - lo) / np.ptp(truth))
+        assert e["width_over_range"] == pytest.approx(wors[-1])
+        worst = int(np.argmax(np.abs(np.asarray(e["sim_value"]) - truth)))
+        flagged.append(not e["trusted"][worst])
+        assert e["worst"] == {"name": f"evaluated-{worst}", "flagged": flagged[-1]}
+    b = r["trust"]["rl2s"]["evaluated"]
+    assert b["n"] == 4 and b["runs"] == 2 and "4 perturbed/interpolated test" in b["what"]
+    assert b["coverage"] == pytest.approx(np.mean(covs))
+    assert b["width_over_range"] == pytest.approx(np.mean(wors))
+    assert b["worst_flagged"] == pytest.approx(np.mean(flagged))
+    assert tp.trust_from_lanes({**r, "true_value": kw["truth"].tolist()})["rl2s"][
+        "evaluated"] == b
+
+    real = tp.family_trust
+
+    def diverged(*a, **k):
+        out = real(*a, **k)
+        out[1][2]["sim_value"] = np.full_like(out[1][2]["sim_value"], np.nan)
+        return out
+    monkeypatch.setattr(tp, "family_trust", diverged)
+    d = _run(pm_lanes, 6, n_evaluated=4)
+    assert d["lanes"]["rl2s/1"]["trust"]["evaluated"] == {
+        "skipped": "non-finite simulated values or support"}
+    assert d["lanes"]["rl2s/1"]["trust"]["interval"] == r["lanes"]["rl2s/1"]["trust"]["interval"]
+    assert d["trust"]["rl2s"]["evaluated"]["runs"] == 1 and d["trust"]["rl2s"]["runs"] == 2
+
+
+def test_trust_evaluated_flag_refused_before_any_work(tmp_path):
+    """--trust-evaluated below 0, or without calibration policies, names the flag."""
+    from experiment_scripts import load_script
+
+    paper = load_script("paper")
+    base = ["--task", "hopper", "--out", str(tmp_path)]
+    for extra, msg in ((["--trust-evaluated", "-1"], "trust-evaluated: expected an int >= 0"),
+                       (["--trust-evaluated", "4", "--trust-calibration", "0"],
+                        "trust-evaluated: needs --trust-calibration")):
+        with pytest.raises(SystemExit, match=msg):
+            paper.check_arguments(paper.parse_args(base + extra))
+    assert paper.parse_args(base).trust_evaluated == 0
+
+
+def test_evaluated_report_and_block_by_hand():
+    """evaluated_report: the lane's calibration (q as lane_trust's), intervals fixed by the
+    calibration alone, coverage and width by NumPy on a set some truths miss;
+    method_evaluated: means over the lanes, None where a lane's width is None, skipped lanes
+    left out, sets of other sizes not pooled, no lanes with one: None."""
+    from rl2s_jax.paper.trust_phase import evaluated_report, lane_trust, method_evaluated
+
+    rng = np.random.default_rng(4)
+    keys = ("sim_value", "member_sd", "eval_se", "support")
+    feats = {k: rng.uniform(1, 2, 6) for k in keys} | {"seed_sd": np.zeros(6)}
+    cal = {k: rng.uniform(1, 2, 8) for k in keys} | {"seed_sd": np.zeros(8)}
+    cal_truth = cal["sim_value"] + rng.normal(0, 0.3, 8)
+    truth = feats["sim_value"] + np.array([0.0, 0.01, -0.02, 30.0, -30.0, 0.03])
+    e = evaluated_report(feats, cal, cal_truth, truth, LEVEL)
+    lo, hi = np.asarray(e["interval"], np.float64).T
+    inside = (truth >= lo) & (truth <= hi)
+    assert 0 < inside.mean() < 1 and e["coverage"] == pytest.approx(inside.mean())
+    assert e["width_over_range"] == pytest.approx(np.mean(hi - lo) / np.ptp(truth))
+    assert e["q"] == lane_trust(feats, cal, cal_truth, list("abcdef"), truth, LEVEL)["q"]
+    assert evaluated_report(feats, cal, cal_truth, truth + 9.0, LEVEL)["interval"] == e["interval"]
+    worst = int(np.argmax(np.abs(feats["sim_value"] - truth)))
+    assert e["worst"] == {"name": f"evaluated-{worst}", "flagged": not e["trusted"][worst]}
+    a, b = tr.json_safe(e), tr.json_safe({**e, "coverage": 0.25, "worst": {"flagged": False}})
+    block = method_evaluated([{"evaluated": a}, {"evaluated": b}, {"evaluated": {"skipped": "x"}},
+                              {}])
+    assert block["runs"] == 2 and block["n"] == 6
+    assert block["coverage"] == pytest.approx((e["coverage"] + 0.25) / 2)
+    assert block["worst_flagged"] == pytest.approx(e["worst"]["flagged"] / 2)
+    assert method_evaluated([{"evaluated": a}, {"evaluated": {**b, "width_over_range": None}}])[
+        "width_over_range"] is None
+    assert "skipped" in method_evaluated([{"evaluated": a}, {"evaluated": {**b, "n": 5}}])
+    assert method_evaluated([{}, {"evaluated": {"skipped": "x"}}]) is None
+
+
+def test_merge_results_carries_the_evaluated_block():
+    """carry_trust on runs whose lanes have an evaluated report: the method's block as
+    without them, plus "evaluated" pooled over the four lanes of both runs."""
+    from experiment_scripts import load_script
+
+    from rl2s_jax.paper.trust_phase import evaluated_report, lane_trust, method_evaluated
+
+    mr = load_script("merge_results")
+    rng = np.random.default_rng(5)
+    keys = ("member_sd", "eval_se", "support")
+    truth, ev_truth = rng.uniform(0, 10, 5), rng.uniform(0, 10, 3)
+    cal = {k: rng.uniform(1, 2, 8) for k in keys + ("sim_value",)} | {"seed_sd": np.zeros(8)}
+    cal_truth = cal["sim_value"] + rng.normal(0, .3, 8)
+    parts, entries = [], []
+    for ids in ([0, 1], [2, 3]):
+        lanes = {}
+        for s in ids:
+            f, g = ({k: rng.uniform(0.5, 1.5, n) for k in keys} | {
+                "sim_value": t + rng.normal(0, 1, n), "seed_sd": np.zeros(n)}
+                for t, n in ((truth, 5), (ev_truth, 3)))
+            e = tr.json_safe(lane_trust(f, cal, cal_truth, list("abcde"), truth, LEVEL))
+            entries.append(dict(e, evaluated=tr.json_safe(
+                evaluated_report(g, cal, cal_truth, ev_truth, LEVEL))))
+            lanes[f"rl2s/{s}"] = {"seed": s, "trust": entries[-1]}
+        parts.append({"lanes": lanes, "true_value": truth.tolist(), "command": "c",
+                      "trust_calibration": {"true_value": [1.0], "origins": [{"i": 0}]}})
+    merged = {"lanes": {**parts[0]["lanes"], **parts[1]["lanes"]},
+              "true_value": truth.tolist(), "command": "c && c"}
+    mr.carry_trust(merged, parts)
+    assert merged["trust"]["rl2s"].pop("evaluated") == tr.json_safe(method_evaluated(entries))
+    bare = {**merged, "lanes": {k: {**v, "trust": {x: y for x, y in v["trust"].items()
+                                                    if x != "evaluated"}}
+                                for k, v in merged["lanes"].items()}}
+    mr.carry_trust(bare, parts)
+    assert merged["trust"] == bare["trust"] and bare["trust"]["rl2s"]["runs"] == 4
+    assert method_evaluated(entries)["runs"] == 4
+
+
+def test_trust_phase_passes_the_flag_and_logs_the_evaluated_block(monkeypatch, capsys):
+    """paper.py's trust step: --trust-evaluated reaches run_trust as n_evaluated, and each
+    method with an "evaluated" block gets its own log line."""
+    import argparse
+    import types
+
+    from rl2s_jax.paper import trust_phase as tp
+
+    seen = {}
+    block = {"level": 0.9, "coverage": 0.9, "width_over_range": 0.2, "worst_flagged": 0.5,
+             "runs": 2, "unbounded_runs": 0, "seed_spread": {"skipped": "one seed"},
+             "evaluated": {"n": 4, "coverage": 0.75, "width_over_range": 0.3,
+                           "worst_flagged": 0.5, "runs": 2}}
+
+    def fake(result, finals, **kw):
+        seen.update(kw)
+        result["trust"] = {"rl2s": block}
+    monkeypatch.setattr(tp, "run_trust", fake)
+    monkeypatch.setattr(tp, "policies_for", lambda ds: None)
+    args = argparse.Namespace(trust_calibration=3, task="pointmass", data_seed=0,
+                              trust_evaluated=4, trust_level=0.9, trust_episodes=None,
+                              trust_member_episodes=16, episode_length=None)
+    tp.trust_phase(args, {"true_value": [1.0]}, {}, {"train": None, "test": None},
+                   {"f": types.SimpleNamespace(vd=types.SimpleNamespace(horizon=5), gamma=0.9)}, {},
+                   phase=lambda name, t0: None, save=lambda: None)
+    assert seen["n_evaluated"] == 4
+    assert ("[paper] trust rl2s evaluated: 4 perturbed test policies: coverage 0.750, "
+            "width/range 0.300, worst policy flagged in 0.500 of 2 runs") in capsys.readouterr().out

@@ -10,20 +10,29 @@ program over its lanes on the test and calibration policies (``trust.lane_featur
 one ensemble rollout (values and support together) at ``--trust-episodes`` episodes plus
 each elite alone, vmapped over the elites, at ``--trust-member-episodes``.
 
+With --trust-evaluated N (``run_trust``'s n_evaluated; default 0: none) also a second
+evaluated set: N ``perturbed_policies`` of the TEST policies (their own key), their truth
+measured as the calibration policies' and their features in the same programs; each lane's
+intervals on them are calibrated on the calibration policies, as the test policies' are. They
+are built from the test policies, so they only measure: they calibrate and select nothing.
+
 Also the interval guard beside the floor guard (``guard_phase``, ``improve.gain_intervals``)
 and its offline cross-fit reading (``crossfit_interval_guard``, experiments/interval_guard.py).
 
 Writes result["lanes"][lane]["trust"] (each test policy's interval and flag),
 result["trust"][method] (the issue's block: level, coverage, width_over_range, worst_flagged,
 runs, command; the plain seed-spread interval scaled to the same coverage beside it) and
-result["trust_calibration"]. JSON-valid: an infinite quantile (too few calibration policies
-for the level) leaves None with "q_infinite": true, and unbounded intervals None ends."""
+result["trust_calibration"]; with --trust-evaluated, also each lane's and method's
+"evaluated" block and result["trust_evaluated"] (the set's truths and origins). JSON-valid:
+an infinite quantile (too few calibration policies for the level) leaves None with
+"q_infinite": true, and unbounded intervals None ends."""
 from __future__ import annotations
 
 import json
 import math
 import os
 import time
+from itertools import pairwise
 
 import jax
 import jax.numpy as jnp
@@ -69,6 +78,10 @@ def add_trust_arguments(ap) -> None:
                     "episodes per policy of each elite alone (their spread; common random "
                     "numbers make a few enough; at most --trust-episodes)")
     ap.add_argument("--trust-level", type=float, default=tr.DEFAULT_LEVEL)
+    ap.add_argument("--trust-evaluated", type=int, default=0, metavar="N", help="also N "
+                    "perturbed/interpolated TEST policies measured in the real env and "
+                    "evaluated with intervals (calibrated on the calibration set as the test "
+                    "policies'): coverage and width on a second evaluated set (0: none)")
 
 
 def check_trust_arguments(args) -> None:
@@ -89,6 +102,11 @@ def check_trust_arguments(args) -> None:
             raise SystemExit(f"guard-calibration: no such file {p}")
     if args.trust_calibration < 0:
         raise SystemExit(f"trust-calibration: expected an int >= 0, got {args.trust_calibration}")
+    if args.trust_evaluated < 0:
+        raise SystemExit(f"trust-evaluated: expected an int >= 0, got {args.trust_evaluated}")
+    if args.trust_evaluated and not args.trust_calibration:
+        raise SystemExit("trust-evaluated: needs --trust-calibration > 0 (the evaluated "
+                         "policies' intervals are calibrated on the calibration set)")
     for name in ("trust_episodes", "trust_member_episodes"):
         v = getattr(args, name)
         if v is not None and v < 2:
@@ -99,17 +117,25 @@ def check_trust_arguments(args) -> None:
         raise SystemExit(f"trust-{err}") from None
 
 
-def calibration_policies(task: str, train_pols, *, n: int, seed: int, n_episodes: int,
+def calibration_policies(task: str, pols, *, n: int, seed: int, n_episodes: int,
                          horizon: int, episode_length: int, gamma: float):
-    """``n`` perturbed training policies and their true discounted values over the first
+    """``n`` perturbed ``pols`` (the training policies for the calibration set, the test
+    policies for the evaluated set) and their true discounted values over the first
     ``horizon`` steps (real env, ``n_episodes`` each; episodes of ``episode_length``).
     -> (stacked params [n], truth [n], origins)"""
-    params, origins = tr.perturbed_policies(train_pols, jax.random.PRNGKey(seed), n,
+    params, origins = tr.perturbed_policies(pols, jax.random.PRNGKey(seed), n,
                                             noise=PERTURB_NOISE)
     v = measure_values(get_task(task).make_env(), params, key=jax.random.PRNGKey(seed + 1),
                        n_episodes=n_episodes, episode_length=min(horizon, episode_length),
                        gamma=gamma)
     return params, np.asarray(v["value_discounted"], np.float64), origins
+
+
+def evaluated_what(n: int) -> str:
+    """What the evaluated set of ``n`` policies is, for its blocks."""
+    return (f"{n} perturbed/interpolated test policies (trust.perturbed_policies of the test "
+            f"policies, noise {PERTURB_NOISE}), intervals calibrated on the calibration set; "
+            f"only measured, never used to calibrate or select")
 
 
 def lane_trust(feats: dict, cal_feats: dict, cal_truth, names, truth, level: float) -> dict:
@@ -126,6 +152,51 @@ def lane_trust(feats: dict, cal_feats: dict, cal_truth, names, truth, level: flo
             "unbounded": [not np.all(np.isfinite(p["interval"])) for p in pol],
             "coverage": t["coverage"], "mean_width": t["mean_width"],
             "width_over_range": t["width_over_range"], "worst": t["worst"]}
+
+
+def evaluated_report(feats: dict, cal_feats: dict, cal_truth, truth, level: float) -> dict:
+    """One lane's report on the evaluated set (``combine_features`` of its N policies, their
+    true values truth [N]), intervals calibrated on the calibration policies as
+    ``lane_trust``'s. -> {"n", "q", "coverage", "mean_width", "width_over_range", "worst",
+    "sim_value" [N], "interval" [N, 2], "trusted" [N]} (raw floats)."""
+    cal = tr.calibrate(cal_feats, cal_truth, ["heldout"] * len(cal_truth), level)
+    t = tr.trust_report(feats, cal, [f"evaluated-{i}" for i in range(len(truth))], truth)
+    pol = t["policies"]
+    return {"n": len(truth), "q": cal["q"], "coverage": t["coverage"],
+            "mean_width": t["mean_width"], "width_over_range": t["width_over_range"],
+            "worst": t["worst"], "sim_value": [p["sim_value"] for p in pol],
+            "interval": [p["interval"] for p in pol], "trusted": [p["trusted"] for p in pol]}
+
+
+def method_evaluated(lane_entries: list[dict]) -> dict | None:
+    """A method's "evaluated" block from its lanes' JSON-safe "trust" entries: means over the
+    lanes with an ``evaluated_report`` (as ``method_block``'s; None where a lane's is None);
+    None when no lane has one; "skipped" when they evaluated sets of other sizes."""
+    reps = [e["evaluated"] for e in lane_entries
+            if isinstance(e.get("evaluated"), dict) and "skipped" not in e["evaluated"]]
+    if not reps:
+        return None
+    if len({r["n"] for r in reps}) > 1:
+        return {"skipped": f"the lanes evaluated sets of {sorted({r['n'] for r in reps})} "
+                           f"policies"}
+
+    def mean(key):
+        v = [r[key] for r in reps]
+        return None if any(x is None for x in v) else float(np.mean(v))
+    return {"n": reps[0]["n"], "coverage": mean("coverage"),
+            "width_over_range": mean("width_over_range"), "mean_width": mean("mean_width"),
+            "worst_flagged": float(np.mean([r["worst"]["flagged"] for r in reps])),
+            "runs": len(reps), "what": evaluated_what(reps[0]["n"])}
+
+
+def format_evaluated(b: dict) -> str:
+    """One line of a method's "evaluated" block."""
+    if "skipped" in b:
+        return b["skipped"]
+    f = lambda x: "n/a" if x is None else f"{x:.3f}"
+    return (f"{b['n']} perturbed test policies: coverage {f(b['coverage'])}, width/range "
+            f"{f(b['width_over_range'])}, worst policy flagged in {f(b['worst_flagged'])} of "
+            f"{b['runs']} runs")
 
 
 def seed_spread(values, truth, level: float, coverage: float) -> dict:
@@ -183,7 +254,8 @@ def format_block(b: dict) -> str:
 def trust_from_lanes(result: dict) -> dict:
     """result["trust"] recomputed from its lanes' "trust" entries (as ``run_trust`` wrote
     them, JSON-safe), each method's lanes in seed order: for results joined from several
-    runs (``merge_results.py``), where a method's seeds come from more than one."""
+    runs (``merge_results.py``), where a method's seeds come from more than one; with the
+    method's "evaluated" block (``method_evaluated``) where its lanes have one."""
     by_method: dict[str, list] = {}
     for lane, e in sorted(result.get("lanes", {}).items(),
                           key=lambda kv: (kv[0].rsplit("/", 1)[0],
@@ -197,6 +269,8 @@ def trust_from_lanes(result: dict) -> dict:
         out[m] = tr.json_safe(method_block(raw, [r["sim_value"] for r in runs],
                                            np.asarray(result["true_value"], np.float64),
                                            runs[0]["level"], result.get("command", "")))
+        if (ev := method_evaluated(runs)) is not None:
+            out[m]["evaluated"] = tr.json_safe(ev)
     return out
 
 
@@ -204,16 +278,17 @@ def _stack(a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
 
 
-def family_trust(lanes, states, *, policies, n_test: int, pool, u_data, roll: dict) -> list:
-    """Per lane of one family: (its test policies' ``policy_features``, the calibration
-    policies')."""
+def family_trust(lanes, states, *, policies, cuts: tuple, pool, u_data, roll: dict) -> list:
+    """Per lane of one family: its ``policy_features`` of ``policies`` (the test, calibration
+    and maybe evaluated policies stacked) split at the policy indices ``cuts``: a tuple of
+    len(cuts) + 1 feature dicts (test, calibration[, evaluated])."""
     sims = simulator(states)
     keys = jnp.stack([jax.random.PRNGKey(3000 + s) for _, s in lanes])
     feats = tr.lane_features(sims, policies, pool, keys, tr.lane_data_disagreement(
         sims, u_data), **roll)
-    split = lambda f, part: {k: (v[..., :n_test] if part == 0 else v[..., n_test:])
-                             for k, v in f.items()}
-    return [(split(f, 0), split(f, 1)) for f in feats]
+    bounds = (0, *cuts, None)
+    return [tuple({k: v[..., a:b] for k, v in f.items()} for a, b in pairwise(bounds))
+            for f in feats]
 
 
 def seeds_combined(per_lane: list, cal_truth, names, truth, level: float) -> dict:
@@ -235,16 +310,18 @@ def seeds_combined(per_lane: list, cal_truth, names, truth, level: float) -> dic
 def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, test_ds,
               test_pols, truth, horizon: int, gamma: float, sizes: dict, n_calibration: int,
               seed: int, level: float = tr.DEFAULT_LEVEL, episodes: int | None = None,
-              member_episodes: int | None = None, episode_length: int | None = None) -> None:
+              member_episodes: int | None = None, episode_length: int | None = None,
+              n_evaluated: int = 0) -> None:
     """The value intervals of every lane of ``finals`` ({family: (lanes, TrainState)}) into
     ``result`` (module docstring). truth [P_test]: the test policies' true values; episodes
     (None: sizes["eval_episodes"]) and member_episodes (None: as many; at most episodes):
-    ``trust.lane_feature_arrays``'."""
+    ``trust.lane_feature_arrays``'. n_evaluated > 0: also that many perturbed test policies
+    (``evaluated_set``), evaluated in the same programs, only measured."""
     t0 = time.perf_counter()
-    ep_len = episode_length or get_task(task).episode_length
+    measure = dict(n_episodes=sizes["value_episodes"], horizon=horizon, gamma=gamma,
+                   episode_length=episode_length or get_task(task).episode_length)
     cal_params, cal_truth, origins = calibration_policies(
-        task, train_pols, n=n_calibration, seed=seed + 4000, n_episodes=sizes["value_episodes"],
-        horizon=horizon, episode_length=ep_len, gamma=gamma)
+        task, train_pols, n=n_calibration, seed=seed + 4000, **measure)
     result["trust_calibration"] = {
         "n": n_calibration, "true_value": cal_truth.tolist(), "origins": origins,
         "what": f"perturbed training policies (trust.perturbed_policies, noise "
@@ -252,6 +329,11 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
         "min_for_level": tr.min_calibration(level)}
     result["timings"]["trust_calibration"] = round(time.perf_counter() - t0, 1)
     truth = np.asarray(truth, np.float64)
+    policies, cuts, ev_truth = _stack(test_pols, cal_params), (len(truth),), None
+    if n_evaluated:
+        ev_params, ev_truth = evaluated_set(result, task, test_pols, n=n_evaluated,
+                                            seed=seed, measure=measure)
+        policies, cuts = _stack(policies, ev_params), (len(truth), len(truth) + n_calibration)
     names = list(test_ds.meta.get("policy_names") or range(len(truth)))
     n = episodes or sizes["eval_episodes"]
     roll = dict(n_episodes=n, horizon=horizon, gamma=gamma,
@@ -259,10 +341,9 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
     by_method: dict[str, list] = {}
     for family, (lanes, states) in finals.items():
         t0 = time.perf_counter()
-        per_lane = family_trust(lanes, states, policies=_stack(test_pols, cal_params),
-                                n_test=len(truth), pool=start_pool(test_ds), u_data=train_ds,
-                                roll=roll)
-        for (meth, s), (feats, cal_feats) in zip(lanes, per_lane, strict=True):
+        per_lane = family_trust(lanes, states, policies=policies, cuts=cuts,
+                                pool=start_pool(test_ds), u_data=train_ds, roll=roll)
+        for (meth, s), (feats, cal_feats, *ev_feats) in zip(lanes, per_lane, strict=True):
             if not all(np.all(np.isfinite(v)) for f in (feats, cal_feats) for v in f.values()):
                 # a diverged lane: no interval, and no part in its method's block
                 result["lanes"][f"{meth}/{s}"]["trust"] = {
@@ -270,18 +351,47 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
                 continue
             rep = lane_trust(tr.combine_features([feats]), tr.combine_features([cal_feats]),
                              cal_truth, names, truth, level)
-            result["lanes"][f"{meth}/{s}"]["trust"] = tr.json_safe(rep)
-            by_method.setdefault(meth, []).append((rep, (feats, cal_feats)))
+            entry = result["lanes"][f"{meth}/{s}"]["trust"] = tr.json_safe(rep)
+            if ev_feats:
+                entry["evaluated"] = _lane_evaluated(ev_feats[0], cal_feats, cal_truth,
+                                                     ev_truth, level)
+            by_method.setdefault(meth, []).append((rep, (feats, cal_feats), entry))
         result["timings"][f"trust_{family}"] = round(time.perf_counter() - t0, 1)
     result["trust"] = {}
     for m, runs in by_method.items():
-        reps = [r for r, _ in runs]
+        reps = [r for r, _, _ in runs]
         block = method_block(reps, [r["sim_value"] for r in reps], truth, level,
                              result.get("command", ""))
         if len(runs) > 1:
-            block["seeds_combined"] = seeds_combined([f for _, f in runs], cal_truth, names,
+            block["seeds_combined"] = seeds_combined([f for _, f, _ in runs], cal_truth, names,
                                                      truth, level)
+        if (ev := method_evaluated([e for _, _, e in runs])) is not None:
+            block["evaluated"] = ev
         result["trust"][m] = tr.json_safe(block)
+
+
+def evaluated_set(result: dict, task: str, test_pols, *, n: int, seed: int, measure: dict):
+    """``n`` perturbed test policies (keys data seed + 5000, + 5001: not the calibration
+    set's) with their true values measured as the calibration set's; writes
+    result["trust_evaluated"] and its timing. -> (stacked params [n], truth [n])"""
+    t0 = time.perf_counter()
+    params, truth, origins = calibration_policies(task, test_pols, n=n, seed=seed + 5000,
+                                                  **measure)
+    result["trust_evaluated"] = {
+        "n": n, "true_value": truth.tolist(), "origins": origins,
+        "what": f"{evaluated_what(n)}; true values over {measure['n_episodes']} real episodes"}
+    result["timings"]["trust_evaluated"] = round(time.perf_counter() - t0, 1)
+    return params, truth
+
+
+def _lane_evaluated(ev_feats: dict, cal_feats: dict, cal_truth, ev_truth, level) -> dict:
+    """A lane's JSON-safe ``evaluated_report``, or "skipped" where its evaluated features are
+    not finite (the lane's test-policy report stands)."""
+    if not all(np.all(np.isfinite(v)) for v in ev_feats.values()):
+        return {"skipped": "non-finite simulated values or support"}
+    return tr.json_safe(evaluated_report(tr.combine_features([ev_feats]),
+                                         tr.combine_features([cal_feats]), cal_truth,
+                                         ev_truth, level))
 
 
 def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict, sizes: dict,
@@ -300,7 +410,7 @@ def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict,
                   n_calibration=args.trust_calibration, seed=args.data_seed,
                   level=args.trust_level, episodes=args.trust_episodes,
                   member_episodes=args.trust_member_episodes,
-                  episode_length=args.episode_length)
+                  episode_length=args.episode_length, n_evaluated=args.trust_evaluated)
     except Exception as err:  # the intervals must not cost the run's improvement phase
         result["trust"] = {"error": f"{type(err).__name__}: {err}"}
         log(f"[paper] trust: FAILED, the run goes on without intervals: {result['trust']}")
@@ -309,6 +419,8 @@ def trust_phase(args, result: dict, finals: dict, datasets: dict, configs: dict,
     for m, b in result["trust"].items():
         if m != "error":
             log(f"[paper] trust {m}: {format_block(b)}")
+            if "evaluated" in b:
+                log(f"[paper] trust {m} evaluated: {format_evaluated(b['evaluated'])}")
 
 
 # ------------------------------------------------------------------ the interval guard

@@ -168,54 +168,53 @@ def render(results: dict, source: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def section(title: str, text: str, rows: list[str]) -> list[str]:
+    """A generated subsection: its title, what it shows, its table; no rows: nothing."""
+    return ["", f"### {title}", "", text, "", *rows] if rows else []
+
+
 def data_seed_section(results: dict) -> list[str]:
     """The table "Ranking over data seeds" (issue 66) from the tasks' ``by_data_seed``
     (``rl2s_jax.paper.data_seeds``); no task has one: nothing."""
-    rows = data_seed_rows(results, TASKS)
-    if not rows:
-        return []
-    return ["", "### Ranking over data seeds", "",
-            "Kendall tau on the test policies per data collection (`--data-seed`; each cell "
-            "the mean over that data seed's seeds), the mean over data seeds with its 95% "
-            "t-interval (each data seed one draw of the whole protocol), the oracle and the "
-            "noise ceiling (an exact simulator's expected tau) of the same data seed, and "
-            "issue 66's bar. Recorded by `experiments/merge_results.py` (by_data_seed; the "
-            "commands are in the task JSONs). \"not measured\": no run measured it.", "",
-            *rows]
+    return section(
+        "Ranking over data seeds",
+        "Kendall tau on the test policies per data collection (`--data-seed`; each cell "
+        "the mean over that data seed's seeds), the mean over data seeds with its 95% "
+        "t-interval (each data seed one draw of the whole protocol), the oracle and the "
+        "noise ceiling (an exact simulator's expected tau) of the same data seed, and "
+        "issue 66's bar. Recorded by `experiments/merge_results.py` (by_data_seed; the "
+        "commands are in the task JSONs). \"not measured\": no run measured it.",
+        data_seed_rows(results, TASKS))
 
 
 def trust_section(results: dict) -> list[str]:
     """The table "Value intervals over data seeds" (issue 64) from the tasks' "trust"
     blocks (``data_seeds.trust_rows``); no task has one: nothing."""
-    rows = trust_rows(results, TASKS)
-    if not rows:
-        return []
-    return ["", "### Value intervals over data seeds", "",
-            "Each test policy's split-conformal interval for its true value at level 0.9 "
-            "(`paper/trust_phase.py`: calibrated on 20 perturbed training policies measured in "
-            "the real env, never on test policies), per method over every run (seed x data "
-            "seed): coverage of the true values, mean width over the range of the true values, "
-            "the plain seed-spread interval's width once scaled WITH the truth to the same "
-            "coverage (✓: the conformal interval is narrower), and the share of runs whose "
-            "largest-error policy is flagged untrusted. Issue 64's bars beside each (✓ / ✗). "
-            "Recorded by `experiments/merge_results.py --data-seed-run` (the commands are in "
-            "the task JSONs).", "", *rows]
+    return section(
+        "Value intervals over data seeds",
+        "Each test policy's split-conformal interval for its true value at level 0.9 "
+        "(`paper/trust_phase.py`: calibrated on 20 perturbed training policies measured in "
+        "the real env, never on test policies), per method over every run (seed x data "
+        "seed): coverage of the true values, mean width over the range of the true values, "
+        "the plain seed-spread interval's width once scaled WITH the truth to the same "
+        "coverage (✓: the conformal interval is narrower), and the share of runs whose "
+        "largest-error policy is flagged untrusted. Issue 64's bars beside each (✓ / ✗). "
+        "Recorded by `experiments/merge_results.py --data-seed-run` (the commands are in "
+        "the task JSONs).", trust_rows(results, TASKS))
 
 
 def guard_section(results: dict) -> list[str]:
     """The table "The interval guard against the floor guard" (issue 64 item 3) from the
     tasks' "guard" readings (``tables.interval_guard_rows``); none recorded: nothing."""
-    rows = interval_guard_rows(results, TASKS)
-    if not rows:
-        return []
-    return ["", "### The interval guard against the floor guard", "",
-            "The recorded in-simulator fine-tuning runs (RESULTS' \"Policy improvement inside "
-            "the simulators\", the task's recipe) read offline by `experiments/interval_guard.py"
-            "` at level 0.9: the floor guard the runs used, and the interval guard (deploy where "
-            "the lower end of the predicted gain's conformal interval is above 0), each half of "
-            "the fine-tuned policies calibrated on the other half's real gains. Median gain of "
-            "the policies below the zoo's top quartile, kept policies at 0; deployed of "
-            "lanes x policies.", "", *rows]
+    return section(
+        "The interval guard against the floor guard",
+        "The recorded in-simulator fine-tuning runs (RESULTS' \"Policy improvement inside "
+        "the simulators\", the task's recipe) read offline by `experiments/interval_guard.py"
+        "` at level 0.9: the floor guard the runs used, and the interval guard (deploy where "
+        "the lower end of the predicted gain's conformal interval is above 0), each half of "
+        "the fine-tuned policies calibrated on the other half's real gains. Median gain of "
+        "the policies below the zoo's top quartile, kept policies at 0; deployed of "
+        "lanes x policies.", interval_guard_rows(results, TASKS))
 
 
 def with_block(text: str, block: str, begin: str = BEGIN, end_mark: str = END) -> str:

@@ -166,6 +166,15 @@ def test_pooled_trust_over_data_seeds_against_numpy(tmp_path):
     assert b["narrower_than_seed_spread"] == (b["width_over_range"]
                                              < b["seed_spread"]["scaled_width_over_range"])
     assert b["data_seeds"] == [7, 23] and b["by_data_seed"]["7"]["runs"] == 2
+    assert "evaluated" not in b  # no run evaluated a set
+    for r, cov_e in zip(runs, ([0.5, 1.0], [0.25, 0.75, 1.0]), strict=True):
+        for lane, c in zip(sorted(r["lanes"]), cov_e, strict=True):
+            r["lanes"][lane]["trust"]["evaluated"] = {
+                "n": 4, "coverage": c, "width_over_range": 0.2, "mean_width": 3.0,
+                "worst": {"flagged": c == 1.0}}
+    ev = dseeds.pooled_trust(runs)["rl2s"]["evaluated"]
+    assert ev["coverage"] == pytest.approx(np.mean([0.5, 1.0, 0.25, 0.75, 1.0]))
+    assert ev["runs"] == 5 and ev["worst_flagged"] == pytest.approx(2 / 5) and ev["n"] == 4
     with pytest.raises(ValueError, match="one run per data seed"):
         dseeds.pooled_trust([runs[0], runs[0]])
     mr = load_script("merge_results")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from rl2s_jax.evaluate import trust as tr
+from rl2s_jax.paper.trust_phase import method_evaluated
 from rl2s_jax.stats import t_interval
 
 BY_DATA_SEED_METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -220,7 +221,8 @@ def pooled_trust(runs: list[dict]) -> dict:
     share of runs whose worst-error policy is flagged, and the seed-spread interval pooled the
     same way (each data seed's values, seed spread and truth over its own truth's range, so
     widths add up as width/range) scaled to the pooled coverage; "by_data_seed" keeps each
-    data seed's own block."""
+    data seed's own block; "evaluated" pools the lanes' ``--trust-evaluated`` sets the same
+    way (``trust_phase.method_evaluated``) where they have them."""
     by_ds = {data_seed_of(r): r for r in runs}
     if len(by_ds) != len(runs):
         raise ValueError("runs: expected one run per data seed")
@@ -258,6 +260,9 @@ def pooled_trust(runs: list[dict]) -> dict:
             "by_data_seed": {str(ds): {k: (r.get("trust") or {}).get(m, {}).get(k) for k in
                                        ("coverage", "width_over_range", "worst_flagged", "runs")}
                              for ds, r in by_ds.items()}})
+        evaluated = method_evaluated(every)  # --trust-evaluated's sets, where every run has one
+        if evaluated is not None:
+            out[m]["evaluated"] = tr.json_safe(evaluated)
     return out
 
 

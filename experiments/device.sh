@@ -37,7 +37,9 @@
 #       (setsid) from a copy of the repo ($STREAMS_repo); returns at once. Each run's OUT is
 #       $STREAMS/<stream>_<k> (STREAMS=/tmp/streams), progress in $STREAMS/progress.log. A
 #       stream that begins with "@N " runs on GPU N alone (CUDA_VISIBLE_DEVICES=N; memory
-#       0.9 / the streams pinned to N); unpinned streams see every GPU
+#       0.9 / the streams pinned to N); unpinned streams see every GPU. POLL=S: poll for S s
+#       in the same call (the machine is given back 30 s after a call ends, and the detached
+#       streams with it: launching and polling in one call leaves no gap)
 #   bash experiments/device.sh waitdata TASK [MAX_S]              waits (at most MAX_S, default
 #       900) until paper.py's data of TASK is in $W: a stream that begins with it reuses the
 #       data another stream is collecting instead of collecting it beside it
@@ -263,6 +265,7 @@ cmd_streams() {
   sleep 2
   echo "streams: $# stream(s) started from the copy $snap; progress:"
   cat "$streams/progress.log" 2>/dev/null
+  [ -z "${POLL:-}" ] || STREAMS=$streams cmd_poll "$POLL"
 }
 
 cmd__streams_run() {  # the detached driver of cmd_streams (run from the repo's copy)

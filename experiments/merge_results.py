@@ -183,8 +183,7 @@ def merge_runs(parts: list[dict]) -> dict:
 def attach_paper_oracle(result: dict, path: str, sha: str) -> None:
     """Copy the oracle row of the paper.py run at ``path`` into ``result`` (in place); exits
     naming the field where that run's protocol differs from ``result``'s."""
-    with open(path) as f:
-        orc = json.load(f)
+    orc = _read(path)
     if "oracle" not in orc.get("per_seed", {}):
         raise SystemExit(f"oracle-paper: {path} has no oracle row (run without --no-oracle)")
     if orc.get("task") != result.get("task"):

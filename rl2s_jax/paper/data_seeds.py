@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from rl2s_jax.evaluate import trust as tr
-from rl2s_jax.paper.trust_phase import method_evaluated
+from rl2s_jax.paper.trust_phase import lane_trusts_by_method, method_evaluated
 from rl2s_jax.stats import t_interval
 
 BY_DATA_SEED_METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -206,14 +206,6 @@ def data_seed_rows(results: dict, tasks) -> list[str]:
     return lines
 
 
-def _lane_trusts(run: dict, method: str) -> list[dict]:
-    """One run's lanes' "trust" entries of ``method`` in seed order (lanes "<method>/<seed>")."""
-    lanes = sorted((int(k.rsplit("/", 1)[1]), e["trust"]) for k, e in run.get("lanes", {}).items()
-                   if k.rsplit("/", 1)[0] == method and (e.get("trust") or {}).get("coverage")
-                   is not None)
-    return [t for _, t in lanes]
-
-
 def pooled_trust(runs: list[dict]) -> dict:
     """Issue 64's "trust" block per method over data seeds: ``runs`` are paper.py results
     (one per data seed, each with its lanes' trust entries and true values). Per method the
@@ -226,11 +218,12 @@ def pooled_trust(runs: list[dict]) -> dict:
     by_ds = {data_seed_of(r): r for r in runs}
     if len(by_ds) != len(runs):
         raise ValueError("runs: expected one run per data seed")
+    per_run = {ds: lane_trusts_by_method(r) for ds, r in by_ds.items()}
     methods = [m for m in dict.fromkeys(k for r in runs for k in (r.get("trust") or {}))
-               if all(_lane_trusts(r, m) for r in runs)]
+               if all(per_run[ds].get(m) for ds in by_ds)]
     out = {}
     for m in methods:
-        lanes = {ds: _lane_trusts(r, m) for ds, r in by_ds.items()}
+        lanes = {ds: per_run[ds][m] for ds in by_ds}
         every = [t for ls in lanes.values() for t in ls]
         level = every[0]["level"]
         cov = float(np.mean([t["coverage"] for t in every]))

@@ -251,19 +251,25 @@ def format_block(b: dict) -> str:
                f"{f(b['seeds_combined']['width_over_range'])}"))
 
 
+def lane_trusts_by_method(result: dict) -> dict[str, list[dict]]:
+    """{method: its lanes' "trust" entries in seed order} of a result's lanes
+    ("<method>/<seed>"), skipped lanes left out."""
+    by_method: dict[str, list] = {}
+    for lane, e in sorted(result.get("lanes", {}).items(),
+                          key=lambda kv: (kv[0].rsplit("/", 1)[0],
+                                          int(kv[0].rsplit("/", 1)[1]))):
+        if e.get("trust") and "skipped" not in e["trust"]:
+            by_method.setdefault(lane.rsplit("/", 1)[0], []).append(e["trust"])
+    return by_method
+
+
 def trust_from_lanes(result: dict) -> dict:
     """result["trust"] recomputed from its lanes' "trust" entries (as ``run_trust`` wrote
     them, JSON-safe), each method's lanes in seed order: for results joined from several
     runs (``merge_results.py``), where a method's seeds come from more than one; with the
     method's "evaluated" block (``method_evaluated``) where its lanes have one."""
-    by_method: dict[str, list] = {}
-    for lane, e in sorted(result.get("lanes", {}).items(),
-                          key=lambda kv: (kv[0].rsplit("/", 1)[0],
-                                          int(kv[0].rsplit("/", 1)[1]))):  # "<method>/<seed>"
-        if e.get("trust") and "skipped" not in e["trust"]:
-            by_method.setdefault(lane.rsplit("/", 1)[0], []).append(e["trust"])
     out = {}
-    for m, runs in by_method.items():
+    for m, runs in lane_trusts_by_method(result).items():
         raw = [{**r, "mean_width": math.inf if r["mean_width"] is None else r["mean_width"]}
                for r in runs]
         out[m] = tr.json_safe(method_block(raw, [r["sim_value"] for r in runs],

@@ -276,6 +276,18 @@ def test_merge_results_recomputes_the_trust_block_over_joined_seeds():
 
 
 @pytest.mark.slow
+def _diverge_lane_part(monkeypatch, tp, part: int) -> None:
+    """``family_trust`` with the second lane's features of one policy set (0: test, 1:
+    calibration, 2: evaluated) made non-finite, as a diverged lane's would be."""
+    real = tp.family_trust
+
+    def diverged(*a, **kw):
+        out = real(*a, **kw)
+        out[1][part]["sim_value"] = np.full_like(out[1][part]["sim_value"], np.nan)
+        return out
+    monkeypatch.setattr(tp, "family_trust", diverged)
+
+
 def test_a_diverged_lane_is_skipped_and_a_failure_spares_the_run(pm_lanes, monkeypatch):
     """A lane whose features are not finite gets no interval and leaves its method's block
     (the other seed's alone, no seeds_combined); an error in the phase is recorded and
@@ -285,13 +297,7 @@ def test_a_diverged_lane_is_skipped_and_a_failure_spares_the_run(pm_lanes, monke
 
     from rl2s_jax.paper import trust_phase as tp
 
-    real = tp.family_trust
-
-    def diverged(*a, **kw):
-        out = real(*a, **kw)
-        out[1][0]["sim_value"] = np.full_like(out[1][0]["sim_value"], np.nan)
-        return out
-    monkeypatch.setattr(tp, "family_trust", diverged)
+    _diverge_lane_part(monkeypatch, tp, part=0)
     r = _run(pm_lanes, 6)
     assert r["lanes"]["rl2s/1"]["trust"] == {"skipped": "non-finite simulated values or support"}
     b = r["trust"]["rl2s"]
@@ -365,13 +371,7 @@ def test_protocol_trust_evaluated_set(pm_lanes, monkeypatch):
     assert tp.trust_from_lanes({**r, "true_value": kw["truth"].tolist()})["rl2s"][
         "evaluated"] == b
 
-    real = tp.family_trust
-
-    def diverged(*a, **k):
-        out = real(*a, **k)
-        out[1][2]["sim_value"] = np.full_like(out[1][2]["sim_value"], np.nan)
-        return out
-    monkeypatch.setattr(tp, "family_trust", diverged)
+    _diverge_lane_part(monkeypatch, tp, part=2)
     d = _run(pm_lanes, 6, n_evaluated=4)
     assert d["lanes"]["rl2s/1"]["trust"]["evaluated"] == {
         "skipped": "non-finite simulated values or support"}

@@ -12,9 +12,10 @@ each elite alone, vmapped over the elites, at ``--trust-member-episodes``.
 
 With --trust-evaluated N (``run_trust``'s n_evaluated; default 0: none) also a second
 evaluated set: N ``perturbed_policies`` of the TEST policies (their own key), their truth
-measured as the calibration policies' and their features in the same programs; each lane's
-intervals on them are calibrated on the calibration policies, as the test policies' are. They
-are built from the test policies, so they only measure: they calibrate and select nothing.
+measured as the calibration policies' and their features in rollouts of their own
+(``family_trust``); each lane's intervals on them are calibrated on the calibration
+policies, as the test policies' are. They are built from the test policies, so they only
+measure: they calibrate and select nothing.
 
 Also the interval guard beside the floor guard (``guard_phase``, ``improve.gain_intervals``)
 and its offline cross-fit reading (``crossfit_interval_guard``, experiments/interval_guard.py).
@@ -284,17 +285,27 @@ def _stack(a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
 
 
-def family_trust(lanes, states, *, policies, cuts: tuple, pool, u_data, roll: dict) -> list:
-    """Per lane of one family: its ``policy_features`` of ``policies`` (the test, calibration
-    and maybe evaluated policies stacked) split at the policy indices ``cuts``: a tuple of
-    len(cuts) + 1 feature dicts (test, calibration[, evaluated])."""
+def family_trust(lanes, states, *, policies, cuts: tuple, pool, u_data, roll: dict,
+                 evaluated=None) -> list:
+    """Per lane of one family: its ``policy_features`` of ``policies`` (the test and
+    calibration policies stacked) split at the policy indices ``cuts``, and of the
+    ``evaluated`` policies (or None) in a rollout of their own (keys folded with 1): a tuple
+    of len(cuts) + 1 feature dicts (test, calibration) [+ the evaluated set's]. Their own
+    rollout leaves the test and calibration rollout the program it is without them: one
+    stacked rollout of more policies is another XLA program, whose rounding moved
+    HalfCheetah's elites-alone values (member_sd by a median 15-37%, GPU, data seed 23)."""
     sims = simulator(states)
     keys = jnp.stack([jax.random.PRNGKey(3000 + s) for _, s in lanes])
-    feats = tr.lane_features(sims, policies, pool, keys, tr.lane_data_disagreement(
-        sims, u_data), **roll)
+    u_units = tr.lane_data_disagreement(sims, u_data)
+    feats = tr.lane_features(sims, policies, pool, keys, u_units, **roll)
     bounds = (0, *cuts, None)
-    return [tuple({k: v[..., a:b] for k, v in f.items()} for a, b in pairwise(bounds))
-            for f in feats]
+    parts = [tuple({k: v[..., a:b] for k, v in f.items()} for a, b in pairwise(bounds))
+             for f in feats]
+    if evaluated is None:
+        return parts
+    ev_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys)
+    ev = tr.lane_features(sims, evaluated, pool, ev_keys, u_units, **roll)
+    return [(*p, e) for p, e in zip(parts, ev, strict=True)]
 
 
 def seeds_combined(per_lane: list, cal_truth, names, truth, level: float) -> dict:
@@ -322,7 +333,7 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
     ``result`` (module docstring). truth [P_test]: the test policies' true values; episodes
     (None: sizes["eval_episodes"]) and member_episodes (None: as many; at most episodes):
     ``trust.lane_feature_arrays``'. n_evaluated > 0: also that many perturbed test policies
-    (``evaluated_set``), evaluated in the same programs, only measured."""
+    (``evaluated_set``), rolled out on their own (``family_trust``), only measured."""
     t0 = time.perf_counter()
     measure = dict(n_episodes=sizes["value_episodes"], horizon=horizon, gamma=gamma,
                    episode_length=episode_length or get_task(task).episode_length)
@@ -335,11 +346,10 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
         "min_for_level": tr.min_calibration(level)}
     result["timings"]["trust_calibration"] = round(time.perf_counter() - t0, 1)
     truth = np.asarray(truth, np.float64)
-    policies, cuts, ev_truth = _stack(test_pols, cal_params), (len(truth),), None
+    policies, ev_params, ev_truth = _stack(test_pols, cal_params), None, None
     if n_evaluated:
         ev_params, ev_truth = evaluated_set(result, task, test_pols, n=n_evaluated,
                                             seed=seed, measure=measure)
-        policies, cuts = _stack(policies, ev_params), (len(truth), len(truth) + n_calibration)
     names = list(test_ds.meta.get("policy_names") or range(len(truth)))
     n = episodes or sizes["eval_episodes"]
     roll = dict(n_episodes=n, horizon=horizon, gamma=gamma,
@@ -347,8 +357,9 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
     by_method: dict[str, list] = {}
     for family, (lanes, states) in finals.items():
         t0 = time.perf_counter()
-        per_lane = family_trust(lanes, states, policies=policies, cuts=cuts,
-                                pool=start_pool(test_ds), u_data=train_ds, roll=roll)
+        per_lane = family_trust(lanes, states, policies=policies, cuts=(len(truth),),
+                                pool=start_pool(test_ds), u_data=train_ds, roll=roll,
+                                evaluated=ev_params)
         for (meth, s), (feats, cal_feats, *ev_feats) in zip(lanes, per_lane, strict=True):
             if not all(np.all(np.isfinite(v)) for f in (feats, cal_feats) for v in f.values()):
                 # a diverged lane: no interval, and no part in its method's block

@@ -32,12 +32,12 @@ def test_gain_features_and_calibration_by_hand():
     scores = np.sort(np.abs(f["gain"] - real) / (f["member_sd"] + floor))
     assert cal["floor"] == pytest.approx(floor)
     assert cal["q"] == pytest.approx(scores[math.ceil(6 * 0.6) - 1])
-    acc, lower = gi.interval_guard(start, gain, cal)
+    acc, lower = gi.interval_guard(f, cal)
     np.testing.assert_allclose(lower, f["gain"] - cal["q"] * (f["member_sd"] + floor))
     np.testing.assert_array_equal(acc, lower > 0)
     # too few calibration policies for the level: an infinite q deploys nothing
     few = gi.calibrate_gains(f["gain"][:2], f["member_sd"][:2], real[:2], level=0.9)
-    assert math.isinf(few["q"]) and not gi.interval_guard(start, gain, few)[0].any()
+    assert math.isinf(few["q"]) and not gi.interval_guard(f, few)[0].any()
     with pytest.raises(ValueError, match="member_gain: expected the shape"):
         gi.gain_features(start, gain[:2])
     with pytest.raises(ValueError, match="real_gain: the calibration policies need finite"):
@@ -50,7 +50,7 @@ def test_the_interval_guard_can_deploy_what_the_floor_refuses():
     start = np.full((3, 2), 100.0)
     gain = np.array([[10.0, 30.0], [11.0, -5.0], [12.0, 10.0]])
     cal = {"level": 0.9, "q": 2.0, "floor": 0.001, "n": 20}
-    acc, _ = gi.interval_guard(start, gain, cal)
+    acc, _ = gi.interval_guard(gi.gain_features(start, gain), cal)
     assert acc.tolist() == [True, False]
     from rl2s_jax.improve.finetune import deployment_guard
     assert deployment_guard(start, start + gain, 0.02, floor=10.5).tolist() == [False, False]

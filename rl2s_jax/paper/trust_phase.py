@@ -463,7 +463,8 @@ def guard_comparison(result: dict, cal: dict, zoo_returns, chosen: str = "floor"
     for e in result["improvement"].values():
         if "guard_member_gain" not in e:
             raise ValueError("guard: the lanes record no guard_member_gain (--guard-margin)")
-        acc, lower = gi.interval_guard(e["guard_member_start"], e["guard_member_gain"], cal)
+        acc, lower = gi.interval_guard(
+            gi.gain_features(e["guard_member_start"], e["guard_member_gain"]), cal)
         e["guard_accepted_interval"] = acc.tolist()
         e["guard_gain_lower"] = tr.json_safe(lower.tolist())
         by_method.setdefault(e["method"], []).append(e)

@@ -132,6 +132,47 @@ def test_paper_guard_and_trust_flags_refused_before_any_work(tmp_path):
             paper.check_arguments(paper.parse_args(base + extra))
 
 
+def test_both_front_ends_share_the_guard_flags():
+    """--guard and --guard-calibration are one definition (``app.specs.guard_choice_flags``)
+    on `rl2s improve` and paper.py: the same values from the same flags, the same actions but
+    for the front end's context in the help, a guard neither knows refused by both."""
+    import argparse
+
+    from experiment_scripts import load_script
+
+    from rl2s_jax import cli
+    from rl2s_jax.app.specs import GUARD_CONTEXTS, guard_choice_flags
+
+    paper = load_script("paper")
+    improve = ["improve", "--ckpt", "c", "--data", "d.npz", "--out", "o"]
+    for flags, want in (([], ("floor", None)),
+                        (["--guard-calibration", "a.json"], ("floor", ["a.json"])),
+                        (["--guard", "interval", "--guard-calibration", "a.json", "b.json"],
+                         ("interval", ["a.json", "b.json"]))):
+        a = cli.build_parser().parse_args(improve + flags)
+        b = paper.build_parser().parse_args(["--task", "hopper", "--out", "o", *flags])
+        assert (a.guard, a.guard_calibration) == (b.guard, b.guard_calibration) == want
+    for parse in (lambda f: cli.build_parser().parse_args(improve + f),
+                  lambda f: paper.build_parser().parse_args(["--task", "hopper", *f])):
+        with pytest.raises(SystemExit):
+            parse(["--guard", "ceiling"])
+    sub = next(a for a in cli.build_parser()._actions if a.dest == "command").choices["improve"]
+    front_ends = {"improve": sub, "paper": paper.build_parser()}
+    actions = {k: {a.dest: a for a in p._actions} for k, p in front_ends.items()}
+    for dest in ("guard", "guard_calibration"):
+        a, b = actions["improve"][dest], actions["paper"][dest]
+        same = ("option_strings", "nargs", "choices", "default", "type", "metavar", "required")
+        assert [getattr(a, k) for k in same] == [getattr(b, k) for k in same], dest
+        shared = {}
+        for k, act in (("improve", a), ("paper", b)):
+            part = next((c for c in GUARD_CONTEXTS[k] if c in act.help), None)
+            assert part is not None, f"{k} --{dest}: no {k} context in its help"
+            shared[k] = act.help.replace(part, "<context>")
+        assert shared["improve"] == shared["paper"], dest
+    with pytest.raises(ValueError, match="context: expected one of"):
+        guard_choice_flags(argparse.ArgumentParser(), "pipeline")
+
+
 def test_crossfit_calibrates_each_fold_on_the_others(tmp_path):
     """crossfit_interval_guard: each policy's verdict from a calibration on the other fold's
     policies only (by hand with calibrate_gains); |c0| as the scale where the run kept no

@@ -19,7 +19,7 @@ import sys
 import time
 
 from rl2s_jax.app.paths import FORCED, outputs_error, stopped_message
-from rl2s_jax.app.specs import COMMANDS, SPECS, spec_from_args
+from rl2s_jax.app.specs import COMMANDS, SPECS, guard_choice_flags, spec_from_args
 
 
 def _positive(name):
@@ -74,18 +74,12 @@ def _recipe_and_guard_options(p, recipes) -> None:
 
 def _improve_guard_options(p) -> None:
     """`rl2s improve`'s guard over snapshots and its choice of deployment guard (the interval
-    guard: improve/gain_intervals.py)."""
+    guard: improve/gain_intervals.py; --guard and --guard-calibration are paper.py's too:
+    ``guard_choice_flags``)."""
     p.add_argument("--guard-snapshots", action="store_true", help="keep the actor every "
                    "tenth of the iterations; of the snapshots that pass the guard, deploy the "
                    "one whose smallest predicted gain is largest (default: the final actor)")
-    p.add_argument("--guard", choices=("floor", "interval"), default="floor", help="floor: "
-                   "every elite member's gain above the margin and floor; interval: the lower "
-                   "end of the predicted relative gain's conformal interval above 0 (needs "
-                   "--guard-calibration)")
-    p.add_argument("--guard-calibration", nargs="+", metavar="FILE", help="the interval "
-                   "guard's calibration: a saved one {task, level, q, floor, n}, or results of "
-                   "paper.py --policy-split validation --guard-margin M on the task (their "
-                   "fine-tuned policies' real gains; level 0.9)")
+    guard_choice_flags(p, "improve")
 
 
 def _sim_env_options(p, default: str = "whole episodes from its start states") -> None:

@@ -32,12 +32,12 @@ def test_gain_features_and_calibration_by_hand():
     scores = np.sort(np.abs(f["gain"] - real) / (f["member_sd"] + floor))
     assert cal["floor"] == pytest.approx(floor)
     assert cal["q"] == pytest.approx(scores[math.ceil(6 * 0.6) - 1])
-    acc, lower = gi.interval_guard(start, gain, cal)
+    acc, lower = gi.interval_guard(f, cal)
     np.testing.assert_allclose(lower, f["gain"] - cal["q"] * (f["member_sd"] + floor))
     np.testing.assert_array_equal(acc, lower > 0)
     # too few calibration policies for the level: an infinite q deploys nothing
     few = gi.calibrate_gains(f["gain"][:2], f["member_sd"][:2], real[:2], level=0.9)
-    assert math.isinf(few["q"]) and not gi.interval_guard(start, gain, few)[0].any()
+    assert math.isinf(few["q"]) and not gi.interval_guard(f, few)[0].any()
     with pytest.raises(ValueError, match="member_gain: expected the shape"):
         gi.gain_features(start, gain[:2])
     with pytest.raises(ValueError, match="real_gain: the calibration policies need finite"):
@@ -50,7 +50,7 @@ def test_the_interval_guard_can_deploy_what_the_floor_refuses():
     start = np.full((3, 2), 100.0)
     gain = np.array([[10.0, 30.0], [11.0, -5.0], [12.0, 10.0]])
     cal = {"level": 0.9, "q": 2.0, "floor": 0.001, "n": 20}
-    acc, _ = gi.interval_guard(start, gain, cal)
+    acc, _ = gi.interval_guard(gi.gain_features(start, gain), cal)
     assert acc.tolist() == [True, False]
     from rl2s_jax.improve.finetune import deployment_guard
     assert deployment_guard(start, start + gain, 0.02, floor=10.5).tolist() == [False, False]
@@ -130,6 +130,47 @@ def test_paper_guard_and_trust_flags_refused_before_any_work(tmp_path):
                        (["--trust-level", "1.5"], "trust-level: expected")):
         with pytest.raises(SystemExit, match=msg):
             paper.check_arguments(paper.parse_args(base + extra))
+
+
+def test_both_front_ends_share_the_guard_flags():
+    """--guard and --guard-calibration are one definition (``app.specs.guard_choice_flags``)
+    on `rl2s improve` and paper.py: the same values from the same flags, the same actions but
+    for the front end's context in the help, a guard neither knows refused by both."""
+    import argparse
+
+    from experiment_scripts import load_script
+
+    from rl2s_jax import cli
+    from rl2s_jax.app.specs import GUARD_CONTEXTS, guard_choice_flags
+
+    paper = load_script("paper")
+    improve = ["improve", "--ckpt", "c", "--data", "d.npz", "--out", "o"]
+    for flags, want in (([], ("floor", None)),
+                        (["--guard-calibration", "a.json"], ("floor", ["a.json"])),
+                        (["--guard", "interval", "--guard-calibration", "a.json", "b.json"],
+                         ("interval", ["a.json", "b.json"]))):
+        a = cli.build_parser().parse_args(improve + flags)
+        b = paper.build_parser().parse_args(["--task", "hopper", "--out", "o", *flags])
+        assert (a.guard, a.guard_calibration) == (b.guard, b.guard_calibration) == want
+    for parse in (lambda f: cli.build_parser().parse_args(improve + f),
+                  lambda f: paper.build_parser().parse_args(["--task", "hopper", *f])):
+        with pytest.raises(SystemExit):
+            parse(["--guard", "ceiling"])
+    sub = next(a for a in cli.build_parser()._actions if a.dest == "command").choices["improve"]
+    front_ends = {"improve": sub, "paper": paper.build_parser()}
+    actions = {k: {a.dest: a for a in p._actions} for k, p in front_ends.items()}
+    for dest in ("guard", "guard_calibration"):
+        a, b = actions["improve"][dest], actions["paper"][dest]
+        same = ("option_strings", "nargs", "choices", "default", "type", "metavar", "required")
+        assert [getattr(a, k) for k in same] == [getattr(b, k) for k in same], dest
+        shared = {}
+        for k, act in (("improve", a), ("paper", b)):
+            part = next((c for c in GUARD_CONTEXTS[k] if c in act.help), None)
+            assert part is not None, f"{k} --{dest}: no {k} context in its help"
+            shared[k] = act.help.replace(part, "<context>")
+        assert shared["improve"] == shared["paper"], dest
+    with pytest.raises(ValueError, match="context: expected one of"):
+        guard_choice_flags(argparse.ArgumentParser(), "pipeline")
 
 
 def test_crossfit_calibrates_each_fold_on_the_others(tmp_path):

@@ -425,8 +425,8 @@ def deploy_through_interval_guard(sim, starts, policies, after, key, *, calibrat
     values and ``predicted_gains``; the deployed policies [P, ...])."""
     v0, v1 = _start_and_tuned_values(sim, policies, after, starts, key,
                                      n_episodes=n_episodes, horizon=horizon, gamma=gamma)
-    accept, lower = interval_guard(v0, v1 - v0, calibration)
     feats = gain_features(v0, v1 - v0)
+    accept, lower = interval_guard(feats, calibration)
     lo, mean = predicted_gains(v0, v1)
     cal = {**calibration, "q_infinite": not np.isfinite(calibration["q"])}
     guard = json_safe({"kind": "interval", "calibration": cal, "episodes": n_episodes,

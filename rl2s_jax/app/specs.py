@@ -4,7 +4,8 @@ flags' dests, with the flags' defaults), checked when it is made, naming the fie
 command's one app function (``COMMANDS``); from Python, make the spec and call the same
 function, e.g. ``run_collect(CollectSpec(task="pointmass", transitions_per_policy=50,
 out="d.npz"))``. ``--force`` is not a spec field: it is the door's (app/paths.py), checked
-before any spec is made.
+before any spec is made. ``guard_choice_flags``: --guard and --guard-calibration, one
+definition for `rl2s improve` and experiments/paper.py (next to their checks here).
 
 Standard library only: ``import rl2s_jax.cli`` loads this and must load no JAX.
 """
@@ -31,6 +32,35 @@ COMMANDS = {
     "pipeline": ("PipelineSpec", "rl2s_jax.app.pipeline", "run_pipeline"),
     "diagnose": ("DiagnoseSpec", "rl2s_jax.app.diagnosis", "run_diagnose"),
 }
+
+
+GUARDS = ("floor", "interval")  # improve.finetune.deployment_guard, improve.gain_intervals
+# The front ends that offer the guards (rl2s improve, experiments/paper.py) -> what --guard
+# picks there, and which files --guard-calibration reads there: the rest of their help is one.
+GUARD_CONTEXTS = {
+    "improve": ("the guard that deploys",
+                "a saved calibration {task, level, q, floor, n}, or results of paper.py "
+                "--policy-split validation --guard-margin M on the task pooled at level 0.9"),
+    "paper": ("the guard whose figures are the result's (both are recorded with "
+              "--guard-calibration)",
+              "results of paper.py --policy-split validation --guard-margin M on this task "
+              "pooled at --trust-level (needs --guard-margin)"),
+}
+
+
+def guard_choice_flags(p: argparse.ArgumentParser, context: str) -> None:
+    """--guard {floor, interval} (default floor) and --guard-calibration FILE [FILE ...] on a
+    front end's parser; ``context``: a key of ``GUARD_CONTEXTS``, the front end."""
+    if context not in GUARD_CONTEXTS:
+        raise ValueError(f"context: expected one of {sorted(GUARD_CONTEXTS)}, got {context!r}")
+    picks, files = GUARD_CONTEXTS[context]
+    p.add_argument("--guard", choices=GUARDS, default="floor", help=f"{picks}: floor (every "
+                   "elite member's gain above the margin and floor) or interval (the lower end "
+                   "of the predicted relative gain's conformal interval above 0; needs "
+                   "--guard-calibration)")
+    p.add_argument("--guard-calibration", nargs="+", metavar="FILE", help="the interval "
+                   "guard's conformal calibration (fine-tuned policies with known real gains, "
+                   f"never the guarded ones): {files}")
 
 
 def _flag(name: str) -> str:
@@ -90,7 +120,7 @@ def _check_interval_guard(spec) -> None:
     needs a calibration file (present; its content is read before any work by
     ``improve.gain_intervals.read_calibration``) and takes none of the floor guard's options,
     and the floor guard takes no calibration."""
-    if spec.guard not in ("floor", "interval"):
+    if spec.guard not in GUARDS:
         raise ValueError(f"guard: expected floor or interval, got {spec.guard!r}")
     if spec.guard == "floor":
         if spec.guard_calibration:
@@ -423,5 +453,6 @@ def spec_from_args(spec_class, args: argparse.Namespace):
                          for f in dataclasses.fields(spec_class)})
 
 
-__all__ = ["COMMANDS", "SPECS", "check_floor_scale", "check_no_guard_alone", "spec_from_args",
+__all__ = ["COMMANDS", "GUARDS", "GUARD_CONTEXTS", "SPECS", "check_floor_scale",
+           "check_no_guard_alone", "guard_choice_flags", "spec_from_args",
            *(cls for cls, _, _ in COMMANDS.values())]

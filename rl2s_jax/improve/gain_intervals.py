@@ -85,11 +85,11 @@ def gain_lower_bound(gain, member_sd, cal: dict) -> np.ndarray:
         np.full(g.shape, -np.inf)
 
 
-def interval_guard(member_start, member_gain, cal: dict) -> tuple[np.ndarray, np.ndarray]:
+def interval_guard(features: dict, cal: dict) -> tuple[np.ndarray, np.ndarray]:
     """The interval guard: deploy where the lower end of the predicted gain's interval is above
-    zero. member_start, member_gain [M, P]. -> ([P] bool deploy, [P] lower ends)."""
-    f = gain_features(member_start, member_gain)
-    lower = gain_lower_bound(f["gain"], f["member_sd"], cal)
+    zero. features: ``gain_features``' {"gain" [P], "member_sd" [P]} (a caller that reports
+    them too computes them once). -> ([P] bool deploy, [P] lower ends)."""
+    lower = gain_lower_bound(features["gain"], features["member_sd"], cal)
     return lower > 0, lower
 
 

@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax.app.specs import guard_choice_flags
 from rl2s_jax.data.collect import measure_values
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate import trust as tr
@@ -61,14 +62,7 @@ def add_trust_arguments(ap) -> None:
                     "exceed this x the lane's training MVD (0: the margin alone)")
     ap.add_argument("--guard-snapshots", action="store_true", help="with --guard-margin: "
                     "guard every --sac-chunk snapshot too (ablation '<variant>+guard-snapshots')")
-    ap.add_argument("--guard", choices=("floor", "interval"), default="floor", help="the "
-                    "guard whose figures are the result's (both are recorded with "
-                    "--guard-calibration): floor (every member's gain above the floor) or "
-                    "interval (the lower end of the predicted gain's interval above 0)")
-    ap.add_argument("--guard-calibration", nargs="+", metavar="VAL.json", help="results of "
-                    "paper.py --policy-split validation --guard-margin M on this task: the "
-                    "interval guard's conformal calibration (their fine-tuned validation "
-                    "policies' real gains)")
+    guard_choice_flags(ap, "paper")  # --guard, --guard-calibration: rl2s improve's too
     ap.add_argument("--trust-calibration", type=int, default=20, help="perturbed training "
                     "policies measured in the real env to calibrate the test policies' value "
                     "intervals (0: no intervals; fewer than trust.min_calibration(level): "
@@ -474,7 +468,8 @@ def guard_comparison(result: dict, cal: dict, zoo_returns, chosen: str = "floor"
     for e in result["improvement"].values():
         if "guard_member_gain" not in e:
             raise ValueError("guard: the lanes record no guard_member_gain (--guard-margin)")
-        acc, lower = gi.interval_guard(e["guard_member_start"], e["guard_member_gain"], cal)
+        acc, lower = gi.interval_guard(
+            gi.gain_features(e["guard_member_start"], e["guard_member_gain"]), cal)
         e["guard_accepted_interval"] = acc.tolist()
         e["guard_gain_lower"] = tr.json_safe(lower.tolist())
         by_method.setdefault(e["method"], []).append(e)

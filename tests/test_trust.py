@@ -4,6 +4,7 @@ policies; the plumbing of `rl2s evaluate --level` on the tiny pointmass fixtures
 
 import json
 import math
+import os
 import subprocess
 import sys
 
@@ -218,6 +219,80 @@ def test_pipeline_report_lines():
     assert line.startswith("- bc: 90% value intervals cover 67% of the test policies")
     assert "1 untrusted" in line and "c flagged" in line and "training (optimistic)" in line
     assert blank == "" and trust_lines({"bc": {}}) == []
+
+
+def test_true_vs_sim_plot_draws_each_interval_and_flag():
+    """The report's true-vs-simulated panel: a vertical bar per policy from its interval's ends
+    (an unbounded end drawn to the axes' edge), trusted and untrusted policies apart (the
+    untrusted in red), the coverage in the title; a report without intervals: plain points."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from rl2s_jax.app.report import plot_true_vs_sim, value_interval_bars
+
+    f = _features([0.0, 5.0, 9.0], [0.5, 0.5, 10.0], [1.0, 1.0, 1.0])
+    cal = tr.calibrate(_features(np.arange(9.0), np.full(9, 0.5)), np.arange(9.0) + 0.2,
+                       ["train"] * 9, 0.9)
+    truth = np.array([0.1, 5.1, 1.0])
+    t = tr.json_safe(tr.trust_report(f, cal, ["a", "b", "c"], truth=truth))
+    t["policies"][2]["interval"] = [None, None]  # as json_safe writes an unbounded one
+    r = {"true_value": truth, "sim_value": [0.0, 5.0, 9.0], "metrics": {"kendall_tau": 0.33},
+         "trust": t}
+    lo, hi, trusted = value_interval_bars(r)
+    want = np.array([p["interval"][0] for p in t["policies"][:2]])
+    np.testing.assert_allclose(lo[:2], want)
+    assert np.isnan(lo[2]) and np.isnan(hi[2]) and trusted.tolist() == [True, True, False]
+    fig, ax = plt.subplots()
+    plot_true_vs_sim(ax, "bc", r)
+    bars = {c.get_label(): c for c in ax.containers}
+    assert set(bars) == {"trusted", "untrusted"}
+    seg = bars["trusted"].lines[2][0].get_segments()  # the vertical bars: [(x, lo), (x, hi)]
+    np.testing.assert_allclose([s_[:, 1] for s_ in seg], np.stack([lo[:2], hi[:2]], 1))
+    (red,) = bars["untrusted"].lines[2][0].get_segments()
+    y0, y1 = ax.get_ylim()
+    assert red[0, 1] == pytest.approx(y0) and red[1, 1] == pytest.approx(y1)
+    assert matplotlib.colors.to_hex(bars["untrusted"].lines[0].get_color()) == \
+        matplotlib.colors.to_hex("C3")
+    assert "intervals cover 67%" in ax.get_title()
+    plt.close(fig)
+    assert value_interval_bars({**r, "trust": {"skipped": "x"}}) is None
+    fig, ax = plt.subplots()
+    plot_true_vs_sim(ax, "bc", {**r, "trust": {"skipped": "x"}})
+    assert not ax.containers and len(ax.collections) == 1 and "cover" not in ax.get_title()
+    plt.close(fig)
+
+
+def test_plot_intervals_script_draws_a_protocol_lane(tmp_path):
+    """experiments/plot_intervals.py: a paper.py lane's trust entry becomes the panel's
+    evaluation (intervals and flags by test policy, the lane's tau); a file without the lane
+    or without intervals is refused naming the field before anything is drawn."""
+    sys.path.insert(0, os.path.dirname(__file__))
+    from experiment_scripts import load_script
+
+    mod = load_script("plot_intervals")
+    trust = {"level": 0.9, "coverage": 0.5, "sim_value": [1.0, 4.0],
+             "interval": [[0.0, 2.0], [None, None]], "trusted": [True, False]}
+    result = {"task": "pointmass", "true_value": [1.5, 2.0], "test_policy_names": ["a", "b"],
+              "seed_ids": [3, 4], "per_seed": {"rl2s": {"kendall_tau": [0.2, 1.0]}},
+              "lanes": {"rl2s/4": {"trust": trust}, "bc/4": {"trust": {"skipped": "why"}}}}
+    r = mod.lane_panel(result, "rl2s", 4)
+    assert r["metrics"]["kendall_tau"] == 1.0 and r["sim_value"] == [1.0, 4.0]
+    assert [p["name"] for p in r["trust"]["policies"]] == ["a", "b"]
+    from rl2s_jax.app.report import value_interval_bars
+    lo, hi, ok = value_interval_bars(r)
+    assert lo[0] == 0.0 and hi[0] == 2.0 and np.isnan(lo[1]) and ok.tolist() == [True, False]
+    with pytest.raises(ValueError, match="lanes: no lane 'rl2s/0'"):
+        mod.lane_panel(result, "rl2s", 0)
+    with pytest.raises(ValueError, match=r"lanes\['bc/4'\].trust: no intervals \(why\)"):
+        mod.lane_panel(result, "bc", 4)
+    with pytest.raises(ValueError, match="true_value: missing"):
+        mod.lane_panel({k: v for k, v in result.items() if k != "true_value"}, "rl2s", 4)
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(result))
+    out = tmp_path / "fig.png"
+    assert mod.main([str(path), "--seed", "4", "--out", str(out)]) == 0
+    assert out.stat().st_size > 1000
 
 
 @pytest.mark.slow

@@ -162,12 +162,7 @@ def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) ->
 
         fig, axes = plt.subplots(1, len(evals), figsize=(3.2 * len(evals), 3.2), squeeze=False)
         for ax, (name, r) in zip(axes[0], evals.items(), strict=True):
-            t, s = np.asarray(r["true_value"]), np.asarray(r["sim_value"])
-            lo, hi = min(t.min(), s.min()), max(t.max(), s.max())
-            ax.plot([lo, hi], [lo, hi], color="grey", lw=0.8)
-            ax.scatter(t, s, s=10)
-            ax.set_title(f"{name}: tau {r['metrics'].get('kendall_tau', float('nan')):.2f}")
-            ax.set_xlabel("true value")
+            plot_true_vs_sim(ax, name, r)
         axes[0][0].set_ylabel("simulated value")
         fig.tight_layout()
         save_figure(fig, os.path.join(out, "true_vs_sim.png"), dpi=110)
@@ -178,6 +173,48 @@ def plot_all(out: str, evals: dict[str, dict], curves: dict[str, list[dict]]) ->
         if imps:
             files.append(plot_improvement(out, imps, names, order))
     return files
+
+
+def value_interval_bars(r: dict) -> tuple | None:
+    """(lower, upper, trusted) [P] of an evaluation's value intervals (its "trust" block's
+    policies, in its policy order; an unbounded end NaN), or None where it has none (skipped,
+    or a report from before intervals)."""
+    pols = (r.get("trust") or {}).get("policies")
+    if not pols or len(pols) != len(r["sim_value"]):
+        return None
+    lo, hi = (np.array([np.nan if p["interval"][i] is None else p["interval"][i]
+                        for p in pols], np.float64) for i in (0, 1))
+    return lo, hi, np.array([bool(p["trusted"]) for p in pols])
+
+
+def plot_true_vs_sim(ax, name: str, r: dict) -> None:
+    """One method's simulated against true values on ``ax``: the diagonal, each policy's value
+    interval as a vertical bar where the evaluation has them, untrusted policies in red
+    (unbounded intervals drawn to the axes' edge), the coverage in the title."""
+    t, s = np.asarray(r["true_value"]), np.asarray(r["sim_value"])
+    lo, hi = min(t.min(), s.min()), max(t.max(), s.max())
+    ax.plot([lo, hi], [lo, hi], color="grey", lw=0.8)
+    title = f"{name}: tau {r['metrics'].get('kendall_tau', float('nan')):.2f}"
+    bars = value_interval_bars(r)
+    if bars is None:
+        ax.scatter(t, s, s=10)
+    else:
+        ilo, ihi, trusted = bars
+        pad = 0.1 * (hi - lo or 1.0)
+        ilo = np.where(np.isfinite(ilo), ilo, lo - pad)  # unbounded: to the edge
+        ihi = np.where(np.isfinite(ihi), ihi, hi + pad)
+        for ok, colour, label in ((True, "C0", "trusted"), (False, "C3", "untrusted")):
+            m = trusted == ok
+            if m.any():
+                ax.errorbar(t[m], s[m], yerr=[s[m] - ilo[m], ihi[m] - s[m]], fmt="o", ms=3,
+                            lw=0.8, color=colour, label=label)
+        ax.set_ylim(lo - pad, hi + pad)
+        ax.legend(fontsize=6, loc="upper left")
+        cov = (r.get("trust") or {}).get("coverage")
+        if cov is not None:
+            title += f", {r['trust']['level']:.0%} intervals cover {cov:.0%}"
+    ax.set_title(title, fontsize=8)
+    ax.set_xlabel("true value")
 
 
 def plot_improvement(out: str, imps: dict[str, dict], names: list[str], order) -> str:

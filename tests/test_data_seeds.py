@@ -468,13 +468,13 @@ def test_zoo_standard_errors_scale_the_zoos_and_check_its_policies():
 
 def _oracle_case():
     """A data seed 7 result (64 truth episodes, its own SEs [3, 3, 1, 1]) and its oracle run
-    (16 episodes, policies in reverse order, SEs [1, 1, 8, 8] for a-d)."""
+    (32 truth episodes, policies in reverse order, SEs [1, 1, 8, 8] for a-d)."""
     truth, und = [0.0, 5.0, 10.0, 20.0], [0.0, 6.0, 12.0, 25.0]
     r = {"task": "hopper", "command": "paper.py --data-seed 7", "true_value": truth,
          "true_value_undiscounted": und, "true_value_se": [3.0, 3.0, 1.0, 1.0],
          "test_policy_names": list("abcd"), "lanes": {"rl2s/0": {"sim_value": [
              5.0, 0.0, 21.0, 19.0]}}, "sizes": {"eval_episodes": 16, "value_episodes": 64}}
-    ceiling = {"n_truth": 16, "kendall_tau": {"mean": 0.95, "lo": 0.9, "hi": 1.0}}
+    ceiling = {"n_truth": 32, "kendall_tau": {"mean": 0.95, "lo": 0.9, "hi": 1.0}}
     orc = {"task": "hopper", "data_seed": 7, "policy_names": list("dcba"),
            "true_value_se": [8.0, 8.0, 1.0, 1.0], "true_value_undiscounted": und[::-1],
            "command": "oracle_check.py --data-seed 7",
@@ -485,16 +485,19 @@ def _oracle_case():
 
 def test_truth_se_from_the_oracle_run(tmp_path, capsys):
     """--truth-se: the oracle's true_value_se (discounted) in the result's policy order, x
-    sqrt(16 / 64) to the result's truth episodes; it moves the within-noise / real split (a-b,
+    sqrt(32 / 64) to the result's truth episodes; it moves the within-noise / real split (a-b,
     |dV| 5, and c-d, |dV| 10, trade places); the oracle's tau and the bar are printed."""
     ra = load_script("ranking_analysis")
     r, orc = _oracle_case()
     se, source = ra.standard_errors(r, orc, "o.json")
-    np.testing.assert_allclose(se, np.array([1.0, 1.0, 8.0, 8.0]) * np.sqrt(16 / 64))
-    assert source.startswith("the oracle's true_value_se (o.json; discounted, 16 episodes, "
+    np.testing.assert_allclose(se, np.array([1.0, 1.0, 8.0, 8.0]) * np.sqrt(32 / 64))
+    assert source.startswith("the oracle's true_value_se (o.json; discounted, 32 episodes, "
                              "scaled to 64; its truths vs the result's: max |z| 0.00)")
-    orc["rows"][0]["true_value"] = [24.0, 10.0, 5.0, 0.0]  # d +4: z 4 / (4 sqrt(1 + 64 / 16))
-    assert f"max |z| {4 / (4 * np.sqrt(5)):.2f}" in ra.standard_errors(r, orc, "o.json")[1]
+    orc["rows"][0]["true_value"] = [24.0, 10.0, 5.0, 0.0]  # d + 4
+    z = 4 / (8 * np.sqrt(32 / 64) * np.sqrt(1 + 64 / 32))  # its SE and the result's combined
+    assert f"max |z| {z:.2f}" in ra.standard_errors(r, orc, "o.json")[1]
+    with pytest.raises(ValueError, match=r"o.json: data_seed: expected 7 \(the result's\)"):
+        ra.standard_errors(r, {**orc, "data_seed": 0}, "o.json")
     del orc["rows"][0]["noise_ceiling"]  # the episodes from the command
     orc["command"] += " --value-episodes 64"
     np.testing.assert_allclose(ra.standard_errors(r, orc, "o.json")[0], [1.0, 1.0, 8.0, 8.0])

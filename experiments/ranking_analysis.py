@@ -64,6 +64,7 @@ from rl2s_jax.evaluate.metrics import noise_ceiling  # noqa: E402
 from rl2s_jax.evaluate.ranking_swaps import (  # noqa: E402
     carrier_ranks,
     compare_truths,
+    lanes_of,
     leave_one_out,
     oracle_standard_errors,
     relations,
@@ -127,20 +128,6 @@ def standard_errors(result: dict, oracle: dict | None = None,
     return zoo_se(result), "zoo return_se, scaled (a proxy)"
 
 
-def lanes_of(results: list[dict], methods) -> dict[str, list[dict]]:
-    """method -> its lanes (dicts with "seed", "sim_value", ...) from the first result that has
-    the method, in seed order."""
-    out = {}
-    for m in methods:
-        for r in results:
-            lanes = [dict(v, seed=int(k.split("/")[1])) for k, v in r.get("lanes", {}).items()
-                     if k.split("/")[0] == m and v.get("sim_value") is not None]
-            if lanes:
-                out[m] = sorted(lanes, key=lambda x: x["seed"])
-                break
-    return out
-
-
 def method_analysis(method: str, ls: list[dict], truth, se) -> dict:
     """One method's lanes ``ls`` against the truth [P] and its SEs [P]: per lane its swaps,
     their means, swaps per policy, tau without each policy, mean simulated lengths, support
@@ -180,15 +167,24 @@ def method_analysis(method: str, ls: list[dict], truth, se) -> dict:
         "worst_in_top": worst_in_top(ls, truth, P, method)}
 
 
-def oracle_entry(oracle: dict, where: str, task: str, rl2s: dict | None) -> dict:
+def oracle_entry(oracle: dict, where: str, a: dict, se) -> dict:
     """The oracle's tau (its row of the longest horizon with the most episodes), its noise
-    ceiling and issue 66's bar: RL2S's tau - the oracle's, against the task's margin."""
+    ceiling, issue 66's bar (RL2S's tau - the oracle's, against the task's margin) and, where
+    the row has its ``oracle_value``, its own swaps as one lane (``method_analysis``: tau
+    lost within noise / to real swaps, tau without each policy) against the same truth."""
     row = max(oracle["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
     tau, margin = float(row["metrics"]["kendall_tau"]), ORACLE_MARGIN.get(
-        task, ORACLE_MARGIN_DEFAULT)
-    gap = None if rl2s is None else rl2s["tau"] - tau
+        a["task"], ORACLE_MARGIN_DEFAULT)
+    rl2s = a["methods"].get("rl2s")
+    own = None
+    if row.get("oracle_value") is not None:
+        order = [list(oracle["policy_names"]).index(n) for n in a["policies"]]
+        lane = {"seed": 0, "sim_value": np.asarray(row["oracle_value"])[order].tolist()}
+        own = {k: v for k, v in method_analysis("oracle", [lane], np.asarray(
+            a["true_value"]), se).items() if k.startswith("tau")}
     return {"file": where, "kendall_tau": tau, "horizon": row["horizon"],
-            "n_episodes": row["n_episodes"], "margin": margin, "rl2s_minus_oracle": gap,
+            "n_episodes": row["n_episodes"], "margin": margin, "own": own,
+            "rl2s_minus_oracle": None if rl2s is None else rl2s["tau"] - tau,
             "noise_ceiling": (row.get("noise_ceiling") or {}).get("kendall_tau")}
 
 
@@ -214,15 +210,15 @@ def analyse_seed(results: list[dict], methods=METHODS, n_rep: int = 2000,
     noise_count = np.sum([r["noise_swaps_per_policy"] for r in per_method.values()], 0)
     real_count = np.sum([r["real_swaps_per_policy"] for r in per_method.values()], 0)
     P = truth.size
-    return {"data_seed": data_seed_of(first), "task": first.get("task"), "policies": names,
+    a = {"data_seed": data_seed_of(first), "task": first.get("task"), "policies": names,
             "true_value": truth.tolist(), "se": se.tolist(), "se_source": source,
             "true_length": first.get("true_length"), "n_truth": n_truth, "n_sim": n_sim,
             "pairs": P * (P - 1) // 2, "noise_ceiling": ceiling, "methods": per_method,
             "noise_swaps_per_policy": noise_count.tolist(),
             "real_swaps_per_policy": real_count.tolist(),
-            "commands": [r.get("command") for r in results],
-            "oracle": oracle and oracle_entry(oracle, oracle_path, first.get("task"),
-                                              per_method.get("rl2s"))}
+            "commands": [r.get("command") for r in results]}
+    a["oracle"] = oracle and oracle_entry(oracle, oracle_path, a, se)
+    return a
 
 
 def group_by_data_seed(results: list[dict]) -> dict[int, list[dict]]:
@@ -292,22 +288,26 @@ def oracle_lines(a: dict) -> list[str]:
     nc, gap = o["noise_ceiling"], o["rl2s_minus_oracle"]
     bar = ("no rl2s lanes" if gap is None else f"RL2S - oracle {gap:+.3f}: "
            f"{'met' if gap >= -o['margin'] else 'MISSED'} (bar -{o['margin']:.2f})")
+    own = o["own"] and (f"; its own swaps cost {o['own']['tau_lost_noise']:.3f} within noise"
+                        f" / {o['own']['tau_lost_real']:.3f} real")
     return [f"  oracle (the real dynamics through the same evaluation, {o['n_episodes']} "
             f"episodes; {o['file']}): tau {o['kendall_tau']:.3f}" + (
                 f", its noise ceiling {nc['mean']:.3f} [{nc['lo']:.3f}, {nc['hi']:.3f}]"
-                if nc else "") + f"; {bar}"]
+                if nc else "") + f"{own or ''}; {bar}"]
 
 
 def carrier_line(a: dict, m: str, r: dict) -> str:
-    """A method's policies with most real swaps over its lanes (up to 3) and its tau without
-    the first of them."""
+    """A method's policies with most real swaps over its lanes (up to 3) and its tau (and the
+    oracle's, where known) without the first of them."""
     real = np.asarray(r["real_swaps_per_policy"])
     top = [int(i) for i in np.argsort(-real, kind="stable")[:3] if real[i] > 0]
     if not top:
         return f"  {m:<8} no real swaps"
+    own = (a.get("oracle") or {}).get("own")
     return (f"  {m:<8} real swaps in {int(real.sum()) // 2} pairs over its lanes, most with "
             + ", ".join(f"{a['policies'][i]} {real[i]}" for i in top)
-            + f"; without {a['policies'][top[0]]}: tau {r['tau_without'][top[0]]:.3f}")
+            + f"; without {a['policies'][top[0]]}: tau {r['tau_without'][top[0]]:.3f}"
+            + (f" (the oracle's {own['tau_without'][top[0]]:.3f})" if own else ""))
 
 
 def coverage_lines(a: dict) -> list[str]:

@@ -479,14 +479,16 @@ def _oracle_case():
            "true_value_se": [8.0, 8.0, 1.0, 1.0], "true_value_undiscounted": und[::-1],
            "command": "oracle_check.py --data-seed 7",
            "rows": [{"horizon": 1000, "n_episodes": 16, "metrics": {"kendall_tau": 0.9},
-                     "true_value": truth[::-1], "noise_ceiling": ceiling}]}
+                     "true_value": truth[::-1], "noise_ceiling": ceiling,
+                     "oracle_value": [20.0, 10.0, 0.0, 1.0]}]}  # d-a: it swaps a-b
     return r, orc
 
 
 def test_truth_se_from_the_oracle_run(tmp_path, capsys):
     """--truth-se: the oracle's true_value_se (discounted) in the result's policy order, x
     sqrt(32 / 64) to the result's truth episodes; it moves the within-noise / real split (a-b,
-    |dV| 5, and c-d, |dV| 10, trade places); the oracle's tau and the bar are printed."""
+    |dV| 5, and c-d, |dV| 10, trade places); the oracle's tau, the bar and the oracle's own
+    swaps (its oracle_value as one lane) are reported."""
     ra = load_script("ranking_analysis")
     r, orc = _oracle_case()
     se, source = ra.standard_errors(r, orc, "o.json")
@@ -515,9 +517,13 @@ def test_truth_se_from_the_oracle_run(tmp_path, capsys):
     assert out[True]["noise_swaps_per_policy"] == [0, 0, 1, 1]  # the oracle's: c-d noise
     assert out[True]["real_swaps_per_policy"] == [1, 1, 0, 0]
     assert out[True]["oracle"]["rl2s_minus_oracle"] == pytest.approx(2 / 6 - 0.9)
+    own = out[True]["oracle"]["own"]  # the oracle as one lane, in the result's order
+    assert own["tau"] == pytest.approx(4 / 6) and own["tau_lost_real"] == pytest.approx(2 / 6)
+    assert own["tau_lost_noise"] == 0.0 and own["tau_without"][0] == 1.0
     printed = capsys.readouterr().out
     assert f" 16 episodes; {paths[1]}): tau 0.900, its noise ceiling 0.950" in printed
     assert "RL2S - oracle -0.567: MISSED (bar -0.03)" in printed
+    assert "most with a 1, b 1; without a: tau 0.333 (the oracle's 1.000)" in printed
 
 
 @pytest.mark.parametrize("change, message", [

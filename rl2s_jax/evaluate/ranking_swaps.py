@@ -234,3 +234,17 @@ def relations(a: dict) -> dict:
         ok = np.ptp(real) > 0 and np.ptp(v) > 0
         out[k] = spearman(real, v) if ok else None
     return out
+
+
+def lanes_of(results: list[dict], methods) -> dict[str, list[dict]]:
+    """method -> its lanes (dicts with "seed", "sim_value", ...) from the first result that has
+    the method, in seed order."""
+    out = {}
+    for m in methods:
+        for r in results:
+            lanes = [dict(v, seed=int(k.split("/")[1])) for k, v in r.get("lanes", {}).items()
+                     if k.split("/")[0] == m and v.get("sim_value") is not None]
+            if lanes:
+                out[m] = sorted(lanes, key=lambda x: x["seed"])
+                break
+    return out

@@ -36,9 +36,9 @@ RMS about 1 when they are right. --truth-se ORACLE.json (one per data seed, matc
 test policies instead (``ranking_swaps.oracle_standard_errors``: its ``true_value_se`` is the
 discounted value's; refused, naming the file and field, when its truths disagree with the
 result's); its tau (the row of the longest horizon with the most episodes, as merge_results.py
-takes it) is printed beside the methods' with issue 66's bar, RL2S's tau - the oracle's.
-``tau_without``: the mean tau over a method's lanes without
-each policy in turn (which policy the ranking's loss hangs on).
+takes it) is printed beside the methods' with issue 66's bar, RL2S's tau - the oracle's, and
+its own swaps (its ``oracle_value`` as one lane, same truth and SEs). ``tau_without``: the
+mean tau over a method's lanes without each policy in turn (which policy the loss hangs on).
 ``noise ceiling``: ``metrics.noise_ceiling`` with these SEs on both sides (the simulated side's
 episodes the result's ``eval_episodes``, its per-episode spread assumed the truth's): the tau an
 exact simulator would be measured at.
@@ -46,7 +46,8 @@ exact simulator would be measured at.
 Needs no GPU: the numbers come from the JSONs (``lanes[<method>/<seed>]["sim_value"]``,
 ``true_value``, ``true_length``, ``lanes[...]["sim_length"]``, ``lanes[...]["trust"]``). --json
 adds, per method, "trust" (the means above), "most_real_swaps" (``carrier_ranks``) and
-"worst_in_top" (None without trust), and per data seed "relations" (the Spearman correlations).
+"worst_in_top" (None without trust), and per data seed "relations" (the Spearman correlations)
+and "oracle" (None without --truth-se).
 """
 from __future__ import annotations
 

@@ -12,8 +12,9 @@ of its mean over the training data: how far they leave the data), ``member_sd`` 
 spread of its simulated value), ``sim_value`` (the value they spread around) and ``trusted``.
 ``trust_features`` reads them; ``carrier_ranks`` and ``worst_in_top`` ask whether they point
 at the policies the ranking's loss hangs on. ``oracle_standard_errors``: the truths' SEs from
-an oracle_check.py run of the same data seed (for results that predate ``true_value_se``).
-Pure NumPy.
+an oracle_check.py run of the same data seed (for results that predate ``true_value_se``);
+``lanes_of``, ``compare_truths`` and ``relations``: the script's reading of lanes, of two data
+seeds' truths and of where the real swaps fall. Pure NumPy.
 """
 from __future__ import annotations
 

@@ -12,7 +12,7 @@ most of a method's real swaps, and how often a lane's worst-|error| policy (the 
 "worst": largest |trust sim_value - V|) has the lane's largest / two largest member_sd.
 
     python experiments/ranking_analysis.py RESULT.json [RESULT.json ...] [--methods rl2s,gail]
-        [--json OUT.json] [--n-rep 2000]
+        [--json OUT.json] [--n-rep 2000] [--truth-se ORACLE.json ...]
 
 Results of one data seed (``data_seed`` or the command's --data-seed) are read together (a
 method's lanes from the first file that has them, e.g. the adversarial and mle runs); each data
@@ -31,8 +31,14 @@ to the discounted value (x |V| / |V undiscounted|, at most 1), a proxy, for a re
 shipped zoo or on a zoo whose returns of these policies agree with the result's undiscounted
 truth within 6 SE (a zoo grown by ``--extend`` keeps its policies). With two data seeds the
 spread of the truth between them checks the SEs: z = (V_a - V_b) / sqrt(se_a^2 + se_b^2) has
-RMS about 1 when they are right; ``tau_without``: the mean tau over a method's lanes without
-each policy in turn (which policy the ranking's loss hangs on).
+RMS about 1 when they are right. --truth-se ORACLE.json (one per data seed, matched by its
+``data_seed``): the SEs of an oracle_check.py --data-seed run of the same task, data seed and
+test policies instead (``ranking_swaps.oracle_standard_errors``: its ``true_value_se`` is the
+discounted value's; refused, naming the file and field, when its truths disagree with the
+result's); its tau (the row of the longest horizon with the most episodes, as merge_results.py
+takes it) is printed beside the methods' with issue 66's bar, RL2S's tau - the oracle's, and
+its own swaps (its ``oracle_value`` as one lane, same truth and SEs). ``tau_without``: the
+mean tau over a method's lanes without each policy in turn (which policy the loss hangs on).
 ``noise ceiling``: ``metrics.noise_ceiling`` with these SEs on both sides (the simulated side's
 episodes the result's ``eval_episodes``, its per-episode spread assumed the truth's): the tau an
 exact simulator would be measured at.
@@ -40,7 +46,8 @@ exact simulator would be measured at.
 Needs no GPU: the numbers come from the JSONs (``lanes[<method>/<seed>]["sim_value"]``,
 ``true_value``, ``true_length``, ``lanes[...]["sim_length"]``, ``lanes[...]["trust"]``). --json
 adds, per method, "trust" (the means above), "most_real_swaps" (``carrier_ranks``) and
-"worst_in_top" (None without trust), and per data seed "relations" (the Spearman correlations).
+"worst_in_top" (None without trust), and per data seed "relations" (the Spearman correlations)
+and "oracle" (None without --truth-se).
 """
 from __future__ import annotations
 
@@ -54,15 +61,23 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from rl2s_jax._files import write_json  # noqa: E402
-from rl2s_jax.evaluate.metrics import kendall_tau, noise_ceiling, spearman  # noqa: E402
+from rl2s_jax.evaluate.metrics import noise_ceiling  # noqa: E402
 from rl2s_jax.evaluate.ranking_swaps import (  # noqa: E402
     carrier_ranks,
+    compare_truths,
+    lanes_of,
     leave_one_out,
+    oracle_standard_errors,
+    relations,
     swaps,
     trust_features,
     worst_in_top,
 )
-from rl2s_jax.paper.data_seeds import data_seed_of  # noqa: E402
+from rl2s_jax.paper.data_seeds import (  # noqa: E402
+    ORACLE_MARGIN,
+    ORACLE_MARGIN_DEFAULT,
+    data_seed_of,
+)
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -98,26 +113,20 @@ def zoo_se(result: dict) -> np.ndarray:
     return zse * np.sqrt(n_zoo / n_truth) * np.minimum(ratio, 1.0)
 
 
-def standard_errors(result: dict) -> tuple[np.ndarray, str]:
-    """(se [P], where it came from): the result's true_value_se, else the zoo's proxy."""
+def standard_errors(result: dict, oracle: dict | None = None,
+                    where: str = "") -> tuple[np.ndarray, str]:
+    """(se [P], where it came from): an oracle run's (read from ``where``) where given, else
+    the result's true_value_se, else the zoo's proxy."""
+    if oracle is not None:
+        se, how = oracle_standard_errors(result, oracle, data_seed_of(result), where)
+        scaled = (f", scaled to {how['n_truth']}" if how["n_oracle"] != how["n_truth"] else "")
+        return se, (f"the oracle's true_value_se ({where}; discounted, {how['n_oracle']} "
+                    f"episodes{scaled}; its truths vs the result's: max |z| "
+                    f"{how['max_abs_z']:.2f})")
     se = result.get("true_value_se")
     if se is not None:
         return np.asarray(se, np.float64), "true_value_se (the data's)"
     return zoo_se(result), "zoo return_se, scaled (a proxy)"
-
-
-def lanes_of(results: list[dict], methods) -> dict[str, list[dict]]:
-    """method -> its lanes (dicts with "seed", "sim_value", ...) from the first result that has
-    the method, in seed order."""
-    out = {}
-    for m in methods:
-        for r in results:
-            lanes = [dict(v, seed=int(k.split("/")[1])) for k, v in r.get("lanes", {}).items()
-                     if k.split("/")[0] == m and v.get("sim_value") is not None]
-            if lanes:
-                out[m] = sorted(lanes, key=lambda x: x["seed"])
-                break
-    return out
 
 
 def method_analysis(method: str, ls: list[dict], truth, se) -> dict:
@@ -159,14 +168,37 @@ def method_analysis(method: str, ls: list[dict], truth, se) -> dict:
         "worst_in_top": worst_in_top(ls, truth, P, method)}
 
 
-def analyse_seed(results: list[dict], methods=METHODS, n_rep: int = 2000) -> dict:
-    """One data seed's analysis (results: its paper.py JSONs; module docstring)."""
+def oracle_entry(oracle: dict, where: str, a: dict, se) -> dict:
+    """The oracle's tau (its row of the longest horizon with the most episodes), its noise
+    ceiling, issue 66's bar (RL2S's tau - the oracle's, against the task's margin) and, where
+    the row has its ``oracle_value``, its own swaps as one lane (``method_analysis``: tau
+    lost within noise / to real swaps, tau without each policy) against the same truth."""
+    row = max(oracle["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
+    tau, margin = float(row["metrics"]["kendall_tau"]), ORACLE_MARGIN.get(
+        a["task"], ORACLE_MARGIN_DEFAULT)
+    rl2s = a["methods"].get("rl2s")
+    own = None
+    if row.get("oracle_value") is not None:
+        order = [list(oracle["policy_names"]).index(n) for n in a["policies"]]
+        lane = {"seed": 0, "sim_value": np.asarray(row["oracle_value"])[order].tolist()}
+        own = {k: v for k, v in method_analysis("oracle", [lane], np.asarray(
+            a["true_value"]), se).items() if k.startswith("tau")}
+    return {"file": where, "kendall_tau": tau, "horizon": row["horizon"],
+            "n_episodes": row["n_episodes"], "margin": margin, "own": own,
+            "rl2s_minus_oracle": None if rl2s is None else rl2s["tau"] - tau,
+            "noise_ceiling": (row.get("noise_ceiling") or {}).get("kendall_tau")}
+
+
+def analyse_seed(results: list[dict], methods=METHODS, n_rep: int = 2000,
+                 oracle: dict | None = None, oracle_path: str = "") -> dict:
+    """One data seed's analysis (results: its paper.py JSONs; oracle: its oracle_check.py
+    run, read from oracle_path; module docstring)."""
     first = results[0]
     for r in results[1:]:
         if r.get("test_policy_names") != first.get("test_policy_names"):
             raise ValueError("test_policy_names: the results of one data seed differ")
     truth = np.asarray(first["true_value"], np.float64)
-    se, source = standard_errors(first)
+    se, source = standard_errors(first, oracle, oracle_path)
     names = list(first["test_policy_names"])
     lanes = lanes_of(results, methods)
     if not lanes:
@@ -179,25 +211,15 @@ def analyse_seed(results: list[dict], methods=METHODS, n_rep: int = 2000) -> dic
     noise_count = np.sum([r["noise_swaps_per_policy"] for r in per_method.values()], 0)
     real_count = np.sum([r["real_swaps_per_policy"] for r in per_method.values()], 0)
     P = truth.size
-    return {"data_seed": data_seed_of(first), "task": first.get("task"), "policies": names,
+    a = {"data_seed": data_seed_of(first), "task": first.get("task"), "policies": names,
             "true_value": truth.tolist(), "se": se.tolist(), "se_source": source,
             "true_length": first.get("true_length"), "n_truth": n_truth, "n_sim": n_sim,
             "pairs": P * (P - 1) // 2, "noise_ceiling": ceiling, "methods": per_method,
             "noise_swaps_per_policy": noise_count.tolist(),
             "real_swaps_per_policy": real_count.tolist(),
             "commands": [r.get("command") for r in results]}
-
-
-def compare_truths(a: dict, b: dict) -> dict | None:
-    """Two data seeds' truths of the same policies: the z of their differences (RMS ~1 when
-    the SEs are right) and the tau of one truth against the other. None: other policies."""
-    if a["policies"] != b["policies"]:
-        return None
-    va, vb = np.asarray(a["true_value"]), np.asarray(b["true_value"])
-    z = (va - vb) / np.sqrt(np.asarray(a["se"]) ** 2 + np.asarray(b["se"]) ** 2)
-    return {"data_seeds": [a["data_seed"], b["data_seed"]], "rms_z": float(np.sqrt(np.mean(
-        z ** 2))), "max_abs_z": float(np.max(np.abs(z))), "tau_truth_vs_truth": kendall_tau(
-        va, vb)}
+    a["oracle"] = oracle and oracle_entry(oracle, oracle_path, a, se)
+    return a
 
 
 def group_by_data_seed(results: list[dict]) -> dict[int, list[dict]]:
@@ -210,37 +232,6 @@ def group_by_data_seed(results: list[dict]) -> dict[int, list[dict]]:
     return dict(sorted(groups.items()))
 
 
-def relations(a: dict) -> dict:
-    """Where the real swaps fall, per policy (summed over methods and seeds), against the
-    simulators' relative value error |sim - V| / max(|V|, 1), their episode-length error
-    |sim length - true length| and, where recorded, their support and (from the lanes' trust)
-    member_sd and relative member_sd, each the mean over the methods of their means over lanes,
-    and the true value itself (a control): Spearman rank correlations (``metrics.spearman``;
-    None where a feature is missing or constant)."""
-    real = np.asarray(a["real_swaps_per_policy"], np.float64)
-    truth = np.asarray(a["true_value"])
-    feats = {}
-    sims = np.concatenate([np.asarray(m["sim_value"]) for m in a["methods"].values()])
-    feats["relative value error"] = np.mean(np.abs(sims - truth), 0) / np.maximum(
-        np.abs(truth), 1.0)
-    lens = [m["sim_length"] for m in a["methods"].values() if m["sim_length"] is not None]
-    if lens and a.get("true_length") is not None:
-        feats["episode length error"] = np.abs(np.mean(lens, 0) - np.asarray(a["true_length"]))
-    sup = [m["support"] for m in a["methods"].values() if m["support"] is not None]
-    if sup:
-        feats["support"] = np.mean(sup, 0)
-    trust = [m["trust"] for m in a["methods"].values() if m["trust"] is not None]
-    for k in ("member_sd", "relative_member_sd") if trust else ():
-        feats[k.replace("_", " ")] = np.mean([t[k] for t in trust], 0)
-    feats["truth SE / value"] = np.asarray(a["se"]) / np.maximum(np.abs(truth), 1.0)
-    feats["true value"] = truth  # a control: swaps and member_sd may both follow the value
-    out = {}
-    for k, v in feats.items():
-        ok = np.ptp(real) > 0 and np.ptp(v) > 0
-        out[k] = spearman(real, v) if ok else None
-    return out
-
-
 def report(a: dict) -> str:
     """The printed analysis of one data seed."""
     nc, ms = a["noise_ceiling"], a["methods"]
@@ -249,12 +240,14 @@ def report(a: dict) -> str:
              f" simulated from {a['n_sim']}",
              f"  noise ceiling (an exact simulator at these SEs): tau {nc['mean']:.3f} "
              f"[{nc['lo']:.3f}, {nc['hi']:.3f}]",
+             *oracle_lines(a),
              "  method   seeds  tau    lost: within-noise swaps / real swaps (mean over seeds)"]
     for m, r in ms.items():
         best = int(np.argmax(r["tau_without"]))
         lines.append(f"  {m:<8} {len(r['seeds']):>5}  {r['tau']:.3f}  {r['tau_lost_noise']:.3f}"
                      f" / {r['tau_lost_real']:.3f}   without {a['policies'][best]}: tau "
                      f"{r['tau_without'][best]:.3f}")
+    lines += [carrier_line(a, m, r) for m, r in ms.items()]
     head = "  ".join(f"{m:>7}" for m in ms)
     tm = next((m for m, r in ms.items() if r["trust"]), None)
     lines += ["", f"  {'policy':<16} {'true':>7} {'se':>5}  {head}  {'len true/sim':>13}  "
@@ -288,6 +281,36 @@ def report(a: dict) -> str:
     return "\n".join(lines + coverage_lines(a))
 
 
+def oracle_lines(a: dict) -> list[str]:
+    """The oracle's tau, its noise ceiling and the bar (RL2S - oracle), where given."""
+    o = a.get("oracle")
+    if not o:
+        return []
+    nc, gap = o["noise_ceiling"], o["rl2s_minus_oracle"]
+    bar = ("no rl2s lanes" if gap is None else f"RL2S - oracle {gap:+.3f}: "
+           f"{'met' if gap >= -o['margin'] else 'MISSED'} (bar -{o['margin']:.2f})")
+    own = o["own"] and (f"; its own swaps cost {o['own']['tau_lost_noise']:.3f} within noise"
+                        f" / {o['own']['tau_lost_real']:.3f} real")
+    return [f"  oracle (the real dynamics through the same evaluation, {o['n_episodes']} "
+            f"episodes; {o['file']}): tau {o['kendall_tau']:.3f}" + (
+                f", its noise ceiling {nc['mean']:.3f} [{nc['lo']:.3f}, {nc['hi']:.3f}]"
+                if nc else "") + f"{own or ''}; {bar}"]
+
+
+def carrier_line(a: dict, m: str, r: dict) -> str:
+    """A method's policies with most real swaps over its lanes (up to 3) and its tau (and the
+    oracle's, where known) without the first of them."""
+    real = np.asarray(r["real_swaps_per_policy"])
+    top = [int(i) for i in np.argsort(-real, kind="stable")[:3] if real[i] > 0]
+    if not top:
+        return f"  {m:<8} no real swaps"
+    own = (a.get("oracle") or {}).get("own")
+    return (f"  {m:<8} real swaps in {int(real.sum()) // 2} pairs over its lanes, most with "
+            + ", ".join(f"{a['policies'][i]} {real[i]}" for i in top)
+            + f"; without {a['policies'][top[0]]}: tau {r['tau_without'][top[0]]:.3f}"
+            + (f" (the oracle's {own['tau_without'][top[0]]:.3f})" if own else ""))
+
+
 def coverage_lines(a: dict) -> list[str]:
     """Per method with trust: the policies with most real swaps and their ranks (1 = largest,
     of P) by member_sd, relative member_sd and support; how often a lane's worst-|error|
@@ -307,12 +330,30 @@ def coverage_lines(a: dict) -> list[str]:
     return [""] + out if out else []
 
 
+def read_oracles(paths: list[str], data_seeds: list[int]) -> dict[int, tuple[dict, str]]:
+    """data seed -> (oracle_check.py output, its path), one per data seed of the results."""
+    out: dict[int, tuple[dict, str]] = {}
+    for p in paths:
+        with open(p) as f:
+            orc = json.load(f)
+        d = orc.get("data_seed")
+        if d not in data_seeds or d in out:
+            raise ValueError(f"{p}: data_seed: expected one of the results' data seeds "
+                             f"{data_seeds}, once each (an oracle_check.py --data-seed run), "
+                             f"got {d!r}")
+        out[d] = (orc, p)
+    return out
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("results", nargs="+", help="paper.py <task>.json files of one task")
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--n-rep", type=int, default=2000, help="noise ceiling replicates")
     ap.add_argument("--json", help="also write the analysis here")
+    ap.add_argument("--truth-se", action="append", default=[], metavar="ORACLE_JSON",
+                    help="the truths' SEs from this oracle_check.py --data-seed run (one per "
+                    "data seed)")
     args = ap.parse_args(argv)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     if not methods or set(methods) - set(METHODS):
@@ -323,8 +364,10 @@ def main(argv=None) -> int:
         with open(p) as f:
             results.append(json.load(f))
     try:
-        seeds = {d: analyse_seed(rs, methods, args.n_rep)
-                 for d, rs in group_by_data_seed(results).items()}
+        groups = group_by_data_seed(results)
+        oracles = read_oracles(args.truth_se, list(groups))
+        seeds = {d: analyse_seed(rs, methods, args.n_rep, *oracles.get(d, (None, "")))
+                 for d, rs in groups.items()}
     except ValueError as err:
         raise SystemExit(str(err)) from None
     out = {"data_seeds": seeds, "truth_between_data_seeds": []}

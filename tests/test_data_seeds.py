@@ -466,6 +466,89 @@ def test_zoo_standard_errors_scale_the_zoos_and_check_its_policies():
     assert ra.standard_errors({**r, "true_value_se": [2.0]})[0].tolist() == [2.0]
 
 
+def _oracle_case():
+    """A data seed 7 result (64 truth episodes, its own SEs [3, 3, 1, 1]) and its oracle run
+    (32 truth episodes, policies in reverse order, SEs [1, 1, 8, 8] for a-d)."""
+    truth, und = [0.0, 5.0, 10.0, 20.0], [0.0, 6.0, 12.0, 25.0]
+    r = {"task": "hopper", "command": "paper.py --data-seed 7", "true_value": truth,
+         "true_value_undiscounted": und, "true_value_se": [3.0, 3.0, 1.0, 1.0],
+         "test_policy_names": list("abcd"), "lanes": {"rl2s/0": {"sim_value": [
+             5.0, 0.0, 21.0, 19.0]}}, "sizes": {"eval_episodes": 16, "value_episodes": 64}}
+    ceiling = {"n_truth": 32, "kendall_tau": {"mean": 0.95, "lo": 0.9, "hi": 1.0}}
+    orc = {"task": "hopper", "data_seed": 7, "policy_names": list("dcba"),
+           "true_value_se": [8.0, 8.0, 1.0, 1.0], "true_value_undiscounted": und[::-1],
+           "command": "oracle_check.py --data-seed 7",
+           "rows": [{"horizon": 1000, "n_episodes": 16, "metrics": {"kendall_tau": 0.9},
+                     "true_value": truth[::-1], "noise_ceiling": ceiling,
+                     "oracle_value": [20.0, 10.0, 0.0, 1.0]}]}  # d-a: it swaps a-b
+    return r, orc
+
+
+def test_truth_se_from_the_oracle_run(tmp_path, capsys):
+    """--truth-se: the oracle's true_value_se (discounted) in the result's policy order, x
+    sqrt(32 / 64) to the result's truth episodes; it moves the within-noise / real split (a-b,
+    |dV| 5, and c-d, |dV| 10, trade places); the oracle's tau, the bar and the oracle's own
+    swaps (its oracle_value as one lane) are reported."""
+    ra = load_script("ranking_analysis")
+    r, orc = _oracle_case()
+    se, source = ra.standard_errors(r, orc, "o.json")
+    np.testing.assert_allclose(se, np.array([1.0, 1.0, 8.0, 8.0]) * np.sqrt(32 / 64))
+    assert source.startswith("the oracle's true_value_se (o.json; discounted, 32 episodes, "
+                             "scaled to 64; its truths vs the result's: max |z| 0.00)")
+    orc["rows"][0]["true_value"] = [24.0, 10.0, 5.0, 0.0]  # d + 4
+    z = 4 / (8 * np.sqrt(32 / 64) * np.sqrt(1 + 64 / 32))  # its SE and the result's combined
+    assert f"max |z| {z:.2f}" in ra.standard_errors(r, orc, "o.json")[1]
+    with pytest.raises(ValueError, match=r"o.json: data_seed: expected 7 \(the result's\)"):
+        ra.standard_errors(r, {**orc, "data_seed": 0}, "o.json")
+    del orc["rows"][0]["noise_ceiling"]  # the episodes from the command
+    orc["command"] += " --value-episodes 64"
+    np.testing.assert_allclose(ra.standard_errors(r, orc, "o.json")[0], [1.0, 1.0, 8.0, 8.0])
+    r, orc = _oracle_case()
+    paths = [tmp_path / "r.json", tmp_path / "o.json"]
+    for p, d in zip(paths, (r, orc), strict=True):
+        p.write_text(json.dumps(d))
+    out = {}
+    for extra in ([], ["--truth-se", str(paths[1])]):
+        assert ra.main([str(paths[0]), "--methods", "rl2s", "--n-rep", "20", "--json",
+                        str(tmp_path / "a.json"), *extra]) == 0
+        out[bool(extra)] = json.loads((tmp_path / "a.json").read_text())["data_seeds"]["7"]
+    assert out[False]["noise_swaps_per_policy"] == [1, 1, 0, 0]  # own SEs: a-b noise
+    assert out[False]["real_swaps_per_policy"] == [0, 0, 1, 1] and out[False]["oracle"] is None
+    assert out[True]["noise_swaps_per_policy"] == [0, 0, 1, 1]  # the oracle's: c-d noise
+    assert out[True]["real_swaps_per_policy"] == [1, 1, 0, 0]
+    assert out[True]["oracle"]["rl2s_minus_oracle"] == pytest.approx(2 / 6 - 0.9)
+    own = out[True]["oracle"]["own"]  # the oracle as one lane, in the result's order
+    assert own["tau"] == pytest.approx(4 / 6) and own["tau_lost_real"] == pytest.approx(2 / 6)
+    assert own["tau_lost_noise"] == 0.0 and own["tau_without"][0] == 1.0
+    printed = capsys.readouterr().out
+    assert f" 16 episodes; {paths[1]}): tau 0.900, its noise ceiling 0.950" in printed
+    assert "RL2S - oracle -0.567: MISSED (bar -0.03)" in printed
+    assert "most with a 1, b 1; without a: tau 0.333 (the oracle's 1.000)" in printed
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda o: o.update(policy_names=list("dcbe")),
+     r"policy_names: expected the result's 4 test policies; missing \['a'\], extra \['e'\]"),
+    (lambda o: o.update(task="ant"), "task: expected 'hopper'"),
+    (lambda o: o.update(data_seed=0), r"data_seed: expected one of the results' data seeds"),
+    (lambda o: o["rows"][0]["true_value"].__setitem__(1, 110.0),
+     r"rows\[0\]\.true_value: 1 policies differ .* \(first c: 110.0 vs 10.0"),
+    (lambda o: o["true_value_undiscounted"].__setitem__(3, 50.0),
+     r"true_value_undiscounted: 1 policies differ .*\(first a: 50.0 vs 0.0"),
+    (lambda o: o.update(true_value_se=[1.0, 1.0]), "true_value_se: expected 4 finite"),
+])
+def test_truth_se_refuses_another_runs_oracle(tmp_path, change, message):
+    """An oracle of another task, data seed or policies, or whose truths differ from the
+    result's, is refused before any work, naming the file and the field."""
+    ra = load_script("ranking_analysis")
+    r, orc = _oracle_case()
+    change(orc)
+    (tmp_path / "r.json").write_text(json.dumps(r))
+    (tmp_path / "o.json").write_text(json.dumps(orc))
+    with pytest.raises(SystemExit, match="o.json: " + message):
+        ra.main([str(tmp_path / "r.json"), "--truth-se", str(tmp_path / "o.json")])
+
+
 def test_oracle_check_data_seed_takes_the_protocols_test_split_only(tmp_path, monkeypatch):
     """--data-seed measures on the protocol's data: another --split or --zoo is refused before
     any work. (Run on the CPU at toy sizes, not here: hopper, --data-seed 3, 200 transitions,

@@ -11,13 +11,16 @@ A lane (one method, one seed) of a paper.py result may carry issue 64's trust re
 of its mean over the training data: how far they leave the data), ``member_sd`` (the elites'
 spread of its simulated value), ``sim_value`` (the value they spread around) and ``trusted``.
 ``trust_features`` reads them; ``carrier_ranks`` and ``worst_in_top`` ask whether they point
-at the policies the ranking's loss hangs on. Pure NumPy.
+at the policies the ranking's loss hangs on. ``oracle_standard_errors``: the truths' SEs from
+an oracle_check.py run of the same data seed (for results that predate ``true_value_se``);
+``lanes_of``, ``compare_truths`` and ``relations``: the script's reading of lanes, of two data
+seeds' truths and of where the real swaps fall. Pure NumPy.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from rl2s_jax.evaluate.metrics import kendall_tau
+from rl2s_jax.evaluate.metrics import kendall_tau, spearman
 
 TRUST_FIELDS = ("support", "member_sd", "sim_value", "trusted")
 
@@ -114,3 +117,135 @@ def worst_in_top(lanes: list[dict], truth, n_policies: int, method: str) -> dict
     ranks = [int(rank_desc(p["member_sd"])[w]) for p, w in zip(per, worst, strict=True)]
     return {"lanes": len(per), "top1": sum(k <= 1 for k in ranks),
             "top2": sum(k <= 2 for k in ranks), "worst": worst}
+
+
+def _oracle_truth_episodes(oracle: dict, where: str) -> int:
+    """The truth episodes of an oracle_check.py run: its rows' noise_ceiling n_truth, else its
+    command's --value-episodes (oracle_check.py's default 16 when absent)."""
+    for row in oracle.get("rows") or []:
+        if (row.get("noise_ceiling") or {}).get("n_truth"):
+            return int(row["noise_ceiling"]["n_truth"])
+    words = " ".join(str(oracle.get("command", "")).split("=")).split()
+    if "--value-episodes" not in words:
+        return 16
+    try:
+        return int(words[words.index("--value-episodes") + 1])
+    except (IndexError, ValueError):
+        raise ValueError(f"{where}: command: expected --value-episodes N, got "
+                         f"{oracle.get('command')!r}") from None
+
+
+def _check_agree(where: str, field: str, names, theirs, ours, se) -> float:
+    """max |z| of two measurements of the truths; ValueError (naming the first policy) beyond
+    4 combined SEs (+1e-3 for round-off)."""
+    gap = np.abs(np.asarray(theirs, np.float64) - np.asarray(ours, np.float64))
+    bad = np.flatnonzero(gap > 4.0 * se + 1e-3)
+    if bad.size:
+        i = int(bad[0])
+        raise ValueError(f"{where}: {field}: {len(bad)} policies differ from the result's by "
+                         f"more than 4 combined SEs (first {names[i]}: {theirs[i]:.1f} vs "
+                         f"{ours[i]:.1f}, SE {se[i]:.1f}): another measurement of the truth "
+                         f"(another GPU or collection?), so its SEs are not these truths'")
+    return float(np.max(np.where(se > 0, gap / np.maximum(se, 1e-12), 0.0)))
+
+
+def oracle_standard_errors(result: dict, oracle: dict, data_seed: int, where: str):
+    """The SEs [P] of a paper.py result's true values from an oracle_check.py --data-seed run
+    (``oracle``, read from ``where``) of the same task, data seed and test policies: its
+    ``true_value_se`` (the discounted value's: ``ds.value_discounted_se``) in the result's
+    policy order, scaled to the result's truth episodes (x sqrt(n_oracle / n_result)).
+    -> (se [P], {"n_oracle", "n_truth", "max_abs_z"}). ValueError naming ``where`` and the
+    field, before any work, when the task, data seed or policy names differ or the truths
+    disagree: the discounted (rows' ``true_value``) and undiscounted values, each within 4
+    combined SEs (the undiscounted SE taken as se x |V undiscounted| / |V|, at least se)."""
+    if oracle.get("task") != result.get("task"):
+        raise ValueError(f"{where}: task: expected {result.get('task')!r} (the result's), got "
+                         f"{oracle.get('task')!r}")
+    if oracle.get("data_seed") != data_seed:
+        raise ValueError(f"{where}: data_seed: expected {data_seed} (the result's), got "
+                         f"{oracle.get('data_seed')!r}")
+    names, theirs = list(result["test_policy_names"]), list(oracle.get("policy_names") or [])
+    if sorted(names) != sorted(theirs) or len(set(theirs)) != len(theirs):
+        raise ValueError(f"{where}: policy_names: expected the result's {len(names)} test "
+                         f"policies; missing {sorted(set(names) - set(theirs))}, extra "
+                         f"{sorted(set(theirs) - set(names))}, {len(theirs)} names")
+    order = [theirs.index(n) for n in names]
+    P = len(names)
+
+    def field(k, values):
+        v = np.asarray(values if values is not None else [], np.float64)
+        if v.shape != (P,) or not np.all(np.isfinite(v)) or (k == "true_value_se"
+                                                               and np.any(v < 0)):
+            raise ValueError(f"{where}: {k}: expected {P} finite values (SEs >= 0), got "
+                             f"{values!r:.80}")
+        return v[order]
+
+    n_oracle, n_truth = _oracle_truth_episodes(oracle, where), int(
+        result["sizes"]["value_episodes"])
+    se = field("true_value_se", oracle.get("true_value_se")) * np.sqrt(n_oracle / n_truth)
+    both = np.sqrt(se ** 2 * (1.0 + n_truth / n_oracle))  # the oracle's SE and the result's
+    v, u = np.asarray(result["true_value"]), np.asarray(result["true_value_undiscounted"])
+    z = [_check_agree(where, f"rows[{k}].true_value", names,
+                      field(f"rows[{k}].true_value", row.get("true_value")), v, both)
+         for k, row in enumerate(oracle.get("rows") or []) if "true_value" in row]
+    ratio = np.maximum(np.abs(u) / np.maximum(np.abs(v), 1e-9), 1.0)
+    z.append(_check_agree(where, "true_value_undiscounted", names, field(
+        "true_value_undiscounted", oracle.get("true_value_undiscounted")), u, both * ratio))
+    return se, {"n_oracle": n_oracle, "n_truth": n_truth, "max_abs_z": max(z)}
+
+
+def compare_truths(a: dict, b: dict) -> dict | None:
+    """Two data seeds' truths of the same policies: the z of their differences (RMS ~1 when
+    the SEs are right) and the tau of one truth against the other. None: other policies."""
+    if a["policies"] != b["policies"]:
+        return None
+    va, vb = np.asarray(a["true_value"]), np.asarray(b["true_value"])
+    z = (va - vb) / np.sqrt(np.asarray(a["se"]) ** 2 + np.asarray(b["se"]) ** 2)
+    return {"data_seeds": [a["data_seed"], b["data_seed"]], "rms_z": float(np.sqrt(np.mean(
+        z ** 2))), "max_abs_z": float(np.max(np.abs(z))), "tau_truth_vs_truth": kendall_tau(
+        va, vb)}
+
+
+def relations(a: dict) -> dict:
+    """Where the real swaps fall, per policy (summed over methods and seeds), against the
+    simulators' relative value error |sim - V| / max(|V|, 1), their episode-length error
+    |sim length - true length| and, where recorded, their support and (from the lanes' trust)
+    member_sd and relative member_sd, each the mean over the methods of their means over lanes,
+    and the true value itself (a control): Spearman rank correlations (``metrics.spearman``;
+    None where a feature is missing or constant)."""
+    real = np.asarray(a["real_swaps_per_policy"], np.float64)
+    truth = np.asarray(a["true_value"])
+    feats = {}
+    sims = np.concatenate([np.asarray(m["sim_value"]) for m in a["methods"].values()])
+    feats["relative value error"] = np.mean(np.abs(sims - truth), 0) / np.maximum(
+        np.abs(truth), 1.0)
+    lens = [m["sim_length"] for m in a["methods"].values() if m["sim_length"] is not None]
+    if lens and a.get("true_length") is not None:
+        feats["episode length error"] = np.abs(np.mean(lens, 0) - np.asarray(a["true_length"]))
+    sup = [m["support"] for m in a["methods"].values() if m["support"] is not None]
+    if sup:
+        feats["support"] = np.mean(sup, 0)
+    trust = [m["trust"] for m in a["methods"].values() if m["trust"] is not None]
+    for k in ("member_sd", "relative_member_sd") if trust else ():
+        feats[k.replace("_", " ")] = np.mean([t[k] for t in trust], 0)
+    feats["truth SE / value"] = np.asarray(a["se"]) / np.maximum(np.abs(truth), 1.0)
+    feats["true value"] = truth  # a control: swaps and member_sd may both follow the value
+    out = {}
+    for k, v in feats.items():
+        ok = np.ptp(real) > 0 and np.ptp(v) > 0
+        out[k] = spearman(real, v) if ok else None
+    return out
+
+
+def lanes_of(results: list[dict], methods) -> dict[str, list[dict]]:
+    """method -> its lanes (dicts with "seed", "sim_value", ...) from the first result that has
+    the method, in seed order."""
+    out = {}
+    for m in methods:
+        for r in results:
+            lanes = [dict(v, seed=int(k.split("/")[1])) for k, v in r.get("lanes", {}).items()
+                     if k.split("/")[0] == m and v.get("sim_value") is not None]
+            if lanes:
+                out[m] = sorted(lanes, key=lambda x: x["seed"])
+                break
+    return out

@@ -14,7 +14,9 @@ spread of its simulated value), ``sim_value`` (the value they spread around) and
 at the policies the ranking's loss hangs on. ``oracle_standard_errors``: the truths' SEs from
 an oracle_check.py run of the same data seed (for results that predate ``true_value_se``);
 ``lanes_of``, ``compare_truths`` and ``relations``: the script's reading of lanes, of two data
-seeds' truths and of where the real swaps fall. Pure NumPy.
+seeds' truths and of where the real swaps fall. ``lineage_split``: the ranking of the policies
+whose learner lineage the training data holds against the pairs touching the others
+(``experiments/lineage_analysis.py``). Pure NumPy.
 """
 from __future__ import annotations
 
@@ -45,6 +47,31 @@ def swaps(truth, se, sim) -> dict:
                                              strict=True)]
     return {"pairs": n, "tau": kendall_tau(t, s), "noise": noise, "real": real,
             "tau_lost_noise": 2.0 * len(noise) / n, "tau_lost_real": 2.0 * len(real) / n}
+
+
+def lineage_split(truth, sim, seen) -> dict:
+    """How a simulator ranks the policies whose learner lineage its training data holds
+    (``seen``) against the pairs that touch the others. truth, sim [P], seen [P] bool.
+    -> {"tau": over all, "tau_seen": over the seen policies alone (None below 2),
+    "pairs_seen" / "pairs_touching": pair counts, "discordant_seen" / "discordant_touching":
+    the discordant pairs among them, "swap_rate_seen" / "swap_rate_touching": their shares}."""
+    t, s = np.asarray(truth, np.float64), np.asarray(sim, np.float64)
+    m = np.asarray(seen, bool)
+    if not (t.shape == s.shape == m.shape and t.ndim == 1 and t.size >= 2):
+        raise ValueError(f"truth, sim, seen: expected equal shapes [P >= 2], got {t.shape}, "
+                         f"{s.shape}, {m.shape}")
+    i, j = np.triu_indices(t.size, k=1)
+    discordant = np.sign(t[i] - t[j]) * np.sign(s[i] - s[j]) < 0
+    both = m[i] & m[j]
+    rate = lambda k, n: float(k / n) if n else None
+    out = {"tau": kendall_tau(t, s),
+           "tau_seen": kendall_tau(t[m], s[m]) if m.sum() >= 2 else None,
+           "pairs_seen": int(both.sum()), "pairs_touching": int((~both).sum()),
+           "discordant_seen": int((discordant & both).sum()),
+           "discordant_touching": int((discordant & ~both).sum())}
+    out["swap_rate_seen"] = rate(out["discordant_seen"], out["pairs_seen"])
+    out["swap_rate_touching"] = rate(out["discordant_touching"], out["pairs_touching"])
+    return out
 
 
 def leave_one_out(truth, sims) -> np.ndarray:

@@ -77,6 +77,18 @@ class Zoo:
     def policy_names(self, ids: Sequence[int]) -> list[str]:
         return [f"{self.task}-{i:03d}" for i in ids]
 
+    def lineage(self, i: int) -> tuple:
+        """Policy i's learner lineage: (learner, learner seed) of its origin; snapshots of one
+        learner run share it."""
+        o = self.origins[i]
+        return (o.get("learner", "?"), o.get("seed"))
+
+    def seen_lineage(self, ids: Sequence[int]) -> list[bool]:
+        """Per policy of ``ids``: does the training split hold a policy of its lineage?
+        (Known without any truth: the data a simulator learns from names its policies.)"""
+        train = {self.lineage(i) for i in self.train_ids}
+        return [self.lineage(int(i)) in train for i in ids]
+
 
 def names_to_zoo_ids(names: Sequence[str]) -> list[int]:
     """The zoo ids in policy names "<task>-<id>" (``Zoo.policy_names``' inverse)."""

@@ -51,6 +51,7 @@ from rl2s_jax.paper.protocol import (
     FAMILIES,
     METHODS,
     METRICS,
+    POLICY_SPLITS,
     PROFILES,
     lane_eps,
     load_or_collect,
@@ -94,9 +95,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "values (C0) and for C1")
     ap.add_argument("--episode-length", type=pos, help="shorter episodes (smoke runs)")
     ap.add_argument("--data-seed", type=int, default=0)
-    ap.add_argument("--policy-split", choices=("zoo", "validation"), default="zoo",
-                    help="validation: the training policies split again (zoo.VALIDATION_EVERY)"
-                    " as train / test, to choose a recipe without the test policies")
+    ap.add_argument("--policy-split", choices=POLICY_SPLITS, default="zoo", help="validation / "
+                    "lineage: training policies split again (every 4th / one lineage held out)")
     ap.add_argument("--improve-iterations", type=int, help="SAC iterations (0: skip)")
     ap.add_argument("--improve-policies", type=int, help="test policies fine-tuned, spread "
                     "evenly over their true returns (0 or more than there are: all)")

@@ -71,6 +71,55 @@ def test_vmap_over_stacked_zoo_equals_loop():
         np.testing.assert_array_equal(one["layers"][0]["w"], p["layers"][0]["w"])
 
 
+def test_lineage_split_holds_out_one_learner_run():
+    """"lineage-validation": the training policies of the lineage (learner, seed) whose count is
+    nearest a quarter of the training policies, ties to the later seed; "lineage-fit": the
+    rest; test policies never; one lineage only: refused naming the split."""
+    params = pol.stack_params([_random_policy(k) for k in jax.random.split(
+        jax.random.PRNGKey(6), 12)])
+    seeds = [0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 3, 0]  # policy 11 (seed 0) is a test policy
+    zoo = zoo_mod.Zoo(task="pointmass", params=params, returns=np.arange(12.0),
+                      return_se=np.full(12, 0.1), origins=[{"learner": "sac", "seed": s}
+                                                           for s in seeds],
+                      train_ids=list(range(11)), test_ids=[11])
+    # counts: seed 0: 4, 1: 2, 2: 2, 3: 3; a quarter of 11 is 2.75: seed 3 (|3 - 2.75|)
+    assert zoo.held_out_lineage() == ("sac", 3)
+    assert zoo.split_ids("lineage-validation") == [8, 9, 10]
+    assert zoo.split_ids("lineage-fit") == list(range(8))
+    tie = zoo_mod.Zoo(**{**zoo.__dict__, "origins": [{"learner": "sac", "seed": s} for s in
+                                                       [0, 0, 0, 0, 0, 1, 1, 2, 2, 0, 0, 0]]})
+    assert tie.held_out_lineage() == ("sac", 2)  # seeds 1 and 2 both hold 2: the later
+    assert tie.seen_lineage([11, 7]) == [True, True]
+    one = zoo_mod.Zoo(**{**zoo.__dict__, "origins": [{"learner": "sac", "seed": 0}] * 12})
+    with pytest.raises(ValueError, match="'lineage-validation' holds out one of the training "
+                       "policies' learner lineages; this zoo's are all of 1"):
+        one.split_ids("lineage-validation")
+
+
+def test_protocol_validation_datasets_by_lineage():
+    """paper.protocol.validation_datasets with "lineage": the training Dataset's policies of
+    "lineage-fit" as train and of "lineage-validation" as test, each with its zoo ids."""
+    from rl2s_jax.paper.protocol import validation_datasets
+
+    class Part:  # the two things validation_datasets asks of a Dataset
+        def __init__(self, ids):
+            self.ids, self.meta = ids, {"source": {"zoo_ids": ids, "split": "train"}}
+
+        def select_policies(self, rows):
+            return Part([self.ids[r] for r in rows])
+
+    seeds = [0, 0, 0, 0, 1, 1, 2, 2, 3, 3, 3, 0]
+    zoo = zoo_mod.Zoo(task="pointmass", params=None, returns=np.arange(12.0),
+                      return_se=np.full(12, 0.1), origins=[{"learner": "sac", "seed": s}
+                                                           for s in seeds],
+                      train_ids=list(range(11)), test_ids=[11])
+    train = Part([10, 3, 8, 0, 1, 2, 9, 4, 5, 6, 7])  # the data's own order
+    out = validation_datasets(train, zoo, "lineage")
+    assert out["test"].ids == [8, 9, 10] and out["train"].ids == list(range(8))
+    assert out["test"].meta["source"] == {"zoo_ids": [8, 9, 10], "split": "lineage-validation"}
+    assert validation_datasets(train, zoo)["test"].ids == zoo.split_ids("validation")
+
+
 def test_zoo_round_trip(tmp_path):
     params = pol.stack_params([_random_policy(k) for k in jax.random.split(
         jax.random.PRNGKey(5), 3)])
@@ -84,7 +133,7 @@ def test_zoo_round_trip(tmp_path):
                     strict=True):
         np.testing.assert_array_equal(a, b)
     assert back.split_ids("all") == [0, 1, 2]
-    with pytest.raises(ValueError, match="split: expected one of"):
+    with pytest.raises(ValueError, match="split: expected one of .* 'lineage-validation'"):
         back.split_ids("holdout")
     with pytest.raises(ValueError, match="'validation' holds out every 4th training policy; "
                        "this zoo has 1 "):  # too few training policies to hold one out

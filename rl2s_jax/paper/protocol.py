@@ -89,6 +89,9 @@ TASK_SIZES = {"gpu": {"ant": dict(value_episodes=256, eval_episodes=256),
                       "walker2d": dict(value_episodes=64, eval_episodes=64)}}
 
 
+# --policy-split: the zoo's train / test split, or its training policies split again
+POLICY_SPLITS = ("zoo", "validation", "lineage")
+
 def profile_sizes(profile: str, task: str) -> dict:
     """A profile's sizes with the task's changes (TASK_SIZES) applied."""
     return {**PROFILES[profile], **TASK_SIZES.get(profile, {}).get(task, {})}
@@ -121,13 +124,15 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
     the same sizes (``transitions_per_policy``, ``value_episodes`` of ``sizes``), else
     collected as ONE ``collect_dataset(task, "all", ...)`` run (one MJX program for all the
     zoo's policies) and split with ``Dataset.select_policies``. ``policy_split`` "validation":
-    the zoo's training policies split again (``validation_datasets``), the test policies unused.
+    the zoo's training policies split again (``validation_datasets``), the test policies unused;
+    "lineage": likewise, one learner lineage of them held out (``Zoo.held_out_lineage``).
     -> ({"train": Dataset, "test": Dataset}, reused)"""
-    if policy_split not in ("zoo", "validation"):
-        raise ValueError(f"policy_split: expected 'zoo' or 'validation', got {policy_split!r}")
-    if policy_split == "validation":
+    if policy_split not in POLICY_SPLITS:
+        raise ValueError(f"policy_split: expected one of {', '.join(POLICY_SPLITS)}, got "
+                         f"{policy_split!r}")
+    if policy_split != "zoo":
         datasets, reused = load_or_collect(task, sizes, data_dir, seed, episode_length, progress)
-        return validation_datasets(datasets["train"], load_zoo(task)), reused
+        return validation_datasets(datasets["train"], load_zoo(task), policy_split), reused
     paths = {split: os.path.join(data_dir, f"{task}_{split}.npz") for split in ("train", "test")}
     key_path = os.path.join(data_dir, f"{task}_data.json")
     data_key = {"task": task, "seed": seed, "episode_length": episode_length,
@@ -156,14 +161,16 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
     return out, False
 
 
-def validation_datasets(train, zoo) -> dict:
+def validation_datasets(train, zoo, policy_split: str = "validation") -> dict:
     """The protocol's training Dataset split again, as ``load_or_collect``'s splits: {"train":
-    its "fit" policies, "test": its "validation" policies} (``Zoo.split_ids``), each with its
-    zoo ids in ``meta["source"]``, so that a recipe is chosen on policies the simulators never
-    saw without touching the test policies."""
+    its "fit" policies, "test": its "validation" policies} (``Zoo.split_ids``; policy_split
+    "lineage": "lineage-fit" / "lineage-validation", one learner lineage held out), each with
+    its zoo ids in ``meta["source"]``, so that a recipe is chosen on policies the simulators
+    never saw without touching the test policies."""
     ids = [int(i) for i in train.meta["source"]["zoo_ids"]]
+    prefix = "lineage-" if policy_split == "lineage" else ""
     out = {}
-    for split, name in (("train", "fit"), ("test", "validation")):
+    for split, name in (("train", f"{prefix}fit"), ("test", f"{prefix}validation")):
         want = zoo.split_ids(name)
         part = train.select_policies([ids.index(i) for i in want])
         part.meta["source"] = {**part.meta["source"], "split": name,

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import os
+from collections import Counter
 from collections.abc import Sequence
 
 import numpy as np
@@ -40,7 +41,9 @@ class Zoo:
     params: stacked policy params [P, ...]; returns / return_se: [P] mean undiscounted episode
     return and its standard error (measured by ``collect.measure_values``); origins: P dicts
     (seed, iteration, env_steps); train_ids / test_ids: disjoint index lists. ``split_ids``
-    also serves "fit" / "validation": the training policies split again (VALIDATION_EVERY).
+    also serves "fit" / "validation": the training policies split again (VALIDATION_EVERY),
+    and "lineage-fit" / "lineage-validation": one learner lineage of them held out
+    (``held_out_lineage``).
     """
 
     task: str
@@ -71,8 +74,12 @@ class Zoo:
                                  f"training policy; this zoo has {len(self.train_ids)} "
                                  f"(needs {VALIDATION_EVERY // 2 + 1} or more)")
             return [i for i in self.train_ids if (i in held) == (split == "validation")]
+        if split in ("lineage-fit", "lineage-validation"):
+            held_out = self.held_out_lineage()
+            return [i for i in self.train_ids
+                    if (self.lineage(i) == held_out) == (split == "lineage-validation")]
         raise ValueError(f"split: expected one of 'train', 'test', 'all', 'fit', 'validation', "
-                         f"got {split!r}")
+                         f"'lineage-fit', 'lineage-validation', got {split!r}")
 
     def policy_names(self, ids: Sequence[int]) -> list[str]:
         return [f"{self.task}-{i:03d}" for i in ids]
@@ -83,11 +90,30 @@ class Zoo:
         o = self.origins[i]
         return (o.get("learner", "?"), o.get("seed"))
 
+    def held_out_lineage(self) -> tuple:
+        """The training lineage that "lineage-validation" holds out (and "lineage-fit" leaves
+        out): the one whose count of training policies is nearest a 1/VALIDATION_EVERY share
+        of them (ties: the later learner seed), so that a simulator of the others meets its
+        policies as it meets a test policy of a learner run it never saw."""
+        counts = Counter(self.lineage(i) for i in self.train_ids)
+        if len(counts) < 2:
+            raise ValueError(f"split: 'lineage-validation' holds out one of the training "
+                             f"policies' learner lineages; this zoo's are all of "
+                             f"{len(counts)} ({sorted(map(str, counts))})")
+        share = len(self.train_ids) / VALIDATION_EVERY
+        return min(counts, key=lambda ln: (abs(counts[ln] - share), -_seed_order(ln[1]),
+                                           str(ln[0])))
+
     def seen_lineage(self, ids: Sequence[int]) -> list[bool]:
         """Per policy of ``ids``: does the training split hold a policy of its lineage?
         (Known without any truth: the data a simulator learns from names its policies.)"""
         train = {self.lineage(i) for i in self.train_ids}
         return [self.lineage(int(i)) in train for i in ids]
+
+
+def _seed_order(seed) -> float:
+    """A learner seed as a number for ordering (None or odd values first)."""
+    return float(seed) if isinstance(seed, int | float) else float("-inf")
 
 
 def names_to_zoo_ids(names: Sequence[str]) -> list[int]:

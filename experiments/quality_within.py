@@ -129,9 +129,13 @@ def judge_metric(control: dict, variant: dict, method: str, metric: str) -> dict
 
 
 def timing_rows(control: dict, variant: dict) -> dict:
-    """{phase: [control s, variant s]} (None where a run has no such phase), with "protocol":
-    the total without the oracle and trust phases (the issue's `--no-oracle` protocol)."""
-    rows = {k: [r["timings"].get(k) for r in (control, variant)] for k in TIMINGS}
+    """{phase: [control s, variant s]} (None where a run has no such phase), the data
+    phase's parts ("data_<part>", where either run logged them) after "data", and
+    "protocol": the total without the oracle and trust phases (the issue's `--no-oracle`
+    protocol)."""
+    parts = [k for r in (control, variant) for k in r["timings"] if k.startswith("data_")]
+    keys = [k for t in TIMINGS for k in ([t, *dict.fromkeys(parts)] if t == "data" else [t])]
+    rows = {k: [r["timings"].get(k) for r in (control, variant)] for k in keys}
 
     def protocol(t):
         return None if t.get("total") is None else round(

@@ -111,9 +111,12 @@ def test_paired_difference_over_the_shared_seeds():
 
 def test_timings_side_by_side_with_the_protocol_total():
     v = _result([0.92] * 3, [200.0] * 3,
-                timings={"data": 50.0, "train_adversarial": 150.0, "train_mle": 150.0,
+                timings={"data": 50.0, "data_setup": 1.0, "data_rollout_compile": 30.0,
+                         "train_adversarial": 150.0, "train_mle": 150.0,
                          "trust": 80.0, "total": 450.0})
     rows = qw.judge(CONTROL, v)["timings"]
+    assert list(rows)[:4] == ["data", "data_setup", "data_rollout_compile", "train_adversarial"]
+    assert rows["data_rollout_compile"] == [None, 30.0]
     assert rows["train_adversarial"] == [300.0, 150.0]
     assert rows["oracle"] == [140.0, None]
     assert rows["protocol"] == [770.0 - 140.0 - 80.0, 450.0 - 80.0]

@@ -148,7 +148,8 @@ def timing_rows(control: dict, variant: dict) -> dict:
 def judge(control: dict, variant: dict) -> dict:
     """The variant against the control: per method and metric ``judge_metric``, the methods
     it lacks, the "method metric" of JUDGED outside their interval and those without a value
-    (either run's), the verdict ("unchanged": none of the three), the timings."""
+    (either run's), the verdict ("unchanged": none of the three), the protocol sizes that
+    differ ({key: [control, variant]}), the timings."""
     methods = [m for m in control["per_seed"] if m not in NOT_JUDGED]
     missing = [m for m in methods if m not in variant["per_seed"]]
     rows = {m: {k: judge_metric(control, variant, m, k) for k in METRICS}
@@ -161,6 +162,9 @@ def judge(control: dict, variant: dict) -> dict:
             "unchanged": not (missing or outside or no_value),
             "complete": variant.get("complete"),
             "shared_seeds": sorted(set(seed_ids(control)) & set(seed_ids(variant))),
+            "sizes_differ": {k: [control.get("sizes", {}).get(k), v]
+                             for k, v in (variant.get("sizes") or {}).items()
+                             if control.get("sizes", {}).get(k) != v},
             "timings": timing_rows(control, variant)}
 
 
@@ -173,7 +177,9 @@ def _f(x, metric: str = "") -> str:
 def report(path: str, variant: dict, j: dict) -> str:
     """The printed comparison of one variant."""
     lines = [f"\nvariant {path} ({variant['command']}); seeds {seed_ids(variant)}"
-             + ("" if j["complete"] is not False else "; INCOMPLETE run (complete: false)"),
+             + ("" if j["complete"] is not False else "; INCOMPLETE run (complete: false)")
+             + "".join(f"\n  sizes differ: {k} {a} (control) -> {b}"
+                       for k, (a, b) in j["sizes_differ"].items()),
              f"  {'method':<8} {'metric':<12} {'variant':>9} {'control':>9} "
              f"{'control t95':>21} {'in':>3} {'episode interval':>21} {'in':>3} "
              f"{'paired diff [t95]':>30}"]

@@ -114,7 +114,12 @@ def test_timings_side_by_side_with_the_protocol_total():
                 timings={"data": 50.0, "data_setup": 1.0, "data_rollout_compile": 30.0,
                          "train_adversarial": 150.0, "train_mle": 150.0,
                          "trust": 80.0, "total": 450.0})
-    rows = qw.judge(CONTROL, v)["timings"]
+    v["sizes"], control = {"steps": 600, "seeds": 3}, {**CONTROL, "sizes": {"steps": 1200,
+                                                                          "seeds": 3}}
+    j = qw.judge(control, v)
+    assert j["sizes_differ"] == {"steps": [1200, 600]}
+    assert "sizes differ: steps 1200 (control) -> 600" in qw.report("v.json", v, j)
+    rows = j["timings"]
     assert list(rows)[:4] == ["data", "data_setup", "data_rollout_compile", "train_adversarial"]
     assert rows["data_rollout_compile"] == [None, 30.0]
     assert rows["train_adversarial"] == [300.0, 150.0]

@@ -16,10 +16,12 @@ total, so the clock's zero is put at the stream's end minus that total (the inte
 about a second, lands before it; the first sample with GPU memory in use is printed beside it as
 a check). Each "[paper] NAME: X s (elapsed Y s)" line is the window [Y - X, Y] on that clock
 (Y is rounded to the second); the adversarial and likelihood phases are cut into their logged
-parts (init, each chunk of training steps, each test evaluation, the rest), the trust phase
-into its timings (calibration policies' real values, each family's interval programs, the
-rest). What lies before the first phase (Python, imports, JAX's backend), between phases and
-after the last is a row of its own, so a task's rows add up to its stream's wall time.
+parts (init, each chunk of training steps, each test evaluation, the rest), the data phase
+into its "data_<part>" timings where the run logged them (setup, each program's compile and
+run, the rows on the host, the split and save, the rest), the trust phase into its timings
+(calibration policies' real values, each family's interval programs, the rest). What lies
+before the first phase (Python, imports, JAX's backend), between phases and after the last is
+a row of its own, so a task's rows add up to its stream's wall time.
 
 A sample's utilization.gpu (the share of nvidia-smi's sample period in which any kernel ran)
 holds from the midpoint with the sample before to the midpoint with the one after; busy
@@ -52,6 +54,15 @@ TOTAL = re.compile(r"^\[paper\] \w+: .* in all; timings (\{.*\})$")
 HARDWARE = re.compile(r"^\[paper\] task \w+ on (.+?) \((\w+), jax ([\w.]+)\)")
 STAMP = "%Y/%m/%d %H:%M:%S.%f"
 NOT_PROTOCOL = ("oracle", "trust")  # paper.py phases the issue's protocol leaves out
+# paper.py's timings "data_<part>" (paper.protocol.load_or_collect) -> the part's label; no
+# ':' in them (the summary groups parts by the label up to one)
+DATA_PARTS = {"data_load": "load (the reused .npz files)", "data_setup": "setup (zoo, env)",
+              "data_rollout_compile": "transitions compile (trace, lower, XLA or cache)",
+              "data_rollout_run": "transitions run (chunks, each copied to the host)",
+              "data_rollout_host": "transitions into rows (host)",
+              "data_values_compile": "true values compile (trace, lower, XLA or cache)",
+              "data_values_run": "true values run",
+              "data_split_save": "split and save (compressed .npz files)"}
 
 
 def read_progress(path: str) -> list[dict]:
@@ -126,7 +137,8 @@ def parse_log(path: str) -> dict:
         for line in f:
             line = line.rstrip()
             if m := PHASE.match(line):
-                phases.append((m.group(1), float(m.group(2)), float(m.group(3))))
+                if not m.group(1).startswith("data_"):  # data_<part>: the data phase's parts
+                    phases.append((m.group(1), float(m.group(2)), float(m.group(3))))
             elif m := FAMILY.match(line):
                 families[m.group(1)] = {"init": float(m.group(2)), "chunks": []}
             elif m := CHUNK.match(line):
@@ -192,6 +204,10 @@ def _parts(name: str, log: dict, a: float, b: float) -> list[tuple[str, float, f
             parts += [(f"steps {first}-{last}: {what}", train_s),
                       (f"test evaluation at step {last}", eval_s)]
         rest = "the rest (final rows, bootstrap intervals)"
+    elif name == "data" and any(k.startswith("data_") for k in log["timings"]):
+        parts += [(DATA_PARTS.get(k, k.removeprefix("data_")), v)
+                  for k, v in log["timings"].items() if k.startswith("data_")]
+        rest = "the rest (logs, between parts)"
     elif name == "trust":
         timings = log["timings"]
         real = {"trust_calibration": "calibration policies' real values",

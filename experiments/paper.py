@@ -15,9 +15,9 @@ and policy improvement (MPI/API), written to OUT/<task>.json.
 
 This script parses and checks the flags; the phases are ``rl2s_jax.paper.protocol`` (data,
 oracle, training and evaluation) and ``rl2s_jax.paper.improvement_phases`` (improvement and its
-controls). Each prints its wall time and rewrites OUT/<task>.json, so a run cut off by a time
-limit keeps what it finished ("complete": false). What each phase and flag does:
-docs/EVALUATION.md, "The paper's protocol (`make paper`)".
+controls). Each prints its wall time (the data phase its parts' too: "data_<part>") and
+rewrites OUT/<task>.json, so a run cut off by a time limit keeps what it finished ("complete":
+false). What each phase and flag does: docs/EVALUATION.md, "The paper's protocol".
 """
 from __future__ import annotations
 
@@ -315,11 +315,11 @@ def main(argv=None) -> int:
     # ---- 1. data
     t0 = time.perf_counter()
     datasets, reused = load_or_collect(args.task, sizes, data_dir, args.data_seed,
-                                       args.episode_length, args.progress, args.policy_split)
+                                       args.episode_length, args.progress, args.policy_split,
+                                       timings=timings, t_start=t_start)  # data_<part> lines
     for split, ds in datasets.items():
-        log(f"[paper] {split} data: {ds.n_policies} policies x "
-            f"{ds.n_transitions // ds.n_policies} transitions"
-            f"{' (reused from ' + data_dir + ')' if reused else ''}")
+        log(f"[paper] {split} data: {ds.n_policies} policies x {ds.n_transitions // ds.n_policies}"
+            f" transitions{' (reused from ' + data_dir + ')' if reused else ''}")
     phase("data", t0)
     train_ds, test_ds = datasets["train"], datasets["test"]
     result["sizes"].update(train_policies=train_ds.n_policies, test_policies=test_ds.n_policies)

@@ -154,3 +154,26 @@ def test_trust_parts_name_the_real_env_measurements():
         ("evaluated (perturbed test) policies' real values", 15.0, 18.0),
         ("adversarial family's interval programs", 18.0, 20.0),
         ("the rest (interval blocks per method)", 20.0, 30.0)]
+
+
+def test_data_parts_are_parts_of_the_data_phase(tmp_path):
+    """paper.py's "[paper] data_<part>" lines are the data phase's parts, not phases of their
+    own: laid end to end from its start with their labels, the rest up to its end; a log
+    without them leaves the data phase whole."""
+    parts = ("[paper] data_setup: 1.0s (elapsed 6s)\n[paper] data_rollout_compile: 2.0s "
+             "(elapsed 8s)\n[paper] data_rollout_run: 3.5s (elapsed 11s)\n[paper] "
+             "data_split_save: 1.5s (elapsed 13s)\n")
+    timings = "'data_setup': 1.0, 'data_rollout_compile': 2.0, 'data_rollout_run': 3.5, " \
+              "'data_split_save': 1.5, 'data': 10.5,"
+    text = LOG.replace("[paper] data: 10.5s", parts + "[paper] data: 10.5s").replace(
+        "'data': 10.5,", timings)
+    (tmp_path / "run.log").write_text(text)
+    log = gp.parse_log(str(tmp_path / "run.log"))
+    assert [p[0] for p in log["phases"]] == ["data", "train_adversarial", "trust"]
+    assert gp._parts("data", log, 8.5, 19.0) == [
+        ("setup (zoo, env)", 8.5, 9.5),
+        ("transitions compile (trace, lower, XLA or cache)", 9.5, 11.5),
+        ("transitions run (chunks, each copied to the host)", 11.5, 15.0),
+        ("split and save (compressed .npz files)", 15.0, 16.5),
+        ("the rest (logs, between parts)", 16.5, 19.0)]
+    assert gp._parts("data", {"timings": {"data": 10.5}, "families": {}}, 8.5, 19.0) == []

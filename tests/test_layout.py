@@ -42,7 +42,7 @@ LONG_FUNCTIONS = {
 }
 # Lower layers first; a module may import only from its own layer or lower ones.
 LAYERS = [
-    {"_quiet", "_names", "_files", "_gym", "compile_cache", "sharding", "stats", "envs",
+    {"_quiet", "_names", "_files", "_gym", "_timing", "compile_cache", "sharding", "stats", "envs",
      "policy"},
     {"data"},
     {"zoo", "model"},

@@ -12,6 +12,7 @@ import jax
 import numpy as np
 
 from rl2s_jax._files import write_json
+from rl2s_jax._timing import PartTimer, timed
 from rl2s_jax.app.evaluation import evaluate_checkpoint
 from rl2s_jax.app.improvement import (
     GUARD_MARGIN,
@@ -45,23 +46,25 @@ from rl2s_jax.zoo.zoo import load_zoo, policies_for
 def collect_dataset(task_name: str, split: str, transitions_per_policy: int, *, seed: int = 0,
                     envs_per_policy: int | None = None, gamma: float = 0.999,
                     value_episodes: int = 16, episode_length: int | None = None,
-                    zoo_path: str | None = None, progress: bool = True):
-    """Collect a Dataset from a registered task's zoo split (what `rl2s collect` runs)."""
-
-
-    task = get_task(task_name)
-    zoo = load_zoo(zoo_path or task_name)
-    if zoo.task != task_name:
-        raise ValueError(f"zoo: built for task {zoo.task!r}, not {task_name!r}")
-    ids = zoo.split_ids(split)
-    return collect(task.make_env(), index_params(zoo.params, ids), key=jax.random.PRNGKey(seed),
+                    zoo_path: str | None = None, progress: bool = True,
+                    timer: PartTimer | None = None):
+    """Collect a Dataset from a registered task's zoo split (what `rl2s collect` runs).
+    ``timer``: times "setup" (the zoo loaded, the env built) and collect's COLLECT_PARTS."""
+    with timed(timer, "setup"):
+        task = get_task(task_name)
+        zoo = load_zoo(zoo_path or task_name)
+        if zoo.task != task_name:
+            raise ValueError(f"zoo: built for task {zoo.task!r}, not {task_name!r}")
+        ids = zoo.split_ids(split)
+        env = task.make_env()
+    return collect(env, index_params(zoo.params, ids), key=jax.random.PRNGKey(seed),
                    transitions_per_policy=transitions_per_policy,
                    envs_per_policy=envs_per_policy,
                    episode_length=episode_length or task.episode_length, task=task_name,
                    policy_names=zoo.policy_names(ids), gamma=gamma,
                    value_episodes=value_episodes, progress=progress,
                    source={"zoo": zoo_path or task_name, "split": split,
-                           "zoo_ids": ids, "seed": seed})
+                           "zoo_ids": ids, "seed": seed}, timer=timer)
 
 
 PROFILES = {

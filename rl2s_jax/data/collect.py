@@ -27,6 +27,7 @@ import numpy as np
 from brax.envs.base import Env
 from tqdm.auto import tqdm
 
+from rl2s_jax._timing import PartTimer, timed
 from rl2s_jax.data.dataset import Dataset
 from rl2s_jax.envs.checks import check_env, tree_where
 from rl2s_jax.policy.policy import Params, num_policies, sample_action
@@ -156,19 +157,44 @@ def default_envs_per_policy(transitions_per_policy: int,
     return max(1, min(64, int(transitions_per_policy) // int(episode_length)))
 
 
+# The parts ``collect(timer=...)`` times, in order: the transitions' programs (env resets and
+# the rollout scan) compiled and run, with each chunk's copy to the host; the chunks' records
+# rearranged into the Dataset's rows on the host; the true values' programs compiled and run.
+COLLECT_PARTS = ("rollout_compile", "rollout_run", "rollout_host", "values_compile",
+                 "values_run")
+
+
+def _rows(records: list[dict], P: int, E: int, steps: int, N: int) -> dict[str, np.ndarray]:
+    """The chunks' host records ({field: [chunk, B, ...]}, B = P * E) -> the Dataset's row
+    fields [P * N, ...]: policy by policy, env slot by env slot, time-ordered within a slot,
+    the first N of each policy; episode_id counts the episode starts (t == 0)."""
+    def per_policy(name):  # [S, B, ...] -> [P * N, ...]
+        x = np.concatenate([r[name] for r in records], axis=0)
+        x = np.swapaxes(x, 0, 1).reshape((P, E * steps) + x.shape[2:])[:, :N]
+        return x.reshape((P * N,) + x.shape[2:])
+
+    fields = {k: per_policy(k) for k in records[0]}
+    t = fields.pop("t").astype(np.int32)
+    return {**{k: fields[k].astype(np.float32) for k in ("obs", "action", "next_obs", "reward")},
+            "done": fields["done"], "truncated": fields["truncated"],
+            "policy_id": np.repeat(np.arange(P, dtype=np.int32), N),
+            "episode_id": (np.cumsum(t == 0) - 1).astype(np.int32), "t": t}
+
+
 def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy: int,
             envs_per_policy: int | None = None, episode_length: int = EPISODE_LENGTH,
             refresh_every: int = 8, chunk_steps: int = 100, task: str | None = None,
             policy_names: list[str] | None = None, gamma: float = 0.999,
             value_episodes: int = 16, source: dict | None = None, progress: bool = True,
-            shard: bool = True):
+            shard: bool = True, timer: PartTimer | None = None):
     """Collect ``transitions_per_policy`` transitions from each policy of a stacked zoo.
 
     env: any unwrapped brax Env (registered task or user env with changed dynamics).
     params: stacked policy params [P, ...]. Returns a ``Dataset`` whose rows are ordered policy
     by policy, env slot by env slot, time-ordered within a slot; per-policy true values come
     from ``measure_values`` (skipped when value_episodes == 0). ``shard``: split the policies
-    over the local devices (module docstring).
+    over the local devices (module docstring). ``timer`` (``_timing.PartTimer``): times
+    COLLECT_PARTS; the Dataset is the same with or without it.
     """
 
     check_env(env)
@@ -190,41 +216,30 @@ def collect(env: Env, params: Params, *, key: jax.Array, transitions_per_policy:
     key_collect, key_values = jax.random.split(key)
     init, step = make_rollout_step(env, P, E, episode_length, refresh_every)
 
-    mesh = _policy_mesh(P, shard)
-    params = shard_lanes(params, mesh)
-    carry = _shard_batch(jax.jit(init)(key_collect), mesh, P * E)
-    carry, records = run_chunked(lambda c: step(params, c), carry, steps, chunk_steps,
-                                 f"collect {task or 'env'} ({P} policies x {E} envs)",
-                                 progress, keep_outputs=True)
-
-    def per_policy(name):  # [S, B, ...] -> [P * N, ...]
-        x = np.concatenate([r[name] for r in records], axis=0)
-        x = np.swapaxes(x, 0, 1).reshape((P, E * steps) + x.shape[2:])[:, :N]
-        return x.reshape((P * N,) + x.shape[2:])
-
-    fields = {k: per_policy(k) for k in records[0]}
-    t = fields.pop("t").astype(np.int32)
-    episode_id = (np.cumsum(t == 0) - 1).astype(np.int32)
+    with timed(timer, "rollout", split_compile=True):  # ends with every chunk on the host
+        mesh = _policy_mesh(P, shard)
+        params = shard_lanes(params, mesh)
+        carry = _shard_batch(jax.jit(init)(key_collect), mesh, P * E)
+        carry, records = run_chunked(lambda c: step(params, c), carry, steps, chunk_steps,
+                                     f"collect {task or 'env'} ({P} policies x {E} envs)",
+                                     progress, keep_outputs=True)
+    with timed(timer, "rollout_host"):
+        rows = _rows(records, P, E, steps, N)
     values = {}
     if value_episodes > 0:
-        values = measure_values(env, params, key=key_values, n_episodes=value_episodes,
-                                episode_length=episode_length, gamma=gamma, progress=progress,
-                                shard=shard)
-    meta = {"task": task, "obs_size": int(fields["obs"].shape[-1]),
-            "action_size": int(fields["action"].shape[-1]), "n_policies": P,
+        with timed(timer, "values", split_compile=True):  # returns host arrays
+            values = measure_values(env, params, key=key_values, n_episodes=value_episodes,
+                                    episode_length=episode_length, gamma=gamma,
+                                    progress=progress, shard=shard)
+    meta = {"task": task, "obs_size": int(rows["obs"].shape[-1]),
+            "action_size": int(rows["action"].shape[-1]), "n_policies": P,
             "gamma": float(gamma) if values else None, "episode_length": int(episode_length),
             "policy_names": list(policy_names),
             "source": {"collector": "rl2s_jax.data.collect", "envs_per_policy": E,
                        "steps_per_env": steps, "refresh_every": refresh_every,
                        "value_episodes": value_episodes, "env": type(env).__name__,
                        **(source or {})}}
-    return Dataset(obs=fields["obs"].astype(np.float32),
-                   action=fields["action"].astype(np.float32),
-                   next_obs=fields["next_obs"].astype(np.float32),
-                   reward=fields["reward"].astype(np.float32), done=fields["done"],
-                   truncated=fields["truncated"], policy_id=np.repeat(
-                       np.arange(P, dtype=np.int32), N), episode_id=episode_id, t=t,
-                   value=values.get("value"), value_se=values.get("value_se"),
+    return Dataset(**rows, value=values.get("value"), value_se=values.get("value_se"),
                    value_discounted=values.get("value_discounted"),
                    value_discounted_se=values.get("value_discounted_se"), meta=meta)
 

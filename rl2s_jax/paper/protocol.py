@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from rl2s_jax._files import write_json
+from rl2s_jax._timing import PartTimer, timed
 from rl2s_jax.app.pipeline import collect_dataset
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.data.values import true_values, true_values_se, truth_used
@@ -118,21 +119,44 @@ def none_if_nan(x):
 # ------------------------------------------------------------------ data
 
 
+def data_timer(timings: dict | None, t_start: float | None = None) -> PartTimer | None:
+    """The data phase's PartTimer: each part's seconds added to ``timings["data_<part>"]``
+    (rounded to 0.1 s) and printed as "[paper] data_<part>: X.Xs (elapsed Ys)", Y counted from
+    ``t_start`` (a ``time.perf_counter()``; None: now), the lines that
+    experiments/gpu_profile.py reads as the data phase's parts. None without ``timings``."""
+    if timings is None:
+        return None
+    t0 = time.perf_counter() if t_start is None else t_start
+
+    def on_part(name: str, seconds: float) -> None:
+        key = f"data_{name}"
+        timings[key] = round(timings.get(key, 0.0) + seconds, 1)
+        log(f"[paper] {key}: {seconds:.1f}s (elapsed {time.perf_counter() - t0:.0f}s)")
+
+    return PartTimer(on_part)
+
+
 def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
-                    episode_length: int | None, progress: bool, policy_split: str = "zoo"):
+                    episode_length: int | None, progress: bool, policy_split: str = "zoo", *,
+                    timings: dict | None = None, t_start: float | None = None):
     """The train and test Datasets of the zoo's split: reused from data_dir when collected with
     the same sizes (``transitions_per_policy``, ``value_episodes`` of ``sizes``), else
     collected as ONE ``collect_dataset(task, "all", ...)`` run (one MJX program for all the
     zoo's policies) and split with ``Dataset.select_policies``. ``policy_split`` "validation":
     the zoo's training policies split again (``validation_datasets``), the test policies unused;
     "lineage": likewise, one learner lineage of them held out (``Zoo.held_out_lineage``).
+    ``timings`` (paper.py's): each part's seconds as "data_<part>" (``data_timer``): "load"
+    when reused; else "setup", ``collect``'s COLLECT_PARTS and "split_save" (the split, the
+    compressed .npz files written). The data is the same with or without it.
     -> ({"train": Dataset, "test": Dataset}, reused)"""
     if policy_split not in POLICY_SPLITS:
         raise ValueError(f"policy_split: expected one of {', '.join(POLICY_SPLITS)}, got "
                          f"{policy_split!r}")
     if policy_split != "zoo":
-        datasets, reused = load_or_collect(task, sizes, data_dir, seed, episode_length, progress)
+        datasets, reused = load_or_collect(task, sizes, data_dir, seed, episode_length, progress,
+                                           timings=timings, t_start=t_start)
         return validation_datasets(datasets["train"], load_zoo(task), policy_split), reused
+    timer = data_timer(timings, t_start)
     paths = {split: os.path.join(data_dir, f"{task}_{split}.npz") for split in ("train", "test")}
     key_path = os.path.join(data_dir, f"{task}_data.json")
     data_key = {"task": task, "seed": seed, "episode_length": episode_length,
@@ -140,24 +164,28 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
                 "value_episodes": sizes["value_episodes"]}
     if all(os.path.exists(p) for p in paths.values()) and os.path.exists(key_path):
         with open(key_path) as f:
-            if json.load(f) == data_key:
-                return {split: load_dataset(p) for split, p in paths.items()}, True
+            same = json.load(f) == data_key
+        if same:
+            with timed(timer, "load"):
+                datasets = {split: load_dataset(p) for split, p in paths.items()}
+            return datasets, True
     everything = collect_dataset(task, "all", sizes["transitions_per_policy"], seed=seed,
                                  value_episodes=sizes["value_episodes"],
-                                 episode_length=episode_length, progress=progress)
-    zoo = load_zoo(task)
-    all_ids = list(everything.meta["source"]["zoo_ids"])
-    os.makedirs(data_dir, exist_ok=True)
-    out = {}
-    for split, path in paths.items():
-        ids = zoo.split_ids(split)
-        part = everything.select_policies([all_ids.index(i) for i in ids])
-        # policies_for() finds a Dataset's policies through meta.source.zoo_ids.
-        part.meta["source"] = {**part.meta["source"], "split": split,
-                               "zoo_ids": [int(i) for i in ids]}
-        save_dataset(path, part)
-        out[split] = part
-    write_json(key_path, data_key, indent=None)
+                                 episode_length=episode_length, progress=progress, timer=timer)
+    with timed(timer, "split_save"):
+        zoo = load_zoo(task)
+        all_ids = list(everything.meta["source"]["zoo_ids"])
+        os.makedirs(data_dir, exist_ok=True)
+        out = {}
+        for split, path in paths.items():
+            ids = zoo.split_ids(split)
+            part = everything.select_policies([all_ids.index(i) for i in ids])
+            # policies_for() finds a Dataset's policies through meta.source.zoo_ids.
+            part.meta["source"] = {**part.meta["source"], "split": split,
+                                   "zoo_ids": [int(i) for i in ids]}
+            save_dataset(path, part)
+            out[split] = part
+        write_json(key_path, data_key, indent=None)
     return out, False
 
 

@@ -33,6 +33,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from rl2s_jax._files import write_json  # noqa: E402
 from rl2s_jax.evaluate.ranking_swaps import lanes_of, lineage_split  # noqa: E402
 from rl2s_jax.paper.data_seeds import data_seed_of  # noqa: E402
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids  # noqa: E402
@@ -152,8 +153,7 @@ def main(argv=None) -> int:
     a = analyse(results, oracles, tuple(args.methods.split(",")))
     print(report(results[0]["task"], a))
     if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(a, fh, indent=1)
+        write_json(args.json, a)
     return 0
 
 

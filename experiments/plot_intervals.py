@@ -18,6 +18,7 @@ import sys
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
+from rl2s_jax._files import save_figure  # noqa: E402
 from rl2s_jax.app.report import plot_true_vs_sim  # noqa: E402
 
 
@@ -70,7 +71,7 @@ def main(argv=None) -> int:
     axes[0][0].set_ylabel("simulated value")
     fig.tight_layout()
     os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
-    fig.savefig(args.out, dpi=110)
+    save_figure(fig, args.out, dpi=110)
     print(f"-> {args.out}")
     return 0
 

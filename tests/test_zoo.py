@@ -152,7 +152,8 @@ def test_validation_split_holds_out_every_fourth_training_policy_by_return():
         by_return = sorted(zoo.train_ids, key=lambda i: zoo.returns[i])
         want = [by_return[k] for k in range(len(by_return)) if k % VALIDATION_EVERY == 2]
         assert sorted(held) == sorted(want) and len(held) == len(zoo.train_ids) // 4
-    with pytest.raises(ValueError, match="'fit', 'validation', got 'val'"):
+    with pytest.raises(ValueError, match="'fit', 'validation', 'lineage-fit', "
+                       "'lineage-validation', got 'val'"):
         load_zoo("hopper").split_ids("val")
 
 

@@ -197,8 +197,10 @@ def trust_section(results: dict) -> list[str]:
         "the real env, never on test policies), per method over every run (seed x data "
         "seed): coverage of the true values, mean width over the range of the true values, "
         "the plain seed-spread interval's width once scaled WITH the truth to the same "
-        "coverage (✓: the conformal interval is narrower), and the share of runs whose "
-        "largest-error policy is flagged untrusted. Issue 64's bars beside each (✓ / ✗). "
+        "coverage (✓: the conformal interval is narrower), the share of runs whose "
+        "largest-error policy is flagged untrusted, and a data seed's 3 seeds as one "
+        "estimate (`rl2s evaluate --ckpt A --ckpt B --ckpt C`; mean over the data seeds). "
+        "Issue 64's bars beside each (✓ / ✗). "
         "Recorded by `experiments/merge_results.py --data-seed-run` (the commands are in "
         "the task JSONs).", trust_rows(results, TASKS))
 

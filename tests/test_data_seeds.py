@@ -175,6 +175,20 @@ def test_pooled_trust_over_data_seeds_against_numpy(tmp_path):
     ev = dseeds.pooled_trust(runs)["rl2s"]["evaluated"]
     assert ev["coverage"] == pytest.approx(np.mean([0.5, 1.0, 0.25, 0.75, 1.0]))
     assert ev["runs"] == 5 and ev["worst_flagged"] == pytest.approx(2 / 5) and ev["n"] == 4
+    # each data seed's seeds as one estimate: pooled as a mean over the data seeds, where
+    # every data seed has one; the table shows it against the bars
+    assert "seeds_combined" not in dseeds.pooled_trust(runs)["rl2s"]
+    for r, (c, w, fl) in zip(runs, ((0.9, 0.2, 1.0), (0.7, 0.4, 0.0)), strict=True):
+        r["trust"]["rl2s"]["seeds_combined"] = {"seeds": len(r["lanes"]), "coverage": c,
+                                                "width_over_range": w, "worst_flagged": fl}
+    sc = dseeds.pooled_trust(runs)["rl2s"]["seeds_combined"]
+    assert sc["coverage"] == pytest.approx(0.8) and sc["width_over_range"] == pytest.approx(0.3)
+    assert sc["worst_flagged"] == pytest.approx(0.5) and sc["seeds"] == [2, 3]
+    assert dseeds.combined_cell(sc) == "0.800 ✗, 0.300 ✗"
+    assert dseeds.combined_cell({**sc, "coverage": 0.85, "width_over_range": 0.25}) == \
+        "0.850 ✓, 0.250 ✓"
+    row = dseeds.trust_rows({"hopper": {"trust": dseeds.pooled_trust(runs)}}, ["hopper"])[2]
+    assert "| 0.800 ✗, 0.300 ✗ |" in row and dseeds.combined_cell(None) == "-"
     with pytest.raises(ValueError, match="one run per data seed"):
         dseeds.pooled_trust([runs[0], runs[0]])
     mr = load_script("merge_results")

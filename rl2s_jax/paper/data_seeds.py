@@ -214,7 +214,8 @@ def pooled_trust(runs: list[dict]) -> dict:
     same way (each data seed's values, seed spread and truth over its own truth's range, so
     widths add up as width/range) scaled to the pooled coverage; "by_data_seed" keeps each
     data seed's own block; "evaluated" pools the lanes' ``--trust-evaluated`` sets the same
-    way (``trust_phase.method_evaluated``) where they have them."""
+    way (``trust_phase.method_evaluated``) where they have them; "seeds_combined" the data
+    seeds' seeds-as-one intervals (``seeds_combined_over``) where every data seed has one."""
     by_ds = {data_seed_of(r): r for r in runs}
     if len(by_ds) != len(runs):
         raise ValueError("runs: expected one run per data seed")
@@ -256,7 +257,23 @@ def pooled_trust(runs: list[dict]) -> dict:
         evaluated = method_evaluated(every)  # --trust-evaluated's sets, where every run has one
         if evaluated is not None:
             out[m]["evaluated"] = tr.json_safe(evaluated)
+        combined = [((r.get("trust") or {}).get(m) or {}).get("seeds_combined")
+                    for r in by_ds.values()]
+        if all(isinstance(c, dict) and "coverage" in c for c in combined):
+            out[m]["seeds_combined"] = seeds_combined_over(combined)
     return out
+
+
+def seeds_combined_over(blocks: list[dict]) -> dict:
+    """The "seeds_combined" blocks of several data seeds (``trust_phase.seeds_combined``: a
+    data seed's seeds as one estimate, as ``rl2s evaluate --ckpt A --ckpt B`` gives it) pooled:
+    means of coverage, width_over_range and worst_flagged over the data seeds (one estimate
+    each; width None where one is), "data_seeds" the count, "seeds" each one's."""
+    mean = lambda k: (None if any(b.get(k) is None for b in blocks)  # noqa: E731
+                      else float(np.mean([b[k] for b in blocks])))
+    return {"coverage": mean("coverage"), "width_over_range": mean("width_over_range"),
+            "worst_flagged": mean("worst_flagged"), "data_seeds": len(blocks),
+            "seeds": [b.get("seeds") for b in blocks]}
 
 
 def data_seed_trust(result: dict, runs: list[dict]) -> None:
@@ -294,17 +311,30 @@ def data_seed_trust(result: dict, runs: list[dict]) -> None:
 TRUST_BARS = {"coverage": 0.85, "width_over_range": 0.25, "worst_flagged": 0.8}
 
 
+def combined_cell(c: dict | None) -> str:
+    """The table's cell of a pooled "seeds_combined" block: coverage and width / range against
+    issue 64's bars, "-" where the runs had none."""
+    if not c or c.get("coverage") is None:
+        return "-"
+    w = c.get("width_over_range")
+    cov_ok = " ✓" if c["coverage"] >= TRUST_BARS["coverage"] else " ✗"
+    w_ok = "" if w is None else (" ✓" if w <= TRUST_BARS["width_over_range"] else " ✗")
+    return (f"{c['coverage']:.3f}{cov_ok}, {'n/a' if w is None else f'{w:.3f}'}{w_ok}")
+
+
 def trust_rows(results: dict, tasks) -> list[str]:
     """The markdown table of the tasks' "trust" blocks (``pooled_trust`` or one data seed's):
     per task and method the coverage, width / range, the seed-spread interval scaled to the
     same coverage, the share of runs whose worst-error policy is flagged, each against issue
-    64's bar, and the data seeds' own coverages; no task has one: []."""
+    64's bar, the seeds as one estimate (``seeds_combined_over``; its bars too), and the data
+    seeds' own coverages; no task has one: []."""
     f = lambda x: "n/a" if x is None else f"{x:.3f}"
     mark = lambda ok: "" if ok is None else (" ✓" if ok else " ✗")
     lines = [f"| task | method | runs (data seeds) | coverage (>= {TRUST_BARS['coverage']}) | "
              f"width / range (<= {TRUST_BARS['width_over_range']}) | seed spread scaled to it | "
-             f"worst flagged (>= {TRUST_BARS['worst_flagged']}) | coverage per data seed |",
-             "|---|---|---:|---:|---:|---:|---:|---|"]
+             f"worst flagged (>= {TRUST_BARS['worst_flagged']}) | seeds as one: coverage, "
+             f"width / range | coverage per data seed |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---|"]
     for task in tasks:
         for m, b in ((results.get(task) or {}).get("trust") or {}).items():
             if not isinstance(b, dict) or "coverage" not in b:
@@ -321,5 +351,5 @@ def trust_rows(results: dict, tasks) -> list[str]:
                 f"{f(w)}{mark(None if w is None else w <= TRUST_BARS['width_over_range'])} | "
                 f"{f(sp)}{mark(b.get('narrower_than_seed_spread'))} | "
                 f"{f(b['worst_flagged'])}{mark(b['worst_flagged'] >= TRUST_BARS['worst_flagged'])}"
-                f" | {cov_per} |")
+                f" | {combined_cell(b.get('seeds_combined'))} | {cov_per} |")
     return lines if len(lines) > 2 else []

@@ -4,7 +4,7 @@ control (experiments/improve_control.py), each optional.
 
     python experiments/merge_results.py --task hopper [--paper P.json [--paper Q.json]]
         [--oracle O.json | --oracle-paper R.json] [--control C.json] [--out docs/results]
-        [--keep] [--data-seed-run P.json ...]
+        [--keep] [--data-seed-run P.json ...] [--evaluated-run E.json ...]
 
 --data-seed-run files go to by_data_seed only (``rl2s_jax.paper.data_seeds``); the trust
 block (issue 64) becomes the task's "trust", marked with its data seed, or pooled over the
@@ -42,6 +42,7 @@ from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.paper.data_seeds import (
     data_seed_of,
     data_seed_trust,
+    evaluated_trust,
     oracle_into_data_seed,
     record_data_seeds,
 )
@@ -253,6 +254,9 @@ def parse_args(argv) -> argparse.Namespace:
                     "first run of a data seed that has a method gives its numbers); their "
                     "trust blocks become the task's \"trust\" (pooled over data seeds) where "
                     "it has none of its own")
+    ap.add_argument("--evaluated-run", action="append", default=[], metavar="E.json",
+                    help="a repeat of a --data-seed-run with paper.py --trust-evaluated N: its "
+                    "lanes' evaluated sets become each method's trust \"evaluated\"")
     ap.add_argument("--guard-reading", metavar="G.json", help="experiments/interval_guard.py's "
                     "output: the floor and the interval guard on the task's recorded "
                     "improvement runs become its \"guard\" (issue 64 item 4)")
@@ -366,6 +370,7 @@ def main(argv=None) -> int:
         ds_runs = [_read(p) for p in args.data_seed_run]
         record_data_seeds(result, [*([result] if args.paper else []), *ds_runs])
         data_seed_trust(result, ds_runs)
+        evaluated_trust(result, ds_runs, [_read(p) for p in args.evaluated_run])
         if args.oracle:
             oracle_into_data_seed(result, _read(args.oracle))
     except ValueError as err:

@@ -205,6 +205,47 @@ def test_pooled_trust_over_data_seeds_against_numpy(tmp_path):
 
 
 
+def test_evaluated_run_pools_a_repeats_evaluated_sets(tmp_path):
+    """merge_results --evaluated-run: a repeat of a --data-seed-run (same test policies and
+    per-seed numbers) with --trust-evaluated lanes gives each method's trust "evaluated",
+    pooled over its lanes as trust_phase.method_evaluated pools them, naming its data seeds;
+    a run of other simulators or of a data seed with no --data-seed-run is refused."""
+    from rl2s_jax.paper.trust_phase import method_evaluated
+
+    t7, t23 = np.array([0.0, 50.0, 100.0]), np.array([10.0, 40.0, 210.0])
+    runs = [_trust_run(7, t7, np.tile(t7, (2, 1)), [1.0, 1.0], [1.0, 0.0]),
+            _trust_run(23, t23, np.tile(t23, (2, 1)), [1.0, 0.5], [1.0, 1.0])]
+    result = {"trust": dseeds.pooled_trust(runs)}
+    again = json.loads(json.dumps(runs[1]))
+    covs = [0.25, 0.75]
+    for lane, c in zip(sorted(again["lanes"]), covs, strict=True):
+        again["lanes"][lane]["trust"]["evaluated"] = {
+            "n": 4, "coverage": c, "width_over_range": 0.1 + c, "mean_width": 2.0,
+            "worst": {"flagged": c > 0.5}}
+    dseeds.evaluated_trust(result, runs, [again])
+    ev = result["trust"]["rl2s"]["evaluated"]
+    want = method_evaluated([again["lanes"][k]["trust"] for k in sorted(again["lanes"])])
+    assert ev == {**want, "data_seeds": [23]}
+    assert ev["coverage"] == pytest.approx(0.5) and ev["width_over_range"] == pytest.approx(0.6)
+    assert ev["worst_flagged"] == pytest.approx(0.5) and ev["runs"] == 2
+    other = json.loads(json.dumps(again))
+    other["per_seed"]["rl2s"]["kendall_tau"][0] = 0.1
+    with pytest.raises(ValueError, match="evaluated-run: per_seed: differs from the data seed 23"):
+        dseeds.evaluated_trust(result, runs, [other])
+    with pytest.raises(ValueError, match="no --data-seed-run of data seed 23"):
+        dseeds.evaluated_trust(result, runs[:1], [again])
+    mr = load_script("merge_results")
+    (tmp_path / "hopper.json").write_text(json.dumps({"task": "hopper", "per_seed": {}}))
+    paths = []
+    for name, r in (("r7", runs[0]), ("r23", runs[1]), ("e23", again)):
+        (tmp_path / f"{name}.json").write_text(json.dumps(r))
+        paths.append(str(tmp_path / f"{name}.json"))
+    assert mr.main(["--task", "hopper", "--keep", "--out", str(tmp_path), "--data-seed-run",
+                    paths[0], "--data-seed-run", paths[1], "--evaluated-run", paths[2]]) == 0
+    got = json.loads((tmp_path / "hopper.json").read_text())
+    assert got["trust"]["rl2s"]["evaluated"]["data_seeds"] == [23]
+
+
 def test_data_seed_entry_refuses_mixed_runs():
     a = _run(("rl2s",), ([0.5, 0.5],), ([1.0, 1.0],), 7)
     with pytest.raises(ValueError, match="data_seed: the runs are of different data seeds"):

@@ -307,6 +307,39 @@ def data_seed_trust(result: dict, runs: list[dict]) -> None:
         result["trust_calibration"] = {"by_data_seed": cals}
 
 
+def evaluated_trust(result: dict, runs: list[dict], evaluated: list[dict]) -> None:
+    """Issue 64 item 4 into ``result["trust"]`` (in place): each method's "evaluated" block
+    (``trust_phase.method_evaluated``) pooled over the lanes of the ``evaluated`` runs
+    (paper.py --trust-evaluated N), each a repeat of the --data-seed-run of its data seed in
+    ``runs``: the same test policies and per-seed method numbers, so its simulators are that
+    run's; "data_seeds" names the data seeds it covers. ValueError naming the field when a
+    run has no such twin."""
+    by_ds = {data_seed_of(r): r for r in runs}
+    lanes: dict[str, list] = {}
+    seeds: dict[str, set] = {}
+    for e in evaluated:
+        ds = data_seed_of(e)
+        twin = by_ds.get(ds)
+        if twin is None:
+            raise ValueError(f"evaluated-run: no --data-seed-run of data seed {ds} to repeat")
+        if e.get("task") != twin.get("task") or (e.get("test_policy_names")
+                                                 != twin.get("test_policy_names")):
+            raise ValueError(f"evaluated-run: task / test_policy_names: not those of the data "
+                             f"seed {ds} run")
+        own = {m: v for m, v in (e.get("per_seed") or {}).items() if m != "oracle"}
+        if not own or any(twin.get("per_seed", {}).get(m) != v for m, v in own.items()):
+            raise ValueError(f"evaluated-run: per_seed: differs from the data seed {ds} run's "
+                             f"(other simulators: rerun it as a repeat of that run)")
+        for m, ls in lane_trusts_by_method(e).items():
+            lanes.setdefault(m, []).extend(ls)
+            seeds.setdefault(m, set()).add(ds)
+    for m, ls in lanes.items():
+        ev = method_evaluated(ls)
+        block = (result.get("trust") or {}).get(m)
+        if ev is not None and isinstance(block, dict):
+            block["evaluated"] = {**tr.json_safe(ev), "data_seeds": sorted(seeds[m])}
+
+
 # issue 64's bars at level 0.9
 TRUST_BARS = {"coverage": 0.85, "width_over_range": 0.25, "worst_flagged": 0.8}
 

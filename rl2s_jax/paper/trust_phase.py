@@ -33,7 +33,6 @@ import json
 import math
 import os
 import time
-from itertools import pairwise
 
 import jax
 import jax.numpy as jnp
@@ -151,16 +150,14 @@ def lane_trust(feats: dict, cal_feats: dict, cal_truth, names, truth, level: flo
 
 def evaluated_report(feats: dict, cal_feats: dict, cal_truth, truth, level: float) -> dict:
     """One lane's report on the evaluated set (``combine_features`` of its N policies, their
-    true values truth [N]), intervals calibrated on the calibration policies as
-    ``lane_trust``'s. -> {"n", "q", "coverage", "mean_width", "width_over_range", "worst",
-    "sim_value" [N], "interval" [N, 2], "trusted" [N]} (raw floats)."""
-    cal = tr.calibrate(cal_feats, cal_truth, ["heldout"] * len(cal_truth), level)
-    t = tr.trust_report(feats, cal, [f"evaluated-{i}" for i in range(len(truth))], truth)
-    pol = t["policies"]
-    return {"n": len(truth), "q": cal["q"], "coverage": t["coverage"],
-            "mean_width": t["mean_width"], "width_over_range": t["width_over_range"],
-            "worst": t["worst"], "sim_value": [p["sim_value"] for p in pol],
-            "interval": [p["interval"] for p in pol], "trusted": [p["trusted"] for p in pol]}
+    true values truth [N]): ``lane_trust``'s, named "evaluated-<i>". -> {"n", "q", "coverage",
+    "mean_width", "width_over_range", "worst", "sim_value" [N], "interval" [N, 2],
+    "trusted" [N]} (raw floats)."""
+    rep = lane_trust(feats, cal_feats, cal_truth, [f"evaluated-{i}" for i in range(len(truth))],
+                     truth, level)
+    return {"n": len(truth), **{k: rep[k] for k in (
+        "q", "coverage", "mean_width", "width_over_range", "worst", "sim_value", "interval",
+        "trusted")}}
 
 
 def method_evaluated(lane_entries: list[dict]) -> dict | None:
@@ -279,22 +276,20 @@ def _stack(a, b):
     return jax.tree_util.tree_map(lambda x, y: jnp.concatenate([x, y]), a, b)
 
 
-def family_trust(lanes, states, *, policies, cuts: tuple, pool, u_data, roll: dict,
+def family_trust(lanes, states, *, policies, n_test: int, pool, u_data, roll: dict,
                  evaluated=None) -> list:
-    """Per lane of one family: its ``policy_features`` of ``policies`` (the test and
-    calibration policies stacked) split at the policy indices ``cuts``, and of the
-    ``evaluated`` policies (or None) in a rollout of their own (keys folded with 1): a tuple
-    of len(cuts) + 1 feature dicts (test, calibration) [+ the evaluated set's]. Their own
-    rollout leaves the test and calibration rollout the program it is without them: one
-    stacked rollout of more policies is another XLA program, whose rounding moved
-    HalfCheetah's elites-alone values (member_sd by a median 15-37%, GPU, data seed 23)."""
+    """Per lane of one family: (its test policies' ``policy_features``, the calibration
+    policies'), the first ``n_test`` of ``policies`` and the rest, [+ the ``evaluated``
+    policies' (or None) from a rollout of their own (keys folded with 1)]. Their own rollout
+    leaves the test and calibration rollout the program it is without them: one stacked
+    rollout of more policies is another XLA program, whose rounding moved HalfCheetah's
+    elites-alone values (member_sd by a median 6-37% per lane, GPU, data seed 23)."""
     sims = simulator(states)
     keys = jnp.stack([jax.random.PRNGKey(3000 + s) for _, s in lanes])
     u_units = tr.lane_data_disagreement(sims, u_data)
     feats = tr.lane_features(sims, policies, pool, keys, u_units, **roll)
-    bounds = (0, *cuts, None)
-    parts = [tuple({k: v[..., a:b] for k, v in f.items()} for a, b in pairwise(bounds))
-             for f in feats]
+    parts = [tuple({k: v[..., sl] for k, v in f.items()}
+                   for sl in (slice(None, n_test), slice(n_test, None))) for f in feats]
     if evaluated is None:
         return parts
     ev_keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(keys)
@@ -351,7 +346,7 @@ def run_trust(result: dict, finals: dict, *, task: str, train_ds, train_pols, te
     by_method: dict[str, list] = {}
     for family, (lanes, states) in finals.items():
         t0 = time.perf_counter()
-        per_lane = family_trust(lanes, states, policies=policies, cuts=(len(truth),),
+        per_lane = family_trust(lanes, states, policies=policies, n_test=len(truth),
                                 pool=start_pool(test_ds), u_data=train_ds, roll=roll,
                                 evaluated=ev_params)
         for (meth, s), (feats, cal_feats, *ev_feats) in zip(lanes, per_lane, strict=True):

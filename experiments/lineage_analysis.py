@@ -36,6 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from rl2s_jax._files import write_json  # noqa: E402
 from rl2s_jax.evaluate.ranking_swaps import lanes_of, lineage_split  # noqa: E402
 from rl2s_jax.paper.data_seeds import data_seed_of  # noqa: E402
+from rl2s_jax.stats import mean_or_none  # noqa: E402
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids  # noqa: E402
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -77,8 +78,7 @@ def same_truth(results: list[dict], data_seed: int) -> np.ndarray:
 def mean_over_lanes(splits: list[dict]) -> dict:
     """``lineage_split``'s numbers averaged over a method's lanes (None where a lane has
     None), with "lanes"."""
-    return {k: None if any(x[k] is None for x in splits) else float(np.mean([x[k] for x in splits]))
-            for k in splits[0]} | {"lanes": len(splits)}
+    return {k: mean_or_none(x[k] for x in splits) for k in splits[0]} | {"lanes": len(splits)}
 
 
 def analyse(results: list[dict], oracles: dict, methods=METHODS) -> dict:

@@ -17,6 +17,7 @@ __all__ = [
     "bootstrap_intervals",
     "improvement_intervals",
     "mean_per_unit",
+    "mean_or_none",
     "median_ci95",
     "paired_gain",
     "paired_gain_difference",
@@ -42,6 +43,13 @@ def t_interval(values, level: float = 0.95) -> tuple[float, float, float] | None
     half = float(student_t.ppf(0.5 + level / 2, x.size - 1)) * float(x.std(ddof=1)) / math.sqrt(
         x.size)
     return mid, mid - half, mid + half
+
+
+def mean_or_none(values) -> float | None:
+    """The mean of ``values`` as a float, or None where any of them is None (a quantity some
+    run could not give, e.g. the width of an unbounded interval)."""
+    v = list(values)
+    return None if any(x is None for x in v) else float(np.mean(v))
 
 
 def mean_per_unit(values) -> tuple[np.ndarray, list]:

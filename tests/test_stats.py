@@ -201,3 +201,12 @@ def test_rank_sum_p_matches_exact_enumeration():
     assert abs(rank_sum_p(x, y) - exact) < 0.02
     assert rank_sum_p(x, y) < rank_sum_p(y, x)
     assert rank_sum_p(np.ones(3), np.ones(4)) == 1.0  # all tied: no evidence
+
+
+def test_mean_or_none():
+    """The mean as a float; None as soon as one value is None (an unbounded width)."""
+    from rl2s_jax.stats import mean_or_none
+
+    assert mean_or_none([0.1, 0.2, 0.6]) == pytest.approx(0.3)
+    assert isinstance(mean_or_none(iter([1, 2])), float)
+    assert mean_or_none([0.1, None, 0.6]) is None

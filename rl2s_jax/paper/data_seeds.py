@@ -12,7 +12,7 @@ import numpy as np
 
 from rl2s_jax.evaluate import trust as tr
 from rl2s_jax.paper.trust_phase import lane_trusts_by_method, method_evaluated
-from rl2s_jax.stats import t_interval
+from rl2s_jax.stats import mean_or_none, t_interval
 
 BY_DATA_SEED_METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
 
@@ -228,8 +228,7 @@ def pooled_trust(runs: list[dict]) -> dict:
         every = [t for ls in lanes.values() for t in ls]
         level = every[0]["level"]
         cov = float(np.mean([t["coverage"] for t in every]))
-        wor = [t["width_over_range"] for t in every]
-        wor = None if any(w is None for w in wor) else float(np.mean(wor))
+        wor = mean_or_none(t["width_over_range"] for t in every)
         v, sd, truth = [], [], []
         for ds, ls in lanes.items():
             t = np.asarray(by_ds[ds]["true_value"], np.float64)
@@ -269,8 +268,7 @@ def seeds_combined_over(blocks: list[dict]) -> dict:
     data seed's seeds as one estimate, as ``rl2s evaluate --ckpt A --ckpt B`` gives it) pooled:
     means of coverage, width_over_range and worst_flagged over the data seeds (one estimate
     each; width None where one is), "data_seeds" the count, "seeds" each one's."""
-    mean = lambda k: (None if any(b.get(k) is None for b in blocks)  # noqa: E731
-                      else float(np.mean([b[k] for b in blocks])))
+    mean = lambda k: mean_or_none(b.get(k) for b in blocks)  # noqa: E731
     return {"coverage": mean("coverage"), "width_over_range": mean("width_over_range"),
             "worst_flagged": mean("worst_flagged"), "data_seeds": len(blocks),
             "seeds": [b.get("seeds") for b in blocks]}

@@ -46,6 +46,7 @@ from rl2s_jax.improve import gain_intervals as gi
 from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.model.simulator import start_pool
 from rl2s_jax.paper.protocol import log
+from rl2s_jax.stats import mean_or_none
 from rl2s_jax.train.step import simulator
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids, policies_for
 
@@ -171,10 +172,7 @@ def method_evaluated(lane_entries: list[dict]) -> dict | None:
     if len({r["n"] for r in reps}) > 1:
         return {"skipped": f"the lanes evaluated sets of {sorted({r['n'] for r in reps})} "
                            f"policies"}
-
-    def mean(key):
-        v = [r[key] for r in reps]
-        return None if any(x is None for x in v) else float(np.mean(v))
+    mean = lambda key: mean_or_none(r[key] for r in reps)  # noqa: E731
     return {"n": reps[0]["n"], "coverage": mean("coverage"),
             "width_over_range": mean("width_over_range"), "mean_width": mean("mean_width"),
             "worst_flagged": float(np.mean([r["worst"]["flagged"] for r in reps])),
@@ -213,8 +211,7 @@ def method_block(runs: list[dict], values, truth, level: float, command: str) ->
     means over runs of coverage and width_over_range, worst_flagged (share of runs whose
     largest-|error| test policy is flagged), and the seed-spread comparison."""
     cov = float(np.mean([r["coverage"] for r in runs]))
-    wor = [r["width_over_range"] for r in runs]
-    wor = float(np.mean(wor)) if all(w is not None for w in wor) else None
+    wor = mean_or_none(r["width_over_range"] for r in runs)
     spread = seed_spread(values, truth, level, cov)
     return {"level": level, "coverage": cov, "width_over_range": wor,
             "worst_flagged": float(np.mean([r["worst"]["flagged"] for r in runs])),

@@ -342,15 +342,23 @@ def evaluated_trust(result: dict, runs: list[dict], evaluated: list[dict]) -> No
 TRUST_BARS = {"coverage": 0.85, "width_over_range": 0.25, "worst_flagged": 0.8}
 
 
+def _num(x) -> str:
+    return "n/a" if x is None else f"{x:.3f}"
+
+
+def _cell(x, ok: bool | None = None) -> str:
+    """A value and its bar's mark: " ✓" met, " ✗" missed, none where there is no judging."""
+    return _num(x) + ("" if ok is None else (" ✓" if ok else " ✗"))
+
+
 def combined_cell(c: dict | None) -> str:
     """The table's cell of a pooled "seeds_combined" block: coverage and width / range against
     issue 64's bars, "-" where the runs had none."""
     if not c or c.get("coverage") is None:
         return "-"
     w = c.get("width_over_range")
-    cov_ok = " ✓" if c["coverage"] >= TRUST_BARS["coverage"] else " ✗"
-    w_ok = "" if w is None else (" ✓" if w <= TRUST_BARS["width_over_range"] else " ✗")
-    return (f"{c['coverage']:.3f}{cov_ok}, {'n/a' if w is None else f'{w:.3f}'}{w_ok}")
+    return (f"{_cell(c['coverage'], c['coverage'] >= TRUST_BARS['coverage'])}, "
+            f"{_cell(w, None if w is None else w <= TRUST_BARS['width_over_range'])}")
 
 
 def trust_rows(results: dict, tasks) -> list[str]:
@@ -359,8 +367,6 @@ def trust_rows(results: dict, tasks) -> list[str]:
     same coverage, the share of runs whose worst-error policy is flagged, each against issue
     64's bar, the seeds as one estimate (``seeds_combined_over``; its bars too), and the data
     seeds' own coverages; no task has one: []."""
-    f = lambda x: "n/a" if x is None else f"{x:.3f}"
-    mark = lambda ok: "" if ok is None else (" ✓" if ok else " ✗")
     lines = [f"| task | method | runs (data seeds) | coverage (>= {TRUST_BARS['coverage']}) | "
              f"width / range (<= {TRUST_BARS['width_over_range']}) | seed spread scaled to it | "
              f"worst flagged (>= {TRUST_BARS['worst_flagged']}) | seeds as one: coverage, "
@@ -374,13 +380,13 @@ def trust_rows(results: dict, tasks) -> list[str]:
             per = b.get("by_data_seed") or {}
             sp = (b.get("seed_spread") or {}).get("scaled_width_over_range")
             w = b.get("width_over_range")
-            cov_per = "; ".join(f"{d}: {f(e.get('coverage'))}"
+            cov_per = "; ".join(f"{d}: {_num(e.get('coverage'))}"
                                 for d, e in sorted(per.items(), key=lambda kv: int(kv[0])))
             lines.append(
                 f"| {task} | {m} | {b['runs']} ({', '.join(map(str, seeds))}) | "
-                f"{f(b['coverage'])}{mark(b['coverage'] >= TRUST_BARS['coverage'])} | "
-                f"{f(w)}{mark(None if w is None else w <= TRUST_BARS['width_over_range'])} | "
-                f"{f(sp)}{mark(b.get('narrower_than_seed_spread'))} | "
-                f"{f(b['worst_flagged'])}{mark(b['worst_flagged'] >= TRUST_BARS['worst_flagged'])}"
+                f"{_cell(b['coverage'], b['coverage'] >= TRUST_BARS['coverage'])} | "
+                f"{_cell(w, None if w is None else w <= TRUST_BARS['width_over_range'])} | "
+                f"{_cell(sp, b.get('narrower_than_seed_spread'))} | "
+                f"{_cell(b['worst_flagged'], b['worst_flagged'] >= TRUST_BARS['worst_flagged'])}"
                 f" | {combined_cell(b.get('seeds_combined'))} | {cov_per} |")
     return lines if len(lines) > 2 else []

@@ -20,7 +20,8 @@ seen policies against the pairs touching an unseen one (``ranking_swaps.lineage_
 Results of one task; several per data seed are joined as ranking_analysis.py joins them (a
 method's lanes from the first file that has them). The oracle's per-policy values come from a
 result's ``oracle_sim_value`` (paper.py run with the oracle) or an ``oracle_check.py
---data-seed`` file (``--oracle``, matched by data seed; policies matched by name).
+--data-seed`` file (``--oracle``, matched by data seed, its ``oracle_row``; policies matched
+by name).
 """
 from __future__ import annotations
 
@@ -35,7 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from rl2s_jax._files import write_json  # noqa: E402
 from rl2s_jax.evaluate.ranking_swaps import lanes_of, lineage_split  # noqa: E402
-from rl2s_jax.paper.data_seeds import data_seed_of  # noqa: E402
+from rl2s_jax.paper.data_seeds import data_seed_of, oracle_row  # noqa: E402
 from rl2s_jax.stats import mean_or_none  # noqa: E402
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids  # noqa: E402
 
@@ -56,7 +57,7 @@ def oracle_values(results: list[dict], oracles: dict, data_seed: int, names) -> 
     if sorted(theirs) != sorted(names):
         raise ValueError(f"--oracle (data seed {data_seed}): policy_names: expected the "
                          f"result's {len(names)} test policies, got {len(theirs)} others")
-    v = o["rows"][0]["oracle_value"]
+    v = oracle_row(o)["oracle_value"]
     return [[v[theirs.index(n)] for n in names]]
 
 

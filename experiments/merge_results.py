@@ -44,6 +44,7 @@ from rl2s_jax.paper.data_seeds import (
     data_seed_trust,
     evaluated_trust,
     oracle_into_data_seed,
+    oracle_row,
     record_data_seeds,
 )
 from rl2s_jax.paper.protocol import summarise
@@ -306,7 +307,7 @@ def attach_oracle(result: dict, orc: dict, own_rows: bool) -> None:
         return  # another data seed's (or test split's) oracle: its by_data_seed entry only
     if "oracle" in result.get("per_seed", {}):
         return
-    row = max(orc["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
+    row = oracle_row(orc)
     result["per_seed"]["oracle"] = {k: [v] for k, v in row["metrics"].items()}
     result.setdefault("intervals", {})["oracle"] = (row.get("intervals") or {}).get(
         "metrics", {})

@@ -77,6 +77,7 @@ from rl2s_jax.paper.data_seeds import (  # noqa: E402
     ORACLE_MARGIN,
     ORACLE_MARGIN_DEFAULT,
     data_seed_of,
+    oracle_row,
 )
 
 METHODS = ("rl2s", "gail", "bc", "rl2s-bc")
@@ -173,7 +174,7 @@ def oracle_entry(oracle: dict, where: str, a: dict, se) -> dict:
     ceiling, issue 66's bar (RL2S's tau - the oracle's, against the task's margin) and, where
     the row has its ``oracle_value``, its own swaps as one lane (``method_analysis``: tau
     lost within noise / to real swaps, tau without each policy) against the same truth."""
-    row = max(oracle["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
+    row = oracle_row(oracle)
     tau, margin = float(row["metrics"]["kendall_tau"]), ORACLE_MARGIN.get(
         a["task"], ORACLE_MARGIN_DEFAULT)
     rl2s = a["methods"].get("rl2s")

@@ -71,7 +71,9 @@ def test_lineage_analysis_script(tmp_path, capsys):
                  oracle_sim_value=[[1.0, 4.0, 2.0, 3.0]])
     order = [3, 0, 1, 2]
     oracle0 = {"data_seed": 0, "policy_names": [names[i] for i in order],
-               "rows": [{"oracle_value": [float(v) for v in np.array(b)[order]]}]}
+               "rows": [{"horizon": 1000, "n_episodes": 64,  # oracle_row: the most episodes
+                         "oracle_value": [float(v) for v in np.array(b)[order]]},
+                        {"horizon": 1000, "n_episodes": 16, "oracle_value": [4.0, 3.0, 2.0, 1.0]}]}
     out = mod.analyse([r0, r7], {0: oracle0}, ("rl2s",))
     seen = np.array([True, False, True, True])
     want = [lineage_split(truth, s, seen) for s in (a, b)]

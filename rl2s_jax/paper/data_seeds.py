@@ -110,6 +110,12 @@ def record_data_seeds(result: dict, runs: list[dict]) -> None:
     result["by_data_seed"] = {k: table[k] for k in sorted(table, key=int)}
 
 
+def oracle_row(orc: dict) -> dict:
+    """oracle_check.py's row at the longest horizon with the most episodes: the one the task
+    JSONs, their tables and the analyses read."""
+    return max(orc["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
+
+
 def oracle_into_data_seed(result: dict, orc: dict) -> None:
     """oracle_check.py's output of a data seed (``data_seed``, run with --data-seed) into that
     seed's by_data_seed entry: its tau at the longest horizon with the most episodes and its
@@ -124,7 +130,7 @@ def oracle_into_data_seed(result: dict, orc: dict) -> None:
     if list(orc.get("policy_names") or []) != entry["test_policy_names"]:
         raise ValueError(f"oracle: its policies differ from data seed {orc['data_seed']}'s "
                          f"test policies")
-    row = max(orc["rows"], key=lambda r: (r["horizon"], r["n_episodes"]))
+    row = oracle_row(orc)
     entry["oracle"] = {"kendall_tau": row["metrics"]["kendall_tau"], "seeds": 1,
                        "command": orc.get("command")}
     if row.get("noise_ceiling"):

@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from rl2s_jax._files import write_json  # noqa: E402
 from rl2s_jax.evaluate.ranking_swaps import lanes_of, lineage_split  # noqa: E402
-from rl2s_jax.paper.data_seeds import data_seed_of, oracle_row  # noqa: E402
+from rl2s_jax.paper.data_seeds import group_by_data_seed, oracle_row  # noqa: E402
 from rl2s_jax.stats import mean_or_none  # noqa: E402
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids  # noqa: E402
 
@@ -85,15 +85,10 @@ def mean_over_lanes(splits: list[dict]) -> dict:
 def analyse(results: list[dict], oracles: dict, methods=METHODS) -> dict:
     """{data seed: {"seen": [P] bool, "n_unseen", "methods": {method or "oracle": means over
     its lanes of ``lineage_split``'s numbers, "lanes"}}} for the results of one task."""
-    tasks = {r["task"] for r in results}
-    if len(tasks) != 1:
-        raise ValueError(f"task: expected the results of one task, got {sorted(tasks)}")
-    zoo = load_zoo(tasks.pop())
-    groups: dict[int, list[dict]] = {}
-    for r in results:
-        groups.setdefault(data_seed_of(r), []).append(r)
+    groups = group_by_data_seed(results)
+    zoo = load_zoo(results[0]["task"])
     out = {}
-    for ds, rs in sorted(groups.items()):
+    for ds, rs in groups.items():
         names = rs[0]["test_policy_names"]
         if any(r["test_policy_names"] != names for r in rs):
             raise ValueError(f"test_policy_names: the data seed {ds} results test other policies")

@@ -77,6 +77,7 @@ from rl2s_jax.paper.data_seeds import (  # noqa: E402
     ORACLE_MARGIN,
     ORACLE_MARGIN_DEFAULT,
     data_seed_of,
+    group_by_data_seed,
     oracle_row,
 )
 
@@ -221,16 +222,6 @@ def analyse_seed(results: list[dict], methods=METHODS, n_rep: int = 2000,
             "commands": [r.get("command") for r in results]}
     a["oracle"] = oracle and oracle_entry(oracle, oracle_path, a, se)
     return a
-
-
-def group_by_data_seed(results: list[dict]) -> dict[int, list[dict]]:
-    groups: dict[int, list[dict]] = {}
-    for r in results:
-        groups.setdefault(data_seed_of(r), []).append(r)
-    tasks = {r.get("task") for r in results}
-    if len(tasks) > 1:
-        raise ValueError(f"task: expected the results of one task, got {sorted(tasks)}")
-    return dict(sorted(groups.items()))
 
 
 def report(a: dict) -> str:

@@ -676,3 +676,12 @@ def test_guard_reading_recorded_and_tabled(tmp_path):
     (tmp_path / "g.json").write_text(json.dumps({**reading, "task": "ant"}))
     with pytest.raises(SystemExit, match="guard-reading: expected interval_guard.py's output"):
         mr.main(args)
+
+
+def test_group_by_data_seed():
+    """Results by data seed in data seed order; results of two tasks refused naming "task"."""
+    a, b, c = ({"task": "ant", "data_seed": d} for d in (23, 0, 23))
+    assert dseeds.group_by_data_seed([a, b, c]) == {0: [b], 23: [a, c]}
+    assert list(dseeds.group_by_data_seed([a, b])) == [0, 23]
+    with pytest.raises(ValueError, match="task: expected the results of one task"):
+        dseeds.group_by_data_seed([a, {"task": "hopper", "data_seed": 0}])

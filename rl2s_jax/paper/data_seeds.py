@@ -37,6 +37,18 @@ def _mean_over_seeds(per_seed: dict, key: str) -> float | None:
     return float(np.mean(vals)) if vals else None
 
 
+def group_by_data_seed(results: list[dict]) -> dict[int, list[dict]]:
+    """paper.py results of one task by data seed (``data_seed_of``), in data seed order.
+    ValueError naming "task" when they are of several tasks."""
+    tasks = {r.get("task") for r in results}
+    if len(tasks) > 1:
+        raise ValueError(f"task: expected the results of one task, got {sorted(map(str, tasks))}")
+    groups: dict[int, list[dict]] = {}
+    for r in results:
+        groups.setdefault(data_seed_of(r), []).append(r)
+    return dict(sorted(groups.items()))
+
+
 def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
     """One data seed's row of ``by_data_seed`` from paper.py results of that data seed (other
     families, reruns): per method of BY_DATA_SEED_METHODS its Kendall tau and MVD, the means

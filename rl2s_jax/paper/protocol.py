@@ -93,6 +93,7 @@ TASK_SIZES = {"gpu": {"ant": dict(value_episodes=256, eval_episodes=256),
 # --policy-split: the zoo's train / test split, or its training policies split again
 POLICY_SPLITS = ("zoo", "validation", "lineage")
 
+
 def profile_sizes(profile: str, task: str) -> dict:
     """A profile's sizes with the task's changes (TASK_SIZES) applied."""
     return {**PROFILES[profile], **TASK_SIZES.get(profile, {}).get(task, {})}
@@ -174,17 +175,11 @@ def load_or_collect(task: str, sizes: dict, data_dir: str, seed: int,
                                  episode_length=episode_length, progress=progress, timer=timer)
     with timed(timer, "split_save"):
         zoo = load_zoo(task)
-        all_ids = list(everything.meta["source"]["zoo_ids"])
         os.makedirs(data_dir, exist_ok=True)
         out = {}
         for split, path in paths.items():
-            ids = zoo.split_ids(split)
-            part = everything.select_policies([all_ids.index(i) for i in ids])
-            # policies_for() finds a Dataset's policies through meta.source.zoo_ids.
-            part.meta["source"] = {**part.meta["source"], "split": split,
-                                   "zoo_ids": [int(i) for i in ids]}
-            save_dataset(path, part)
-            out[split] = part
+            out[split] = zoo_split_part(everything, zoo, split)
+            save_dataset(path, out[split])
         write_json(key_path, data_key, indent=None)
     return out, False
 
@@ -195,16 +190,21 @@ def validation_datasets(train, zoo, policy_split: str = "validation") -> dict:
     "lineage": "lineage-fit" / "lineage-validation", one learner lineage held out), each with
     its zoo ids in ``meta["source"]``, so that a recipe is chosen on policies the simulators
     never saw without touching the test policies."""
-    ids = [int(i) for i in train.meta["source"]["zoo_ids"]]
     prefix = "lineage-" if policy_split == "lineage" else ""
-    out = {}
-    for split, name in (("train", f"{prefix}fit"), ("test", f"{prefix}validation")):
-        want = zoo.split_ids(name)
-        part = train.select_policies([ids.index(i) for i in want])
-        part.meta["source"] = {**part.meta["source"], "split": name,
-                               "zoo_ids": [int(i) for i in want]}
-        out[split] = part
-    return out
+    return {split: zoo_split_part(train, zoo, f"{prefix}{name}")
+            for split, name in (("train", "fit"), ("test", "validation"))}
+
+
+def zoo_split_part(ds, zoo, split: str):
+    """The policies of the zoo's ``split`` (``Zoo.split_ids``) out of ``ds``, found through its
+    ``meta["source"]["zoo_ids"]``, with that split and its zoo ids in the part's
+    ``meta["source"]`` (how ``policies_for`` finds a Dataset's policies)."""
+    ids = [int(i) for i in ds.meta["source"]["zoo_ids"]]
+    want = zoo.split_ids(split)
+    part = ds.select_policies([ids.index(i) for i in want])
+    part.meta["source"] = {**part.meta["source"], "split": split,
+                           "zoo_ids": [int(i) for i in want]}
+    return part
 
 
 def zoo_sha256(task: str) -> str | None:

@@ -27,6 +27,13 @@ from rl2s_jax.evaluate.metrics import kendall_tau, spearman
 TRUST_FIELDS = ("support", "member_sd", "sim_value", "trusted")
 
 
+def discordant_pairs(truth: np.ndarray, sim: np.ndarray):
+    """Every pair i < j of P policies (``np.triu_indices``) and whether the simulator orders it
+    against the truth (a tie on either side is no swap). -> (i [N], j [N], discordant [N])."""
+    i, j = np.triu_indices(truth.size, k=1)
+    return i, j, np.sign(truth[i] - truth[j]) * np.sign(sim[i] - sim[j]) < 0
+
+
 def swaps(truth, se, sim) -> dict:
     """The discordant pairs of one simulator: truth, se, sim [P]. -> {"pairs": N, "tau",
     "noise": [(i, j)] swaps within the truth's noise, "real": [(i, j)] the others,
@@ -37,8 +44,7 @@ def swaps(truth, se, sim) -> dict:
                          f"{e.shape}, {s.shape}")
     if not (np.all(np.isfinite(t)) and np.all(np.isfinite(s)) and np.all(e >= 0)):
         raise ValueError("truth, se, sim: expected finite values and se >= 0")
-    i, j = np.triu_indices(t.size, k=1)
-    discordant = np.sign(t[i] - t[j]) * np.sign(s[i] - s[j]) < 0
+    i, j, discordant = discordant_pairs(t, s)
     within = np.abs(t[i] - t[j]) < 2.0 * np.sqrt(e[i] ** 2 + e[j] ** 2)
     n = i.size
     noise = [(int(a), int(b)) for a, b in zip(i[discordant & within], j[discordant & within],
@@ -60,8 +66,7 @@ def lineage_split(truth, sim, seen) -> dict:
     if not (t.shape == s.shape == m.shape and t.ndim == 1 and t.size >= 2):
         raise ValueError(f"truth, sim, seen: expected equal shapes [P >= 2], got {t.shape}, "
                          f"{s.shape}, {m.shape}")
-    i, j = np.triu_indices(t.size, k=1)
-    discordant = np.sign(t[i] - t[j]) * np.sign(s[i] - s[j]) < 0
+    i, j, discordant = discordant_pairs(t, s)
     both = m[i] & m[j]
     rate = lambda k, n: float(k / n) if n else None
     out = {"tau": kendall_tau(t, s),

@@ -271,7 +271,7 @@ def pooled_trust(runs: list[dict]) -> dict:
             "by_data_seed": {str(ds): {k: (r.get("trust") or {}).get(m, {}).get(k) for k in
                                        ("coverage", "width_over_range", "worst_flagged", "runs")}
                              for ds, r in by_ds.items()}})
-        evaluated = method_evaluated(every)  # --trust-evaluated's sets, where every run has one
+        evaluated = method_evaluated(every)  # --trust-evaluated's sets, over the lanes with one
         if evaluated is not None:
             out[m]["evaluated"] = tr.json_safe(evaluated)
         combined = [((r.get("trust") or {}).get(m) or {}).get("seeds_combined")

@@ -94,7 +94,8 @@ def analyse(results: list[dict], oracles: dict, methods=METHODS) -> dict:
             raise ValueError(f"test_policy_names: the data seed {ds} results test other policies")
         seen = np.array(zoo.seen_lineage(names_to_zoo_ids(names)))
         truth = same_truth(rs, ds)
-        lanes = {m: [ln["sim_value"] for ln in ls] for m, ls in lanes_of(rs, methods).items()}
+        of = lanes_of(rs, methods)
+        lanes = {m: [ln["sim_value"] for ln in ls] for m, ls in of.items()}
         orc = oracle_values(rs, oracles, ds, names)
         if orc is not None:
             lanes["oracle"] = orc
@@ -103,8 +104,56 @@ def analyse(results: list[dict], oracles: dict, methods=METHODS) -> dict:
             per[m] = mean_over_lanes([lineage_split(truth, s, seen) for s in sims])
         out[ds] = {"seen": seen.tolist(), "n_unseen": int((~seen).sum()),
                    "unseen": [n for n, ok in zip(names, seen, strict=True) if not ok],
-                   "methods": per}
+                   "methods": per,
+                   "intervals": {m: iv for m, ls in of.items()
+                                 if (iv := interval_cells(ls, truth, seen)) is not None}}
     return out
+
+
+def interval_cells(lanes: list[dict], truth, seen) -> dict | None:
+    """Issue 64's intervals of a method's lanes by lineage: per (lane, policy) of the seen and
+    of the unseen-lineage policies, whether its interval covers the truth, its width and
+    |trust sim_value - truth| over the range of the truths, and its "trusted" flag (an
+    unbounded end: infinite width). None unless every lane has intervals."""
+    t = np.asarray(truth, np.float64)
+    rng = float(np.ptp(t))
+    out = {k: {"covered": [], "width": [], "error": [], "flagged": []} for k in ("seen", "unseen")}
+    for ln in lanes:
+        tr = ln.get("trust") or {}
+        if "interval" not in tr:
+            return None
+        lo, hi = (np.array([-np.inf if iv[0] is None else iv[0] for iv in tr["interval"]]),
+                  np.array([np.inf if iv[1] is None else iv[1] for iv in tr["interval"]]))
+        cells = {"covered": (t >= lo) & (t <= hi), "width": (hi - lo) / rng,
+                 "error": np.abs(np.asarray(tr["sim_value"]) - t) / rng,
+                 "flagged": ~np.asarray(tr["trusted"], bool)}
+        for k, mask in (("seen", seen), ("unseen", ~seen)):
+            for name, v in cells.items():
+                out[k][name] += np.asarray(v)[mask].tolist()
+    return out
+
+
+def pooled_interval_lines(analyses: dict) -> list[str]:
+    """Per method, its ``interval_cells`` over every data seed with intervals, seen / unseen:
+    coverage, median width / range, share flagged, mean error / range."""
+    by_m: dict[str, dict] = {}
+    for e in analyses.values():
+        for m, iv in e.get("intervals", {}).items():
+            acc = by_m.setdefault(m, {k: {n: [] for n in iv[k]} for k in iv})
+            for k in iv:
+                for n, v in iv[k].items():
+                    acc[k][n] += v
+    lines = []
+    for m, iv in by_m.items():
+        if not iv["unseen"]["covered"]:
+            continue
+        cell = lambda fn, n: " / ".join(f"{fn(iv[k][n]):.3f}" for k in ("seen", "unseen"))  # noqa
+        lines.append(f"  {m:8s} coverage {cell(np.mean, 'covered')} | median width / range "
+                     f"{cell(np.median, 'width')} | flagged {cell(np.mean, 'flagged')} | "
+                     f"error / range {cell(np.mean, 'error')} (n {len(iv['seen']['covered'])} / "
+                     f"{len(iv['unseen']['covered'])})")
+    return ["intervals over the data seeds with them, seen / unseen lineage:", *lines] if lines \
+        else []
 
 
 def report(task: str, a: dict) -> str:
@@ -123,7 +172,7 @@ def report(task: str, a: dict) -> str:
                    f"   seen: {r['tau_seen'] - orc['tau_seen']:+.3f} vs the oracle")
             lines.append(f"  {m:8s} {r['lanes']:5d}  {f(r['tau'])}  {f(r['tau_seen'])}      "
                          f"{f(r['swap_rate_seen'])} / {f(r['swap_rate_touching'])}{bar}")
-    return "\n".join(lines)
+    return "\n".join(lines + pooled_interval_lines(a))
 
 
 def main(argv=None) -> int:

@@ -98,3 +98,25 @@ def test_lineage_analysis_script(tmp_path, capsys):
     path.write_text(json.dumps(r7))
     assert mod.main([str(path), "--json", str(tmp_path / "a.json")]) == 0
     assert json.loads((tmp_path / "a.json").read_text())["7"]["n_unseen"] == 1
+
+
+def test_lineage_analysis_reads_the_intervals_by_lineage():
+    """interval_cells: per (lane, policy), seen and unseen apart, covered / width / error over
+    the truth's range and the flag, an unbounded end an infinite width; None for lanes without
+    intervals; pooled_interval_lines pools them over data seeds."""
+    mod = load_script("lineage_analysis")
+    truth = np.array([0.0, 10.0, 20.0])
+    seen = np.array([True, False, True])
+    lane = {"trust": {"interval": [[-1.0, 1.0], [None, 30.0], [21.0, 23.0]],
+                      "sim_value": [0.5, 14.0, 22.0], "trusted": [True, False, True]}}
+    c = mod.interval_cells([lane, lane], truth, seen)
+    assert c["seen"]["covered"] == [True, False, True, False]
+    assert c["seen"]["width"] == pytest.approx([0.1, 0.1, 0.1, 0.1])
+    assert c["seen"]["error"] == pytest.approx([0.025, 0.1, 0.025, 0.1])
+    assert c["unseen"] == {"covered": [True, True], "width": [np.inf, np.inf],
+                           "error": pytest.approx([0.2, 0.2]), "flagged": [True, True]}
+    assert mod.interval_cells([lane, {"trust": {"skipped": "x"}}], truth, seen) is None
+    lines = mod.pooled_interval_lines({7: {"intervals": {"rl2s": c}}, 23: {"intervals": {
+        "rl2s": c}}})
+    assert lines[1].startswith("  rl2s     coverage 0.500 / 1.000 | median width / range "
+                               "0.100 / inf | flagged 0.000 / 1.000") and "(n 8 / 4)" in lines[1]

@@ -90,6 +90,14 @@ def test_merge_results_records_each_data_seed(tmp_path):
     got = json.loads((out / "hopper.json").read_text())
     assert got["by_data_seed"]["7"]["oracle"]["kendall_tau"] == 0.95
     assert "oracle" not in got["per_seed"]  # the task's rows are data seed 23's run
+    # data seed 7 recorded again (a repeat run): its methods replaced, its oracle kept
+    adv7b = _run(("rl2s",), ([0.2, 0.4],), ([1.0, 1.0],), 7)
+    (tmp_path / "adv7b.json").write_text(json.dumps(adv7b))
+    assert mr.main(["--task", "hopper", "--keep", "--out", str(out), "--data-seed-run",
+                    str(tmp_path / "adv7b.json")]) == 0
+    again = json.loads((out / "hopper.json").read_text())["by_data_seed"]["7"]
+    assert again["rl2s"]["kendall_tau"] == pytest.approx(0.3) and "gail" not in again
+    assert again["oracle"] == got["by_data_seed"]["7"]["oracle"]
     # another test split is refused, naming the field
     other = _run(("rl2s",), ([0.5, 0.5],), ([1.0, 1.0],), 5, names=["p0", "p1", "q9"])
     (tmp_path / "other.json").write_text(json.dumps(other))

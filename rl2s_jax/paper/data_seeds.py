@@ -106,8 +106,11 @@ def data_seed_entry(runs: list[dict]) -> tuple[int, dict]:
 def record_data_seeds(result: dict, runs: list[dict]) -> None:
     """Add the runs to ``result["by_data_seed"]`` (in place), one entry per data seed (the
     runs of one data seed in the given order: a method's numbers come from the first that has
-    it), replacing an earlier entry of that data seed. ValueError when a data seed's test
-    policies differ from the other entries' (a ranking is compared on one test split)."""
+    it), replacing an earlier entry of that data seed but keeping its oracle and noise ceiling
+    where the new runs measured none (they come from oracle_check.py --data-seed or another
+    run of the same test split, and a rerun of that data seed leaves them true). ValueError
+    when a data seed's test policies differ from the other entries' (a ranking is compared on
+    one test split)."""
     groups: dict[int, list[dict]] = {}
     for r in runs:
         groups.setdefault(data_seed_of(r), []).append(r)
@@ -118,6 +121,10 @@ def record_data_seeds(result: dict, runs: list[dict]) -> None:
             if other != str(ds) and e.get("test_policy_names") != entry["test_policy_names"]:
                 raise ValueError(f"by_data_seed: data seed {ds} has other test policies than "
                                  f"data seed {other}'s entry")
+        earlier = table.get(str(ds)) or {}
+        if earlier.get("test_policy_names") == entry["test_policy_names"]:
+            entry.update({k: earlier[k] for k in ("oracle", "noise_ceiling")
+                          if k in earlier and k not in entry})
         table[str(ds)] = entry
     result["by_data_seed"] = {k: table[k] for k in sorted(table, key=int)}
 

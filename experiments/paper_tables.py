@@ -199,10 +199,12 @@ def trust_section(results: dict) -> list[str]:
         "the plain seed-spread interval's width once scaled WITH the truth to the same "
         "coverage (✓: the conformal interval is narrower), the share of runs whose "
         "largest-error policy is flagged untrusted, and a data seed's 3 seeds as one "
-        "estimate (`rl2s evaluate --ckpt A --ckpt B --ckpt C`; mean over the data seeds). "
-        "Issue 64's bars beside each (✓ / ✗). "
-        "Recorded by `experiments/merge_results.py --data-seed-run` (the commands are in "
-        "the task JSONs).", trust_rows(results, TASKS))
+        "estimate (`rl2s evaluate --ckpt A --ckpt B --ckpt C`; mean over the data seeds), "
+        "and the same intervals on 20 perturbed / interpolated test policies per run "
+        "(`paper.py --trust-evaluated 20`, a repeat of each data seed's run; coverage and "
+        "width over their own range). Issue 64's bars beside each (✓ / ✗). "
+        "Recorded by `experiments/merge_results.py --data-seed-run` and `--evaluated-run` "
+        "(the commands are in the task JSONs).", trust_rows(results, TASKS))
 
 
 def guard_section(results: dict) -> list[str]:

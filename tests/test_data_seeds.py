@@ -252,6 +252,9 @@ def test_evaluated_run_pools_a_repeats_evaluated_sets(tmp_path):
                     paths[0], "--data-seed-run", paths[1], "--evaluated-run", paths[2]]) == 0
     got = json.loads((tmp_path / "hopper.json").read_text())
     assert got["trust"]["rl2s"]["evaluated"]["data_seeds"] == [23]
+    row = dseeds.trust_rows({"hopper": got}, ["hopper"])[2]
+    assert row.endswith("| 0.500 ✗, 0.600 ✗ (23) |")
+    assert dseeds.evaluated_cell(None) == "-"
 
 
 def test_data_seed_entry_refuses_mixed_runs():

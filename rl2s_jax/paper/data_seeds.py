@@ -386,17 +386,27 @@ def combined_cell(c: dict | None) -> str:
             f"{_cell(w, None if w is None else w <= TRUST_BARS['width_over_range'])}")
 
 
+def evaluated_cell(e: dict | None) -> str:
+    """The table's cell of a method's "evaluated" block (``evaluated_trust``: the perturbed /
+    interpolated test policies of paper.py --trust-evaluated): coverage and width / range
+    against issue 64's bars and the data seeds it covers, "-" where no run measured one."""
+    if not e or e.get("coverage") is None:
+        return "-"
+    return f"{combined_cell(e)} ({', '.join(map(str, e.get('data_seeds') or ['?']))})"
+
+
 def trust_rows(results: dict, tasks) -> list[str]:
     """The markdown table of the tasks' "trust" blocks (``pooled_trust`` or one data seed's):
     per task and method the coverage, width / range, the seed-spread interval scaled to the
     same coverage, the share of runs whose worst-error policy is flagged, each against issue
-    64's bar, the seeds as one estimate (``seeds_combined_over``; its bars too), and the data
-    seeds' own coverages; no task has one: []."""
+    64's bar, the seeds as one estimate (``seeds_combined_over``; its bars too), the data
+    seeds' own coverages and the evaluated set (``evaluated_cell``); no task has one: []."""
     lines = [f"| task | method | runs (data seeds) | coverage (>= {TRUST_BARS['coverage']}) | "
              f"width / range (<= {TRUST_BARS['width_over_range']}) | seed spread scaled to it | "
              f"worst flagged (>= {TRUST_BARS['worst_flagged']}) | seeds as one: coverage, "
-             f"width / range | coverage per data seed |",
-             "|---|---|---:|---:|---:|---:|---:|---:|---|"]
+             f"width / range | coverage per data seed | evaluated set: coverage, width / range "
+             f"(data seeds) |",
+             "|---|---|---:|---:|---:|---:|---:|---:|---|---:|"]
     for task in tasks:
         for m, b in ((results.get(task) or {}).get("trust") or {}).items():
             if not isinstance(b, dict) or "coverage" not in b:
@@ -413,5 +423,6 @@ def trust_rows(results: dict, tasks) -> list[str]:
                 f"{_cell(w, None if w is None else w <= TRUST_BARS['width_over_range'])} | "
                 f"{_cell(sp, b.get('narrower_than_seed_spread'))} | "
                 f"{_cell(b['worst_flagged'], b['worst_flagged'] >= TRUST_BARS['worst_flagged'])}"
-                f" | {combined_cell(b.get('seeds_combined'))} | {cov_per} |")
+                f" | {combined_cell(b.get('seeds_combined'))} | {cov_per} | "
+                f"{evaluated_cell(b.get('evaluated'))} |")
     return lines if len(lines) > 2 else []

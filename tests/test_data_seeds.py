@@ -192,6 +192,7 @@ def test_pooled_trust_over_data_seeds_against_numpy(tmp_path):
     sc = dseeds.pooled_trust(runs)["rl2s"]["seeds_combined"]
     assert sc["coverage"] == pytest.approx(0.8) and sc["width_over_range"] == pytest.approx(0.3)
     assert sc["worst_flagged"] == pytest.approx(0.5) and sc["seeds"] == [2, 3]
+    assert sc["data_seeds"] == [7, 23]
     assert dseeds.combined_cell(sc) == "0.800 ✗, 0.300 ✗"
     assert dseeds.combined_cell({**sc, "coverage": 0.85, "width_over_range": 0.25}) == \
         "0.850 ✓, 0.250 ✓"

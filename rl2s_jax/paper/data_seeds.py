@@ -284,18 +284,19 @@ def pooled_trust(runs: list[dict]) -> dict:
         combined = [((r.get("trust") or {}).get(m) or {}).get("seeds_combined")
                     for r in by_ds.values()]
         if all(isinstance(c, dict) and "coverage" in c for c in combined):
-            out[m]["seeds_combined"] = seeds_combined_over(combined)
+            out[m]["seeds_combined"] = seeds_combined_over(combined, list(by_ds))
     return out
 
 
-def seeds_combined_over(blocks: list[dict]) -> dict:
+def seeds_combined_over(blocks: list[dict], data_seeds: list[int]) -> dict:
     """The "seeds_combined" blocks of several data seeds (``trust_phase.seeds_combined``: a
     data seed's seeds as one estimate, as ``rl2s evaluate --ckpt A --ckpt B`` gives it) pooled:
     means of coverage, width_over_range and worst_flagged over the data seeds (one estimate
-    each; width None where one is), "data_seeds" the count, "seeds" each one's."""
+    each; width None where one is), "data_seeds" the data seeds of ``blocks`` (in their
+    order, as everywhere a block names them), "seeds" each one's seed count."""
     mean = lambda k: mean_or_none(b.get(k) for b in blocks)  # noqa: E731
     return {"coverage": mean("coverage"), "width_over_range": mean("width_over_range"),
-            "worst_flagged": mean("worst_flagged"), "data_seeds": len(blocks),
+            "worst_flagged": mean("worst_flagged"), "data_seeds": list(data_seeds),
             "seeds": [b.get("seeds") for b in blocks]}
 
 

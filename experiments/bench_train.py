@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from bench import timed  # experiments/bench.py: best of `repeats` after a compile call
 
+from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.policy.policy import init_policy, stack_params
 from rl2s_jax.train.config import TrainConfig
@@ -221,6 +222,8 @@ def main(argv=None) -> int:
                     "part of the step away (where its time goes)")
     ap.add_argument("--official-dir", help="the official port's official_p<P>.json files: "
                     "ratios per P (printed and under 'race' in --json)")
+    ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="TrainConfig override "
+                    "of every row, after --official-sizes (e.g. scan_unroll=6)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     official = read_official(args.official_dir) if args.official_dir else None
@@ -239,6 +242,10 @@ def main(argv=None) -> int:
         steps, mm, vmaps = 5, 1024, [2]
     if args.official_sizes:
         cfg = cfg.override(OFFICIAL_SIZES)
+    try:
+        cfg = cfg.override(parse_overrides(args.set), "--set").validate()
+    except ValueError as err:
+        raise SystemExit(f"bench_train.py: {err}") from None
     policies = policies if args.policies is None else args.policies
     horizons = horizons if args.horizons is None else args.horizons
     sims = sims if args.sim_steps is None else args.sim_steps
@@ -261,7 +268,8 @@ def main(argv=None) -> int:
           f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen "
           f"{cfg.dynamics.hidden}, "
           f"disc {cfg.adversarial.disc_hidden}, batch {cfg.batch_size}, "
-          f"{cfg.updates_per_step} gen x {cfg.adversarial.disc_updates} critic updates/step, "
+          f"{cfg.updates_per_step} gen x {cfg.adversarial.disc_updates} critic updates/step "
+          f"(scan unroll {cfg.scan_unroll}), "
           f"{cfg.adversarial.sim_envs} sim envs x {cfg.adversarial.sim_steps} steps, "
           f"VD {cfg.vd.episodes} episodes x "
           f"{cfg.vd.horizon} steps every {cfg.vd.every}", flush=True)

@@ -1341,6 +1341,11 @@ def test_bench_train_race_ratios_and_breakdown(tmp_path, monkeypatch):
     changed = {k for k, c in parts.items()
                for f in dataclasses.fields(cfg) if getattr(c, f.name) != getattr(cfg, f.name)}
     assert changed == set(parts)
+    # --set: a bad override is refused by its name before any row is timed
+    for bad, msg in (("scan_unrol=2", "did you mean 'scan_unroll'"),
+                     ("scan_unroll=0", "scan_unroll: expected an int >= 1")):
+        with pytest.raises(SystemExit, match=msg):
+            bt.main(["--set", bad])
 
 
 def test_worst_policy_names_the_policy_that_sets_each_lanes_mvd(tmp_path):

@@ -230,6 +230,35 @@ def test_jit_equals_no_jit(pm, method):
         _assert_trees_close(ma, mb, rtol=1e-5, atol=1e-5, scaled=True)
 
 
+@pytest.mark.parametrize("method", ["rl2s", "bc"])
+def test_scan_unroll_runs_the_same_updates(pm, method):
+    """scan_unroll (issue 63: fewer loop iterations on the GPU) unrolls the step's update loops
+    and changes no update: two steps with every loop fully unrolled (2) agree with the rolled
+    loops (1) to round-off, as jit and no-jit do; the loops do run unrolled (the compiled
+    programs differ)."""
+    ds, policies = pm
+    out = {}
+    for unroll in (1, 2):
+        cfg = _tiny(method, scan_unroll=unroll)
+        data = T.make_train_data(ds, policies, cfg)
+        state = _init(jax.random.PRNGKey(3), cfg, data)
+        out[unroll] = [state]
+        for _ in range(2):
+            state, m = _train_step(state, data)
+            out[unroll].append(m)
+        out[unroll][0] = state
+        out[unroll].append(_train_step.lower(out[unroll][0], data).as_text().count("while"))
+    (a, *ma, wa), (b, *mb, wb) = out[1], out[2]
+    assert wb < wa  # the unrolled program has fewer loops
+    b = b.replace(config=a.config)  # the config is static: part of the tree's structure
+    if method == "rl2s":
+        _assert_trees_close_but_noise(a, b, tight=(1e-5, 1e-5))
+        _assert_trees_close(ma, mb, rtol=1e-3, atol=1e-3)
+    else:
+        _assert_trees_close(a, b, rtol=1e-5, atol=1e-5, scaled=True)
+        _assert_trees_close(ma, mb, rtol=1e-5, atol=1e-5, scaled=True)
+
+
 # ---------------------------------------------------------------------- 3. vmap
 
 

@@ -232,6 +232,9 @@ class TrainConfig:
     # of `rl2s diagnose --physics` whose physics the members' delta is added to; they learn
     # its residual by likelihood ("bc"; VD off in training: its rollouts would step the
     # members alone). None: the plain learned simulator
+    scan_unroll: int = 1           # lax.scan unroll of a step's update loops (the likelihood
+    # updates, the critic updates, the adversarial updates): fewer loop iterations on the GPU,
+    # the same updates (issue 63: the one-lane chain is launch-bound); 1: no unrolling
 
     @property
     def is_adversarial(self) -> bool:
@@ -347,7 +350,7 @@ class TrainConfig:
         self.vd.validate()
         self.outcome.validate()
         _check_ints(self, ("batch_size", "updates_per_step", "ensemble_size", "n_elites",
-                           "holdout_rows", "multistep_steps"), 1)
+                           "holdout_rows", "multistep_steps", "scan_unroll"), 1)
         _check_ints(self, ("early_stop_patience",), 0, off=" (0 = off)")
         _check_floats(self, ("gen_lr", "bc_lr", "grad_clip", "obs_clip"), positive=True)
         _check_floats(self, ("sim_noise", "log_std_bound_weight", "gen_weight_decay",

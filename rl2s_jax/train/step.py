@@ -47,6 +47,7 @@ program runs only the phase's branch.
 """
 from __future__ import annotations
 
+from functools import partial
 from typing import Any
 
 import jax
@@ -273,7 +274,8 @@ def member_mle_updates(gen, opt, key: jax.Array, data: TrainData, selected: jax.
         return (optax.apply_updates(gen, updates), opt), loss
 
     (gen, opt), batch_loss = jax.lax.scan(update, (gen, opt),
-                                          jax.random.split(key, cfg.updates_per_step))
+                                          jax.random.split(key, cfg.updates_per_step),
+                                          unroll=cfg.scan_unroll)
     return gen, opt, batch_loss.mean()
 
 
@@ -392,7 +394,7 @@ def _advance_sim(state: TrainState, data: TrainData, key):
 def _adversarial_updates(state: TrainState, data: TrainData, key):
     cfg, adv = state.config, state.config.adversarial
     gen_tx, disc_tx = _gen_tx(cfg, cfg.gen_lr), _disc_tx(cfg)
-    n = cfg.batch_size
+    n, scan = cfg.batch_size, partial(jax.lax.scan, unroll=cfg.scan_unroll)
     train_gen = (state.step >= adv.pretrain_steps + adv.disc_warmup_steps
                  if adv.disc_warmup_steps else None)
 
@@ -415,7 +417,7 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
     def loop(carry, key):
         gen, gen_opt, disc, us, disc_opt = carry
         k_disc, k_real, k_fake, k_gen = jax.random.split(key, 4)
-        (_, disc, us, disc_opt), d_metrics = jax.lax.scan(
+        (_, disc, us, disc_opt), d_metrics = scan(
             disc_update, (gen, disc, us, disc_opt), jax.random.split(k_disc, adv.disc_updates))
         r_obs, r_act, r_next, r_hist = _real_batch_history(k_real, data, state.selected, n)
         f_obs, f_act, f_hist = fake_sa(k_fake)
@@ -451,7 +453,7 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         return (new_gen, new_opt, disc, us, disc_opt), {"gen_loss": per.mean(), **metrics}
 
     carry = (state.gen, state.gen_opt, state.disc, state.disc_us, state.disc_opt)
-    carry, metrics = jax.lax.scan(loop, carry, jax.random.split(key, cfg.updates_per_step))
+    carry, metrics = scan(loop, carry, jax.random.split(key, cfg.updates_per_step))
     gen, gen_opt, disc, us, disc_opt = carry
     state = state.replace(gen=gen, gen_opt=gen_opt, disc=disc, disc_us=us, disc_opt=disc_opt)
     return state, jax.tree_util.tree_map(jnp.mean, metrics)

@@ -36,8 +36,12 @@
 #       side by side on the GPU(s) (XLA_PYTHON_CLIENT_MEM_FRACTION 0.9 / streams), detached
 #       (setsid) from a copy of the repo ($STREAMS_repo); returns at once. Each run's OUT is
 #       $STREAMS/<stream>_<k> (STREAMS=/tmp/streams), progress in $STREAMS/progress.log. A
-#       stream that begins with "@N " runs on GPU N alone (CUDA_VISIBLE_DEVICES=N; memory
-#       0.9 / the streams pinned to N); unpinned streams see every GPU. POLL=S: poll for S s
+#       stream that begins with "@N " runs on GPU N alone, "@N,M " on GPUs N and M
+#       (CUDA_VISIBLE_DEVICES; RL2S_GPUS their count, what paper_all.sh schedules over;
+#       memory 0.9 / the most streams pinned to one of them); unpinned streams see every
+#       GPU. A run may begin with NAME=VALUE words, its environment (RL2S_WORK=DIR: its
+#       data dir W instead of /tmp/work, so two runs of one task do not share data). POLL=S:
+#       poll for S s
 #       in the same call (the machine is given back 30 s after a call ends, and the detached
 #       streams with it: launching and polling in one call leaves no gap)
 #   bash experiments/device.sh waitdata TASK [MAX_S]              waits (at most MAX_S, default
@@ -65,7 +69,7 @@ setup_env() {
   fi
   OUT=${OUT:-/tmp/out}
   RL2S="python3 -m rl2s_jax.cli"
-  W=/tmp/work && mkdir -p "$W" "$OUT"
+  W=${RL2S_WORK:-/tmp/work} && mkdir -p "$W" "$OUT"
 
   # run_logged LOG CMD...: the GPU's name, then CMD timed with its warnings dropped, to stdout
   # and appended to $OUT/LOG line by line (another job may be waiting for a line of it).
@@ -269,18 +273,22 @@ cmd_streams() {
 }
 
 cmd__streams_run() {  # the detached driver of cmd_streams (run from the repo's copy)
-  local streams=${STREAMS:-/tmp/streams} i=0 spec pin
+  local streams=${STREAMS:-/tmp/streams} i=0 spec pin g most
   declare -A ON_GPU  # streams pinned to each GPU
   for spec in "$@"; do
-    [[ "$spec" =~ ^@([0-9]+)\  ]] && ON_GPU[${BASH_REMATCH[1]}]=$((${ON_GPU[${BASH_REMATCH[1]}]:-0} + 1))
+    if [[ "$spec" =~ ^@([0-9,]+)\  ]]; then
+      for g in ${BASH_REMATCH[1]//,/ }; do ON_GPU[$g]=$((${ON_GPU[$g]:-0} + 1)); done
+    fi
   done
   for spec in "$@"; do
     (
       pin=
-      [[ "$spec" =~ ^@([0-9]+)\ (.*)$ ]] && pin=${BASH_REMATCH[1]} spec=${BASH_REMATCH[2]}
+      [[ "$spec" =~ ^@([0-9,]+)\ (.*)$ ]] && pin=${BASH_REMATCH[1]} spec=${BASH_REMATCH[2]}
       if [ -n "$pin" ]; then
-        export CUDA_VISIBLE_DEVICES=$pin
-        XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / ${ON_GPU[$pin]}, 2))")
+        export CUDA_VISIBLE_DEVICES=$pin RL2S_GPUS=$(wc -w <<<"${pin//,/ }")
+        most=1
+        for g in ${pin//,/ }; do [ "${ON_GPU[$g]}" -gt "$most" ] && most=${ON_GPU[$g]}; done
+        XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $most, 2))")
       else
         XLA_PYTHON_CLIENT_MEM_FRACTION=$(python3 -c "print(round(0.9 / $#, 2))")
       fi
@@ -289,11 +297,17 @@ cmd__streams_run() {  # the detached driver of cmd_streams (run from the repo's 
       IFS=';' read -ra runs <<<"$spec"
       for run in "${runs[@]}"; do
         read -ra words <<<"$run"
+        envs=()
+        while [ ${#words[@]} -gt 0 ] && [[ "${words[0]}" =~ ^[A-Z_][A-Z0-9_]*= ]]; do
+          envs+=("${words[0]}") && words=("${words[@]:1}")
+        done
         [ ${#words[@]} -gt 0 ] || continue
         dir="$streams/s${i}_$k"
         mkdir -p "$dir"
-        echo "[s$i] $k start $(date +%T)${pin:+ GPU $pin}: ${words[*]}" >> "$streams/progress.log"
-        OUT=$dir bash experiments/device.sh "${words[@]}" > "$dir/stdout.log" 2>&1
+        echo "[s$i] $k start $(date +%T)${pin:+ GPU $pin}: ${envs[*]:+${envs[*]} }${words[*]}" \
+          >> "$streams/progress.log"
+        env OUT="$dir" ${envs[@]+"${envs[@]}"} bash experiments/device.sh "${words[@]}" \
+          > "$dir/stdout.log" 2>&1
         echo "[s$i] $k rc $? end $(date +%T)" >> "$streams/progress.log"
         k=$((k + 1))
       done

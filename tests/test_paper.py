@@ -1224,6 +1224,46 @@ def test_device_waitdata_waits_for_the_data_key_file(tmp_path):
             os.remove(key)
 
 
+def test_device_streams_pin_gpu_sets_and_set_a_runs_environment(tmp_path):
+    """device.sh's stream driver (what `streams` runs detached): "@1,2 " pins a stream to GPUs
+    1 and 2 (CUDA_VISIBLE_DEVICES, RL2S_GPUS their count), "@0 " to GPU 0; each stream's
+    memory fraction is 0.9 over the most streams sharing one of its GPUs; leading NAME=VALUE
+    words are the run's environment (RL2S_WORK: its data dir W) and shown in the progress;
+    runs of one stream go one after another, each with its own OUT."""
+    import subprocess
+    import sys
+    import textwrap
+    bin_dir, events = tmp_path / "bin", tmp_path / "events"
+    bin_dir.mkdir()
+    (bin_dir / "nvidia-smi").write_text("#!/usr/bin/env bash\necho 'stub, 1 MiB'\n")
+    (bin_dir / "python3").write_text(textwrap.dedent(f"""\
+        #!/usr/bin/env bash
+        [ "$1" = -m ] && exit 0
+        [ "$1" = -c ] && exec {sys.executable} "$@"
+        m=$XLA_PYTHON_CLIENT_MEM_FRACTION
+        echo "$* gpu=$CUDA_VISIBLE_DEVICES n=$RL2S_GPUS mem=$m x=${{X:-}} out=${{OUT##*/}}" \\
+            >> {events}
+        """))
+    for f in bin_dir.iterdir():
+        f.chmod(0o755)
+    work = tmp_path / "w2"
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}",
+           "RL2S_SITE": str(tmp_path / "site"), "STREAMS": str(tmp_path / "streams")}
+    proc = subprocess.run(
+        ["bash", "experiments/device.sh", "_streams_run",
+         f"@1,2 X=7 RL2S_WORK={work} run a.log python3 two; run b.log python3 again",
+         "@0 run c.log python3 one", "@0 run d.log python3 also"],
+        cwd=ROOT, env=env, capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    ev = sorted(events.read_text().split("\n")[:-1])
+    assert ev == ["again gpu=1,2 n=2 mem=0.9 x= out=s0_1", "also gpu=0 n=1 mem=0.45 x= out=s2_0",
+                  "one gpu=0 n=1 mem=0.45 x= out=s1_0", "two gpu=1,2 n=2 mem=0.9 x=7 out=s0_0"]
+    assert work.is_dir()  # the run's W
+    progress = (tmp_path / "streams" / "progress.log").read_text()
+    assert f"GPU 1,2: X=7 RL2S_WORK={work} run a.log python3 two" in progress
+    assert progress.rstrip().split("\n")[-1].startswith("ALLDONE")
+
+
 def test_device_runner_lists_its_subcommands_on_a_bad_one():
     """experiments/device.sh with no or an unknown subcommand installs nothing, exits 2 and
     prints its help, which names every subcommand it dispatches."""

@@ -11,7 +11,8 @@
 # unit fails the run (exit 1, no tables) after the others have run, naming it and its log.
 #   bash experiments/paper_all.sh [OUT] [paper.py args]
 # Environment: PY (the python command, default python3), TASKS (default the four),
-# DATA_DIR (collected data, default OUT/data), RL2S_GPUS (the GPU count, default nvidia-smi's),
+# DATA_DIR (collected data, default OUT/data), RL2S_GPUS (the GPU count, default nvidia-smi's;
+# with CUDA_VISIBLE_DEVICES set, its first RL2S_GPUS ids are the GPUs used),
 # PAPER_UNITS=task|family|auto (auto, the default: a whole task per unit when there are
 # at least as many GPUs as tasks and fewer than twice as many, else (task, family) pairs),
 # PAPER_PER_GPU=K (K paper.py processes per GPU at once; default 1).

@@ -26,7 +26,9 @@ or with enough GPUs for every family to have its own).
 
 With one GPU or none, a unit is a whole task (both families in one paper.py, OUT/<task>.json,
 log OUT/paper_<task>.log, also shown here), one after another: splitting would only add a
-process start and the data's reload per task. With one GPU, CUDA_VISIBLE_DEVICES=0.
+process start and the data's reload per task. With one GPU, CUDA_VISIBLE_DEVICES=0. GPU k is
+the k-th of an inherited CUDA_VISIBLE_DEVICES where one is set (a run pinned to GPUs 1 and 2
+schedules over those), else GPU k of the machine.
 
 ``--per-gpu K`` (or PAPER_PER_GPU=K): K processes share each GPU at once, each with 1/K of
 the memory fraction, costliest first: a task's idle phases (data collection, compilation,
@@ -137,6 +139,19 @@ def _pump(unit: dict, proc, tee: bool, events: queue.Queue) -> None:
     events.put(("end", unit, proc.wait()))
 
 
+def visible_gpus(n: int) -> list[str]:
+    """The device ids of the n GPUs the units run on: the first n of an inherited
+    CUDA_VISIBLE_DEVICES, else 0..n-1. SystemExit when it lists fewer than n."""
+    inherited = [g.strip() for g in os.environ.get("CUDA_VISIBLE_DEVICES", "").split(",")
+                 if g.strip()]
+    if not inherited:
+        return [str(g) for g in range(n)]
+    if len(inherited) < n:
+        raise SystemExit(f"gpus: {n} GPUs to schedule over, but CUDA_VISIBLE_DEVICES lists "
+                         f"{len(inherited)} ({','.join(inherited)})")
+    return inherited[:n]
+
+
 def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: float,
               on_task_end=None) -> None:
     """Run ``units`` over ``slots`` (GPU indices, a GPU listed K times runs K processes at once,
@@ -148,6 +163,7 @@ def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: 
     pending, free, data_done, running = list(units), sorted(slots), set(), 0  # [None] or ints
     share = max([slots.count(g) for g in slots if g is not None] or [1])
     mem = float(os.environ.get("XLA_PYTHON_CLIENT_MEM_FRACTION", "0.9"))
+    visible = visible_gpus(len(set(slots) - {None}))
     tee = len(slots) == 1
     while pending or running:
         while free:
@@ -158,14 +174,14 @@ def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: 
             gpu = unit["gpu"] = free.pop(0)
             env = {**os.environ, "PYTHONUNBUFFERED": "1"}
             if gpu is not None:
-                env["CUDA_VISIBLE_DEVICES"] = str(gpu)
+                env["CUDA_VISIBLE_DEVICES"] = visible[gpu]
                 if share > 1:  # each process preallocates its share of the GPU's memory
                     env["XLA_PYTHON_CLIENT_MEM_FRACTION"] = f"{mem / share:.3f}"
             cmd = [*py, "experiments/paper.py", "--task", unit["task"], "--out", unit["out"],
                    "--data-dir", data_dir, *unit["args"]]
             os.makedirs(unit["out"], exist_ok=True)
             unit["start_s"] = round(time.monotonic() - t0, 1)
-            print(f"[paper_all] {name(unit)} on GPU {gpu if gpu is not None else '-'} at "
+            print(f"[paper_all] {name(unit)} on GPU {visible[gpu] if gpu is not None else '-'} at "
                   f"{unit['start_s']:.0f}s: {shlex.join(cmd)}", flush=True)
             try:
                 proc = subprocess.Popen(cmd, env=env, stdout=subprocess.PIPE,
@@ -305,6 +321,7 @@ def main(argv=None) -> int:
         raise SystemExit(f"per-gpu: expected a whole number >= 1, got {args.per_gpu}")
     t0 = time.monotonic()
     tasks, py, n = args.tasks.split(), shlex.split(args.py), max(0, args.gpus)
+    visible_gpus(n)  # refused before any unit starts
     os.makedirs(args.out, exist_ok=True)
     units = plan(tasks, n, extra, args.out, args.units, args.per_gpu)
     merger = Merger(units, tasks, py, args.out, t0)

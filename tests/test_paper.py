@@ -957,6 +957,7 @@ def _run_paper_all(tmp_path, n_gpu: int, fail: str = "", tasks: str = "hopper wa
     env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}", "PY": str(py),
            "TASKS": tasks}
     env.pop("RL2S_GPUS", None)
+    env.pop("CUDA_VISIBLE_DEVICES", None)
     env.update(env_extra or {})
     proc = subprocess.run(["bash", "experiments/paper_all.sh", str(tmp_path / "out"), *args],
                           cwd=root, env=env, capture_output=True, text=True, timeout=30)
@@ -1060,6 +1061,15 @@ def test_paper_all_whole_task_units(tmp_path):
     rc, ev, proc = _run_paper_all(tmp_path / "b", 2, env_extra={"PAPER_UNITS": "seed"})
     assert rc != 0 and "units: expected auto, family or task, got 'seed'" in proc.stderr
     assert not any(e.startswith("start") for e in ev)
+    # run pinned to GPUs 5 and 7 (device.sh streams "@5,7 "): the units use those two
+    rc, ev, proc = _run_paper_all(tmp_path / "c", 2, env_extra={
+        "PAPER_UNITS": "task", "CUDA_VISIBLE_DEVICES": "5,7", "RL2S_GPUS": "2"})
+    assert rc == 0, proc.stderr
+    assert set(_check_one_process_per_gpu(ev).values()) == {"gpu=5", "gpu=7"}
+    rc, ev, proc = _run_paper_all(tmp_path / "d", 2, env_extra={
+        "PAPER_UNITS": "task", "CUDA_VISIBLE_DEVICES": "5", "RL2S_GPUS": "2"})
+    assert rc != 0 and "gpus: 2 GPUs to schedule over, but CUDA_VISIBLE_DEVICES lists 1 (5)" \
+        in proc.stderr and not any(e.startswith("start") for e in ev)
 
 
 def test_paper_all_per_gpu_runs_k_processes_on_one_gpu(tmp_path):

@@ -204,7 +204,8 @@ def trust_section(results: dict) -> list[str]:
         "(`paper.py --trust-evaluated 20`, a repeat of each data seed's run; coverage and "
         "width over their own range). Issue 64's bars beside each (✓ / ✗). "
         "Recorded by `experiments/merge_results.py --data-seed-run` and `--evaluated-run` "
-        "(the commands are in the task JSONs).", trust_rows(results, TASKS))
+        "(the commands are in the task JSONs, the evaluated runs' in their own JSONs, "
+        "`docs/results/data_seeds/<task>_data<D>_evaluated.json`).", trust_rows(results, TASKS))
 
 
 def guard_section(results: dict) -> list[str]:

@@ -110,12 +110,9 @@ def record_data_seeds(result: dict, runs: list[dict]) -> None:
     where the new runs measured none (they come from oracle_check.py --data-seed or another
     run of the same test split, and a rerun of that data seed leaves them true). ValueError
     when a data seed's test policies differ from the other entries' (a ranking is compared on
-    one test split)."""
-    groups: dict[int, list[dict]] = {}
-    for r in runs:
-        groups.setdefault(data_seed_of(r), []).append(r)
+    one test split) or the runs are of several tasks (``group_by_data_seed``)."""
     table = dict(result.get("by_data_seed") or {})
-    for ds, group in groups.items():
+    for ds, group in group_by_data_seed(runs).items():
         _, entry = data_seed_entry(group)
         for other, e in table.items():
             if other != str(ds) and e.get("test_policy_names") != entry["test_policy_names"]:

@@ -40,10 +40,10 @@
 #       (CUDA_VISIBLE_DEVICES; RL2S_GPUS their count, what paper_all.sh schedules over;
 #       memory 0.9 / the most streams pinned to one of them); unpinned streams see every
 #       GPU. A run may begin with NAME=VALUE words, its environment (RL2S_WORK=DIR: its
-#       data dir W instead of /tmp/work, so two runs of one task do not share data). POLL=S:
-#       poll for S s
-#       in the same call (the machine is given back 30 s after a call ends, and the detached
-#       streams with it: launching and polling in one call leaves no gap)
+#       data dir W instead of /tmp/work, so two runs of one task do not share data).
+#       POLL=S: poll for S s in the same call (the machine is given back 30 s after a call
+#       ends, and the detached streams with it: launching and polling in one call leaves no
+#       gap)
 #   bash experiments/device.sh waitdata TASK [MAX_S]              waits (at most MAX_S, default
 #       900) until paper.py's data of TASK is in $W: a stream that begins with it reuses the
 #       data another stream is collecting instead of collecting it beside it

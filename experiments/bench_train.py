@@ -202,7 +202,7 @@ def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
             "compile_s": compile_s}
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--profile", choices=("auto", "cpu", "gpu"), default="auto")
     ap.add_argument("--method", choices=("rl2s", "bc"), default="rl2s",
@@ -225,10 +225,13 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", metavar="KEY=VALUE", help="TrainConfig override "
                     "of every row, after --official-sizes (e.g. scan_unroll=6)")
     ap.add_argument("--json")
-    args = ap.parse_args(argv)
-    official = read_official(args.official_dir) if args.official_dir else None
-    backend = jax.default_backend()
-    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    return ap
+
+
+def planned_rows(args: argparse.Namespace, profile: str):
+    """The rows to time: the profile's config with --official-sizes and --set, and per row
+    (part, config, P, vmapped runs), every config validated before any measurement.
+    -> (config, rows, steps per timed call, matmul size of the rate measurement)."""
     # the adversarial step itself, not the MLE pre-training that precedes it in a run
     phase = ({"adversarial.pretrain_steps": 0, "adversarial.disc_warmup_steps": 0}
              if args.method == "rl2s" else {})
@@ -263,6 +266,15 @@ def main(argv=None) -> int:
             for d in dtypes]
     for _, c, _, _ in runs:  # refused by name before any measurement
         c.validate()
+    return cfg, runs, steps, mm
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
+    official = read_official(args.official_dir) if args.official_dir else None
+    backend = jax.default_backend()
+    profile = args.profile if args.profile != "auto" else ("gpu" if backend == "gpu" else "cpu")
+    cfg, runs, steps, mm = planned_rows(args, profile)
     rate = matmul_rate(mm)
     print(f"device {jax.devices()[0].device_kind} ({backend}), jax {jax.__version__}; profile "
           f"{profile}, method {cfg.method}, {cfg.ensemble_size} members: gen "

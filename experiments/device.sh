@@ -9,7 +9,7 @@
 #       ([LIMIT=585]: paper.py stopped after LIMIT s; $OUT/<task>.json, paper_<task>.log)
 #   bash experiments/device.sh tasks "TASK ..."|T1,T2 [paper.py args]  tasks over the
 #       GPUs as (task, family) units (experiments/paper_all.sh; LIMIT=560 per process;
-#       $OUT/results.tgz)
+#       $OUT/results.tgz; RL2S_MPS=1: under NVIDIA's MPS, started first if not running)
 #   bash experiments/device.sh jobs "GPU NAME AFTER args" ...     paper.py jobs side by side,
 #       one GPU each, a job waiting for AFTER's data phase ("-": none); LIMIT=570 for all;
 #       $OUT/NAME/<task>.json, $OUT/NAME/paper.log; fails if a job failed
@@ -29,6 +29,10 @@
 #       rl2s_jax/zoo/shipped/; ZOO_EXPORT / ZOO_IMPORT continue a run on a fresh machine)
 #   bash experiments/device.sh smoke [STEPS] [TRANSITIONS]        every method at paper sizes
 #       on Hopper, then a checkpoint loaded in a fresh process ([METHODS="rl2s gail ..."])
+#   bash experiments/device.sh share [gpu_share.py args]          processes sharing one GPU
+#       (SHARE_GPU, default 0): one alone, two at once, then both again under NVIDIA's MPS
+#       (started here, stopped after) where the machine has it; $OUT/share.tgz (a JSON per
+#       process and the summary's), the summary also in $OUT/share.log
 #   bash experiments/device.sh run LOG CMD...                     any command, logged to
 #       $OUT/LOG (e.g. python3 experiments/planted_train.py --out $W/planted)
 #   bash experiments/device.sh streams "SUB args; SUB args" ...    runs that outlast a call:
@@ -82,6 +86,19 @@ setup_env() {
   }
 }
 
+# start_mps: NVIDIA's Multi-Process Service for this machine's GPUs (the kernels of several
+# processes on one GPU run at once instead of time-sliced); a no-op where it already runs.
+start_mps() {
+  MPS_CTL=$(command -v nvidia-cuda-mps-control || ls /usr/local/nvidia/bin/nvidia-cuda-mps-control \
+    /usr/local/cuda/bin/nvidia-cuda-mps-control 2>/dev/null | head -n 1)
+  [ -n "$MPS_CTL" ] || { echo "mps: no nvidia-cuda-mps-control on this machine" >&2; return 1; }
+  # one daemon per set of visible GPUs: it serves the GPUs it saw when it started
+  local tag=${CUDA_VISIBLE_DEVICES:-all}
+  export CUDA_MPS_PIPE_DIRECTORY=/tmp/mps_pipe_${tag//,/_} CUDA_MPS_LOG_DIRECTORY=/tmp/mps_log_${tag//,/_}
+  mkdir -p "$CUDA_MPS_PIPE_DIRECTORY" "$CUDA_MPS_LOG_DIRECTORY"
+  [ -e "$CUDA_MPS_PIPE_DIRECTORY/control" ] || "$MPS_CTL" -d
+}
+
 usage() { sed -n '2,/^set -uo/p' "$0" | sed 's/^# \{0,1\}//' | head -n -1 >&2; exit 2; }
 
 cmd_paper() {
@@ -95,6 +112,7 @@ cmd_tasks() {
   local tasks=${1:?usage: bash experiments/device.sh tasks "TASK ..." [paper.py args]}
   export TASKS=${tasks//,/ }  # "hopper walker2d" or hopper,walker2d (a streams word)
   shift
+  if [ "${RL2S_MPS:-0}" = 1 ]; then start_mps || return 1; fi
   PY="timeout ${LIMIT:-560} python3" DATA_DIR=$W bash experiments/paper_all.sh $OUT/res \
     --profile gpu "$@"
   tail -n 30 $OUT/res/paper_*.log
@@ -344,6 +362,36 @@ cmd_waitdata() {
   echo "waitdata: $task's data in $W after $((SECONDS - t0)) s"
 }
 
+cmd_share() {
+  (
+    local d=$OUT/share case n i
+    mkdir -p "$d"
+    export CUDA_VISIBLE_DEVICES=${SHARE_GPU:-0} XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 \
+      JAX_COMPILATION_CACHE_DIR=/tmp/jaxcache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
+    share_case() {  # CASE N [gpu_share.py args]: N processes meet at a barrier, then time
+      case=$1 n=$2
+      shift 2
+      local pids=()
+      for ((i = 0; i < n; i++)); do
+        timeout 400 python3 experiments/gpu_share.py --barrier "/tmp/share_$case" --n "$n" \
+          --id "$i" --json "$d/${case}_$i.json" "$@" >> "$OUT/share.log" 2>&1 &
+        pids+=($!)
+      done
+      wait "${pids[@]}"
+    }
+    nvidia-smi --query-gpu=name,memory.total --format=csv,noheader | tee -a "$OUT/share.log"
+    share_case alone 1 "$@" && share_case pair 2 "$@"
+    if start_mps; then
+      share_case mps_alone 1 "$@" && share_case mps_pair 2 "$@"
+      echo quit | "$MPS_CTL"
+    else
+      echo "share: the MPS cases are not run" | tee -a "$OUT/share.log"
+    fi
+    python3 experiments/gpu_share.py --summary "$d" | tee -a "$OUT/share.log"
+    tar -C "$OUT" -czf "$OUT/share.tgz" share && rm -rf "$d"  # the tool brings back 8 files
+  )
+}
+
 cmd_run() {
   local log=${1:?usage: bash experiments/device.sh run LOG CMD...}
   shift
@@ -354,7 +402,7 @@ cmd_run() {
 sub=${1:-}
 shift || true
 case "$sub" in
-  paper|tasks|ablation|model_fit|control|race|zoo|smoke|run|poll|waitdata) setup_env
+  paper|tasks|ablation|model_fit|control|race|zoo|smoke|share|run|poll|waitdata) setup_env
       "cmd_$sub" "$@" ;;
   streams) [ $# -gt 0 ] || usage
            setup_env; cmd_streams "$@" ;;

@@ -23,6 +23,10 @@
 #       step's time goes), then equal work again with XLA's
 #       command buffers over loops; $OUT/official_p<P>.json, race_equal_work.json,
 #       race_default.json, race_equal_work_cmdbuf.json (each with its "race" ratios)
+#   bash experiments/device.sh determinism                       what deterministic GPU ops
+#       cost: the adversarial and the likelihood family's steps (bench_train.py, P=17, one
+#       lane and 6 vmapped) and Hopper's collection at batch 2048 (bench.py), each with the
+#       flag and without it; $OUT/{train,bc,collect}_det_{on,off}.json, determinism.log
 #   bash experiments/device.sh zoo TASK [TASK ...]                `rl2s zoo` side by side
 #       ([ZOO_LIMIT=320] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="..."] [ZOO_EXPORT=1]
 #       [ZOO_IMPORT=DIR] [ZOO_MEM_FRACTION]; $OUT/zoo_<task>.tar, untar into
@@ -362,6 +366,22 @@ cmd_waitdata() {
   echo "waitdata: $task's data in $W after $((SECONDS - t0)) s"
 }
 
+cmd_determinism() {
+  local on=$XLA_FLAGS off=${XLA_FLAGS//--xla_gpu_deterministic_ops=true/} mode
+  for mode in on off; do
+    local flags=$on
+    [ "$mode" = off ] && flags=$off
+    echo "== deterministic ops $mode: XLA_FLAGS='$flags'" | tee -a "$OUT/determinism.log"
+    XLA_FLAGS=$flags run_logged determinism.log python3 experiments/bench_train.py \
+      --policies 17 --horizons --sim-steps --vmap 6 --json "$OUT/train_det_$mode.json"
+    XLA_FLAGS=$flags run_logged determinism.log python3 experiments/bench_train.py --method bc \
+      --policies 17 --horizons --sim-steps --vmap 6 --json "$OUT/bc_det_$mode.json"
+    XLA_FLAGS=$flags run_logged determinism.log timeout "${T_COLLECT:-240}" python3 \
+      experiments/bench.py --task hopper --batch 2048 --steps 100 --reset-every-step-batch \
+      --json "$OUT/collect_det_$mode.json"
+  done
+}
+
 cmd_share() {
   (
     local d=$OUT/share case n i
@@ -402,7 +422,7 @@ cmd_run() {
 sub=${1:-}
 shift || true
 case "$sub" in
-  paper|tasks|ablation|model_fit|control|race|zoo|smoke|share|run|poll|waitdata) setup_env
+  paper|tasks|ablation|model_fit|control|race|determinism|zoo|smoke|share|run|poll|waitdata) setup_env
       "cmd_$sub" "$@" ;;
   streams) [ $# -gt 0 ] || usage
            setup_env; cmd_streams "$@" ;;

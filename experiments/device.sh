@@ -384,17 +384,17 @@ cmd_determinism() {
 
 cmd_share() {
   (
-    local d=$OUT/share case n i
+    local d=$OUT/share label n i
     mkdir -p "$d"
     export CUDA_VISIBLE_DEVICES=${SHARE_GPU:-0} XLA_PYTHON_CLIENT_MEM_FRACTION=0.4 \
       JAX_COMPILATION_CACHE_DIR=/tmp/jaxcache JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0
     share_case() {  # CASE N [gpu_share.py args]: N processes meet at a barrier, then time
-      case=$1 n=$2
+      label=$1 n=$2
       shift 2
       local pids=()
       for ((i = 0; i < n; i++)); do
-        timeout 400 python3 experiments/gpu_share.py --barrier "/tmp/share_$case" --n "$n" \
-          --id "$i" --json "$d/${case}_$i.json" "$@" >> "$OUT/share.log" 2>&1 &
+        timeout 400 python3 experiments/gpu_share.py --barrier "/tmp/share_$label" --n "$n" \
+          --id "$i" --json "$d/${label}_$i.json" "$@" >> "$OUT/share.log" 2>&1 &
         pids+=($!)
       done
       wait "${pids[@]}"

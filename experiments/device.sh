@@ -367,7 +367,9 @@ cmd_waitdata() {
 }
 
 cmd_determinism() {
-  local on=$XLA_FLAGS off=${XLA_FLAGS//--xla_gpu_deterministic_ops=true/} mode
+  local off=${XLA_FLAGS:-} mode
+  off=${off//--xla_gpu_deterministic_ops=true/}
+  local on="${off:+$off }--xla_gpu_deterministic_ops=true"
   for mode in on off; do
     local flags=$on
     [ "$mode" = off ] && flags=$off

@@ -26,7 +26,8 @@
 #   bash experiments/device.sh determinism                       what deterministic GPU ops
 #       cost: the adversarial and the likelihood family's steps (bench_train.py, P=17, one
 #       lane and 6 vmapped) and Hopper's collection at batch 2048 (bench.py), each with the
-#       flag and without it; $OUT/{train,bc,collect}_det_{on,off}.json, determinism.log
+#       flag and without it, then the steps with it and GEMM autotuning off (their compile
+#       times); $OUT/{train,bc,collect}_det_{on,off,autotune0}.json, determinism.log
 #   bash experiments/device.sh zoo TASK [TASK ...]                `rl2s zoo` side by side
 #       ([ZOO_LIMIT=320] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="..."] [ZOO_EXPORT=1]
 #       [ZOO_IMPORT=DIR] [ZOO_MEM_FRACTION]; $OUT/zoo_<task>.tar, untar into
@@ -367,17 +368,21 @@ cmd_waitdata() {
 }
 
 cmd_determinism() {
-  local off=${XLA_FLAGS:-} mode
+  local off=${XLA_FLAGS:-} mode flags
   off=${off//--xla_gpu_deterministic_ops=true/}
   local on="${off:+$off }--xla_gpu_deterministic_ops=true"
-  for mode in on off; do
-    local flags=$on
-    [ "$mode" = off ] && flags=$off
-    echo "== deterministic ops $mode: XLA_FLAGS='$flags'" | tee -a "$OUT/determinism.log"
+  for mode in on off autotune0; do
+    case $mode in
+      on) flags=$on ;;
+      off) flags=$off ;;
+      autotune0) flags="$on --xla_gpu_autotune_level=0" ;;  # compile time against step time
+    esac
+    echo "== $mode: XLA_FLAGS='$flags'" | tee -a "$OUT/determinism.log"
     XLA_FLAGS=$flags run_logged determinism.log python3 experiments/bench_train.py \
       --policies 17 --horizons --sim-steps --vmap 6 --json "$OUT/train_det_$mode.json"
     XLA_FLAGS=$flags run_logged determinism.log python3 experiments/bench_train.py --method bc \
       --policies 17 --horizons --sim-steps --vmap 6 --json "$OUT/bc_det_$mode.json"
+    [ "$mode" = autotune0 ] && continue
     XLA_FLAGS=$flags run_logged determinism.log timeout "${T_COLLECT:-240}" python3 \
       experiments/bench.py --task hopper --batch 2048 --steps 100 --reset-every-step-batch \
       --json "$OUT/collect_det_$mode.json"

@@ -23,11 +23,14 @@
 #       step's time goes), then equal work again with XLA's
 #       command buffers over loops; $OUT/official_p<P>.json, race_equal_work.json,
 #       race_default.json, race_equal_work_cmdbuf.json (each with its "race" ratios)
-#   bash experiments/device.sh determinism                       what deterministic GPU ops
-#       cost: the adversarial and the likelihood family's steps (bench_train.py, P=17, one
-#       lane and 6 vmapped) and Hopper's collection at batch 2048 (bench.py), each with the
-#       flag and without it, then the steps with it and GEMM autotuning off (their compile
-#       times); $OUT/{train,bc,collect}_det_{on,off,autotune0}.json, determinism.log
+#   bash experiments/device.sh levers [MODE ...]                  the step-level levers of
+#       issue 63, one after another on one GPU: the adversarial and the likelihood family's
+#       steps (bench_train.py, 6 lanes vmapped, P=17) and the equal-work step (one lane),
+#       per MODE: control (as run: deterministic ops), nondeterministic, autotune0 (GEMM
+#       autotuning off: compile time) and up_front (batches_up_front); default all four;
+#       Hopper's collection in control and nondeterministic where nondeterministic is asked
+#       for; $OUT/levers.tgz
+#       ({rl2s,bc,equal,collect}_<mode>.json), levers.log
 #   bash experiments/device.sh zoo TASK [TASK ...]                `rl2s zoo` side by side
 #       ([ZOO_LIMIT=320] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="..."] [ZOO_EXPORT=1]
 #       [ZOO_IMPORT=DIR] [ZOO_MEM_FRACTION]; $OUT/zoo_<task>.tar, untar into
@@ -367,26 +370,42 @@ cmd_waitdata() {
   echo "waitdata: $task's data in $W after $((SECONDS - t0)) s"
 }
 
-cmd_determinism() {
-  local off=${XLA_FLAGS:-} mode flags
+cmd_levers() {
+  local off=${XLA_FLAGS:-} mode flags set
   off=${off//--xla_gpu_deterministic_ops=true/}
   local on="${off:+$off }--xla_gpu_deterministic_ops=true"
-  for mode in on off autotune0; do
-    case $mode in
-      on) flags=$on ;;
-      off) flags=$off ;;
-      autotune0) flags="$on --xla_gpu_autotune_level=0" ;;  # compile time against step time
-    esac
-    echo "== $mode: XLA_FLAGS='$flags'" | tee -a "$OUT/determinism.log"
-    XLA_FLAGS=$flags run_logged determinism.log python3 experiments/bench_train.py \
-      --policies 17 --horizons --sim-steps --vmap 6 --json "$OUT/train_det_$mode.json"
-    XLA_FLAGS=$flags run_logged determinism.log python3 experiments/bench_train.py --method bc \
-      --policies 17 --horizons --sim-steps --vmap 6 --json "$OUT/bc_det_$mode.json"
-    [ "$mode" = autotune0 ] && continue
-    XLA_FLAGS=$flags run_logged determinism.log timeout "${T_COLLECT:-240}" python3 \
-      experiments/bench.py --task hopper --batch 2048 --steps 100 --reset-every-step-batch \
-      --json "$OUT/collect_det_$mode.json"
+  local modes=("$@")
+  [ ${#modes[@]} -gt 0 ] || modes=(control nondeterministic autotune0 up_front)
+  for mode in "${modes[@]}"; do  # refused before any measurement
+    [[ " control nondeterministic autotune0 up_front " == *" $mode "* ]] || {
+      echo "levers: expected modes among control nondeterministic autotune0 up_front, got" \
+        "$mode" >&2; return 2; }
   done
+  for mode in "${modes[@]}"; do
+    flags=$on set=()
+    case $mode in
+      nondeterministic) flags=$off ;;
+      autotune0) flags="$on --xla_gpu_autotune_level=0" ;;  # compile time against step time
+      up_front) set=(--set batches_up_front=true) ;;
+    esac
+    echo "== $mode: XLA_FLAGS='$flags' ${set[*]}" | tee -a "$OUT/levers.log"
+    XLA_FLAGS=$flags run_logged levers.log python3 experiments/bench_train.py --policies \
+      --horizons --sim-steps --vmap 6 --steps 4 ${set[@]+"${set[@]}"} --json "$OUT/rl2s_$mode.json"
+    XLA_FLAGS=$flags run_logged levers.log python3 experiments/bench_train.py --method bc \
+      --policies --horizons --sim-steps --vmap 6 --steps 4 ${set[@]+"${set[@]}"} \
+      --json "$OUT/bc_$mode.json"
+    XLA_FLAGS=$flags run_logged levers.log python3 experiments/bench_train.py --official-sizes \
+      --policies 17 --horizons --sim-steps --vmap ${set[@]+"${set[@]}"} \
+      --json "$OUT/equal_$mode.json"
+    # the collection only where its two modes are compared
+    [[ "$mode" =~ ^(control|nondeterministic)$ && " ${modes[*]} " == *" nondeterministic "* ]] \
+      || continue
+    XLA_FLAGS=$flags run_logged levers.log timeout "${T_COLLECT:-240}" python3 \
+      experiments/bench.py --task hopper --batch 2048 --steps 100 --reset-every-step-batch \
+      --json "$OUT/collect_$mode.json"
+  done
+  tar -C "$OUT" -czf "$OUT/levers.tgz" --exclude levers.tgz --exclude levers.log . \
+    && find "$OUT" -maxdepth 1 -name "*.json" -delete  # the tool brings back 8 files
 }
 
 cmd_share() {
@@ -429,7 +448,7 @@ cmd_run() {
 sub=${1:-}
 shift || true
 case "$sub" in
-  paper|tasks|ablation|model_fit|control|race|determinism|zoo|smoke|share|run|poll|waitdata) setup_env
+  paper|tasks|ablation|model_fit|control|race|levers|zoo|smoke|share|run|poll|waitdata) setup_env
       "cmd_$sub" "$@" ;;
   streams) [ $# -gt 0 ] || usage
            setup_env; cmd_streams "$@" ;;

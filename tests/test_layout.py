@@ -37,7 +37,6 @@ LONG_FUNCTIONS = {
     "policy/ppo.py::make_ppo": 89,
     "policy/sac.py::make_sac": 195,
     "train/loop.py::fit": 78,
-    "train/step.py::_adversarial_updates": 65,
     "zoo/build.py::build_zoo": 112,
 }
 # Lower layers first; a module may import only from its own layer or lower ones.

@@ -833,3 +833,34 @@ def test_make_config_profiles():
         make_config(ds, "bc", "tpu")
     with pytest.raises(ValueError, match="unknown config field"):
         make_config(ds, "bc", "cpu", overrides={"gen_size": 3})
+
+
+@pytest.mark.parametrize("method,extra", [("rl2s", {}), ("bc", {}),
+                                          ("gail", {"action_history": 2})])
+def test_batches_up_front_draw_the_same_batches(pm, method, extra):
+    """batches_up_front (issue 63: fewer kernels in the chain of dependent updates) draws a
+    step's batches, fake states and noise keys before its updates, from the same keys: two
+    steps (an ensemble of 2, the critic's and the members' updates; with history inputs too)
+    give the same state and metrics bit for bit."""
+    ds, policies = pm
+    out = {}
+    for up_front in (False, True):
+        cfg = _tiny(method, batches_up_front=up_front, ensemble_size=2, n_elites=1, **extra)
+        data = T.make_train_data(ds, policies, cfg)
+        state = _init(jax.random.PRNGKey(3), cfg, data)
+        ms = []
+        for _ in range(2):
+            state, m = _train_step(state, data)
+            ms.append(m)
+        out[up_front] = (state, ms)
+    (a, ma), (b, mb) = out[False], out[True]
+    assert int(a.step) == 2 and b.config.batches_up_front and not a.config.batches_up_front
+    assert (a.buffer_hist is not None) == bool(extra)  # the history case has one
+    b = b.replace(config=a.config)  # the config is static: part of the tree's structure
+    for x, y in ((a, b), (ma, mb)):
+        leaves_x = jax.tree_util.tree_flatten_with_path(x)[0]
+        leaves_y = jax.tree_util.tree_leaves(y)
+        assert len(leaves_x) == len(leaves_y)
+        for (path, u), v in zip(leaves_x, leaves_y, strict=True):
+            assert np.array_equal(np.asarray(u), np.asarray(v), equal_nan=True), \
+                jax.tree_util.keystr(path)

@@ -235,6 +235,10 @@ class TrainConfig:
     scan_unroll: int = 1           # lax.scan unroll of a step's update loops (the likelihood
     # updates, the critic updates, the adversarial updates): fewer loop iterations on the GPU,
     # the same updates (issue 63: the one-lane chain is launch-bound); 1: no unrolling
+    batches_up_front: bool = False  # draw every update's batches of a step (and the critic
+    # updates' fake states, the members' noise keys) before its chain of updates, as one
+    # batched draw, not inside each update: the same numbers, fewer kernels in the chain of
+    # dependent updates (issue 63), the step's batches held in memory at once
 
     @property
     def is_adversarial(self) -> bool:
@@ -352,6 +356,9 @@ class TrainConfig:
         _check_ints(self, ("batch_size", "updates_per_step", "ensemble_size", "n_elites",
                            "holdout_rows", "multistep_steps", "scan_unroll"), 1)
         _check_ints(self, ("early_stop_patience",), 0, off=" (0 = off)")
+        if not isinstance(self.batches_up_front, bool):
+            raise ValueError(f"batches_up_front: expected true or false, got "
+                             f"{self.batches_up_front!r}")
         _check_floats(self, ("gen_lr", "bc_lr", "grad_clip", "obs_clip"), positive=True)
         _check_floats(self, ("sim_noise", "log_std_bound_weight", "gen_weight_decay",
                              "early_stop_min_delta", "multistep_weight", "nll_beta"))

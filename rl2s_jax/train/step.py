@@ -265,17 +265,21 @@ def member_mle_updates(gen, opt, key: jax.Array, data: TrainData, selected: jax.
                                                   cfg.nll_beta, hist)[0]
         return loss + cfg.log_std_bound_weight * dyn.bound_penalty(g) if learned else loss
 
-    def update(carry, key):
+    def draw(key):
+        return (_real_windows_history(key, data, selected, cfg.batch_size, k) if k > 1
+                else _real_batch_history(key, data, selected, cfg.batch_size))
+
+    def update(carry, x):  # x: the update's key, or its batch (batches_up_front)
         gen, opt = carry
-        batch = (_real_windows_history(key, data, selected, cfg.batch_size, k) if k > 1
-                 else _real_batch_history(key, data, selected, cfg.batch_size))
+        batch = x if cfg.batches_up_front else draw(x)
         loss, grads = jax.value_and_grad(loss_fn)(gen, batch)
         updates, opt = tx.update(grads, opt, gen)
         return (optax.apply_updates(gen, updates), opt), loss
 
-    (gen, opt), batch_loss = jax.lax.scan(update, (gen, opt),
-                                          jax.random.split(key, cfg.updates_per_step),
-                                          unroll=cfg.scan_unroll)
+    keys = jax.random.split(key, cfg.updates_per_step)
+    (gen, opt), batch_loss = jax.lax.scan(
+        update, (gen, opt), jax.vmap(draw)(keys) if cfg.batches_up_front else keys,
+        unroll=cfg.scan_unroll)
     return gen, opt, batch_loss.mean()
 
 
@@ -391,56 +395,79 @@ def _advance_sim(state: TrainState, data: TrainData, key):
                          buffer_pos=pos), metrics
 
 
-def _adversarial_updates(state: TrainState, data: TrainData, key):
+def _adversarial_draws(state: TrainState, data: TrainData):
+    """The adversarial updates' draws, which no update changes, as functions of their keys:
+    ``critic(key)`` -> one critic update's (real (obs, action, next_obs), fake (obs, action,
+    hist) from the buffer, the members' noise key); ``update(key)`` -> one adversarial
+    update's {"disc": its critic updates' keys, or their draws where batches_up_front,
+    "real", "fake", "keys" (the members'), "anchors" (the likelihood anchor's batches)}."""
     cfg, adv = state.config, state.config.adversarial
-    gen_tx, disc_tx = _gen_tx(cfg, cfg.gen_lr), _disc_tx(cfg)
-    n, scan = cfg.batch_size, partial(jax.lax.scan, unroll=cfg.scan_unroll)
-    train_gen = (state.step >= adv.pretrain_steps + adv.disc_warmup_steps
-                 if adv.disc_warmup_steps else None)
+    n = cfg.batch_size
 
     def fake_sa(key):
         rows = jax.random.randint(key, (n,), 0, adv.buffer_size)
         return (state.buffer_obs[rows], state.buffer_act[rows],
                 take_history(state.buffer_hist, rows))
 
-    def disc_update(carry, key):
-        gen, disc, us, opt = carry
+    def critic(key):
         k_real, k_fake, k_gen = jax.random.split(key, 3)
-        real = _real_batch_history(k_real, data, state.selected, n)[:3]
-        f_obs, f_act, f_hist = fake_sa(k_fake)
+        return _real_batch_history(k_real, data, state.selected, n)[:3], fake_sa(k_fake), k_gen
+
+    def update(key):
+        k_disc, k_real, k_fake, k_gen = jax.random.split(key, 4)
+        disc = jax.random.split(k_disc, adv.disc_updates)
+        real = _real_batch_history(k_real, data, state.selected, n)
+        anchors = [real]
+        if adv.nll_weight and adv.nll_on != "selected":  # fold_in: "selected" keeps
+            every = _real_batch_history(jax.random.fold_in(k_real, 1), data,  # its keys
+                                        jnp.ones_like(state.selected), n)
+            anchors = [every] if adv.nll_on == "all" else anchors + [every]
+        return {"disc": jax.vmap(critic)(disc) if cfg.batches_up_front else disc,
+                "real": real, "fake": fake_sa(k_fake),
+                "keys": dyn.member_keys(k_gen, cfg.ensemble_size), "anchors": anchors}
+
+    return critic, update
+
+
+def _adversarial_updates(state: TrainState, data: TrainData, key):
+    cfg, adv = state.config, state.config.adversarial
+    gen_tx, disc_tx = _gen_tx(cfg, cfg.gen_lr), _disc_tx(cfg)
+    scan = partial(jax.lax.scan, unroll=cfg.scan_unroll)
+    train_gen = (state.step >= adv.pretrain_steps + adv.disc_warmup_steps
+                 if adv.disc_warmup_steps else None)
+    critic, draw = _adversarial_draws(state, data)
+    up_front = cfg.batches_up_front  # each x below: its key, or its draws drawn before
+
+    def disc_update(carry, x):
+        gen, disc, us, opt = carry
+        real, (f_obs, f_act, f_hist), k_gen = x if up_front else critic(x)
         f_next = _sampler(gen, state, 1.0).sample(f_obs, f_act, k_gen, f_hist)
         (loss, (us, aux)), grads = jax.value_and_grad(losses.discriminator_loss, has_aux=True)(
             disc, us, state.norm, real, (f_obs, f_act, f_next), cfg.dynamics.matmul_dtype)
         updates, opt = disc_tx.update(grads, opt, disc)
         return (gen, optax.apply_updates(disc, updates), us, opt), {"disc_loss": loss, **aux}
 
-    def loop(carry, key):
+    def loop(carry, x):
         gen, gen_opt, disc, us, disc_opt = carry
-        k_disc, k_real, k_fake, k_gen = jax.random.split(key, 4)
-        (_, disc, us, disc_opt), d_metrics = scan(
-            disc_update, (gen, disc, us, disc_opt), jax.random.split(k_disc, adv.disc_updates))
-        r_obs, r_act, r_next, r_hist = _real_batch_history(k_real, data, state.selected, n)
-        f_obs, f_act, f_hist = fake_sa(k_fake)
+        d = x if up_front else draw(x)
+        (_, disc, us, disc_opt), d_metrics = scan(disc_update, (gen, disc, us, disc_opt),
+                                                  d["disc"])
+        (r_obs, r_act, _, r_hist), (f_obs, f_act, f_hist) = d["real"], d["fake"]
         obs, act = jnp.concatenate([r_obs, f_obs]), jnp.concatenate([r_act, f_act])
         hist = (None if r_hist is None else
                 jax.tree_util.tree_map(lambda r, f: jnp.concatenate([r, f]), r_hist, f_hist))
-        keys = dyn.member_keys(k_gen, cfg.ensemble_size)
-        anchors = [(r_obs, r_act, r_next, r_hist)]
-        if adv.nll_weight and adv.nll_on != "selected":  # fold_in: "selected" keeps
-            every = _real_batch_history(jax.random.fold_in(k_real, 1), data,  # its keys
-                                        jnp.ones_like(state.selected), n)
-            anchors = [every] if adv.nll_on == "all" else anchors + [every]
 
         def member_loss(g, k):
             loss = losses.generator_adversarial_loss(g, disc, us, state.norm, obs, act, k,
                                                      hist, cfg.dynamics.matmul_dtype)[0]
             if adv.nll_weight:  # the likelihood anchor (static: off costs nothing)
-                nll = sum(losses.generator_nll_loss(g, state.norm, *a)[0] for a in anchors)
-                loss = loss + adv.nll_weight * nll / len(anchors)
+                nll = sum(losses.generator_nll_loss(g, state.norm, *a)[0]
+                          for a in d["anchors"])
+                loss = loss + adv.nll_weight * nll / len(d["anchors"])
             return loss
 
         def total(g_all):  # each member's loss on the same (s, a), its own noise: sum
-            per = dyn.map_members(member_loss, g_all, keys)
+            per = dyn.map_members(member_loss, g_all, d["keys"])
             return per.sum(), per
 
         (_, per), grads = jax.value_and_grad(total, has_aux=True)(gen)
@@ -452,8 +479,9 @@ def _adversarial_updates(state: TrainState, data: TrainData, key):
         metrics = jax.tree_util.tree_map(lambda x: x[-1], d_metrics)
         return (new_gen, new_opt, disc, us, disc_opt), {"gen_loss": per.mean(), **metrics}
 
+    keys = jax.random.split(key, cfg.updates_per_step)
     carry = (state.gen, state.gen_opt, state.disc, state.disc_us, state.disc_opt)
-    carry, metrics = scan(loop, carry, jax.random.split(key, cfg.updates_per_step))
+    carry, metrics = scan(loop, carry, jax.vmap(draw)(keys) if up_front else keys)
     gen, gen_opt, disc, us, disc_opt = carry
     state = state.replace(gen=gen, gen_opt=gen_opt, disc=disc, disc_us=us, disc_opt=disc_opt)
     return state, jax.tree_util.tree_map(jnp.mean, metrics)

@@ -27,7 +27,8 @@
 #       issue 63, one after another on one GPU: the adversarial and the likelihood family's
 #       steps (bench_train.py, 6 lanes vmapped, P=17) and the equal-work step (one lane),
 #       per MODE: control (as run: deterministic ops), nondeterministic, autotune0 (GEMM
-#       autotuning off: compile time) and up_front (batches_up_front); default all four;
+#       autotuning off: compile time) and up_front (batches_up_front, and its bit-for-bit
+#       test on this GPU); default all four;
 #       Hopper's collection in control and nondeterministic where nondeterministic is asked
 #       for; $OUT/levers.tgz
 #       ({rl2s,bc,equal,collect}_<mode>.json), levers.log
@@ -397,6 +398,10 @@ cmd_levers() {
     XLA_FLAGS=$flags run_logged levers.log python3 experiments/bench_train.py --official-sizes \
       --policies 17 --horizons --sim-steps --vmap ${set[@]+"${set[@]}"} \
       --json "$OUT/equal_$mode.json"
+    if [ "$mode" = up_front ]; then  # the same updates bit for bit on this GPU too
+      XLA_FLAGS=$flags run_logged levers.log python3 -m pytest -q -p no:cacheprovider \
+        tests/test_train.py -k batches_up_front
+    fi
     # the collection only where its two modes are compared
     [[ "$mode" =~ ^(control|nondeterministic)$ && " ${modes[*]} " == *" nondeterministic "* ]] \
       || continue

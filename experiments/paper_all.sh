@@ -15,8 +15,7 @@
 # with CUDA_VISIBLE_DEVICES set, its first RL2S_GPUS ids are the GPUs used),
 # PAPER_UNITS=task|family|auto (auto, the default: a whole task per unit when there are
 # at least as many GPUs as tasks and fewer than twice as many, else (task, family) pairs),
-# PAPER_PER_GPU=K (K paper.py processes per GPU at once, staggered: one in its data phase per
-# GPU at a time; default 1).
+# PAPER_PER_GPU=K (K paper.py processes per GPU at once; default 1).
 set -uo pipefail
 OUT=${1:-results/paper}
 shift || true

@@ -31,12 +31,12 @@ the k-th of an inherited CUDA_VISIBLE_DEVICES where one is set (a run pinned to 
 schedules over those), else GPU k of the machine.
 
 ``--per-gpu K`` (or PAPER_PER_GPU=K): K processes share each GPU at once, each with 1/K of
-the memory fraction, costliest first, staggered: a unit starts on a GPU only while no other
-unit there is in its data phase (before its ``[paper] data: `` line), so that a task's idle
-phases (data collection, compilation, 37% of the protocol's GPU time: docs/BENCHMARKS.md,
-"Where one task's GPU-seconds go") run beside another's training rather than beside each
-other. Not yet timed on a GPU; two processes training at once on one GPU time-slice it at
-0.92x of one alone (BENCHMARKS, "Two processes on one GPU").
+the memory fraction, costliest first: a task's idle phases (data collection, compilation,
+37% of the protocol's GPU time: docs/BENCHMARKS.md, "Where one task's GPU-seconds go") run
+beside another's training. Not yet timed on a GPU; modelled from the measured profile by
+experiments/share_model.py: 1,749 s for the four tasks against 2,300 one after another (the
+busy GPU-seconds' floor 1,444; a staggered start, one task in its data phase at a time, models
+slower: 1,797 s).
 
 At the end: every unit's task, family, GPU, start and wall seconds (and when its data phase
 ended, seconds after its start), the merges, each GPU's busy seconds and the total, printed
@@ -171,16 +171,10 @@ def run_units(units: list[dict], slots: list, py: list[str], data_dir: str, t0: 
     while pending or running:
         while free:
             unit = next((u for u in pending if u["collects"] or u["task"] in data_done), None)
-            # staggered where processes share a GPU: one in its data phase per GPU at a time,
-            # so that a process collects and compiles beside another's training, not its own
-            gpu = next((g for g in free if share == 1 or g is None or not any(
-                u.get("gpu") == g and "data_s" not in u and "rc" not in u
-                for u in units if "start_s" in u)), -1)
-            if unit is None or gpu == -1:
+            if unit is None:
                 break
             pending.remove(unit)
-            free.remove(gpu)
-            unit["gpu"] = gpu
+            gpu = unit["gpu"] = free.pop(0)
             env = {**os.environ, "PYTHONUNBUFFERED": "1"}
             if gpu is not None:
                 env["CUDA_VISIBLE_DEVICES"] = visible[gpu]

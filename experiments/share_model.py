@@ -14,7 +14,10 @@ split in proportion, less what switching costs (0.92: two training processes mea
 enough for both (16 cores on a 1-GPU H200 machine; the compilations may contend: unmodelled).
 
     python experiments/share_model.py docs/results/gpu_util_h200x4/profile.json
-        [--tasks hopper,halfcheetah] [--efficiency 0.92] [--json OUT]
+        [--tasks hopper,halfcheetah] [--efficiency 0.92] [--also 3,4] [--json OUT]
+
+``--also 3,4``: rows for that many processes at once too (the same efficiency for any number
+sharing, which only two have been measured at).
 """
 from __future__ import annotations
 
@@ -81,10 +84,17 @@ def main(argv=None) -> int:
     ap.add_argument("--efficiency", type=float, default=0.92,
                     help="the GPU's share two time-sliced processes keep (measured 0.92)")
     ap.add_argument("--tasks", help="comma list: only these of the profile's tasks")
+    ap.add_argument("--also", default="", help="comma list of more processes at once (3,4)")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     if not 0.0 < args.efficiency <= 1.0:
         ap.error(f"--efficiency: expected a float in (0, 1], got {args.efficiency}")
+    try:
+        also = [int(x) for x in args.also.split(",") if x.strip()]
+    except ValueError:
+        also = [0]
+    if any(k < 3 for k in also):
+        ap.error(f"--also: expected a comma list of whole numbers >= 3, got {args.also!r}")
     runs = json.load(open(args.profile)).get("runs") or []
     by_task = {r["task"]: task_segments(r["rows"]) for r in runs if r.get("rows")}
     if not by_task:
@@ -102,7 +112,8 @@ def main(argv=None) -> int:
            "alone_s": {t: sum(s["wall_s"] for s in by_task[t]) for t in names},
            "busy_gpu_s": {t: sum(s["busy_gpu_s"] for s in by_task[t]) for t in names}}
     for label, k, stag in (("one_after_another", 1, False), ("two_at_once", 2, False),
-                           ("two_at_once_staggered", 2, True)):
+                           ("two_at_once_staggered", 2, True),
+                           *((f"{k}_at_once", k, False) for k in also)):
         out[label] = simulate(tasks, k, stag, args.efficiency)
         print(f"{label:>22}: {out[label]['total_s']:7.1f} s", flush=True)
     print(f"{'busy GPU-s (the floor)':>22}: {sum(out['busy_gpu_s'].values()):7.1f} s")

@@ -56,3 +56,9 @@ def test_segments_from_a_profile_and_the_command(tmp_path, capsys):
     with pytest.raises(SystemExit):
         model.main([str(path), "--efficiency", "1.5"])
     assert "--efficiency: expected a float in (0, 1], got 1.5" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        model.main([str(path), "--also", "2"])
+    assert "--also: expected a comma list of whole numbers >= 3, got '2'" in \
+        capsys.readouterr().err
+    assert model.main([str(path), "--also", "3", "--json", str(tmp_path / "m3.json")]) == 0
+    assert "3_at_once" in json.loads((tmp_path / "m3.json").read_text())

@@ -46,11 +46,11 @@ Hopper, ``--tasks hopper`` (the 20 test policies, 1000 transitions and 16 value 
     step than the task's done_fn in 28 of 320 value episodes.
 
     The physics diagnosis, ``--tasks hopper --policies 5 --transitions 1000 --value-episodes 2
-    --no-control --diagnose DIR`` (zoo ids 3, 6, 8, 14, 29; 211 s in all, the diagnosis 12 s):
-    top cause None (nothing significant), unexplained 1.000. The best candidate,
-    actuator_gear[thigh_joint] 200 -> 196.8, cut the held-out error by 1.6% (p 0.0003), below
-    the 10% minimum, so not kept: the integrator, most of the error, is not a candidate, and
-    no mass, friction, gear, damping, armature, bias or delay stands in for it.
+    --no-control --diagnose DIR`` (zoo ids 3, 6, 8, 14, 29; 211 s, the diagnosis 12 s): nothing
+    named while the integrator was no candidate (actuator_gear[thigh_joint] 200 -> 196.8 cut
+    the held-out error 1.6%, under the 10% minimum). With it (RESULTS' row 8; 21 s, the
+    diagnosis 4 s): integrator[opt] Euler -> RK4, p 0.00011, unexplained 0.000: v5's RK4 is all
+    of the one-step error, and no mass, friction, gear or delay stands in for it.
 
 Walker2d, ``--tasks walker2d --policies 5 --transitions 200 --value-episodes 4 --ablate``
 (zoo test ids by return; run with XLA_FLAGS=--xla_cpu_multi_thread_eigen=false, and it still
@@ -139,6 +139,7 @@ from rl2s_jax.physics.gymnasium_v5 import (
     make_v5,
     print_differences,
 )
+from rl2s_jax.physics.identify import format_quantity
 from rl2s_jax.physics.measured import collect_measured
 from rl2s_jax.physics.mjx_model import physics_model
 from rl2s_jax.policy.policy import index_params
@@ -307,7 +308,7 @@ def run_task(task: str, args) -> dict:
                                                        "error_calibrated")}
         print(f"{task} physics diagnosis ({ph['seconds']:.0f} s): top cause {ph['top_cause']}; "
               f"unexplained {ph['unexplained']:.3f}; parameters "
-              + "; ".join(f"{p['name']}[{p['element']}] {p['nominal']:.4g} -> {p['value']:.4g} "
+              + "; ".join(f"{format_quantity({**p, 'interval': None})} "
                           f"(gain {p['gain']:.3f}, p {p['p_value']:.2g}, "
                           f"{'kept' if p['significant'] else 'not kept'})"
                           for p in ph["parameters"]))

@@ -18,6 +18,7 @@ CASES = {
     "gear": [("actuator_gear", "leg_joint", 0.7)],
     "damping": [("dof_damping", "foot_joint", 3.0)],
     "delay": [("action_delay", "thigh_joint", 2)],
+    "integrator": [("integrator", "RK4", 1)],  # data stepped with RK4, the model with Euler
 }
 POLICIES = [4, 7, 16, 21]  # shipped Hopper zoo: training policies that hop for 100 steps
 
@@ -142,8 +143,10 @@ def test_planted_change_is_named_with_its_value(pm, zoo_params, datasets, case):
         return
     assert top is not None, f"nothing named; screened {found['parameters']}"
     assert (top["name"], top["element"]) == (truth[0]["name"], truth[0]["element"])
-    if top["name"] == "action_delay":
+    if top["name"] in ("action_delay", "integrator"):
         assert top["value"] == truth[0]["value"]
+        assert found["integrator"] == (truth[0]["value"] if top["name"] == "integrator"
+                                       else "Euler")
     else:
         assert top["value"] == pytest.approx(truth[0]["value"], rel=0.1)
         lo, hi = top["interval"]
@@ -190,6 +193,35 @@ def test_cli_writes_the_physics_report(tmp_path, pm, zoo_params, datasets):
     assert pm2.candidates[k].value(theta[k]) == pytest.approx(ph["top_cause"]["value"])
     assert ph["command"].startswith("rl2s evaluate --physics ")
     assert str(out / "calibrated.json") in ph["command"] and delays.tolist() == [0, 0, 0]
+
+
+@pytest.mark.slow
+def test_cli_calibrates_the_integrator_it_names(tmp_path, pm, zoo_params, datasets):
+    """Data stepped with RK4, the model with Euler: the report names the integrator (no
+    interval: a choice among names), report.md prints it, calibrated.json carries it, and the
+    model it loads steps with it (the calibrated one-step error near 0)."""
+    import mujoco
+
+    from rl2s_jax.app.physics_diagnosis import load_calibrated
+    from rl2s_jax.cli import main
+    from rl2s_jax.data.dataset import save_dataset
+
+    path = str(tmp_path / "rk4.npz")
+    save_dataset(path, _get(datasets, pm, zoo_params, "integrator"))
+    out = tmp_path / "report"
+    assert main(["diagnose", "--data", path, "--physics", "--out", str(out), "--quiet",
+                 "--k-max", "3"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    top = report["physics"]["top_cause"]
+    assert top == {"name": "integrator", "element": "opt", "nominal": "Euler", "value": "RK4",
+                   "interval": None}
+    assert "integrator[opt] Euler -> RK4" in (out / "report.md").read_text()
+    assert json.loads((out / "calibrated.json").read_text())["integrator"] == "RK4"
+    pm2, _, _ = load_calibrated(str(out / "calibrated.json"))
+    assert pm2.mj.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    assert pm.mj.opt.integrator == mujoco.mjtIntegrator.mjINT_EULER  # the nominal untouched
+    err = report["errors"]
+    assert err["calibrated"]["one_step"]["rmse"] < 0.01 * err["nominal"]["one_step"]["rmse"]
 
 
 def test_sysid_path_fits_the_chosen_quantity(pm, zoo_params, datasets):

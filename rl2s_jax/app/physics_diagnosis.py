@@ -9,7 +9,6 @@ calibrated.json (docs/DIAGNOSIS.md, "Physics").
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import shlex
 import time
@@ -19,8 +18,9 @@ import numpy as np
 from rl2s_jax._files import save_figure, write_json, write_text
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.diagnose.gaps import jsonable
-from rl2s_jax.physics.identify import FitConfig, identify
-from rl2s_jax.physics.mjx_model import PHYSICS_TASKS, physics_model
+from rl2s_jax.physics.hybrid import calibrated_model, read_calibrated
+from rl2s_jax.physics.identify import FitConfig, format_quantity, identify
+from rl2s_jax.physics.mjx_model import PHYSICS_TASKS, integrator_name, physics_model
 from rl2s_jax.physics.residuals import physics_errors
 
 __all__ = ["PhysicsSpec", "diagnose_physics", "load_calibrated", "physics_command"]
@@ -64,11 +64,7 @@ def physics_command(spec) -> int:
 
 def load_calibrated(path: str):
     """The calibrated simulator a report wrote: (PhysicsModel, theta [K], delays [A])."""
-    with open(path) as f:
-        c = json.load(f)
-    pm = physics_model(c["task"], xml_path=c["xml"] if c["task"] is None else None,
-                       n_frames=c["n_frames"])
-    return pm, np.asarray(c["theta"]), np.asarray(c["delays"], int)
+    return calibrated_model(read_calibrated(path))
 
 
 def diagnose_physics(spec: PhysicsSpec) -> dict:
@@ -87,13 +83,17 @@ def diagnose_physics(spec: PhysicsSpec) -> dict:
     log(f"[physics] {ds.n_transitions} transitions, {len(pm.candidates)} candidate quantities")
     found = identify(pm, ds, cfg)
     nominal = physics_errors(pm, ds, k=spec.k, seed=cfg.seed)
-    calibrated = physics_errors(pm, ds, found["theta"], found["delays"], k=spec.k,
+    pm_cal = pm if found["integrator"] == integrator_name(pm.mj) else physics_model(
+        pm.task, xml_path=spec.sim_xml, n_frames=spec.sim_frames,
+        integrator=found["integrator"])  # the integrator chosen in the model's place
+    calibrated = physics_errors(pm_cal, ds, found["theta"], found["delays"], k=spec.k,
                                 seed=cfg.seed)
     os.makedirs(spec.out, exist_ok=True)
     cal_path = os.path.join(spec.out, "calibrated.json")
     write_json(cal_path, jsonable({"task": pm.task, "xml": pm.xml_path,
                                    "n_frames": pm.n_frames, "theta": found["theta"],
                                    "delays": found["delays"],
+                                   "integrator": found["integrator"],
                                    "labels": [c.label for c in pm.candidates]}))
     # the calibrated simulator as a user runs it (`rl2s improve --physics` and
     # gymnasium.make(..., physics=) take the same file; load_calibrated from Python)
@@ -142,12 +142,6 @@ def plot_physics(out_dir: str, nominal: dict, calibrated: dict) -> list[str]:
     return [path]
 
 
-def _fmt(p: dict) -> str:
-    ival = p.get("interval")
-    ival = f" [{ival[0]:.4g}, {ival[1]:.4g}]" if ival else ""
-    return f"{p['name']}[{p['element']}] {p['nominal']:.4g} -> {p['value']:.4g}{ival}"
-
-
 def physics_markdown(report: dict, figs: list[str]) -> str:
     """report.md: the cause with its value, every quantity tried, the errors, the plot."""
     ph, err = report["physics"], report["errors"]
@@ -155,14 +149,14 @@ def physics_markdown(report: dict, figs: list[str]) -> str:
     lines = ["# Physics diagnosis", "",
              f"Data: `{report['data']}` (task {report['task']}"
              + (f", model `{report['sim_xml']}`" if report["sim_xml"] else "") + ").", "",
-             ("**Top cause:** " + _fmt(top)) if top else
+             ("**Top cause:** " + format_quantity(top)) if top else
              "**Nothing significant:** no quantity of the candidate set explains the error.",
              "", f"Calibrated model leaves {100 * ph['unexplained']:.1f}% of the held-out "
              f"one-step error ({ph['seconds']:.1f} s).", "",
              "| quantity | nominal -> value [95% interval] | held-out error drop | p | kept |",
              "|---|---|---|---|---|"]
     for p in ph["parameters"]:
-        lines.append(f"| {p['name']}[{p['element']}] | {_fmt(p).split('] ', 1)[1]} | "
+        lines.append(f"| {p['name']}[{p['element']}] | {format_quantity(p).split('] ', 1)[1]} | "
                      f"{100 * p['gain']:.1f}% | {p['p_value']:.2g} | "
                      f"{'yes' if p['significant'] else 'no'} |")
     lines += ["", "| error (normalised RMSE) | nominal | calibrated |", "|---|---|---|",

@@ -11,6 +11,7 @@ import os
 
 from rl2s_jax._files import write_json
 from rl2s_jax.paper.simulator_gain import gain_rows
+from rl2s_jax.physics.identify import format_quantity, format_value
 
 __all__ = ["PHYSICS_BEGIN", "PHYSICS_END", "physics_block", "v5_row", "merge_v5_row"]
 
@@ -83,10 +84,10 @@ def _unseen_lines(doc: dict | None, source: str) -> list[str]:
         t, f = (c["truth"] or [None])[0], c["found"]
         planted = "nothing" if t is None else f"{t['name']}[{t['element']}]"
         got = "nothing" if f is None else f"{f['name']}[{f['element']}]"
-        value = ("-" if f is None else f"{f['value']:.4g}"
-                 + ("" if t is None else f" ({t['value']:.4g})"))
+        value = ("-" if f is None else format_value(f["value"])
+                 + ("" if t is None else f" ({format_value(t['value'])})"))
         ival = "-" if not (f and f.get("interval")) else (
-            f"[{f['interval'][0]:.4g}, {f['interval'][1]:.4g}]")
+            f"[{format_value(f['interval'][0])}, {format_value(f['interval'][1])}]")
         lines.append(f"| {c['case']} | {planted} | {got} | {value} | {ival} | "
                      f"{'yes' if c['passed'] else 'NO'} | {c['command_seconds']:.1f} |")
     return lines
@@ -142,7 +143,7 @@ def v5_row(rec: dict, command: str, hardware: str) -> dict:
         what = f"nothing named (unexplained {diag['unexplained']:.3f})"
     else:
         t = diag["top_cause"]
-        what = (f"{t['name']}[{t['element']}] {t['nominal']:.4g} -> {t['value']:.4g} "
+        what = (f"{format_quantity({**t, 'interval': None})} "
                 f"(unexplained {diag['unexplained']:.3f})")
     return {"task": rec["task"], "command": command, "hardware": hardware,
             "one_step": v5["one_step_mean"], "one_step_in": v5.get("one_step_in_contact"),

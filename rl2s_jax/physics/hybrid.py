@@ -81,9 +81,11 @@ def read_calibrated(path: str) -> dict:
 
 
 def calibrated_model(content: dict) -> tuple[PhysicsModel, np.ndarray, np.ndarray]:
-    """A calibrated.json's content -> (PhysicsModel, theta [K], delays [A])."""
+    """A calibrated.json's content -> (PhysicsModel, theta [K], delays [A]); its "integrator"
+    (where the diagnosis chose one in the model's place; files from before have none)."""
     pm = physics_model(content["task"], xml_path=content["xml"] if content["task"] is None
-                       else None, n_frames=content["n_frames"])
+                       else None, n_frames=content["n_frames"],
+                       integrator=content.get("integrator"))
     labels = content.get("labels")
     if labels is not None and list(labels) != [c.label for c in pm.candidates]:
         raise ValueError(f"physics: its theta labels {list(labels)[:3]}... are not this "

@@ -39,9 +39,16 @@ import jax
 import numpy as np
 from scipy import stats
 
-from rl2s_jax.physics.mjx_model import PhysicsModel, actuator_names, delayed_actions
+from rl2s_jax.physics.mjx_model import (
+    PhysicsModel,
+    actuator_names,
+    delayed_actions,
+    integrator_name,
+    set_integrator,
+)
 
-__all__ = ["FitConfig", "identify", "fit_sysid", "compiled", "c_backend", "split_rows", "Rows"]
+__all__ = ["FitConfig", "identify", "fit_sysid", "compiled", "c_backend", "split_rows", "Rows",
+           "format_value", "format_quantity"]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -49,7 +56,8 @@ class FitConfig:
     """rows: transitions per half (fixed: one compile); max_params: most quantities named;
     lm_iterations: refinement steps per candidate; alpha, min_gain: the significance rule
     (module docstring); max_delay: action delays screened, in control steps; bootstrap:
-    resamples for the intervals; seed: the split and subsample."""
+    resamples for the intervals; seed: the split and subsample; integrators: the integrators
+    screened in place of the model's (a discrete candidate, C MuJoCo backend only)."""
 
     rows: int = 256  # a multiple of JAC_ROWS
     max_params: int = 3
@@ -60,6 +68,7 @@ class FitConfig:
     bootstrap: int = 200
     seed: int = 0
     backend: str = "mujoco"
+    integrators: tuple[str, ...] = ("Euler", "RK4", "implicitfast")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -89,12 +98,15 @@ _COMPILED: dict[int, tuple] = {}
 JAC_ROWS = 64
 
 
-def c_backend(pm: PhysicsModel, fd_step: float = 1e-5):
+def c_backend(pm: PhysicsModel, fd_step: float = 1e-5, integrator: str | None = None):
     """(pred, pred_jac) as :func:`compiled`'s, in C MuJoCo (float64): each row stepped from its
-    measured state, the Jacobian by forward differences over theta (no compilation)."""
+    measured state, the Jacobian by forward differences over theta (no compilation);
+    ``integrator`` in place of the model's."""
     import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
 
     mj = copy.deepcopy(pm.mj)
+    if integrator is not None:
+        set_integrator(mj, integrator)
     data = mujoco.MjData(mj)
     nominal = {n: np.array(getattr(pm.mj, n)) for n in
                ("body_mass", "body_inertia", "dof_damping", "dof_armature", "geom_friction",
@@ -191,8 +203,10 @@ def obs_scale(ds) -> np.ndarray:
 class _Fit:
     """Residuals of one dataset half under a model, theta and delays."""
 
-    def __init__(self, pm, rows: Rows, scale, backend: str = "mujoco"):
-        self.pred, self.pred_jac = compiled(pm) if backend == "mjx" else c_backend(pm)
+    def __init__(self, pm, rows: Rows, scale, backend: str = "mujoco",
+                 integrator: str | None = None):
+        self.pred, self.pred_jac = (compiled(pm) if backend == "mjx"
+                                    else c_backend(pm, integrator=integrator))
         self.rows, self.scale = rows, scale
         self.w = rows.weight[:, None]
 
@@ -241,8 +255,9 @@ def _refine(fit: _Fit, theta, active, delays, iterations) -> np.ndarray:
     return theta
 
 
-def _screen(fit: _Fit, theta, active, delays, max_delay):
-    """The best next candidate: ("param", k, gain) or ("delay", (actuator, d), gain)."""
+def _screen(fit: _Fit, theta, active, delays, max_delay, others: dict | None = None):
+    """The best next candidate: ("param", k, gain), ("delay", (actuator, d), gain) or
+    ("integrator", name, gain); ``others``: {integrator name: its fit half} to try."""
     r, jac = fit.residual_jac(theta, delays)
     ja = jac[:, active]
     if active:
@@ -260,6 +275,10 @@ def _screen(fit: _Fit, theta, active, delays, max_delay):
             drop = cost - np.sum(fit.residual(theta, trial) ** 2)
             if drop > best[2]:
                 best = ("delay", (int(a), d), float(drop), r, jac)
+    for name, other in (others or {}).items():  # the exact drop, as a delay's
+        drop = cost - np.sum(other.residual(theta, delays) ** 2)
+        if drop > best[2]:
+            best = ("integrator", name, float(drop), r, jac)
     return best[:3]
 
 
@@ -305,11 +324,26 @@ def _wald(fit: _Fit, theta, active, delays) -> np.ndarray:
     return np.sqrt(np.diag(sigma2 * np.linalg.pinv(ja.T @ ja)))
 
 
+def _halves(pm: PhysicsModel, fit_rows: Rows, test_rows: Rows, scale, cfg: FitConfig) -> dict:
+    """{integrator name: (fit half, test half)}: the model's own integrator's, and with the C
+    backend each of ``cfg.integrators``' (MJX's compiled step keeps the model's)."""
+    own = integrator_name(pm.mj)
+    halves = {own: (_Fit(pm, fit_rows, scale, cfg.backend),
+                    _Fit(pm, test_rows, scale, cfg.backend))}
+    for name in (cfg.integrators if cfg.backend == "mujoco" else ()):
+        if name != own:
+            set_integrator(copy.deepcopy(pm.mj), name)  # a bad name fails here, first
+            halves[name] = (_Fit(pm, fit_rows, scale, integrator=name),
+                            _Fit(pm, test_rows, scale, integrator=name))
+    return halves
+
+
 def identify(pm: PhysicsModel, ds, cfg: FitConfig = FitConfig()) -> dict:
     """Forward stepwise identification (module docstring) -> the report's ``physics`` object
     minus ``command``: {"top_cause", "parameters", "unexplained", "error_nominal",
-    "error_calibrated", "seconds", "delays", "theta", "scale"} (errors: mean squared normalised
-    one-step residual over test episodes)."""
+    "error_calibrated", "seconds", "delays", "theta", "integrator", "scale"} (errors: mean
+    squared normalised one-step residual over test episodes; "integrator": the model's, or
+    the one chosen in its place)."""
     if ds.obs_size != pm.obs_size or ds.action_size != pm.action_size:
         raise ValueError(f"data: expected obs_size {pm.obs_size} and action_size "
                          f"{pm.action_size} (the physics model's), got {ds.obs_size}, "
@@ -319,23 +353,29 @@ def identify(pm: PhysicsModel, ds, cfg: FitConfig = FitConfig()) -> dict:
     scale = obs_scale(ds)
     if cfg.backend not in ("mujoco", "mjx"):
         raise ValueError(f"backend: expected 'mujoco' or 'mjx', got {cfg.backend!r}")
-    fit, test = (_Fit(pm, fit_rows, scale, cfg.backend), _Fit(pm, test_rows, scale, cfg.backend))
+    nominal_integrator = integrator = integrator_name(pm.mj)
+    halves = _halves(pm, fit_rows, test_rows, scale, cfg)
+    fit, test = halves[integrator]
     K, A = len(pm.candidates), pm.action_size
     theta, delays, active = np.zeros(K), np.zeros(A, int), []
     chosen, screened = [], []
     nominal_test = test.episode_errors(theta, delays)
     current = nominal_test
     for _ in range(cfg.max_params):
-        kind, what, gain = _screen(fit, theta, active, delays, cfg.max_delay)
+        others = ({n: h[0] for n, h in halves.items() if n != integrator}
+                  if integrator == nominal_integrator else {})
+        kind, what, gain = _screen(fit, theta, active, delays, cfg.max_delay, others)
         if gain <= 0:
             break
-        t_delays, t_active = delays.copy(), list(active)
+        t_delays, t_active, (t_fit, t_test) = delays.copy(), list(active), (fit, test)
         if kind == "param":
             t_active.append(what)
-        else:
+        elif kind == "delay":
             t_delays[what[0]] = what[1]
-        t_theta = _refine(fit, theta, t_active, t_delays, cfg.lm_iterations)
-        after = test.episode_errors(t_theta, t_delays)
+        else:
+            t_fit, t_test = halves[what]
+        t_theta = _refine(t_fit, theta, t_active, t_delays, cfg.lm_iterations)
+        after = t_test.episode_errors(t_theta, t_delays)
         p, drop, base = _paired_test(current, after)
         significant = bool(p < cfg.alpha and drop >= cfg.min_gain * base)
         entry = {"kind": kind, "what": what, "theta": t_theta, "p_value": p,
@@ -344,6 +384,9 @@ def identify(pm: PhysicsModel, ds, cfg: FitConfig = FitConfig()) -> dict:
         if not significant:
             break
         theta, delays, active, current = t_theta, t_delays, t_active, after
+        fit, test = t_fit, t_test
+        if kind == "integrator":
+            integrator = what
         chosen.append(entry)
     boot = _bootstrap(fit, theta, active, delays, cfg.bootstrap, cfg.seed)
     wald = _wald(fit, theta, active, delays) if active else np.zeros(0)
@@ -357,7 +400,23 @@ def identify(pm: PhysicsModel, ds, cfg: FitConfig = FitConfig()) -> dict:
             "unexplained": tot(current) / max(tot(nominal_test), 1e-30),
             "error_nominal": tot(nominal_test), "error_calibrated": tot(current),
             "seconds": time.perf_counter() - start,
-            "delays": delays.tolist(), "theta": theta.tolist(), "scale": scale.tolist()}
+            "delays": delays.tolist(), "theta": theta.tolist(), "integrator": integrator,
+            "scale": scale.tolist()}
+
+
+def format_value(x) -> str:
+    """A reported quantity's value as printed: a number to 4 significant digits, a name (an
+    integrator's) as it is."""
+    return x if isinstance(x, str) else f"{x:.4g}"
+
+
+def format_quantity(p: dict) -> str:
+    """One reported quantity ({"name", "element", "nominal", "value", "interval"?}) as
+    "name[element] nominal -> value [lo, hi]"."""
+    ival = p.get("interval")
+    ival = f" [{format_value(ival[0])}, {format_value(ival[1])}]" if ival else ""
+    return (f"{p['name']}[{p['element']}] {format_value(p['nominal'])} -> "
+            f"{format_value(p['value'])}{ival}")
 
 
 def _describe(pm, entry, active, theta, boot, wald) -> dict:
@@ -368,6 +427,9 @@ def _describe(pm, entry, active, theta, boot, wald) -> dict:
         a, d = entry["what"]
         return {"name": "action_delay", "element": actuator_names(pm.mj)[a], "nominal": 0,
                 "value": d, "interval": [d, d], **base}
+    if entry["kind"] == "integrator":  # a choice among names: no interval
+        return {"name": "integrator", "element": "opt", "nominal": integrator_name(pm.mj),
+                "value": entry["what"], "interval": None, "wald": None, **base}
     k = entry["what"]
     c = pm.candidates[k]
     th = theta[k] if entry["significant"] else entry["theta"][k]

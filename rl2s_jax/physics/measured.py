@@ -24,7 +24,14 @@ import jax
 import numpy as np
 
 from rl2s_jax.data.dataset import Dataset
-from rl2s_jax.physics.mjx_model import Candidate, PhysicsModel, actuator_names, candidates_of
+from rl2s_jax.physics.mjx_model import (
+    Candidate,
+    PhysicsModel,
+    actuator_names,
+    candidates_of,
+    integrator_name,
+    set_integrator,
+)
 
 __all__ = ["Planted", "collect_measured", "numpy_policy_action"]
 
@@ -33,8 +40,10 @@ _FIELD_NAMES = ("body_mass", "geom_friction", "actuator_gear", "dof_damping", "d
 
 @dataclasses.dataclass(frozen=True)
 class Planted:
-    """One planted change: ``name`` (a quantity of mjx_model's table, or ``action_delay``),
-    ``element`` (its MuJoCo name), ``amount`` (a factor; for ``action_delay`` control steps)."""
+    """One planted change: ``name`` (a quantity of mjx_model's table, ``action_delay`` or
+    ``integrator``), ``element`` (its MuJoCo name; for ``integrator`` the integrator the data's
+    engine steps with, a name of mjx_model.INTEGRATORS), ``amount`` (a factor; for
+    ``action_delay`` control steps; unused for ``integrator``)."""
 
     name: str
     element: str
@@ -66,6 +75,11 @@ def plant(pm: PhysicsModel, changes: list[Planted]):
     truth = []
     cands = candidates_of(pm.mj)
     for ch in changes:
+        if ch.name == "integrator":
+            truth.append({"name": "integrator", "element": "opt",
+                          "nominal": integrator_name(mj), "value": ch.element})
+            set_integrator(mj, ch.element)  # a ValueError naming the choices
+            continue
         if ch.name == "action_delay":
             names = actuator_names(pm.mj)
             if ch.element not in names or int(ch.amount) != ch.amount or ch.amount < 0:

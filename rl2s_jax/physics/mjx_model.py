@@ -258,6 +258,24 @@ def task_xml(task: str) -> str:
     return str(epath.resource_path("brax") / "envs" / "assets" / PHYSICS_TASKS[task])
 
 
+# MuJoCo's integrators by name (mujoco.mjtIntegrator's values); the ones MJX also steps are the
+# identification's integrator candidates (identify.FitConfig.integrators)
+INTEGRATORS = {"Euler": 0, "RK4": 1, "implicit": 2, "implicitfast": 3}
+
+
+def integrator_name(mj) -> str:
+    """The name (INTEGRATORS) of a C model's integrator."""
+    by_value = {v: k for k, v in INTEGRATORS.items()}
+    return by_value.get(int(mj.opt.integrator), f"mjtIntegrator {int(mj.opt.integrator)}")
+
+
+def set_integrator(mj, name: str) -> None:
+    """Set a C model's integrator by name (in place); ValueError naming the choices."""
+    if name not in INTEGRATORS:
+        raise ValueError(f"integrator: expected one of {', '.join(INTEGRATORS)}, got {name!r}")
+    mj.opt.integrator = INTEGRATORS[name]
+
+
 def load_mj(task: str | None, xml_path: str | None = None):
     """The nominal C model (``mujoco.MjModel``) of a task, as its MJX env runs it, or of an
     MJCF file."""
@@ -272,9 +290,10 @@ def load_mj(task: str | None, xml_path: str | None = None):
 
 
 def physics_model(task: str | None = None, *, xml_path: str | None = None,
-                  n_frames: int | None = None) -> PhysicsModel:
+                  n_frames: int | None = None, integrator: str | None = None) -> PhysicsModel:
     """The physics model of a registered task (its MJX env's XML, options, ``n_frames``) or of
-    a user's MJCF (``xml_path``; obs = qpos ++ qvel; ``n_frames`` default 1)."""
+    a user's MJCF (``xml_path``; obs = qpos ++ qvel; ``n_frames`` default 1); ``integrator``
+    (INTEGRATORS' names) in place of the XML's (a calibrated model's)."""
     from mujoco import mjx  # local: keeps `import rl2s_jax.physics` free of MuJoCo
 
     from rl2s_jax.envs.tasks import _LOCO
@@ -285,6 +304,8 @@ def physics_model(task: str | None = None, *, xml_path: str | None = None,
     elif n_frames is not None and n_frames < 1:
         raise ValueError(f"n_frames: expected a positive integer, got {n_frames}")
     mj = load_mj(task if xml_path is None else None, xml_path)
+    if integrator is not None:
+        set_integrator(mj, integrator)
     lag = ()
     if xml_path is None and task in _LAGGED_HEIGHT:
         lag = ((1, 1, 1, float(mj.body_pos[1, 2])),)

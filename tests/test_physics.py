@@ -167,17 +167,22 @@ def test_no_physics_model_fails_fast(tmp_path, pm_files):
                                      sim_xml=task_xml("hopper")))
 
 
-@pytest.mark.slow
-def test_cli_writes_the_physics_report(tmp_path, pm, zoo_params, datasets):
+def _diagnose_cli(tmp_path, ds):
+    """`rl2s diagnose --physics` on ``ds`` as a user runs it -> (its out dir, report.json)."""
     from rl2s_jax.cli import main
     from rl2s_jax.data.dataset import save_dataset
 
-    path = str(tmp_path / "gear.npz")
-    save_dataset(path, _get(datasets, pm, zoo_params, "gear"))
+    path = str(tmp_path / "data.npz")
+    save_dataset(path, ds)
     out = tmp_path / "report"
     assert main(["diagnose", "--data", path, "--physics", "--out", str(out), "--quiet",
                  "--k-max", "3"]) == 0
-    report = json.loads((out / "report.json").read_text())
+    return out, json.loads((out / "report.json").read_text())
+
+
+@pytest.mark.slow
+def test_cli_writes_the_physics_report(tmp_path, pm, zoo_params, datasets):
+    out, report = _diagnose_cli(tmp_path, _get(datasets, pm, zoo_params, "gear"))
     ph = report["physics"]
     assert set(ph) >= {"top_cause", "parameters", "unexplained", "seconds", "command"}
     assert ph["top_cause"]["element"] == "leg_joint"
@@ -203,15 +208,8 @@ def test_cli_calibrates_the_integrator_it_names(tmp_path, pm, zoo_params, datase
     import mujoco
 
     from rl2s_jax.app.physics_diagnosis import load_calibrated
-    from rl2s_jax.cli import main
-    from rl2s_jax.data.dataset import save_dataset
 
-    path = str(tmp_path / "rk4.npz")
-    save_dataset(path, _get(datasets, pm, zoo_params, "integrator"))
-    out = tmp_path / "report"
-    assert main(["diagnose", "--data", path, "--physics", "--out", str(out), "--quiet",
-                 "--k-max", "3"]) == 0
-    report = json.loads((out / "report.json").read_text())
+    out, report = _diagnose_cli(tmp_path, _get(datasets, pm, zoo_params, "integrator"))
     top = report["physics"]["top_cause"]
     assert top == {"name": "integrator", "element": "opt", "nominal": "Euler", "value": "RK4",
                    "interval": None}

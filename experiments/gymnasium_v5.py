@@ -308,7 +308,7 @@ def run_task(task: str, args) -> dict:
                                                        "error_calibrated")}
         print(f"{task} physics diagnosis ({ph['seconds']:.0f} s): top cause {ph['top_cause']}; "
               f"unexplained {ph['unexplained']:.3f}; parameters "
-              + "; ".join(f"{format_quantity({**p, 'interval': None})} "
+              + "; ".join(f"{format_quantity(p, interval=False)} "
                           f"(gain {p['gain']:.3f}, p {p['p_value']:.2g}, "
                           f"{'kept' if p['significant'] else 'not kept'})"
                           for p in ph["parameters"]))

@@ -143,7 +143,7 @@ def v5_row(rec: dict, command: str, hardware: str) -> dict:
         what = f"nothing named (unexplained {diag['unexplained']:.3f})"
     else:
         t = diag["top_cause"]
-        what = (f"{format_quantity({**t, 'interval': None})} "
+        what = (f"{format_quantity(t, interval=False)} "
                 f"(unexplained {diag['unexplained']:.3f})")
     return {"task": rec["task"], "command": command, "hardware": hardware,
             "one_step": v5["one_step_mean"], "one_step_in": v5.get("one_step_in_contact"),

@@ -331,8 +331,7 @@ def _halves(pm: PhysicsModel, fit_rows: Rows, test_rows: Rows, scale, cfg: FitCo
     halves = {own: (_Fit(pm, fit_rows, scale, cfg.backend),
                     _Fit(pm, test_rows, scale, cfg.backend))}
     for name in (cfg.integrators if cfg.backend == "mujoco" else ()):
-        if name != own:
-            set_integrator(copy.deepcopy(pm.mj), name)  # a bad name fails here, first
+        if name != own:  # a bad name: c_backend's ValueError, before any stepping
             halves[name] = (_Fit(pm, fit_rows, scale, integrator=name),
                             _Fit(pm, test_rows, scale, integrator=name))
     return halves
@@ -410,10 +409,11 @@ def format_value(x) -> str:
     return x if isinstance(x, str) else f"{x:.4g}"
 
 
-def format_quantity(p: dict) -> str:
+def format_quantity(p: dict, interval: bool = True) -> str:
     """One reported quantity ({"name", "element", "nominal", "value", "interval"?}) as
-    "name[element] nominal -> value [lo, hi]"."""
-    ival = p.get("interval")
+    "name[element] nominal -> value [lo, hi]" (the interval left out where ``interval`` is
+    false)."""
+    ival = p.get("interval") if interval else None
     ival = f" [{format_value(ival[0])}, {format_value(ival[1])}]" if ival else ""
     return (f"{p['name']}[{p['element']}] {format_value(p['nominal'])} -> "
             f"{format_value(p['value'])}{ival}")

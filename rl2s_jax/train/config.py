@@ -237,8 +237,8 @@ class TrainConfig:
     # the same updates (issue 63: the one-lane chain is launch-bound); 1: no unrolling
     batches_up_front: bool = False  # draw every update's batches of a step (and the critic
     # updates' fake states, the members' noise keys) before its chain of updates, as one
-    # batched draw, not inside each update: the same numbers, fewer kernels in the chain of
-    # dependent updates (issue 63), the step's batches held in memory at once
+    # batched draw, not inside each update: the same numbers, the step's batches held in
+    # memory at once; no faster on an H200 (1.00x, docs/BENCHMARKS.md), hence off
 
     @property
     def is_adversarial(self) -> bool:

@@ -74,6 +74,14 @@ wedged in the "euler_iter" variant, so no values from that run):
     With 5 policies x 400 transitions (10 test episodes) the same quantity came first,
     0.9 -> 1.889, gain 26%, but p 0.057 > 0.01: not kept, top cause None.
 
+    The wedges on this CPU were jaxlib's deadlock of concurrent batched Cholesky calls
+    (rl2s_jax/_xla_cpu.py; avoided since). With the integrator as a candidate,
+    ``--tasks walker2d --policies 5 --episode-length 100 --transitions 600 --value-episodes 2
+    --no-control --diagnose DIR`` (RESULTS' row 9; 63 s, the diagnosis 22 s) names both
+    differences: integrator[opt] Euler -> RK4 (p 2.4e-07), then geom_friction[foot_geom]
+    0.9 -> 1.9 (v5's XML: 1.9; p 0.00036); held-out one-step error 0.073 -> 0.010, 10-step
+    open loop 0.327 -> 0.014, unexplained 0.009.
+
 HalfCheetah (``--tasks halfcheetah --policies 5 --transitions 200 --value-episodes 4
 --ablate``): v5 one-step 0.0013 (in contact 0.0025, out 3.9e-6), 10-step 0.0038; the
 C-MuJoCo control 3.5e-6 one-step, 10-step 0.0039: v5's only physical differences (RK4 is not
@@ -112,15 +120,7 @@ import tempfile
 import time
 import xml.etree.ElementTree as ET
 
-# XLA CPU wedged here (every thread parked on a futex, the main one in BlockUntilReady) on
-# the vmapped Walker2d and HalfCheetah MJX steps. Single-threaded Eigen (the workaround of
-# PyAutoLabs/PyAutoFit#1530) made it rarer, not gone: with it, runs still wedged at the third
-# or fourth dataset. Not understood. Set before JAX starts its backend; no effect on a GPU.
-if "xla_cpu_multi_thread_eigen" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "")
-                               + " --xla_cpu_multi_thread_eigen=false").strip()
-
-import jax  # noqa: E402
+import jax
 import jax.numpy as jnp
 import mujoco
 import numpy as np

@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import importlib
 
-from rl2s_jax import _gym
+from rl2s_jax import _gym, _xla_cpu
+
+_xla_cpu.avoid_cholesky_deadlock()  # before any JAX backend starts: rl2s_jax/_xla_cpu.py
 
 _gym.install()
 

@@ -41,8 +41,8 @@ LONG_FUNCTIONS = {
 }
 # Lower layers first; a module may import only from its own layer or lower ones.
 LAYERS = [
-    {"_quiet", "_names", "_files", "_gym", "_timing", "compile_cache", "sharding", "stats", "envs",
-     "policy"},
+    {"_quiet", "_names", "_files", "_gym", "_timing", "_xla_cpu", "compile_cache", "sharding",
+     "stats", "envs", "policy"},
     {"data"},
     {"zoo", "model"},
     {"evaluate"},

@@ -114,6 +114,22 @@ def test_v5_rows_merge_by_task_command_and_hardware(tmp_path):
     assert [(r["hardware"], r["tau"]) for r in rows] == [("one H200", 0.7), ("CPU", 0.8)]
 
 
+def test_v5_row_names_every_kept_quantity():
+    q = lambda name, el, nominal, value, kept: {  # noqa: E731
+        "name": name, "element": el, "nominal": nominal, "value": value, "interval": None,
+        "significant": kept}
+    params = [q("integrator", "opt", "Euler", "RK4", True),
+              q("geom_friction", "foot_geom", 0.9, 1.9, True),
+              q("geom_friction", "foot_left_geom", 1.9, 1.878, False)]
+    rec = {**_v5_record(), "physics_diagnosis": {"top_cause": params[0], "parameters": params,
+                                                 "unexplained": 0.009}}
+    assert pt.v5_row(rec, "cmd", "CPU")["diagnosis"] == (
+        "integrator[opt] Euler -> RK4; geom_friction[foot_geom] 0.9 -> 1.9 (unexplained 0.009)")
+    rec["physics_diagnosis"]["parameters"] = None  # an older record: its top cause alone
+    assert pt.v5_row(rec, "cmd", "CPU")["diagnosis"] == (
+        "integrator[opt] Euler -> RK4 (unexplained 0.009)")
+
+
 def _physics_results(folder):
     folder.mkdir()
     runs = [{"nominal": dict(one_step=x, kstep=x, avd=x, mvd=x, tau=0.9),

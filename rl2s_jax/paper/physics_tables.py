@@ -141,10 +141,11 @@ def v5_row(rec: dict, command: str, hardware: str) -> dict:
         what = None
     elif diag["top_cause"] is None:
         what = f"nothing named (unexplained {diag['unexplained']:.3f})"
-    else:
-        t = diag["top_cause"]
-        what = (f"{format_quantity(t, interval=False)} "
-                f"(unexplained {diag['unexplained']:.3f})")
+    else:  # every quantity the diagnosis kept, in its order; the top cause where none listed
+        kept = [p for p in diag.get("parameters") or () if p.get("significant")]
+        named = "; ".join(format_quantity(p, interval=False)
+                          for p in kept or [diag["top_cause"]])
+        what = f"{named} (unexplained {diag['unexplained']:.3f})"
     return {"task": rec["task"], "command": command, "hardware": hardware,
             "one_step": v5["one_step_mean"], "one_step_in": v5.get("one_step_in_contact"),
             "one_step_out": v5.get("one_step_no_contact"), "kstep": v5["k_step_mean"],

@@ -13,7 +13,7 @@ Single-threaded Eigen (``--xla_cpu_multi_thread_eigen=false``) did not help.
 
 XLA's depth-first (memory-frugal) scheduler instead of its concurrency-optimised one makes
 the program's buffers reuse each other, which orders those calls one after another: no hang
-in 9 of 9 runs, Walker2d-v5's check and diagnosis done in 62 s. It costs some CPU throughput
+in 9 of 9 runs, Walker2d-v5's check and diagnosis done in 63 s. It costs some CPU throughput
 (docs/BENCHMARKS.md) and leaves GPU programs alone. A user who sets the flag in
 ``XLA_FLAGS`` keeps theirs (``=true`` restores XLA's default).
 """

@@ -411,8 +411,8 @@ cmd_levers() {
   done
   # the archive is written beside $OUT, then moved in: tar exits 1 when the directory it
   # reads changes under it (the archive's creation did)
-  tar -C "$OUT" -czf "$OUT.levers.tgz" --exclude levers.log --exclude stdout.log . \
-    && mv "$OUT.levers.tgz" "$OUT/levers.tgz" \
+  tar -C "$OUT" -czf "${OUT%/}.levers.tgz" --exclude levers.log --exclude stdout.log . \
+    && mv "${OUT%/}.levers.tgz" "$OUT/levers.tgz" \
     && find "$OUT" -maxdepth 1 -name "*.json" -delete  # the tool brings back 8 files
 }
 

@@ -83,18 +83,19 @@ def diagnose_physics(spec: PhysicsSpec) -> dict:
     log(f"[physics] {ds.n_transitions} transitions, {len(pm.candidates)} candidate quantities")
     found = identify(pm, ds, cfg)
     nominal = physics_errors(pm, ds, k=spec.k, seed=cfg.seed)
-    pm_cal = pm if found["integrator"] == integrator_name(pm.mj) else physics_model(
-        pm.task, xml_path=spec.sim_xml, n_frames=spec.sim_frames,
-        integrator=found["integrator"])  # the integrator chosen in the model's place
+    content = jsonable({"task": pm.task, "xml": pm.xml_path, "n_frames": pm.n_frames,
+                        "theta": found["theta"], "delays": found["delays"],
+                        "integrator": found["integrator"],
+                        "labels": [c.label for c in pm.candidates]})
+    # the calibrated model as calibrated.json loads it; the nominal one (its compiled
+    # programs) where the diagnosis kept the model's integrator
+    pm_cal = (pm if found["integrator"] == integrator_name(pm.mj)
+              else calibrated_model(content)[0])
     calibrated = physics_errors(pm_cal, ds, found["theta"], found["delays"], k=spec.k,
                                 seed=cfg.seed)
     os.makedirs(spec.out, exist_ok=True)
     cal_path = os.path.join(spec.out, "calibrated.json")
-    write_json(cal_path, jsonable({"task": pm.task, "xml": pm.xml_path,
-                                   "n_frames": pm.n_frames, "theta": found["theta"],
-                                   "delays": found["delays"],
-                                   "integrator": found["integrator"],
-                                   "labels": [c.label for c in pm.candidates]}))
+    write_json(cal_path, content)
     # the calibrated simulator as a user runs it (`rl2s improve --physics` and
     # gymnasium.make(..., physics=) take the same file; load_calibrated from Python)
     command = (f"rl2s evaluate --physics {shlex.quote(cal_path)} --data "

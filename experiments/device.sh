@@ -27,8 +27,8 @@
 #       issue 63, one after another on one GPU: the adversarial and the likelihood family's
 #       steps (bench_train.py, 6 lanes vmapped, P=17) and the equal-work step (one lane),
 #       per MODE: control (as run: deterministic ops), nondeterministic, autotune0 (GEMM
-#       autotuning off: compile time) and up_front (batches_up_front, and its bit-for-bit
-#       test on this GPU); default all four;
+#       autotuning off: compile time), up_front (batches_up_front, and its bit-for-bit
+#       test on this GPU) and flat (flat_optimizer, and its test); default all but flat;
 #       Hopper's collection in control and nondeterministic where nondeterministic is asked
 #       for; $OUT/levers.tgz
 #       ({rl2s,bc,equal,collect}_<mode>.json), levers.log
@@ -378,8 +378,8 @@ cmd_levers() {
   local modes=("$@")
   [ ${#modes[@]} -gt 0 ] || modes=(control nondeterministic autotune0 up_front)
   for mode in "${modes[@]}"; do  # refused before any measurement
-    [[ " control nondeterministic autotune0 up_front " == *" $mode "* ]] || {
-      echo "levers: expected modes among control nondeterministic autotune0 up_front, got" \
+    [[ " control nondeterministic autotune0 up_front flat " == *" $mode "* ]] || {
+      echo "levers: expected modes among control nondeterministic autotune0 up_front flat, got" \
         "$mode" >&2; return 2; }
   done
   for mode in "${modes[@]}"; do
@@ -388,6 +388,7 @@ cmd_levers() {
       nondeterministic) flags=$off ;;
       autotune0) flags="$on --xla_gpu_autotune_level=0" ;;  # compile time against step time
       up_front) set=(--set batches_up_front=true) ;;
+      flat) set=(--set flat_optimizer=true) ;;
     esac
     echo "== $mode: XLA_FLAGS='$flags' ${set[*]}" | tee -a "$OUT/levers.log"
     XLA_FLAGS=$flags run_logged levers.log python3 experiments/bench_train.py --policies \
@@ -398,9 +399,9 @@ cmd_levers() {
     XLA_FLAGS=$flags run_logged levers.log python3 experiments/bench_train.py --official-sizes \
       --policies 17 --horizons --sim-steps --vmap ${set[@]+"${set[@]}"} \
       --json "$OUT/equal_$mode.json"
-    if [ "$mode" = up_front ]; then  # the same updates bit for bit on this GPU too
+    if [[ "$mode" =~ ^(up_front|flat)$ ]]; then  # the same updates on this GPU too
       XLA_FLAGS=$flags run_logged levers.log python3 -m pytest -q -p no:cacheprovider \
-        tests/test_train.py -k batches_up_front
+        tests/test_train.py -k "${mode/up_front/batches_up_front}"
     fi
     # the collection only where its two modes are compared
     [[ "$mode" =~ ^(control|nondeterministic)$ && " ${modes[*]} " == *" nondeterministic "* ]] \

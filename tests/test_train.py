@@ -835,6 +835,41 @@ def test_make_config_profiles():
         make_config(ds, "bc", "cpu", overrides={"gen_size": 3})
 
 
+@pytest.mark.parametrize("method", ["rl2s", "bc"])
+def test_flat_optimizer_makes_the_same_updates(pm, method):
+    """flat_optimizer (issue 63: fewer kernels per update) runs the clip and Adam of the
+    members and the critic over one flat vector: two steps (weight decay on, the critic's and
+    the members' updates) end with the same parameters and metrics as the per-leaf optimiser,
+    while the optimiser state holds one flat vector per member."""
+    ds, policies = pm
+    out = {}
+    for flat in (False, True):
+        cfg = _tiny(method, flat_optimizer=flat, ensemble_size=2, n_elites=1)
+        assert cfg.gen_weight_decay > 0
+        data = T.make_train_data(ds, policies, cfg)
+        state = _init(jax.random.PRNGKey(3), cfg, data)
+        ms = []
+        for _ in range(2):
+            state, m = _train_step(state, data)
+            ms.append(m)
+        out[flat] = (state, ms)
+    (a, ma), (b, mb) = out[False], out[True]
+    n_params = sum(x[0].size for x in jax.tree_util.tree_leaves(a.gen))
+    widths = {x.shape[-1] for x in jax.tree_util.tree_leaves(b.gen_opt) if x.ndim == 2}
+    assert widths == {n_params}, widths  # mu and nu: [E, all of a member's parameters]
+    fields = ["gen", "best_gen", "ema_gen", "heldout_nll"] + (
+        ["disc", "disc_us", "sim", "buffer_obs"] if method == "rl2s" else [])
+    for name in fields:
+        for u, v in zip(jax.tree_util.tree_leaves(getattr(a, name)),
+                        jax.tree_util.tree_leaves(getattr(b, name)), strict=True):
+            np.testing.assert_allclose(np.asarray(u), np.asarray(v), rtol=1e-6, atol=1e-7,
+                                       err_msg=name)
+    for u, v in zip(jax.tree_util.tree_leaves(ma), jax.tree_util.tree_leaves(mb), strict=True):
+        np.testing.assert_allclose(np.asarray(u), np.asarray(v), rtol=1e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="flat_optimizer: expected true or false"):
+        _tiny(method, flat_optimizer="yes").validate()
+
+
 @pytest.mark.parametrize("method,extra", [("rl2s", {}), ("bc", {}),
                                           ("gail", {"action_history": 2})])
 def test_batches_up_front_draw_the_same_batches(pm, method, extra):

@@ -239,6 +239,10 @@ class TrainConfig:
     # updates' fake states, the members' noise keys) before its chain of updates, as one
     # batched draw, not inside each update: the same numbers, the step's batches held in
     # memory at once; no faster on an H200 (1.00x, docs/BENCHMARKS.md), hence off
+    flat_optimizer: bool = False   # the members' and the critic's optimisers over one flat
+    # vector of their parameters (optax.flatten): the same elementwise updates in fewer,
+    # larger kernels per update (issue 63: the chain of small updates is launch-bound);
+    # the optimiser state's layout differs, so a checkpoint keeps the setting it was saved with
 
     @property
     def is_adversarial(self) -> bool:
@@ -356,9 +360,10 @@ class TrainConfig:
         _check_ints(self, ("batch_size", "updates_per_step", "ensemble_size", "n_elites",
                            "holdout_rows", "multistep_steps", "scan_unroll"), 1)
         _check_ints(self, ("early_stop_patience",), 0, off=" (0 = off)")
-        if not isinstance(self.batches_up_front, bool):
-            raise ValueError(f"batches_up_front: expected true or false, got "
-                             f"{self.batches_up_front!r}")
+        for name in ("batches_up_front", "flat_optimizer"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name}: expected true or false, got "
+                                 f"{getattr(self, name)!r}")
         _check_floats(self, ("gen_lr", "bc_lr", "grad_clip", "obs_clip"), positive=True)
         _check_floats(self, ("sim_noise", "log_std_bound_weight", "gen_weight_decay",
                              "early_stop_min_delta", "multistep_weight", "nll_beta"))

@@ -142,17 +142,26 @@ def _sampler(gen, state: TrainState, noise_scale: float) -> Simulator:
                      **cfg.simulator_settings(noise_scale))
 
 
+def _clip_adam(cfg: TrainConfig, adam: optax.GradientTransformation) -> list:
+    """[elementwise clip, adam], or both as one over a flat vector of the parameters
+    (``optax.flatten``) where ``cfg.flat_optimizer``."""
+    if cfg.flat_optimizer:
+        return [optax.flatten(optax.chain(optax.clip(cfg.grad_clip), adam))]
+    return [optax.clip(cfg.grad_clip), adam]
+
+
 def _gen_tx(cfg: TrainConfig, lr: float) -> optax.GradientTransformation:
     """One member's optimiser: L2 on its weight matrices (gen_weight_decay), elementwise clip,
-    Adam. Both phases share its state layout."""
+    Adam. Both phases share its state layout. (The decay's mask needs the parameters' tree:
+    it stays outside the flat part.)"""
     decay = ([optax.add_decayed_weights(cfg.gen_weight_decay, mask=dyn.weight_mask)]
              if cfg.gen_weight_decay else [])
-    return optax.chain(*decay, optax.clip(cfg.grad_clip), optax.adam(lr))
+    return optax.chain(*decay, *_clip_adam(cfg, optax.adam(lr)))
 
 
 def _disc_tx(cfg: TrainConfig) -> optax.GradientTransformation:
     adv = cfg.adversarial
-    return optax.chain(optax.clip(cfg.grad_clip), optax.adam(adv.disc_lr, b1=adv.disc_beta1))
+    return optax.chain(*_clip_adam(cfg, optax.adam(adv.disc_lr, b1=adv.disc_beta1)))
 
 
 def _tree_where(cond, new, old):

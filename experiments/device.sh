@@ -28,7 +28,8 @@
 #       steps (bench_train.py, 6 lanes vmapped, P=17) and the equal-work step (one lane),
 #       per MODE: control (as run: deterministic ops), nondeterministic, autotune0 (GEMM
 #       autotuning off: compile time), up_front (batches_up_front, and its bit-for-bit
-#       test on this GPU) and flat (flat_optimizer, and its test); default all but flat;
+#       test on this GPU) and flat (flat_optimizer, its test, and experiments/step_ops.py's
+#       ops per update with and without it: ops_{default,flat}.json); default all but flat;
 #       Hopper's collection in control and nondeterministic where nondeterministic is asked
 #       for; $OUT/levers.tgz
 #       ({rl2s,bc,equal,collect}_<mode>.json), levers.log
@@ -402,6 +403,12 @@ cmd_levers() {
     if [[ "$mode" =~ ^(up_front|flat)$ ]]; then  # the same updates on this GPU too
       XLA_FLAGS=$flags run_logged levers.log python3 -m pytest -q -p no:cacheprovider \
         tests/test_train.py -k "${mode/up_front/batches_up_front}"
+    fi
+    if [ "$mode" = flat ]; then  # the GPU's kernels per update, default and flat
+      XLA_FLAGS=$flags run_logged levers.log python3 experiments/step_ops.py \
+        --official-sizes --json "$OUT/ops_default.json"
+      XLA_FLAGS=$flags run_logged levers.log python3 experiments/step_ops.py \
+        --official-sizes --set flat_optimizer=true --json "$OUT/ops_flat.json"
     fi
     # the collection only where its two modes are compared
     [[ "$mode" =~ ^(control|nondeterministic)$ && " ${modes[*]} " == *" nondeterministic "* ]] \

@@ -241,8 +241,9 @@ class TrainConfig:
     # memory at once; no faster on an H200 (1.00x, docs/BENCHMARKS.md), hence off
     flat_optimizer: bool = False   # the members' and the critic's optimisers over one flat
     # vector of their parameters (optax.flatten): the same elementwise updates in fewer,
-    # larger kernels per update (issue 63: the chain of small updates is launch-bound);
-    # the optimiser state's layout differs, so a checkpoint keeps the setting it was saved with
+    # larger kernels per update (issue 63: the chain of small updates is launch-bound); 1.01x
+    # on an H200 (docs/BENCHMARKS.md), hence off; the optimiser state's layout differs, so a
+    # checkpoint keeps the setting it was saved with
 
     @property
     def is_adversarial(self) -> bool:

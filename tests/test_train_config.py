@@ -38,18 +38,19 @@ def _flat(cfg: TrainConfig) -> dict:
 def test_flat_configs_of_before_load_field_by_field(name):
     """Every saved flat config loads; each of its 59 (or, saved before two fields, 57) values
     is the new config's at the field's dotted name, the fields it lacks take the values its run
-    had (``physics``, ``scan_unroll`` and ``batches_up_front``, added after the flat format:
-    None, no hybrid; 1, no unrolling; false, batches drawn in each update); and the nested
-    config writes back the same flat values."""
+    had (``physics``, ``scan_unroll``, ``batches_up_front`` and ``flat_optimizer``, added after
+    the flat format: None, no hybrid; 1, no unrolling; false, batches drawn in each update;
+    false, the optimisers per leaf); and the nested config writes back the same flat values."""
     flat = FLAT_SAMPLES[name]
     cfg = TrainConfig.from_saved(flat).validate()
     dotted = cfg.to_dotted()
-    assert len(dotted) == 62
+    assert len(dotted) == 63
     for key, value in flat.items():
         got = dotted[FLAT_NAMES.get(key, key)]
         assert json.loads(json.dumps(got)) == value, key
     assert _flat(cfg) == {"gen_activation": "relu", "matmul_dtype": "float32", "physics": None,
-                          "scan_unroll": 1, "batches_up_front": False, **flat}
+                          "scan_unroll": 1, "batches_up_front": False, "flat_optimizer": False,
+                          **flat}
 
 
 def test_flat_configs_of_before_are_todays_named_configs():

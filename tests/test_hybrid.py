@@ -295,3 +295,25 @@ def test_a_delayed_hybrid_steps_the_physics_with_the_late_actions(pm, files):
     np.testing.assert_allclose(got, physics + members - obs, atol=2e-4)
     on_time = predict(pm, np.asarray(content["theta"]), obs.astype(np.float64), act)
     assert np.abs(got - (on_time + members - obs)).max() > 1e-3  # the delay acts
+
+
+def test_calibrated_json_from_before_the_margin_candidates_still_loads(pm, tmp_path):
+    """A calibrated.json written before geom_margin became a candidate (its labels a subset of
+    the model's): its values land on their own candidates, the new ones at their nominal
+    (theta 0), through both loaders; labels of another model are still refused."""
+    from rl2s_jax.physics.hybrid import calibrated_model
+    from rl2s_jax.physics.physics_simulator import physics_simulator
+
+    old = [c.label for c in pm.candidates if c.name != "geom_margin"]
+    assert len(old) < len(pm.candidates)
+    theta = [0.01 * (i + 1) for i in range(len(old))]
+    content = {"task": "hopper", "xml": pm.xml_path, "n_frames": pm.n_frames, "theta": theta,
+               "delays": [0, 0, 0], "labels": old}
+    _, full, _ = calibrated_model(content)
+    for c, th in zip(pm.candidates, full, strict=True):
+        assert th == (theta[old.index(c.label)] if c.label in old else 0.0), c.label
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps(content))
+    assert list(physics_simulator(str(path), "hopper").theta) == list(full)
+    with pytest.raises(ValueError, match="not this model's"):
+        calibrated_model({**content, "labels": old[:-1] + ["body_mass[nothing]"]})

@@ -101,6 +101,9 @@ def calibrated_mj(pm: PhysicsModel, theta):
     for c, th in zip(pm.candidates, theta, strict=True):
         if c.name == "obs_bias" or th == 0.0:
             continue
+        if c.name == "geom_margin":
+            mj.geom_margin[c.index] += th
+            continue
         f = float(np.exp(th))
         if c.name == "body_mass":
             mj.body_mass[c.index] *= f

@@ -51,7 +51,12 @@ import numpy as np
 
 from rl2s_jax.model.simulator import Simulator
 from rl2s_jax.physics.calibrated import physics_dynamics
-from rl2s_jax.physics.mjx_model import PhysicsModel, delayed_actions, physics_model
+from rl2s_jax.physics.mjx_model import (
+    PhysicsModel,
+    delayed_actions,
+    physics_model,
+    theta_by_labels,
+)
 from rl2s_jax.physics.residuals import predict
 from rl2s_jax.train.checkpoint import load_checkpoint
 from rl2s_jax.train.config import TrainConfig
@@ -86,11 +91,13 @@ def calibrated_model(content: dict) -> tuple[PhysicsModel, np.ndarray, np.ndarra
     pm = physics_model(content["task"], xml_path=content["xml"] if content["task"] is None
                        else None, n_frames=content["n_frames"],
                        integrator=content.get("integrator"))
-    labels = content.get("labels")
-    if labels is not None and list(labels) != [c.label for c in pm.candidates]:
-        raise ValueError(f"physics: its theta labels {list(labels)[:3]}... are not this "
-                         f"model's candidate quantities; re-run `rl2s diagnose --physics`")
-    return pm, np.asarray(content["theta"], np.float64), np.asarray(content["delays"], int)
+    theta, labels = list(content["theta"]), content.get("labels")
+    if labels is not None:
+        theta = theta_by_labels(pm, labels, theta)
+        if theta is None:
+            raise ValueError(f"physics: its theta labels {list(labels)[:3]}... are not this "
+                             f"model's candidate quantities; re-run `rl2s diagnose --physics`")
+    return pm, np.asarray(theta, np.float64), np.asarray(content["delays"], int)
 
 
 def hybrid_config(cfg: TrainConfig, ds, content: dict | None = None) -> TrainConfig:

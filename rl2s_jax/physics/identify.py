@@ -11,7 +11,10 @@ Selection, forward stepwise (:func:`identify`). At the current fit:
 1. screen every candidate: a continuous one by the linearised drop of the fit half's sum of
    squares were it added (its Jacobian column made orthogonal to the chosen ones'); an action
    delay (per actuator, 1..``max_delay`` steps) by the exact drop with the actions shifted;
-2. refine the best (Levenberg-Marquardt on the chosen set plus it, ``jax.jacfwd`` Jacobians);
+   a contact margin also by the exact drop at each of ``MARGIN_TRIALS`` above its value (a
+   larger margin switches on contacts the model has none of: its column is zero there);
+2. refine the best (Levenberg-Marquardt on the chosen set plus it, ``jax.jacfwd`` Jacobians;
+   a margin from its best trial value);
 3. keep it only if it is significant on the *test* half: the per-episode mean squared error
    drops, in a one-sided paired t-test over test episodes (episodes, not transitions, are
    the independent units: one episode's residuals are correlated in time), at level
@@ -110,7 +113,7 @@ def c_backend(pm: PhysicsModel, fd_step: float = 1e-5, integrator: str | None = 
     data = mujoco.MjData(mj)
     nominal = {n: np.array(getattr(pm.mj, n)) for n in
                ("body_mass", "body_inertia", "dof_damping", "dof_armature", "geom_friction",
-                "actuator_gear")}
+                "actuator_gear", "geom_margin")}
 
     def set_theta(theta):
         for n, v in nominal.items():
@@ -121,6 +124,8 @@ def c_backend(pm: PhysicsModel, fd_step: float = 1e-5, integrator: str | None = 
                 mj.body_inertia[c.index] *= np.exp(th)
             elif c.name in ("geom_friction", "actuator_gear"):
                 getattr(mj, c.name)[c.index, 0] *= np.exp(th)
+            elif c.name == "geom_margin":
+                mj.geom_margin[c.index] += th
             elif c.name != "obs_bias":
                 getattr(mj, c.name)[c.index] *= np.exp(th)
 
@@ -255,9 +260,17 @@ def _refine(fit: _Fit, theta, active, delays, iterations) -> np.ndarray:
     return theta
 
 
-def _screen(fit: _Fit, theta, active, delays, max_delay, others: dict | None = None):
-    """The best next candidate: ("param", k, gain), ("delay", (actuator, d), gain) or
-    ("integrator", name, gain); ``others``: {integrator name: its fit half} to try."""
+# Contact margins tried by their exact drop (m): a margin above the nominal one switches on
+# contacts that the nominal model has none of, where its Jacobian column is zero
+MARGIN_TRIALS = (0.002, 0.005, 0.01, 0.02, 0.05)
+
+
+def _screen(fit: _Fit, theta, active, delays, max_delay, others: dict | None = None,
+            candidates=()):
+    """The best next candidate: ("param", k, gain, start), ("delay", (actuator, d), gain,
+    None) or ("integrator", name, gain, None); ``others``: {integrator name: its fit half} to
+    try; ``candidates`` (the model's): each geom_margin also at MARGIN_TRIALS, by its exact
+    drop, ``start`` then the theta its refinement starts from (else None)."""
     r, jac = fit.residual_jac(theta, delays)
     ja = jac[:, active]
     if active:
@@ -266,20 +279,31 @@ def _screen(fit: _Fit, theta, active, delays, max_delay, others: dict | None = N
     usable = norm > 1e-12 * max(norm.max(), 1e-30)
     gain = np.where(usable, (r @ jac) ** 2 / np.where(usable, norm, 1.0), 0.0)
     gain[active] = 0.0
-    best = ("param", int(np.argmax(gain)), float(gain.max()), r, jac)
+    best = ("param", int(np.argmax(gain)), float(gain.max()), None)
     cost = r @ r
+    for k, c in enumerate(candidates):
+        if c.name != "geom_margin" or k in active:
+            continue
+        for value in MARGIN_TRIALS:
+            if value <= c.value(theta[k]):
+                continue
+            trial = np.array(theta, np.float64)
+            trial[k] = c.to_theta(value)
+            drop = cost - np.sum(fit.residual(trial, delays) ** 2)
+            if drop > best[2]:
+                best = ("param", k, float(drop), trial)
     for a in np.flatnonzero(np.asarray(delays) == 0):
         for d in range(1, max_delay + 1):
             trial = np.array(delays)
             trial[a] = d
             drop = cost - np.sum(fit.residual(theta, trial) ** 2)
             if drop > best[2]:
-                best = ("delay", (int(a), d), float(drop), r, jac)
+                best = ("delay", (int(a), d), float(drop), None)
     for name, other in (others or {}).items():  # the exact drop, as a delay's
         drop = cost - np.sum(other.residual(theta, delays) ** 2)
         if drop > best[2]:
-            best = ("integrator", name, float(drop), r, jac)
-    return best[:3]
+            best = ("integrator", name, float(drop), None)
+    return best
 
 
 def _paired_test(before: dict, after: dict) -> tuple[float, float, float]:
@@ -363,7 +387,8 @@ def identify(pm: PhysicsModel, ds, cfg: FitConfig = FitConfig()) -> dict:
     for _ in range(cfg.max_params):
         others = ({n: h[0] for n, h in halves.items() if n != integrator}
                   if integrator == nominal_integrator else {})
-        kind, what, gain = _screen(fit, theta, active, delays, cfg.max_delay, others)
+        kind, what, gain, from_theta = _screen(fit, theta, active, delays, cfg.max_delay,
+                                               others, pm.candidates)
         if gain <= 0:
             break
         t_delays, t_active, (t_fit, t_test) = delays.copy(), list(active), (fit, test)
@@ -373,7 +398,8 @@ def identify(pm: PhysicsModel, ds, cfg: FitConfig = FitConfig()) -> dict:
             t_delays[what[0]] = what[1]
         else:
             t_fit, t_test = halves[what]
-        t_theta = _refine(t_fit, theta, t_active, t_delays, cfg.lm_iterations)
+        t_theta = _refine(t_fit, theta if from_theta is None else from_theta, t_active,
+                          t_delays, cfg.lm_iterations)
         after = t_test.episode_errors(t_theta, t_delays)
         p, drop, base = _paired_test(current, after)
         significant = bool(p < cfg.alpha and drop >= cfg.min_gain * base)

@@ -43,7 +43,8 @@ class Planted:
     """One planted change: ``name`` (a quantity of mjx_model's table, ``action_delay`` or
     ``integrator``), ``element`` (its MuJoCo name; for ``integrator`` the integrator the data's
     engine steps with, a name of mjx_model.INTEGRATORS), ``amount`` (a factor; for
-    ``action_delay`` control steps; unused for ``integrator``)."""
+    ``geom_margin`` the margin itself, in m; for ``action_delay`` control steps; unused for
+    ``integrator``)."""
 
     name: str
     element: str
@@ -90,6 +91,14 @@ def plant(pm: PhysicsModel, changes: list[Planted]):
                           "value": int(ch.amount)})
             continue
         match = [c for c in cands if c.name == ch.name and c.element == ch.element]
+        if ch.name == "geom_margin":
+            if not match or not ch.amount >= 0:
+                raise ValueError(f"planted geom_margin[{ch.element}]: expected a colliding "
+                                 f"geom of the model and a margin >= 0 (m), got {ch.amount}")
+            mj.geom_margin[match[0].index] = ch.amount
+            truth.append({"name": ch.name, "element": ch.element,
+                          "nominal": match[0].nominal, "value": float(ch.amount)})
+            continue
         if ch.name not in _FIELD_NAMES or not match or not ch.amount > 0:
             raise ValueError(f"planted {ch.name}[{ch.element}]: expected a quantity of "
                              f"{_FIELD_NAMES} of an element the model has and a factor > 0, "

@@ -18,15 +18,18 @@ name                      element                                  value
 ``dof_armature``          a joint below the root                   nominal * exp(theta)
 ``geom_friction``         a colliding geom (sliding friction)      nominal * exp(theta)
 ``actuator_gear``         an actuator (unnamed: its joint's name)  nominal * exp(theta)
+``geom_margin``           a colliding geom (contact margin, m)     nominal + theta
 ``obs_bias``              an observation dim (``obs[i]``)          nominal + theta (0)
 ========================  =======================================  ========================
 
-MuJoCo combines a contact pair's friction by the larger of its two geoms' values, so only the
-larger geom of a pair moves the simulation. A dof quantity whose nominal value is 0 is left
-out (a log factor cannot move it; MJX also builds frictionloss constraint rows only where the
-nominal model has frictionloss, so frictionloss is not a candidate). A per-actuator action
-delay of ``d`` control steps is not a continuous parameter: :func:`delayed_actions` shifts the
-logged actions within each episode (zeros before the episode's start) before ``step`` sees them.
+MuJoCo combines a contact pair's friction and margin by the larger of its two geoms' values,
+so only the larger geom of a pair moves the simulation. A margin m > 0 makes a contact active
+(and pushing) from a distance m apart, not from touching. A dof quantity whose nominal value
+is 0 is left out (a log factor cannot move it; MJX also builds frictionloss constraint rows
+only where the nominal model has frictionloss, so frictionloss is not a candidate). A
+per-actuator action delay of ``d`` control steps is not a continuous parameter:
+:func:`delayed_actions` shifts the logged actions within each episode (zeros before the
+episode's start) before ``step`` sees them.
 
 The observation map. Registered tasks: obs = qpos ++ qvel, except that hopper's and walker2d's
 ``obs[1]`` is brax's torso height ``x.pos[0, 2]``, the kinematics one physics substep back
@@ -45,11 +48,12 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["Candidate", "PhysicsModel", "physics_model", "delayed_actions", "PHYSICS_TASKS",
-           "LOG_QUANTITIES"]
+           "LOG_QUANTITIES", "ADDED_QUANTITIES", "theta_by_labels"]
 
 PHYSICS_TASKS = {"hopper": "hopper.xml", "walker2d": "walker2d.xml",
                  "halfcheetah": "half_cheetah.xml", "ant": "ant.xml"}
 LOG_QUANTITIES = ("body_mass", "dof_damping", "dof_armature", "geom_friction", "actuator_gear")
+ADDED_QUANTITIES = ("geom_margin",)  # nominal + theta, in the model (obs_bias: outside it)
 _LAGGED_HEIGHT = ("hopper", "walker2d")  # obs[1] = lagged torso height (module docstring)
 
 
@@ -175,6 +179,12 @@ class PhysicsModel:
                 fields[name] = field.at[:, 0].set(field[:, 0] * factor)
             else:
                 fields[name] = field * factor
+        for name in ADDED_QUANTITIES:
+            pos = [i for i, c in enumerate(self.candidates) if c.name == name]
+            if pos:
+                rows = np.array([self.candidates[i].index for i in pos])
+                fields[name] = getattr(m, name).at[rows].add(
+                    theta[np.array(pos)].astype(getattr(m, name).dtype))
         return m.replace(**fields)
 
     def obs_bias(self, theta: jax.Array) -> jax.Array:
@@ -239,8 +249,27 @@ def candidates_of(mj) -> tuple[Candidate, ...]:
         name = _name(mj, ob.mjOBJ_ACTUATOR, a) or _name(mj, ob.mjOBJ_JOINT, mj.actuator_trnid[a, 0])
         out.append(Candidate("actuator_gear", name or f"actuator{a}", a,
                              float(mj.actuator_gear[a, 0])))
+    out += [Candidate("geom_margin", _name(mj, ob.mjOBJ_GEOM, g) or f"geom{g}", g,
+                      float(mj.geom_margin[g]))
+            for g in range(mj.ngeom) if mj.geom_contype[g] or mj.geom_conaffinity[g]]
     out += [Candidate("obs_bias", f"obs[{i}]", i, 0.0) for i in range(mj.nq + mj.nv)]
     return tuple(out)
+
+
+def theta_by_labels(pm: PhysicsModel, labels, theta):
+    """``theta`` saved for the candidates ``labels`` (a calibrated.json's) -> theta [K] over
+    ``pm``'s candidates: as saved where the labels are the model's; scattered where they are
+    a subset (a file written before candidates were added: those at their nominal value,
+    theta 0); None where they are neither."""
+    have = [c.label for c in pm.candidates]
+    if list(labels) == have:
+        return theta
+    if len(labels) != len(theta) or not set(labels) <= set(have):
+        return None
+    full = [0.0] * len(have)
+    for lab, th in zip(labels, theta, strict=True):
+        full[have.index(lab)] = th
+    return full
 
 
 def actuator_names(mj) -> list[str]:

@@ -42,6 +42,7 @@ from rl2s_jax.physics.mjx_model import (
     PhysicsModel,
     delayed_actions,
     physics_model,
+    theta_by_labels,
 )
 from rl2s_jax.physics.residuals import predict
 
@@ -156,14 +157,16 @@ def _model_of(c: dict, source: str, data_task: str | None) -> PhysicsModel:
 
 def _values(c: dict, source: str, pm: PhysicsModel) -> tuple[tuple, tuple]:
     """(theta, delays) of a calibrated.json, checked against the model's candidates."""
-    labels = c.get("labels")
+    labels, theta = c.get("labels"), c.get("theta")
     mine = [cand.label for cand in pm.candidates]
-    if labels is not None and list(labels) != mine:
+    if labels is not None and isinstance(theta, list):
+        theta = theta_by_labels(pm, labels, theta)
+    if labels is not None and theta is None:
         raise ValueError(f"physics: {source}: labels: its {len(labels)} quantities are not this "
                          f"model's {len(mine)} ({mine[:3]}...); it was written for another "
                          f"model")
     try:
-        theta, delays = _theta_delays(pm, c.get("theta"), c.get("delays"))
+        theta, delays = _theta_delays(pm, theta, c.get("delays"))
     except (TypeError, ValueError) as e:
         raise ValueError(f"physics: {source}: {e}") from None
     if not np.all(np.isfinite(theta)):

@@ -80,6 +80,7 @@ def test_c_values_equal_the_jax_values(pm, zoo):
     pool = np.asarray(pm.state_to_obs_np(pm.mj.qpos0, np.zeros(pm.nv)))[None] + \
         np.random.default_rng(1).uniform(-5e-3, 5e-3, (3, pm.obs_size))
     theta, task = _theta(pm), get_task("hopper")
+    theta[pm.index("geom_margin", "floor")] = 0.2  # additive, m: the foot 0.2 m off pushes
     kw = dict(n_episodes=2, horizon=4, gamma=0.99)
     key = jax.random.PRNGKey(3)
     v_jax, len_jax = physics_values(pm, theta, DELAYS, params, task, pool, key, **kw)

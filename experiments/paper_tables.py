@@ -202,7 +202,10 @@ def trust_section(results: dict) -> list[str]:
         "estimate (`rl2s evaluate --ckpt A --ckpt B --ckpt C`; mean over the data seeds), "
         "and the same intervals on 20 perturbed / interpolated test policies per run "
         "(`paper.py --trust-evaluated 20`, a repeat of each data seed's run; coverage and "
-        "width over their own range). Issue 64's bars beside each (✓ / ✗). "
+        "width over their own range, and the median width over it: the mean can be one "
+        "policy's, as HalfCheetah RL2S-BC's 2.132 is, one of the 20 with intervals 337,434 "
+        "and 474,244 wide in two of its data-seed-7 lanes). Issue 64's bars beside each "
+        "(✓ / ✗). "
         "Recorded by `experiments/merge_results.py --data-seed-run` and `--evaluated-run` "
         "(the commands are in the task JSONs, the evaluated runs' in their own JSONs, "
         "`docs/results/data_seeds/<task>_data<D>_evaluated.json`).", trust_rows(results, TASKS))

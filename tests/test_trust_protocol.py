@@ -441,6 +441,16 @@ def test_evaluated_report_and_block_by_hand():
     assert block["runs"] == 2 and block["n"] == 6
     assert block["coverage"] == pytest.approx((e["coverage"] + 0.25) / 2)
     assert block["worst_flagged"] == pytest.approx(e["worst"]["flagged"] / 2)
+    med = np.median(hi - lo) / np.ptp(truth)
+    assert block["median_width_over_range"] == pytest.approx(med)
+    # one policy's interval 1000x wider: the mean follows it, the median does not
+    wide = json.loads(json.dumps(a))
+    wide["interval"][0] = [wide["interval"][0][0], wide["interval"][0][0] + 1000 * np.ptp(truth)]
+    wide["mean_width"] = float(np.mean([h - lo_ for lo_, h in wide["interval"]]))
+    wide["width_over_range"] = wide["mean_width"] / float(np.ptp(truth))
+    out = method_evaluated([{"evaluated": wide}])
+    assert out["width_over_range"] > 100 and out["median_width_over_range"] == pytest.approx(
+        np.median([h - lo_ for lo_, h in wide["interval"]]) / np.ptp(truth))
     assert method_evaluated([{"evaluated": a}, {"evaluated": {**b, "width_over_range": None}}])[
         "width_over_range"] is None
     assert "skipped" in method_evaluated([{"evaluated": a}, {"evaluated": {**b, "n": 5}}])

@@ -387,10 +387,13 @@ def combined_cell(c: dict | None) -> str:
 def evaluated_cell(e: dict | None) -> str:
     """The table's cell of a method's "evaluated" block (``evaluated_trust``: the perturbed /
     interpolated test policies of paper.py --trust-evaluated): coverage and width / range
-    against issue 64's bars and the data seeds it covers, "-" where no run measured one."""
+    against issue 64's bars, the median width / range where recorded, and the data seeds it
+    covers, "-" where no run measured one."""
     if not e or e.get("coverage") is None:
         return "-"
-    return f"{combined_cell(e)} ({', '.join(map(str, e.get('data_seeds') or ['?']))})"
+    med = e.get("median_width_over_range")
+    med = "" if med is None else f", median {_num(med)}"
+    return f"{combined_cell(e)}{med} ({', '.join(map(str, e.get('data_seeds') or ['?']))})"
 
 
 def trust_rows(results: dict, tasks) -> list[str]:
@@ -402,8 +405,8 @@ def trust_rows(results: dict, tasks) -> list[str]:
     lines = [f"| task | method | runs (data seeds) | coverage (>= {TRUST_BARS['coverage']}) | "
              f"width / range (<= {TRUST_BARS['width_over_range']}) | seed spread scaled to it | "
              f"worst flagged (>= {TRUST_BARS['worst_flagged']}) | seeds as one: coverage, "
-             f"width / range | coverage per data seed | evaluated set: coverage, width / range "
-             f"(data seeds) |",
+             f"width / range | coverage per data seed | evaluated set: coverage, width / range, "
+             f"median width / range (data seeds) |",
              "|---|---|---:|---:|---:|---:|---:|---:|---|---:|"]
     for task in tasks:
         for m, b in ((results.get(task) or {}).get("trust") or {}).items():

@@ -161,10 +161,25 @@ def evaluated_report(feats: dict, cal_feats: dict, cal_truth, truth, level: floa
         "trusted")}}
 
 
+def median_width_over_range(rep: dict) -> float | None:
+    """A lane's ``evaluated_report`` (JSON-safe): the median interval width over the range of
+    the truths (the range as mean_width / width_over_range); None where an interval is
+    unbounded or the report lacks them. The mean width can be one policy's: a member's
+    diverging value gives one interval hundreds of times the others'."""
+    ivals, mean_w, wor = rep.get("interval"), rep.get("mean_width"), rep.get("width_over_range")
+    if not ivals or not mean_w or not wor:
+        return None
+    widths = np.array([hi - lo if lo is not None and hi is not None else np.inf
+                       for lo, hi in ivals], np.float64)
+    med = float(np.median(widths))
+    return med / (mean_w / wor) if math.isfinite(med) else None
+
+
 def method_evaluated(lane_entries: list[dict]) -> dict | None:
     """A method's "evaluated" block from its lanes' JSON-safe "trust" entries: means over the
-    lanes with an ``evaluated_report`` (as ``method_block``'s; None where a lane's is None);
-    None when no lane has one; "skipped" when they evaluated sets of other sizes."""
+    lanes with an ``evaluated_report`` (as ``method_block``'s; None where a lane's is None;
+    "median_width_over_range" too, where every lane's report holds its intervals); None when
+    no lane has one; "skipped" when they evaluated sets of other sizes."""
     reps = [e["evaluated"] for e in lane_entries
             if isinstance(e.get("evaluated"), dict) and "skipped" not in e["evaluated"]]
     if not reps:
@@ -175,6 +190,7 @@ def method_evaluated(lane_entries: list[dict]) -> dict | None:
     mean = lambda key: mean_or_none(r[key] for r in reps)  # noqa: E731
     return {"n": reps[0]["n"], "coverage": mean("coverage"),
             "width_over_range": mean("width_over_range"), "mean_width": mean("mean_width"),
+            "median_width_over_range": mean_or_none(median_width_over_range(r) for r in reps),
             "worst_flagged": float(np.mean([r["worst"]["flagged"] for r in reps])),
             "runs": len(reps), "what": evaluated_what(reps[0]["n"])}
 

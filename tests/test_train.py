@@ -835,25 +835,28 @@ def test_make_config_profiles():
         make_config(ds, "bc", "cpu", overrides={"gen_size": 3})
 
 
+def _two_steps(pm, method, **kw):
+    """Two train steps of ``_tiny(method, ensemble_size=2, n_elites=1, **kw)`` from key 3 ->
+    (the state, [the two steps' metrics])."""
+    ds, policies = pm
+    cfg = _tiny(method, ensemble_size=2, n_elites=1, **kw)
+    data = T.make_train_data(ds, policies, cfg)
+    state = _init(jax.random.PRNGKey(3), cfg, data)
+    ms = []
+    for _ in range(2):
+        state, m = _train_step(state, data)
+        ms.append(m)
+    return state, ms
+
+
 @pytest.mark.parametrize("method", ["rl2s", "bc"])
 def test_flat_optimizer_makes_the_same_updates(pm, method):
     """flat_optimizer (issue 63: fewer kernels per update) runs the clip and Adam of the
     members and the critic over one flat vector: two steps (weight decay on, the critic's and
     the members' updates) end with the same parameters and metrics as the per-leaf optimiser,
     while the optimiser state holds one flat vector per member."""
-    ds, policies = pm
-    out = {}
-    for flat in (False, True):
-        cfg = _tiny(method, flat_optimizer=flat, ensemble_size=2, n_elites=1)
-        assert cfg.gen_weight_decay > 0
-        data = T.make_train_data(ds, policies, cfg)
-        state = _init(jax.random.PRNGKey(3), cfg, data)
-        ms = []
-        for _ in range(2):
-            state, m = _train_step(state, data)
-            ms.append(m)
-        out[flat] = (state, ms)
-    (a, ma), (b, mb) = out[False], out[True]
+    (a, ma), (b, mb) = (_two_steps(pm, method, flat_optimizer=flat) for flat in (False, True))
+    assert a.config.gen_weight_decay > 0 and b.config.flat_optimizer
     n_params = sum(x[0].size for x in jax.tree_util.tree_leaves(a.gen))
     widths = {x.shape[-1] for x in jax.tree_util.tree_leaves(b.gen_opt) if x.ndim == 2}
     assert widths == {n_params}, widths  # mu and nu: [E, all of a member's parameters]
@@ -877,18 +880,8 @@ def test_batches_up_front_draw_the_same_batches(pm, method, extra):
     step's batches, fake states and noise keys before its updates, from the same keys: two
     steps (an ensemble of 2, the critic's and the members' updates; with history inputs too)
     give the same state and metrics bit for bit."""
-    ds, policies = pm
-    out = {}
-    for up_front in (False, True):
-        cfg = _tiny(method, batches_up_front=up_front, ensemble_size=2, n_elites=1, **extra)
-        data = T.make_train_data(ds, policies, cfg)
-        state = _init(jax.random.PRNGKey(3), cfg, data)
-        ms = []
-        for _ in range(2):
-            state, m = _train_step(state, data)
-            ms.append(m)
-        out[up_front] = (state, ms)
-    (a, ma), (b, mb) = out[False], out[True]
+    (a, ma), (b, mb) = (_two_steps(pm, method, batches_up_front=up_front, **extra)
+                        for up_front in (False, True))
     assert int(a.step) == 2 and b.config.batches_up_front and not a.config.batches_up_front
     assert (a.buffer_hist is not None) == bool(extra)  # the history case has one
     b = b.replace(config=a.config)  # the config is static: part of the tree's structure

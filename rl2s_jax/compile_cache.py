@@ -4,6 +4,13 @@ XLA compilation dominates short runs on the CPU (a small ``rl2s train``: 149 s c
 warm cache). ``enable()`` points JAX at ``$RL2S_COMPILATION_CACHE`` (default
 ``~/.cache/rl2s_jax/xla``) unless JAX already has a cache directory; set
 ``RL2S_COMPILATION_CACHE=off`` (or ``0``, ``none``, empty) to run without one.
+
+Processes share the directory (the tests' two workers, two ``paper.py`` on one GPU). Without
+a size limit JAX writes an entry in place and reads it without a lock, so a process can read
+another's half-written executable: a test worker died of a segmentation fault in
+``compilation_cache.get_executable_and_time`` that way. With a limit (``MAX_BYTES``) JAX's
+cache takes a file lock (the ``filelock`` package) around every read and write, and evicts the
+least recently used entries beyond it.
 """
 from __future__ import annotations
 
@@ -14,6 +21,7 @@ import jax
 ENV_VAR = "RL2S_COMPILATION_CACHE"
 DEFAULT_DIR = os.path.join(os.path.expanduser("~"), ".cache", "rl2s_jax", "xla")
 OFF = ("", "0", "off", "none", "false", "no")
+MAX_BYTES = 8 * 1024**3  # the cache's size limit: what turns JAX's file lock on (docstring)
 
 
 def cache_dir() -> str | None:
@@ -34,4 +42,5 @@ def enable(min_compile_secs: float = 1.0) -> str | None:
         return None   # an unwritable home: run without the cache rather than fail
     jax.config.update("jax_compilation_cache_dir", directory)
     jax.config.update("jax_persistent_cache_min_compile_time_secs", min_compile_secs)
+    jax.config.update("jax_compilation_cache_max_size", MAX_BYTES)
     return directory

@@ -317,3 +317,7 @@ def test_calibrated_json_from_before_the_margin_candidates_still_loads(pm, tmp_p
     assert list(physics_simulator(str(path), "hopper").theta) == list(full)
     with pytest.raises(ValueError, match="not this model's"):
         calibrated_model({**content, "labels": old[:-1] + ["body_mass[nothing]"]})
+    # theta null (the nominal model) with the model's own labels still loads
+    path.write_text(json.dumps({**content, "theta": None,
+                                "labels": [c.label for c in pm.candidates]}))
+    assert not any(physics_simulator(str(path), "hopper").theta)

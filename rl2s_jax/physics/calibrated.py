@@ -26,7 +26,7 @@ import numpy as np
 
 from rl2s_jax.model.history import empty_history
 from rl2s_jax.model.simulator import simulated_returns, start_values
-from rl2s_jax.physics.mjx_model import PhysicsModel
+from rl2s_jax.physics.mjx_model import PhysicsModel, apply_to_mj
 from rl2s_jax.policy.policy import sample_action
 
 __all__ = ["physics_dynamics", "physics_values", "calibrated_mj", "obs_bias_of", "c_values"]
@@ -98,20 +98,7 @@ def calibrated_mj(pm: PhysicsModel, theta):
     (observation bias excluded: see ``obs_bias_of``)."""
     theta, _ = _theta_delays(pm, theta, None)
     mj = copy.deepcopy(pm.mj)
-    for c, th in zip(pm.candidates, theta, strict=True):
-        if c.name == "obs_bias" or th == 0.0:
-            continue
-        if c.name == "geom_margin":
-            mj.geom_margin[c.index] += th
-            continue
-        f = float(np.exp(th))
-        if c.name == "body_mass":
-            mj.body_mass[c.index] *= f
-            mj.body_inertia[c.index] *= f
-        elif c.name in ("geom_friction", "actuator_gear"):
-            getattr(mj, c.name)[c.index, 0] *= f
-        else:
-            getattr(mj, c.name)[c.index] *= f
+    apply_to_mj(mj, pm.candidates, theta)
     return mj
 
 

@@ -91,7 +91,7 @@ def calibrated_model(content: dict) -> tuple[PhysicsModel, np.ndarray, np.ndarra
     pm = physics_model(content["task"], xml_path=content["xml"] if content["task"] is None
                        else None, n_frames=content["n_frames"],
                        integrator=content.get("integrator"))
-    theta, labels = list(content["theta"]), content.get("labels")
+    theta, labels = content["theta"], content.get("labels")
     if labels is not None:
         theta = theta_by_labels(pm, labels, theta)
         if theta is None:

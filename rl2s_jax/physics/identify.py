@@ -45,6 +45,7 @@ from scipy import stats
 from rl2s_jax.physics.mjx_model import (
     PhysicsModel,
     actuator_names,
+    apply_to_mj,
     delayed_actions,
     integrator_name,
     set_integrator,
@@ -118,16 +119,7 @@ def c_backend(pm: PhysicsModel, fd_step: float = 1e-5, integrator: str | None = 
     def set_theta(theta):
         for n, v in nominal.items():
             getattr(mj, n)[:] = v
-        for c, th in zip(pm.candidates, np.asarray(theta, np.float64), strict=True):
-            if c.name == "body_mass":
-                mj.body_mass[c.index] *= np.exp(th)
-                mj.body_inertia[c.index] *= np.exp(th)
-            elif c.name in ("geom_friction", "actuator_gear"):
-                getattr(mj, c.name)[c.index, 0] *= np.exp(th)
-            elif c.name == "geom_margin":
-                mj.geom_margin[c.index] += th
-            elif c.name != "obs_bias":
-                getattr(mj, c.name)[c.index] *= np.exp(th)
+        apply_to_mj(mj, pm.candidates, theta)
 
     def pred(theta, obs, action):
         set_theta(theta)

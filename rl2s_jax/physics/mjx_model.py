@@ -48,7 +48,7 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["Candidate", "PhysicsModel", "physics_model", "delayed_actions", "PHYSICS_TASKS",
-           "LOG_QUANTITIES", "ADDED_QUANTITIES", "theta_by_labels"]
+           "LOG_QUANTITIES", "ADDED_QUANTITIES", "apply_to_mj", "theta_by_labels"]
 
 PHYSICS_TASKS = {"hopper": "hopper.xml", "walker2d": "walker2d.xml",
                  "halfcheetah": "half_cheetah.xml", "ant": "ant.xml"}
@@ -256,15 +256,35 @@ def candidates_of(mj) -> tuple[Candidate, ...]:
     return tuple(out)
 
 
+def apply_to_mj(mj, candidates, theta) -> None:
+    """Apply ``theta`` [K] of ``candidates`` to a C model in place, from its current values,
+    as :meth:`PhysicsModel.apply` does to the MJX model (observation bias excluded)."""
+    for c, th in zip(candidates, np.asarray(theta, np.float64), strict=True):
+        if c.name == "obs_bias":
+            continue
+        if c.name in ADDED_QUANTITIES:
+            getattr(mj, c.name)[c.index] += th
+            continue
+        f = np.exp(th)
+        if c.name == "body_mass":
+            mj.body_mass[c.index] *= f
+            mj.body_inertia[c.index] *= f
+        elif c.name in ("geom_friction", "actuator_gear"):
+            getattr(mj, c.name)[c.index, 0] *= f
+        else:
+            getattr(mj, c.name)[c.index] *= f
+
+
 def theta_by_labels(pm: PhysicsModel, labels, theta):
     """``theta`` saved for the candidates ``labels`` (a calibrated.json's) -> theta [K] over
     ``pm``'s candidates: as saved where the labels are the model's; scattered where they are
     a subset (a file written before candidates were added: those at their nominal value,
-    theta 0); None where they are neither."""
+    theta 0); None where they are neither (or theta is no list of one value per label)."""
     have = [c.label for c in pm.candidates]
     if list(labels) == have:
         return theta
-    if len(labels) != len(theta) or not set(labels) <= set(have):
+    if (not isinstance(theta, (list, tuple)) or len(labels) != len(theta)
+            or not set(labels) <= set(have)):
         return None
     full = [0.0] * len(have)
     for lab, th in zip(labels, theta, strict=True):

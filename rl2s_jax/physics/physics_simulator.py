@@ -159,12 +159,12 @@ def _values(c: dict, source: str, pm: PhysicsModel) -> tuple[tuple, tuple]:
     """(theta, delays) of a calibrated.json, checked against the model's candidates."""
     labels, theta = c.get("labels"), c.get("theta")
     mine = [cand.label for cand in pm.candidates]
-    if labels is not None and isinstance(theta, list):
-        theta = theta_by_labels(pm, labels, theta)
-    if labels is not None and theta is None:
-        raise ValueError(f"physics: {source}: labels: its {len(labels)} quantities are not this "
-                         f"model's {len(mine)} ({mine[:3]}...); it was written for another "
-                         f"model")
+    if labels is not None and list(labels) != mine:
+        theta = theta_by_labels(pm, labels, theta)  # a file from before candidates were added
+        if theta is None:
+            raise ValueError(f"physics: {source}: labels: its {len(labels)} quantities are not "
+                             f"this model's {len(mine)} ({mine[:3]}...); it was written for "
+                             f"another model")
     try:
         theta, delays = _theta_delays(pm, theta, c.get("delays"))
     except (TypeError, ValueError) as e:

@@ -25,18 +25,20 @@ pairs on 4x H200, docs/BENCHMARKS.md), and the pairs otherwise (with fewer GPUs 
 or with enough GPUs for every family to have its own).
 
 With one GPU or none, a unit is a whole task (both families in one paper.py, OUT/<task>.json,
-log OUT/paper_<task>.log, also shown here), one after another: splitting would only add a
-process start and the data's reload per task. With one GPU, CUDA_VISIBLE_DEVICES=0. GPU k is
+log OUT/paper_<task>.log, also shown here; splitting would only add a process start and the
+data's reload per task): on one GPU two at a time by default (``--per-gpu`` below), without
+a GPU one after another. With one GPU, CUDA_VISIBLE_DEVICES=0. GPU k is
 the k-th of an inherited CUDA_VISIBLE_DEVICES where one is set (a run pinned to GPUs 1 and 2
 schedules over those), else GPU k of the machine.
 
 ``--per-gpu K`` (or PAPER_PER_GPU=K): K processes share each GPU at once, each with 1/K of
 the memory fraction, costliest first: a task's idle phases (data collection, compilation,
 37% of the protocol's GPU time: docs/BENCHMARKS.md, "Where one task's GPU-seconds go") run
-beside another's training. Not yet timed on a GPU; modelled from the measured profile by
-experiments/share_model.py: 1,749 s for the four tasks against 2,300 one after another (the
-busy GPU-seconds' floor 1,444; a staggered start, one task in its data phase at a time, models
-slower: 1,797 s).
+beside another's training. The default, ``auto``, is 2 on one GPU with two tasks or more, else
+1. Measured on one H200 (docs/BENCHMARKS.md, "Two processes on one GPU"): Hopper and
+HalfCheetah two at once 865 s against 1,103 s one after another, every result the same bit for
+bit (each process runs the same programs as alone); experiments/share_model.py, which
+predicted 845 s, models the four tasks at 1,749 s against 2,300.
 
 At the end: every unit's task, family, GPU, start and wall seconds (and when its data phase
 ended, seconds after its start), the merges, each GPU's busy seconds and the total, printed
@@ -84,6 +86,20 @@ def split_families(args: list[str]) -> tuple[list[str], list[str]]:
         raise SystemExit(f"families: expected a comma list of {', '.join(FAMILIES)}, got "
                          f"{text!r}")
     return [f for f in FAMILIES if f in names], rest
+
+
+def per_gpu_count(value: str, n_gpus: int, n_tasks: int) -> int:
+    """``--per-gpu``'s value -> processes per GPU: a whole number >= 1 as given; "auto": 2 on
+    one GPU with two tasks or more (measured: the same results, 0.78x the time), else 1."""
+    if str(value) == "auto":
+        return 2 if n_gpus == 1 and n_tasks > 1 else 1
+    try:
+        k = int(value)
+    except ValueError:
+        k = 0
+    if k < 1:
+        raise SystemExit(f"per-gpu: expected auto or a whole number >= 1, got {value!r}")
+    return k
 
 
 def plan(tasks: list[str], n_gpus: int, args: list[str], out: str,
@@ -315,15 +331,15 @@ def main(argv=None) -> int:
                     help="auto (default): task when tasks <= GPUs < 2 x tasks, else family; "
                     "family: (task, family) units with two GPUs or more; task: one process "
                     "per task whatever the GPUs (env PAPER_UNITS)")
-    ap.add_argument("--per-gpu", type=int, default=int(os.environ.get("PAPER_PER_GPU", "1")),
-                    help="paper.py processes per GPU at once (env PAPER_PER_GPU; default 1): "
-                    "with 2, one task's data collection and compilation (the GPU idle) run "
-                    "beside another's training")
+    ap.add_argument("--per-gpu", default=os.environ.get("PAPER_PER_GPU", "auto"),
+                    help="paper.py processes per GPU at once (env PAPER_PER_GPU): a whole "
+                    "number, or auto (default): 2 on one GPU with two tasks or more (one "
+                    "task's data collection and compilation, the GPU idle, run beside "
+                    "another's training), else 1")
     args = ap.parse_args(argv)
-    if args.per_gpu < 1:
-        raise SystemExit(f"per-gpu: expected a whole number >= 1, got {args.per_gpu}")
     t0 = time.monotonic()
     tasks, py, n = args.tasks.split(), shlex.split(args.py), max(0, args.gpus)
+    args.per_gpu = per_gpu_count(args.per_gpu, n, len(tasks))
     visible_gpus(n)  # refused before any unit starts
     os.makedirs(args.out, exist_ok=True)
     units = plan(tasks, n, extra, args.out, args.units, args.per_gpu)

@@ -3,15 +3,17 @@ the protocol's tasks on one GPU one after another, two at once (``paper_schedule
 --per-gpu 2``), and two at once staggered (a task starts only while no other is in its data
 phase: the model found it slower, so the scheduler does not do it).
 
-A model, not a measurement. Each task is its profiled segments in order (``gpu_profile.py``'s
-rows: a phase, or its logged parts where it has them; the oracle and trust phases left out, as
-in the protocol the bar times), each with its wall seconds w and busy GPU-seconds b. Alone a
-segment takes w and asks the GPU for b / w of its time. Running together, segments whose asks
-sum to at most 1 all go at full speed (one computes while the other waits on its host); above
-1 each goes at ``efficiency`` / (the sum) of its speed alone: time-sliced, the GPU's time
-split in proportion, less what switching costs (0.92: two training processes measured by
-``gpu_share.py``, BENCHMARKS "Two processes on one GPU"). The host's CPUs are taken to be
-enough for both (16 cores on a 1-GPU H200 machine; the compilations may contend: unmodelled).
+A model, not a measurement (its Hopper + HalfCheetah prediction, 845 s two at once, was
+measured at 865 s: docs/BENCHMARKS.md, "Two processes on one GPU"). Each task is its profiled
+segments in order (``gpu_profile.py``'s rows: a phase, or its logged parts where it has them;
+the oracle and trust phases left out, as in the protocol the bar times), each with its wall
+seconds w and busy GPU-seconds b. Alone a segment takes w and asks the GPU for b / w of its
+time. Running together, segments whose asks sum to at most 1 all go at full speed (one computes
+while the other waits on its host); above 1 each goes at ``efficiency`` / (the sum) of its
+speed alone: time-sliced, the GPU's time split in proportion, less what switching costs (0.92:
+two training processes measured by ``gpu_share.py``, BENCHMARKS "Two processes on one GPU").
+The host's CPUs are taken to be enough for both (16 cores on a 1-GPU H200 machine; the
+compilations may contend: unmodelled).
 
     python experiments/share_model.py docs/results/gpu_util_h200x4/profile.json
         [--tasks hopper,halfcheetah] [--efficiency 0.92] [--also 3,4] [--json OUT]

@@ -1073,9 +1073,10 @@ def test_paper_all_whole_task_units(tmp_path):
 
 
 def test_paper_all_per_gpu_runs_k_processes_on_one_gpu(tmp_path):
-    """PAPER_PER_GPU=2 on one GPU: whole tasks, costliest first, two at a time (never three),
-    each with half the memory fraction; every task once; a bad value refused."""
-    rc, ev, proc = _run_paper_all(tmp_path / "a", 1, env_extra={"PAPER_PER_GPU": "2"})
+    """On one GPU by default (PAPER_PER_GPU=auto) two processes at once: whole tasks,
+    costliest first, two at a time (never three), each with half the memory fraction; every
+    task once. PAPER_PER_GPU=1: one at a time, no fraction; a bad value refused."""
+    rc, ev, proc = _run_paper_all(tmp_path / "a", 1)
     assert rc == 0, proc.stderr
     starts = [e.split() for e in ev if e.startswith("start")]
     assert {s[1] for s in starts[:2]} == {"ant", "halfcheetah"}  # costliest two, side by side
@@ -1088,10 +1089,22 @@ def test_paper_all_per_gpu_runs_k_processes_on_one_gpu(tmp_path):
         most = max(most, running)
     assert most == 2 and running == 0
     assert json.loads((tmp_path / "a" / "out" / "schedule.json").read_text())["per_gpu"] == 2
-    rc, ev, proc = _run_paper_all(tmp_path / "b", 1)  # the default: one at a time, no fraction
+    rc, ev, proc = _run_paper_all(tmp_path / "b", 1, env_extra={"PAPER_PER_GPU": "1"})
     assert rc == 0 and {e.split()[4] for e in ev if e.startswith("start")} == {"mem=none"}
-    rc, ev, proc = _run_paper_all(tmp_path / "c", 1, env_extra={"PAPER_PER_GPU": "0"})
-    assert rc != 0 and "per-gpu: expected a whole number >= 1, got 0" in proc.stderr
+    for bad in ("0", "two"):
+        rc, ev, proc = _run_paper_all(tmp_path / f"c{bad}", 1,
+                                      env_extra={"PAPER_PER_GPU": bad})
+        assert rc != 0 and ("per-gpu: expected auto or a whole number >= 1, got "
+                            f"'{bad}'") in proc.stderr and not ev
+
+
+def test_paper_schedule_per_gpu_auto():
+    """--per-gpu auto: two processes only on one GPU with two tasks or more (the measured
+    case); one task, no GPU or several GPUs: one; a number is kept as given."""
+    count = _load("paper_schedule").per_gpu_count
+    assert count("auto", 1, 4) == count("auto", 1, 2) == 2
+    assert count("auto", 1, 1) == count("auto", 0, 4) == count("auto", 2, 4) == 1
+    assert count("3", 2, 4) == 3 and count(1, 1, 4) == 1
 
 
 def test_paper_schedule_auto_units():
@@ -1110,8 +1123,8 @@ def test_paper_all_failures_and_the_paths_without_units(tmp_path):
     collects the data itself, never beside it, with the oracle and the control that went
     with the data), every other unit runs, that task is not
     merged, no tables, exit 1 naming the unit and its log. RL2S_GPUS overrides nvidia-smi.
-    With one GPU or none: one paper.py per task (both families), one after another, a failed
-    task after the others, no merge."""
+    With one GPU (PAPER_PER_GPU=1) or none: one paper.py per task (both families), one after
+    another, a failed task after the others, no merge."""
     rc, ev, proc = _run_paper_all(tmp_path / "a", 4, fail="walker2d/adversarial",
                                   env_extra={"RL2S_GPUS": "2"}, args=("--control",))
     out = tmp_path / "a" / "out"
@@ -1131,7 +1144,8 @@ def test_paper_all_failures_and_the_paths_without_units(tmp_path):
     assert "FAILED" not in proc.stderr.replace("FAILED walker2d/adversarial", "")
     sched = json.loads((out / "schedule.json").read_text())
     assert [u["rc"] for u in sched["units"]].count(3) == 1
-    rc, ev, proc = _run_paper_all(tmp_path / "b", 1, fail="walker2d/both")
+    rc, ev, proc = _run_paper_all(tmp_path / "b", 1, fail="walker2d/both",
+                                  env_extra={"PAPER_PER_GPU": "1"})
     assert rc == 1 and "tables" not in ev and not any(e.startswith("merge") for e in ev)
     assert [e.split()[:4] for e in ev if e.startswith(("start", "end"))] == [
         [w, t, "both", "gpu=0"] for t in TASKS4 for w in ("start", "end")]

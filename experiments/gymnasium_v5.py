@@ -96,8 +96,8 @@ On one H200 host (MJX on the GPU: no wedge), ``--tasks T --transitions 500 --val
               diagnosis: foot friction 0.9 -> 1.895 first but p 0.024 > 0.01, nothing kept.
     ant       one-step 0.214 (0.246 / 0.208), 10-step 0.591; tau v5 vs MJX 0.600 (noise floor
               0.705 at 8 episodes), AVD 942, MVD 1703, v5 - MJX +528 on average (weak
-              policies gain most); diagnosis named nothing then; with the integrator as a
-              candidate (RESULTS' row 10, CPU): RK4, then the floor's margin 0 -> 0.020: 0.110.
+              policies gain most); diagnosis named nothing then; on the CPU (RESULTS' row
+              10): RK4, margin 0.02, ankles colliding for the foot spheres: unexplained 0.
     halfcheetah  one-step 0.0082, 10-step 0.060; its diagnosis stopped on a split of one
               episode per policy (fixed since in identify.split_rows); no values that run.
 

@@ -19,7 +19,7 @@ CASES = {
     "damping": [("dof_damping", "foot_joint", 3.0)],
     "delay": [("action_delay", "thigh_joint", 2)],
     # the contact margin (m; planted as its value): the floor and the foot share one contact
-    # pair, whose margin is the larger of theirs, so naming either with 0.01 is right
+    # pair, whose margin is the sum of theirs, so naming either with 0.01 is right
     "margin": [("geom_margin", "floor", 0.01)],
     "integrator": [("integrator", "RK4", 1)],  # data stepped with RK4, the model with Euler
 }

@@ -85,11 +85,11 @@ def diagnose_physics(spec: PhysicsSpec) -> dict:
     nominal = physics_errors(pm, ds, k=spec.k, seed=cfg.seed)
     content = jsonable({"task": pm.task, "xml": pm.xml_path, "n_frames": pm.n_frames,
                         "theta": found["theta"], "delays": found["delays"],
-                        "integrator": found["integrator"],
+                        "integrator": found["integrator"], "collisions": found["collisions"],
                         "labels": [c.label for c in pm.candidates]})
     # the calibrated model as calibrated.json loads it; the nominal one (its compiled
-    # programs) where the diagnosis kept the model's integrator
-    pm_cal = (pm if found["integrator"] == integrator_name(pm.mj)
+    # programs) where the diagnosis kept the model's structure
+    pm_cal = (pm if found["integrator"] == integrator_name(pm.mj) and not found["collisions"]
               else calibrated_model(content)[0])
     calibrated = physics_errors(pm_cal, ds, found["theta"], found["delays"], k=spec.k,
                                 seed=cfg.seed)

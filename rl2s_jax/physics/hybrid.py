@@ -87,10 +87,12 @@ def read_calibrated(path: str) -> dict:
 
 def calibrated_model(content: dict) -> tuple[PhysicsModel, np.ndarray, np.ndarray]:
     """A calibrated.json's content -> (PhysicsModel, theta [K], delays [A]); its "integrator"
-    (where the diagnosis chose one in the model's place; files from before have none)."""
+    and "collisions" (where the diagnosis changed the model's structure; files from before
+    have none)."""
     pm = physics_model(content["task"], xml_path=content["xml"] if content["task"] is None
                        else None, n_frames=content["n_frames"],
-                       integrator=content.get("integrator"))
+                       integrator=content.get("integrator"),
+                       collisions=content.get("collisions"))
     theta, labels = content["theta"], content.get("labels")
     if labels is not None:
         theta = theta_by_labels(pm, labels, theta)

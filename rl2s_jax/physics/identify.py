@@ -13,6 +13,9 @@ Selection, forward stepwise (:func:`identify`). At the current fit:
    delay (per actuator, 1..``max_delay`` steps) by the exact drop with the actions shifted;
    a contact margin also by the exact drop at each of ``MARGIN_TRIALS`` above its value (a
    larger margin switches on contacts the model has none of: its column is zero there);
+   changes of structure, with the C backend, by their exact drop too: another integrator,
+   and each group of like geoms (``mjx_model.collision_groups``: same type and size) with
+   its contacts switched on or off (which parts of the robot touch the floor);
 2. refine the best (Levenberg-Marquardt on the chosen set plus it, ``jax.jacfwd`` Jacobians;
    a margin from its best trial value);
 3. keep it only if it is significant on the *test* half: the per-episode mean squared error
@@ -46,9 +49,11 @@ from rl2s_jax.physics.mjx_model import (
     PhysicsModel,
     actuator_names,
     apply_to_mj,
+    collision_groups,
     delayed_actions,
     integrator_name,
     set_integrator,
+    switch_collisions,
 )
 
 __all__ = ["FitConfig", "identify", "fit_sysid", "compiled", "c_backend", "split_rows", "Rows",
@@ -61,10 +66,12 @@ class FitConfig:
     lm_iterations: refinement steps per candidate; alpha, min_gain: the significance rule
     (module docstring); max_delay: action delays screened, in control steps; bootstrap:
     resamples for the intervals; seed: the split and subsample; integrators: the integrators
-    screened in place of the model's (a discrete candidate, C MuJoCo backend only)."""
+    screened in place of the model's, and collisions: whether each group of like geoms
+    (``mjx_model.collision_groups``) is screened with its contacts switched (discrete
+    candidates, C MuJoCo backend only)."""
 
     rows: int = 256  # a multiple of JAC_ROWS
-    max_params: int = 3
+    max_params: int = 5  # a change of parts needs two: capsules colliding, spheres not
     lm_iterations: int = 4
     alpha: float = 0.01
     min_gain: float = 0.1
@@ -73,6 +80,7 @@ class FitConfig:
     seed: int = 0
     backend: str = "mujoco"
     integrators: tuple[str, ...] = ("Euler", "RK4", "implicitfast")
+    collisions: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,13 +110,15 @@ _COMPILED: dict[int, tuple] = {}
 JAC_ROWS = 64
 
 
-def c_backend(pm: PhysicsModel, fd_step: float = 1e-5, integrator: str | None = None):
+def c_backend(pm: PhysicsModel, fd_step: float = 1e-5, integrator: str | None = None,
+              collisions: dict | None = None):
     """(pred, pred_jac) as :func:`compiled`'s, in C MuJoCo (float64): each row stepped from its
     measured state, the Jacobian by forward differences over theta (no compilation);
-    ``integrator`` in place of the model's."""
+    ``integrator`` in place of the model's, geoms' contacts switched by ``collisions``."""
     import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
 
-    mj = copy.deepcopy(pm.mj)
+    mj = (switch_collisions(pm.mj, pm.xml_path, collisions) if collisions
+          else copy.deepcopy(pm.mj))
     if integrator is not None:
         set_integrator(mj, integrator)
     data = mujoco.MjData(mj)
@@ -201,9 +211,9 @@ class _Fit:
     """Residuals of one dataset half under a model, theta and delays."""
 
     def __init__(self, pm, rows: Rows, scale, backend: str = "mujoco",
-                 integrator: str | None = None):
-        self.pred, self.pred_jac = (compiled(pm) if backend == "mjx"
-                                    else c_backend(pm, integrator=integrator))
+                 integrator: str | None = None, collisions: dict | None = None):
+        self.pred, self.pred_jac = (compiled(pm) if backend == "mjx" else
+                                    c_backend(pm, integrator=integrator, collisions=collisions))
         self.rows, self.scale = rows, scale
         self.w = rows.weight[:, None]
 
@@ -260,9 +270,10 @@ MARGIN_TRIALS = (0.002, 0.005, 0.01, 0.02, 0.05)
 def _screen(fit: _Fit, theta, active, delays, max_delay, others: dict | None = None,
             candidates=()):
     """The best next candidate: ("param", k, gain, start), ("delay", (actuator, d), gain,
-    None) or ("integrator", name, gain, None); ``others``: {integrator name: its fit half} to
-    try; ``candidates`` (the model's): each geom_margin also at MARGIN_TRIALS, by its exact
-    drop, ``start`` then the theta its refinement starts from (else None)."""
+    None) or a structural one (kind, what, gain, None); ``others``: {(kind, what): the fit
+    half under that change of structure} (``_Structures.trials``), tried by their exact drop;
+    ``candidates`` (the model's): each geom_margin also at MARGIN_TRIALS, by its exact drop,
+    ``start`` then the theta its refinement starts from (else None)."""
     r, jac = fit.residual_jac(theta, delays)
     ja = jac[:, active]
     if active:
@@ -291,10 +302,10 @@ def _screen(fit: _Fit, theta, active, delays, max_delay, others: dict | None = N
             drop = cost - np.sum(fit.residual(theta, trial) ** 2)
             if drop > best[2]:
                 best = ("delay", (int(a), d), float(drop), None)
-    for name, other in (others or {}).items():  # the exact drop, as a delay's
+    for (kind, what), other in (others or {}).items():  # the exact drop, as a delay's
         drop = cost - np.sum(other.residual(theta, delays) ** 2)
         if drop > best[2]:
-            best = ("integrator", name, float(drop), None)
+            best = (kind, what, float(drop), None)
     return best
 
 
@@ -340,85 +351,120 @@ def _wald(fit: _Fit, theta, active, delays) -> np.ndarray:
     return np.sqrt(np.diag(sigma2 * np.linalg.pinv(ja.T @ ja)))
 
 
-def _halves(pm: PhysicsModel, fit_rows: Rows, test_rows: Rows, scale, cfg: FitConfig) -> dict:
-    """{integrator name: (fit half, test half)}: the model's own integrator's, and with the C
-    backend each of ``cfg.integrators``' (MJX's compiled step keeps the model's)."""
-    own = integrator_name(pm.mj)
-    halves = {own: (_Fit(pm, fit_rows, scale, cfg.backend),
-                    _Fit(pm, test_rows, scale, cfg.backend))}
-    for name in (cfg.integrators if cfg.backend == "mujoco" else ()):
-        if name != own:  # a bad name: c_backend's ValueError, before any stepping
-            halves[name] = (_Fit(pm, fit_rows, scale, integrator=name),
-                            _Fit(pm, test_rows, scale, integrator=name))
-    return halves
+class _Structures:
+    """The fit and test halves under each structure of the model: its integrator (one of
+    ``cfg.integrators`` in place of the model's) and the collision groups
+    (``mjx_model.collision_groups``) whose contacts are switched. Changes of structure are
+    screened with the C backend only (MJX's compiled step keeps the model's)."""
+
+    def __init__(self, pm: PhysicsModel, fit_rows: Rows, test_rows: Rows, scale,
+                 cfg: FitConfig):
+        self.pm, self.rows, self.scale, self.cfg = pm, (fit_rows, test_rows), scale, cfg
+        self.nominal = integrator_name(pm.mj)
+        c_only = cfg.backend == "mujoco"
+        self.integrators = [n for n in (cfg.integrators if c_only else ()) if n != self.nominal]
+        for name in self.integrators:  # a bad name: its ValueError before any stepping
+            set_integrator(copy.deepcopy(pm.mj), name)
+        self.groups = collision_groups(pm.mj) if c_only and cfg.collisions else []
+        self._halves: dict[tuple, tuple[_Fit, _Fit]] = {}
+
+    def collisions(self, switched) -> dict:
+        """{geom name: collides} of the switched groups."""
+        return {n: not self.groups[g]["collides"] for g in switched
+                for n in self.groups[g]["names"]}
+
+    def halves(self, integrator: str, switched: tuple = ()) -> tuple[_Fit, _Fit]:
+        key = (integrator, tuple(sorted(switched)))
+        if key not in self._halves:
+            nominal = key == (self.nominal, ())
+            kw = dict(backend=self.cfg.backend if nominal else "mujoco",
+                      integrator=None if integrator == self.nominal else integrator,
+                      collisions=self.collisions(switched))
+            self._halves[key] = tuple(_Fit(self.pm, r, self.scale, **kw) for r in self.rows)
+        return self._halves[key]
+
+    def trials(self, integrator: str, switched: tuple) -> dict:
+        """{(kind, what): fit half} of each change of structure from here: another
+        integrator while the model's is kept; each collision group not yet switched, alone
+        ((g,)) and, for a non-colliding group on the bodies of a colliding one, as the two
+        swapped ((on, off): the bodies touch through other geoms, which one switch alone
+        cannot show where the geoms overlap)."""
+        out = {}
+        if integrator == self.nominal:
+            out.update({("integrator", n): self.halves(n, switched)[0]
+                        for n in self.integrators})
+        free = [g for g in range(len(self.groups)) if g not in switched]
+        swaps = [(a, b) for a in free for b in free
+                 if not self.groups[a]["collides"] and self.groups[b]["collides"]
+                 and set(self.groups[b]["bodies"]) <= set(self.groups[a]["bodies"])]
+        out.update({("collision", w): self.halves(integrator, switched + w)[0]
+                    for w in [(g,) for g in free] + swaps})
+        return out
 
 
 def identify(pm: PhysicsModel, ds, cfg: FitConfig = FitConfig()) -> dict:
     """Forward stepwise identification (module docstring) -> the report's ``physics`` object
     minus ``command``: {"top_cause", "parameters", "unexplained", "error_nominal",
-    "error_calibrated", "seconds", "delays", "theta", "integrator", "scale"} (errors: mean
-    squared normalised one-step residual over test episodes; "integrator": the model's, or
-    the one chosen in its place)."""
+    "error_calibrated", "seconds", "delays", "theta", "integrator", "collisions", "scale"}
+    (errors: mean squared normalised one-step residual over test episodes; "integrator": the
+    model's, or the one chosen in its place; "collisions": {geom name: collides} of the
+    switched geoms)."""
     if ds.obs_size != pm.obs_size or ds.action_size != pm.action_size:
         raise ValueError(f"data: expected obs_size {pm.obs_size} and action_size "
                          f"{pm.action_size} (the physics model's), got {ds.obs_size}, "
                          f"{ds.action_size}")
-    start = time.perf_counter()
-    fit_rows, test_rows = split_rows(ds, cfg.rows, cfg.seed)
-    scale = obs_scale(ds)
     if cfg.backend not in ("mujoco", "mjx"):
         raise ValueError(f"backend: expected 'mujoco' or 'mjx', got {cfg.backend!r}")
-    nominal_integrator = integrator = integrator_name(pm.mj)
-    halves = _halves(pm, fit_rows, test_rows, scale, cfg)
-    fit, test = halves[integrator]
-    K, A = len(pm.candidates), pm.action_size
-    theta, delays, active = np.zeros(K), np.zeros(A, int), []
-    chosen, screened = [], []
-    nominal_test = test.episode_errors(theta, delays)
-    current = nominal_test
+    start = time.perf_counter()
+    scale = obs_scale(ds)
+    structures = _Structures(pm, *split_rows(ds, cfg.rows, cfg.seed), scale, cfg)
+    integrator, switched = structures.nominal, ()
+    fit, test = structures.halves(integrator)
+    theta, delays, active = np.zeros(len(pm.candidates)), np.zeros(pm.action_size, int), []
+    screened = []
+    nominal_test = current = test.episode_errors(theta, delays)
     for _ in range(cfg.max_params):
-        others = ({n: h[0] for n, h in halves.items() if n != integrator}
-                  if integrator == nominal_integrator else {})
         kind, what, gain, from_theta = _screen(fit, theta, active, delays, cfg.max_delay,
-                                               others, pm.candidates)
+                                               structures.trials(integrator, switched),
+                                               pm.candidates)
         if gain <= 0:
             break
-        t_delays, t_active, (t_fit, t_test) = delays.copy(), list(active), (fit, test)
+        t_delays, t_active, t_integrator, t_switched = delays.copy(), list(active), \
+            integrator, switched
         if kind == "param":
             t_active.append(what)
         elif kind == "delay":
             t_delays[what[0]] = what[1]
+        elif kind == "integrator":
+            t_integrator = what
         else:
-            t_fit, t_test = halves[what]
+            t_switched = switched + what
+        t_fit, t_test = structures.halves(t_integrator, t_switched)
         t_theta = _refine(t_fit, theta if from_theta is None else from_theta, t_active,
                           t_delays, cfg.lm_iterations)
         after = t_test.episode_errors(t_theta, t_delays)
         p, drop, base = _paired_test(current, after)
         significant = bool(p < cfg.alpha and drop >= cfg.min_gain * base)
-        entry = {"kind": kind, "what": what, "theta": t_theta, "p_value": p,
-                 "gain": drop / max(base, 1e-30), "significant": significant}
-        screened.append(entry)
+        screened.append({"kind": kind, "what": what, "theta": t_theta, "p_value": p,
+                         "gain": drop / max(base, 1e-30), "significant": significant,
+                         "groups": [structures.groups[g] for g in what]
+                         if kind == "collision" else None})
         if not significant:
             break
         theta, delays, active, current = t_theta, t_delays, t_active, after
-        fit, test = t_fit, t_test
-        if kind == "integrator":
-            integrator = what
-        chosen.append(entry)
+        fit, test, integrator, switched = t_fit, t_test, t_integrator, t_switched
     boot = _bootstrap(fit, theta, active, delays, cfg.bootstrap, cfg.seed)
     wald = _wald(fit, theta, active, delays) if active else np.zeros(0)
     params = [_describe(pm, e, active, theta, boot, wald) for e in screened]
     tot = lambda errs: float(np.mean(list(errs.values())))  # noqa: E731
     top = next((p for p in params if p["significant"]), None)
-    return {"top_cause": None if top is None else {k: top[k] for k in
-                                                    ("name", "element", "nominal", "value",
-                                                     "interval")},
-            "parameters": params,
-            "unexplained": tot(current) / max(tot(nominal_test), 1e-30),
+    return {"top_cause": None if top is None else {
+                k: top[k] for k in ("name", "element", "nominal", "value", "interval")},
+            "parameters": params, "unexplained": tot(current) / max(tot(nominal_test), 1e-30),
             "error_nominal": tot(nominal_test), "error_calibrated": tot(current),
-            "seconds": time.perf_counter() - start,
-            "delays": delays.tolist(), "theta": theta.tolist(), "integrator": integrator,
-            "scale": scale.tolist()}
+            "seconds": time.perf_counter() - start, "delays": delays.tolist(),
+            "theta": theta.tolist(), "integrator": integrator,
+            "collisions": structures.collisions(switched), "scale": scale.tolist()}
 
 
 def format_value(x) -> str:
@@ -448,6 +494,14 @@ def _describe(pm, entry, active, theta, boot, wald) -> dict:
     if entry["kind"] == "integrator":  # a choice among names: no interval
         return {"name": "integrator", "element": "opt", "nominal": integrator_name(pm.mj),
                 "value": entry["what"], "interval": None, "wald": None, **base}
+    if entry["kind"] == "collision":  # groups' contacts on or off: no interval
+        groups = entry["groups"]
+        yes_no = lambda on: "; ".join("yes" if g["collides"] == on else "no"  # noqa: E731
+                                      for g in groups)
+        return {"name": "geom_collides",
+                "element": "; ".join(", ".join(g["names"]) for g in groups),
+                "nominal": yes_no(True), "value": yes_no(False), "interval": None,
+                "wald": None, **base}
     k = entry["what"]
     c = pm.candidates[k]
     th = theta[k] if entry["significant"] else entry["theta"][k]

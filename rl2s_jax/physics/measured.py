@@ -31,6 +31,7 @@ from rl2s_jax.physics.mjx_model import (
     candidates_of,
     integrator_name,
     set_integrator,
+    switch_collisions,
 )
 
 __all__ = ["Planted", "collect_measured", "numpy_policy_action"]
@@ -40,10 +41,11 @@ _FIELD_NAMES = ("body_mass", "geom_friction", "actuator_gear", "dof_damping", "d
 
 @dataclasses.dataclass(frozen=True)
 class Planted:
-    """One planted change: ``name`` (a quantity of mjx_model's table, ``action_delay`` or
-    ``integrator``), ``element`` (its MuJoCo name; for ``integrator`` the integrator the data's
-    engine steps with, a name of mjx_model.INTEGRATORS), ``amount`` (a factor; for
-    ``geom_margin`` the margin itself, in m; for ``action_delay`` control steps; unused for
+    """One planted change: ``name`` (a quantity of mjx_model's table, ``action_delay``,
+    ``integrator`` or ``geom_collides``), ``element`` (its MuJoCo name; for ``integrator`` the
+    integrator the data's engine steps with, a name of mjx_model.INTEGRATORS), ``amount`` (a
+    factor; for ``geom_margin`` the margin itself, in m; for ``action_delay`` control steps;
+    for ``geom_collides`` 1 (the geom touches what has conaffinity) or 0 (nothing); unused for
     ``integrator``)."""
 
     name: str
@@ -70,12 +72,18 @@ def numpy_policy_action(params: dict, obs: np.ndarray, rng: np.random.Generator 
 
 
 def plant(pm: PhysicsModel, changes: list[Planted]):
-    """A copy of ``pm``'s C model with ``changes`` applied -> (MjModel, delays [A], truth)."""
-    mj = copy.deepcopy(pm.mj)
+    """A copy of ``pm``'s C model with ``changes`` applied -> (MjModel, delays [A], truth).
+    Contacts switched (``geom_collides``) first: that model is compiled again."""
+    switched = {ch.element: bool(ch.amount) for ch in changes if ch.name == "geom_collides"}
+    mj = (switch_collisions(pm.mj, pm.xml_path, switched) if switched
+          else copy.deepcopy(pm.mj))
     delays = np.zeros(mj.nu, dtype=int)
-    truth = []
+    truth = [{"name": "geom_collides", "element": n, "nominal": "no" if on else "yes",
+              "value": "yes" if on else "no"} for n, on in switched.items()]
     cands = candidates_of(pm.mj)
     for ch in changes:
+        if ch.name == "geom_collides":
+            continue
         if ch.name == "integrator":
             truth.append({"name": "integrator", "element": "opt",
                           "nominal": integrator_name(mj), "value": ch.element})

@@ -22,14 +22,20 @@ name                      element                                  value
 ``obs_bias``              an observation dim (``obs[i]``)          nominal + theta (0)
 ========================  =======================================  ========================
 
-MuJoCo combines a contact pair's friction and margin by the larger of its two geoms' values,
-so only the larger geom of a pair moves the simulation. A margin m > 0 makes a contact active
-(and pushing) from a distance m apart, not from touching. A dof quantity whose nominal value
+MuJoCo combines a contact pair's friction by the larger of its two geoms' values (so only the
+larger geom of a pair moves it) and their margins by the sum: a pair whose geoms have margins
+m1 and m2 is in contact (and pushing) from m1 + m2 apart, not from touching (measured: two
+0.01 margins give a contact of margin 0.02). A dof quantity whose nominal value
 is 0 is left out (a log factor cannot move it; MJX also builds frictionloss constraint rows
 only where the nominal model has frictionloss, so frictionloss is not a candidate). A
 per-actuator action delay of ``d`` control steps is not a continuous parameter:
 :func:`delayed_actions` shifts the logged actions within each episode (zeros before the
 episode's start) before ``step`` sees them.
+
+Which geoms touch the floor is a candidate too, not through theta: :func:`collision_groups`
+groups the geoms by type and size (a robot's like parts together) and :func:`switch_collisions`
+compiles the model again with a group's contacts on or off (identify.py screens each group and
+each swap of a colliding group for a non-colliding one on the same bodies).
 
 The observation map. Registered tasks: obs = qpos ++ qvel, except that hopper's and walker2d's
 ``obs[1]`` is brax's torso height ``x.pos[0, 2]``, the kinematics one physics substep back
@@ -48,7 +54,8 @@ import jax.numpy as jnp
 import numpy as np
 
 __all__ = ["Candidate", "PhysicsModel", "physics_model", "delayed_actions", "PHYSICS_TASKS",
-           "LOG_QUANTITIES", "ADDED_QUANTITIES", "apply_to_mj", "theta_by_labels"]
+           "LOG_QUANTITIES", "ADDED_QUANTITIES", "apply_to_mj", "theta_by_labels",
+           "collision_groups", "switch_collisions"]
 
 PHYSICS_TASKS = {"hopper": "hopper.xml", "walker2d": "walker2d.xml",
                  "halfcheetah": "half_cheetah.xml", "ant": "ant.xml"}
@@ -325,6 +332,61 @@ def set_integrator(mj, name: str) -> None:
     mj.opt.integrator = INTEGRATORS[name]
 
 
+def _geom_collides(mj, g: int) -> bool:
+    return bool(mj.geom_contype[g] or mj.geom_conaffinity[g])
+
+
+def collision_groups(mj) -> list[dict]:
+    """The geoms off the world body, grouped by (type, size, colliding or not): what one
+    structural candidate switches together, so that a robot's like parts (four ankles) go
+    as one. -> [{"names": [geom names], "bodies": [their bodies' ids], "collides": bool}],
+    by their first geom."""
+    import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
+
+    groups: dict[tuple, dict] = {}
+    for g in range(mj.ngeom):
+        if mj.geom_bodyid[g] == 0:
+            continue
+        key = (int(mj.geom_type[g]), tuple(np.round(mj.geom_size[g], 6).tolist()),
+               _geom_collides(mj, g))
+        group = groups.setdefault(key, {"names": [], "bodies": [], "collides": key[2]})
+        group["names"].append(_name(mj, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}")
+        group["bodies"].append(int(mj.geom_bodyid[g]))
+    return list(groups.values())
+
+
+_OPTIONS = ("timestep", "integrator", "iterations", "ls_iterations", "tolerance",
+            "ls_tolerance", "solver", "cone", "impratio", "noslip_iterations", "jacobian")
+
+
+def switch_collisions(mj, xml_path: str, collisions: dict):
+    """A C model as ``mj`` (built from ``xml_path``, with its options) whose geoms' contacts
+    are switched by name: {name: True} gives a non-colliding geom contype 1 (it then touches
+    what has conaffinity 1, such as a floor), {name: False} contype and conaffinity 0. It is
+    compiled again from the XML, because MuJoCo builds a body's collision structures (its
+    geoms' bounding volumes) from the geoms that collide when it compiles. ValueError
+    naming a geom the model lacks."""
+    import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
+
+    spec = mujoco.MjSpec.from_file(xml_path)
+    by_name = {g.name or f"geom{i}": g for i, g in enumerate(spec.geoms)}
+    for name, on in collisions.items():
+        if name not in by_name:
+            raise ValueError(f"collisions: expected geom names of {xml_path}, got {name!r}")
+        g = by_name[name]
+        if on and not (g.contype or g.conaffinity):
+            g.contype = 1
+        elif not on:
+            g.contype = g.conaffinity = 0
+    out = spec.compile()
+    if out.ngeom != mj.ngeom:
+        raise ValueError(f"collisions: {xml_path} is not the model's XML ({out.ngeom} geoms "
+                         f"against {mj.ngeom})")
+    for name in _OPTIONS:
+        setattr(out.opt, name, getattr(mj.opt, name))
+    return out
+
+
 def load_mj(task: str | None, xml_path: str | None = None):
     """The nominal C model (``mujoco.MjModel``) of a task, as its MJX env runs it, or of an
     MJCF file."""
@@ -339,10 +401,13 @@ def load_mj(task: str | None, xml_path: str | None = None):
 
 
 def physics_model(task: str | None = None, *, xml_path: str | None = None,
-                  n_frames: int | None = None, integrator: str | None = None) -> PhysicsModel:
+                  n_frames: int | None = None, integrator: str | None = None,
+                  collisions: dict | None = None) -> PhysicsModel:
     """The physics model of a registered task (its MJX env's XML, options, ``n_frames``) or of
     a user's MJCF (``xml_path``; obs = qpos ++ qvel; ``n_frames`` default 1); ``integrator``
-    (INTEGRATORS' names) in place of the XML's (a calibrated model's)."""
+    (INTEGRATORS' names) in place of the XML's and geoms' contacts switched by
+    ``collisions`` ({geom name: bool}, :func:`switch_collisions`): a calibrated model's. Its
+    candidates stay the XML's, so that a calibrated theta keeps its meaning."""
     from mujoco import mjx  # local: keeps `import rl2s_jax.physics` free of MuJoCo
 
     from rl2s_jax.envs.tasks import _LOCO
@@ -355,12 +420,15 @@ def physics_model(task: str | None = None, *, xml_path: str | None = None,
     mj = load_mj(task if xml_path is None else None, xml_path)
     if integrator is not None:
         set_integrator(mj, integrator)
+    candidates = candidates_of(mj)
+    if collisions:
+        mj = switch_collisions(mj, xml_path or task_xml(task), collisions)
     lag = ()
     if xml_path is None and task in _LAGGED_HEIGHT:
         lag = ((1, 1, 1, float(mj.body_pos[1, 2])),)
     return PhysicsModel(mj=mj, mjx_model=mjx.put_model(mj), task=task if xml_path is None
                         else None, xml_path=xml_path or task_xml(task),
-                        n_frames=int(n_frames or 1), candidates=candidates_of(mj), lag=lag)
+                        n_frames=int(n_frames or 1), candidates=candidates, lag=lag)
 
 
 def delayed_actions(action: np.ndarray, episode_id: np.ndarray, t: np.ndarray,

@@ -167,6 +167,31 @@ def test_the_calibrated_json_of_rl2s_diagnose_is_the_simulator(pm, tmp_path):
                                             ds)["heldout_mse"]
 
 
+def test_calibrated_json_gives_its_structure(pm, tmp_path):
+    """The integrator and the switched contacts the diagnosis chose reach the simulator's
+    model (`rl2s evaluate --physics` ran the XML's integrator before); bad ones are refused
+    by field."""
+    import mujoco
+
+    from rl2s_jax.physics.physics_simulator import physics_simulator
+
+    c = json.loads(open(_calibrated(pm, tmp_path / "c.json")).read())
+    path = tmp_path / "s.json"
+    path.write_text(json.dumps({**c, "integrator": "RK4", "collisions": {"leg_geom": True}}))
+    sim = physics_simulator(str(path), "hopper", 12, 3)
+    leg = mujoco.mj_name2id(sim.pm.mj, mujoco.mjtObj.mjOBJ_GEOM, "leg_geom")
+    assert sim.pm.mj.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
+    assert sim.pm.mj.geom_contype[leg] == 1 and pm.mj.geom_contype[leg] == 0
+    assert sim.theta == physics_simulator(str(tmp_path / "c.json"), "hopper", 12, 3).theta
+    for field, bad, want in (("integrator", "Verlet", "integrator: expected one of Euler"),
+                             ("collisions", {"leg_geom": 1}, "collisions: expected"),
+                             ("collisions", {"shin": True},
+                              "collisions: expected geom names .* 'shin'")):
+        path.write_text(json.dumps({**c, field: bad}))
+        with pytest.raises(ValueError, match=f"physics: {path}: {want}"):
+            physics_simulator(str(path), "hopper", 12, 3)
+
+
 SLIDER = """<mujoco><option timestep="0.05"/><worldbody><body name="mass">
 <joint name="x" type="slide" axis="1 0 0" damping="0.1"/><geom size="0.1" mass="1"/></body>
 </worldbody><actuator><motor joint="x" gear="2"/></actuator></mujoco>"""

@@ -17,11 +17,14 @@ physics' own values as its one member's.
 or a ``calibrated.json`` (`rl2s diagnose --physics` writes it)::
 
     {"task": "hopper" | null, "xml": MJCF path (used when task is null), "n_frames": int | null,
-     "theta": [K] | null, "delays": [A] | null, "labels": [K] (optional)}
+     "theta": [K] | null, "delays": [A] | null, "labels": [K] (optional),
+     "integrator": "RK4" | ... | null, "collisions": {geom name: true | false} | null}
 
 ``theta`` holds one value per candidate quantity of the model (``PhysicsModel.candidates``, in
-that order; null: the nominal model), ``delays`` one int per actuator (null: none), and
-``labels`` the candidates' labels, checked against the model's. A user's MJCF (``task`` null)
+that order; null: the nominal model), ``delays`` one int per actuator (null: none),
+``labels`` the candidates' labels, checked against the model's, and ``integrator`` and
+``collisions`` the model's structure where the diagnosis changed it (mjx_model.INTEGRATORS'
+names; geoms whose contacts it switched). A user's MJCF (``task`` null)
 takes the data's registered task for its rewards and terminations.
 """
 
@@ -38,6 +41,7 @@ from rl2s_jax.data.dataset import spread_rows
 from rl2s_jax.envs.tasks import TASKS, get_task
 from rl2s_jax.physics.calibrated import _theta_delays, physics_dynamics
 from rl2s_jax.physics.mjx_model import (
+    INTEGRATORS,
     PHYSICS_TASKS,
     PhysicsModel,
     delayed_actions,
@@ -134,9 +138,25 @@ def _read(source: str) -> dict:
     return c
 
 
+def _structure(c: dict, source: str) -> dict:
+    """A calibrated.json's changes of the model's structure, checked: {"integrator",
+    "collisions"} (physics_model's arguments)."""
+    integrator, collisions = c.get("integrator"), c.get("collisions")
+    if integrator is not None and integrator not in INTEGRATORS:
+        raise ValueError(f"physics: {source}: integrator: expected one of "
+                         f"{', '.join(INTEGRATORS)} or null, got {integrator!r}")
+    if collisions is not None and not (isinstance(collisions, dict) and all(
+            isinstance(k, str) and isinstance(v, bool) for k, v in collisions.items())):
+        raise ValueError(f"physics: {source}: collisions: expected {{geom name: true | "
+                         f"false}} or null, got {collisions!r}")
+    return {"integrator": integrator, "collisions": collisions}
+
+
 def _model_of(c: dict, source: str, data_task: str | None) -> PhysicsModel:
-    """The physics model a calibrated.json names, checked against the data's task."""
+    """The physics model a calibrated.json names (its structure too), checked against the
+    data's task."""
     task, xml, n_frames = c.get("task"), c.get("xml"), c.get("n_frames")
+    structure = _structure(c, source)
     if n_frames is not None and (isinstance(n_frames, bool) or not isinstance(n_frames, int)
                                  or n_frames < 1):
         raise ValueError(f"physics: {source}: n_frames: expected an int >= 1 or null, got "
@@ -145,14 +165,21 @@ def _model_of(c: dict, source: str, data_task: str | None) -> PhysicsModel:
         if not isinstance(xml, str) or not os.path.isfile(xml):
             raise ValueError(f"physics: {source}: xml: expected the MJCF file of a model of no "
                              f"registered task (task null), got {xml!r}")
-        return physics_model(None, xml_path=xml, n_frames=n_frames)
+        return _build(source, None, xml_path=xml, n_frames=n_frames, **structure)
     if task not in PHYSICS_TASKS:
         raise ValueError(f"physics: {source}: task: expected one of {sorted(PHYSICS_TASKS)} "
                          f"or null (with xml), got {task!r}")
     if task != data_task:
         raise ValueError(f"physics: {source} models task {task!r} but the data is task "
                          f"{data_task!r}")
-    return physics_model(task, n_frames=n_frames)
+    return _build(source, task, n_frames=n_frames, **structure)
+
+
+def _build(source: str, task: str | None, **kw) -> PhysicsModel:
+    try:
+        return physics_model(task, **kw)
+    except ValueError as e:  # a geom the model lacks
+        raise ValueError(f"physics: {source}: {e}") from None
 
 
 def _values(c: dict, source: str, pm: PhysicsModel) -> tuple[tuple, tuple]:

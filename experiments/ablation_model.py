@@ -43,6 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.training import make_config, parse_overrides
 from rl2s_jax.data.summary import episode_lengths
 from rl2s_jax.data.values import true_values
@@ -235,10 +236,7 @@ def run_variant(variant: str, args, profile: str, sizes: dict, train_ds, test_ds
 
 
 def _write(path: str, res: dict) -> None:
-    tmp = path + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(res, f, indent=1)
-    os.replace(tmp, path)
+    write_json(path, res)
 
 
 def main(argv=None) -> int:

@@ -15,12 +15,12 @@ the host, and with a reset every 32 steps.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
 import jax
 
+from rl2s_jax._files import write_json
 from rl2s_jax.data.collect import make_rollout_step
 from rl2s_jax.envs.checks import tree_where
 from rl2s_jax.envs.tasks import get_task
@@ -162,9 +162,8 @@ def main(argv=None) -> int:
         print(f"| {r['batch']} | {r['raw_steps_per_s']:,.0f} | " + " | ".join(cells) + " |",
               flush=True)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"task": args.task, "device": device, "jax": jax.__version__,
-                       "rows": rows}, f, indent=1)
+        write_json(args.json, {"task": args.task, "device": device, "jax": jax.__version__,
+                               "rows": rows})
     return 0
 
 

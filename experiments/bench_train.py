@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from bench import timed  # experiments/bench.py: best of `repeats` after a compile call
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.training import parse_overrides
 from rl2s_jax.model.dynamics import Normalizer
 from rl2s_jax.policy.policy import init_policy, stack_params
@@ -311,12 +312,11 @@ def main(argv=None) -> int:
               f"{x['official_cycle_s']:.2f} s per cycle, ours {x['ours_cycle_s']:.3f} s: "
               f"{x['cycle_ratio']:.1f}x", flush=True)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"device": jax.devices()[0].device_kind, "backend": backend,
-                       "jax": jax.__version__, "profile": profile,
-                       "official_sizes": args.official_sizes,
-                       "matmul_tflop_s": rate / 1e12, "config": cfg.to_dict(), "rows": rows,
-                       "race": race}, f, indent=1)
+        write_json(args.json, {"device": jax.devices()[0].device_kind, "backend": backend,
+                               "jax": jax.__version__, "profile": profile,
+                               "official_sizes": args.official_sizes,
+                               "matmul_tflop_s": rate / 1e12, "config": cfg.to_dict(),
+                               "rows": rows, "race": race})
     return 0
 
 

@@ -19,7 +19,6 @@ Writes OUT/closed_loop_control_<task>.json and prints a table.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -28,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.envs.tasks import get_task, task_names
 from rl2s_jax.evaluate.errors import noisy, one_step_std
 from rl2s_jax.evaluate.metrics import kendall_tau
@@ -128,8 +128,7 @@ def main(argv=None) -> int:
                hardware=jax.devices()[0].device_kind, jax_version=jax.__version__,
                wall_s=round(time.perf_counter() - t0, 1))
     path = os.path.join(args.out, f"closed_loop_control_{args.task}.json")
-    with open(path, "w") as f:
-        json.dump(res, f, indent=1)
+    write_json(path, res)
     print(table(res))
     print(f"[closed-loop control] wrote {path} ({res['wall_s']}s)")
     return 0

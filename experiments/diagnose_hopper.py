@@ -26,6 +26,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_text
 from rl2s_jax.app.diagnosis import diagnose
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.diagnose.model import ModelSpec
@@ -62,8 +63,8 @@ def write_summary(args, argv, device, rows) -> None:
                "transitions_per_policy": args.transitions_per_policy,
                "command": "python experiments/diagnose_hopper.py " + " ".join(argv or []),
                "rows": rows}
-    with open(os.path.join(args.out, "summary.json"), "w") as f:
-        json.dump(summary, f, indent=1, default=lambda x: np.asarray(x).tolist())
+    write_text(os.path.join(args.out, "summary.json"),
+               json.dumps(summary, indent=1, default=lambda x: np.asarray(x).tolist()))
     lines = ["| planted | truth | mode | top cause | planted cause found? | confidence | details "
              "| held-out NLL base -> extended (diff ± std) | MSE base -> extended "
              "| AVD base -> extended |",

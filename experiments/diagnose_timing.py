@@ -23,6 +23,7 @@ import time
 
 import jax
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.diagnosis import diagnose
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.diagnose.planted_mjx import collect_planted
@@ -103,8 +104,7 @@ def main(argv=None) -> int:
            "phases": report["timings"], "top_cause": report["top_cause"],
            "value_views": report["value_views"],
            "command": "python experiments/diagnose_timing.py " + " ".join(argv or sys.argv[1:])}
-    with open(os.path.join(args.out, "timing.json"), "w") as f:
-        json.dump(out, f, indent=1)
+    write_json(os.path.join(args.out, "timing.json"), out)
     print(json.dumps(out, indent=1), flush=True)
     return 0
 

@@ -31,7 +31,7 @@ import sys
 
 import numpy as np
 
-from rl2s_jax._files import save_figure
+from rl2s_jax._files import save_figure, write_json
 from rl2s_jax.stats import bootstrap_ci, mean_per_unit
 
 TASKS = ("hopper", "walker2d", "halfcheetah", "ant")
@@ -279,8 +279,7 @@ def main(argv=None) -> int:
     cmd = " ".join(["python", "experiments/eps_curve.py",
                     *(sys.argv[1:] if argv is None else argv)])
     os.makedirs(os.path.dirname(args.json) or ".", exist_ok=True)
-    with open(args.json, "w") as f:
-        json.dump({"command": cmd, "variant": args.variant, "tasks": tasks}, f, indent=1)
+    write_json(args.json, {"command": cmd, "variant": args.variant, "tasks": tasks})
     plot(tasks, args.png)
     print(f"-> {args.json}, {args.png}")
     return 0

@@ -9,7 +9,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
@@ -17,6 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.training import make_config, parse_overrides
 from rl2s_jax.data.dataset import load_dataset
 from rl2s_jax.evaluate.scores import evaluate_simulator
@@ -81,9 +81,9 @@ def main(argv=None) -> int:
                   f"{row['mvd']:8.1f}  tau {row['kendall_tau']:6.3f}  nDCG@1 "
                   f"{row['ndcg@1']:.3f}  selected {row['n_selected']}", flush=True)
     if args.json and is_writer():
-        with open(args.json, "w") as f:
-            json.dump({"method": args.method, "profile": profile, "config": cfg.to_dict(),
-                       "device": jax.devices()[0].device_kind, "rows": rows}, f, indent=1)
+        write_json(args.json, {"method": args.method, "profile": profile,
+                               "config": cfg.to_dict(),
+                               "device": jax.devices()[0].device_kind, "rows": rows})
     return 0
 
 

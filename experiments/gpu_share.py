@@ -111,8 +111,8 @@ def main(argv=None) -> int:
         for case, row in table.items():
             print(f"{case:>10}: {row['processes']} process(es), {row['step_ms']:8.2f} ms per "
                   f"step, throughput {row['throughput']:.2f}x one process alone")
-        with open(os.path.join(args.summary, "share_summary.json"), "w") as f:
-            json.dump(table, f, indent=1)
+        from rl2s_jax._files import write_json
+        write_json(os.path.join(args.summary, "share_summary.json"), table)
         return 0
     for field in ("n", "lanes", "policies", "steps"):
         if getattr(args, field) < 1:
@@ -123,8 +123,8 @@ def main(argv=None) -> int:
     row = measure(args)
     print(json.dumps(row), flush=True)
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump(row, f)
+        from rl2s_jax._files import write_json
+        write_json(args.json, row, indent=None)
     return 0
 
 

@@ -36,7 +36,7 @@ import sys
 
 import numpy as np
 
-from rl2s_jax._files import save_figure
+from rl2s_jax._files import save_figure, write_json
 from rl2s_jax.improve.finetune import deployment_guard, median_gain
 from rl2s_jax.improve.recipes import IMPROVE_RECIPES
 from rl2s_jax.zoo.zoo import load_zoo, names_to_zoo_ids
@@ -136,8 +136,7 @@ def rescore(path: str, scale: float, margin: float, dest: str) -> str:
     run["command"] = run.get("command", "?") + (
         f"; guard verdicts rescored at floor {scale:g} x the training MVD, margin {margin:g} "
         "(experiments/guard_calibration.py --rescore)")
-    with open(dest, "w") as f:
-        json.dump(run, f, indent=1)
+    write_json(dest, run)
     return dest
 
 
@@ -219,8 +218,7 @@ def main(argv=None) -> int:
            "validation_runs": val_sources, "test_runs": test_sources}
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, f"{args.task}.json")
-    with open(path, "w") as f:
-        json.dump(doc, f, indent=1)
+    write_json(path, doc)
     plot(by_scale, chosen, args.task, os.path.join(args.out, f"{args.task}.png"))
     for k, parts in by_scale.items():
         for split, rows in parts.items():

@@ -113,7 +113,6 @@ zoo's 0.973), AVD 43.4, MVD 408.9: the ranking is the same in both engines withi
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import tempfile
@@ -126,6 +125,7 @@ import mujoco
 import numpy as np
 
 from rl2s_jax import compile_cache
+from rl2s_jax._files import write_json
 from rl2s_jax.app.physics_diagnosis import PhysicsSpec, diagnose_physics
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.collect import measure_values
@@ -384,8 +384,7 @@ def main(argv=None):
     record = {"args": vars(args), "tasks": [run_task(t, args) for t in args.tasks]}
     record["seconds"] = time.time() - t0
     if args.out:
-        with open(args.out, "w") as f:
-            json.dump(record, f, indent=1)
+        write_json(args.out, record)
     if args.results:  # RESULTS' "Physics diagnosis (issue 62)" table: paper.physics_tables
         command = "python experiments/gymnasium_v5.py " + " ".join(sys.argv[1:] if argv is None
                                                                      else argv)

@@ -49,6 +49,7 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
+from rl2s_jax._files import write_json  # noqa: E402
 from rl2s_jax.app.report import machine_info  # noqa: E402
 from rl2s_jax.app.training import parse_overrides  # noqa: E402
 from rl2s_jax.envs.tasks import get_task, task_names  # noqa: E402
@@ -326,8 +327,7 @@ def main(argv=None) -> int:
             raise SystemExit(str(err)) from None
         os.makedirs(args.out, exist_ok=True)
         path = os.path.join(args.out, f"control_{joined['task']}.json")
-        with open(path, "w") as f:
-            json.dump(joined, f, indent=1)
+        write_json(path, joined)
         log(f"[control] seeds {joined['seed_ids']} of {joined['task']} -> {path}")
         return 0
     if args.first_seed < 0:
@@ -359,8 +359,7 @@ def main(argv=None) -> int:
         res["seconds"] = round(time.perf_counter() - t0, 1)
         res["command"] = " ".join(["python experiments/improve_control.py",
                                    *(sys.argv[1:] if argv is None else argv)])
-        with open(os.path.join(args.out, f"control_{t}.json"), "w") as f:
-            json.dump(res, f, indent=1)
+        write_json(os.path.join(args.out, f"control_{t}.json"), res)
         log(f"[control] {t} done in {res['seconds']:.0f}s -> {args.out}/control_{t}.json")
     return 0
 

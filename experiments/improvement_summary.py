@@ -37,7 +37,7 @@ import sys
 
 import numpy as np
 
-from rl2s_jax._files import save_figure
+from rl2s_jax._files import save_figure, write_json
 from rl2s_jax.improve.finetune import median_gain
 from rl2s_jax.paper.improvement_phases import pair_floor_verdict
 from rl2s_jax.paper.tables import PAPER
@@ -353,13 +353,11 @@ def main(argv=None) -> int:
         summary["bars"] = issue_bars(summary, args.task)
     os.makedirs(args.out, exist_ok=True)
     path = os.path.join(args.out, f"{args.task}.json")
-    with open(path, "w") as f:
-        json.dump({"summary": summary, "runs": runs}, f, indent=1)
+    write_json(path, {"summary": summary, "runs": runs})
     plot(rows, summary, args.task, os.path.join(args.out, f"{args.task}.png"))
     if args.record:
         doc["improvement_by_method"] = by_method(summary, runs, path)
-        with open(args.control, "w") as f:
-            json.dump(doc, f, indent=1)
+        write_json(args.control, doc)
     ctl = summary.get("control") or {}
     print(f"{args.task}: budget {summary['budget_env_steps']} simulated env steps per policy"
           + (f"; control median gain {ctl['median_gain']:+.3f}" if ctl.get("median_gain")

@@ -22,7 +22,6 @@ units, docs/RESULTS.md), so no oracle is needed. Writes ``model_fit_<task>_<vari
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import re
 import sys
@@ -32,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.training import make_config
 from rl2s_jax.envs.tasks import task_names
 from rl2s_jax.model import dynamics as dyn
@@ -163,9 +163,7 @@ def fit_and_measure(cfg, train_ds, test_ds, sizes: dict, res: dict, *, label: st
 def _write(out: str, task: str, spec: str, res: dict) -> None:
     safe = re.sub(r"[^A-Za-z0-9_.-]", "_", spec)
     path = os.path.join(out, f"model_fit_{task}_{safe}.json")
-    with open(path + ".tmp", "w") as f:
-        json.dump(res, f, indent=1)
-    os.replace(path + ".tmp", path)
+    write_json(path, res)
 
 
 def table(results: list[dict]) -> str:

@@ -23,7 +23,6 @@ cores with the collection. Writes OUT/open_loop_control_<task>.json and prints a
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -32,6 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.envs.tasks import get_task, task_names
 from rl2s_jax.evaluate.errors import noisy, one_step_std, open_loop_inputs, open_loop_summary
 from rl2s_jax.evaluate.oracle import oracle_dynamics
@@ -136,8 +136,7 @@ def main(argv=None) -> int:
                hardware=jax.devices()[0].device_kind, jax_version=jax.__version__,
                transitions=ds.n_transitions, wall_s=round(time.perf_counter() - t0, 1))
     path = os.path.join(args.out, f"open_loop_control_{args.task}.json")
-    with open(path, "w") as f:
-        json.dump(res, f, indent=1)
+    write_json(path, res)
     print(table(res, args.ks))
     print(f"[open-loop control] wrote {path} ({res['wall_s']}s)")
     return 0

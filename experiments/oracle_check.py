@@ -22,7 +22,6 @@ seed's by_data_seed entry.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 import time
@@ -30,6 +29,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.pipeline import collect_dataset
 from rl2s_jax.envs.tasks import get_task
 from rl2s_jax.evaluate.lane_scores import oracle_noise_ceiling
@@ -111,8 +111,7 @@ def main(argv=None) -> int:
                "true_value_se": np.asarray(ds.value_discounted_se).tolist(),
                "collect_seconds": t_collect, "rows": rows,
                **({} if args.data_seed is None else {"data_seed": args.data_seed})}
-        with open(os.path.join(args.out, f"oracle_{task}.json"), "w") as f:
-            json.dump(out, f, indent=1)
+        write_json(os.path.join(args.out, f"oracle_{task}.json"), out)
     return 0
 
 

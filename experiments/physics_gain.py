@@ -94,6 +94,7 @@ import mujoco
 import numpy as np
 
 from rl2s_jax import compile_cache
+from rl2s_jax._files import write_text
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.app.training import make_config
 from rl2s_jax.data.dataset import save_dataset
@@ -271,8 +272,7 @@ def write(args, argv, results: dict, seconds: float, n_units: int) -> None:
            "seconds": seconds, "complete": done == n_units, "units_done": done,
            "args": vars(args), "summary": summarise(results),
            "results": {c: [runs[s] for s in sorted(runs)] for c, runs in results.items()}}
-    with open(args.out, "w") as fh:
-        json.dump(doc, fh, indent=1, default=float)
+    write_text(args.out, json.dumps(doc, indent=1, default=float))
 
 
 def main(argv=None) -> int:

@@ -22,6 +22,7 @@ import time
 
 import jax
 
+from rl2s_jax._files import write_text
 from rl2s_jax.app.physics_diagnosis import PhysicsSpec, diagnose_physics
 from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.physics.identify import FitConfig, fit_sysid, identify
@@ -107,8 +108,7 @@ def main(argv=None) -> int:
         except (ImportError, AttributeError) as err:  # mujoco[sysid] not installed
             out["sysid"] = f"not run: {err}"
         print(f"[physics-timing] sysid: {out['sysid']}", flush=True)
-    with open(os.path.join(args.out, "timing.json"), "w") as f:
-        json.dump(out, f, indent=1, default=str)
+    write_text(os.path.join(args.out, "timing.json"), json.dumps(out, indent=1, default=str))
     print(json.dumps(out, indent=1, default=str), flush=True)
     return 0
 

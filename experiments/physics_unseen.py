@@ -37,6 +37,7 @@ import time
 
 import mujoco
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.report import machine_info
 from rl2s_jax.data.dataset import save_dataset
 from rl2s_jax.physics.measured import Planted, collect_measured
@@ -125,8 +126,7 @@ def main(argv=None) -> int:
                  "policies": len(zoo.train_ids), "seed": args.seed}
         doc = {"command": "PYTHONPATH=. python experiments/physics_unseen.py " + " ".join(argv),
                "machine": machine, "sizes": sizes, "cases": rows}
-        with open(args.out, "w") as f:
-            json.dump(doc, f, indent=1)
+        write_json(args.out, doc)
     failed = [r["case"] for r in rows if not r["passed"]]
     print(f"{len(rows) - len(failed)} of {len(rows)} passed; failed: {failed or 'none'}")
     return 0

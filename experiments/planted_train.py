@@ -26,6 +26,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_text
 from rl2s_jax.app.diagnosis import diagnose
 from rl2s_jax.data.dataset import load_dataset, save_dataset
 from rl2s_jax.diagnose.extension import train_set
@@ -151,8 +152,8 @@ def write(args, argv, rows) -> None:
            "command": "python experiments/planted_train.py " + " ".join(argv),
            "seeds": args.seeds, "steps": args.steps, "method": args.method,
            "profile": args.profile, "rows": rows}
-    with open(os.path.join(args.out, "planted_train.json"), "w") as f:
-        json.dump(doc, f, indent=1, default=lambda x: np.asarray(x).tolist())
+    write_text(os.path.join(args.out, "planted_train.json"),
+               json.dumps(doc, indent=1, default=lambda x: np.asarray(x).tolist()))
     lines = ["| planted | found | `--set` | held-out NLL plain -> extended (diff ± 95%) | "
              "MSE | AVD | MVD | tau |", "|---|---|---|---|---|---|---|---|"]
     def cell(r, m, fmt):

@@ -25,6 +25,7 @@ import time
 import jax
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.app.value_intervals import calibration_data
 from rl2s_jax.policy import policy as pol
 from rl2s_jax.zoo import zoo as zoo_mod
@@ -118,8 +119,7 @@ def main() -> None:
         run(base + extra + ["--json", o(f"eval_{name}.json")])
         with open(o(f"eval_{name}.json")) as f:
             out[name] = summary(json.load(f))
-    with open(o("summary.json"), "w") as f:
-        json.dump(out, f, indent=1)
+    write_json(o("summary.json"), out)
     print(json.dumps(out, indent=1))
 
 

@@ -41,6 +41,7 @@ import sys
 
 import numpy as np
 
+from rl2s_jax._files import write_json
 from rl2s_jax.stats import bootstrap_ci, mean_per_unit, t_interval
 from rl2s_jax.train.config import saved_field
 
@@ -384,10 +385,7 @@ def main(argv=None) -> int:
                                            *(sys.argv[1:] if argv is None else argv)]),
                       **summarise(doc["runs"])}
     os.makedirs(os.path.dirname(out) or ".", exist_ok=True)
-    tmp = out + ".tmp"
-    with open(tmp, "w") as f:
-        json.dump(doc, f, indent=1)
-    os.replace(tmp, out)
+    write_json(out, doc)
     print(report(args.task, doc["runs"], doc["summary"]) + f"\n-> {out}")
     return 0
 

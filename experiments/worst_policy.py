@@ -163,10 +163,10 @@ def main(argv=None) -> int:
                   f"{x['top_score']:>6.1f}  worst {x['worst']:<18} {x['worst_score']:>6.1f}  "
                   f"MVD {x['mvd']:.0f}")
     if args.json:
-        with open(args.json, "w") as f:
-            json.dump({"command": "python experiments/worst_policy.py " + " ".join(args.files),
-                       "rows": rows, "summary": s, "seed_spread": spreads,
-                       "likelihood_shift": shifts}, f, indent=1)
+        from rl2s_jax._files import write_json
+        write_json(args.json, {"command": "python experiments/worst_policy.py "
+                               + " ".join(args.files), "rows": rows, "summary": s,
+                               "seed_spread": spreads, "likelihood_shift": shifts})
     return 0
 
 

@@ -1192,6 +1192,40 @@ def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):
     return proc.returncode, ev, proc
 
 
+def test_device_tasks_gives_two_processes_on_one_gpu_more_time(tmp_path):
+    """device.sh tasks: each paper.py is cut at 560 s alone, at 900 where two share one GPU
+    (PAPER_PER_GPU auto, one GPU, two tasks: each takes ~1.55x as long); LIMIT overrides."""
+    import subprocess
+    import textwrap
+
+    bin_dir, events = tmp_path / "bin", tmp_path / "events"
+    bin_dir.mkdir()
+    (bin_dir / "python3").write_text(textwrap.dedent(f"""\
+        #!/usr/bin/env bash
+        [ "$1" = experiments/paper_schedule.py ] && echo "$*" >> {events}
+        exit 0
+        """))
+    (bin_dir / "python3").chmod(0o755)
+
+    def py_of(tasks, **env):
+        events.unlink(missing_ok=True)
+        proc = subprocess.run(["bash", "experiments/device.sh", "tasks", tasks], cwd=ROOT,
+                              env={**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}",
+                                   "OUT": str(tmp_path / "out"), "RL2S_SITE": str(tmp_path),
+                                   "RL2S_WORK": str(tmp_path / "w"), **env},
+                              capture_output=True, text=True, timeout=60)
+        (tmp_path / ".rl2s_wheels").touch()
+        assert events.exists(), proc.stderr
+        return events.read_text().split("--py ")[1].split(" --tasks")[0]
+
+    (tmp_path / ".rl2s_wheels").touch()
+    assert py_of("hopper,walker2d", RL2S_GPUS="1") == "timeout 900 python3"
+    assert py_of("hopper", RL2S_GPUS="1") == "timeout 560 python3"
+    assert py_of("hopper,walker2d", RL2S_GPUS="2") == "timeout 560 python3"
+    assert py_of("hopper,walker2d", RL2S_GPUS="1", PAPER_PER_GPU="1") == "timeout 560 python3"
+    assert py_of("hopper,walker2d", RL2S_GPUS="1", LIMIT="700") == "timeout 700 python3"
+
+
 def test_device_jobs_runs_side_by_side_and_waits_for_the_data(tmp_path):
     """device.sh jobs: jobs without AFTER start at once on their GPUs; a job with AFTER starts
     only once that job's data phase has ended; out/data dirs and args reach paper.py; a failed

@@ -15,7 +15,8 @@ Selection, forward stepwise (:func:`identify`). At the current fit:
    larger margin switches on contacts the model has none of: its column is zero there);
    changes of structure, with the C backend, by their exact drop too: another integrator,
    and each group of like geoms (``mjx_model.collision_groups``: same type and size) with
-   its contacts switched on or off (which parts of the robot touch the floor);
+   its contacts switched on or off (which parts of the robot touch the floor), alone and as
+   a swap of a colliding group for a non-colliding one on the same bodies;
 2. refine the best (Levenberg-Marquardt on the chosen set plus it, ``jax.jacfwd`` Jacobians;
    a margin from its best trial value);
 3. keep it only if it is significant on the *test* half: the per-episode mean squared error

@@ -69,6 +69,8 @@ def test_planted_swap_of_foot_geoms_is_named(pm):
     assert top["element"] == f"{', '.join(ANKLES)}; {', '.join(FEET)}"
     assert (top["nominal"], top["value"]) == ("no; yes", "yes; no")
     assert found["collisions"] == planted and found["unexplained"] < 1e-6
+    few, total = found["parameters"][0]["drop_episodes"]
+    assert 0 < few <= total == len(set(ds.episode_id.tolist())) // 2
     clean = identify(pm, _ant_data(pm, []), FitConfig(rows=256))
     assert clean["top_cause"] is None and clean["collisions"] == {}, clean["parameters"]
 
@@ -86,3 +88,23 @@ def test_calibrated_json_carries_the_switch(pm):
     assert cal.mj.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4
     assert [c.label for c in cal.candidates] == content["labels"]  # theta keeps its meaning
     assert theta.shape == (len(pm.candidates),)
+
+
+def test_report_says_when_a_drop_lies_in_few_episodes():
+    """A quantity not kept whose drop lies in under half of the test episodes (a rare contact:
+    the paired t-test cannot pass) says so in report.md's "kept" cell."""
+    from rl2s_jax.app.physics_diagnosis import _kept
+    from rl2s_jax.physics.identify import _drop_episodes
+
+    before = dict.fromkeys(range(4), 1.0)
+    assert _drop_episodes(before, {0: 0.0, 1: 1.0, 2: 1.0, 3: 1.0}) == [1, 4]  # one episode
+    # one large drop and three tiny ones (the other quantities refitted): still one episode
+    assert _drop_episodes(before, {0: 0.0, 1: 0.99, 2: 0.99, 3: 0.99}) == [1, 4]
+    assert _drop_episodes(before, dict.fromkeys(range(4), 0.75)) == [4, 4]  # spread evenly
+    assert _drop_episodes(before, dict.fromkeys(range(4), 1.5)) == [0, 4]  # no drop
+
+    assert _kept({"significant": False, "drop_episodes": [2, 25]}) == (
+        "no: 90% of its drop is in 2 of 25 test episodes (more such data decides)")
+    assert _kept({"significant": False, "drop_episodes": [20, 25]}) == "no"
+    assert _kept({"significant": True, "drop_episodes": [2, 25]}) == "yes"
+    assert _kept({"significant": False}) == "no"  # a report from before the field

@@ -41,7 +41,7 @@ import numpy as np
 
 from rl2s_jax.data.dataset import Dataset
 from rl2s_jax.physics.measured import numpy_policy_action
-from rl2s_jax.physics.mjx_model import PhysicsModel, load_mj, physics_model
+from rl2s_jax.physics.mjx_model import MODEL_OPTIONS, PhysicsModel, load_mj, physics_model
 
 __all__ = ["V5_ENVS", "ObsMap", "collect_gymnasium", "make_v5", "model_differences",
            "obs_map", "print_differences"]
@@ -237,9 +237,6 @@ def collect_gymnasium(task_name: str, params, *, transitions_per_policy: int,
 
 # ------------------------------------------------------------------------ model differences
 
-_OPTIONS = ("timestep", "integrator", "solver", "iterations", "ls_iterations", "tolerance",
-            "ls_tolerance", "cone", "jacobian", "impratio", "noslip_iterations", "gravity",
-            "disableflags", "enableflags")
 _BRAX_ENVS = {"hopper": ("hopper", "Hopper"), "walker2d": ("walker2d", "Walker2d"),
               "halfcheetah": ("half_cheetah", "Halfcheetah"), "ant": ("ant", "Ant")}
 # (field, MuJoCo object type name, how a row is indexed): per-element quantities compared by
@@ -308,7 +305,7 @@ def model_differences(task: str, v5_model=None, *, rtol: float = 1e-6) -> list[d
     def add(quantity, element, a, b):
         rows.append({"quantity": quantity, "element": element, "mjx": a, "v5": b})
 
-    for opt in _OPTIONS:
+    for opt in MODEL_OPTIONS:
         a, b = getattr(mjx.opt, opt), getattr(v5.opt, opt)
         if differ(a, b):
             name = {"integrator": mujoco.mjtIntegrator, "solver": mujoco.mjtSolver,

@@ -38,7 +38,6 @@ quantities with ``mujoco.sysid.optimize`` on the same residuals, for timing side
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import time
 
@@ -53,6 +52,7 @@ from rl2s_jax.physics.mjx_model import (
     collision_groups,
     delayed_actions,
     integrator_name,
+    integrator_value,
     set_integrator,
     switch_collisions,
 )
@@ -118,8 +118,7 @@ def c_backend(pm: PhysicsModel, fd_step: float = 1e-5, integrator: str | None = 
     ``integrator`` in place of the model's, geoms' contacts switched by ``collisions``."""
     import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
 
-    mj = (switch_collisions(pm.mj, pm.xml_path, collisions) if collisions
-          else copy.deepcopy(pm.mj))
+    mj = switch_collisions(pm.mj, pm.xml_path, collisions)
     if integrator is not None:
         set_integrator(mj, integrator)
     data = mujoco.MjData(mj)
@@ -376,7 +375,7 @@ class _Structures:
         c_only = cfg.backend == "mujoco"
         self.integrators = [n for n in (cfg.integrators if c_only else ()) if n != self.nominal]
         for name in self.integrators:  # a bad name: its ValueError before any stepping
-            set_integrator(copy.deepcopy(pm.mj), name)
+            integrator_value(name)
         self.groups = collision_groups(pm.mj) if c_only and cfg.collisions else []
         self._halves: dict[tuple, tuple[_Fit, _Fit]] = {}
 

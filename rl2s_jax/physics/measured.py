@@ -17,7 +17,6 @@ late (zeros before the episode's start). ``meta["source"]["planted"]`` records t
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 
 import jax
@@ -75,8 +74,7 @@ def plant(pm: PhysicsModel, changes: list[Planted]):
     """A copy of ``pm``'s C model with ``changes`` applied -> (MjModel, delays [A], truth).
     Contacts switched (``geom_collides``) first: that model is compiled again."""
     switched = {ch.element: bool(ch.amount) for ch in changes if ch.name == "geom_collides"}
-    mj = (switch_collisions(pm.mj, pm.xml_path, switched) if switched
-          else copy.deepcopy(pm.mj))
+    mj = switch_collisions(pm.mj, pm.xml_path, switched)
     delays = np.zeros(mj.nu, dtype=int)
     truth = [{"name": "geom_collides", "element": n, "nominal": "no" if on else "yes",
               "value": "yes" if on else "no"} for n, on in switched.items()]

@@ -46,6 +46,7 @@ the substep; exact for a slide joint under semi-implicit Euler). A user's MJCF
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 from collections.abc import Callable
 
@@ -325,11 +326,16 @@ def integrator_name(mj) -> str:
     return by_value.get(int(mj.opt.integrator), f"mjtIntegrator {int(mj.opt.integrator)}")
 
 
-def set_integrator(mj, name: str) -> None:
-    """Set a C model's integrator by name (in place); ValueError naming the choices."""
+def integrator_value(name: str) -> int:
+    """mujoco.mjtIntegrator's value of an integrator's name; ValueError naming the choices."""
     if name not in INTEGRATORS:
         raise ValueError(f"integrator: expected one of {', '.join(INTEGRATORS)}, got {name!r}")
-    mj.opt.integrator = INTEGRATORS[name]
+    return INTEGRATORS[name]
+
+
+def set_integrator(mj, name: str) -> None:
+    """Set a C model's integrator by name (in place); ValueError naming the choices."""
+    mj.opt.integrator = integrator_value(name)
 
 
 def _geom_collides(mj, g: int) -> bool:
@@ -355,8 +361,11 @@ def collision_groups(mj) -> list[dict]:
     return list(groups.values())
 
 
-_OPTIONS = ("timestep", "integrator", "iterations", "ls_iterations", "tolerance",
-            "ls_tolerance", "solver", "cone", "impratio", "noslip_iterations", "jacobian")
+# A C model's <option> fields that the simulation depends on (switch_collisions keeps them;
+# gymnasium_v5 compares two models' by them)
+MODEL_OPTIONS = ("timestep", "integrator", "solver", "iterations", "ls_iterations", "tolerance",
+                 "ls_tolerance", "cone", "jacobian", "impratio", "noslip_iterations", "gravity",
+                 "disableflags", "enableflags")
 
 
 def switch_collisions(mj, xml_path: str, collisions: dict):
@@ -364,10 +373,12 @@ def switch_collisions(mj, xml_path: str, collisions: dict):
     are switched by name: {name: True} gives a non-colliding geom contype 1 (it then touches
     what has conaffinity 1, such as a floor), {name: False} contype and conaffinity 0. It is
     compiled again from the XML, because MuJoCo builds a body's collision structures (its
-    geoms' bounding volumes) from the geoms that collide when it compiles. ValueError
-    naming a geom the model lacks."""
+    geoms' bounding volumes) from the geoms that collide when it compiles; with nothing to
+    switch, a copy of ``mj``. ValueError naming a geom the model lacks."""
     import mujoco  # local: keeps `import rl2s_jax.physics` free of MuJoCo
 
+    if not collisions:
+        return copy.deepcopy(mj)
     spec = mujoco.MjSpec.from_file(xml_path)
     by_name = {g.name or f"geom{i}": g for i, g in enumerate(spec.geoms)}
     for name, on in collisions.items():
@@ -382,7 +393,7 @@ def switch_collisions(mj, xml_path: str, collisions: dict):
     if out.ngeom != mj.ngeom:
         raise ValueError(f"collisions: {xml_path} is not the model's XML ({out.ngeom} geoms "
                          f"against {mj.ngeom})")
-    for name in _OPTIONS:
+    for name in MODEL_OPTIONS:
         setattr(out.opt, name, getattr(mj.opt, name))
     return out
 

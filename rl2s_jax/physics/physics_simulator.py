@@ -41,7 +41,6 @@ from rl2s_jax.data.dataset import spread_rows
 from rl2s_jax.envs.tasks import TASKS, get_task
 from rl2s_jax.physics.calibrated import _theta_delays, physics_dynamics
 from rl2s_jax.physics.mjx_model import (
-    INTEGRATORS,
     PHYSICS_TASKS,
     PhysicsModel,
     delayed_actions,
@@ -139,12 +138,10 @@ def _read(source: str) -> dict:
 
 
 def _structure(c: dict, source: str) -> dict:
-    """A calibrated.json's changes of the model's structure, checked: {"integrator",
-    "collisions"} (physics_model's arguments)."""
+    """A calibrated.json's changes of the model's structure: {"integrator", "collisions"}
+    (physics_model's arguments; a bad integrator or geom name is its ValueError, given the
+    file's name by ``_build``)."""
     integrator, collisions = c.get("integrator"), c.get("collisions")
-    if integrator is not None and integrator not in INTEGRATORS:
-        raise ValueError(f"physics: {source}: integrator: expected one of "
-                         f"{', '.join(INTEGRATORS)} or null, got {integrator!r}")
     if collisions is not None and not (isinstance(collisions, dict) and all(
             isinstance(k, str) and isinstance(v, bool) for k, v in collisions.items())):
         raise ValueError(f"physics: {source}: collisions: expected {{geom name: true | "
@@ -178,7 +175,7 @@ def _model_of(c: dict, source: str, data_task: str | None) -> PhysicsModel:
 def _build(source: str, task: str | None, **kw) -> PhysicsModel:
     try:
         return physics_model(task, **kw)
-    except ValueError as e:  # a geom the model lacks
+    except ValueError as e:  # an integrator or a geom the model lacks
         raise ValueError(f"physics: {source}: {e}") from None
 
 

@@ -34,6 +34,12 @@
 #       Hopper's collection in control and nondeterministic where nondeterministic is asked
 #       for; $OUT/levers.tgz
 #       ({rl2s,bc,equal,collect}_<mode>.json), levers.log
+#   bash experiments/device.sh kernels [MODE ...]                 where a one-lane step's GPU
+#       time goes, kernel by kernel (experiments/kernel_trace.py): the equal-work, the
+#       adversarial and the likelihood step (one lane, then 6 vmapped) per MODE: control
+#       (as run), triton_any (--xla_gpu_triton_gemm_any), cublaslt (--xla_gpu_enable_cublaslt),
+#       no_cmdbuf (command buffers off), flat (flat_optimizer); default control no_cmdbuf
+#       flat; $OUT/kernels.tgz, kernels.log
 #   bash experiments/device.sh zoo TASK [TASK ...]                `rl2s zoo` side by side
 #       ([ZOO_LIMIT=320] [ZOO_TIMEOUT=530] [ZOO_ARGS_<task>="..."] [ZOO_EXPORT=1]
 #       [ZOO_IMPORT=DIR] [ZOO_MEM_FRACTION]; $OUT/zoo_<task>.tar, untar into
@@ -459,6 +465,49 @@ cmd_share() {
   )
 }
 
+cmd_kernels() {
+  # kernel_trace.py per MODE (XLA flags or a TrainConfig option) on the equal-work step
+  # (official sizes, one lane), the adversarial and the likelihood family's (one lane and
+  # 6 vmapped); $OUT/kernels.tgz (JSON per mode and step; raw traces where they fit)
+  local on=${XLA_FLAGS:-} mode flags step
+  local modes=("$@")
+  [ ${#modes[@]} -gt 0 ] || modes=(control no_cmdbuf flat)
+  for mode in "${modes[@]}"; do  # refused before any measurement
+    [[ " control triton_any cublaslt no_cmdbuf flat " == *" $mode "* ]] || {
+      echo "kernels: expected modes among control triton_any cublaslt no_cmdbuf flat, got" \
+        "$mode" >&2; return 2; }
+  done
+  local dir=$OUT/kernels
+  mkdir -p "$dir"
+  for mode in "${modes[@]}"; do
+    local set=()
+    case $mode in
+      control) flags=$on ;;
+      flat) flags=$on set=(--set flat_optimizer=true) ;;     # one clip and Adam per update
+      triton_any) flags="$on --xla_gpu_triton_gemm_any=true" ;;  # dots fused with neighbours
+      cublaslt) flags="$on --xla_gpu_enable_cublaslt=true" ;;    # bias+ReLU in the GEMM
+      no_cmdbuf) flags="$on --xla_gpu_enable_command_buffer=" ;;  # no CUDA graphs at all
+    esac
+    for step in equal rl2s bc rl2s6 bc6; do
+      local args=(--steps 3 ${set[@]+"${set[@]}"})
+      case $step in
+        equal) args+=(--official-sizes) ;;
+        bc) args+=(--method bc --steps 10) ;;
+        rl2s6) args+=(--vmap 6) ;;                                 # the protocol's 6 lanes
+        bc6) args+=(--method bc --steps 10 --vmap 6) ;;
+      esac
+      echo "== $mode $step: XLA_FLAGS='$flags'" | tee -a "$OUT/kernels.log"
+      XLA_FLAGS=$flags run_logged kernels.log python3 experiments/kernel_trace.py "${args[@]}" \
+        --out "$dir/${mode}_$step"
+    done
+  done
+  # the raw traces only where the pack stays under the 16-MiB limit on a file brought back
+  tar -czf "$OUT/kernels.tgz" -C "$OUT" kernels
+  [ "$(stat -c %s "$OUT/kernels.tgz")" -lt 15000000 ] \
+    || tar -czf "$OUT/kernels.tgz" -C "$OUT" --exclude='*.xplane.pb' --exclude='*.trace.json.gz' kernels
+  rm -rf "$dir"
+}
+
 cmd_run() {
   local log=${1:?usage: bash experiments/device.sh run LOG CMD...}
   shift
@@ -469,7 +518,7 @@ cmd_run() {
 sub=${1:-}
 shift || true
 case "$sub" in
-  paper|tasks|ablation|model_fit|control|race|levers|zoo|smoke|share|run|poll|waitdata) setup_env
+  paper|tasks|ablation|model_fit|control|race|levers|kernels|zoo|smoke|share|run|poll|waitdata) setup_env
       "cmd_$sub" "$@" ;;
   streams) [ $# -gt 0 ] || usage
            setup_env; cmd_streams "$@" ;;

@@ -1918,3 +1918,38 @@ def test_guard_calibration_by_hand(tmp_path):
     with pytest.raises(SystemExit, match="scales: expected"):
         gc.main(["--task", "hopper", "--validation", str(paths["val"]), "--scales", "-1",
                  "--out", str(out)])
+
+
+def test_device_kernels_runs_each_mode_and_step_and_refuses_an_unknown_mode(tmp_path):
+    """device.sh kernels: kernel_trace.py per (mode, step) with the mode's XLA flags or
+    --set; an unknown mode is refused before any run."""
+    import subprocess
+    import textwrap
+    bin_dir, events = tmp_path / "bin", tmp_path / "events"
+    bin_dir.mkdir()
+    (bin_dir / "nvidia-smi").write_text("#!/usr/bin/env bash\necho stub\n")
+    (bin_dir / "python3").write_text(textwrap.dedent(f"""\
+        #!/usr/bin/env bash
+        echo "XLA_FLAGS=$XLA_FLAGS $*" >> {events}
+        """))
+    for f in bin_dir.iterdir():
+        f.chmod(0o755)
+    (tmp_path / ".rl2s_wheels").touch()
+    env = {**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}",
+           "OUT": str(tmp_path / "out"), "RL2S_SITE": str(tmp_path)}
+
+    def run(*modes):
+        return subprocess.run(["bash", "experiments/device.sh", "kernels", *modes], cwd=ROOT,
+                              env=env, capture_output=True, text=True, timeout=60)
+
+    proc = run("control", "bogus")
+    assert proc.returncode == 2 and "bogus" in proc.stderr and not events.exists()
+    assert run("no_cmdbuf", "flat").returncode == 0
+    lines = events.read_text().splitlines()
+    assert len(lines) == 10 and all("experiments/kernel_trace.py" in x for x in lines)
+    assert all("--xla_gpu_enable_command_buffer= " in x for x in lines[:5])
+    assert all("--set flat_optimizer=true" in x and "command_buffer" not in x
+               for x in lines[5:])
+    assert sum("--official-sizes" in x for x in lines) == 2
+    assert sum("--vmap 6" in x for x in lines) == 4
+    assert (tmp_path / "out" / "kernels.tgz").exists()

@@ -279,12 +279,14 @@ def _fmt(x) -> str:
     return " ".join(f"{v:.8g}" for v in x)
 
 
-def model_differences(task: str, v5_model=None, *, rtol: float = 1e-6) -> list[dict]:
+def model_differences(task: str, v5_model=None, *, rtol: float = 1e-6,
+                      model=None) -> list[dict]:
     """What differs between the v5 env's compiled model and the MJX task's.
 
     -> rows ``{"quantity", "element", "mjx", "v5"}`` (values as strings; "absent" where an
     element exists in one model only). v5_model: ``env.unwrapped.model`` (default: a fresh
-    ``make_v5(task)``'s). Numbers equal within ``rtol`` are not listed.
+    ``make_v5(task)``'s); model: the ``mujoco.MjModel`` compared with it (default the MJX
+    task's, ``load_mj(task)``). Numbers equal within ``rtol`` are not listed.
     """
     import importlib  # local: keeps `import rl2s_jax.physics` light (brax below)
     import inspect  # local: as above
@@ -295,7 +297,7 @@ def model_differences(task: str, v5_model=None, *, rtol: float = 1e-6) -> list[d
 
     env = make_v5(task) if v5_model is None else None
     v5 = v5_model if env is None else env.unwrapped.model
-    mjx = load_mj(task)
+    mjx = load_mj(task) if model is None else model
     rows = []
 
     def differ(a, b) -> bool:

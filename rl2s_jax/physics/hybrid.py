@@ -54,9 +54,8 @@ from rl2s_jax.physics.calibrated import physics_dynamics
 from rl2s_jax.physics.mjx_model import (
     PhysicsModel,
     delayed_actions,
-    physics_model,
-    theta_by_labels,
 )
+from rl2s_jax.physics.physics_simulator import checked_model
 from rl2s_jax.physics.residuals import predict
 from rl2s_jax.train.checkpoint import load_checkpoint
 from rl2s_jax.train.config import TrainConfig
@@ -88,18 +87,10 @@ def read_calibrated(path: str) -> dict:
 def calibrated_model(content: dict) -> tuple[PhysicsModel, np.ndarray, np.ndarray]:
     """A calibrated.json's content -> (PhysicsModel, theta [K], delays [A]); its "integrator"
     and "collisions" (where the diagnosis changed the model's structure; files from before
-    have none)."""
-    pm = physics_model(content["task"], xml_path=content["xml"] if content["task"] is None
-                       else None, n_frames=content["n_frames"],
-                       integrator=content.get("integrator"),
-                       collisions=content.get("collisions"))
-    theta, labels = content["theta"], content.get("labels")
-    if labels is not None:
-        theta = theta_by_labels(pm, labels, theta)
-        if theta is None:
-            raise ValueError(f"physics: its theta labels {list(labels)[:3]}... are not this "
-                             f"model's candidate quantities; re-run `rl2s diagnose --physics`")
-    return pm, np.asarray(theta, np.float64), np.asarray(content["delays"], int)
+    have none). Every field checked as ``rl2s evaluate --physics`` checks it
+    (``physics_simulator.checked_model``)."""
+    pm, theta, delays = checked_model(content)
+    return pm, np.asarray(theta, np.float64), np.asarray(delays, int)
 
 
 def hybrid_config(cfg: TrainConfig, ds, content: dict | None = None) -> TrainConfig:

@@ -179,6 +179,15 @@ def _build(source: str, task: str | None, **kw) -> PhysicsModel:
         raise ValueError(f"physics: {source}: {e}") from None
 
 
+def checked_model(content: dict, source: str = "calibrated.json",
+                  data_task: str | None = None) -> tuple[PhysicsModel, tuple, tuple]:
+    """A calibrated.json's content -> (PhysicsModel with its structure, theta [K], delays
+    [A]), every field checked (ValueError naming ``source`` and the field); ``data_task``:
+    the data's task it must model (default the file's own)."""
+    pm = _model_of(content, source, content.get("task") if data_task is None else data_task)
+    return (pm, *_values(content, source, pm))
+
+
 def _values(c: dict, source: str, pm: PhysicsModel) -> tuple[tuple, tuple]:
     """(theta, delays) of a calibrated.json, checked against the model's candidates."""
     labels, theta = c.get("labels"), c.get("theta")

@@ -321,3 +321,24 @@ def test_calibrated_json_from_before_the_margin_candidates_still_loads(pm, tmp_p
     path.write_text(json.dumps({**content, "theta": None,
                                 "labels": [c.label for c in pm.candidates]}))
     assert not any(physics_simulator(str(path), "hopper").theta)
+
+
+def test_calibrated_model_checks_every_field_as_evaluate_does(pm):
+    """hybrid.calibrated_model loads through physics_simulator.checked_model: a bad field is
+    refused by name (before: a NaN theta or a bad n_frames went through to the model)."""
+    from rl2s_jax.physics.hybrid import calibrated_model
+
+    good = {"task": "hopper", "xml": pm.xml_path, "n_frames": pm.n_frames,
+            "theta": [0.0] * len(pm.candidates), "delays": [0, 0, 0],
+            "labels": [c.label for c in pm.candidates]}
+    cal, theta, delays = calibrated_model(good)
+    assert cal.n_frames == pm.n_frames and theta.shape == (len(pm.candidates),)
+    assert delays.tolist() == [0, 0, 0]
+    bad = {"theta": [float("nan")] * len(pm.candidates), "n_frames": 0,
+           "task": "no_such_task", "collisions": ["foot"], "delays": [0, 0]}
+    match = {"theta": "theta: expected finite", "n_frames": "n_frames: expected an int",
+             "task": "task: expected one of", "collisions": "collisions: expected",
+             "delays": "delays"}
+    for field, value in bad.items():
+        with pytest.raises(ValueError, match=match[field]):
+            calibrated_model({**good, field: value})

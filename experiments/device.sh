@@ -8,8 +8,9 @@
 #   bash experiments/device.sh paper TASK [paper.py args]        the protocol for one task
 #       ([LIMIT=585]: paper.py stopped after LIMIT s; $OUT/<task>.json, paper_<task>.log)
 #   bash experiments/device.sh tasks "TASK ..."|T1,T2 [paper.py args]  tasks over the
-#       GPUs as (task, family) units (experiments/paper_all.sh; LIMIT=560 per process, 900
-#       where two share one GPU (PAPER_PER_GPU auto with one GPU and two tasks or more);
+#       GPUs as (task, family) units (experiments/paper_all.sh; LIMIT=560 per process, 450 x
+#       k where k share one GPU (paper_schedule's per_gpu_count: PAPER_PER_GPU, auto 2 with
+#       one GPU and two tasks or more);
 #       $OUT/results.tgz; RL2S_MPS=1: under NVIDIA's MPS, started first if not running)
 #   bash experiments/device.sh jobs "GPU NAME AFTER args" ...     paper.py jobs side by side,
 #       one GPU each, a job waiting for AFTER's data phase ("-": none); LIMIT=570 for all;
@@ -130,10 +131,14 @@ cmd_tasks() {
   export TASKS=${tasks//,/ }  # "hopper walker2d" or hopper,walker2d (a streams word)
   shift
   if [ "${RL2S_MPS:-0}" = 1 ]; then start_mps || return 1; fi
-  # 560 s for a paper.py alone; two sharing one GPU (PAPER_PER_GPU auto there) take ~1.55x
-  local limit=560 n_gpu=${RL2S_GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')}
-  if [ "${PAPER_PER_GPU:-auto}" != 1 ] && [ "$n_gpu" = 1 ] && [ "$(wc -w <<< "$TASKS")" -gt 1 ]
-  then limit=900; fi
+  # 560 s for a paper.py alone; k sharing one GPU (paper_schedule's per_gpu_count: 2 on one
+  # GPU with two tasks or more) each take ~0.8k as long: 450 s per process sharing the GPU
+  local n_gpu=${RL2S_GPUS:-$(nvidia-smi -L 2>/dev/null | grep -c '^GPU')} per limit
+  per=$(python3 -c "import sys; sys.path.insert(0, 'experiments')
+from paper_schedule import per_gpu_count
+print(per_gpu_count(sys.argv[1], int(sys.argv[2]), int(sys.argv[3])))" \
+    "${PAPER_PER_GPU:-auto}" "$n_gpu" "$(wc -w <<< "$TASKS")") || return 2
+  if [ "$per" = 1 ]; then limit=560; else limit=$((450 * per)); fi
   PY="timeout ${LIMIT:-$limit} python3" DATA_DIR=$W bash experiments/paper_all.sh $OUT/res \
     --profile gpu "$@"
   tail -n 30 $OUT/res/paper_*.log

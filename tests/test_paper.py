@@ -3,6 +3,7 @@ smoke run of experiments/paper.py on Hopper at absurdly small sizes."""
 import dataclasses
 import json
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -1193,8 +1194,9 @@ def _run_device_jobs(tmp_path, *specs, fail_name="", limit=30):
 
 
 def test_device_tasks_gives_two_processes_on_one_gpu_more_time(tmp_path):
-    """device.sh tasks: each paper.py is cut at 560 s alone, at 900 where two share one GPU
-    (PAPER_PER_GPU auto, one GPU, two tasks: each takes ~1.55x as long); LIMIT overrides."""
+    """device.sh tasks: each paper.py is cut at 560 s alone, at 450 s x k where k share one
+    GPU (paper_schedule.per_gpu_count's rule: auto is 2 on one GPU with two tasks; each then
+    takes ~1.55x as long); LIMIT overrides; a bad PAPER_PER_GPU is refused."""
     import subprocess
     import textwrap
 
@@ -1202,6 +1204,7 @@ def test_device_tasks_gives_two_processes_on_one_gpu_more_time(tmp_path):
     bin_dir.mkdir()
     (bin_dir / "python3").write_text(textwrap.dedent(f"""\
         #!/usr/bin/env bash
+        [ "$1" = -c ] && exec {sys.executable} "$@"  # the per-GPU rule: paper_schedule's
         [ "$1" = experiments/paper_schedule.py ] && echo "$*" >> {events}
         exit 0
         """))
@@ -1224,6 +1227,16 @@ def test_device_tasks_gives_two_processes_on_one_gpu_more_time(tmp_path):
     assert py_of("hopper,walker2d", RL2S_GPUS="2") == "timeout 560 python3"
     assert py_of("hopper,walker2d", RL2S_GPUS="1", PAPER_PER_GPU="1") == "timeout 560 python3"
     assert py_of("hopper,walker2d", RL2S_GPUS="1", LIMIT="700") == "timeout 700 python3"
+    # paper_schedule's own rule, not a copy: k processes per GPU as asked, wherever
+    assert py_of("hopper,walker2d", RL2S_GPUS="2", PAPER_PER_GPU="2") == "timeout 900 python3"
+    assert py_of("hopper,walker2d,ant", RL2S_GPUS="1", PAPER_PER_GPU="3") == \
+        "timeout 1350 python3"
+    proc = subprocess.run(["bash", "experiments/device.sh", "tasks", "hopper"], cwd=ROOT,
+                          env={**os.environ, "PATH": f"{bin_dir}:{os.environ['PATH']}",
+                               "OUT": str(tmp_path / "out"), "RL2S_SITE": str(tmp_path),
+                               "RL2S_GPUS": "1", "PAPER_PER_GPU": "0"},
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "per-gpu: expected auto or a whole number" in proc.stderr
 
 
 def test_device_jobs_runs_side_by_side_and_waits_for_the_data(tmp_path):

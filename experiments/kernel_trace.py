@@ -11,6 +11,7 @@ gaps between them).
 
     python experiments/kernel_trace.py [--official-sizes] [--method rl2s|bc] [--vmap N]
         [--set KEY=VALUE ...] [--steps 3] --out DIR
+    python experiments/kernel_trace.py --plot TITLE=DIR/kernel_trace.json ... --out FIG.png
 
 DIR gets ``trace/`` (the raw ``*.xplane.pb``, to read again with ``--read DIR``) and
 ``kernel_trace.json``. The data are bench_train.py's random rows of Hopper's shapes.
@@ -19,6 +20,7 @@ from __future__ import annotations
 
 import argparse
 import glob
+import json
 import os
 import sys
 import time
@@ -185,6 +187,30 @@ def trace(cfg: TrainConfig, n_steps: int, runs: int, directory: str) -> dict:
             "traced_step_ms": 1e3 * traced / n_steps}
 
 
+def plot_timelines(results: list[tuple[str, dict]], path: str) -> str:
+    """One row per (title, kernel_trace.json content): its kept timeline as bars on a shared
+    microsecond axis, GEMMs dark, other kernels light, idle white."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colors = {"gemm": "#1f4e79", "other": "#9ecae1", "memcpy": "#fdae6b"}
+    fig, axes = plt.subplots(len(results), 1, figsize=(11, 1.3 + 1.1 * len(results)),
+                             squeeze=False)
+    for ax, (title, res) in zip(axes[:, 0], results, strict=True):
+        for name, start, dur in res["timeline"]:
+            ax.barh(0, dur, left=start, height=0.8, color=colors[kind_of(name)], lw=0)
+        ax.set(yticks=[], title=f"{title}: {res['kernels_per_update']:.0f} kernels per update, "
+               f"GPU busy {res['busy_fraction']:.0%}", xlim=(0, None))
+        ax.title.set_fontsize(9)
+    axes[-1, 0].set_xlabel("microseconds (150 consecutive kernels from mid-step; dark: GEMMs, "
+                           "light: other fusions)")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--method", choices=("rl2s", "bc"), default="rl2s")
@@ -195,7 +221,20 @@ def main(argv=None) -> int:
     ap.add_argument("--set", action="append", metavar="KEY=VALUE")
     ap.add_argument("--out", required=True, help="directory for trace/ and kernel_trace.json")
     ap.add_argument("--read", action="store_true", help="only read OUT's trace again")
+    ap.add_argument("--plot", nargs="+", metavar="TITLE=JSON", help="only draw the timelines "
+                    "of these kernel_trace.json files into OUT (a PNG path)")
     args = ap.parse_args(argv)
+    if args.plot:
+        pairs = [p.split("=", 1) for p in args.plot]
+        if any(len(p) != 2 or not os.path.isfile(p[1]) for p in pairs):
+            raise SystemExit("kernel_trace.py: --plot: expected TITLE=JSON with an existing "
+                             f"kernel_trace.json each, got {args.plot}")
+        results = []
+        for title, path in pairs:
+            with open(path) as f:
+                results.append((title, json.load(f)))
+        print(plot_timelines(results, args.out))
+        return 0
     if args.steps < 1 or args.vmap < 1:
         raise SystemExit("kernel_trace.py: --steps and --vmap must be at least 1")
     cfg = config(args)

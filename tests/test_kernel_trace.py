@@ -89,3 +89,16 @@ def test_bad_arguments_are_refused_before_any_work(tmp_path):
         kt.main(["--set", "no_such_key=1", "--out", str(tmp_path)])
     with pytest.raises(SystemExit, match="no \\*.xplane.pb"):
         kt.main(["--read", "--out", str(tmp_path)])
+
+
+def test_plot_draws_the_timelines_and_refuses_a_missing_file(tmp_path):
+    events = [("sm90_xmma_gemm", 0, 5000), ("loop_add_fusion", 5200, 1500),
+              ("input_reduce_fusion", 7000, 1200)]
+    res = kt.summarise(events, n_steps=1, updates_per_step=1)
+    path = tmp_path / "k.json"
+    path.write_text(json.dumps(res))
+    fig = tmp_path / "t.png"
+    assert kt.main(["--out", str(fig), "--plot", f"one update={path}"]) == 0
+    assert fig.stat().st_size > 1000 and fig.read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(SystemExit, match="--plot: expected TITLE=JSON"):
+        kt.main(["--out", str(fig), "--plot", f"x={tmp_path / 'missing.json'}"])

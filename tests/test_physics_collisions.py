@@ -104,7 +104,7 @@ def test_report_says_when_a_drop_lies_in_few_episodes():
     assert _drop_episodes(before, dict.fromkeys(range(4), 1.5)) == [0, 4]  # no drop
 
     assert _kept({"significant": False, "drop_episodes": [2, 25]}) == (
-        "no: 90% of its drop is in 2 of 25 test episodes (more such data decides)")
+        "no: 90% of its drop is in 2 of 25 test episodes (more episodes where it acts decide)")
     assert _kept({"significant": False, "drop_episodes": [20, 25]}) == "no"
     assert _kept({"significant": True, "drop_episodes": [2, 25]}) == "yes"
     assert _kept({"significant": False}) == "no"  # a report from before the field

@@ -121,7 +121,8 @@ def _kept(p: dict) -> str:
     few, total = p.get("drop_episodes") or (0, 0)
     if p["significant"] or not 0 < few < total / 2:
         return "yes" if p["significant"] else "no"
-    return f"no: 90% of its drop is in {few} of {total} test episodes (more such data decides)"
+    return (f"no: 90% of its drop is in {few} of {total} test episodes (more episodes where "
+            f"it acts decide)")
 
 
 def plot_physics(out_dir: str, nominal: dict, calibrated: dict) -> list[str]:

@@ -173,18 +173,25 @@ def matmul_rate(n: int) -> float:
     return 2 * n**3 / timed(f, a, repeats=5)
 
 
-def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
-    """Time ``steps`` train_steps; ``runs`` > 1 vmaps that many seeds as one program and
-    reports their summed throughput."""
+def step_program(cfg: TrainConfig, P: int, steps: int, runs: int = 1):
+    """The jitted call of ``steps`` train_steps on fake_data(P) and its start state: one
+    run plain, ``runs`` > 1 seeds vmapped (a vmap of one lane is another, slower program).
+    -> (run, state)."""
     heldout = cfg.holdout_rows if cfg.holdout_frac else 0
     data = fake_data(P, heldout_rows=heldout)
     if runs == 1:
         state = jax.jit(init, static_argnums=1)(jax.random.PRNGKey(0), cfg, data)
-        run = jax.jit(lambda s: train_steps(s, data, steps)[0])
-    else:
-        keys = jax.random.split(jax.random.PRNGKey(0), runs)
-        state = jax.jit(jax.vmap(lambda k: init(k, cfg, data)))(keys)
-        run = jax.jit(jax.vmap(lambda s: train_steps(s, data, steps)[0]))
+        return jax.jit(lambda s: train_steps(s, data, steps)[0]), state
+    keys = jax.random.split(jax.random.PRNGKey(0), runs)
+    state = jax.jit(jax.vmap(lambda k: init(k, cfg, data)))(keys)
+    return jax.jit(jax.vmap(lambda s: train_steps(s, data, steps)[0])), state
+
+
+def bench(cfg: TrainConfig, P: int, steps: int, runs: int = 1) -> dict:
+    """Time ``steps`` train_steps; ``runs`` > 1 vmaps that many seeds as one program and
+    reports their summed throughput."""
+    heldout = cfg.holdout_rows if cfg.holdout_frac else 0
+    run, state = step_program(cfg, P, steps, runs)
     t0 = time.perf_counter()
     jax.block_until_ready(run(state))
     compile_s = time.perf_counter() - t0

@@ -29,12 +29,11 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_train import OFFICIAL_SIZES, fake_data  # noqa: E402
+from bench_train import OFFICIAL_SIZES, step_program  # noqa: E402
 
 from rl2s_jax._files import write_json  # noqa: E402
 from rl2s_jax.app.training import parse_overrides  # noqa: E402
 from rl2s_jax.train.config import TrainConfig  # noqa: E402
-from rl2s_jax.train.step import init, train_steps  # noqa: E402
 
 # host thunks that hold other thunks (their time is their children's) or mark an end
 CONTAINERS = ("end:", "while", "conditional", "call")
@@ -162,15 +161,7 @@ def config(args: argparse.Namespace) -> TrainConfig:
 
 def trace(cfg: TrainConfig, n_steps: int, runs: int, directory: str) -> dict:
     """Compile, time (best of 3) and trace one call of ``n_steps`` train_steps."""
-    heldout = cfg.holdout_rows if cfg.holdout_frac else 0
-    data = fake_data(17, heldout_rows=heldout)
-    if runs == 1:  # not vmapped: a vmap of one lane is another (slower) program
-        state = jax.jit(init, static_argnums=1)(jax.random.PRNGKey(0), cfg, data)
-        run = jax.jit(lambda s: train_steps(s, data, n_steps)[0])
-    else:
-        keys = jax.random.split(jax.random.PRNGKey(0), runs)
-        state = jax.jit(jax.vmap(lambda k: init(k, cfg, data)))(keys)
-        run = jax.jit(jax.vmap(lambda s: train_steps(s, data, n_steps)[0]))
+    run, state = step_program(cfg, 17, n_steps, runs)
     t0 = time.perf_counter()
     jax.block_until_ready(run(state))
     compile_s = time.perf_counter() - t0

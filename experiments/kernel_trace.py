@@ -31,7 +31,7 @@ import jax  # noqa: E402
 import numpy as np  # noqa: E402
 from bench_train import OFFICIAL_SIZES, step_program  # noqa: E402
 
-from rl2s_jax._files import write_json  # noqa: E402
+from rl2s_jax._files import save_figure, write_json  # noqa: E402
 from rl2s_jax.app.training import parse_overrides  # noqa: E402
 from rl2s_jax.train.config import TrainConfig  # noqa: E402
 
@@ -197,7 +197,7 @@ def plot_timelines(results: list[tuple[str, dict]], path: str) -> str:
     axes[-1, 0].set_xlabel("microseconds (150 consecutive kernels from mid-step; dark: GEMMs, "
                            "light: other fusions)")
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    save_figure(fig, path, dpi=110)
     plt.close(fig)
     return path
 

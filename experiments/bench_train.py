@@ -236,27 +236,35 @@ def build_parser() -> argparse.ArgumentParser:
     return ap
 
 
+def bench_config(method: str, profile: str, official_sizes: bool, sets,
+                 script: str = "bench_train.py") -> TrainConfig:
+    """The timed step's config: paper sizes (profile "gpu") or TrainConfig.small(), Hopper,
+    ``method`` (rl2s: pre-training and the critic warm-up off, so that the adversarial step
+    itself is timed, not the MLE pre-training that precedes it in a run), then
+    OFFICIAL_SIZES and the --set overrides, validated (SystemExit naming ``script``)."""
+    phase = ({"adversarial.pretrain_steps": 0, "adversarial.disc_warmup_steps": 0}
+             if method == "rl2s" else {})
+    base = TrainConfig() if profile == "gpu" else TrainConfig.small()
+    cfg = base.override({"task": "hopper", "method": method, **phase})
+    if official_sizes:
+        cfg = cfg.override(OFFICIAL_SIZES)
+    try:
+        return cfg.override(parse_overrides(sets), "--set").validate()
+    except ValueError as err:
+        raise SystemExit(f"{script}: {err}") from None
+
+
 def planned_rows(args: argparse.Namespace, profile: str):
     """The rows to time: the profile's config with --official-sizes and --set, and per row
     (part, config, P, vmapped runs), every config validated before any measurement.
     -> (config, rows, steps per timed call, matmul size of the rate measurement)."""
-    # the adversarial step itself, not the MLE pre-training that precedes it in a run
-    phase = ({"adversarial.pretrain_steps": 0, "adversarial.disc_warmup_steps": 0}
-             if args.method == "rl2s" else {})
+    cfg = bench_config(args.method, profile, args.official_sizes, args.set)
     if profile == "gpu":
-        cfg = TrainConfig().override({"task": "hopper", "method": args.method, **phase})
         policies, horizons, sims = [4, 17, 64, 256], [250, 4000], [64]
         steps, mm, vmaps = 10, 8192, [8]
     else:
-        cfg = TrainConfig.small().override({"task": "hopper", "method": args.method, **phase})
         policies, horizons, sims = [4, 17], [400], [16]
         steps, mm, vmaps = 5, 1024, [2]
-    if args.official_sizes:
-        cfg = cfg.override(OFFICIAL_SIZES)
-    try:
-        cfg = cfg.override(parse_overrides(args.set), "--set").validate()
-    except ValueError as err:
-        raise SystemExit(f"bench_train.py: {err}") from None
     policies = policies if args.policies is None else args.policies
     horizons = horizons if args.horizons is None else args.horizons
     sims = sims if args.sim_steps is None else args.sim_steps

@@ -29,10 +29,9 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import jax  # noqa: E402
 import numpy as np  # noqa: E402
-from bench_train import OFFICIAL_SIZES, step_program  # noqa: E402
+from bench_train import bench_config, step_program  # noqa: E402
 
 from rl2s_jax._files import save_figure, write_json  # noqa: E402
-from rl2s_jax.app.training import parse_overrides  # noqa: E402
 from rl2s_jax.train.config import TrainConfig  # noqa: E402
 
 # host thunks that hold other thunks (their time is their children's) or mark an end
@@ -147,16 +146,8 @@ def updates_per_step(cfg: TrainConfig) -> int:
 
 def config(args: argparse.Namespace) -> TrainConfig:
     """bench_train.py's config for the device: paper sizes on a GPU, small elsewhere."""
-    phase = ({"adversarial.pretrain_steps": 0, "adversarial.disc_warmup_steps": 0}
-             if args.method == "rl2s" else {})
-    base = TrainConfig() if jax.default_backend() == "gpu" else TrainConfig.small()
-    cfg = base.override({"task": "hopper", "method": args.method, **phase})
-    if args.official_sizes:
-        cfg = cfg.override(OFFICIAL_SIZES)
-    try:
-        return cfg.override(parse_overrides(args.set), "--set").validate()
-    except ValueError as err:
-        raise SystemExit(f"kernel_trace.py: {err}") from None
+    profile = "gpu" if jax.default_backend() == "gpu" else "cpu"
+    return bench_config(args.method, profile, args.official_sizes, args.set, "kernel_trace.py")
 
 
 def trace(cfg: TrainConfig, n_steps: int, runs: int, directory: str) -> dict:

@@ -94,8 +94,9 @@ LADDERS = {
 }
 
 
-def rung_model(task: str, xml: str):
-    """The task's PhysicsModel with the compiled ``xml`` (an edit of its XML) in its place."""
+def rung_model(task_model, xml: str):
+    """The task's PhysicsModel ``task_model`` with the compiled ``xml`` (an edit of its XML)
+    in its place (its frame count and observation convention kept)."""
     import dataclasses
 
     import mujoco
@@ -104,7 +105,7 @@ def rung_model(task: str, xml: str):
     from rl2s_jax.physics.mjx_model import candidates_of
 
     mj = mujoco.MjModel.from_xml_string(xml)
-    return dataclasses.replace(physics_model(task), mj=mj, mjx_model=mjx.put_model(mj),
+    return dataclasses.replace(task_model, mj=mj, mjx_model=mjx.put_model(mj),
                                candidates=candidates_of(mj))
 
 
@@ -133,9 +134,9 @@ def ladder(task: str, ds, k: int = 10, log=print) -> tuple[list[dict], list[dict
     last rung)."""
     from rl2s_jax.physics.gymnasium_v5 import model_differences
 
-    rows, pm = [], None
+    rows, nominal = [], physics_model(task)
     for i, (label, xml) in enumerate(rung_xmls(task)):
-        pm = physics_model(task) if i == 0 else rung_model(task, xml)
+        pm = nominal if i == 0 else rung_model(nominal, xml)
         rows.append({"rung": label, **errors_of(pm, ds, k)})
         log(f"  {label:<40} one-step {rows[-1]['one_step']:.3g}", flush=True)
     return rows, model_differences(task, model=pm.mj)
